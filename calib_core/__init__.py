@@ -1,0 +1,1 @@
+"""Pure numerics of mimucal: models, estimators, simulator, diagnostics. No file or network I/O."""

@@ -1,0 +1,91 @@
+"""The calibration a firmware engineer loads: raw outputs -> deg/s and g.
+
+    w = K_g G + w0 - e_gyro(w, f, ...)        f = K_a A + f0 - e_accel(w, f, ...)
+
+The affine part is xu2016 eq. 1-2 (no matrix inverse at run time); ``terms`` are optional
+catalogue effects (:mod:`calib_core.effect_terms`) whose estimated error is subtracted. Every
+calibration type mimucal produces (turntable, Ferraris, reference-free field calibration) is
+expressed in this one form, so one ``apply`` serves them all. Serialisation lives in
+``schemas.calibration_file``; this module is pure.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from calib_core.effects import MotionContext, get_effect
+
+
+@dataclass(frozen=True)
+class TermValue:
+    """An extension term with its estimated parameters."""
+
+    name: str  # catalogue name
+    params: np.ndarray
+    stderr: np.ndarray | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        term = get_effect(self.name)
+        return {
+            "name": self.name,
+            "params": {n: float(v) for n, v in zip(term.param_names, self.params)},
+            "stderr": None if self.stderr is None else
+            {n: float(v) for n, v in zip(term.param_names, self.stderr)},
+            "units": dict(zip(term.param_names, term.param_units)),
+        }
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Affine calibration of both sensors plus optional extension terms."""
+
+    K_g: np.ndarray  # deg/s per raw gyro unit
+    w0: np.ndarray  # deg/s
+    K_a: np.ndarray  # g per raw accel unit
+    f0: np.ndarray  # g
+    gyro_unit: str = "deg/s"  # raw unit the matrices expect (after boundary conversion)
+    accel_unit: str = "g"
+    terms: tuple[TermValue, ...] = ()
+    g_local: float = 9.80665
+    kind: str = "turntable"  # turntable | ferraris | field
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def apply_affine(self, G: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        G = np.atleast_2d(G)
+        A = np.atleast_2d(A)
+        return G @ self.K_g.T + self.w0, A @ self.K_a.T + self.f0
+
+    def apply(self, G: np.ndarray, A: np.ndarray, dwdt: np.ndarray | None = None,
+              temp_c: np.ndarray | None = None, t: np.ndarray | None = None,
+              iterations: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """Calibrated rate (deg/s) and specific force (g), rows of raw samples or step means.
+
+        Extension terms depend on the true motion, which is estimated by the affine part and
+        refined by a fixed-point iteration (terms are small: two iterations reach noise)."""
+        w, f = self.apply_affine(G, A)
+        if not self.terms:
+            return w, f
+        w_aff, f_aff = w, f
+        for _ in range(iterations):
+            ctx = MotionContext.from_refs(w, f, temp_c=temp_c, t=t, dwdt=dwdt, g_local=self.g_local)
+            err = np.zeros((len(w), 6))
+            for tv in self.terms:
+                err += get_effect(tv.name).error(ctx, tv.params)
+            w, f = w_aff - err[:, :3], f_aff - err[:, 3:]
+        return w, f
+
+    def predict_raw(self, w: np.ndarray, f: np.ndarray, dwdt=None, temp_c=None, t=None
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """The calibration run as a simulation: raw outputs it expects for a motion."""
+        w = np.atleast_2d(w)
+        f = np.atleast_2d(f)
+        sensed = np.hstack([w, f])
+        if self.terms:
+            ctx = MotionContext.from_refs(w, f, temp_c=temp_c, t=t, dwdt=dwdt, g_local=self.g_local)
+            for tv in self.terms:
+                sensed = sensed + get_effect(tv.name).error(ctx, tv.params)
+        G = np.linalg.solve(self.K_g, (sensed[:, :3] - self.w0).T).T
+        A = np.linalg.solve(self.K_a, (sensed[:, 3:] - self.f0).T).T
+        return G, A

@@ -1,0 +1,111 @@
+"""Result types shared by every estimator: named parameters with units and standard errors,
+per-repetition calibrations and their aggregate over repetitions (xu2016 Tables 1 and 2)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Protocol, runtime_checkable
+
+import numpy as np
+
+FORMAT_VERSION = "1.0"
+
+
+@dataclass(frozen=True)
+class Param:
+    """One estimated scalar: model it belongs to, name, value, standard error, unit."""
+
+    model: str
+    name: str
+    value: float
+    stderr: float
+    unit: str
+
+
+@runtime_checkable
+class FitResult(Protocol):
+    """What every estimator returns: it can list its parameters and serialise itself."""
+
+    model: str
+
+    def parameters(self) -> list[Param]: ...
+
+    def to_dict(self) -> dict[str, Any]: ...
+
+
+def matrix_params(model: str, prefix: str, M: np.ndarray, S: np.ndarray, unit: str) -> list[Param]:
+    """Params ``prefix11 .. prefix33`` of a 3x3 matrix (paper numbering, row-major)."""
+    return [Param(model, f"{prefix}{i + 1}{j + 1}", float(M[i, j]), float(S[i, j]), unit)
+            for i in range(3) for j in range(3)]
+
+
+def vector_params(model: str, names: Iterable[str], v: np.ndarray, s: np.ndarray,
+                  unit: str) -> list[Param]:
+    return [Param(model, n, float(a), float(b), unit) for n, a, b in zip(names, v, s)]
+
+
+@dataclass
+class RepetitionCalibration:
+    """All fits of one session (lot/unit/rep), keyed by model name."""
+
+    lot: str
+    unit: str
+    rep: int
+    fits: dict[str, FitResult] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def parameters(self) -> list[Param]:
+        return [p for fit in self.fits.values() for p in fit.parameters()]
+
+
+@dataclass(frozen=True)
+class ParamSummary:
+    """A parameter across repetitions: the 'Average' column of xu2016 Tables 1-2 and spread."""
+
+    model: str
+    name: str
+    unit: str
+    mean: float
+    std: float
+    min: float
+    max: float
+    n_reps: int
+    values: tuple[float, ...]  # per repetition, in rep order (the 'Number 1..5' columns)
+    mean_stderr: float  # mean of the per-repetition standard errors
+
+
+def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
+    """Mean, sample std (ddof=1), min, max over repetitions of every parameter."""
+    by_key: dict[tuple[str, str], list[Param]] = {}
+    for rep in sorted(reps, key=lambda r: r.rep):
+        for p in rep.parameters():
+            by_key.setdefault((p.model, p.name), []).append(p)
+    out = []
+    for (model, name), ps in by_key.items():
+        v = np.array([p.value for p in ps])
+        s = np.array([p.stderr for p in ps])
+        out.append(ParamSummary(
+            model=model, name=name, unit=ps[0].unit, mean=float(v.mean()),
+            std=float(v.std(ddof=1)) if len(v) > 1 else float("nan"),
+            min=float(v.min()), max=float(v.max()), n_reps=len(v), values=tuple(v.tolist()),
+            mean_stderr=float(np.nanmean(s)) if np.isfinite(s).any() else float("nan"),
+        ))
+    return out
+
+
+@dataclass
+class UnitCalibration:
+    """A unit's repetitions and their aggregate."""
+
+    lot: str
+    unit: str
+    reps: list[RepetitionCalibration]
+    summary: list[ParamSummary] = field(default_factory=list)
+
+    @classmethod
+    def from_reps(cls, lot: str, unit: str, reps: list[RepetitionCalibration]) -> "UnitCalibration":
+        reps = sorted(reps, key=lambda r: r.rep)
+        return cls(lot=lot, unit=unit, reps=reps, summary=summarise(reps))
+
+    def summary_of(self, model: str) -> dict[str, ParamSummary]:
+        return {s.name: s for s in self.summary if s.model == model}

@@ -1,0 +1,98 @@
+"""Per-step averages of one session: the boundary between reading data and fitting models.
+
+Everything in ``calib_core`` consumes :class:`StepMeans`; ``schemas.averaging`` produces it
+from raw Parquet, and ``calib_core.simulator.simulate_step_means`` produces it directly (fast
+path for Monte Carlo tests). Only *usable* steps are in it: saturated or too-short steps were
+already removed and named as warnings by the producer.
+
+Units inside: gyro channels are either ``deg/s`` (rad/s is converted at the boundary) or a raw
+unit (``LSB``, ``V``) that the fitted matrices absorb; accelerometer channels are ``g``
+(m/s^2 converted with the session's local gravity) or raw. References are always deg/s and g.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+TESTS = ("stationary", "multirate", "multiposition", "dynamic", "verification")
+UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
+GYRO_UNITS = ("deg/s", "LSB", "V")  # after boundary conversion (rad/s -> deg/s)
+ACCEL_UNITS = ("g", "LSB", "V")  # after boundary conversion (m/s^2 -> g)
+
+
+@dataclass(frozen=True)
+class SessionKey:
+    """Identity of one session (one lot/unit/rep directory)."""
+
+    lot: str
+    unit: str
+    rep: int
+
+    def __str__(self) -> str:  # used verbatim in every error message
+        return f"lot={self.lot}/unit={self.unit}/rep={self.rep}"
+
+
+@dataclass(frozen=True)
+class StepMeans:
+    """Averaged sensor outputs and nominal references, one row per usable step.
+
+    Arrays are aligned on the first axis (n steps). ``gyro``/``accel`` are the mean raw
+    outputs after boundary unit conversion; ``*_std`` the within-step sample standard
+    deviation; ``count`` the number of samples averaged (after settling).
+    """
+
+    key: SessionKey
+    step: np.ndarray  # (n,) int
+    test: np.ndarray  # (n,) str, one of TESTS
+    up_axis: np.ndarray  # (n,) str, one of UP_AXES
+    rate_dps: np.ndarray  # (n,) commanded table rate, deg/s
+    angle_deg: np.ndarray  # (n,) multiposition angle, NaN otherwise
+    w_ref: np.ndarray  # (n, 3) nominal body rate, deg/s
+    f_ref: np.ndarray  # (n, 3) nominal specific force at rotation centre, g
+    gyro: np.ndarray  # (n, 3) mean raw gyro output
+    accel: np.ndarray  # (n, 3) mean raw accelerometer output
+    gyro_std: np.ndarray  # (n, 3) within-step sample std
+    accel_std: np.ndarray  # (n, 3)
+    count: np.ndarray  # (n,) samples averaged
+    t_mid: np.ndarray  # (n,) mid time of the averaged window, s since session start
+    temp_c: np.ndarray  # (n,) mean temperature, NaN when not recorded
+    gyro_unit: str = "deg/s"
+    accel_unit: str = "g"
+    g_local: float = 9.80665
+    sample_rate_hz: float = 100.0
+    gyro_range_dps: tuple[float, float, float] = (300.0, 300.0, 3600.0)
+    accel_range_g: tuple[float, float, float] = (50.0, 50.0, 50.0)
+    metadata: dict[str, Any] = field(default_factory=dict)  # provenance (session_start, ...)
+
+    def __post_init__(self) -> None:
+        n = len(self.step)
+        for name in ("test", "up_axis", "rate_dps", "angle_deg", "count", "t_mid", "temp_c"):
+            if len(getattr(self, name)) != n:
+                raise ValueError(f"StepMeans.{name} has {len(getattr(self, name))} rows, expected {n}")
+        for name in ("w_ref", "f_ref", "gyro", "accel", "gyro_std", "accel_std"):
+            if getattr(self, name).shape != (n, 3):
+                raise ValueError(f"StepMeans.{name} has shape {getattr(self, name).shape}, expected ({n}, 3)")
+
+    def __len__(self) -> int:
+        return len(self.step)
+
+    def select(self, mask: np.ndarray) -> "StepMeans":
+        """Rows where ``mask`` is true (boolean array or index array)."""
+        idx = np.asarray(mask)
+        arrays = {
+            name: getattr(self, name)[idx]
+            for name in (
+                "step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref", "gyro",
+                "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c",
+            )
+        }
+        return replace(self, **arrays)
+
+    def of_test(self, *tests: str) -> "StepMeans":
+        return self.select(np.isin(self.test, tests))
+
+    @property
+    def has_temperature(self) -> bool:
+        return bool(np.isfinite(self.temp_c).any())

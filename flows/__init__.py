@@ -1,0 +1,1 @@
+"""Prefect flows, tasks and the ``mimucal`` command line. Orchestration only."""

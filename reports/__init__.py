@@ -1,0 +1,1 @@
+"""Self-contained HTML reports (plotly), built from the results store only."""

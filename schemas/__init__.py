@@ -1,0 +1,1 @@
+"""The data contract: Parquet schemas, validation, reading sessions, results tables."""
