@@ -48,6 +48,7 @@ class MimuTruth:
     w0: np.ndarray = field(default_factory=lambda: np.zeros(3))  # deg/s
     K_a: np.ndarray = field(default_factory=lambda: np.eye(3))
     f0: np.ndarray = field(default_factory=lambda: np.zeros(3))  # g
+    # noise parameters: a scalar (all axes) or a per-axis 3-vector
     gyro_noise_dps: float = 0.05  # white, per sample
     gyro_bias_instability_dps: float = 0.003  # random per step
     gyro_bias_repeatability_dps: float = 0.0  # random per repetition
@@ -125,8 +126,8 @@ def draw_repetition_truth(truth: MimuTruth, rng: np.random.Generator) -> MimuTru
     """The unit as it is on one repetition: biases moved by turn-on repeatability."""
     return replace(
         truth,
-        w0=truth.w0 + rng.normal(0, truth.gyro_bias_repeatability_dps, 3),
-        f0=truth.f0 + rng.normal(0, truth.accel_bias_repeatability_g, 3),
+        w0=truth.w0 + rng.normal(0.0, 1.0, 3) * _vec3(truth.gyro_bias_repeatability_dps),
+        f0=truth.f0 + rng.normal(0.0, 1.0, 3) * _vec3(truth.accel_bias_repeatability_g),
     )
 
 
@@ -152,11 +153,19 @@ def _step_context(truth: MimuTruth, steps: pd.DataFrame, t_mid: np.ndarray) -> M
     return MotionContext.from_refs(w, f, temp_c=temp, t=t_mid, g_local=truth.g_local)
 
 
+def _vec3(x) -> np.ndarray:
+    """Noise parameters are scalars or per-axis 3-vectors."""
+    return np.broadcast_to(np.asarray(x, dtype=float), (3,))
+
+
+def _white_sd(truth: MimuTruth) -> np.ndarray:
+    return np.concatenate([_vec3(truth.gyro_noise_dps), _vec3(truth.accel_noise_g)])
+
+
 def _step_offsets(truth: MimuTruth, n_steps: int, rng: np.random.Generator) -> np.ndarray:
     """Per-step bias instability in physical units, (n, 6)."""
-    sg = np.full(3, truth.gyro_bias_instability_dps)
-    sa = np.full(3, truth.accel_bias_instability_g)
-    return rng.normal(0.0, 1.0, (n_steps, 6)) * np.concatenate([sg, sa])
+    sd = np.concatenate([_vec3(truth.gyro_bias_instability_dps), _vec3(truth.accel_bias_instability_g)])
+    return rng.normal(0.0, 1.0, (n_steps, 6)) * sd
 
 
 def _to_raw(truth: MimuTruth, phys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -192,8 +201,7 @@ def simulate_session(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Gener
     for ch in range(6):
         per_sample[:, ch] = np.interp(np.arange(total), centre, phys[:, ch])
     per_sample[in_step] = phys[idx[in_step]]
-    noise_sd = np.array([truth.gyro_noise_dps] * 3 + [truth.accel_noise_g] * 3)
-    per_sample += rng.normal(0.0, 1.0, (total, 6)) * noise_sd
+    per_sample += rng.normal(0.0, 1.0, (total, 6)) * _white_sd(truth)
     G, A = _to_raw(truth, per_sample)
     fs_g, fs_a = truth.full_scale_raw()
     G = np.clip(G, -fs_g, fs_g)
@@ -245,12 +253,11 @@ def simulate_step_means(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Ge
     fs_g, fs_a = truth.full_scale_raw()
     ok = (np.abs(G0) < fs_g).all(axis=1) & (np.abs(A0) < fs_a).all(axis=1)
     phys = phys + _step_offsets(truth, len(steps), rng)
-    noise_sd = np.array([truth.gyro_noise_dps] * 3 + [truth.accel_noise_g] * 3)
-    phys = phys + rng.normal(0.0, 1.0, phys.shape) * noise_sd / np.sqrt(count)[:, None]
+    phys = phys + rng.normal(0.0, 1.0, phys.shape) * _white_sd(truth) / np.sqrt(count)[:, None]
     G, A = _to_raw(truth, phys)
     # within-step sample std in raw units (noise through K^-1)
-    g_std = np.sqrt((np.linalg.inv(truth.K_g) ** 2) @ np.full(3, truth.gyro_noise_dps ** 2))
-    a_std = np.sqrt((np.linalg.inv(truth.K_a) ** 2) @ np.full(3, truth.accel_noise_g ** 2))
+    g_std = np.sqrt((np.linalg.inv(truth.K_g) ** 2) @ _vec3(truth.gyro_noise_dps) ** 2)
+    a_std = np.sqrt((np.linalg.inv(truth.K_a) ** 2) @ _vec3(truth.accel_noise_g) ** 2)
     w, f = _refs(steps)
     sm = StepMeans(
         key=key, step=steps["step"].to_numpy(np.int64), test=steps["test"].to_numpy(str),

@@ -1,0 +1,44 @@
+# mimucal: set-up, demo, tests. Works on a fresh machine with Python 3.11 alone.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+PIP    := $(VENV)/bin/pip
+DEMO   ?= demo-output
+STAMP  := $(VENV)/.installed
+
+.PHONY: setup demo test test-fast browser reproduce bench clean
+
+$(STAMP): pyproject.toml requirements.lock
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install --quiet --upgrade pip
+	$(PIP) install --quiet -c requirements.lock -e ".[dask,test]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+# Debian's chromium for the browser tests of the HTML reports (skipped when absent).
+browser:
+	bash scripts/install-browser.sh
+
+demo: setup
+	rm -rf $(DEMO)
+	$(VENV)/bin/mimucal simulate $(DEMO)/dataset --lots 2 --units 4 --reps 5 --seed 7 \
+		--outliers 1 --bad-sessions 1
+	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results
+	@echo "Lot reports: $$(ls $(DEMO)/results/reports/*.html 2>/dev/null | tr '\n' ' ')"
+
+test: setup browser
+	$(VENV)/bin/pytest -q -n 2 --durations=15
+
+test-fast: setup
+	$(VENV)/bin/pytest -q -n 2 -m "not slow and not browser and not server"
+
+reproduce: setup
+	$(VENV)/bin/mimucal reproduce xu2016
+	$(VENV)/bin/mimucal reproduce zhang2017
+
+bench: setup
+	$(PY) -m benchmarks.run
+
+clean:
+	rm -rf $(VENV) $(DEMO) .pytest_cache

@@ -1,0 +1,129 @@
+"""Everything mimucal fits on one session, and the calibration it applies for one unit.
+
+``calibrate_repetition`` runs the xu2016 fits (required: the session fails without them), the
+traditional inverse model, and the zhang2017 static and lever-arm fits where the steps allow.
+``calibration_from_unit`` averages the repetitions into the :class:`Calibration` that is saved
+and applied (xu2016 section 3.1 averages the five repetitions the same way).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from calib_core import xu2016
+from calib_core.calibration import Calibration, TermValue
+from calib_core.errors import DesignError
+from calib_core.results import RepetitionCalibration, UnitCalibration
+from calib_core.steps import StepMeans
+
+
+@dataclass
+class SessionFit:
+    """The fits of one session plus the tables the results store keeps."""
+
+    calibration: RepetitionCalibration
+    compensation: pd.DataFrame  # xu2016 Table 3 rows
+    residuals: pd.DataFrame  # baseline replay residuals per step and channel
+
+
+def calibrate_repetition(sm: StepMeans) -> SessionFit:
+    """Fit every applicable model to one session. Raises DesignError when the xu2016 base
+    model cannot be determined; optional models that cannot be fitted become warnings."""
+    fits: dict = {}
+    warnings: list[str] = []
+    fits["gyro"] = gyro = xu2016.fit_gyro_multirate(sm)
+    fits["accel"] = xu2016.fit_accel_multiposition(sm)
+    trad = None
+    for name, fitter in (("gyro_traditional", xu2016.fit_gyro_traditional),
+                         ("accel_traditional", xu2016.fit_accel_traditional)):
+        try:
+            fits[name] = fitter(sm)
+        except DesignError as exc:
+            warnings.append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
+    trad = fits.get("gyro_traditional")
+    _fit_zhang2017(sm, fits, warnings)
+    key = sm.key
+    rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=fits,
+                                warnings=warnings, provenance=dict(sm.metadata))
+    source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
+    comp = xu2016.compensation_errors(sm, gyro, trad, tests=source)
+    cal = calibration_from_fits(fits, sm)
+    return SessionFit(rep, comp, baseline_residuals(sm, cal))
+
+
+def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str]) -> None:
+    """The 15-parameter static model and, with dynamic steps, the lever arms."""
+    try:
+        from calib_core import zhang2017
+    except ImportError:  # pragma: no cover - module always present in a full install
+        return
+    try:
+        static = zhang2017.fit_accel_static(sm)
+    except DesignError as exc:
+        warnings.append(f"W_ACCEL_STATIC_SKIPPED: {exc.reason}")
+        return
+    fits["accel_static"] = static
+    if (sm.test == "dynamic").any():
+        try:
+            fits["lever_arm"] = zhang2017.fit_lever_arm(sm, static, gyro_K=fits["gyro"].K,
+                                                        gyro_w0=fits["gyro"].w0)
+        except DesignError as exc:
+            warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
+
+
+def calibration_from_fits(fits: dict, sm: StepMeans, terms: tuple[TermValue, ...] = ()
+                          ) -> Calibration:
+    g, a = fits["gyro"], fits["accel"]
+    return Calibration(K_g=g.K, w0=g.w0, K_a=a.K, f0=a.f0, gyro_unit=sm.gyro_unit,
+                       accel_unit=sm.accel_unit, terms=terms, g_local=sm.g_local)
+
+
+def calibration_from_unit(unit: UnitCalibration, terms: tuple[TermValue, ...] = ()
+                          ) -> Calibration:
+    """Average of the repetitions' K_g, w0, K_a, f0 (+ extension terms): what is applied."""
+    reps = unit.reps
+    if not reps:
+        raise ValueError(f"unit {unit.unit}: no successful repetition to average")
+    mean = lambda model, attr: np.mean([getattr(r.fits[model], attr) for r in reps], axis=0)  # noqa: E731
+    first = reps[0].fits
+    g_local = float(reps[0].provenance.get("g_local", 9.80665)) if reps[0].provenance else 9.80665
+    terms = tuple(terms)
+    if not any(t.name == "lever_arm" for t in terms) and all("lever_arm" in r.fits for r in reps):
+        r_mm = np.nanmean([r.fits["lever_arm"].r_mm for r in reps], axis=0)
+        if np.isfinite(r_mm).all():
+            terms = terms + (TermValue("lever_arm", r_mm.ravel()),)
+    return Calibration(
+        K_g=mean("gyro", "K"), w0=mean("gyro", "w0"), K_a=mean("accel", "K"),
+        f0=mean("accel", "f0"), gyro_unit=first["gyro"].raw_unit,
+        accel_unit=first["accel"].raw_unit, terms=terms, g_local=g_local,
+        metadata={"lot": unit.lot, "unit": unit.unit, "reps": [r.rep for r in reps]},
+    )
+
+
+RESIDUAL_COLUMNS = ["lot", "unit", "rep", "step", "test", "up_axis", "rate_dps", "angle_deg",
+                    "channel", "reference", "residual", "sigma", "model"]
+
+
+def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline") -> pd.DataFrame:
+    """Calibrated step mean minus reference, every step and channel (gyro deg/s, accel g).
+
+    ``sigma`` is the white-noise part only (within-step scatter through K); the step-to-step
+    part is estimated across repetitions by :mod:`calib_core.replay`."""
+    w, f = cal.apply(sm.gyro, sm.accel, temp_c=sm.temp_c, t=sm.t_mid)
+    res = np.hstack([w - sm.w_ref, f - sm.f_ref])
+    ref = np.hstack([sm.w_ref, sm.f_ref])
+    n = np.sqrt(np.maximum(sm.count, 1))[:, None]
+    sg = np.sqrt((sm.gyro_std ** 2) @ (cal.K_g.T ** 2)) / n
+    sa = np.sqrt((sm.accel_std ** 2) @ (cal.K_a.T ** 2)) / n
+    sig = np.hstack([sg, sa])
+    channels = np.array(["gx", "gy", "gz", "ax", "ay", "az"])
+    k = len(sm)
+    return pd.DataFrame({
+        "lot": sm.key.lot, "unit": sm.key.unit, "rep": sm.key.rep,
+        "step": np.repeat(sm.step, 6), "test": np.repeat(sm.test, 6),
+        "up_axis": np.repeat(sm.up_axis, 6), "rate_dps": np.repeat(sm.rate_dps, 6),
+        "angle_deg": np.repeat(sm.angle_deg, 6), "channel": np.tile(channels, k),
+        "reference": ref.ravel(), "residual": res.ravel(), "sigma": sig.ravel(), "model": model,
+    }, columns=RESIDUAL_COLUMNS)

@@ -1,0 +1,196 @@
+"""Replay a calibration as a simulation of the protocol it was fitted on, and say how far the
+measured step means are from what it predicts, in units of their own noise.
+
+For every step of a session and every one of the six channels (gyro channels during
+multiposition steps and accelerometer channels during rotation steps included), the
+calibration predicts the raw step mean (:meth:`Calibration.predict_raw`); the residual is
+
+    residual = K (measured_raw - predicted_raw)        [deg/s for gx gy gz, g for ax ay az]
+
+i.e. the physical error the calibrated unit would show on that step. Its expected size is
+estimated from the data, never assumed:
+
+- ``sigma_white``: within-step sample scatter through K, ``|K_c * std| / sqrt(count)``;
+- ``sigma_step``: the step-to-step scatter seen across repetitions. The same step's residual
+  is compared between repetitions after removing each repetition's own offset (turn-on bias)
+  and each step's common value (systematic model error, identical in every repetition):
+  what remains is the noise of a step mean, bias instability between steps included. It is
+  pooled per channel and test group; the part white noise does not explain is the
+  instability, and ``sigma**2 = sigma_white**2 + instability**2``.
+
+With a single repetition there is no repetition scatter: ``sigma`` falls back to
+``sigma_white`` and :attr:`NoiseEstimate.from_repetitions` is False (a test on that alone
+would cry wolf on any unit with bias instability; :mod:`calib_core.discovery` refuses it).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from calib_core.calibration import Calibration
+from calib_core.effects import CHANNELS
+from calib_core.steps import StepMeans
+
+CHANNEL_UNITS = ("deg/s",) * 3 + ("g",) * 3
+
+# Steps whose noise is pooled together. Stationary steps are too few to pool on their own
+# and have the same noise as slow multirate steps.
+TEST_GROUP = {"stationary": "rate", "multirate": "rate", "multiposition": "position",
+              "dynamic": "dynamic", "verification": "verification"}
+MIN_POOL_DOF = 8  # groups with fewer degrees of freedom borrow the channel's pooled value
+
+REPLAY_COLUMNS = ("lot", "unit", "rep", "step", "test", "up_axis", "rate_dps", "angle_deg",
+                  "channel", "quantity_unit", "reference", "measured_raw", "predicted_raw",
+                  "residual", "sigma_white", "sigma")
+
+
+def test_group(test: str) -> str:
+    return TEST_GROUP.get(str(test), str(test))
+
+
+def step_context_arrays(sm: StepMeans) -> dict[str, np.ndarray]:
+    """Motion of each step as the effect terms want it (references, temperature, time)."""
+    return {"w": sm.w_ref, "f": sm.f_ref, "temp_c": sm.temp_c, "t": sm.t_mid}
+
+
+def physical_residuals(cal: Calibration, sm: StepMeans) -> tuple[np.ndarray, np.ndarray]:
+    """Residual (n, 6) in physical units and predicted raw (n, 6) of one session."""
+    G_pred, A_pred = cal.predict_raw(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid)
+    res_g = (sm.gyro - G_pred) @ cal.K_g.T
+    res_a = (sm.accel - A_pred) @ cal.K_a.T
+    return np.hstack([res_g, res_a]), np.hstack([G_pred, A_pred])
+
+
+def white_sigma(cal: Calibration, sm: StepMeans) -> np.ndarray:
+    """Within-step scatter of the step mean through K, (n, 6), channel noise independent."""
+    n = np.maximum(np.asarray(sm.count, float), 1.0)[:, None]
+    sg = np.sqrt((sm.gyro_std ** 2) @ (cal.K_g.T ** 2))
+    sa = np.sqrt((sm.accel_std ** 2) @ (cal.K_a.T ** 2))
+    return np.hstack([sg, sa]) / np.sqrt(n)
+
+
+def replay_session(cal: Calibration, sm: StepMeans) -> pd.DataFrame:
+    """Tidy residual table of one session (``sigma`` = ``sigma_white`` until
+    :func:`attach_noise` adds the repetition scatter)."""
+    res, pred = physical_residuals(cal, sm)
+    sw = white_sigma(cal, sm)
+    meas = np.hstack([sm.gyro, sm.accel])
+    ref = np.hstack([sm.w_ref, sm.f_ref])
+    n = len(sm)
+    rows = {
+        "lot": np.repeat(sm.key.lot, 6 * n), "unit": np.repeat(sm.key.unit, 6 * n),
+        "rep": np.repeat(int(sm.key.rep), 6 * n),
+        "step": np.repeat(sm.step.astype(np.int64), 6),
+        "test": np.repeat(np.asarray(sm.test, str), 6),
+        "up_axis": np.repeat(np.asarray(sm.up_axis, str), 6),
+        "rate_dps": np.repeat(sm.rate_dps.astype(float), 6),
+        "angle_deg": np.repeat(sm.angle_deg.astype(float), 6),
+        "channel": np.tile(np.array(CHANNELS), n),
+        "quantity_unit": np.tile(np.array(CHANNEL_UNITS), n),
+        "reference": ref.ravel(), "measured_raw": meas.ravel(), "predicted_raw": pred.ravel(),
+        "residual": res.ravel(), "sigma_white": sw.ravel(), "sigma": sw.ravel(),
+    }
+    return pd.DataFrame(rows, columns=list(REPLAY_COLUMNS))
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """Noise of a step mean per channel and test group, estimated from the data.
+
+    ``table`` columns: channel, group, dof (degrees of freedom of the repetition scatter),
+    step_sd (pooled scatter of a step mean across repetitions, physical units), white_sd
+    (rms within-step scatter through K), instability_sd (the excess, 0 if none).
+    """
+
+    table: pd.DataFrame
+    from_repetitions: bool
+
+    def lookup(self, channel: np.ndarray, group: np.ndarray) -> np.ndarray:
+        key = pd.MultiIndex.from_arrays([channel, group])
+        idx = self.table.set_index(["channel", "group"])["instability_sd"]
+        return idx.reindex(key).to_numpy(float)
+
+
+def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray
+                     ) -> tuple[np.ndarray, int]:
+    """Residual of ``value = cell effect + repetition effect + e`` and its degrees of freedom.
+
+    Removing a value per cell (step) takes out any systematic model error, identical in
+    every repetition; removing a value per repetition takes out its turn-on offset; what is
+    left is the repetition-to-repetition scatter of a step mean (pure error)."""
+    ci, cell_idx = np.unique(cell, return_inverse=True)
+    ri, rep_idx = np.unique(rep, return_inverse=True)
+    n = len(values)
+    X = np.zeros((n, len(ci) + len(ri)))
+    X[np.arange(n), cell_idx] = 1.0
+    X[np.arange(n), len(ci) + rep_idx] = 1.0
+    coef, _, rank, _ = np.linalg.lstsq(X, values, rcond=None)
+    return values - X @ coef, int(n - rank)
+
+
+def estimate_noise(table: pd.DataFrame) -> NoiseEstimate:
+    """Pool the repetition scatter of each step's residual per channel and test group.
+
+    ``table`` is one or more replayed sessions of the same unit (:func:`replay_session`)."""
+    groups = table["test"].map(test_group).to_numpy(str)
+    reps = table["rep"].to_numpy()
+    multi = len(np.unique(reps)) > 1
+    out = []
+    for ch in CHANNELS:
+        in_ch = table["channel"].to_numpy(str) == ch
+        pooled_ss, pooled_dof, rows = 0.0, 0, []
+        for g in sorted(set(groups[in_ch])):
+            m = in_ch & (groups == g)
+            sub = table.loc[m]
+            white = float(np.sqrt(np.mean(sub["sigma_white"].to_numpy() ** 2)))
+            if multi:
+                e, dof = two_way_residual(sub["residual"].to_numpy(float),
+                                          sub["step"].to_numpy(), sub["rep"].to_numpy())
+                ss = float(e @ e)
+            else:
+                ss, dof = 0.0, 0
+            pooled_ss += ss
+            pooled_dof += dof
+            rows.append([ch, g, dof, ss, white])
+        pooled_var = pooled_ss / pooled_dof if pooled_dof else np.nan
+        for ch_, g, dof, ss, white in rows:
+            var = ss / dof if dof >= MIN_POOL_DOF else pooled_var
+            step_sd = float(np.sqrt(var)) if np.isfinite(var) else white
+            inst = float(np.sqrt(max(step_sd ** 2 - white ** 2, 0.0)))
+            out.append({"channel": ch_, "group": g, "dof": dof, "step_sd": step_sd,
+                        "white_sd": white, "instability_sd": inst})
+    return NoiseEstimate(pd.DataFrame(out), from_repetitions=multi)
+
+
+def attach_noise(table: pd.DataFrame, noise: NoiseEstimate | None = None) -> pd.DataFrame:
+    """Set ``sigma`` = sqrt(sigma_white**2 + instability**2) from the data's own scatter."""
+    noise = noise or estimate_noise(table)
+    inst = noise.lookup(table["channel"].to_numpy(str),
+                        table["test"].map(test_group).to_numpy(str))
+    out = table.copy()
+    out["sigma"] = np.sqrt(out["sigma_white"].to_numpy() ** 2 + np.nan_to_num(inst) ** 2)
+    return out
+
+
+def replay_unit(cals: Calibration | list[Calibration], sessions: list[StepMeans],
+                noise: NoiseEstimate | None = None) -> pd.DataFrame:
+    """Replay every repetition of a unit (one calibration for all, or one per repetition,
+    e.g. with each repetition's own turn-on biases) and attach the data-estimated noise."""
+    if isinstance(cals, Calibration):
+        cals = [cals] * len(sessions)
+    if len(cals) != len(sessions):
+        raise ValueError(f"{len(cals)} calibrations for {len(sessions)} sessions")
+    table = pd.concat([replay_session(c, sm) for c, sm in zip(cals, sessions)],
+                      ignore_index=True)
+    return attach_noise(table, noise)
+
+
+def summarise_residuals(table: pd.DataFrame) -> pd.DataFrame:
+    """Normalised rms residual per channel and test: where the replay is wrong."""
+    z = table["residual"] / table["sigma"]
+    return (table.assign(z2=z ** 2).groupby(["channel", "test"], sort=False)
+            .agg(n=("z2", "size"), rms_z=("z2", lambda v: float(np.sqrt(v.mean()))),
+                 rms_residual=("residual", lambda v: float(np.sqrt((v ** 2).mean()))))
+            .reset_index())

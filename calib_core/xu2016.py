@@ -1,0 +1,304 @@
+"""The calibration method of Xu, Wang, Su, Zhu (2016), with standard errors.
+
+- Gyro, eq. 3-11: ``w = K_g G + w0``. The difference of a +rate and a -rate step about the
+  same axis removes the bias (eq. 5); K_g from all multirate pairs by least squares (eq. 6-8);
+  w0 = -K_g mean(G(0)) from the stationary steps (eq. 10-11).
+- Accelerometer, eq. 12-16: ``f = K_a A + f0`` from all multiposition steps.
+- The "traditional" inverse model, ``G = S w + b`` so ``w = S^-1 (G - b)``, fitted on the
+  same steps, for the comparison of the paper's Table 3.
+
+Standard errors come from the residuals and the design. The step-level noise that the +/-
+differences reveal (white noise averaged over the step plus step-to-step bias instability) is
+also the noise of each stationary step, which is what makes an honest standard error of w0
+possible from only three stationary steps.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from calib_core.errors import DesignError
+from calib_core.linalg import solve_lstsq
+from calib_core.results import Param, matrix_params, vector_params
+from calib_core.steps import StepMeans
+
+AXES = "xyz"
+MAX_CONDITION = 1e6  # beyond this the design cannot separate the parameters
+
+
+def _axis_names(prefix: str) -> list[str]:
+    return [f"{prefix}_{a}" for a in AXES]
+
+
+def _check_determined(sm: StepMeans, excitation: np.ndarray, what: str, needed: str) -> None:
+    """Name the axes the design never excites (rank deficiency with a physical reason)."""
+    missing = [AXES[i] for i in range(3) if np.max(np.abs(excitation[:, i]), initial=0.0) < 1e-9]
+    if missing:
+        raise DesignError(
+            "E_UNDETERMINED",
+            f"{what}: no {needed} about/along {', '.join(missing)}; "
+            f"cannot determine the column(s) of K for axis {', '.join(missing)}",
+            undetermined=tuple(f"{what} axis {m}" for m in missing),
+        )
+
+
+# --------------------------------------------------------------------------- gyro
+def multirate_pairs(sm: StepMeans) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pair each +rate step with its -rate step about the same axis.
+
+    Returns (dG (n,3) raw, dW (n,3) deg/s, index pairs (n,2) into ``sm``). A step whose
+    partner is missing (saturated, too short) is left out: the difference needs both.
+    """
+    idx = np.flatnonzero(sm.test == "multirate")
+    groups: dict[tuple, dict[int, list[int]]] = {}
+    for i in idx:
+        rate = sm.rate_dps[i]
+        if rate == 0:
+            continue
+        direction = np.round(sm.w_ref[i] / rate, 6) + 0.0  # rotation axis, sign-free
+        key = (round(abs(rate), 6), tuple(direction))
+        groups.setdefault(key, {1: [], -1: []})[int(np.sign(rate))].append(i)
+    pairs = []
+    for sides in groups.values():
+        for p, m in zip(sides[1], sides[-1]):
+            pairs.append((p, m))
+    pairs_arr = np.array(sorted(pairs), dtype=int).reshape(-1, 2)
+    dG = sm.gyro[pairs_arr[:, 0]] - sm.gyro[pairs_arr[:, 1]]
+    dW = sm.w_ref[pairs_arr[:, 0]] - sm.w_ref[pairs_arr[:, 1]]
+    return dG, dW, pairs_arr
+
+
+@dataclass(frozen=True)
+class GyroMultirateFit:
+    """K_g and w0 of xu2016 eq. 1 with their standard errors."""
+
+    K: np.ndarray  # (3,3) deg/s per raw unit
+    w0: np.ndarray  # (3,) deg/s
+    K_stderr: np.ndarray
+    w0_stderr: np.ndarray
+    step_sigma: np.ndarray  # (3,) deg/s, noise of one step mean (white + instability)
+    residual_rms: np.ndarray  # (3,) deg/s, of the +/- difference equations
+    condition_number: float
+    n_pairs: int
+    n_stationary: int
+    w0_source: str  # "stationary" (eq. 10-11) or "pair_midpoints" when no stationary step
+    raw_unit: str = "deg/s"
+    model: str = "gyro"
+
+    def compensate(self, G: np.ndarray) -> np.ndarray:
+        """Eq. 1: calibrated rate (deg/s) from raw outputs, no matrix inverse."""
+        return np.atleast_2d(G) @ self.K.T + self.w0
+
+    def parameters(self) -> list[Param]:
+        return (matrix_params(self.model, "k_g", self.K, self.K_stderr, f"deg/s per {self.raw_unit}")
+                + vector_params(self.model, _axis_names("w0"), self.w0, self.w0_stderr, "deg/s"))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "K_g": self.K.tolist(), "w0": self.w0.tolist(),
+            "stderr": {"K_g": self.K_stderr.tolist(), "w0": self.w0_stderr.tolist()},
+            "condition_number": self.condition_number, "n_pairs": self.n_pairs,
+            "n_stationary": self.n_stationary, "w0_source": self.w0_source,
+            "step_sigma_dps": self.step_sigma.tolist(),
+            "units": {"K_g": f"deg/s per {self.raw_unit}", "w0": "deg/s"},
+        }
+
+
+def fit_gyro_multirate(sm: StepMeans) -> GyroMultirateFit:
+    """xu2016 eq. 5-11 on one session's step means."""
+    dG, dW, pairs = multirate_pairs(sm)
+    if len(pairs) < 4:
+        raise DesignError("E_UNDETERMINED",
+                          f"gyro: {len(pairs)} complete +/- multirate pairs, at least 4 needed "
+                          "to determine the 9 elements of K_g with a residual")
+    _check_determined(sm, dW, "gyro", "multirate rotation")
+    # eq. 6-8 for all three rows at once: dW (n,3) = dG (n,3) K^T
+    ls = solve_lstsq(dG, dW)
+    if ls.rank < 3 or ls.condition_number > MAX_CONDITION:
+        raise DesignError("E_UNDETERMINED",
+                          f"gyro: multirate design is singular (condition number "
+                          f"{ls.condition_number:.3g}): the rotation axes do not span 3-D")
+    K = ls.coef.T
+    K_se = ls.stderr.T
+    # A difference holds the noise of two steps: step-level variance is half the residual's.
+    step_sigma = np.sqrt(ls.sigma2 / 2.0)
+    stat = np.flatnonzero(sm.test == "stationary")
+    if len(stat):
+        G0 = sm.gyro[stat].mean(axis=0)
+        n0, source = len(stat), "stationary"
+    else:  # a linear sensor's +/- midpoint is its zero-rate output
+        G0 = 0.5 * (sm.gyro[pairs[:, 0]] + sm.gyro[pairs[:, 1]]).mean(axis=0)
+        n0, source = 2 * len(pairs), "pair_midpoints"
+    w0 = -K @ G0  # eq. 10-11
+    # var(w0_i) = step noise / n0  +  G0^T cov(K_i) G0   (independent steps)
+    var_k = np.array([G0 @ (ls.cov_unscaled * ls.sigma2[i]) @ G0 for i in range(3)])
+    w0_se = np.sqrt(step_sigma ** 2 / n0 + var_k)
+    return GyroMultirateFit(
+        K=K, w0=w0, K_stderr=K_se, w0_stderr=w0_se, step_sigma=step_sigma,
+        residual_rms=np.sqrt((ls.residuals ** 2).mean(axis=0)),
+        condition_number=ls.condition_number, n_pairs=len(pairs), n_stationary=len(stat),
+        w0_source=source, raw_unit=sm.gyro_unit,
+    )
+
+
+# --------------------------------------------------------------------------- accel
+@dataclass(frozen=True)
+class AccelMultipositionFit:
+    """K_a and f0 of xu2016 eq. 2 with their standard errors."""
+
+    K: np.ndarray  # (3,3) g per raw unit
+    f0: np.ndarray  # (3,) g
+    K_stderr: np.ndarray
+    f0_stderr: np.ndarray
+    residual_rms: np.ndarray  # (3,) g
+    condition_number: float
+    n_steps: int
+    raw_unit: str = "g"
+    model: str = "accel"
+
+    def compensate(self, A: np.ndarray) -> np.ndarray:
+        return np.atleast_2d(A) @ self.K.T + self.f0
+
+    def parameters(self) -> list[Param]:
+        return (matrix_params(self.model, "k_a", self.K, self.K_stderr, f"g per {self.raw_unit}")
+                + vector_params(self.model, _axis_names("f0"), self.f0, self.f0_stderr, "g"))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "K_a": self.K.tolist(), "f0": self.f0.tolist(),
+            "stderr": {"K_a": self.K_stderr.tolist(), "f0": self.f0_stderr.tolist()},
+            "condition_number": self.condition_number, "n_steps": self.n_steps,
+            "units": {"K_a": f"g per {self.raw_unit}", "f0": "g"},
+        }
+
+
+def _static_steps(sm: StepMeans) -> StepMeans:
+    return sm.of_test("multiposition")
+
+
+def fit_accel_multiposition(sm: StepMeans) -> AccelMultipositionFit:
+    """xu2016 eq. 12-16: F = K_a A + f0 over all multiposition steps."""
+    st = _static_steps(sm)
+    if len(st) < 5:
+        raise DesignError("E_UNDETERMINED",
+                          f"accel: {len(st)} multiposition steps, at least 5 needed for the "
+                          "12 parameters of K_a and f0 with a residual")
+    _check_determined(st, st.f_ref, "accel", "multiposition specific force")
+    X = np.hstack([st.accel, np.ones((len(st), 1))])
+    ls = solve_lstsq(X, st.f_ref)
+    if ls.rank < 4 or ls.condition_number > MAX_CONDITION:
+        raise DesignError("E_UNDETERMINED",
+                          f"accel: multiposition design is singular (condition number "
+                          f"{ls.condition_number:.3g}): orientations do not span 3-D")
+    return AccelMultipositionFit(
+        K=ls.coef[:3].T, f0=ls.coef[3], K_stderr=ls.stderr[:3].T, f0_stderr=ls.stderr[3],
+        residual_rms=np.sqrt((ls.residuals ** 2).mean(axis=0)),
+        condition_number=ls.condition_number, n_steps=len(st), raw_unit=sm.accel_unit,
+    )
+
+
+# --------------------------------------------------------------------------- traditional
+@dataclass(frozen=True)
+class TraditionalFit:
+    """Inverse model raw = S x + b (x: deg/s or g); compensation x = S^-1 (raw - b)."""
+
+    model: str  # "gyro_traditional" or "accel_traditional"
+    S: np.ndarray  # (3,3) raw unit per physical unit
+    b: np.ndarray  # (3,) raw unit
+    S_stderr: np.ndarray
+    b_stderr: np.ndarray
+    condition_number: float
+    n_steps: int
+    raw_unit: str
+    physical_unit: str
+
+    def compensate(self, raw: np.ndarray) -> np.ndarray:
+        """The traditional compensation needs the inverse of S (what xu2016 avoids)."""
+        return np.linalg.solve(self.S, (np.atleast_2d(raw) - self.b).T).T
+
+    def as_affine(self) -> tuple[np.ndarray, np.ndarray]:
+        """Equivalent (K, x0) of the proposed form: K = S^-1, x0 = -S^-1 b."""
+        K = np.linalg.inv(self.S)
+        return K, -K @ self.b
+
+    def parameters(self) -> list[Param]:
+        prefix = "s_g" if self.model.startswith("gyro") else "s_a"
+        bname = "b_g" if self.model.startswith("gyro") else "b_a"
+        return (matrix_params(self.model, prefix, self.S, self.S_stderr,
+                              f"{self.raw_unit} per {self.physical_unit}")
+                + vector_params(self.model, _axis_names(bname), self.b, self.b_stderr, self.raw_unit))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"S": self.S.tolist(), "b": self.b.tolist(),
+                "stderr": {"S": self.S_stderr.tolist(), "b": self.b_stderr.tolist()},
+                "condition_number": self.condition_number, "n_steps": self.n_steps,
+                "units": {"S": f"{self.raw_unit} per {self.physical_unit}", "b": self.raw_unit}}
+
+
+def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> TraditionalFit:
+    X = np.hstack([ref, np.ones((len(ref), 1))])
+    ls = solve_lstsq(X, raw)
+    if ls.rank < 4 or ls.condition_number > MAX_CONDITION:
+        raise DesignError("E_UNDETERMINED", f"{model}: design is singular "
+                          f"(condition number {ls.condition_number:.3g})")
+    return TraditionalFit(model=model, S=ls.coef[:3].T, b=ls.coef[3], S_stderr=ls.stderr[:3].T,
+                          b_stderr=ls.stderr[3], condition_number=ls.condition_number,
+                          n_steps=len(ref), raw_unit=raw_unit, physical_unit=phys_unit)
+
+
+def fit_gyro_traditional(sm: StepMeans) -> TraditionalFit:
+    """G = S w + b over the same multirate and stationary steps as the proposed fit."""
+    st = sm.of_test("multirate", "stationary")
+    _check_determined(st, st.w_ref, "gyro_traditional", "multirate rotation")
+    return _fit_traditional("gyro_traditional", st.w_ref, st.gyro, sm.gyro_unit, "deg/s")
+
+
+def fit_accel_traditional(sm: StepMeans) -> TraditionalFit:
+    """A = S f + b over the same multiposition steps as the proposed fit."""
+    st = _static_steps(sm)
+    _check_determined(st, st.f_ref, "accel_traditional", "multiposition specific force")
+    return _fit_traditional("accel_traditional", st.f_ref, st.accel, sm.accel_unit, "g")
+
+
+# --------------------------------------------------------------------------- Table 3
+def input_axis_of(w_ref: np.ndarray) -> np.ndarray:
+    """Body axis a rotation step excites most ('x', 'y', 'z')."""
+    return np.array(list(AXES))[np.argmax(np.abs(w_ref), axis=1)]
+
+
+def compensation_errors(sm: StepMeans, proposed: GyroMultirateFit,
+                        traditional: TraditionalFit | None = None,
+                        tests: tuple[str, ...] = ("verification",)) -> pd.DataFrame:
+    """xu2016 Table 3: range (min, max) of output error per input axis and output axis,
+    uncompensated / proposed / traditional, on rotation steps of the given tests.
+
+    Uncompensated errors are only meaningful when the raw unit is deg/s (else NaN)."""
+    st = sm.of_test(*tests)
+    st = st.select(np.abs(st.rate_dps) > 0) if len(st) else st
+    cols = ["input_axis", "output_axis", "method", "err_min", "err_max", "unit_of_measure",
+            "source", "n_steps"]
+    if len(st) == 0:
+        return pd.DataFrame(columns=cols)
+    outputs = {"proposed": proposed.compensate(st.gyro)}
+    if traditional is not None:
+        outputs["traditional"] = traditional.compensate(st.gyro)
+    outputs["uncompensated"] = st.gyro if sm.gyro_unit == "deg/s" else np.full_like(st.gyro, np.nan)
+    inp = input_axis_of(st.w_ref)
+    rows = []
+    for method in ("uncompensated", "proposed", "traditional"):
+        if method not in outputs:
+            continue
+        err = outputs[method] - st.w_ref
+        for a in AXES:
+            sel = inp == a
+            if not sel.any():
+                continue
+            for j, b in enumerate(AXES):
+                rows.append({"input_axis": a, "output_axis": b, "method": method,
+                             "err_min": float(err[sel, j].min()), "err_max": float(err[sel, j].max()),
+                             "unit_of_measure": "deg/s", "source": "+".join(tests),
+                             "n_steps": int(sel.sum())})
+    return pd.DataFrame(rows, columns=cols)

@@ -1,0 +1,491 @@
+"""Comprehensive accelerometer calibration of zhang2017: the 15-parameter static model and the
+lever arms (size effect) of the three accelerometers.
+
+Static model (paper section 2.1, eq. 1-9). Accelerometer i has a scale factor k_i (raw unit
+per g), a zero bias u_i0 = k_i B_i (raw unit) and a sensitive axis c_i, the unit vector of
+direction cosines cos(theta_ij) against the body axes (column i of the paper's C_ab):
+
+    u_i = k_i (c_i . f + B_i)        i.e.   A = M f + u0,   M = diag(k) C^T
+
+M and u0 (12 numbers) are estimated by linear least squares; k_i = |M_i| and c_i = M_i / k_i
+recover the 15 parameters exactly (3 of the 15 are fixed by |c_i| = 1). The affine form of
+xu2016 (f = K_a A + f0) is K_a = M^-1, f0 = -M^-1 u0.
+
+Dynamic model (sections 2.2-2.3). Accelerometer i sits at r_i (mm) from the rotation centre
+and senses its own axis' component of the specific force at r_i:
+
+    u_i = k_i (c_i . (f + W r_i) + B_i),    W = [w x]^2 + [dw/dt x]
+
+With the static model known, y_i = (u_i - u0_i) / k_i - c_i . f = c_i^T W r_i is linear in
+r_i; :func:`fit_lever_arm` solves it for all nine components in one least squares over every
+dynamic step and rate. The paper's closed form (its eq. 24, :func:`paper_lever_arm`) divides by
+the direction cosines, which are near zero for the off-diagonal components: kept for contrast.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.linalg import qr, solve_triangular
+
+from calib_core.effect_terms import DEG, skew
+from calib_core.effects import EffectTerm, MotionContext
+from calib_core.errors import DesignError
+from calib_core.results import Param
+from calib_core.steps import StepMeans
+
+AXES = "xyz"
+STATIC_TESTS = ("multiposition", "stationary")
+# a lever-arm direction whose pivoted-QR diagonal is below this fraction of the largest one
+# is reported as undetermined (with x/y/z-up steps only, the off-diagonal components are seen
+# through direction cosines of ~0.01: the paper's "distortion")
+UNDETERMINED_RCOND = 0.05
+
+
+# -- conversions between the 15-parameter form and the paper's 12-parameter affine form --------
+def static_matrix(scale: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """M = diag(k) C^T: raw output per g; row i is k_i c_i."""
+    return np.asarray(scale, float)[:, None] * np.asarray(C, float).T
+
+
+def decompose_static(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact decomposition M -> (k, C): k_i = |M_i|, column i of C is M_i / k_i."""
+    M = np.asarray(M, float)
+    k = np.linalg.norm(M, axis=1)
+    if np.any(k == 0) or not np.all(np.isfinite(k)):
+        raise DesignError("E_ZERO_SCALE", "a row of the static matrix is zero: no scale factor")
+    return k, (M / k[:, None]).T
+
+
+def angles_from_C(C: np.ndarray) -> np.ndarray:
+    """theta_ij (deg) = angle between sensitive axis i and body axis j; row i = accelerometer i."""
+    return np.degrees(np.arccos(np.clip(np.asarray(C, float).T, -1.0, 1.0)))
+
+
+def C_from_angles(angles_deg: np.ndarray, normalise: bool = True) -> np.ndarray:
+    """Direction cosines from theta_ij (row i = accelerometer i) -> C (columns = c_i).
+
+    Published angles are rounded, so cos(theta_i.) is not exactly a unit vector: normalised."""
+    c = np.cos(np.radians(np.asarray(angles_deg, float)))  # row i = c_i
+    if normalise:
+        c = c / np.linalg.norm(c, axis=1, keepdims=True)
+    return c.T
+
+
+def static_to_affine(fit: "AccelStaticFit") -> tuple[np.ndarray, np.ndarray]:
+    """(K_a, f0) of f = K_a A + f0 from the 15 parameters."""
+    return affine_from_parts(fit.scale, fit.bias, fit.C)
+
+
+def affine_from_parts(scale, bias, C) -> tuple[np.ndarray, np.ndarray]:
+    M = static_matrix(scale, C)
+    K_a = np.linalg.inv(M)  # 3x3 closed form: the run-time model avoids any inverse
+    return K_a, -K_a @ np.asarray(bias, float)
+
+
+def affine_to_static(K_a: np.ndarray, f0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(k, u0, C) from (K_a, f0): M = K_a^-1, u0 = -M f0, then the exact decomposition."""
+    M = np.linalg.inv(np.asarray(K_a, float))
+    u0 = -M @ np.asarray(f0, float)
+    k, C = decompose_static(M)
+    return k, u0, C
+
+
+# -- static fit ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class AccelStaticFit:
+    """The 15 parameters of zhang2017 with standard errors (model ``accel_static``)."""
+
+    scale: np.ndarray  # (3,) k_i, raw unit per g
+    bias: np.ndarray  # (3,) u_i0 = k_i B_i, raw unit
+    C: np.ndarray  # (3,3) column i = sensitive axis c_i (direction cosines)
+    scale_stderr: np.ndarray
+    bias_stderr: np.ndarray
+    angles_stderr: np.ndarray  # (3,3) deg, row i = accelerometer i
+    channel_cov: np.ndarray  # (3,4,4) covariance of (M_i, u0_i) per channel, raw units
+    condition_number: float  # of the design [f, 1]
+    residual_rms_g: float  # pooled over the three channels, in g
+    dof: int
+    n_steps: int
+    unit: str = "g"  # raw accelerometer unit
+    g_local: float = 9.80665
+    model: ClassVar[str] = "accel_static"
+
+    @property
+    def angles_deg(self) -> np.ndarray:
+        return angles_from_C(self.C)
+
+    @property
+    def M(self) -> np.ndarray:
+        return static_matrix(self.scale, self.C)
+
+    def affine(self) -> tuple[np.ndarray, np.ndarray]:
+        return static_to_affine(self)
+
+    def sensed_along_axes(self, A_raw: np.ndarray) -> np.ndarray:
+        """(u_i - u0_i) / k_i: specific force along each sensitive axis, g, (n,3)."""
+        return (np.atleast_2d(A_raw) - self.bias) / self.scale
+
+    def apply(self, A_raw: np.ndarray) -> np.ndarray:
+        """Static compensation only: f = (C^T)^-1 (u - u0)/k, (n,3) g."""
+        return np.linalg.solve(self.C.T, self.sensed_along_axes(A_raw).T).T
+
+    def parameters(self) -> list[Param]:
+        su = f"{self.unit}/g"
+        out = [Param(self.model, f"k_{a}", float(v), float(s), su)
+               for a, v, s in zip(AXES, self.scale, self.scale_stderr)]
+        out += [Param(self.model, f"u0_{a}", float(v), float(s), self.unit)
+                for a, v, s in zip(AXES, self.bias, self.bias_stderr)]
+        ang = self.angles_deg
+        out += [Param(self.model, f"theta_{AXES[i]}{AXES[j]}", float(ang[i, j]),
+                      float(self.angles_stderr[i, j]), "deg") for i in range(3) for j in range(3)]
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "scale": self.scale.tolist(),
+            "bias": self.bias.tolist(),
+            "angles_deg": self.angles_deg.tolist(),
+            "stderr": {"scale": self.scale_stderr.tolist(), "bias": self.bias_stderr.tolist(),
+                       "angles_deg": self.angles_stderr.tolist()},
+            "units": {"scale": f"{self.unit}/g", "bias": self.unit, "angles_deg": "deg"},
+            "condition_number": float(self.condition_number),
+            "residual_rms_g": float(self.residual_rms_g),
+            "n_steps": int(self.n_steps),
+        }
+
+
+def _ls_cov(X: np.ndarray) -> np.ndarray:
+    """(X^T X)^-1 through the QR factor R (never inverting the normal matrix)."""
+    R = qr(X, mode="r")[0][: X.shape[1]]
+    Rinv = solve_triangular(R, np.eye(X.shape[1]))
+    return Rinv @ Rinv.T
+
+
+def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> AccelStaticFit:
+    """15-parameter static model from the static steps with known specific force.
+
+    Per channel i, A_i = M_i . f_ref + u0_i by least squares (lstsq); the residual variance is
+    pooled over the three channels in g (same accelerometer type: equal noise in physical
+    units), which gives 3(n-4) degrees of freedom instead of n-4. Standard errors of k, u0 and
+    the angles follow from the LS covariance through the Jacobian of the decomposition.
+    """
+    s = sm.of_test(*tests)
+    n = len(s)
+    if n < 5:
+        raise DesignError("E_TOO_FEW_STATIC_STEPS",
+                          f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
+                          "at least 5 to estimate its noise", ("accel_static",))
+    X = np.hstack([s.f_ref, np.ones((n, 1))])
+    sv = np.linalg.svd(X, compute_uv=False)
+    if sv[-1] <= 1e-9 * sv[0]:
+        raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
+                          "directions and a constant: M and u0 are not determined",
+                          ("accel_static",))
+    beta, *_ = np.linalg.lstsq(X, s.accel, rcond=None)  # (4,3): column i = (M_i, u0_i)
+    M = beta[:3].T
+    u0 = beta[3]
+    k, C = decompose_static(M)
+    resid = s.accel - X @ beta
+    dof_ch = n - 4
+    var_g = float(np.sum((resid / k) ** 2) / (3 * dof_ch))
+    unscaled = _ls_cov(X)
+    channel_cov = np.stack([unscaled * var_g * k[i] ** 2 for i in range(3)])
+    k_se = np.empty(3)
+    u0_se = np.sqrt(channel_cov[:, 3, 3])
+    ang_se = np.empty((3, 3))
+    for i in range(3):
+        cov_m = channel_cov[i, :3, :3]
+        ci = C[:, i]
+        k_se[i] = np.sqrt(ci @ cov_m @ ci)  # dk/dM_i = c_i
+        dc = (np.eye(3) - np.outer(ci, ci)) / k[i]  # dc_i/dM_i
+        for j in range(3):
+            sin_t = np.sqrt(max(1.0 - ci[j] ** 2, 1e-300))
+            g = -dc[j] / sin_t  # d theta_ij / d M_i (rad)
+            ang_se[i, j] = np.degrees(np.sqrt(g @ cov_m @ g))
+    return AccelStaticFit(
+        scale=k, bias=u0, C=C, scale_stderr=k_se, bias_stderr=u0_se, angles_stderr=ang_se,
+        channel_cov=channel_cov, condition_number=float(sv[0] / sv[-1]),
+        residual_rms_g=float(np.sqrt(var_g)), dof=3 * dof_ch, n_steps=n, unit=sm.accel_unit,
+        g_local=sm.g_local,
+    )
+
+
+# -- lever arms ----------------------------------------------------------------------------------
+LEVER_NAMES = tuple(f"r{i + 1}{a}" for i in range(3) for a in AXES)
+
+
+def lever_matrix(w_dps: np.ndarray, dwdt_dps2: np.ndarray | None = None) -> np.ndarray:
+    """W = [w x]^2 + [dw/dt x] in rad^2/s^2 (or rad/s^2), (n,3,3)."""
+    om = skew(np.atleast_2d(w_dps) * DEG)
+    W = om @ om
+    if dwdt_dps2 is not None:
+        W = W + skew(np.atleast_2d(dwdt_dps2) * DEG)
+    return W
+
+
+@dataclass(frozen=True)
+class LeverArmFit:
+    """Positions r_i (mm) of the three accelerometers (model ``lever_arm``).
+
+    Row i of ``lever_arm_mm`` is r_i. Components the steps cannot determine are NaN (value and
+    stderr) and named in ``undetermined``; the determined ones were fitted with those fixed
+    at zero (their coupling through the direction cosines, ~1 %, biases what remains)."""
+
+    lever_arm_mm: np.ndarray  # (3,3)
+    stderr: np.ndarray  # (3,3), includes the static-fit uncertainty
+    condition_number: float  # of the fitted (determined) design, block-diagonal over i
+    condition_number_full: float  # of the design with all nine components
+    undetermined: tuple[str, ...]
+    reasons: dict[str, str]
+    residual_rms_g: float
+    dof: int
+    n_steps: int
+    rate_source: str  # "w_ref" or "gyro"
+    model: ClassVar[str] = "lever_arm"
+
+    @property
+    def r_for_compensation(self) -> np.ndarray:
+        """Undetermined components contribute nothing (treated as 0 mm)."""
+        return np.nan_to_num(self.lever_arm_mm, nan=0.0)
+
+    def parameters(self) -> list[Param]:
+        return [Param(self.model, LEVER_NAMES[3 * i + j], float(self.lever_arm_mm[i, j]),
+                      float(self.stderr[i, j]), "mm") for i in range(3) for j in range(3)]
+
+    def to_dict(self) -> dict[str, Any]:
+        def lst(a):
+            return [[None if not np.isfinite(v) else float(v) for v in row] for row in a]
+
+        return {
+            "lever_arm_mm": lst(self.lever_arm_mm),
+            "stderr": lst(self.stderr),
+            "condition_number": float(self.condition_number),
+            "condition_number_full": (float(self.condition_number_full)
+                                      if np.isfinite(self.condition_number_full) else None),
+            "undetermined": list(self.undetermined),
+            "reasons": dict(self.reasons),
+            "residual_rms_g": float(self.residual_rms_g),
+            "n_steps": int(self.n_steps),
+            "rate_source": self.rate_source,
+            "units": {"lever_arm_mm": "mm", "stderr": "mm"},
+        }
+
+
+def _step_rates(sm: StepMeans, gyro_K, gyro_w0) -> tuple[np.ndarray, str]:
+    if gyro_K is None:
+        return sm.w_ref, "w_ref"
+    w0 = np.zeros(3) if gyro_w0 is None else np.asarray(gyro_w0, float)
+    return sm.gyro @ np.asarray(gyro_K, float).T + w0, "gyro"
+
+
+def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None,
+                  rcond: float = UNDETERMINED_RCOND) -> LeverArmFit:
+    """r_1, r_2, r_3 (mm) from the ``dynamic`` steps by one joint least squares.
+
+    Row (i, s): y_is = (u_is - u0_i)/k_i - c_i . f_ref,s = c_i^T W_s r_i (1e-3/g: mm -> g).
+    The nine unknowns are solved together (block-diagonal design over the accelerometers);
+    the residual variance is pooled in g over all rows. Standard errors add the static fit's
+    uncertainty (u0, M enter y linearly) through the Jacobian of the solution. Components whose
+    pivoted-QR diagonal falls below ``rcond`` of the largest in their block are undetermined.
+    """
+    d = sm.of_test("dynamic")
+    n = len(d)
+    if n == 0:
+        raise DesignError("E_NO_DYNAMIC_STEPS", "no dynamic steps: lever arms need constant-rate "
+                          "rotation", LEVER_NAMES)
+    w, source = _step_rates(d, gyro_K, gyro_w0)
+    W = lever_matrix(w) * (1e-3 / static.g_local)  # g per mm
+    k, C, u0 = static.scale, static.C, static.bias
+    M = static.M
+    r = np.full((3, 3), np.nan)
+    se = np.full((3, 3), np.nan)
+    undetermined: list[str] = []
+    reasons: dict[str, str] = {}
+    blocks = []
+    for i in range(3):
+        X = np.einsum("j,njk->nk", C[:, i], W)  # c_i^T W_s, (n,3)
+        y = (d.accel[:, i] - u0[i] - d.f_ref @ M[i]) / k[i]
+        # rank-revealing QR: the trailing pivots with small diagonal are not observable
+        _, R, piv = qr(X, mode="economic", pivoting=True)
+        diag = np.abs(np.diag(R))
+        keep = np.sort(piv[: int(np.sum(diag >= rcond * diag[0]))]) if diag[0] > 0 else []
+        for j in sorted(set(range(3)) - set(keep)):
+            name = LEVER_NAMES[3 * i + j]
+            undetermined.append(name)
+            rel = diag[list(piv).index(j)] / diag[0] if diag[0] > 0 else 0.0
+            reasons[name] = (f"not observable from these dynamic steps (relative pivot "
+                             f"{rel:.2g} < {rcond:g}); add steps with the rate off the body "
+                             "axes (protocols.dynamic_steps(tilted=True))")
+        blocks.append((i, X, y, np.asarray(keep, int)))
+    # joint design (block-diagonal), determined columns only
+    cols = [(i, j) for i, _, _, keep in blocks for j in keep]
+    A = np.zeros((3 * n, len(cols)))
+    full = np.zeros((3 * n, 9))
+    Y = np.concatenate([b[2] for b in blocks])
+    for i, X, _, _ in blocks:
+        full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
+    for c, (i, j) in enumerate(cols):
+        A[i * n:(i + 1) * n, c] = blocks[i][1][:, j]
+    if not cols:
+        raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
+                          LEVER_NAMES)
+    theta, *_ = np.linalg.lstsq(A, Y, rcond=None)
+    resid = Y - A @ theta
+    dof = 3 * n - len(cols)
+    var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
+    cov = _ls_cov(A) * var_g
+    # propagate the static uncertainty: dy_is/d(M_i, u0_i) = -(f_s + e_is M_i / k_i^2, 1) / k_i
+    pinv = np.linalg.pinv(A)
+    for i, X, y, keep in blocks:
+        e = y * k[i]  # raw residual of the static model on these steps
+        dy = -np.hstack([d.f_ref + np.outer(e, M[i]) / k[i] ** 2, np.ones((n, 1))]) / k[i]
+        J = pinv[:, i * n:(i + 1) * n] @ dy  # d theta / d(M_i, u0_i)
+        cov = cov + J @ static.channel_cov[i] @ J.T
+    for c, (i, j) in enumerate(cols):
+        r[i, j] = theta[c]
+        se[i, j] = np.sqrt(cov[c, c])
+    sva = np.linalg.svd(A, compute_uv=False)
+    svf = np.linalg.svd(full, compute_uv=False)
+    return LeverArmFit(
+        lever_arm_mm=r, stderr=se, condition_number=float(sva[0] / sva[-1]),
+        condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
+        undetermined=tuple(undetermined), reasons=reasons,
+        residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
+        n_steps=n, rate_source=source,
+    )
+
+
+def paper_lever_arm(sm: StepMeans, static: AccelStaticFit) -> np.ndarray:
+    """The paper's closed form (eq. 24), for contrast: r (mm), row i = accelerometer i.
+
+    With D_u the output of accelerometer i along its axis at up-axis u rotating at w0, minus
+    the same with the table at rest: r_ix = (D_x - D_y - D_z) / (2 w0^2 cos theta_ix), and
+    cyclically. Averaged over the rates present with x-, y- and z-up (both signs). The rest
+    outputs come from ``stationary`` steps when present, else from the static model. Divides
+    by cos theta_ij of the off-diagonal angles (~0.01): this is what blows up.
+    """
+    y_all = static.sensed_along_axes(sm.accel)  # (n,3) g along each sensitive axis
+    rest = {}
+    for u in ("+x", "+y", "+z"):
+        m = (sm.test == "stationary") & (sm.up_axis == u)
+        if m.any():
+            rest[u] = y_all[m].mean(axis=0)
+        else:  # the static model's prediction of the rest output
+            f = np.eye(3)["xyz".index(u[1])]
+            rest[u] = static.C.T @ f
+    dyn = sm.test == "dynamic"
+    estimates = []
+    for rate in np.unique(np.abs(sm.rate_dps[dyn])):
+        D = {}
+        for u in ("+x", "+y", "+z"):
+            m = dyn & (sm.up_axis == u) & np.isclose(np.abs(sm.rate_dps), rate) & \
+                np.isclose(np.abs(sm.w_ref @ np.eye(3)["xyz".index(u[1])]), rate)
+            if not m.any():
+                break
+            D[u] = y_all[m].mean(axis=0) - rest[u]
+        if len(D) < 3:
+            continue
+        w2 = (rate * DEG) ** 2
+        scale = static.g_local * 1e3 / (2.0 * w2)  # g -> m/s^2, m -> mm
+        est = np.empty((3, 3))
+        for i in range(3):
+            c = static.C[:, i]
+            Dx, Dy, Dz = D["+x"][i], D["+y"][i], D["+z"][i]
+            est[i, 0] = (Dx - Dy - Dz) * scale / c[0]
+            est[i, 1] = (Dy - Dx - Dz) * scale / c[1]
+            est[i, 2] = (Dz - Dx - Dy) * scale / c[2]
+        estimates.append(est)
+    if not estimates:
+        raise DesignError("E_NO_AXIS_RATES", "the paper's formula needs the same rate with "
+                          "x-, y- and z-up", LEVER_NAMES)
+    return np.mean(estimates, axis=0)
+
+
+# -- compensation --------------------------------------------------------------------------------
+def compensate_specific_force(static: AccelStaticFit, lever: LeverArmFit | None,
+                              A_raw: np.ndarray, w_dps: np.ndarray | None = None,
+                              dwdt_dps2: np.ndarray | None = None) -> np.ndarray:
+    """Calibrated specific force at the rotation centre (g), (n,3): paper eq. 16-17.
+
+    a_i = (u_i - u0_i)/k_i - c_i^T W r_i, f = (C^T)^-1 a, W = [w x]^2 + [dw/dt x] from the
+    calibrated gyro rate and its derivative. ``lever=None`` gives the static model only;
+    undetermined lever components count as zero."""
+    a = static.sensed_along_axes(A_raw)
+    if lever is not None:
+        if w_dps is None:
+            raise ValueError("lever-arm compensation needs the angular rate w_dps")
+        w = np.broadcast_to(np.atleast_2d(w_dps), a.shape)
+        dw = None if dwdt_dps2 is None else np.broadcast_to(np.atleast_2d(dwdt_dps2), a.shape)
+        W = lever_matrix(w, dw) * (1e-3 / static.g_local)
+        r = lever.r_for_compensation
+        a = a - np.einsum("ji,njk,ik->ni", static.C, W, r)
+    return np.linalg.solve(static.C.T, a.T).T
+
+
+# -- truth for simulation ------------------------------------------------------------------------
+class SensitiveAxisLeverArm(EffectTerm):
+    """Lever arm projected on each accelerometer's own sensitive axis (paper eq. 13), as an
+    error on the body-frame specific force: e = (C^T)^-1 [c_i^T W r_i]_i.
+
+    Differs from :class:`calib_core.effect_terms.LeverArmTerm` (which projects on the body
+    axes) by misalignment x lever term. Not registered in the catalogue: it needs C."""
+
+    name = "lever_arm_sensitive_axis"
+    description = "accelerometer size effect projected on the sensitive axes"
+    param_names = LEVER_NAMES
+    param_units = ("mm",) * 9
+
+    def __init__(self, C: np.ndarray):
+        self.C = np.asarray(C, float)
+
+    def regressors(self, ctx: MotionContext) -> np.ndarray:
+        W = lever_matrix(ctx.w, ctx.dwdt) * (1e-3 / ctx.g_local)
+        L = np.zeros((len(ctx), 3, 9))
+        for i in range(3):
+            L[:, i, 3 * i:3 * i + 3] = np.einsum("j,njk->nk", self.C[:, i], W)
+        out = np.zeros((len(ctx), 6, 9))
+        out[:, 3:6, :] = np.einsum("ab,nbp->nap", np.linalg.inv(self.C.T), L)
+        return out
+
+
+@dataclass(frozen=True)
+class AccelUnitTruth:
+    """A tri-axis accelerometer unit in the zhang2017 form, for simulation."""
+
+    scale: np.ndarray  # (3,) raw per g
+    bias: np.ndarray  # (3,) raw
+    C: np.ndarray  # (3,3) columns = sensitive axes
+    lever_arm_mm: np.ndarray  # (3,3) row i = r_i
+    unit: str = "V"
+    g_local: float = 9.80665
+
+    @property
+    def angles_deg(self) -> np.ndarray:
+        return angles_from_C(self.C)
+
+    def raw(self, f_g: np.ndarray, w_dps: np.ndarray, dwdt_dps2: np.ndarray | None = None
+            ) -> np.ndarray:
+        """Noise-free raw outputs u_i = k_i (c_i . (f + W r_i)) + u0_i, (n,3)."""
+        f = np.atleast_2d(f_g)
+        W = lever_matrix(np.broadcast_to(np.atleast_2d(w_dps), f.shape),
+                         None if dwdt_dps2 is None
+                         else np.broadcast_to(np.atleast_2d(dwdt_dps2), f.shape))
+        at_r = f[:, None, :] + np.einsum("nab,ib->nia", W, self.lever_arm_mm) * (
+            1e-3 / self.g_local)  # (n, i, 3): specific force at accelerometer i
+        along = np.einsum("ai,nia->ni", self.C, at_r)
+        return self.scale * along + self.bias
+
+    def to_mimu_truth(self, **kw) -> "Any":
+        """The same unit as a :class:`calib_core.simulator.MimuTruth` (affine K_a, f0 and the
+        sensitive-axis lever-arm effect). Gyros ideal unless given; gyro full scale widened so
+        that constant-rate steps are not dropped."""
+        from calib_core.simulator import MimuTruth
+
+        K_a, f0 = affine_from_parts(self.scale, self.bias, self.C)
+        base = dict(K_a=K_a, f0=f0, accel_unit=self.unit, g_local=self.g_local,
+                    gyro_range_dps=(2000.0, 2000.0, 4000.0),
+                    effects=((SensitiveAxisLeverArm(self.C), self.lever_arm_mm.ravel()),))
+        base.update(kw)
+        return MimuTruth(**base)

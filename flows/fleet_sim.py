@@ -1,0 +1,233 @@
+"""Simulate a fleet of units on the turntable and write it as a dataset in the contract,
+with a manifest (``fleet.json``) of the truth, the injected outliers and the sessions made bad.
+
+Population model (deterministic for a seed; every unit has its own child seed, so a unit's
+data do not depend on how many units were simulated before it):
+
+- each lot has a lot-mean unit drawn by :func:`calib_core.simulator.typical_truth` (K near
+  identity, 1 % scale and cross-axis terms, 0.5 deg/s and 5 mg biases);
+- each unit scatters around its lot mean: K_g and K_a diagonal sd ``UNIT_SPREAD['k_diag']``
+  (0.003), off-diagonal sd 0.002, w0 sd 0.05 deg/s, f0 sd 1 mg;
+- each repetition moves the biases by the turn-on repeatability (0.01 deg/s, 0.1 mg).
+
+Outliers (``outliers=K``): K distinct units get one parameter shifted far beyond the lot
+spread, cycling through ``OUTLIER_KINDS`` (k_g11 +0.02 = 6.7 sd; w0_z +0.5 deg/s = 10 sd;
+k_a22 +0.02). Bad sessions (``bad_sessions=K``): K distinct sessions are damaged after
+writing, cycling through ``BAD_KINDS``, each with the error code the reader must give.
+
+The truth in the manifest is in mimucal's inside units (w = K_g G + w0 in deg/s, f = K_a A +
+f0 in g) whatever units the files are written in: the reader converts rad/s and m/s^2 back.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from calib_core import protocols
+from calib_core.simulator import (
+    MimuTruth, draw_repetition_truth, session_metadata, simulate_session, typical_truth,
+)
+from calib_core.steps import SessionKey
+from schemas.contract import SAMPLES_FILE, STEPS_FILE
+from schemas.dataset import session_dir
+from schemas.errors import (
+    E_MISSING_FILE, E_NONFINITE_VALUE, E_NONINCREASING_TIME, E_UNKNOWN_UNIT, E_UNREADABLE_FILE,
+)
+from schemas.writer import write_session
+
+MANIFEST = "fleet.json"
+MANIFEST_FORMAT = "mimucal-fleet"
+MANIFEST_VERSION = "1.0"
+
+UNIT_SPREAD = {"k_diag": 0.003, "k_offdiag": 0.002, "w0_dps": 0.05, "f0_g": 1e-3}
+REPEATABILITY = {"gyro_bias_repeatability_dps": 0.01, "accel_bias_repeatability_g": 1e-4}
+
+# (name, matrix/vector attribute, index, shift)
+OUTLIER_KINDS = (
+    ("k_g11", "K_g", (0, 0), 0.02),
+    ("w0_z", "w0", (2,), 0.5),
+    ("k_a22", "K_a", (1, 1), 0.02),
+)
+BAD_KINDS = {
+    "nan_burst": (E_NONFINITE_VALUE, "20 NaN samples in gx inside a multirate step"),
+    "truncated_samples": (E_UNREADABLE_FILE, "samples.parquet cut to half its size"),
+    "missing_steps": (E_MISSING_FILE, "steps.parquet deleted"),
+    "nonincreasing_time": (E_NONINCREASING_TIME, "two consecutive t values swapped"),
+    "unknown_unit": (E_UNKNOWN_UNIT, "gyro_unit metadata set to 'dps'"),
+}
+
+TruthFactory = Callable[[np.random.Generator, str, str], MimuTruth]
+
+
+def _spread(M: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    noise = rng.normal(0.0, UNIT_SPREAD["k_offdiag"], (3, 3))
+    noise[np.diag_indices(3)] = rng.normal(0.0, UNIT_SPREAD["k_diag"], 3)
+    return M + noise
+
+
+def unit_truth(lot_truth: MimuTruth, rng: np.random.Generator) -> MimuTruth:
+    """One unit scattered around its lot mean (see module docstring)."""
+    return replace(
+        lot_truth, K_g=_spread(lot_truth.K_g, rng), K_a=_spread(lot_truth.K_a, rng),
+        w0=lot_truth.w0 + rng.normal(0.0, UNIT_SPREAD["w0_dps"], 3),
+        f0=lot_truth.f0 + rng.normal(0.0, UNIT_SPREAD["f0_g"], 3), **REPEATABILITY,
+    )
+
+
+def _inject_outlier(truth: MimuTruth, kind: tuple) -> MimuTruth:
+    name, attr, index, shift = kind
+    value = np.array(getattr(truth, attr), dtype=float, copy=True)
+    value[index] += shift
+    return replace(truth, **{attr: value})
+
+
+def _truth_doc(truth: MimuTruth) -> dict:
+    return {"K_g": np.asarray(truth.K_g).tolist(), "w0": np.asarray(truth.w0).tolist(),
+            "K_a": np.asarray(truth.K_a).tolist(), "f0": np.asarray(truth.f0).tolist()}
+
+
+def _write_json_atomic(path: Path, doc: dict) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(doc, fh, indent=2, allow_nan=False)
+            fh.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def damage_session(path: Path, kind: str, steps: pd.DataFrame, rng: np.random.Generator) -> str:
+    """Make one written session invalid in the named way; returns a short description."""
+    samples = path / SAMPLES_FILE
+    if kind == "truncated_samples":
+        data = samples.read_bytes()
+        samples.write_bytes(data[: len(data) // 2])
+    elif kind == "missing_steps":
+        (path / STEPS_FILE).unlink()
+    elif kind in ("nan_burst", "nonincreasing_time", "unknown_unit"):
+        table = pq.read_table(samples)
+        md = dict(table.schema.metadata or {})
+        df = table.to_pandas()
+        if kind == "nan_burst":
+            multirate = steps.loc[steps["test"] == "multirate", "step"].to_numpy()
+            target = int(rng.choice(multirate))
+            rows = np.flatnonzero(df["step"].to_numpy() == target)
+            start = rows[len(rows) // 2]
+            df.loc[start:start + 19, "gx"] = np.nan
+        elif kind == "nonincreasing_time":
+            i = int(rng.integers(1, len(df) - 1))
+            t = df["t"].to_numpy(copy=True)
+            t[i], t[i + 1] = t[i + 1], t[i]
+            df["t"] = t
+        else:
+            md[b"gyro_unit"] = b"dps"
+        # numpy arrays, not from_pandas: a NaN must stay a NaN in the file, not become null
+        out = pa.Table.from_arrays([pa.array(df[f.name].to_numpy(), type=f.type)
+                                    for f in table.schema], schema=table.schema.with_metadata(md))
+        pq.write_table(out, samples, compression="zstd", use_dictionary=False)
+    else:
+        raise ValueError(f"unknown bad-session kind {kind!r} (known: {', '.join(BAD_KINDS)})")
+    return BAD_KINDS[kind][1]
+
+
+def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
+                   sample_rate_hz: float = 100.0, outliers: int = 0, bad_sessions: int = 0,
+                   verification: bool = False, gyro_unit: str | None = None,
+                   accel_unit: str | None = None, protocol: pd.DataFrame | None = None,
+                   truth_factory: TruthFactory | None = None) -> dict:
+    """Write ``lots`` lots x ``units`` units per lot x ``reps`` repetitions under ``out`` and
+    the manifest ``out/fleet.json``; return the manifest.
+
+    ``protocol``: a step table (default :func:`calib_core.protocols.default_session`, with the
+    verification sweep when ``verification``). ``truth_factory(rng, lot, unit)`` replaces the
+    population model (outliers are still injected on top). Unit ids ``U0001..`` are numbered
+    across the fleet (a unit belongs to one lot), lots ``L01..``.
+    """
+    if lots < 1 or units < 1 or reps < 1:
+        raise ValueError("lots, units and reps must be >= 1")
+    n_units = lots * units
+    if not 0 <= outliers <= n_units:
+        raise ValueError(f"outliers={outliers} must be between 0 and the {n_units} units")
+    if not 0 <= bad_sessions <= n_units * reps:
+        raise ValueError(f"bad_sessions={bad_sessions} must be between 0 and the "
+                         f"{n_units * reps} sessions")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    steps = protocol if protocol is not None else protocols.default_session(
+        verification=verification)
+    root_seq = np.random.SeedSequence(seed)
+    lot_seqs = root_seq.spawn(lots)
+    pick_rng = np.random.default_rng(root_seq.spawn(1)[0])  # which units/sessions are special
+    outlier_units = set(pick_rng.choice(n_units, size=outliers, replace=False).tolist())
+    outlier_order = sorted(outlier_units)
+    bad_flat = pick_rng.choice(n_units * reps, size=bad_sessions, replace=False).tolist()
+    bad_kinds = list(BAD_KINDS)
+    bad_of = {int(s): bad_kinds[i % len(bad_kinds)] for i, s in enumerate(sorted(bad_flat))}
+
+    manifest: dict = {
+        "format": MANIFEST_FORMAT, "format_version": MANIFEST_VERSION, "seed": seed,
+        "lots": lots, "units_per_lot": units, "reps": reps, "sample_rate_hz": sample_rate_hz,
+        "n_steps": int(len(steps)), "verification": bool(verification),
+        "file_units": {"gyro": gyro_unit or "deg/s", "accel": accel_unit or "g"},
+        "truth_units": {"K_g": "deg/s per deg/s", "w0": "deg/s", "K_a": "g per g", "f0": "g"},
+        "unit_spread": UNIT_SPREAD, "repeatability": REPEATABILITY,
+        "lot_truth": {}, "units": [], "outliers": [], "bad_sessions": [],
+    }
+    for li, lot_seq in enumerate(lot_seqs):
+        lot = f"L{li + 1:02d}"
+        lot_rng, *unit_seqs = [np.random.default_rng(s) for s in lot_seq.spawn(units + 1)]
+        lot_truth = typical_truth(lot_rng)
+        manifest["lot_truth"][lot] = _truth_doc(lot_truth)
+        for ui, unit_rng in enumerate(unit_seqs):
+            flat_unit = li * units + ui
+            unit = f"U{flat_unit + 1:04d}"
+            truth = (truth_factory(unit_rng, lot, unit) if truth_factory
+                     else unit_truth(lot_truth, unit_rng))
+            outlier = None
+            if flat_unit in outlier_units:
+                kind = OUTLIER_KINDS[outlier_order.index(flat_unit) % len(OUTLIER_KINDS)]
+                truth = _inject_outlier(truth, kind)
+                outlier = {"param": kind[0], "shift": kind[3]}
+                manifest["outliers"].append({"lot": lot, "unit": unit, **outlier})
+            unit_doc = {"lot": lot, "unit": unit, "truth": _truth_doc(truth),
+                        "outlier": outlier, "reps": []}
+            for rep in range(1, reps + 1):
+                key = SessionKey(lot, unit, rep)
+                rep_truth = draw_repetition_truth(truth, unit_rng)
+                samples = simulate_session(rep_truth, steps, unit_rng, sample_rate_hz)
+                md = session_metadata(rep_truth, sample_rate_hz,
+                                      session_start=f"2026-11-20T{2 + (rep - 1) // 60:02d}:"
+                                                    f"{(rep - 1) % 60:02d}:00Z",
+                                      lot=lot, unit=unit, rep=str(rep), seed=str(seed))
+                path = write_session(out, key, steps, samples, md, gyro_unit, accel_unit)
+                rep_doc = {"rep": rep, "path": str(path.relative_to(out)),
+                           "w0": np.asarray(rep_truth.w0).tolist(),
+                           "f0": np.asarray(rep_truth.f0).tolist(), "bad": None}
+                flat_session = flat_unit * reps + (rep - 1)
+                if flat_session in bad_of:
+                    kind = bad_of[flat_session]
+                    detail = damage_session(path, kind, steps, unit_rng)
+                    bad = {"kind": kind, "expected_code": BAD_KINDS[kind][0], "detail": detail}
+                    rep_doc["bad"] = bad
+                    manifest["bad_sessions"].append({"session": str(key), "lot": lot,
+                                                     "unit": unit, "rep": rep, **bad})
+                unit_doc["reps"].append(rep_doc)
+            manifest["units"].append(unit_doc)
+    _write_json_atomic(out / MANIFEST, manifest)
+    return manifest
+
+
+def load_manifest(out: Path | str) -> dict:
+    return json.loads((Path(out) / MANIFEST).read_text())

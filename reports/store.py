@@ -1,0 +1,145 @@
+"""Read access to the results store for the reports (never raw data).
+
+Tables come through :class:`schemas.results_store.ResultsStore` (its column order and key
+dtypes); a table whose file is absent is ``None`` so a report can say so and still render.
+``navigation.parquet`` is not one of the store's own tables and is read with pandas.
+"""
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from schemas.results_store import TABLE_COLUMNS, ResultsStore
+
+# Tables a report may use; missing ones are reported as missing, not an error.
+REPORT_TABLES = ("sessions", "parameters", "summary", "units", "residuals", "compensation",
+                 "discovery", "navigation")
+
+
+class StoreView:
+    """Cached, read-only view of one results root."""
+
+    def __init__(self, results_root: str | Path) -> None:
+        self.root = Path(results_root)
+        self.store = ResultsStore(self.root)
+        self._cache: dict[str, pd.DataFrame | None] = {}
+
+    @property
+    def reports_dir(self) -> Path:
+        return self.root / "reports"
+
+    def table(self, name: str) -> pd.DataFrame | None:
+        if name not in self._cache:
+            path = self.root / f"{name}.parquet"
+            if not path.exists():
+                df = None
+            elif name in TABLE_COLUMNS:
+                df = self.store.read(name)
+            else:
+                df = pd.read_parquet(path)
+            if df is not None:
+                for key in ("lot", "unit"):
+                    if key in df.columns:
+                        df[key] = df[key].astype(object).where(df[key].notna(), None)
+            self._cache[name] = df
+        return self._cache[name]
+
+    def of(self, name: str, lot: str | None = None, unit: str | None = None) -> pd.DataFrame | None:
+        """Rows of a table for a lot and/or unit; None when the table does not exist."""
+        df = self.table(name)
+        if df is None:
+            return None
+        m = pd.Series(True, index=df.index)
+        if lot is not None and "lot" in df.columns:
+            m &= df["lot"] == lot
+        if unit is not None and "unit" in df.columns:
+            m &= df["unit"] == unit
+        return df[m]
+
+    def lots(self) -> list[str]:
+        found: set[str] = set()
+        for name in ("units", "sessions", "summary"):
+            df = self.table(name)
+            if df is not None and "lot" in df.columns:
+                found |= {str(x) for x in df["lot"].dropna().unique()}
+        return sorted(found)
+
+    def lot_of_unit(self, unit: str) -> str | None:
+        for name in ("units", "summary", "sessions", "parameters"):
+            df = self.table(name)
+            if df is not None and len(df) and "unit" in df.columns:
+                lots = df.loc[df["unit"] == unit, "lot"].dropna()
+                if len(lots):
+                    # a unit re-binned into another lot: the most recent rows win
+                    return str(lots.iloc[-1])
+        return None
+
+    @cached_property
+    def runs(self) -> list[dict[str, Any]]:
+        """Run logs, oldest first, each with ``run_id`` and a parsed ``_time`` (or None)."""
+        out = []
+        for p in self.store.runs():
+            try:
+                doc = json.loads(p.read_text())
+            except (OSError, ValueError):
+                continue
+            if not isinstance(doc, dict):
+                continue
+            doc.setdefault("run_id", p.stem)
+            doc["_time"] = run_time(doc)
+            out.append(doc)
+        out.sort(key=lambda d: (d["_time"] is None, d["_time"] or datetime.min.replace(tzinfo=timezone.utc)))
+        return out
+
+    def run(self, run_id: str | None) -> dict[str, Any] | None:
+        for r in self.runs:
+            if r.get("run_id") == run_id:
+                return r
+        return None
+
+    def history(self, unit: str) -> list[dict[str, Any]]:
+        """Every calibration file of a unit, oldest first: {time, path, doc}."""
+        out = []
+        for ts, path in self.store.calibration_files(unit):
+            try:
+                doc = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+            out.append({"time": ts, "path": path, "doc": doc})
+        return out
+
+    def history_units(self) -> list[str]:
+        d = self.root / "calibrations"
+        return sorted(p.name for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
+
+
+def run_time(doc: dict[str, Any]) -> datetime | None:
+    for key in ("finished_at", "ended_at", "end", "started_at", "start", "time"):
+        v = doc.get(key)
+        if v:
+            try:
+                t = datetime.fromisoformat(str(v).replace("Z", "+00:00"))
+            except ValueError:
+                continue
+            return t if t.tzinfo else t.replace(tzinfo=timezone.utc)
+    return None
+
+
+def provenance(doc: dict[str, Any]) -> dict[str, Any]:
+    """Provenance of a calibration file wherever the writer put it."""
+    out: dict[str, Any] = {}
+    for key in ("metadata", "provenance"):
+        v = doc.get(key)
+        if isinstance(v, dict):
+            out.update(v)
+            if isinstance(v.get("provenance"), dict):
+                out.update(v["provenance"])
+    for key in ("run_id", "code_version", "lot", "unit"):
+        if key in doc and key not in out:
+            out[key] = doc[key]
+    return out

@@ -1,0 +1,207 @@
+"""Step averaging: raw samples of one session -> :class:`calib_core.steps.StepMeans`.
+
+Samples with ``step == -1`` are dropped, then the first ``settle_s`` of each step (measured
+from the step's first sample time), then mean, standard deviation (ddof=1) and count per step
+and channel are computed with ``numpy.bincount`` over the step index of every sample (no
+Python loop over samples), two-pass so that large means (3600 deg/s, 32768 LSB) do not
+cancel the variance. ``t_mid`` is the middle of the averaged window, ``temp_c`` the mean
+recorded temperature (NaN when not recorded).
+
+Steps left out, each named in a :class:`SessionWarning`:
+
+- ``W_EMPTY_STEP``: the step has no sample at all;
+- ``W_TOO_SHORT``: fewer than ``min_samples`` samples after settling;
+- ``W_SATURATED``: a sample of the step (after settling) is at or beyond full scale. In
+  physical units (deg/s, rad/s, g, m/s^2) the declared ``gyro_range_dps`` / ``accel_range_g``
+  is the full scale. In raw units (LSB, V) the optional metadata keys
+  ``gyro_full_scale_raw`` / ``accel_full_scale_raw`` give it. In every unit, clipping is also
+  detected as the session's extreme value of a channel repeated exactly in at least
+  ``max(3, 1 %)`` of the step's samples: a sensor whose K is not exactly 1 clips a little
+  below (or above) its declared range, and raw files may not declare a full scale at all.
+  For declared full scales the clip must be at least half of it (so that a coarse quantum on a
+  1 g step is not taken for clipping).
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+
+from calib_core.steps import SessionKey, StepMeans
+from schemas.contract import ACCEL_COLUMNS, F_REF_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE, W_REF_COLUMNS
+from schemas.dataset import SessionRef
+from schemas.errors import (
+    E_EMPTY_SESSION, W_EMPTY_STEP, W_SATURATED, W_TOO_SHORT, SessionError, SessionWarning,
+)
+from schemas.reader import SessionData, read_session, session_from_tables
+
+SETTLE_TOLERANCE_S = 1e-6  # t - t0 of a sample exactly at settle_s may round to 0.4999999
+CLIP_MIN_REPEATS = 3
+CLIP_MIN_FRACTION = 0.01
+CLIP_MIN_OF_FULL_SCALE = 0.5
+
+
+def _step_index(data: SessionData) -> np.ndarray:
+    """Row of steps for every sample (-1 between steps)."""
+    ids = data.steps["step"].to_numpy(np.int64)
+    order = np.argsort(ids, kind="stable")
+    pos = np.searchsorted(ids[order], data.step)
+    pos = np.clip(pos, 0, len(ids) - 1)
+    idx = order[pos]
+    return np.where(data.step == -1, -1, idx)
+
+
+def _describe(steps: pd.DataFrame, i: int) -> str:
+    row = steps.iloc[i]
+    return (f"step {int(row['step'])} ({row['test']}, {row['up_axis']} up, "
+            f"{float(row['rate_dps']):g} deg/s)")
+
+
+def _saturation(values: np.ndarray, idx: np.ndarray, count: np.ndarray, n_steps: int,
+                full_scale: np.ndarray | None, names: tuple[str, ...], unit: str
+                ) -> tuple[np.ndarray, list[dict]]:
+    """Per step: saturated? and, for each saturated step, the first channel and why.
+
+    ``values`` (m, 3) kept samples, ``idx`` (m,) their step row, ``full_scale`` (3,) or None.
+    """
+    saturated = np.zeros(n_steps, bool)
+    why: list[dict] = [None] * n_steps  # type: ignore[list-item]
+    min_repeats = np.maximum(CLIP_MIN_REPEATS, CLIP_MIN_FRACTION * count)
+    for j, name in enumerate(names):
+        x = values[:, j]
+        if full_scale is not None:
+            at_fs = np.abs(x) >= full_scale[j]
+            hits = np.bincount(idx, weights=at_fs, minlength=n_steps)
+            for i in np.flatnonzero((hits > 0) & ~saturated):
+                why[i] = dict(column=name, text=(
+                    f"{name} reaches the declared full scale {full_scale[j]:g} {unit} "
+                    f"({int(hits[i])} sample(s))"))
+            saturated |= hits > 0
+        for sign in (1.0, -1.0):
+            sx = sign * x
+            extreme = sx.max()
+            if full_scale is not None and extreme < CLIP_MIN_OF_FULL_SCALE * full_scale[j]:
+                continue
+            if extreme <= 0:
+                continue
+            repeats = np.bincount(idx, weights=(sx == extreme), minlength=n_steps)
+            clipped = (repeats >= min_repeats) & (count > 0)
+            for i in np.flatnonzero(clipped & ~saturated):
+                why[i] = dict(column=name, text=(
+                    f"{name} clipped at {sign * extreme:g} {unit} (the session's extreme value, "
+                    f"repeated in {int(repeats[i])} of {int(count[i])} samples)"))
+            saturated |= clipped
+    return saturated, why
+
+
+def average_session(data: SessionData, min_samples: int = 10
+                    ) -> tuple[StepMeans, list[SessionWarning]]:
+    """Average a validated session (see module docstring). Raises E_EMPTY_SESSION when no
+    step is usable."""
+    steps = data.steps
+    n_steps = len(steps)
+    meta = data.meta
+    idx_all = _step_index(data)
+    in_step = idx_all >= 0
+    n_any = np.bincount(idx_all[in_step], minlength=n_steps)
+    # first sample time of each step (t is strictly increasing, so the first in file order)
+    t0 = np.full(n_steps, np.inf)
+    np.minimum.at(t0, idx_all[in_step], data.t[in_step])
+    settle = steps["settle_s"].to_numpy(float)
+    keep = in_step.copy()
+    keep[in_step] = (data.t[in_step] - t0[idx_all[in_step]]
+                     >= settle[idx_all[in_step]] - SETTLE_TOLERANCE_S)
+    idx = idx_all[keep]
+    t = data.t[keep]
+    count = np.bincount(idx, minlength=n_steps)
+    safe = np.maximum(count, 1)
+
+    def mean_std(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        mean = np.empty((n_steps, 3))
+        std = np.full((n_steps, 3), np.nan)
+        for j in range(3):
+            mean[:, j] = np.bincount(idx, weights=values[:, j], minlength=n_steps) / safe
+            dev2 = (values[:, j] - mean[idx, j]) ** 2
+            ss = np.bincount(idx, weights=dev2, minlength=n_steps)
+            ok = count > 1
+            std[ok, j] = np.sqrt(ss[ok] / (count[ok] - 1))
+        return mean, std
+
+    gyro_k, accel_k = data.gyro[keep], data.accel[keep]
+    gyro, gyro_std = mean_std(gyro_k)
+    accel, accel_std = mean_std(accel_k)
+    t_lo = np.full(n_steps, np.inf)
+    t_hi = np.full(n_steps, -np.inf)
+    np.minimum.at(t_lo, idx, t)
+    np.maximum.at(t_hi, idx, t)
+    t_mid = np.where(count > 0, (t_lo + t_hi) / 2.0, np.nan)
+    temp = np.full(n_steps, np.nan)
+    if data.temp_c is not None:
+        tc = data.temp_c[keep]
+        finite = np.isfinite(tc)
+        n_t = np.bincount(idx[finite], minlength=n_steps)
+        s_t = np.bincount(idx[finite], weights=tc[finite], minlength=n_steps)
+        temp = np.where(n_t > 0, s_t / np.maximum(n_t, 1), np.nan)
+
+    g_fs = np.asarray(meta.gyro_range_dps, float) if meta.gyro_is_physical else (
+        None if meta.gyro_full_scale_raw is None else np.asarray(meta.gyro_full_scale_raw, float))
+    a_fs = np.asarray(meta.accel_range_g, float) if meta.accel_is_physical else (
+        None if meta.accel_full_scale_raw is None else np.asarray(meta.accel_full_scale_raw, float))
+    sat_g, why_g = _saturation(gyro_k, idx, count, n_steps, g_fs, GYRO_COLUMNS, meta.gyro_unit)
+    sat_a, why_a = _saturation(accel_k, idx, count, n_steps, a_fs, ACCEL_COLUMNS, meta.accel_unit)
+
+    warnings: list[SessionWarning] = []
+    usable = np.ones(n_steps, bool)
+    ids = steps["step"].to_numpy(np.int64)
+    short = (n_any == 0) | (count < min_samples)
+    for i in np.flatnonzero(short | sat_g | sat_a):  # per left-out step, not per sample
+        what = _describe(steps, i)
+        if n_any[i] == 0:
+            warnings.append(SessionWarning(W_EMPTY_STEP, f"{data.label}: {what} has no samples; "
+                                           f"left out", step=int(ids[i])))
+        elif count[i] < min_samples:
+            warnings.append(SessionWarning(
+                W_TOO_SHORT, f"{data.label}: {what} has {int(count[i])} sample(s) after "
+                f"settling {settle[i]:g} s (of {int(n_any[i])}), fewer than {min_samples}; "
+                f"left out", step=int(ids[i])))
+        elif sat_g[i] or sat_a[i]:
+            reasons = [w for w in (why_g[i], why_a[i]) if w]
+            warnings.append(SessionWarning(
+                W_SATURATED, f"{data.label}: {what}: " + "; ".join(r["text"] for r in reasons)
+                + "; left out", step=int(ids[i]), column=reasons[0]["column"]))
+        usable[i] = False
+    if not usable.any():
+        counts = {c: sum(w.code == c for w in warnings) for c in (W_EMPTY_STEP, W_TOO_SHORT, W_SATURATED)}
+        raise SessionError(E_EMPTY_SESSION, data.label, SAMPLES_FILE,
+                           "no usable step left (" + ", ".join(f"{v} {k}" for k, v in counts.items() if v)
+                           + ")")
+    sm = StepMeans(
+        key=data.key if data.key is not None else SessionKey("", data.label, 0),
+        step=ids, test=steps["test"].to_numpy(str), up_axis=steps["up_axis"].to_numpy(str),
+        rate_dps=steps["rate_dps"].to_numpy(float), angle_deg=steps["angle_deg"].to_numpy(float),
+        w_ref=steps[list(W_REF_COLUMNS)].to_numpy(float),
+        f_ref=steps[list(F_REF_COLUMNS)].to_numpy(float),
+        gyro=gyro, accel=accel, gyro_std=gyro_std, accel_std=accel_std, count=count,
+        t_mid=t_mid, temp_c=temp, gyro_unit=meta.gyro_unit, accel_unit=meta.accel_unit,
+        g_local=meta.g_local, sample_rate_hz=data.sample_rate_hz,
+        gyro_range_dps=tuple(meta.gyro_range_dps), accel_range_g=tuple(meta.accel_range_g),
+        metadata=dict(meta.provenance),
+    )
+    return sm.select(usable), warnings
+
+
+def read_step_means(ref: SessionRef, min_samples: int = 10
+                    ) -> tuple[StepMeans, list[SessionWarning]]:
+    """Read, validate and average one session directory. Raises :class:`SessionError`."""
+    return average_session(read_session(ref), min_samples)
+
+
+def step_means_from_tables(key: SessionKey | str, steps_df: pd.DataFrame | pa.Table,
+                           samples_table: pa.Table | pd.DataFrame,
+                           metadata: Mapping | None = None, min_samples: int = 10
+                           ) -> tuple[StepMeans, list[SessionWarning]]:
+    """Validate and average in-memory tables (same rules as files)."""
+    return average_session(session_from_tables(key, steps_df, samples_table, metadata),
+                           min_samples)

@@ -1,0 +1,146 @@
+"""The hive layout ``<root>/lot=<lot>/unit=<unit>/rep=<n>/``: finding sessions and
+fingerprinting them.
+
+Bad directory names never raise: each becomes an ``E_BAD_PATH`` :class:`SessionError` in the
+returned list, and the rest of the fleet is still found. Entries whose name starts with ``.``
+or ``_`` (temp and hidden directories, as pyarrow's dataset discovery treats them) and plain
+files (``fleet.json``) are ignored.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from calib_core.steps import SessionKey
+from schemas.contract import SAMPLES_FILE, STEPS_FILE
+from schemas.errors import E_BAD_PATH, SessionError
+
+ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]+$")
+REP_PATTERN = re.compile(r"^[1-9][0-9]*$")
+
+
+@dataclass(frozen=True)
+class SessionRef:
+    """A session directory and its parsed identity."""
+
+    key: SessionKey
+    path: Path
+
+    @property
+    def steps_path(self) -> Path:
+        return self.path / STEPS_FILE
+
+    @property
+    def samples_path(self) -> Path:
+        return self.path / SAMPLES_FILE
+
+    def __str__(self) -> str:
+        return str(self.key)
+
+
+def session_dir(root: Path | str, key: SessionKey) -> Path:
+    return Path(root) / f"lot={key.lot}" / f"unit={key.unit}" / f"rep={key.rep}"
+
+
+def _visible_dirs(path: Path) -> list[Path]:
+    try:
+        entries = sorted(path.iterdir(), key=lambda p: p.name)
+    except OSError:
+        return []
+    return [p for p in entries if p.is_dir() and not p.name.startswith((".", "_"))]
+
+
+def _parse_part(name: str, field: str) -> tuple[str | None, str | None]:
+    """``lot=L01`` -> ("L01", None); a bad name -> (None, reason)."""
+    prefix = f"{field}="
+    if not name.startswith(prefix):
+        return None, f"directory name {name!r} does not parse: expected '{prefix}<id>'"
+    value = name[len(prefix):]
+    if field == "rep":
+        if not REP_PATTERN.match(value):
+            return None, (f"directory name {name!r} does not parse: rep must be an integer "
+                          f">= 1 without leading zeros")
+        return value, None
+    if not ID_PATTERN.match(value):
+        return None, (f"directory name {name!r} does not parse: {field} id {value!r} must "
+                      f"match [A-Za-z0-9_.-]+")
+    return value, None
+
+
+def _bad(path: Path, reason: str) -> SessionError:
+    return SessionError(E_BAD_PATH, str(path), path.name, reason)
+
+
+def find_sessions(root: Path | str, lot: str | None = None,
+                  unit: str | None = None) -> tuple[list[SessionRef], list[SessionError]]:
+    """All sessions under ``root`` (optionally of one lot and/or unit), sorted by lot, unit,
+    rep, and one E_BAD_PATH error per directory that does not parse or per session of a unit
+    found in more than one lot. A missing root is an E_BAD_PATH error too."""
+    root = Path(root)
+    errors: list[SessionError] = []
+    if not root.is_dir():
+        return [], [_bad(root, f"dataset root {str(root)!r} is not a directory")]
+    refs: list[SessionRef] = []
+    for lot_dir in _visible_dirs(root):
+        lot_id, why = _parse_part(lot_dir.name, "lot")
+        if why:
+            errors.append(_bad(lot_dir, why))
+            continue
+        if lot is not None and lot_id != lot:
+            continue
+        for unit_dir in _visible_dirs(lot_dir):
+            unit_id, why = _parse_part(unit_dir.name, "unit")
+            if why:
+                errors.append(_bad(unit_dir, why))
+                continue
+            if unit is not None and unit_id != unit:
+                continue
+            for rep_dir in _visible_dirs(unit_dir):
+                rep, why = _parse_part(rep_dir.name, "rep")
+                if why:
+                    errors.append(_bad(rep_dir, why))
+                    continue
+                refs.append(SessionRef(SessionKey(lot_id, unit_id, int(rep)), rep_dir))
+    # a unit belongs to one lot: when it is found under several, none of its sessions is used
+    # (which lot is right is not ours to guess). With a lot filter the other lots were not
+    # walked, so look for the unit's directories in them directly.
+    lots_of: dict[str, set[str]] = {}
+    for ref in refs:
+        lots_of.setdefault(ref.key.unit, set()).add(ref.key.lot)
+    if lot is not None:
+        for lot_dir in _visible_dirs(root):
+            other, why = _parse_part(lot_dir.name, "lot")
+            if why or other == lot:
+                continue
+            for u in lots_of:
+                if (lot_dir / f"unit={u}").is_dir():
+                    lots_of[u].add(other)
+    ambiguous = {u: sorted(ls) for u, ls in lots_of.items() if len(ls) > 1}
+    kept = []
+    for ref in refs:
+        if ref.key.unit in ambiguous:
+            errors.append(SessionError(
+                E_BAD_PATH, str(ref.key), ref.path.name,
+                f"unit {ref.key.unit!r} appears in lots {', '.join(ambiguous[ref.key.unit])}; "
+                f"a unit belongs to one lot"))
+        else:
+            kept.append(ref)
+    kept.sort(key=lambda r: (r.key.lot, r.key.unit, r.key.rep))
+    return kept, errors
+
+
+def fingerprint(path: Path | str) -> str:
+    """Cheap identity of a session's content: name, size and mtime_ns of both files (no
+    reading). Modifying, replacing or touching a file changes it; reading does not."""
+    path = Path(path)
+    h = hashlib.sha256()
+    for name in (STEPS_FILE, SAMPLES_FILE):
+        try:
+            st = os.stat(path / name)
+            h.update(f"{name}:{st.st_size}:{st.st_mtime_ns};".encode())
+        except FileNotFoundError:
+            h.update(f"{name}:missing;".encode())
+    return h.hexdigest()[:32]

@@ -1,0 +1,263 @@
+"""Importers for recordings made without a turntable (Ferraris sessions, hand-moved
+multi-position sessions), from CSV or whitespace-separated text exports of any IMU.
+
+In-memory layout (the sibling of the acquisition contract for sessions without references):
+:class:`RawRecording` holds one DataFrame ``samples`` with columns
+
+    t [s since the first sample], gx gy gz [gyro_unit], ax ay az [accel_unit]
+
+and the units after boundary conversion, exactly as in the contract: gyro ``deg/s`` (``rad/s``
+input is converted to deg/s) or a raw unit (``LSB``; ``counts`` is an alias; ``V``); accel
+``g`` (``m/s^2`` input is divided by the recording's ``g_local``; ``mg`` is divided by 1000) or
+raw (``LSB``, ``V``). There is no ``step`` column and no reference: the calibration methods
+that consume these recordings (:mod:`calib_core.ferraris`, :mod:`calib_core.field`) find the
+static poses themselves or take a section list.
+
+Errors are :class:`schemas.errors.SessionError` naming the file (the "session" is the file
+name: these recordings have no lot/unit/rep).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import pandas as pd
+
+from schemas.errors import (E_MISSING_COLUMN, E_MISSING_FILE, E_NONFINITE_VALUE,
+                            E_NONINCREASING_TIME, E_UNKNOWN_UNIT, E_UNREADABLE_FILE,
+                            E_WRONG_TYPE, SessionError)
+
+CHANNELS = ("gx", "gy", "gz", "ax", "ay", "az")
+GYRO_CHANNELS = CHANNELS[:3]
+ACCEL_CHANNELS = CHANNELS[3:]
+
+# input unit -> (unit after conversion, factor applied)
+GYRO_INPUT_UNITS: dict[str, tuple[str, float]] = {
+    "deg/s": ("deg/s", 1.0), "dps": ("deg/s", 1.0),
+    "rad/s": ("deg/s", 180.0 / math.pi),
+    "LSB": ("LSB", 1.0), "counts": ("LSB", 1.0), "V": ("V", 1.0),
+}
+ACCEL_INPUT_UNITS = ("g", "mg", "m/s^2", "m/s2", "LSB", "counts", "V")
+
+IMUCAL_RATE_HZ = 102.4  # imucal's example session (README of shared/data/real/imucal)
+IMUCAL_G = 9.81  # the gravity imucal's FerrarisCalibration uses (its default ``grav``)
+IMUTK_G = 9.81744  # local gravity of IMU-TK's demo (test_imu_calib)
+
+
+@dataclass(frozen=True)
+class RawRecording:
+    """A recording without turntable references, in the documented in-memory layout."""
+
+    samples: pd.DataFrame  # t, gx gy gz, ax ay az (float64)
+    gyro_unit: str  # deg/s | LSB | V (after conversion)
+    accel_unit: str  # g | LSB | V (after conversion)
+    g_local: float  # m/s^2, used to convert m/s^2 input to g and back on output
+    rate_hz: float  # nominal sample rate
+    source: str  # file name(s), used in messages
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.samples["t"].to_numpy()
+
+    @property
+    def gyro(self) -> np.ndarray:
+        return self.samples[list(GYRO_CHANNELS)].to_numpy()
+
+    @property
+    def accel(self) -> np.ndarray:
+        return self.samples[list(ACCEL_CHANNELS)].to_numpy()
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+
+def _err(code: str, path: Path | str, reason: str, column: str | None = None) -> SessionError:
+    return SessionError(code, Path(path).name, str(path), reason, column=column)
+
+
+def convert_gyro(values: np.ndarray, unit: str, path: Path | str = "<array>") -> tuple[np.ndarray, str]:
+    if unit not in GYRO_INPUT_UNITS:
+        raise _err(E_UNKNOWN_UNIT, path, f"gyro unit {unit!r} is not one of "
+                   f"{', '.join(GYRO_INPUT_UNITS)}")
+    out_unit, factor = GYRO_INPUT_UNITS[unit]
+    return np.asarray(values, float) * factor, out_unit
+
+
+def convert_accel(values: np.ndarray, unit: str, g_local: float,
+                  path: Path | str = "<array>") -> tuple[np.ndarray, str]:
+    values = np.asarray(values, float)
+    if unit == "g":
+        return values, "g"
+    if unit == "mg":
+        return values / 1000.0, "g"
+    if unit in ("m/s^2", "m/s2"):
+        return values / g_local, "g"
+    if unit in ("LSB", "counts"):
+        return values, "LSB"
+    if unit == "V":
+        return values, "V"
+    raise _err(E_UNKNOWN_UNIT, path, f"accel unit {unit!r} is not one of {', '.join(ACCEL_INPUT_UNITS)}")
+
+
+def parse_column_mapping(text: str) -> dict[str, str]:
+    """``"gx=gyr_x,gy=gyr_y,...,t=time"`` -> {channel: source column}. Source columns of a
+    header-less whitespace file are their 0-based positions (``gx=1``)."""
+    mapping: dict[str, str] = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        if "=" not in part:
+            raise ValueError(f"column mapping item {part!r} is not CHANNEL=SOURCE")
+        key, src = (s.strip() for s in part.split("=", 1))
+        if key not in CHANNELS + ("t",):
+            raise ValueError(f"column mapping: {key!r} is not one of t, {', '.join(CHANNELS)}")
+        mapping[key] = src
+    return mapping
+
+
+def _read_table(path: Path) -> pd.DataFrame:
+    """CSV with a header, or whitespace-separated numbers with or without a header."""
+    if not path.exists():
+        raise _err(E_MISSING_FILE, path, "no such file")
+    try:
+        with path.open() as fh:
+            first = fh.readline()
+        if "," in first or ";" in first:
+            sep = "," if "," in first else ";"
+            return pd.read_csv(path, sep=sep)
+        tokens = first.split()
+        try:
+            [float(x) for x in tokens]
+            header = None
+        except ValueError:
+            header = 0
+        df = pd.read_csv(path, sep=r"\s+", header=header, engine="c")
+        if header is None:
+            df.columns = [str(i) for i in range(df.shape[1])]
+        return df
+    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
+        raise _err(E_UNREADABLE_FILE, path, f"cannot parse as CSV or whitespace text ({exc})") from exc
+
+
+def _numeric_column(df: pd.DataFrame, src: str, path: Path, channel: str) -> np.ndarray:
+    if src not in df.columns:
+        raise _err(E_MISSING_COLUMN, path, f"column {src!r} (for {channel}) not found; "
+                   f"columns are {', '.join(map(str, df.columns))}", column=src)
+    try:
+        values = pd.to_numeric(df[src], errors="raise").to_numpy(dtype=float)
+    except (ValueError, TypeError) as exc:
+        raise _err(E_WRONG_TYPE, path, f"column {src!r} is not numeric ({exc})", column=src) from exc
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise _err(E_NONFINITE_VALUE, path, f"{int(bad.sum())} non-finite values in column "
+                   f"{src!r}, first at row {int(np.argmax(bad))}", column=src)
+    return values
+
+
+def _time_axis(values: np.ndarray | None, n: int, rate_hz: float | None, path: Path) -> tuple[np.ndarray, float]:
+    if values is None:
+        if not rate_hz or rate_hz <= 0:
+            raise _err(E_MISSING_COLUMN, path, "no time column mapped: give the sample rate (--rate)",
+                       column="t")
+        return np.arange(n) / float(rate_hz), float(rate_hz)
+    if n > 1 and not (np.diff(values) > 0).all():
+        i = int(np.argmax(np.diff(values) <= 0))
+        raise _err(E_NONINCREASING_TIME, path, f"time not strictly increasing at row {i + 1}", column="t")
+    t = values - values[0]
+    est = (n - 1) / t[-1] if n > 1 and t[-1] > 0 else float("nan")
+    return t, float(rate_hz) if rate_hz else est
+
+
+def read_table_recording(path: Path | str, columns: Mapping[str, str], gyro_unit: str,
+                         accel_unit: str, rate_hz: float | None = None,
+                         g_local: float = 9.80665, time_scale: float = 1.0) -> RawRecording:
+    """Generic importer: any CSV/whitespace table with a column mapping {channel: column}.
+
+    ``columns`` must map gx..az; ``t`` is optional (then ``rate_hz`` is required and
+    ``t = row / rate``). ``time_scale`` multiplies the time column (e.g. 1e-3 for ms)."""
+    path = Path(path)
+    missing = [c for c in CHANNELS if c not in columns]
+    if missing:
+        raise _err(E_MISSING_COLUMN, path, f"column mapping lacks {', '.join(missing)}")
+    df = _read_table(path)
+    data = {ch: _numeric_column(df, str(columns[ch]), path, ch) for ch in CHANNELS}
+    t_raw = _numeric_column(df, str(columns["t"]), path, "t") * time_scale if "t" in columns else None
+    t, rate = _time_axis(t_raw, len(df), rate_hz, path)
+    G, gu = convert_gyro(np.column_stack([data[c] for c in GYRO_CHANNELS]), gyro_unit, path)
+    A, au = convert_accel(np.column_stack([data[c] for c in ACCEL_CHANNELS]), accel_unit, g_local, path)
+    samples = _frame(t, G, A)
+    return RawRecording(samples, gu, au, float(g_local), rate, path.name,
+                        {"columns": dict(columns), "input_units": {"gyro": gyro_unit, "accel": accel_unit}})
+
+
+def _frame(t: np.ndarray, G: np.ndarray, A: np.ndarray) -> pd.DataFrame:
+    return pd.DataFrame({"t": t, **{c: G[:, i] for i, c in enumerate(GYRO_CHANNELS)},
+                         **{c: A[:, i] for i, c in enumerate(ACCEL_CHANNELS)}})
+
+
+IMUCAL_COLUMNS = {"gx": "gyr_x", "gy": "gyr_y", "gz": "gyr_z",
+                  "ax": "acc_x", "ay": "acc_y", "az": "acc_z"}
+
+
+def read_imucal_csv(path: Path | str, rate_hz: float = IMUCAL_RATE_HZ, gyro_unit: str = "deg/s",
+                    accel_unit: str = "m/s^2", g_local: float = IMUCAL_G) -> RawRecording:
+    """imucal's session CSV (``n_samples, gyr_x..gyr_z, acc_x..acc_z``): gyro deg/s and accel
+    m/s^2 by default; m/s^2 is converted to g with g = 9.81 m/s^2, imucal's own value, so that
+    the Ferraris result maps back onto imucal's exactly. Row i is sample i (``t = i / rate``)."""
+    rec = read_table_recording(path, IMUCAL_COLUMNS, gyro_unit, accel_unit, rate_hz=rate_hz,
+                               g_local=g_local)
+    return RawRecording(rec.samples, rec.gyro_unit, rec.accel_unit, rec.g_local, rate_hz,
+                        rec.source, {**rec.metadata, "format": "imucal-csv"})
+
+
+def read_imutk_pair(acc_path: Path | str, gyro_path: Path | str, gyro_unit: str = "LSB",
+                    accel_unit: str = "LSB", g_local: float = IMUTK_G) -> RawRecording:
+    """IMU-TK's two whitespace text files (``t x y z`` per line, raw counts): one for the
+    accelerometer, one for the gyro, sampled together. The rows must pair up: same count and
+    timestamps within half a sample period."""
+    acc_path, gyro_path = Path(acc_path), Path(gyro_path)
+    acc = _read_imutk_file(acc_path)
+    gyr = _read_imutk_file(gyro_path)
+    if len(acc) != len(gyr):
+        raise _err(E_UNREADABLE_FILE, gyro_path, f"{len(gyr)} rows but {acc_path.name} has {len(acc)}")
+    dt = np.median(np.diff(acc[:, 0])) if len(acc) > 1 else 0.0
+    mismatch = np.abs(acc[:, 0] - gyr[:, 0])
+    if len(acc) > 1 and mismatch.max() > dt / 2:
+        i = int(np.argmax(mismatch))
+        raise _err(E_UNREADABLE_FILE, gyro_path, f"timestamps differ from {acc_path.name} by "
+                   f"{mismatch[i]:.4g} s at row {i}")
+    t, rate = _time_axis(acc[:, 0], len(acc), None, acc_path)
+    G, gu = convert_gyro(gyr[:, 1:4], gyro_unit, gyro_path)
+    A, au = convert_accel(acc[:, 1:4], accel_unit, g_local, acc_path)
+    return RawRecording(_frame(t, G, A), gu, au, float(g_local), rate,
+                        f"{acc_path.name}+{gyro_path.name}",
+                        {"format": "imu-tk", "t0_s": float(acc[0, 0]),
+                         "input_units": {"gyro": gyro_unit, "accel": accel_unit}})
+
+
+def _read_imutk_file(path: Path) -> np.ndarray:
+    df = _read_table(path)
+    if df.shape[1] < 4:
+        raise _err(E_MISSING_COLUMN, path, f"expected 4 whitespace-separated columns t x y z, got {df.shape[1]}")
+    return np.column_stack([_numeric_column(df, str(df.columns[i]), path, n)
+                            for i, n in enumerate(("t", "x", "y", "z"))])
+
+
+def read_section_list(path: Path | str) -> dict[str, tuple[int, int]]:
+    """Section list of a Ferraris session: imucal's JSON ``{name: {"start": i, "end": j}}``
+    or its CSV (``name,start,end`` with the names as first column). Sample indices, end
+    exclusive (``data.iloc[start:end]``, as imucal slices)."""
+    path = Path(path)
+    if not path.exists():
+        raise _err(E_MISSING_FILE, path, "no such section list")
+    try:
+        if path.suffix.lower() == ".json":
+            doc = json.loads(path.read_text())
+            return {str(k): (int(v["start"]), int(v["end"])) for k, v in doc.items()}
+        df = pd.read_csv(path, index_col=0)
+        return {str(k): (int(r["start"]), int(r["end"])) for k, r in df.iterrows()}
+    except (KeyError, TypeError, ValueError, AttributeError, json.JSONDecodeError) as exc:
+        raise _err(E_UNREADABLE_FILE, path, f"not a section list with start/end per section ({exc})") from exc

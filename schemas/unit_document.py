@@ -1,0 +1,86 @@
+"""The JSON document of one unit's calibration (`mimucal calibrate --json`).
+
+Layout (keys are only ever added, never removed)::
+
+    {"lot", "unit", "format_version",
+     "reps": [{"rep", "K_g", "w0", "K_a", "f0", "stderr": {same keys}, "warnings",
+               "accel_static"?, "lever_arm_mm"?, "condition_numbers"}],
+     "mean": {...}, "std": {...}, "units": {...}, "failed": [{"rep", "code", "message"}]}
+
+K matrices are 3x3 row-major lists (w = K_g G + w0, f = K_a A + f0); w0 in deg/s and f0 in g
+whatever the raw units (the boundary converts rad/s and m/s^2).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from calib_core.results import FORMAT_VERSION, RepetitionCalibration
+
+BASE_KEYS = ("K_g", "w0", "K_a", "f0")
+
+
+def _rep_values(rep: RepetitionCalibration) -> dict[str, Any]:
+    g, a = rep.fits["gyro"], rep.fits["accel"]
+    vals = {"K_g": g.K, "w0": g.w0, "K_a": a.K, "f0": a.f0}
+    errs = {"K_g": g.K_stderr, "w0": g.w0_stderr, "K_a": a.K_stderr, "f0": a.f0_stderr}
+    if "accel_static" in rep.fits:
+        st = rep.fits["accel_static"].to_dict()
+        vals["accel_static"] = {k: np.asarray(st[k]) for k in ("scale", "bias", "angles_deg")}
+        errs["accel_static"] = {k: np.asarray(st["stderr"][k]) for k in ("scale", "bias", "angles_deg")}
+    if "lever_arm" in rep.fits:
+        la = rep.fits["lever_arm"].to_dict()
+        vals["lever_arm_mm"] = np.asarray(la["lever_arm_mm"], dtype=float)
+        errs["lever_arm_mm"] = np.asarray(la["stderr"], dtype=float)
+    return {"values": vals, "stderr": errs}
+
+
+def _tolist(v):
+    if isinstance(v, dict):
+        return {k: _tolist(x) for k, x in v.items()}
+    arr = np.asarray(v, dtype=float)
+    return [None if not np.isfinite(x) else float(x) for x in arr.ravel()] if arr.ndim == 1 else \
+        [[None if not np.isfinite(x) else float(x) for x in row] for row in arr.reshape(arr.shape[0], -1)]
+
+
+def _stack(reps: list[dict], key: str, fn):
+    present = [r["values"][key] for r in reps if key in r["values"]]
+    if not present:
+        return None
+    if isinstance(present[0], dict):
+        return {k: fn(np.array([p[k] for p in present], dtype=float)) for k in present[0]}
+    return fn(np.array(present, dtype=float))
+
+
+def unit_document(lot: str, unit: str, reps: list[RepetitionCalibration],
+                  failed: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    reps = sorted(reps, key=lambda r: r.rep)
+    per = [_rep_values(r) for r in reps]
+    doc_reps = []
+    for r, p in zip(reps, per):
+        entry: dict[str, Any] = {"rep": r.rep}
+        entry.update({k: _tolist(v) for k, v in p["values"].items()})
+        entry["stderr"] = {k: _tolist(v) for k, v in p["stderr"].items()}
+        entry["warnings"] = list(r.warnings)
+        entry["condition_numbers"] = {
+            m: float(getattr(f, "condition_number")) for m, f in r.fits.items()
+            if hasattr(f, "condition_number")}
+        doc_reps.append(entry)
+    keys = list(BASE_KEYS) + [k for k in ("accel_static", "lever_arm_mm")
+                              if any(k in p["values"] for p in per)]
+    mean = {k: _tolist(_stack(per, k, lambda a: np.nanmean(a, axis=0))) for k in keys}
+    std = {k: _tolist(_stack(per, k, lambda a: np.nanstd(a, axis=0, ddof=1) if len(a) > 1
+                             else np.full(a.shape[1:], np.nan))) for k in keys}
+    g, a = (reps[0].fits["gyro"], reps[0].fits["accel"]) if reps else (None, None)
+    units = {
+        "K_g": f"deg/s per {g.raw_unit}" if g else None, "w0": "deg/s",
+        "K_a": f"g per {a.raw_unit}" if a else None, "f0": "g",
+    }
+    if "accel_static" in keys:
+        units["accel_static"] = {"scale": f"{a.raw_unit} per g", "bias": a.raw_unit,
+                                 "angles_deg": "deg"}
+    if "lever_arm_mm" in keys:
+        units["lever_arm_mm"] = "mm"
+    return {"lot": lot, "unit": unit, "format_version": FORMAT_VERSION, "reps": doc_reps,
+            "mean": mean, "std": std, "units": units, "failed": list(failed or [])}
