@@ -133,3 +133,14 @@ def ferraris_calibration(G: np.ndarray, A: np.ndarray, sections: Mapping[str, tu
         w, _ = cal.apply(G[sl[k]], A[sl[k]])
         angles[k] = w.sum(axis=0) / rate_hz
     return FerrarisFit(cal, b_a, b_g, S, W, pose_f, pose_w, angles)
+
+
+def section_pose_means(t: np.ndarray, G: np.ndarray, A: np.ndarray,
+                       sections: Mapping[str, tuple[int, int]], trim: int = 0):
+    """Raw means per static section of a Ferraris session (name, start, end, count, t_mid,
+    gx..az and their std), for model discovery on real data; see
+    :func:`calib_core.static_detection.static_pose_means`."""
+    from calib_core.static_detection import static_pose_means
+
+    names = [k for k in STATIC_SECTIONS if k in sections]
+    return static_pose_means(t, G, A, [sections[k] for k in names], names=names, trim=trim)

@@ -37,9 +37,9 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from calib_core.calibration import Calibration
+from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.static_detection import (StaticDetection, central_samples, detect_static,
+from calib_core.static_detection import (StaticDetection, central_samples, detect_static, runs_of,
                                          static_pose_means)
 
 ACCEL_PARAM_NAMES = ("a_yz", "a_zy", "a_zx", "s_ax", "s_ay", "s_az", "b_ax", "b_ay", "b_az")
@@ -159,29 +159,44 @@ def _rotate_by_conjugate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 class SegmentIntegrator:
-    """Products of per-sample rotations over many segments at once: segments are padded to a
-    power of two with identity rotations and multiplied pairwise (order kept), so one
-    evaluation costs a few vectorised passes instead of a Python loop over samples."""
+    """Products of per-sample rotations over many segments at once. Each segment is cut into
+    chunks of ``chunk`` samples (padded with identity rotations); chunk products and then the
+    per-segment products of chunks are formed by pairwise multiplication (order kept), so one
+    evaluation is a few vectorised passes instead of a Python loop over samples."""
 
-    def __init__(self, t: np.ndarray, segments):
+    def __init__(self, t: np.ndarray, segments, chunk: int = 64):
         t = np.asarray(t, float)
         dt = np.diff(t, append=t[-1] + np.median(np.diff(t)))
-        lengths = [b - a for a, b in segments]
-        L = 1 << int(np.ceil(np.log2(max(max(lengths), 1))))
-        idx = np.full((len(segments), L), -1)
+        rows, owner = [], []
         for i, (a, b) in enumerate(segments):
-            idx[i, :b - a] = np.arange(a, b)
-        self.idx = idx
-        self.valid = idx >= 0
-        self.dt = np.where(self.valid, dt[np.maximum(idx, 0)], 0.0)
+            for c in range(a, max(b, a + 1), chunk):
+                r = np.full(chunk, -1)
+                stop = min(c + chunk, b)
+                r[:max(stop - c, 0)] = np.arange(c, stop)
+                rows.append(r)
+                owner.append(i)
+        self.idx = np.array(rows)
+        self.dt = np.where(self.idx >= 0, dt[np.maximum(self.idx, 0)], 0.0)
+        owner = np.array(owner)
+        n_seg = len(segments)
+        per_seg = np.bincount(owner, minlength=n_seg)
+        width = 1 << int(np.ceil(np.log2(max(per_seg.max(), 1))))
+        self.chunk_pos = np.full((n_seg, width), -1)
+        for i in range(n_seg):
+            self.chunk_pos[i, :per_seg[i]] = np.flatnonzero(owner == i)
+
+    @staticmethod
+    def _reduce(q: np.ndarray) -> np.ndarray:
+        while q.shape[1] > 1:
+            q = _qmul(q[:, 0::2], q[:, 1::2])
+        return q[:, 0]
 
     def rotations(self, w: np.ndarray) -> np.ndarray:
         """Quaternion of dR = prod_k exp(w_k dt_k) per segment; ``w`` (n, 3) in rad/s."""
         v = w[np.maximum(self.idx, 0)] * self.dt[..., None]
-        q = _quat_from_rotvec(v)
-        while q.shape[1] > 1:
-            q = _qmul(q[:, 0::2], q[:, 1::2])
-        return q[:, 0]
+        chunks = self._reduce(_quat_from_rotvec(v))
+        chunks = np.vstack([chunks, [1.0, 0.0, 0.0, 0.0]])  # identity at index -1
+        return self._reduce(chunks[self.chunk_pos])
 
 
 def transition_segments(extracted) -> list[tuple[int, int]]:
@@ -209,7 +224,7 @@ def transition_angles_deg(gyro_params: np.ndarray, G_unbiased: np.ndarray, integ
 @dataclass(frozen=True)
 class GyroFieldFit:
     params: np.ndarray  # GYRO_PARAM_NAMES (rad/s per raw unit)
-    bias: np.ndarray  # raw unit, mean of the initial static period
+    bias: np.ndarray  # raw unit: initial-period mean, or static-pose fit with g-sensitivity
     cost: float
     used: np.ndarray  # (m,) bool: transitions used in the fit
     angles_initial_deg: np.ndarray  # per transition, initial guess
@@ -240,7 +255,7 @@ def fit_gyro_field(t, G, A, accel_params, extracted, bias, init_scale=None,
         return (_rotate_by_conjugate(q, u[:-1]) - u[1:])[use].ravel()
 
     if init_scale is None:  # isotropic scale from a coarse log grid (no datasheet value given)
-        grid = np.logspace(-8, 1, 181)
+        grid = np.logspace(-8, 1, 73)  # 8 per decade: steps of x1.33
         costs = [np.sum(resid(np.r_[np.zeros(6), s, s, s]) ** 2) for s in grid]
         init_scale = grid[int(np.argmin(costs))]
     x0 = np.r_[np.zeros(6), np.broadcast_to(np.asarray(init_scale, float), (3,))]
@@ -256,7 +271,7 @@ class FieldCalibrationResult:
     calibration: Calibration  # kind="field"
     accel: AccelFieldFit
     gyro: GyroFieldFit
-    pose_means: pd.DataFrame  # raw static-pose means (see static_pose_means)
+    pose_means: pd.DataFrame  # raw means of the poses where accel and gyro are both at rest
     stats: dict[str, float]
 
     def params(self) -> dict[str, float]:
@@ -278,6 +293,7 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
                       interval_samples: int = 100, min_intervals: int = 12,
                       multipliers=range(2, 11), init_acc_bias=None, init_acc_scale=None,
                       init_gyro_scale=None, gyro_unit: str = "LSB", accel_unit: str = "LSB",
+                      gyro_g_sensitivity: bool = False,
                       metadata: dict | None = None) -> FieldCalibrationResult:
     """Tedaldi 2014 / IMU-TK calibration of a hand-moved multi-pose recording.
 
@@ -285,7 +301,13 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
     ``init_*`` are the initial guesses (IMU-TK's demo: acc bias 32768, gyro scale 1/6258 rad/s
     per count); ``None`` derives them from the data (acc: centre and radius of the static
     means; gyro: coarse grid over an isotropic scale). The recording must start with
-    ``init_static_s`` seconds at rest (noise floor and gyro bias)."""
+    ``init_static_s`` seconds at rest (noise floor and gyro bias).
+
+    ``gyro_g_sensitivity=True`` extends IMU-TK's model: the raw gyro bias is ``b + S f`` with
+    ``f`` the calibrated specific force (g), ``b`` and ``S`` estimated by least squares from the
+    static poses' raw gyro means (:func:`fit_static_gyro_g_sensitivity`; only static data,
+    never the transitions), removed before the transitions are fitted, and stored as the
+    catalogue term ``gyro_g_sensitivity`` (deg/s per g)."""
     t = np.asarray(t, float)
     G = np.asarray(G, float)
     A = np.asarray(A, float)
@@ -295,18 +317,33 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
                           f"{init_samples} samples, fewer than the window ({window})")
     acc = calibrate_accel_field(A, g_local, init_samples, window, multipliers, interval_samples,
                                 min_intervals, init_acc_bias, init_acc_scale)
-    bias_g = G[:init_samples].mean(axis=0)
-    gyro = fit_gyro_field(t, G, A, acc.params, acc.extracted, bias_g, init_gyro_scale)
-
     M_a, b_a = accel_matrix(acc.params)
     K_a = M_a / g_local
+    f_all = (A - b_a) @ K_a.T  # calibrated specific force, g, every sample
+    S_raw = None
+    # where the gyro is quiet too: a slow turn about the vertical leaves the accelerometer
+    # static but would put rotation rate into a pose's gyro mean
+    gyro_quiet = detect_static(G, window=window, multiplier=acc.multiplier,
+                               init_samples=init_samples).mask
+    quiet = [(a, b) for a, b in runs_of(acc.detection.mask & gyro_quiet) if b - a >= window]
+    if gyro_g_sensitivity:
+        bias_g, S_raw = fit_static_gyro_g_sensitivity(G, f_all, quiet)
+        G_fit = G - f_all @ S_raw.T
+    else:
+        bias_g, G_fit = G[:init_samples].mean(axis=0), G
+    gyro = fit_gyro_field(t, G_fit, A, acc.params, acc.extracted, bias_g, init_gyro_scale)
+
     K_g = np.degrees(gyro.matrix)
+    terms = () if S_raw is None else (TermValue("gyro_g_sensitivity", (K_g @ S_raw).reshape(-1)),)
     cal = Calibration(K_g=K_g, w0=-K_g @ bias_g, K_a=K_a, f0=-K_a @ b_a, gyro_unit=gyro_unit,
-                      accel_unit=accel_unit, g_local=g_local, kind="field",
+                      accel_unit=accel_unit, g_local=g_local, kind="field", terms=terms,
                       metadata={"method": "Tedaldi, Pretto, Menegatti 2014 (IMU-TK)",
                                 "threshold_multiplier": acc.multiplier,
                                 "n_static_poses": len(acc.extracted),
-                                "init_static_s": init_static_s, **(metadata or {})})
+                                "init_static_s": init_static_s,
+                                "gyro_bias_from": ("static poses, with g-sensitivity" if gyro_g_sensitivity
+                                                   else "initial static period"),
+                                **(metadata or {})})
     # initial-guess reference for the |f| spread: isotropic, no misalignment
     x0 = _initial_accel_guess(A, init_acc_bias, init_acc_scale, g_local, acc.extracted)
     before = static_norm_stats(A, accel_matrix(x0)[0], x0[6:9], acc.extracted, g_local)
@@ -323,5 +360,25 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
         "gyro_angle_max_deg_initial": float(np.max(gyro.angles_initial_deg)),
         "gyro_angle_max_deg": float(np.max(gyro.angles_deg)),
     }
-    means = static_pose_means(t, G, A, acc.detection.intervals)
+    # handover for model discovery: poses where both sensors are at rest
+    means = static_pose_means(t, G, A, quiet)
+    if len(means):
+        w_pose, _ = cal.apply(means[["gx", "gy", "gz"]].to_numpy(), means[["ax", "ay", "az"]].to_numpy())
+        stats["gyro_static_rate_rms_dps"] = float(np.sqrt(np.mean(w_pose ** 2)))
+    stats["n_quiet_poses"] = int(len(means))
     return FieldCalibrationResult(cal, acc, gyro, means, stats)
+
+
+def fit_static_gyro_g_sensitivity(G: np.ndarray, f: np.ndarray, intervals) -> tuple[np.ndarray, np.ndarray]:
+    """Raw gyro bias ``b`` and g-sensitivity ``S`` (raw gyro per g) from static poses:
+    per-pose means ``G_k = b + S f_k`` by least squares (lstsq), ``f`` the calibrated specific
+    force in g. Needs at least 5 poses whose gravity directions span 3-D."""
+    Gm = np.array([np.asarray(G)[a:b].mean(axis=0) for a, b in intervals])
+    fm = np.array([np.asarray(f)[a:b].mean(axis=0) for a, b in intervals])
+    X = np.column_stack([np.ones(len(fm)), fm])
+    if len(fm) < 5 or np.linalg.matrix_rank(X, tol=1e-3 * np.sqrt(len(fm))) < 4:
+        raise DesignError("E_FIELD_G_SENSITIVITY", f"{len(fm)} static poses do not determine a "
+                          "gyro g-sensitivity (need >= 5 with gravity directions spanning 3-D)",
+                          undetermined=("gyro_g_sensitivity",))
+    coef, *_ = np.linalg.lstsq(X, Gm, rcond=None)
+    return coef[0], coef[1:].T

@@ -179,3 +179,17 @@ def simulate_navigation(truth: AccelUnitTruth, static: AccelStaticFit, lever: Le
         vel[case], pos[case] = integrate_navigation(C_nb, f, dt, truth.g_local)
     return NavigationResult(t=m["t"], velocity_error=vel, position_error=pos,
                             trajectory=trajectory)
+
+
+def navigation_impact(static: AccelStaticFit, lever: LeverArmFit,
+                      trajectory: TurntableTrajectory = TurntableTrajectory(),
+                      rng: np.random.Generator | None = None, accel_noise_g: float = 0.0
+                      ) -> NavigationResult:
+    """The three curves for a calibrated unit's report: its own fitted model (static
+    parameters and lever arms, undetermined components as 0) replayed as the truth on
+    ``trajectory``. ``none`` and ``static`` then show the error the unit's size effect and
+    misalignment would cause; ``static+dynamic`` is ~0 by construction (noise only)."""
+    truth = AccelUnitTruth(scale=static.scale, bias=static.bias, C=static.C,
+                           lever_arm_mm=lever.r_for_compensation, unit=static.unit,
+                           g_local=static.g_local)
+    return simulate_navigation(truth, static, lever, trajectory, rng, accel_noise_g=accel_noise_g)

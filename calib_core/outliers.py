@@ -2,17 +2,24 @@
 
 Three rules, each flag naming the parameter, the unit's value, the lot median and a score:
 
-1. **Robust z** of a unit's mean parameter across the lot's units:
-   ``z = (x - median) / (1.4826 * MAD)`` (Iglewicz & Hoaglin's modified z-score). The issue
-   asks for ``|z| > 3.5``. That threshold is per value; a lot of 20 units with ~24 parameters
-   is ~500 values, and with 20 units the MAD itself is noisy: on Gaussian units a value
-   exceeds 3.5 with probability 0.0065 (Monte Carlo, 2e5 lots), so 3.5 alone flags about three
-   clean units per lot. The threshold used is therefore
-   ``max(z_threshold, q)`` where ``q`` is the level that the largest |z| of one parameter over
-   the lot's clean Gaussian units exceeds with probability ``family_alpha / n_parameters``
-   (so a clean lot is flagged with probability about ``family_alpha``). ``q`` is computed
-   once per (n_units, n_parameters) by a seeded simulation of the same statistic.
-   ``family_alpha = 0`` gives the plain 3.5 rule.
+1. **Robust z** of a unit's mean parameter: ``z = (x - lot median) / (1.4826 * MAD)``
+   (Iglewicz & Hoaglin's modified z-score), flagged when ``|z|`` exceeds the threshold.
+   The issue asks for 3.5. That threshold is per value, and a MAD from 20 units is itself
+   uncertain by ~28 %: on 20 clean Gaussian units one value exceeds 3.5 with probability
+   0.0065 (Monte Carlo, 2e5 lots), so a lot of 20 units x 24 parameters would get about three
+   false flags. Two things keep clean units clean:
+   - the scale (MAD) of a parameter is pooled over all lots, lot-centred (``scale_pool =
+     "fleet"``; each lot keeps its own median); ``"lot"`` uses each lot alone;
+   - the threshold is ``max(z_threshold, q)``, ``q`` the level the largest |z| of one
+     parameter over all pooled units (clean, Gaussian) exceeds with probability
+     ``family_alpha / n_parameters`` (so a clean fleet gets any robust flag with probability
+     about ``family_alpha``), computed once per (lot sizes, n_parameters) by a seeded
+     simulation of the same statistic (3 lots of 20, 24 parameters: 6.08).
+     ``family_alpha = 0`` gives the plain 3.5 rule.
+   The price: a unit must be ~7-8 lot sd away to be found reliably (a 6.7 sd shift is found
+   about 2 times in 3 with 3 lots of 20; 10 sd almost always); docs/flows.md has the table.
+   Only the models of the applied calibration (``robust_models``: gyro, accel) get these
+   flags: the traditional and static fits re-express the same quantities.
    MAD = 0 (more than half the units identical): the scale falls back to
    1.2533 * mean absolute deviation (Iglewicz & Hoaglin); if that is 0 too, nothing differs.
 2. **Spread**: the unit's repetition std of a parameter over the lot median of that std;
@@ -64,6 +71,11 @@ class OutlierConfig:
     spread_factor: float = 3.0
     min_units: int = 5
     limits: tuple[Limit, ...] = ()
+    # models whose parameters get robust-z and spread flags: the applied calibration. The
+    # traditional and static fits re-express the same quantities and would only multiply
+    # the number of tests (and so the threshold) without finding other units.
+    robust_models: tuple[str, ...] = ("gyro", "accel")
+    scale_pool: str = "fleet"  # fleet: lot-centred MAD over all lots; lot: each lot alone
 
     def limit_of(self, model: str, parameter: str) -> Limit | None:
         for lim in self.limits:
@@ -99,7 +111,8 @@ def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
         raise OutlierConfigError(f"{source}: unknown section(s) {sorted(unknown)}; expected "
                                  f"[outliers] and [limits.<model>.<parameter>]")
     opts = doc.get("outliers", {})
-    allowed = {"z_threshold", "family_alpha", "spread_factor", "min_units"}
+    allowed = {"z_threshold", "family_alpha", "spread_factor", "min_units", "robust_models",
+               "scale_pool"}
     if set(opts) - allowed:
         raise OutlierConfigError(f"{source}: unknown key(s) {sorted(set(opts) - allowed)} in "
                                  f"[outliers]; allowed: {sorted(allowed)}")
@@ -126,9 +139,13 @@ def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
             family_alpha=float(opts.get("family_alpha", 0.01)),
             spread_factor=float(opts.get("spread_factor", 3.0)),
             min_units=int(opts.get("min_units", 5)),
-            limits=tuple(limits))
+            limits=tuple(limits),
+            robust_models=tuple(str(m) for m in opts.get("robust_models", ("gyro", "accel"))),
+            scale_pool=str(opts.get("scale_pool", "fleet")))
     except (TypeError, ValueError) as exc:
         raise OutlierConfigError(f"{source}: [outliers] values must be numbers ({exc})") from exc
+    if cfg.scale_pool not in ("fleet", "lot"):
+        raise OutlierConfigError(f"{source}: scale_pool must be 'fleet' or 'lot'")
     if not 0.0 <= cfg.family_alpha < 1.0:
         raise OutlierConfigError(f"{source}: family_alpha must be in [0, 1)")
     if cfg.z_threshold <= 0 or cfg.spread_factor <= 1.0 or cfg.min_units < 3:
@@ -195,28 +212,35 @@ def robust_z(x: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=256)
-def robust_z_threshold(n_units: int, n_parameters: int, z_threshold: float = 3.5,
-                       family_alpha: float = 0.01) -> float:
-    """Threshold on |robust z| for a lot of ``n_units`` units and ``n_parameters`` parameters:
-    ``max(z_threshold, q)`` with ``q`` exceeded by the largest |z| of one parameter over
-    Gaussian units with probability ``family_alpha / n_parameters`` (seeded simulation of the
-    very statistic, MAD noise included; ~1e6 draws)."""
-    if family_alpha <= 0 or n_units < 3:
+def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
+                       z_threshold: float = 3.5, family_alpha: float = 0.01) -> float:
+    """Threshold on |robust z| for one parameter: ``max(z_threshold, q)`` where ``q`` is
+    exceeded by the largest |z| over all units with probability ``family_alpha /
+    n_parameters`` when every unit is clean and Gaussian.
+
+    ``group_sizes``: units per lot whose lot-centred values share one MAD (a single int: one
+    lot with its own MAD). ``q`` comes from a seeded simulation of exactly that statistic:
+    centring on each lot's own median shrinks the deviations and the MAD, which raises the
+    tail (3 lots of 20 need 5.99 where one group of 60 needs 5.72, at 0.01/24)."""
+    sizes = (int(group_sizes),) if isinstance(group_sizes, (int, np.integer)) else \
+        tuple(sorted(int(n) for n in group_sizes))
+    total = sum(sizes)
+    if family_alpha <= 0 or total < 3:
         return float(z_threshold)
     p = family_alpha / max(n_parameters, 1)
-    rows = int(min(400_000, max(20_000, 2_000_000 // n_units)))
-    rng = np.random.default_rng(20261121 + n_units)
-    x = rng.normal(size=(rows, n_units))
-    med = np.median(x, axis=1, keepdims=True)
-    dev = np.abs(x - med)
-    mad = np.median(dev, axis=1)
-    scale = MAD_TO_SIGMA * mad
+    rows = int(min(200.0 / p, max(20_000, 8_000_000 // total)))
+    rng = np.random.default_rng(20261121 + 7919 * total + len(sizes))
+    dev_parts = []
+    for n in sizes:
+        x = rng.normal(size=(rows, n))
+        dev_parts.append(x - np.median(x, axis=1, keepdims=True))
+    dev = np.abs(np.concatenate(dev_parts, axis=1)) if len(dev_parts) > 1 else np.abs(dev_parts[0])
+    scale = MAD_TO_SIGMA * np.median(dev, axis=1)
     zmax = dev.max(axis=1) / np.where(scale > 0, scale, np.inf)
-    # tail beyond the simulated resolution: extrapolate log-linearly from the last decade
-    if p * rows >= 5:
+    if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
-    else:
-        p_hi = 50.0 / rows
+    else:  # beyond the simulated resolution: extrapolate log-linearly from the last decade
+        p_hi = 200.0 / rows
         q1 = float(np.quantile(zmax, 1.0 - p_hi))
         q2 = float(np.quantile(zmax, 1.0 - p_hi / 10.0))
         q = q2 + (q2 - q1) * math.log10(p_hi / 10.0 / p)
@@ -228,55 +252,101 @@ def _fmt(v: float) -> str:
     return f"{v:.6g}"
 
 
-def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
-             lot: str | None = None) -> LotFlags:
-    """Flags of one lot from its summary rows (columns lot, unit, model, parameter, mean,
-    std, n_reps, unit_of_measure optional). One row per unit and parameter."""
+def _lot_centred_scales(df: pd.DataFrame, min_units: int
+                        ) -> dict[tuple[str, str], tuple[float, tuple[int, ...]]]:
+    """Per (model, parameter): robust scale of the lot-centred unit means, pooled over every
+    lot with at least ``min_units`` units, and the number of units pooled."""
+    out: dict[tuple[str, str], tuple[float, int]] = {}
+    for (model, name), grp in df.groupby(["model", "parameter"], sort=True):
+        parts, sizes = [], []
+        for _, g in grp.groupby("lot", sort=True):
+            x = g["mean"].to_numpy(float)
+            x = x[np.isfinite(x)]
+            if len(x) >= min_units:
+                parts.append(x - np.median(x))
+                sizes.append(len(x))
+        if parts:
+            c = np.concatenate(parts)
+            out[(model, name)] = (robust_scale(c), tuple(sorted(sizes)))
+    return out
+
+
+def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
+              lots: list[str] | None = None) -> list[LotFlags]:
+    """Flags of each lot (all lots in ``summary`` unless ``lots`` is given). ``summary`` has
+    one row per lot, unit, model and parameter with columns lot, unit, model, parameter,
+    mean, std, n_reps.
+
+    With ``scale_pool="fleet"`` (default) the robust scale of a parameter is the MAD of the
+    lot-centred unit means over every lot of ``summary`` with enough units: a MAD from 20
+    units is itself uncertain by ~28 % and that, not the data, is what makes clean units cross
+    3.5. Location is always the lot's own median. ``scale_pool="lot"`` uses each lot alone."""
     cfg = config or OutlierConfig()
-    need = {"unit", "model", "parameter", "mean", "std", "n_reps"}
+    need = {"lot", "unit", "model", "parameter", "mean", "std", "n_reps"}
     missing = need - set(summary.columns)
     if missing:
         raise ValueError(f"summary lacks columns {sorted(missing)}")
+    df = summary.reset_index(drop=True).copy()
+    df["lot"] = df["lot"].astype(str)
+    df["unit"] = df["unit"].astype(str)
+    robust_rows = df["model"].isin(cfg.robust_models) if cfg.robust_models else \
+        pd.Series(True, index=df.index)
+    pooled = _lot_centred_scales(df[robust_rows], cfg.min_units) if cfg.scale_pool == "fleet" \
+        else {}
+    todo = sorted(df["lot"].unique()) if lots is None else [str(x) for x in lots]
+    return [_flag_one_lot(df[df["lot"] == lot].reset_index(drop=True),
+                          df[robust_rows & (df["lot"] == lot)].reset_index(drop=True),
+                          lot, cfg, pooled) for lot in todo]
+
+
+def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
+             lot: str | None = None) -> LotFlags:
+    """Flags of one lot using that lot's rows only (its own scale)."""
+    cfg = config or OutlierConfig()
     if lot is None:
-        lots = summary["lot"].unique() if "lot" in summary else ["?"]
+        lots = summary["lot"].unique()
         if len(lots) != 1:
             raise ValueError(f"flag_lot needs the rows of one lot, got {list(lots)}")
         lot = str(lots[0])
-    df = summary.reset_index(drop=True)
+    rows = summary[summary["lot"].astype(str) == str(lot)]
+    local = OutlierConfig(**{**cfg.__dict__, "scale_pool": "lot"})
+    return flag_lots(rows, local, [str(lot)])[0]
+
+
+def _flag_one_lot(df: pd.DataFrame, robust_df: pd.DataFrame, lot: str, cfg: OutlierConfig,
+                  pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]]) -> LotFlags:
     units = sorted(df["unit"].unique())
     n_units = len(units)
-    n_params = int(df[["model", "parameter"]].drop_duplicates().shape[0])
+    n_params = int(robust_df[["model", "parameter"]].drop_duplicates().shape[0])
     robust = n_units >= cfg.min_units
-    thr = robust_z_threshold(n_units, n_params, cfg.z_threshold, cfg.family_alpha) if robust \
-        else float("nan")
-    if robust:
-        note = (f"{n_units} units, {n_params} parameters: robust z threshold {thr:.2f} "
-                f"(max of {cfg.z_threshold:g} and the family-wise level for alpha="
-                f"{cfg.family_alpha:g}); spread factor {cfg.spread_factor:g}")
-    else:
-        note = (f"{n_units} unit(s) in lot {lot}: fewer than {cfg.min_units}, no robust z or "
-                f"spread flags (only configured limits)")
     flags: list[Flag] = []
     score = np.full(len(df), np.nan)
     median = np.full(len(df), np.nan)
+    thresholds: list[float] = []
     for (model, name), grp in df.groupby(["model", "parameter"], sort=True):
         idx = grp.index.to_numpy()
         x = grp["mean"].to_numpy(float)
         ok = np.isfinite(x)
-        if ok.any():
-            med = float(np.median(x[ok]))
-            median[idx] = med
-            if robust and ok.sum() >= cfg.min_units:
-                z = np.full(len(x), np.nan)
-                z[ok] = robust_z(x[ok])
-                score[idx] = z
-                for i in np.flatnonzero(np.abs(np.nan_to_num(z)) > thr):
-                    u = str(grp["unit"].iloc[i])
-                    flags.append(Flag(lot, u, model, name, KIND_ROBUST, float(x[i]), med,
-                                      float(z[i]), thr,
-                                      f"{model}.{name} = {_fmt(x[i])}, lot median {_fmt(med)}, "
-                                      f"robust z {z[i]:+.1f} (|z| > {thr:.2f})"))
-        if robust:
+        if not ok.any():
+            continue
+        med = float(np.median(x[ok]))
+        median[idx] = med
+        in_robust = (not cfg.robust_models) or model in cfg.robust_models
+        if robust and in_robust and ok.sum() >= cfg.min_units:
+            if (model, name) in pooled:
+                scale, n_pool = pooled[(model, name)]
+            else:
+                scale, n_pool = robust_scale(x[ok]), (int(ok.sum()),)
+            thr = robust_z_threshold(n_pool, n_params, cfg.z_threshold, cfg.family_alpha)
+            thresholds.append(thr)
+            z = np.where(ok, (x - med) / scale, np.nan) if scale > 0 else np.zeros(len(x))
+            score[idx] = z
+            for i in np.flatnonzero(np.abs(np.nan_to_num(z)) > thr):
+                u = str(grp["unit"].iloc[i])
+                flags.append(Flag(lot, u, model, name, KIND_ROBUST, float(x[i]), med,
+                                  float(z[i]), thr,
+                                  f"{model}.{name} = {_fmt(x[i])}, lot median {_fmt(med)}, "
+                                  f"robust z {z[i]:+.1f} (|z| > {thr:.2f})"))
             s = grp["std"].to_numpy(float)
             nr = grp["n_reps"].to_numpy(float)
             use = np.isfinite(s) & (nr >= MIN_REPS_FOR_SPREAD)
@@ -296,21 +366,30 @@ def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
             for i in range(len(x)):
                 v = x[i]
                 u = str(grp["unit"].iloc[i])
-                med = median[idx[i]]
                 if lim.min is not None and not v >= lim.min:
-                    flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), float(med),
+                    flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), med,
                                       float(v - lim.min), lim.min,
                                       f"{model}.{name} = {_fmt(v)} below limit min {_fmt(lim.min)}"
                                       f", lot median {_fmt(med)}"))
                 if lim.max is not None and not v <= lim.max:
-                    flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), float(med),
+                    flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), med,
                                       float(v - lim.max), lim.max,
                                       f"{model}.{name} = {_fmt(v)} above limit max {_fmt(lim.max)}"
                                       f", lot median {_fmt(med)}"))
+    thr_used = float(np.median(thresholds)) if thresholds else float("nan")
+    if robust:
+        note = (f"{n_units} units, {n_params} parameters in robust models "
+                f"{', '.join(cfg.robust_models) or 'all'}: |robust z| threshold "
+                f"{thr_used:.2f} (max of {cfg.z_threshold:g} and the family-wise level for "
+                f"alpha={cfg.family_alpha:g}; scale {cfg.scale_pool}); spread factor "
+                f"{cfg.spread_factor:g}")
+    else:
+        note = (f"{n_units} unit(s) in lot {lot}: fewer than {cfg.min_units}, no robust z or "
+                f"spread flags (only configured limits)")
     scores = pd.DataFrame({"lot": lot, "unit": df["unit"].to_numpy(),
                            "model": df["model"].to_numpy(), "parameter": df["parameter"].to_numpy(),
                            "score": score, "lot_median": median})
-    return LotFlags(lot, n_units, robust, thr, note, flags, scores)
+    return LotFlags(lot, n_units, robust, thr_used, note, flags, scores)
 
 
 def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFrame:

@@ -43,17 +43,18 @@ def calibrate_repetition(sm: StepMeans) -> SessionFit:
         except DesignError as exc:
             warnings.append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
     trad = fits.get("gyro_traditional")
-    _fit_zhang2017(sm, fits, warnings)
+    derived: dict = {}
+    _fit_zhang2017(sm, fits, warnings, derived)
     key = sm.key
     rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=fits,
-                                warnings=warnings, provenance=dict(sm.metadata))
+                                warnings=warnings, provenance=dict(sm.metadata), derived=derived)
     source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
     comp = xu2016.compensation_errors(sm, gyro, trad, tests=source)
     cal = calibration_from_fits(fits, sm)
     return SessionFit(rep, comp, baseline_residuals(sm, cal))
 
 
-def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str]) -> None:
+def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict) -> None:
     """The 15-parameter static model and, with dynamic steps, the lever arms."""
     try:
         from calib_core import zhang2017
@@ -66,9 +67,13 @@ def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str]) -> None:
         return
     fits["accel_static"] = static
     if (sm.test == "dynamic").any():
+        g = fits["gyro"]
         try:
-            fits["lever_arm"] = zhang2017.fit_lever_arm(sm, static, gyro_K=fits["gyro"].K,
-                                                        gyro_w0=fits["gyro"].w0)
+            # the paper's model (projection on each accelerometer's sensitive axis) is what
+            # is reported; the body-axis fit is what Calibration.apply subtracts after K_a
+            fits["lever_arm"] = zhang2017.fit_lever_arm(sm, static, gyro_K=g.K, gyro_w0=g.w0)
+            derived["lever_arm_body_mm"] = zhang2017.fit_lever_arm(
+                sm, static, gyro_K=g.K, gyro_w0=g.w0, projection="body_axis").r_mm
         except DesignError as exc:
             warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
 
@@ -90,9 +95,10 @@ def calibration_from_unit(unit: UnitCalibration, terms: tuple[TermValue, ...] = 
     first = reps[0].fits
     g_local = float(reps[0].provenance.get("g_local", 9.80665)) if reps[0].provenance else 9.80665
     terms = tuple(terms)
-    if not any(t.name == "lever_arm" for t in terms) and all("lever_arm" in r.fits for r in reps):
-        r_mm = np.nanmean([r.fits["lever_arm"].r_mm for r in reps], axis=0)
-        if np.isfinite(r_mm).all():
+    if not any(t.name == "lever_arm" for t in terms) and all(
+            "lever_arm_body_mm" in r.derived for r in reps):
+        r_mm = np.mean([r.derived["lever_arm_body_mm"] for r in reps], axis=0)
+        if np.isfinite(r_mm).all():  # only a fully determined lever arm is applied
             terms = terms + (TermValue("lever_arm", r_mm.ravel()),)
     return Calibration(
         K_g=mean("gyro", "K"), w0=mean("gyro", "w0"), K_a=mean("accel", "K"),

@@ -107,10 +107,6 @@ class NoiseEstimate:
     table: pd.DataFrame
     from_repetitions: bool
 
-    def lookup(self, channel: np.ndarray, group: np.ndarray) -> np.ndarray:
-        key = pd.MultiIndex.from_arrays([channel, group])
-        idx = self.table.set_index(["channel", "group"])["instability_sd"]
-        return idx.reindex(key).to_numpy(float)
 
 
 def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray
@@ -123,6 +119,13 @@ def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray
     ci, cell_idx = np.unique(cell, return_inverse=True)
     ri, rep_idx = np.unique(rep, return_inverse=True)
     n = len(values)
+    if n == len(ci) * len(ri) and len(np.unique(cell_idx * len(ri) + rep_idx)) == n:
+        # balanced (every step in every repetition once): double centring is the fit
+        table = np.zeros((len(ci), len(ri)))
+        table[cell_idx, rep_idx] = values
+        e = (table - table.mean(axis=1, keepdims=True) - table.mean(axis=0, keepdims=True)
+             + table.mean())
+        return e[cell_idx, rep_idx], int((len(ci) - 1) * (len(ri) - 1))
     X = np.zeros((n, len(ci) + len(ri)))
     X[np.arange(n), cell_idx] = 1.0
     X[np.arange(n), len(ci) + rep_idx] = 1.0
@@ -134,43 +137,58 @@ def estimate_noise(table: pd.DataFrame) -> NoiseEstimate:
     """Pool the repetition scatter of each step's residual per channel and test group.
 
     ``table`` is one or more replayed sessions of the same unit (:func:`replay_session`)."""
-    groups = table["test"].map(test_group).to_numpy(str)
-    reps = table["rep"].to_numpy()
-    multi = len(np.unique(reps)) > 1
+    return estimate_noise_arrays(
+        table["channel"].to_numpy(str), table["test"].map(test_group).to_numpy(str),
+        table["rep"].to_numpy(), table["step"].to_numpy(), table["residual"].to_numpy(float),
+        table["sigma_white"].to_numpy(float))
+
+
+def estimate_noise_arrays(channel: np.ndarray, group: np.ndarray, rep: np.ndarray,
+                          step: np.ndarray, residual: np.ndarray, white: np.ndarray
+                          ) -> NoiseEstimate:
+    """:func:`estimate_noise` on aligned arrays (one entry per step, repetition, channel)."""
+    multi = len(np.unique(rep)) > 1
     out = []
     for ch in CHANNELS:
-        in_ch = table["channel"].to_numpy(str) == ch
+        in_ch = channel == ch
         pooled_ss, pooled_dof, rows = 0.0, 0, []
-        for g in sorted(set(groups[in_ch])):
-            m = in_ch & (groups == g)
-            sub = table.loc[m]
-            white = float(np.sqrt(np.mean(sub["sigma_white"].to_numpy() ** 2)))
+        for g in sorted(set(group[in_ch])):
+            m = in_ch & (group == g)
+            w = float(np.sqrt(np.mean(white[m] ** 2)))
             if multi:
-                e, dof = two_way_residual(sub["residual"].to_numpy(float),
-                                          sub["step"].to_numpy(), sub["rep"].to_numpy())
+                e, dof = two_way_residual(residual[m], step[m], rep[m])
                 ss = float(e @ e)
             else:
                 ss, dof = 0.0, 0
             pooled_ss += ss
             pooled_dof += dof
-            rows.append([ch, g, dof, ss, white])
+            rows.append([g, dof, ss, w])
         pooled_var = pooled_ss / pooled_dof if pooled_dof else np.nan
-        for ch_, g, dof, ss, white in rows:
+        for g, dof, ss, w in rows:
             var = ss / dof if dof >= MIN_POOL_DOF else pooled_var
-            step_sd = float(np.sqrt(var)) if np.isfinite(var) else white
-            inst = float(np.sqrt(max(step_sd ** 2 - white ** 2, 0.0)))
-            out.append({"channel": ch_, "group": g, "dof": dof, "step_sd": step_sd,
-                        "white_sd": white, "instability_sd": inst})
+            step_sd = float(np.sqrt(var)) if np.isfinite(var) else w
+            inst = float(np.sqrt(max(step_sd ** 2 - w ** 2, 0.0)))
+            out.append({"channel": ch, "group": g, "dof": dof, "step_sd": step_sd,
+                        "white_sd": w, "instability_sd": inst})
     return NoiseEstimate(pd.DataFrame(out), from_repetitions=multi)
+
+
+def noise_sigma(noise: NoiseEstimate, channel: np.ndarray, group: np.ndarray,
+                white: np.ndarray) -> np.ndarray:
+    """sigma = sqrt(white**2 + instability**2) per entry (instability 0 where unknown)."""
+    tab = noise.table
+    lut = {(c, g): v for c, g, v in zip(tab["channel"], tab["group"], tab["instability_sd"])}
+    inst = np.array([lut.get((c, g), 0.0) for c, g in zip(channel, group)], float)
+    return np.sqrt(white ** 2 + np.nan_to_num(inst) ** 2)
 
 
 def attach_noise(table: pd.DataFrame, noise: NoiseEstimate | None = None) -> pd.DataFrame:
     """Set ``sigma`` = sqrt(sigma_white**2 + instability**2) from the data's own scatter."""
     noise = noise or estimate_noise(table)
-    inst = noise.lookup(table["channel"].to_numpy(str),
-                        table["test"].map(test_group).to_numpy(str))
     out = table.copy()
-    out["sigma"] = np.sqrt(out["sigma_white"].to_numpy() ** 2 + np.nan_to_num(inst) ** 2)
+    out["sigma"] = noise_sigma(noise, table["channel"].to_numpy(str),
+                               table["test"].map(test_group).to_numpy(str),
+                               table["sigma_white"].to_numpy(float))
     return out
 
 

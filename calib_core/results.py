@@ -53,6 +53,9 @@ class RepetitionCalibration:
     fits: dict[str, FitResult] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     provenance: dict[str, Any] = field(default_factory=dict)
+    # values needed to apply the calibration that are not reported parameters (e.g. the
+    # lever arms re-fitted in the body-axis projection that Calibration.apply subtracts)
+    derived: dict[str, Any] = field(default_factory=dict)
 
     def parameters(self) -> list[Param]:
         return [p for fit in self.fits.values() for p in fit.parameters()]

@@ -79,11 +79,15 @@ class MimuTruth:
         A = np.linalg.solve(self.K_a, (sensed[:, 3:] - self.f0).T).T
         return G, A
 
-    def full_scale_raw(self) -> tuple[np.ndarray, np.ndarray]:
-        """Declared full scale expressed in raw units (raw saturates there)."""
-        g = np.asarray(self.gyro_range_dps) / np.abs(np.diag(self.K_g))
-        a = np.asarray(self.accel_range_g) / np.abs(np.diag(self.K_a))
-        return g, a
+    def full_scale_raw(self) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """Declared full scale in raw units, (low, high) per sensor: the raw output at
+        -range and +range on its own axis. Raw outputs need not be centred on zero (a V output
+        with a 2.4 V zero bias saturates at 2.4 -/+ k range)."""
+        def bounds(K, x0, rng):
+            zero = np.linalg.solve(K, -x0)  # raw output at zero input
+            half = np.asarray(rng, float) / np.abs(np.diag(K))
+            return zero - half, zero + half
+        return bounds(self.K_g, self.w0, self.gyro_range_dps), bounds(self.K_a, self.f0, self.accel_range_g)
 
 
 def typical_truth(rng: np.random.Generator, misalignment: float = 0.01, scale: float = 0.01,
@@ -203,9 +207,9 @@ def simulate_session(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Gener
     per_sample[in_step] = phys[idx[in_step]]
     per_sample += rng.normal(0.0, 1.0, (total, 6)) * _white_sd(truth)
     G, A = _to_raw(truth, per_sample)
-    fs_g, fs_a = truth.full_scale_raw()
-    G = np.clip(G, -fs_g, fs_g)
-    A = np.clip(A, -fs_a, fs_a)
+    (g_lo, g_hi), (a_lo, a_hi) = truth.full_scale_raw()
+    G = np.clip(G, g_lo, g_hi)
+    A = np.clip(A, a_lo, a_hi)
     if truth.gyro_quantum:
         G = np.round(G / truth.gyro_quantum) * truth.gyro_quantum
     if truth.accel_quantum:
@@ -250,8 +254,8 @@ def simulate_step_means(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Ge
     ctx = _step_context(truth, steps, t_mid)
     phys = np.hstack([ctx.w, ctx.f]) + total_error(ctx, list(truth.effects))
     G0, A0 = _to_raw(truth, phys)
-    fs_g, fs_a = truth.full_scale_raw()
-    ok = (np.abs(G0) < fs_g).all(axis=1) & (np.abs(A0) < fs_a).all(axis=1)
+    (g_lo, g_hi), (a_lo, a_hi) = truth.full_scale_raw()
+    ok = (((G0 > g_lo) & (G0 < g_hi)).all(axis=1) & ((A0 > a_lo) & (A0 < a_hi)).all(axis=1))
     phys = phys + _step_offsets(truth, len(steps), rng)
     phys = phys + rng.normal(0.0, 1.0, phys.shape) * _white_sd(truth) / np.sqrt(count)[:, None]
     G, A = _to_raw(truth, phys)

@@ -67,7 +67,7 @@ def moving_variance_magnitude(x: np.ndarray, window: int = 101) -> np.ndarray:
     return out
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+def runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
     d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
 
@@ -98,7 +98,7 @@ def detect_static(x: np.ndarray, window: int = 101, multiplier: float = 6.0,
     threshold = multiplier * floor
     min_samples = window if min_samples is None else min_samples
     static = np.isfinite(stat) & (stat < threshold)
-    intervals = tuple((a, b) for a, b in _runs(static) if b - a >= min_samples)
+    intervals = tuple((a, b) for a, b in runs_of(static) if b - a >= min_samples)
     return StaticDetection(stat, threshold, floor, float(multiplier), int(window), floor_from,
                            intervals, unit)
 

@@ -23,11 +23,11 @@ the direction cosines, which are near zero for the off-diagonal components: kept
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.linalg import qr, solve_triangular
+from scipy.linalg import qr
 
 from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
@@ -157,10 +157,9 @@ class AccelStaticFit:
 
 
 def _ls_cov(X: np.ndarray) -> np.ndarray:
-    """(X^T X)^-1 through the QR factor R (never inverting the normal matrix)."""
-    R = qr(X, mode="r")[0][: X.shape[1]]
-    Rinv = solve_triangular(R, np.eye(X.shape[1]))
-    return Rinv @ Rinv.T
+    """(X^T X)^-1 = V S^-2 V^T from the SVD of X (never forming or inverting X^T X)."""
+    _, sv, Vt = np.linalg.svd(X, full_matrices=False)
+    return (Vt.T / sv ** 2) @ Vt
 
 
 def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> AccelStaticFit:
@@ -243,7 +242,13 @@ class LeverArmFit:
     dof: int
     n_steps: int
     rate_source: str  # "w_ref" or "gyro"
+    projection: str = "sensitive_axis"  # or "body_axis" (the catalogue's LeverArmTerm model)
     model: ClassVar[str] = "lever_arm"
+
+    @property
+    def r_mm(self) -> np.ndarray:
+        """Alias of ``lever_arm_mm`` (the name the pipeline uses)."""
+        return self.lever_arm_mm
 
     @property
     def r_for_compensation(self) -> np.ndarray:
@@ -269,6 +274,7 @@ class LeverArmFit:
             "residual_rms_g": float(self.residual_rms_g),
             "n_steps": int(self.n_steps),
             "rate_source": self.rate_source,
+            "projection": self.projection,
             "units": {"lever_arm_mm": "mm", "stderr": "mm"},
         }
 
@@ -280,16 +286,28 @@ def _step_rates(sm: StepMeans, gyro_K, gyro_w0) -> tuple[np.ndarray, str]:
     return sm.gyro @ np.asarray(gyro_K, float).T + w0, "gyro"
 
 
+PROJECTIONS = ("sensitive_axis", "body_axis")
+
+
 def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None,
-                  rcond: float = UNDETERMINED_RCOND) -> LeverArmFit:
+                  rcond: float = UNDETERMINED_RCOND,
+                  projection: str = "sensitive_axis") -> LeverArmFit:
     """r_1, r_2, r_3 (mm) from the ``dynamic`` steps by one joint least squares.
 
-    Row (i, s): y_is = (u_is - u0_i)/k_i - c_i . f_ref,s = c_i^T W_s r_i (1e-3/g: mm -> g).
+    ``projection="sensitive_axis"`` (the paper, eq. 13): row (i, s) is
+    y_is = (u_is - u0_i)/k_i - c_i . f_ref,s = c_i^T W_s r_i (1e-3/g: mm -> g).
+    ``projection="body_axis"`` is the model of the catalogue's ``lever_arm`` term
+    (:class:`calib_core.effect_terms.LeverArmTerm`): the statically compensated body-frame
+    specific force minus f_ref has component i = (W_s r_i)_i. The two differ by misalignment x
+    lever term (~0.3 mm of r for 1 deg misalignment).
+
     The nine unknowns are solved together (block-diagonal design over the accelerometers);
     the residual variance is pooled in g over all rows. Standard errors add the static fit's
     uncertainty (u0, M enter y linearly) through the Jacobian of the solution. Components whose
     pivoted-QR diagonal falls below ``rcond`` of the largest in their block are undetermined.
     """
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
     d = sm.of_test("dynamic")
     n = len(d)
     if n == 0:
@@ -299,14 +317,20 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
     W = lever_matrix(w) * (1e-3 / static.g_local)  # g per mm
     k, C, u0 = static.scale, static.C, static.bias
     M = static.M
+    K_a = np.linalg.inv(M)
+    f_hat = (d.accel - u0) @ K_a.T  # statically compensated specific force, body frame
     r = np.full((3, 3), np.nan)
     se = np.full((3, 3), np.nan)
     undetermined: list[str] = []
     reasons: dict[str, str] = {}
     blocks = []
     for i in range(3):
-        X = np.einsum("j,njk->nk", C[:, i], W)  # c_i^T W_s, (n,3)
-        y = (d.accel[:, i] - u0[i] - d.f_ref @ M[i]) / k[i]
+        if projection == "sensitive_axis":
+            X = np.einsum("j,njk->nk", C[:, i], W)  # c_i^T W_s, (n,3)
+            y = (d.accel[:, i] - u0[i] - d.f_ref @ M[i]) / k[i]
+        else:
+            X = W[:, i, :]
+            y = f_hat[:, i] - d.f_ref[:, i]
         # rank-revealing QR: the trailing pivots with small diagonal are not observable
         _, R, piv = qr(X, mode="economic", pivoting=True)
         diag = np.abs(np.diag(R))
@@ -321,6 +345,9 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
         blocks.append((i, X, y, np.asarray(keep, int)))
     # joint design (block-diagonal), determined columns only
     cols = [(i, j) for i, _, _, keep in blocks for j in keep]
+    if not cols:
+        raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
+                          LEVER_NAMES)
     A = np.zeros((3 * n, len(cols)))
     full = np.zeros((3 * n, 9))
     Y = np.concatenate([b[2] for b in blocks])
@@ -328,21 +355,27 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
         full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
     for c, (i, j) in enumerate(cols):
         A[i * n:(i + 1) * n, c] = blocks[i][1][:, j]
-    if not cols:
-        raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
-                          LEVER_NAMES)
     theta, *_ = np.linalg.lstsq(A, Y, rcond=None)
     resid = Y - A @ theta
     dof = 3 * n - len(cols)
     var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
     cov = _ls_cov(A) * var_g
-    # propagate the static uncertainty: dy_is/d(M_i, u0_i) = -(f_s + e_is M_i / k_i^2, 1) / k_i
+    # propagate the static uncertainty, channel by channel (theta_l = (M_l, u0_l)):
+    # sensitive axis: dy_l/dtheta_l = -(f_s + e_ls M_l / k_l^2, 1) / k_l (own block only);
+    # body axis: y = K_a (A - u0) - f_ref, dy_i/dtheta_l = -K_a[i, l] (f_hat_s, 1)
     pinv = np.linalg.pinv(A)
-    for i, X, y, keep in blocks:
-        e = y * k[i]  # raw residual of the static model on these steps
-        dy = -np.hstack([d.f_ref + np.outer(e, M[i]) / k[i] ** 2, np.ones((n, 1))]) / k[i]
-        J = pinv[:, i * n:(i + 1) * n] @ dy  # d theta / d(M_i, u0_i)
-        cov = cov + J @ static.channel_cov[i] @ J.T
+    ones = np.ones((n, 1))
+    for l in range(3):
+        dY = np.zeros((3 * n, 4))
+        if projection == "sensitive_axis":
+            e = blocks[l][2] * k[l]  # raw residual of the static model on these steps
+            dY[l * n:(l + 1) * n] = -np.hstack([d.f_ref + np.outer(e, M[l]) / k[l] ** 2,
+                                                ones]) / k[l]
+        else:
+            for i in range(3):
+                dY[i * n:(i + 1) * n] = -K_a[i, l] * np.hstack([f_hat, ones])
+        J = pinv @ dY
+        cov = cov + J @ static.channel_cov[l] @ J.T
     for c, (i, j) in enumerate(cols):
         r[i, j] = theta[c]
         se[i, j] = np.sqrt(cov[c, c])
@@ -353,7 +386,7 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
         condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
         undetermined=tuple(undetermined), reasons=reasons,
         residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
-        n_steps=n, rate_source=source,
+        n_steps=n, rate_source=source, projection=projection,
     )
 
 
@@ -410,17 +443,21 @@ def compensate_specific_force(static: AccelStaticFit, lever: LeverArmFit | None,
     """Calibrated specific force at the rotation centre (g), (n,3): paper eq. 16-17.
 
     a_i = (u_i - u0_i)/k_i - c_i^T W r_i, f = (C^T)^-1 a, W = [w x]^2 + [dw/dt x] from the
-    calibrated gyro rate and its derivative. ``lever=None`` gives the static model only;
-    undetermined lever components count as zero."""
+    calibrated gyro rate and its derivative (for a ``body_axis`` fit: f = static model minus
+    (W r_i)_i). ``lever=None`` gives the static model only; undetermined lever components
+    count as zero."""
     a = static.sensed_along_axes(A_raw)
-    if lever is not None:
-        if w_dps is None:
-            raise ValueError("lever-arm compensation needs the angular rate w_dps")
-        w = np.broadcast_to(np.atleast_2d(w_dps), a.shape)
-        dw = None if dwdt_dps2 is None else np.broadcast_to(np.atleast_2d(dwdt_dps2), a.shape)
-        W = lever_matrix(w, dw) * (1e-3 / static.g_local)
-        r = lever.r_for_compensation
-        a = a - np.einsum("ji,njk,ik->ni", static.C, W, r)
+    if lever is None:
+        return np.linalg.solve(static.C.T, a.T).T
+    if w_dps is None:
+        raise ValueError("lever-arm compensation needs the angular rate w_dps")
+    w = np.broadcast_to(np.atleast_2d(w_dps), a.shape)
+    dw = None if dwdt_dps2 is None else np.broadcast_to(np.atleast_2d(dwdt_dps2), a.shape)
+    W = lever_matrix(w, dw) * (1e-3 / static.g_local)
+    r = lever.r_for_compensation
+    if lever.projection == "body_axis":
+        return np.linalg.solve(static.C.T, a.T).T - np.einsum("nik,ik->ni", W, r)
+    a = a - np.einsum("ji,njk,ik->ni", static.C, W, r)
     return np.linalg.solve(static.C.T, a.T).T
 
 

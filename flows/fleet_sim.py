@@ -38,7 +38,6 @@ from calib_core.simulator import (
 )
 from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_FILE, STEPS_FILE
-from schemas.dataset import session_dir
 from schemas.errors import (
     E_MISSING_FILE, E_NONFINITE_VALUE, E_NONINCREASING_TIME, E_UNKNOWN_UNIT, E_UNREADABLE_FILE,
 )
@@ -218,7 +217,9 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
                 flat_session = flat_unit * reps + (rep - 1)
                 if flat_session in bad_of:
                     kind = bad_of[flat_session]
-                    detail = damage_session(path, kind, steps, unit_rng)
+                    # its own generator: damaging a session does not change the next ones
+                    detail = damage_session(path, kind, steps,
+                                            np.random.default_rng([seed, flat_session]))
                     bad = {"kind": kind, "expected_code": BAD_KINDS[kind][0], "detail": detail}
                     rep_doc["bad"] = bad
                     manifest["bad_sessions"].append({"session": str(key), "lot": lot,

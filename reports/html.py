@@ -11,6 +11,7 @@ from ``file://`` with no network.
 """
 from __future__ import annotations
 
+import base64
 import html
 import json
 import math
@@ -109,8 +110,8 @@ details.unit[open] > summary { border-bottom:1px solid var(--line); }
 details.unit > .body { padding:6px 16px 12px; }
 .figure { width:100%; min-height:120px; }
 .figure[data-state=failed] { background:var(--flagbg); }
-.grid2 { display:grid; grid-template-columns: 1fr 1fr; gap:14px; }
-@media (max-width: 1000px) { .grid2 { grid-template-columns: 1fr; } }
+.grid2 { display:flex; flex-wrap:wrap; gap:0 28px; align-items:flex-start; }
+.grid2 > div { flex:0 1 auto; max-width:100%; overflow-x:auto; }
 .toolbar { margin:0 0 10px; }
 button { font:inherit; font-size:12.5px; padding:3px 10px; border:1px solid #9fb3c8; background:#fff;
          border-radius:4px; cursor:pointer; }
@@ -317,16 +318,62 @@ def decimate(x: np.ndarray, y_list: Sequence[np.ndarray], max_points: int) -> tu
     if n <= max_points:
         return np.asarray(x), [np.asarray(y) for y in y_list]
     n_buckets = max(1, max_points // (1 + 2 * len(y_list)))
-    edges = np.linspace(0, n, n_buckets + 1).astype(int)
-    keep = [edges[:-1], [n - 1]]
+    size = -(-n // n_buckets)                      # ceil: equal buckets, the last one padded
+    starts = np.arange(0, n, size)
+    keep = [starts, np.array([n - 1])]
     for y in y_list:
-        y = np.asarray(y)
-        for a, b in zip(edges[:-1], edges[1:]):
-            if b > a:
-                seg = y[a:b]
-                keep.append([a + int(np.nanargmin(seg)), a + int(np.nanargmax(seg))])
-    idx = np.unique(np.concatenate([np.asarray(k, dtype=int).ravel() for k in keep]))
+        y = np.asarray(y, dtype=float)
+        pad = np.full(len(starts) * size - n, np.nan)
+        yy = np.concatenate([np.where(np.isnan(y), np.inf, y), pad + np.inf]).reshape(-1, size)
+        keep.append(starts + np.argmin(yy, axis=1))
+        yy = np.concatenate([np.where(np.isnan(y), -np.inf, y), pad - np.inf]).reshape(-1, size)
+        keep.append(starts + np.argmax(yy, axis=1))
+    idx = np.unique(np.concatenate(keep).astype(int))
     return np.asarray(x)[idx], [np.asarray(y)[idx] for y in y_list]
+
+
+def arr(a: Any) -> dict[str, str] | list:
+    """A numeric array for a figure spec as plotly.js's typed-array form (float32, base64):
+    ~5.3 bytes per value instead of ~10-20 as decimal text. Non-numeric data stays a list."""
+    x = np.asarray(a)
+    if x.dtype.kind not in "fiub":
+        return x.tolist()
+    return {"dtype": "f4", "bdata": base64.b64encode(np.ascontiguousarray(x, dtype="<f4").tobytes()).decode("ascii")}
+
+
+def grid(nrows: int, ncols: int, titles: Sequence[str] = (), hspace: float = 0.05,
+         vspace: float = 0.12, shared_y: bool = False) -> tuple[dict, list[tuple[str, str]]]:
+    """Layout of an nrows x ncols grid of subplots for a dict figure spec (plotly.py's
+    make_subplots costs ~0.2 s per call through its validators; this costs nothing).
+    Returns (layout, [(xref, yref) per cell, row-major])."""
+    layout: dict[str, Any] = {"annotations": []}
+    refs = []
+    w = (1.0 - hspace * (ncols - 1)) / ncols
+    h = (1.0 - vspace * (nrows - 1)) / nrows
+    for k in range(nrows * ncols):
+        r, c = divmod(k, ncols)
+        n = "" if k == 0 else str(k + 1)
+        x0 = c * (w + hspace)
+        y1 = 1.0 - r * (h + vspace)
+        layout[f"xaxis{n}"] = {"domain": [x0, x0 + w], "anchor": f"y{n}"}
+        layout[f"yaxis{n}"] = {"domain": [y1 - h, y1], "anchor": f"x{n}"}
+        if shared_y and k > 0:
+            layout[f"yaxis{n}"]["matches"] = "y"
+            layout[f"yaxis{n}"]["showticklabels"] = False
+        refs.append((f"x{n}", f"y{n}"))
+        if k < len(titles):
+            layout["annotations"].append({
+                "text": titles[k], "x": x0 + w / 2, "y": y1, "xref": "paper", "yref": "paper",
+                "xanchor": "center", "yanchor": "bottom", "showarrow": False, "font": {"size": 12}})
+    return layout, refs
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return arr(o)
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 class Page:
@@ -336,15 +383,19 @@ class Page:
         self.title = title
         self.n_figures = 0
 
-    def figure(self, fig: go.Figure, height: int = 360, caption: str = "", name: str = "") -> str:
+    def figure(self, fig: go.Figure | dict, height: int = 360, caption: str = "", name: str = "") -> str:
         """HTML for one figure: a div drawn by the runtime from the JSON that follows it."""
         self.n_figures += 1
         fid = f"fig{self.n_figures}"
-        fig.update_layout(height=height, autosize=True)
-        spec = json.loads(fig.to_json(validate=False))
-        spec.get("layout", {}).pop("template", None)
-        text = json.dumps({"data": spec.get("data", []), "layout": spec.get("layout", {})},
-                          separators=(",", ":"), allow_nan=False)
+        if isinstance(fig, go.Figure):
+            spec = json.loads(fig.to_json(validate=False))
+        else:
+            spec = fig
+        layout = dict(spec.get("layout", {}))
+        layout.pop("template", None)
+        layout.update(height=height, autosize=True)
+        text = json.dumps({"data": spec.get("data", []), "layout": layout},
+                          separators=(",", ":"), allow_nan=False, default=_json_default)
         text = text.replace("<", "\\u003c").replace(">", "\\u003e")
         cap = f'<p class="note">{caption}</p>' if caption else ""
         return (f'<div class="figure" id="{fid}" data-spec="{fid}-spec" data-name="{esc(name)}" '

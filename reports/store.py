@@ -51,6 +51,13 @@ class StoreView:
 
     def of(self, name: str, lot: str | None = None, unit: str | None = None) -> pd.DataFrame | None:
         """Rows of a table for a lot and/or unit; None when the table does not exist."""
+        if name == "navigation" and unit is not None and name not in self._cache:
+            # raw-rate traces can be millions of rows: read only this unit's row groups
+            path = self.root / f"{name}.parquet"
+            if not path.exists():
+                return None
+            filters = [("unit", "==", unit)] + ([("lot", "==", lot)] if lot is not None else [])
+            return pd.read_parquet(path, filters=filters)
         df = self.table(name)
         if df is None:
             return None

@@ -96,12 +96,12 @@ def build_synthetic_store(root: str | Path, lot: str = "LOT-2026-11A", n_units: 
                           n_reps: int = 5, n_outliers: int = 2, n_failed: int = 1,
                           n_runs: int = 3, seed: int = 20261121, discovery: bool = True,
                           navigation: bool = True, nav_samples: int = 3000,
-                          code_version: str = "0.1.0+g94590e6") -> SyntheticLot:
+                          code_version: str = "0.1.0+g94590e6", unit_prefix: str = "U") -> SyntheticLot:
     """Write a synthetic results store for one lot under ``root`` and return its truth."""
     rng = np.random.default_rng(seed)
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    units = [f"U{i:03d}" for i in range(1, n_units + 1)]
+    units = [f"{unit_prefix}{i:03d}" for i in range(1, n_units + 1)]
     outlier_units = [units[i] for i in np.linspace(2, n_units - 3, n_outliers).astype(int)] if n_outliers else []
     failed_units = [u for u in units if u not in outlier_units][1:1 + n_failed]
     failed = [(u, 3) for u in failed_units]
@@ -166,7 +166,7 @@ def build_synthetic_store(root: str | Path, lot: str = "LOT-2026-11A", n_units: 
     if discovery:
         _write(root / "discovery.parquet", pd.DataFrame(disc))
     if navigation:
-        _write(root / "navigation.parquet", pd.DataFrame(nav))
+        _write(root / "navigation.parquet", pd.concat(nav, ignore_index=True))
     _write_history(root, lot, units, truths, run_ids, rng, code_version)
     for i, rid in enumerate(run_ids):
         when = t_run - timedelta(days=n_runs - 1 - i)
@@ -174,7 +174,10 @@ def build_synthetic_store(root: str | Path, lot: str = "LOT-2026-11A", n_units: 
                    finished_at=(when + timedelta(minutes=31)).isoformat(),
                    code_version=code_version, lots=[lot], kind="nightly")
         (root / "runs").mkdir(exist_ok=True)
-        (root / "runs" / f"{rid}.json").write_text(json.dumps(doc, indent=2))
+        path = root / "runs" / f"{rid}.json"
+        if path.exists():  # several lots calibrated by the same run
+            doc["lots"] = sorted(set(json.loads(path.read_text()).get("lots", [])) | {lot})
+        path.write_text(json.dumps(doc, indent=2))
     return SyntheticLot(root, lot, units, outliers, failed, warned, run_ids)
 
 
@@ -297,16 +300,16 @@ def _discovery_rows(rng, lot, unit, bad: bool) -> list[dict]:
     return rows
 
 
-def _navigation_rows(rng, lot, unit, n: int) -> list[dict]:
+def _navigation_rows(rng, lot, unit, n: int) -> list[pd.DataFrame]:
     t = np.linspace(0, 60, n)
-    rows = []
+    parts = []
     for case, scale in (("none", 1.0), ("static", 0.08), ("static+dynamic", 0.01)):
         acc_err = scale * 9.80665 * 0.01 * (1 + rng.normal(0, 0.1))  # m/s^2
         vel = acc_err * t + np.cumsum(rng.normal(0, 2e-3 * scale, n))
         pos = np.cumsum(vel) * (t[1] - t[0])
-        rows.extend(dict(lot=lot, unit=unit, case=case, t=float(a), vel_err=float(b),
-                         pos_err=float(c)) for a, b, c in zip(t, vel, pos))
-    return rows
+        parts.append(pd.DataFrame({"lot": lot, "unit": unit, "case": case, "t": t, "vel_err": vel,
+                                   "pos_err": pos}))
+    return parts
 
 
 def _write_history(root: Path, lot, units, truths, run_ids, rng, code_version) -> None:

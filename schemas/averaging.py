@@ -15,11 +15,18 @@ Steps left out, each named in a :class:`SessionWarning`:
   physical units (deg/s, rad/s, g, m/s^2) the declared ``gyro_range_dps`` / ``accel_range_g``
   is the full scale. In raw units (LSB, V) the optional metadata keys
   ``gyro_full_scale_raw`` / ``accel_full_scale_raw`` give it. In every unit, clipping is also
-  detected as the session's extreme value of a channel repeated exactly in at least
-  ``max(3, 1 %)`` of the step's samples: a sensor whose K is not exactly 1 clips a little
-  below (or above) its declared range, and raw files may not declare a full scale at all.
-  For declared full scales the clip must be at least half of it (so that a coarse quantum on a
-  1 g step is not taken for clipping).
+  detected as a pile-up at the session's extreme value of a channel: for float (unquantised)
+  outputs, that exact value in at least ``max(3, 1 %)`` of the step's samples (continuous
+  noise never repeats a value); for quantised outputs (fewer distinct values than half the
+  samples) in at least 25 % of the step's samples and in more than twice as many as the next
+  lower value of the step (a noise tail thins out towards its extreme; a clip collects all
+  beyond it). With a declared full scale the clip must be at least half of it (so that a
+  coarse quantum on a 1 g step is not taken for clipping). Why clipping as well as the
+  threshold: a sensor whose K is not exactly 1 clips a little below (or above) its declared
+  range, and raw files may not declare a full scale at all.
+  Limitation: a quantised channel that clips fewer than 25 % of a step's samples is not
+  detected unless its full scale is declared (``gyro_full_scale_raw``) or, in physical units,
+  reached; with noise below about half a quantum a noise tail can look like a clip.
 """
 from __future__ import annotations
 
@@ -41,6 +48,8 @@ SETTLE_TOLERANCE_S = 1e-6  # t - t0 of a sample exactly at settle_s may round to
 CLIP_MIN_REPEATS = 3
 CLIP_MIN_FRACTION = 0.01
 CLIP_MIN_OF_FULL_SCALE = 0.5
+QUANTISED_UNIQUE_FRACTION = 0.5  # fewer distinct values than this fraction: quantised channel
+QUANTISED_MIN_FRACTION = 0.25
 
 
 def _step_index(data: SessionData) -> np.ndarray:
@@ -59,40 +68,60 @@ def _describe(steps: pd.DataFrame, i: int) -> str:
             f"{float(row['rate_dps']):g} deg/s)")
 
 
-def _saturation(values: np.ndarray, idx: np.ndarray, count: np.ndarray, n_steps: int,
+def _saturation(columns: list[np.ndarray], idx: np.ndarray, count: np.ndarray, n_steps: int,
                 full_scale: np.ndarray | None, names: tuple[str, ...], unit: str
                 ) -> tuple[np.ndarray, list[dict]]:
     """Per step: saturated? and, for each saturated step, the first channel and why.
 
-    ``values`` (m, 3) kept samples, ``idx`` (m,) their step row, ``full_scale`` (3,) or None.
+    ``columns`` three (m,) arrays of kept samples, ``idx`` (m,) their step row,
+    ``full_scale`` (3,) or None. Counts are bincounts of the (usually empty) subsets that hit.
     """
     saturated = np.zeros(n_steps, bool)
     why: list[dict] = [None] * n_steps  # type: ignore[list-item]
     min_repeats = np.maximum(CLIP_MIN_REPEATS, CLIP_MIN_FRACTION * count)
+    if len(idx) == 0:  # no sample left after settling: nothing can be saturated
+        return saturated, why
     for j, name in enumerate(names):
-        x = values[:, j]
+        x = columns[j]
+        quantised = None  # decided only when a repeated extreme is found (np.unique is a sort)
         if full_scale is not None:
-            at_fs = np.abs(x) >= full_scale[j]
-            hits = np.bincount(idx, weights=at_fs, minlength=n_steps)
+            hits = np.bincount(idx[np.abs(x) >= full_scale[j]], minlength=n_steps)
             for i in np.flatnonzero((hits > 0) & ~saturated):
                 why[i] = dict(column=name, text=(
                     f"{name} reaches the declared full scale {full_scale[j]:g} {unit} "
                     f"({int(hits[i])} sample(s))"))
             saturated |= hits > 0
         for sign in (1.0, -1.0):
-            sx = sign * x
-            extreme = sx.max()
+            value = x.max() if sign > 0 else x.min()  # the session's extreme, this sign
+            extreme = sign * value
             if full_scale is not None and extreme < CLIP_MIN_OF_FULL_SCALE * full_scale[j]:
                 continue
             if extreme <= 0:
                 continue
-            repeats = np.bincount(idx, weights=(sx == extreme), minlength=n_steps)
-            clipped = (repeats >= min_repeats) & (count > 0)
-            for i in np.flatnonzero(clipped & ~saturated):
+            at = x == value
+            repeats = np.bincount(idx[at], minlength=n_steps)
+            candidate = (repeats >= min_repeats) & (count > 0)
+            if not candidate.any():
+                continue
+            if quantised is None:
+                # continuous (float) noise never repeats a value exactly; quantised outputs do
+                quantised = len(np.unique(x)) < QUANTISED_UNIQUE_FRACTION * len(x)
+            if quantised:
+                # a pile-up, not a quantised noise tail: at least a quarter of the step's
+                # samples on the extreme code and twice as many as on the next lower value
+                # (a tail thins out towards its extreme; a clip collects all beyond it)
+                sx = sign * x
+                sel = candidate[idx] & ~at
+                next_max = np.full(n_steps, -np.inf)
+                np.maximum.at(next_max, idx[sel], sx[sel])
+                at_next = sel & (sx == next_max[idx])
+                n_next = np.bincount(idx[at_next], minlength=n_steps)
+                candidate &= (repeats >= QUANTISED_MIN_FRACTION * count) & (repeats > 2 * n_next)
+            for i in np.flatnonzero(candidate & ~saturated):
                 why[i] = dict(column=name, text=(
-                    f"{name} clipped at {sign * extreme:g} {unit} (the session's extreme value, "
+                    f"{name} clipped at {value:g} {unit} (the session's extreme value, "
                     f"repeated in {int(repeats[i])} of {int(count[i])} samples)"))
-            saturated |= clipped
+            saturated |= candidate
     return saturated, why
 
 
@@ -105,38 +134,44 @@ def average_session(data: SessionData, min_samples: int = 10
     meta = data.meta
     idx_all = _step_index(data)
     in_step = idx_all >= 0
-    n_any = np.bincount(idx_all[in_step], minlength=n_steps)
+    idx_in = idx_all[in_step]
+    t_in = data.t[in_step]
+    n_any = np.bincount(idx_in, minlength=n_steps)
     # first sample time of each step (t is strictly increasing, so the first in file order)
     t0 = np.full(n_steps, np.inf)
-    np.minimum.at(t0, idx_all[in_step], data.t[in_step])
+    np.minimum.at(t0, idx_in, t_in)
     settle = steps["settle_s"].to_numpy(float)
     keep = in_step.copy()
-    keep[in_step] = (data.t[in_step] - t0[idx_all[in_step]]
-                     >= settle[idx_all[in_step]] - SETTLE_TOLERANCE_S)
+    keep[in_step] = t_in - t0[idx_in] >= settle[idx_in] - SETTLE_TOLERANCE_S
     idx = idx_all[keep]
     t = data.t[keep]
     count = np.bincount(idx, minlength=n_steps)
     safe = np.maximum(count, 1)
+    ok = count > 1
 
-    def mean_std(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def kept_columns(values: np.ndarray) -> list[np.ndarray]:
+        # one contiguous 1-D array per channel: boolean indexing of a 2-D array is slower
+        return [np.ascontiguousarray(values[:, j])[keep] for j in range(3)]
+
+    def mean_std(columns: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         mean = np.empty((n_steps, 3))
         std = np.full((n_steps, 3), np.nan)
-        for j in range(3):
-            mean[:, j] = np.bincount(idx, weights=values[:, j], minlength=n_steps) / safe
-            dev2 = (values[:, j] - mean[idx, j]) ** 2
-            ss = np.bincount(idx, weights=dev2, minlength=n_steps)
-            ok = count > 1
+        for j, x in enumerate(columns):
+            mean[:, j] = np.bincount(idx, weights=x, minlength=n_steps) / safe
+            dev = x - mean[:, j][idx]  # two-pass: no cancellation on large means
+            ss = np.bincount(idx, weights=dev * dev, minlength=n_steps)
             std[ok, j] = np.sqrt(ss[ok] / (count[ok] - 1))
         return mean, std
 
-    gyro_k, accel_k = data.gyro[keep], data.accel[keep]
+    gyro_k, accel_k = kept_columns(data.gyro), kept_columns(data.accel)
     gyro, gyro_std = mean_std(gyro_k)
     accel, accel_std = mean_std(accel_k)
     t_lo = np.full(n_steps, np.inf)
     t_hi = np.full(n_steps, -np.inf)
     np.minimum.at(t_lo, idx, t)
     np.maximum.at(t_hi, idx, t)
-    t_mid = np.where(count > 0, (t_lo + t_hi) / 2.0, np.nan)
+    t_mid = np.full(n_steps, np.nan)
+    t_mid[count > 0] = (t_lo[count > 0] + t_hi[count > 0]) / 2.0
     temp = np.full(n_steps, np.nan)
     if data.temp_c is not None:
         tc = data.temp_c[keep]

@@ -225,7 +225,7 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
                            column="t", step=int(step[i]))
 
     def sensor(names: tuple[str, ...], scale: float) -> np.ndarray:
-        out = np.empty((n, 3))
+        out = np.empty((n, 3), order="F")  # column-major: per-channel work is contiguous
         for j, name in enumerate(names):
             col = table.column(name)
             values = _floats(col)

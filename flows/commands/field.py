@@ -43,6 +43,10 @@ def register(sub) -> None:
                    help="central samples used per static pose (default 100)")
     p.add_argument("--min-poses", type=int, default=12, metavar="N",
                    help="fewest static poses accepted (default 12)")
+    p.add_argument("--gyro-g-sensitivity", action="store_true",
+                   help="also estimate the gyro g-sensitivity (bias linear in specific force) "
+                        "from the static poses and store it as the gyro_g_sensitivity term; "
+                        "the bias then comes from all poses, not the initial period")
     p.add_argument("--poses", type=Path, default=None, metavar="CSV",
                    help="also write the static poses' raw means here")
     p.add_argument("--out", type=Path, required=True, metavar="CALIBRATION.json")
@@ -73,6 +77,7 @@ def run(args) -> int:
                                 min_intervals=args.min_poses, init_acc_bias=args.acc_bias,
                                 init_acc_scale=args.acc_scale, init_gyro_scale=args.gyro_scale,
                                 gyro_unit=rec.gyro_unit, accel_unit=rec.accel_unit,
+                                gyro_g_sensitivity=args.gyro_g_sensitivity,
                                 metadata={"source": rec.source})
     except DesignError as exc:
         raise CliError(f"{rec.source}: {exc.reason}") from exc
@@ -86,7 +91,8 @@ def run(args) -> int:
           f"(threshold x{int(s['threshold_multiplier'])}); static |f| RMS error "
           f"{s['accel_norm_rms_err_mg_initial']:.3g} -> {s['accel_norm_rms_err_mg']:.3g} mg; "
           f"gravity direction after rotation, median {s['gyro_angle_median_deg_initial']:.3g} -> "
-          f"{s['gyro_angle_median_deg']:.3g} deg; wrote {args.out}")
+          f"{s['gyro_angle_median_deg']:.3g} deg; rate at the poses "
+          f"{s['gyro_static_rate_rms_dps']:.3g} deg/s RMS; wrote {args.out}")
     if args.poses:
         print(f"wrote {args.poses}")
     return 0

@@ -1,6 +1,7 @@
 """`mimucal simulate OUT --lots L --units N --reps R --seed S`: write a simulated fleet."""
 from __future__ import annotations
 
+import shutil
 import time
 from pathlib import Path
 
@@ -32,7 +33,9 @@ def register(sub) -> None:
     p.add_argument("--accel-unit", choices=("g", "m/s^2"), default=None,
                    help="unit of the written accelerometer samples (default g)")
     p.add_argument("--force", action="store_true",
-                   help="write into OUT even if it already holds a dataset")
+                   help="replace a fleet simulated earlier in OUT (its lot=* directories and "
+                        "fleet.json are removed first; a dataset without fleet.json is never "
+                        "removed)")
     p.set_defaults(func=run)
 
 
@@ -47,10 +50,18 @@ def run(args) -> int:
     out: Path = args.out
     if out.exists() and not out.is_dir():
         raise CliError(f"{out} exists and is not a directory")
-    if out.is_dir() and not args.force and (
-            (out / MANIFEST).exists() or any(p.name.startswith("lot=") for p in out.iterdir())):
-        raise CliError(f"{out} already holds a dataset; use --force to write into it or "
-                       f"choose an empty directory")
+    if out.is_dir():
+        lots = [p for p in out.iterdir() if p.name.startswith("lot=")]
+        simulated = (out / MANIFEST).exists()
+        if (lots or simulated) and not args.force:
+            raise CliError(f"{out} already holds a dataset; use --force to replace a simulated "
+                           f"fleet or choose an empty directory")
+        if lots and not simulated:
+            raise CliError(f"{out} holds a dataset that was not simulated (no {MANIFEST}); "
+                           f"refusing to remove it")
+        for p in lots:  # a simulated fleet, replaced on request (no stale sessions left)
+            shutil.rmtree(p)
+        (out / MANIFEST).unlink(missing_ok=True)
     start = time.perf_counter()
     try:
         manifest = simulate_fleet(

@@ -1,0 +1,142 @@
+"""``mimucal apply CALIBRATION.json RAW OUT``: apply a calibration file to raw samples.
+
+RAW is either a ``samples.parquet`` of the acquisition contract (its metadata gives the raw
+units; ``rad/s`` and ``m/s^2`` are converted to deg/s and g first, with the file's
+``g_local``) or a CSV with columns ``acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z`` (units given by
+``--gyro-unit`` / ``--accel-unit``, default deg/s and m/s^2; other columns are passed through).
+
+Output: Parquet input -> Parquet with ``w_x, w_y, w_z`` in deg/s and ``f_x, f_y, f_z`` in g
+(plus ``t``, ``step``, ``temp_c`` when present); CSV input -> CSV with ``gyr_*`` in deg/s and
+``acc_*`` in m/s^2 (the calibration's ``g_local``), other columns unchanged.
+
+Refuses (exit 2) when the raw units of the data are not the ones the calibration expects
+(its ``raw_units``), e.g. LSB data with a calibration fitted on deg/s."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from flows.cli import CliError
+
+EPILOG = """examples:
+  mimucal apply results/calibrations/U0001/20261121T020000.000000Z.json \\
+      data/lot=L01/unit=U0001/rep=1/samples.parquet calibrated.parquet
+  mimucal apply cal.json recording.csv calibrated.csv --accel-unit m/s^2 --gyro-unit deg/s"""
+
+RAD_TO_DEG = 180.0 / np.pi
+CSV_GYRO = ("gyr_x", "gyr_y", "gyr_z")
+CSV_ACCEL = ("acc_x", "acc_y", "acc_z")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("apply", help="apply a calibration file to raw samples (Parquet or CSV)",
+                       description=__doc__, epilog=EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("calibration", metavar="CALIBRATION.json")
+    p.add_argument("raw", metavar="RAW", help="samples.parquet of the contract, or a .csv")
+    p.add_argument("out", metavar="OUT", help="output file (.parquet or .csv like RAW)")
+    p.add_argument("--gyro-unit", default="deg/s", choices=("deg/s", "rad/s", "LSB", "V"),
+                   help="CSV only: unit of gyr_* (default deg/s)")
+    p.add_argument("--accel-unit", default="m/s^2", choices=("g", "m/s^2", "LSB", "V"),
+                   help="CSV only: unit of acc_* (default m/s^2)")
+    p.set_defaults(func=run)
+
+
+def _to_inside(values: np.ndarray, unit: str, g_local: float) -> tuple[np.ndarray, str]:
+    if unit == "rad/s":
+        return values * RAD_TO_DEG, "deg/s"
+    if unit == "m/s^2":
+        return values / g_local, "g"
+    return values, unit
+
+
+def _check_units(cal, gyro_unit: str, accel_unit: str, declared: tuple[str, str], src: str):
+    if gyro_unit != cal.gyro_unit or accel_unit != cal.accel_unit:
+        raise CliError(
+            f"{src}: raw units gyro={declared[0]!r}, accel={declared[1]!r} do not match the "
+            f"calibration's raw_units gyro={cal.gyro_unit!r}, accel={cal.accel_unit!r}; a "
+            f"calibration only applies to data in the units it was fitted on")
+
+
+def _apply(cal, G, A, t=None, temp=None):
+    dwdt = None
+    if cal.terms and t is not None and len(t) > 2:
+        w_aff, _ = cal.apply_affine(G, A)
+        dwdt = np.gradient(w_aff, t, axis=0)
+    return cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t)
+
+
+def run(args: argparse.Namespace) -> int:
+    import pandas as pd
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from schemas.calibration_file import CalibrationFileError, load_calibration
+    from schemas.contract import G_LOCAL_DEFAULT, decode_metadata
+
+    try:
+        cal = load_calibration(Path(args.calibration))
+    except CalibrationFileError as exc:
+        raise CliError(str(exc)) from None
+    raw, out = Path(args.raw), Path(args.out)
+    if not raw.is_file():
+        raise CliError(f"{raw}: no such file")
+    suffix = raw.suffix.lower()
+    if suffix == ".parquet":
+        try:
+            table = pq.read_table(raw)
+        except Exception as exc:
+            raise CliError(f"{raw}: cannot read Parquet ({exc})") from None
+        md = decode_metadata(table.schema.metadata)
+        missing = [c for c in ("gx", "gy", "gz", "ax", "ay", "az") if c not in table.column_names]
+        if missing:
+            raise CliError(f"{raw}: missing column(s) {', '.join(missing)} (contract samples.parquet)")
+        if "gyro_unit" not in md or "accel_unit" not in md:
+            raise CliError(f"{raw}: metadata gyro_unit/accel_unit missing; cannot tell the raw units")
+        g_local = float(md.get("g_local", G_LOCAL_DEFAULT))
+        df = table.to_pandas()
+        G, gu = _to_inside(df[["gx", "gy", "gz"]].to_numpy(float), md["gyro_unit"], g_local)
+        A, au = _to_inside(df[["ax", "ay", "az"]].to_numpy(float), md["accel_unit"], g_local)
+        _check_units(cal, gu, au, (md["gyro_unit"], md["accel_unit"]), str(raw))
+        t = df["t"].to_numpy(float) if "t" in df else None
+        temp = df["temp_c"].to_numpy(float) if "temp_c" in df else None
+        w, f = _apply(cal, G, A, t, temp)
+        res = pd.DataFrame({c: df[c] for c in ("step", "t", "temp_c") if c in df})
+        for i, ax in enumerate("xyz"):
+            res[f"w_{ax}"] = w[:, i]
+        for i, ax in enumerate("xyz"):
+            res[f"f_{ax}"] = f[:, i]
+        meta = {"gyro_unit": "deg/s", "accel_unit": "g", "calibrated": "true",
+                "calibration_file": str(Path(args.calibration).resolve()), "source": str(raw),
+                "g_local": f"{cal.g_local:.5f}"}
+        tab = pa.Table.from_pandas(res, preserve_index=False)
+        tab = tab.replace_schema_metadata({**(tab.schema.metadata or {}), **meta})
+        out.parent.mkdir(parents=True, exist_ok=True)
+        pq.write_table(tab, out, compression="zstd")
+        units = "w_* deg/s, f_* g"
+    elif suffix == ".csv":
+        try:
+            df = pd.read_csv(raw)
+        except Exception as exc:
+            raise CliError(f"{raw}: cannot read CSV ({exc})") from None
+        missing = [c for c in CSV_ACCEL + CSV_GYRO if c not in df]
+        if missing:
+            raise CliError(f"{raw}: missing column(s) {', '.join(missing)} (need "
+                           f"{', '.join(CSV_ACCEL + CSV_GYRO)})")
+        G, gu = _to_inside(df[list(CSV_GYRO)].to_numpy(float), args.gyro_unit, cal.g_local)
+        A, au = _to_inside(df[list(CSV_ACCEL)].to_numpy(float), args.accel_unit, cal.g_local)
+        _check_units(cal, gu, au, (args.gyro_unit, args.accel_unit), str(raw))
+        t = df["t"].to_numpy(float) if "t" in df else None
+        w, f = _apply(cal, G, A, t, None)
+        res = df.copy()
+        res[list(CSV_GYRO)] = w
+        res[list(CSV_ACCEL)] = f * cal.g_local
+        out.parent.mkdir(parents=True, exist_ok=True)
+        res.to_csv(out, index=False)
+        units = "gyr_* deg/s, acc_* m/s^2"
+    else:
+        raise CliError(f"{raw}: expected a .parquet (contract samples) or .csv file")
+    print(f"{out}: {len(w)} samples calibrated ({units})")
+    return 0

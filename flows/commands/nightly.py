@@ -1,0 +1,80 @@
+"""``mimucal nightly DATASET --results DIR``: calibrate what is new or changed, flag, report."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from flows.cli import CliError
+
+EPILOG = """examples:
+  mimucal nightly data/fleet --results results
+  mimucal nightly data/fleet --results results --force --config limits.toml
+  mimucal nightly data/fleet --results results --dask-address tcp://10.0.0.5:8786
+
+Sessions whose input fingerprint (size and mtime of both files) is unchanged since the last
+run are skipped; a unit with any new, changed or removed session is recalibrated as a whole.
+Prints a progress line per batch of units and a one-line summary; the run log is
+RESULTS/runs/<run_id>.json and the reports RESULTS/reports/."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("nightly", help="calibrate every new or changed session of a fleet",
+                       description=__doc__, epilog=EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("dataset", metavar="DATASET", help="hive dataset root (lot=/unit=/rep=)")
+    p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
+    p.add_argument("--force", action="store_true", help="recalibrate every unit")
+    p.add_argument("--dask-address", metavar="ADDR", default=None,
+                   help="run the per-unit tasks on this Dask scheduler (tcp://host:port)")
+    p.add_argument("--config", metavar="TOML", default=None,
+                   help="outlier options and per-parameter limits (see docs/flows.md)")
+    p.add_argument("--batch-size", type=int, default=None, metavar="N",
+                   help="units per Prefect task (default 8)")
+    p.add_argument("--wait", action="store_true",
+                   help="wait for another run holding the results store instead of refusing")
+    p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    dataset = Path(args.dataset)
+    if not dataset.is_dir():
+        raise CliError(f"dataset {dataset} is not a directory")
+    if args.config and not Path(args.config).is_file():
+        raise CliError(f"configuration {args.config} does not exist")
+    if args.batch_size is not None and args.batch_size < 1:
+        raise CliError("--batch-size must be >= 1")
+    from flows import runtime
+    runtime.ensure_environment(args.results)
+    from calib_core.outliers import OutlierConfigError
+    from flows import nightly
+    from schemas.results_store import StoreLockedError
+    try:
+        log = nightly.nightly_fleet_calibration(
+            dataset, args.results, force=args.force, dask_address=args.dask_address,
+            batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
+            wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet)
+    except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
+        raise CliError(str(exc)) from None
+    print_outcome(log)
+    return 0
+
+
+def print_outcome(log: dict) -> None:
+    for f in log.get("failed_sessions", []):
+        print(f"failed session {f['session']}: {f['message']}", file=sys.stderr)
+    for e in log.get("path_errors", []):
+        print(f"bad path: {e.get('message')}", file=sys.stderr)
+    for unit, why in (log.get("units_stale") or {}).items():
+        print(f"stale: {unit}: {why} (last good calibration kept)", file=sys.stderr)
+    for lf in log.get("flags", []):
+        for f in lf.get("flags", []):
+            print(f"flag {f['lot']}/{f['unit']}: [{f['kind']}] {f['reason']}")
+    for p in log.get("report_problems", []):
+        print(f"report: {p}", file=sys.stderr)
+    print(log["summary"])
+    reports = log.get("reports") or []
+    if reports:
+        print("reports: " + ", ".join(reports))

@@ -1,0 +1,46 @@
+"""``mimucal rerun DATASET --results DIR --unit UNIT``: recalibrate one unit now.
+
+Its rows are replaced only if the recalibration succeeds; otherwise its last good calibration
+is kept and marked stale (units.parquet, summary.parquet) with the reason, and the exit code
+is 1. Its lot's flags and report are rebuilt either way."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from flows.cli import CliError
+from flows.commands.nightly import print_outcome
+
+EPILOG = """examples:
+  mimucal rerun data/fleet --results results --unit U0042"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("rerun", help="recalibrate one unit and replace only its results",
+                       description=__doc__, epilog=EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("dataset", metavar="DATASET", help="hive dataset root")
+    p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
+    p.add_argument("--unit", required=True, help="unit id")
+    p.add_argument("--config", metavar="TOML", default=None,
+                   help="outlier options and per-parameter limits")
+    p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
+    p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not Path(args.dataset).is_dir():
+        raise CliError(f"dataset {args.dataset} is not a directory")
+    from flows import runtime
+    runtime.ensure_environment(args.results)
+    from calib_core.outliers import OutlierConfigError
+    from flows import nightly
+    from schemas.results_store import StoreLockedError
+    try:
+        log = nightly.rerun_unit(args.dataset, args.results, args.unit, args.config, args.wait,
+                                 run_discovery=not args.no_discovery)
+    except (StoreLockedError, OutlierConfigError, FileNotFoundError, LookupError) as exc:
+        raise CliError(str(exc)) from None
+    print_outcome(log)
+    return 1 if log.get("units_failed") else 0

@@ -1,0 +1,562 @@
+"""Prefect flows: the nightly fleet calibration, the lot report rebuild and the single-unit
+rerun. Orchestration only: the work is :mod:`flows.unit_pipeline` (per session/unit),
+:mod:`calib_core.discovery`, :mod:`calib_core.outliers`, :mod:`schemas.results_store` and
+:mod:`reports`.
+
+Granularity: one Prefect task per *batch of units* (``batch_size`` units, default 8): a task
+costs ~4 ms with the thread pool and ~60-85 ms with a process pool or Dask (docs/flows.md),
+a session ~0.1-0.3 s. Tasks receive session paths, never arrays, and return fitted results
+in memory (``persist_result=False``, no cache policy): Prefect writes no sample data.
+
+The public functions ``nightly_fleet_calibration``, ``lot_quality_report`` and
+``rerun_unit`` pick the task runner (thread pool of 2, or Dask at ``dask_address``), switch the
+heartbeat off and call the flows.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from flows import runtime
+
+runtime.ensure_environment()
+
+import pandas as pd  # noqa: E402
+from prefect import flow, get_run_logger, task  # noqa: E402
+from prefect.cache_policies import NO_CACHE  # noqa: E402
+from prefect.futures import as_completed  # noqa: E402
+from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
+
+from calib_core.outliers import LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots  # noqa: E402
+from schemas.dataset import SessionRef, find_sessions  # noqa: E402
+from schemas.results_store import (  # noqa: E402
+    STORE_FORMAT_VERSION, ResultsStore, iso, jsonable, utc_now,
+)
+
+DEFAULT_BATCH_SIZE = 8
+LOCAL_WORKERS = 2
+DASK_ENV = "MIMUCAL_DASK_ADDRESS"  # the served deployment reads its Dask address here
+
+
+# --- plain-Python pieces (tested without Prefect) ------------------------------------------------
+@dataclass
+class UnitJob:
+    lot: str
+    unit: str
+    refs: list[SessionRef]
+    reason: str  # why it is (re)calibrated: new, changed, forced, rerun
+
+
+@dataclass
+class UnitResult:
+    """What a task returns for one unit: the lead's UnitOutcome (step means dropped) plus
+    discovery."""
+
+    lot: str
+    unit: str
+    outcome: Any  # flows.unit_pipeline.UnitOutcome
+    diagnosis: dict | None = None
+    discovery_note: str | None = None
+    elapsed_s: float = 0.0
+
+    @property
+    def calibrated(self) -> bool:
+        return self.outcome is not None and self.outcome.applied is not None
+
+    @property
+    def n_failed(self) -> int:
+        return sum(1 for s in self.outcome.sessions if s.status == "failed")
+
+
+def plan_units(refs: list[SessionRef], previous: dict[tuple[str, str, int], str],
+               force: bool = False) -> tuple[list[UnitJob], list[tuple[str, str]]]:
+    """Units to calibrate (new, changed, or all with ``force``) and units skipped because
+    every session's fingerprint is unchanged and no session appeared or disappeared."""
+    from schemas.dataset import fingerprint
+    by_unit: dict[tuple[str, str], list[SessionRef]] = {}
+    for r in refs:
+        by_unit.setdefault((r.key.lot, r.key.unit), []).append(r)
+    prev_reps: dict[tuple[str, str], set[int]] = {}
+    for (lot, unit, rep) in previous:
+        prev_reps.setdefault((lot, unit), set()).add(rep)
+    jobs, skipped = [], []
+    for (lot, unit), rs in sorted(by_unit.items()):
+        if force:
+            jobs.append(UnitJob(lot, unit, rs, "forced"))
+            continue
+        if (lot, unit) not in prev_reps:
+            jobs.append(UnitJob(lot, unit, rs, "new"))
+            continue
+        reps_now = {r.key.rep for r in rs}
+        changed = [r.key.rep for r in rs
+                   if previous.get((lot, unit, r.key.rep)) != fingerprint(r.path)]
+        if changed or reps_now != prev_reps[(lot, unit)]:
+            why = []
+            if changed:
+                why.append("changed rep " + ",".join(map(str, changed)))
+            if reps_now - prev_reps[(lot, unit)]:
+                why.append("new rep " + ",".join(map(str, sorted(reps_now - prev_reps[(lot, unit)]))))
+            if prev_reps[(lot, unit)] - reps_now:
+                why.append("removed rep " + ",".join(map(str, sorted(prev_reps[(lot, unit)] - reps_now))))
+            jobs.append(UnitJob(lot, unit, rs, "; ".join(why)))
+        else:
+            skipped.append((lot, unit))
+    return jobs, skipped
+
+
+def _discovery_available() -> bool:
+    try:
+        import calib_core.discovery  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
+    """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
+    Never raises on bad data (the unit pipeline turns it into failed sessions)."""
+    from flows.unit_pipeline import aggregate_unit, calibrate_session
+    t0 = time.perf_counter()
+    outcomes = [calibrate_session(r) for r in sorted(job.refs, key=lambda r: r.key.rep)]
+    diag_doc, note, terms = None, None, ()
+    good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
+    if run_discovery and _discovery_available() and len(good_sm) >= 2:
+        from calib_core.discovery import diagnose_unit
+        try:
+            diag = diagnose_unit(good_sm, tables=False)
+            diag_doc = diag.to_dict()
+            terms = tuple(diag.terms)
+        except Exception as exc:  # discovery must not cost the unit its calibration
+            note = f"model discovery failed: {type(exc).__name__}: {exc}"
+    elif run_discovery and not _discovery_available():
+        note = "model discovery skipped: calib_core.discovery is not available"
+    elif run_discovery:
+        note = f"model discovery skipped: {len(good_sm)} good repetition(s), needs 2"
+    try:
+        unit_out = aggregate_unit(job.lot, job.unit, outcomes, terms=terms)
+    except Exception as exc:  # a bug in aggregation must not stop the fleet
+        from flows.unit_pipeline import UnitOutcome
+        unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
+        unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: "
+                              f"{type(exc).__name__}: {exc}")
+        note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
+    for o in unit_out.sessions:  # step means are not kept past this point
+        o.step_means = None
+    return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0)
+
+
+def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
+    return [calibrate_unit_job(j, run_discovery) for j in jobs]
+
+
+def _frame(rows: list[dict], name: str) -> pd.DataFrame:
+    return pd.DataFrame(rows) if rows else pd.DataFrame()
+
+
+def _flatten_effect(e: dict) -> dict:
+    out = {}
+    for k, v in e.items():
+        out[k] = v if isinstance(v, (int, float, str, bool)) or v is None else json.dumps(jsonable(v))
+    return out
+
+
+def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
+                  code_version: str, when=None) -> dict[str, Any]:
+    """Write the units' rows (replacing only those units), their calibration files, and mark
+    units whose recalibration failed as stale (keeping their last good results)."""
+    from schemas.unit_document import unit_document
+    when = when or utc_now()
+    stamp = iso(when)
+    sess_rows, par_rows, sum_rows, unit_rows, disc_rows = [], [], [], [], []
+    res_frames, comp_frames = [], []
+    ok_units: set[tuple[str, str]] = set()
+    stale_units: dict[tuple[str, str], str] = {}
+    previous_units = store.read("units")
+    prev_state = {(r.lot, r.unit): r for r in previous_units.itertuples()}
+    for ur in results:
+        key = (ur.lot, ur.unit)
+        out = ur.outcome
+        for s in out.sessions:
+            sess_rows.append({
+                "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep, "status": s.status,
+                "error_code": s.code, "message": s.message, "warnings": list(s.warnings),
+                "fingerprint": s.fingerprint, "run_id": run_id, "path": str(s.path),
+                "calibrated_at": stamp})
+        n_ok = sum(s.status == "ok" for s in out.sessions)
+        n_warned = sum(s.status == "warned" for s in out.sessions)
+        n_failed = sum(s.status == "failed" for s in out.sessions)
+        base = {"lot": ur.lot, "unit": ur.unit, "n_sessions": len(out.sessions), "n_ok": n_ok,
+                "n_warned": n_warned, "n_failed": n_failed, "run_id": run_id, "updated_at": stamp}
+        if ur.calibrated:
+            ok_units.add(key)
+            for s in out.sessions:
+                if s.calibration is None or not s.succeeded:
+                    continue
+                for p in s.calibration.parameters():
+                    par_rows.append({"lot": ur.lot, "unit": ur.unit, "rep": s.key.rep,
+                                     "model": p.model, "parameter": p.name, "value": p.value,
+                                     "stderr": p.stderr, "unit_of_measure": p.unit,
+                                     "code_version": code_version, "run_id": run_id})
+                for frames, df in ((res_frames, s.residuals), (comp_frames, s.compensation)):
+                    if df is not None and len(df):
+                        df = df.copy()
+                        for c, v in (("lot", ur.lot), ("unit", ur.unit), ("rep", s.key.rep)):
+                            if c not in df:
+                                df.insert(0, c, v)
+                        frames.append(df)
+            for ps in out.calibration.summary:
+                sum_rows.append({"lot": ur.lot, "unit": ur.unit, "model": ps.model,
+                                 "parameter": ps.name, "mean": ps.mean, "std": ps.std,
+                                 "min": ps.min, "max": ps.max, "n_reps": ps.n_reps,
+                                 "unit_of_measure": ps.unit, "flagged": False, "flag_reason": "",
+                                 "stale": False, "stale_reason": "", "run_id": run_id})
+            failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
+                      for s in out.sessions if not s.succeeded]
+            doc = unit_document(ur.lot, ur.unit, out.calibration.reps, failed)
+            extra = {"provenance": {
+                "lot": ur.lot, "unit": ur.unit, "run_id": run_id, "code_version": code_version,
+                "calibrated_at": stamp, "store_format_version": STORE_FORMAT_VERSION,
+                "sessions_used": [{"rep": s.key.rep, "path": str(s.path),
+                                   "fingerprint": s.fingerprint, "status": s.status,
+                                   "session_start": (s.calibration.provenance or {}).get(
+                                       "session_start") if s.calibration else None}
+                                  for s in out.sessions if s.succeeded],
+                "sessions_failed": failed,
+                "extension_terms": [t.name for t in out.applied.terms],
+                "model_discovery": None if ur.diagnosis is None else {
+                    k: ur.diagnosis.get(k) for k in ("misfit", "unexplained", "effects")},
+            }, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
+                "repetitions": doc["reps"]}
+            path = store.save_calibration(out.applied, ur.unit, jsonable(extra), when)
+            unit_rows.append({**base, "state": "calibrated", "reason": "",
+                              "calibration_file": str(path.relative_to(store.root)),
+                              "calibrated_at": stamp})
+        else:
+            reasons = "; ".join(f"rep {s.key.rep}: {s.code}" for s in out.sessions
+                                if not s.succeeded) or "no session"
+            why = f"recalibration failed in run {run_id} ({reasons})"
+            prev = prev_state.get(key)
+            if prev is not None and isinstance(prev.calibration_file, str) and prev.calibration_file:
+                stale_units[key] = why
+                unit_rows.append({**base, "state": "stale", "reason": why,
+                                  "calibration_file": prev.calibration_file,
+                                  "calibrated_at": prev.calibrated_at})
+            else:
+                unit_rows.append({**base, "state": "failed", "reason": why,
+                                  "calibration_file": None, "calibrated_at": None})
+        if ur.diagnosis is not None:
+            effects = ur.diagnosis.get("effects") or []
+            common = {"lot": ur.lot, "unit": ur.unit, "misfit": ur.diagnosis.get("misfit"),
+                      "unexplained": ur.diagnosis.get("unexplained"), "run_id": run_id}
+            if effects:
+                for e in effects:
+                    d = _flatten_effect(e)
+                    d["effect"] = d.pop("name", None)
+                    disc_rows.append({**common, **d})
+            else:
+                disc_rows.append({**common, "effect": None})
+    all_units = {(ur.lot, ur.unit) for ur in results}
+    store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)
+    store.replace_units("units", _frame(unit_rows, "units"), all_units)
+    store.replace_units("parameters", _frame(par_rows, "parameters"), ok_units)
+    store.replace_units("summary", _frame(sum_rows, "summary"), ok_units)
+    for name, frames in (("residuals", res_frames), ("compensation", comp_frames)):
+        store.replace_units(name, pd.concat(frames, ignore_index=True) if frames else None,
+                            ok_units)
+    disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
+    if disc_units:
+        store.replace_units("discovery", _frame(disc_rows, "discovery"), disc_units)
+    for key, why in stale_units.items():
+        store.update_rows("summary", {key}, stale=True, stale_reason=why)
+    return {"calibrated": sorted(f"{lot}/{u}" for lot, u in ok_units),
+            "stale": {f"{lot}/{u}": w for (lot, u), w in stale_units.items()}}
+
+
+def load_config(path: str | Path | None) -> OutlierConfig:
+    if not path:
+        return OutlierConfig()
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise FileNotFoundError(f"outlier configuration {p}: {exc.strerror}") from None
+    return config_from_toml(text, source=str(p))
+
+
+def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: OutlierConfig
+                ) -> list[LotFlags]:
+    """Recompute the flags of the given lots from the whole summary (the robust scale is
+    pooled over all lots) and write them to summary.parquet and units.parquet."""
+    summary = store.read("summary")
+    if not len(summary) or not lots:
+        return []
+    present = set(summary["lot"].dropna().astype(str))
+    todo = sorted(set(map(str, lots)) & present)
+    if not todo:
+        return []
+    lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
+    summary = apply_flags(summary, lf)
+    store.write("summary", summary)
+    units = store.read("units")
+    if len(units):
+        flagged = {}
+        for f in lf:
+            for fl in f.flags:
+                flagged.setdefault((fl.lot, fl.unit), []).append(f"[{fl.kind}] {fl.reason}")
+        in_lots = units["lot"].astype(str).isin(todo).to_numpy()
+        keys = list(zip(units["lot"].astype(str), units["unit"].astype(str)))
+        units["flagged"] = [bool(flagged.get(k)) if m else bool(v) if pd.notna(v) else False
+                            for k, m, v in zip(keys, in_lots, units.get("flagged", [False] * len(units)))]
+        units["flag_reason"] = ["; ".join(flagged.get(k, [])) if m else (v if isinstance(v, str) else "")
+                                for k, m, v in zip(keys, in_lots, units.get("flag_reason", [""] * len(units)))]
+        store.write("units", units)
+    return lf
+
+
+def write_reports(results: str | Path, lots: list[str]) -> tuple[list[str], list[str]]:
+    """Lot reports and the fleet index; returns (paths written, problems). A report failure
+    never undoes a calibration."""
+    written, problems = [], []
+    try:
+        from reports.lot import write_lot_report
+    except ImportError as exc:
+        return [], [f"reports.lot not available ({exc}); no lot report written"]
+    for lot in sorted(lots):
+        try:
+            written.append(str(write_lot_report(results, lot)))
+        except Exception as exc:
+            problems.append(f"lot report {lot}: {type(exc).__name__}: {exc}")
+    try:
+        from reports.index import write_fleet_index
+        written.append(str(write_fleet_index(results)))
+    except ImportError as exc:
+        problems.append(f"reports.index not available ({exc}); no fleet index written")
+    except Exception as exc:
+        problems.append(f"fleet index: {type(exc).__name__}: {exc}")
+    return written, problems
+
+
+def make_batches(jobs: list[UnitJob], batch_size: int) -> list[list[UnitJob]]:
+    batch_size = max(1, int(batch_size))
+    return [jobs[i:i + batch_size] for i in range(0, len(jobs), batch_size)]
+
+
+def new_run_id() -> str:
+    return utc_now().strftime("%Y%m%dT%H%M%SZ") + "-" + uuid.uuid4().hex[:6]
+
+
+# --- Prefect tasks and flows ------------------------------------------------------------------
+@task(name="calibrate-units", persist_result=False, cache_policy=NO_CACHE, log_prints=False)
+def calibrate_units_task(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
+    """One batch of units: paths in, fitted results out (in memory only)."""
+    return calibrate_batch(jobs, run_discovery)
+
+
+class _Progress:
+    def __init__(self, total: int, stream=None, every_s: float = 0.0):
+        self.total = total
+        self.done = 0
+        self.failed_sessions = 0
+        self.stream = stream if stream is not None else sys.stderr
+        self.t0 = time.monotonic()
+
+    def update(self, results: list[UnitResult]) -> str:
+        self.done += len(results)
+        self.failed_sessions += sum(r.n_failed for r in results)
+        line = (f"progress: units {self.done}/{self.total} done, failed sessions "
+                f"{self.failed_sessions}, {time.monotonic() - self.t0:.1f} s")
+        if self.stream:
+            print(line, file=self.stream, flush=True)
+        return line
+
+
+def _run_batches(jobs: list[UnitJob], batch_size: int, run_discovery: bool,
+                 on_progress: Callable[[list[UnitResult]], None]) -> list[UnitResult]:
+    futures = [calibrate_units_task.submit(b, run_discovery) for b in make_batches(jobs, batch_size)]
+    results: list[UnitResult] = []
+    for fut in as_completed(futures):
+        batch = fut.result()
+        results.extend(batch)
+        on_progress(batch)
+    results.sort(key=lambda r: (r.lot, r.unit))
+    return results
+
+
+def _default_task_runner():
+    address = os.environ.get(DASK_ENV)
+    return make_task_runner(address) if address else ThreadPoolTaskRunner(max_workers=LOCAL_WORKERS)
+
+
+def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_WORKERS):
+    if dask_address:
+        from prefect_dask import DaskTaskRunner
+        return DaskTaskRunner(address=dask_address)
+    return ThreadPoolTaskRunner(max_workers=max_workers)
+
+
+@flow(name="nightly-fleet-calibration", persist_result=False, log_prints=False,
+      task_runner=_default_task_runner())
+def nightly_flow(dataset: str, results: str, force: bool = False,
+                 batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
+                 wait: bool = False, run_discovery: bool = True,
+                 progress: bool = True) -> dict:
+    """Find sessions, calibrate new/changed units in batches, store, flag, report."""
+    logger = get_run_logger()
+    run_id = new_run_id()
+    store = ResultsStore(Path(results))
+    cfg = load_config(config)
+    version = runtime.code_version()
+    with store.lock(owner=run_id, wait=wait):
+        t0 = time.monotonic()
+        log: dict[str, Any] = {"run_id": run_id, "kind": "nightly", "start": iso(utc_now()),
+                               "dataset": str(dataset), "results": str(results),
+                               "force": force, "code_version": version,
+                               "config": config, "batch_size": batch_size}
+        refs, path_errors = find_sessions(dataset)
+        jobs, skipped = plan_units(refs, store.fingerprints(), force)
+        if run_discovery and not _discovery_available():
+            logger.warning("model discovery skipped: calib_core.discovery is not available")
+        log.update({"sessions_found": len(refs), "units_found": len(jobs) + len(skipped),
+                    "units_to_calibrate": len(jobs), "units_skipped": len(skipped),
+                    "path_errors": [e.to_dict() for e in path_errors],
+                    "progress": {"units_done": 0, "units_total": len(jobs)}})
+        store.write_run(run_id, log)
+        prog = _Progress(len(jobs), stream=sys.stderr if progress else False)
+
+        def on_progress(batch: list[UnitResult]) -> None:
+            line = prog.update(batch)
+            log["progress"] = {"units_done": prog.done, "units_total": prog.total,
+                               "failed_sessions": prog.failed_sessions, "line": line}
+            store.write_run(run_id, log)
+
+        results_ = _run_batches(jobs, batch_size, run_discovery, on_progress) if jobs else []
+        t_cal = time.monotonic() - t0
+        stored = store_results(store, results_, run_id, version)
+        lots = sorted({r.lot for r in results_})
+        lot_flags = reflag_lots(store, lots, cfg)
+        reports, problems = write_reports(results, lots) if lots else ([], [])
+        for p in problems:
+            logger.warning(p)
+        failed = [{"session": str(s.key), "code": s.code, "message": s.message}
+                  for r in results_ for s in r.outcome.sessions if s.status == "failed"]
+        flagged = sorted({f"{f.lot}/{f.unit}" for lf in lot_flags for f in lf.flags})
+        log.update({
+            "end": iso(utc_now()), "elapsed_s": round(time.monotonic() - t0, 3),
+            "calibration_s": round(t_cal, 3),
+            "units_calibrated": len(stored["calibrated"]), "units_stale": stored["stale"],
+            "units_failed": sorted(f"{r.lot}/{r.unit}" for r in results_ if not r.calibrated),
+            "sessions_calibrated": sum(1 for r in results_ for s in r.outcome.sessions
+                                       if s.status != "failed"),
+            "failed_sessions": failed, "flagged_units": flagged,
+            "flags": [lf.to_dict() for lf in lot_flags], "lots_touched": lots,
+            "reports": reports, "report_problems": problems,
+            "discovery_notes": sorted({r.discovery_note for r in results_ if r.discovery_note}),
+            "summary": None,
+        })
+        log["summary"] = summary_line(log)
+        store.write_run(run_id, log)
+    return jsonable(log)
+
+
+def summary_line(log: dict) -> str:
+    return (f"{log.get('kind', 'run')} {log['run_id']}: {log.get('units_found', '?')} units "
+            f"({log.get('units_calibrated', 0)} calibrated, {log.get('units_skipped', 0)} "
+            f"unchanged, {len(log.get('units_failed', []))} failed, {len(log.get('units_stale', {}))}"
+            f" stale), {log.get('sessions_calibrated', 0)} sessions ok, "
+            f"{len(log.get('failed_sessions', []))} failed, {len(log.get('path_errors', []))} bad "
+            f"paths, flagged units: {', '.join(log.get('flagged_units', [])) or 'none'}; "
+            f"{log.get('elapsed_s', 0):.1f} s")
+
+
+@flow(name="lot-quality-report", persist_result=False, log_prints=False)
+def lot_report_flow(results: str, lot: str, config: str | None = None,
+                    wait: bool = False) -> dict:
+    store = ResultsStore(Path(results))
+    cfg = load_config(config)
+    with store.lock(owner=f"report-{lot}", wait=wait):
+        summary = store.read("summary")
+        if not (summary["lot"].astype(str) == lot).any() and not \
+                (store.read("sessions")["lot"].astype(str) == lot).any():
+            raise LookupError(f"lot {lot!r} is not in the results store {results}")
+        lf = reflag_lots(store, [lot], cfg)
+        reports, problems = write_reports(results, [lot])
+    return {"lot": lot, "reports": reports, "problems": problems,
+            "flags": [f.to_dict() for f in lf]}
+
+
+@flow(name="rerun-unit", persist_result=False, log_prints=False,
+      task_runner=ThreadPoolTaskRunner(max_workers=1))
+def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
+               wait: bool = False, run_discovery: bool = True) -> dict:
+    """Recalibrate one unit now; its rows are replaced only if it succeeds (otherwise its last
+    good calibration stays and is marked stale); its lot is re-flagged and its report rebuilt."""
+    run_id = new_run_id()
+    store = ResultsStore(Path(results))
+    cfg = load_config(config)
+    version = runtime.code_version()
+    with store.lock(owner=run_id, wait=wait):
+        t0 = time.monotonic()
+        refs, path_errors = find_sessions(dataset, unit=unit)
+        if not refs:
+            why = "; ".join(str(e) for e in path_errors) or "no session directory found"
+            raise LookupError(f"unit {unit!r}: no session under {dataset} ({why})")
+        lot = refs[0].key.lot
+        job = UnitJob(lot, unit, refs, "rerun")
+        log: dict[str, Any] = {"run_id": run_id, "kind": "rerun", "start": iso(utc_now()),
+                               "dataset": str(dataset), "results": str(results), "unit": unit,
+                               "lot": lot, "code_version": version, "units_found": 1,
+                               "units_skipped": 0,
+                               "path_errors": [e.to_dict() for e in path_errors]}
+        res = calibrate_units_task.submit([job], run_discovery).result()
+        stored = store_results(store, res, run_id, version)
+        lf = reflag_lots(store, [lot], cfg)
+        reports, problems = write_reports(results, [lot])
+        failed = [{"session": str(s.key), "code": s.code, "message": s.message}
+                  for r in res for s in r.outcome.sessions if s.status == "failed"]
+        log.update({
+            "end": iso(utc_now()), "elapsed_s": round(time.monotonic() - t0, 3),
+            "units_calibrated": len(stored["calibrated"]), "units_stale": stored["stale"],
+            "units_failed": [f"{lot}/{unit}"] if not res[0].calibrated else [],
+            "sessions_calibrated": sum(1 for s in res[0].outcome.sessions if s.status != "failed"),
+            "failed_sessions": failed,
+            "flagged_units": sorted({f"{f.lot}/{f.unit}" for x in lf for f in x.flags}),
+            "flags": [x.to_dict() for x in lf], "reports": reports, "report_problems": problems,
+        })
+        log["summary"] = summary_line(log)
+        store.write_run(run_id, log)
+    return jsonable(log)
+
+
+# --- entry points --------------------------------------------------------------------------------
+def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: bool = False,
+                              dask_address: str | None = None,
+                              batch_size: int = DEFAULT_BATCH_SIZE,
+                              config: str | Path | None = None, wait: bool = False,
+                              run_discovery: bool = True, progress: bool = True) -> dict:
+    """Run the nightly flow once (thread pool of 2, or Dask at ``dask_address``)."""
+    runner = make_task_runner(dask_address)
+    with runtime.run_settings():
+        return nightly_flow.with_options(task_runner=runner)(
+            str(dataset), str(results), force=force, batch_size=batch_size,
+            config=None if config is None else str(config), wait=wait,
+            run_discovery=run_discovery, progress=progress)
+
+
+def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
+                       wait: bool = False) -> dict:
+    with runtime.run_settings():
+        return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
+
+
+def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
+               config: str | Path | None = None, wait: bool = False,
+               run_discovery: bool = True) -> dict:
+    with runtime.run_settings():
+        return rerun_flow(str(dataset), str(results), unit,
+                          None if config is None else str(config), wait, run_discovery)

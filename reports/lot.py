@@ -1,0 +1,96 @@
+"""Lot report: one self-contained HTML file per lot, from the results store only.
+
+``write_lot_report(results_root, lot)`` writes ``results_root/reports/<lot>.html``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from reports.html import Page, esc, missing, write_atomic
+from reports.sections import (KEY_MODELS, LotContext, discovery_figure, discovery_table, flags_list,
+                              key_models, key_parameter_table, kpi_block, residual_overview_figure,
+                              sessions_section, strip_figure, unit_section)
+from reports.store import StoreView
+
+
+class ReportError(ValueError):
+    """The store holds nothing about the requested lot or unit."""
+
+
+def lot_report_path(results_root: str | Path, lot: str) -> Path:
+    return Path(results_root) / "reports" / f"{safe_name(lot)}.html"
+
+
+def safe_name(name: str) -> str:
+    """File-name-safe version of a lot or unit id (ids come from directory names already,
+    but a '/' must never escape the reports directory)."""
+    return "".join(ch if ch.isalnum() or ch in "-_.=" else "_" for ch in str(name)) or "_"
+
+
+def render_lot_report(results_root: str | Path, lot: str) -> str:
+    view = StoreView(results_root)
+    if lot not in view.lots():
+        known = ", ".join(view.lots()) or "none"
+        raise ReportError(f"lot {lot!r} not found in results store {results_root} (lots: {known})")
+    ctx = LotContext.load(view, lot)
+    page = Page(f"Lot {lot} · mimucal calibration report")
+    body = []
+    body.append(f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx)}'
+                f'<h3>Outlier flags</h3>{flags_list(ctx)}</section>')
+    body.append(f'<section id="parameters"><h2>Key parameters by unit</h2>{key_parameter_table(ctx)}</section>')
+
+    strips = []
+    for model in key_models(ctx):
+        fig = strip_figure(ctx, model)
+        if fig is not None:
+            n = len({p for m, p in ctx.params if m == model})
+            rows = -(-n // min(6, n))
+            strips.append(f"<h3>{dict(KEY_MODELS)[model]}</h3>"
+                          + page.figure(fig, height=120 + 210 * rows, name=f"strip {model}"))
+    body.append('<section id="spread"><h2>Parameters across the lot</h2>'
+                '<p class="note">Each point is one unit (mean over its repetitions); the box is the '
+                'lot without the flagged units. Flagged units are red diamonds labelled with the unit.</p>'
+                + ("".join(strips) or missing("Strip plots", "summary.parquet is absent")) + "</section>")
+
+    ov = residual_overview_figure(ctx)
+    body.append('<section id="residuals"><h2>Residuals across the lot</h2>'
+                + (page.figure(ov, height=380, name="residual overview",
+                               caption="RMS over all steps and repetitions of the calibration tests; "
+                                       "per-unit plots (error vs rate, error vs orientation) are in each unit's section.")
+                   if ov is not None else missing("Residuals", "residuals.parquet is absent"))
+                + "</section>")
+
+    if ctx.discovery is None:
+        disc = missing("Model discovery", "discovery.parquet is absent (discovery not run)")
+    elif not len(ctx.discovery):
+        disc = '<p class="note">Model discovery ran and found no effect.</p>'
+    else:
+        fig = discovery_figure(ctx)
+        disc = ((page.figure(fig, height=330, name="discovery") if fig is not None else "")
+                + discovery_table(ctx.discovery.sort_values(["unit"]), with_unit_col=True))
+    body.append(f'<section id="discovery"><h2>Model discovery</h2>{disc}</section>')
+    body.append(f'<section id="sessions"><h2>Sessions</h2>{sessions_section(ctx)}</section>')
+
+    units_html = "".join(unit_section(ctx, page, u) for u in ctx.units)
+    body.append('<section id="units"><h2>Units</h2>'
+                '<p class="note">Per unit: xu2016 Tables 1 and 2 (each repetition, average, spread), '
+                'Table 3 (compensation errors), the other models, residual plots and discovery. '
+                'Figures are drawn when a unit is opened.</p>'
+                '<div class="toolbar"><button type="button" onclick="mimucalExpandAll(true)">Open all units</button> '
+                '<button type="button" onclick="mimucalExpandAll(false)">Close all</button></div>'
+                + units_html + "</section>")
+
+    n_flag = len(ctx.flagged_units)
+    header = (f'<header class="report"><h1>Lot {esc(lot)} · calibration report</h1>'
+              f'<div class="sub">{len(ctx.units)} units · {n_flag} flagged'
+              + (": " + ", ".join(f'<a href="#unit-{esc(u)}">{esc(u)}</a>' for u in ctx.flagged_units) if n_flag else "")
+              + ' · <a href="index.html">fleet index</a></div></header>')
+    return page.render(header, "".join(body))
+
+
+def write_lot_report(results_root: str | Path, lot: str) -> Path:
+    """Write ``results_root/reports/<lot>.html`` and return its path."""
+    text = render_lot_report(results_root, lot)
+    path = lot_report_path(results_root, lot)
+    write_atomic(path, text)
+    return path

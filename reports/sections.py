@@ -1,0 +1,760 @@
+"""Report sections shared by the lot and unit reports: header, key-parameter table,
+strip plots across units, per-unit xu2016 Tables 1-3, residual plots, model discovery,
+sessions. Every builder takes the rows of the results store it needs and returns HTML;
+a missing table gives a visible "not available" note, never an exception."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Iterable
+
+import numpy as np
+import pandas as pd
+
+from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, Page, arr, decimals_for, display_unit,
+                          esc, fmt, fmt_time, grid, kpi, missing, table, with_unit)
+from reports.store import StoreView
+
+# Models in the key-parameter table and strip plots, with their headings.
+KEY_MODELS: list[tuple[str, str]] = [
+    ("gyro", "Gyroscope K<sub>g</sub>, ω<sub>0</sub> (xu2016 multirate)"),
+    ("accel", "Accelerometer K<sub>a</sub>, f<sub>0</sub> (xu2016 multiposition)"),
+    ("accel_static", "Accelerometer static model (zhang2017, 15 parameters)"),
+    ("lever_arm", "Accelerometer lever arms (zhang2017 dynamic)"),
+]
+MODEL_TITLES = {
+    "gyro": "Table 1 · gyroscope output model (multirate)",
+    "accel": "Table 2 · accelerometer output model (multiposition)",
+    "accel_static": "Accelerometer static model (zhang2017)",
+    "lever_arm": "Accelerometer lever arms (zhang2017 dynamic)",
+    "gyro_traditional": "Gyroscope, traditional inverse model",
+    "accel_traditional": "Accelerometer, traditional inverse model",
+}
+_MAT = [f"{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
+PARAM_ORDER = {
+    "gyro": [f"k_g{m}" for m in _MAT] + ["w0_x", "w0_y", "w0_z"],
+    "accel": [f"k_a{m}" for m in _MAT] + ["f0_x", "f0_y", "f0_z"],
+    "lever_arm": [f"r{i}{a}" for i in (1, 2, 3) for a in "xyz"],
+}
+# Pretty names for the paper's parameters (HTML).
+_GREEK = {"w0": "ω<sub>0", "f0": "f<sub>0"}
+
+
+def pretty_param(name: str) -> str:
+    n = str(name)
+    for pre in ("k_g", "k_a", "s_g", "s_a"):
+        if n.startswith(pre) and len(n) == len(pre) + 2:
+            return f"{pre[0]}<sub>{pre[2]}{n[len(pre):]}</sub>"
+    for pre, html in (("w0_", "ω<sub>0"), ("f0_", "f<sub>0")):
+        if n.startswith(pre):
+            return f"{html}{n[len(pre):]}</sub>"
+    if len(n) == 3 and n[0] == "r" and n[1] in "123" and n[2] in "xyz":
+        return f"r<sub>{n[1]}{n[2]}</sub>"
+    return esc(n)
+
+
+def plain_param(name: str) -> str:
+    """Parameter name for plotly text (which only knows a little HTML)."""
+    return pretty_param(name)
+
+
+def ordered_params(model: str, names: Iterable[str]) -> list[str]:
+    names = list(dict.fromkeys(str(n) for n in names))
+    order = PARAM_ORDER.get(model, [])
+    known = [n for n in order if n in names]
+    return known + sorted(n for n in names if n not in order)
+
+
+def ordered_models(models: Iterable[str]) -> list[str]:
+    models = list(dict.fromkeys(str(m) for m in models))
+    first = [m for m, _ in KEY_MODELS] + ["gyro_traditional", "accel_traditional"]
+    return [m for m in first if m in models] + sorted(m for m in models if m not in first)
+
+
+# ----------------------------------------------------------------------------- lot context
+
+@dataclass
+class ParamInfo:
+    """Display facts of one (model, parameter) across a lot."""
+
+    model: str
+    name: str
+    uom: str
+    label: str          # display unit
+    scale: float        # display factor (g -> mg)
+    decimals: int | None
+
+
+@dataclass
+class LotContext:
+    """Everything a lot or unit report needs, read once from the store."""
+
+    view: StoreView
+    lot: str
+    sessions: pd.DataFrame | None
+    parameters: pd.DataFrame | None
+    summary: pd.DataFrame | None
+    units_table: pd.DataFrame | None
+    residuals: pd.DataFrame | None
+    compensation: pd.DataFrame | None
+    discovery: pd.DataFrame | None
+    units: list[str] = field(default_factory=list)
+    params: dict[tuple[str, str], ParamInfo] = field(default_factory=dict)
+    flags: pd.DataFrame | None = None                     # flagged summary rows
+    flagged_units: list[str] = field(default_factory=list)
+    residual_agg: pd.DataFrame | None = None
+
+    @classmethod
+    def load(cls, view: StoreView, lot: str, unit: str | None = None) -> "LotContext":
+        ctx = cls(view=view, lot=lot,
+                  sessions=view.of("sessions", lot, unit), parameters=view.of("parameters", lot, unit),
+                  summary=view.of("summary", lot), units_table=view.of("units", lot),
+                  residuals=view.of("residuals", lot, unit), compensation=view.of("compensation", lot, unit),
+                  discovery=view.of("discovery", lot, unit))
+        units: set[str] = set()
+        for df in (ctx.sessions, ctx.summary, ctx.units_table):
+            if df is not None and len(df):
+                units |= {str(u) for u in df["unit"].dropna().unique()}
+        if unit is not None:
+            units = {unit}
+        ctx.units = sorted(units)
+        ctx._param_info()
+        if ctx.summary is not None and len(ctx.summary) and "flagged" in ctx.summary:
+            f = ctx.summary[ctx.summary["flagged"].fillna(False).astype(bool)]
+            ctx.flags = f
+            ctx.flagged_units = sorted({str(u) for u in f["unit"]})
+        ctx.residual_agg = aggregate_residuals(ctx.residuals)
+        if ctx.summary is not None and len(ctx.summary) and not ctx.units:
+            ctx.units = sorted({str(u) for u in ctx.summary["unit"].dropna()})
+        return ctx
+
+    def _param_info(self) -> None:
+        src = self.summary if self.summary is not None and len(self.summary) else None
+        if src is None and self.parameters is not None and len(self.parameters):
+            src = self.parameters.rename(columns={"value": "mean"})
+        if src is None:
+            return
+        for (model, name), g in src.groupby(["model", "parameter"], sort=False):
+            uom = str(g["unit_of_measure"].dropna().iloc[0]) if "unit_of_measure" in g and g["unit_of_measure"].notna().any() else ""
+            label, scale = display_unit(uom)
+            spread = np.nan
+            if "std" in g and g["std"].notna().any():
+                spread = float(np.nanmedian(g["std"].to_numpy(dtype=float)))
+            if not (math.isfinite(spread) and spread > 0):
+                m = g["mean"].to_numpy(dtype=float)
+                spread = float(np.nanmedian(np.abs(m - np.nanmedian(m)))) * 1.4826 if len(m) > 1 else np.nan
+            dec = decimals_for(spread * scale, extra=1)
+            self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec)
+
+    def unit_rows(self, name: str, unit: str) -> pd.DataFrame | None:
+        """Rows of one unit from a table, grouped once per table (filtering a 50-unit lot's
+        tables with a boolean mask per unit and per model costs seconds)."""
+        cache = self.__dict__.setdefault("_by_unit", {})
+        if name not in cache:
+            df = getattr(self, name)
+            cache[name] = None if df is None else {str(u): g for u, g in df.groupby("unit", sort=False)}
+        groups = cache[name]
+        if groups is None:
+            return None
+        df = getattr(self, name)
+        return groups.get(unit, df.iloc[0:0])
+
+    def rep_table(self, unit: str, model: str) -> tuple[list[str], list[int], np.ndarray, np.ndarray] | None:
+        """(parameter names, repetitions, values, stderrs) of one unit and model, the arrays
+        parameter x repetition; built for the whole lot with one unstack."""
+        cache = self.__dict__.get("_rep_tables")
+        if cache is None:
+            cache = {}
+            p = self.parameters
+            if p is not None and len(p):
+                p = p.assign(rep=p["rep"].astype("int64"), unit=p["unit"].astype(str),
+                             model=p["model"].astype(str), parameter=p["parameter"].astype(str))
+                if "stderr" not in p:
+                    p = p.assign(stderr=np.nan)
+                w = p.groupby(["unit", "model", "parameter", "rep"], sort=True)[["value", "stderr"]].last()
+                w = w.unstack("rep")
+                reps = [int(r) for r in w["value"].columns]
+                V, S = w["value"].to_numpy(float), w["stderr"].to_numpy(float)
+                idx = w.index
+                keys = list(zip(idx.get_level_values(0), idx.get_level_values(1)))
+                start = 0
+                for k in range(1, len(keys) + 1):
+                    if k == len(keys) or keys[k] != keys[start]:
+                        sl = slice(start, k)
+                        v = V[sl]
+                        have = np.isfinite(v).any(axis=0)  # repetitions this unit has
+                        cache[keys[start]] = ([str(x) for x in idx.get_level_values(2)[sl]],
+                                              [r for r, h in zip(reps, have) if h], v[:, have], S[sl][:, have])
+                        start = k
+            self.__dict__["_rep_tables"] = cache
+        return cache.get((unit, model))
+
+    def unit_models(self, unit: str) -> list[str]:
+        self.rep_table(unit, "")
+        return ordered_models(m for (u, m) in self.__dict__["_rep_tables"] if u == unit)
+
+    def info(self, model: str, name: str) -> ParamInfo:
+        return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None)
+
+    def value(self, model: str, name: str, v: Any) -> str:
+        p = self.info(model, name)
+        try:
+            return fmt(float(v) * p.scale, p.decimals)
+        except (TypeError, ValueError):
+            return DASH
+
+    def unit_flags(self, unit: str) -> pd.DataFrame | None:
+        if self.flags is None:
+            return None
+        return self.unit_rows("flags", unit)
+
+    def session_counts(self, unit: str | None = None) -> dict[str, int]:
+        s = self.sessions
+        if s is None:
+            return {}
+        if unit is not None:
+            s = self.unit_rows("sessions", unit)
+        vc = s["status"].astype(str).value_counts()
+        return {k: int(vc.get(k, 0)) for k in ("ok", "warned", "failed")}
+
+
+def aggregate_residuals(res: pd.DataFrame | None) -> pd.DataFrame | None:
+    """Per unit, model, step and channel: mean over repetitions and the min..max envelope.
+    This is the downsampling of the residual traces (a factor n_reps) and keeps the
+    repetition spread visible as error bars."""
+    if res is None or not len(res):
+        return None
+    res = res.copy()
+    if "model" not in res.columns:
+        res["model"] = "baseline"
+    for c, d in (("rate_dps", 0.0), ("angle_deg", 0.0), ("up_axis", ""), ("test", "")):
+        if c not in res.columns:
+            res[c] = d
+    keys = ["unit", "model", "test", "step", "channel"]
+    g = res.groupby(keys, sort=True, dropna=False)
+    agg = g.agg(residual=("residual", "mean"), rmin=("residual", "min"), rmax=("residual", "max"),
+                rate_dps=("rate_dps", "first"), angle_deg=("angle_deg", "first"),
+                up_axis=("up_axis", "first"), n=("residual", "size")).reset_index()
+    return agg
+
+
+# ----------------------------------------------------------------------------- header
+
+def header_block(ctx: LotContext, title: str, subtitle: str) -> str:
+    return (f'<header class="report"><h1>{title}</h1><div class="sub">{subtitle}</div></header>')
+
+
+def run_facts(ctx: LotContext) -> tuple[str, str, list[str]]:
+    """(run time, run id(s), code version(s)) of the lot's current results."""
+    run_ids: list[str] = []
+    for df in (ctx.sessions, ctx.parameters):
+        if df is not None and "run_id" in df and len(df):
+            run_ids += [str(x) for x in df["run_id"].dropna().unique()]
+    run_ids = list(dict.fromkeys(run_ids))
+    times = [ctx.view.run(r)["_time"] for r in run_ids if ctx.view.run(r) and ctx.view.run(r)["_time"]]
+    if times:
+        when = fmt_time(max(times))
+    elif ctx.sessions is not None and "calibrated_at" in ctx.sessions and ctx.sessions["calibrated_at"].notna().any():
+        when = fmt_time(str(ctx.sessions["calibrated_at"].dropna().astype(str).max()))
+    else:
+        when = "unknown"
+    versions: list[str] = []
+    if ctx.parameters is not None and "code_version" in ctx.parameters:
+        versions = sorted({str(v) for v in ctx.parameters["code_version"].dropna().unique()})
+    if not versions:
+        for r in run_ids:
+            doc = ctx.view.run(r)
+            if doc and doc.get("code_version"):
+                versions.append(str(doc["code_version"]))
+    return when, ", ".join(run_ids[-3:]) + (" …" if len(run_ids) > 3 else ""), versions
+
+
+def kpi_block(ctx: LotContext, unit: str | None = None) -> str:
+    when, run_ids, versions = run_facts(ctx)
+    counts = ctx.session_counts(unit)
+    items = [kpi("Run time", esc(when)), kpi("Code version", esc(", ".join(versions) or "unknown"))]
+    if counts:
+        items += [kpi("Sessions ok", str(counts["ok"]), "good"),
+                  kpi("Warned", str(counts["warned"]), "warn" if counts["warned"] else ""),
+                  kpi("Failed", str(counts["failed"]), "bad" if counts["failed"] else "")]
+    else:
+        items.append(kpi("Sessions", "no sessions table"))
+    if unit is None:
+        n_flag = len(ctx.flagged_units)
+        items += [kpi("Units", str(len(ctx.units))),
+                  kpi("Units flagged", f"{n_flag}", "bad" if n_flag else "good")]
+    else:
+        n = 0 if ctx.unit_flags(unit) is None else len(ctx.unit_flags(unit))
+        items.append(kpi("Flagged parameters", str(n), "bad" if n else "good"))
+    extra = f'<p class="note">Run id: <span class="mono">{esc(run_ids or "unknown")}</span></p>'
+    return f'<div class="kpis">{"".join(items)}</div>{extra}'
+
+
+def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> str:
+    f = ctx.flags if unit is None else ctx.unit_flags(unit)
+    if ctx.summary is None:
+        return missing("Outlier flags", "summary.parquet is absent")
+    if f is None or not len(f):
+        return '<p class="note">No parameter flagged.</p>'
+    items = []
+    for r in f.sort_values(["unit", "model", "parameter"]).itertuples():
+        p = ctx.info(r.model, r.parameter)
+        u = f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>' if link else esc(r.unit)
+        med = getattr(r, "lot_median", np.nan)
+        score = getattr(r, "score", np.nan)
+        items.append(
+            f'<li data-unit="{esc(r.unit)}" data-param="{esc(r.parameter)}"><span class="badge flag">flagged</span> '
+            f"<b>{u}</b> · {esc(r.model)} {pretty_param(r.parameter)} = "
+            f"<b>{ctx.value(r.model, r.parameter, r.mean)}</b>{with_unit(p.label)} "
+            f"(lot median {ctx.value(r.model, r.parameter, med)}, score {fmt(score, 1)}) · "
+            f"{esc(getattr(r, 'flag_reason', '') or '')}</li>")
+    return f'<ul class="flags">{"".join(items)}</ul>'
+
+
+# ----------------------------------------------------------------------------- key table
+
+def key_models(ctx: LotContext) -> list[str]:
+    present = {m for m, _ in ctx.params}
+    return [m for m, _ in KEY_MODELS if m in present]
+
+
+def key_parameter_table(ctx: LotContext) -> str:
+    s = ctx.summary
+    if s is None or not len(s):
+        return missing("Key-parameter table", "summary.parquet is absent or empty")
+    models = key_models(ctx)
+    if not models:
+        return missing("Key parameters", "no gyro/accel/accel_static/lever_arm rows in summary.parquet")
+    cols: list[tuple[str, str]] = []
+    group = ['<tr class="group"><th colspan="3"></th>']
+    for m in models:
+        names = ordered_params(m, s.loc[s["model"] == m, "parameter"].unique())
+        cols += [(m, n) for n in names]
+        title = dict(KEY_MODELS).get(m, m)
+        group.append(f'<th colspan="{len(names)}">{title}</th>')
+    group.append("</tr>")
+    by_key = {(r.unit, r.model, r.parameter): r for r in s.itertuples()}
+    headers = ["Unit", "Sessions ok/all", "Flags"]
+    for m, n in cols:
+        p = ctx.info(m, n)
+        headers.append(f'{pretty_param(n)}<br><small>{esc(p.label) or "&nbsp;"}</small>')
+    rows = []
+    for unit in ctx.units:
+        c = ctx.session_counts(unit)
+        n_all = sum(c.values()) if c else 0
+        uf = ctx.unit_flags(unit)
+        n_flags = 0 if uf is None else len(uf)
+        cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
+                 + (' <span class="badge flag">⚑ flagged</span>' if n_flags else "") + "</td>",
+                 f'<td data-sort="{c.get("ok", 0) + c.get("warned", 0)}">{c.get("ok", 0) + c.get("warned", 0)}/{n_all}'
+                 + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
+                 f'<td data-sort="{n_flags}">{n_flags or ""}</td>']
+        for m, n in cols:
+            r = by_key.get((unit, m, n))
+            if r is None:
+                cells.append(f'<td data-sort="">{DASH}</td>')
+                continue
+            p = ctx.info(m, n)
+            val = ctx.value(m, n, r.mean)
+            std = fmt(float(r.std) * p.scale, sig=2) if pd.notna(r.std) else DASH
+            tip = f"{m} {n} = {val} {p.label} (spread over {r.n_reps} reps: {std})"
+            if bool(getattr(r, "flagged", False)):
+                tip += f" — FLAGGED: {getattr(r, 'flag_reason', '')}"
+                cells.append(f'<td class="flagged" data-flagged="1" data-param="{esc(n)}" data-sort="{float(r.mean)!r}" '
+                             f'title="{esc(tip)}">{val}</td>')
+            else:
+                cells.append(f'<td data-param="{esc(n)}" data-sort="{float(r.mean)!r}" title="{esc(tip)}">{val}</td>')
+        rows.append(({"class": "flagged-unit" if n_flags else "", "data-unit": unit}, cells))
+    note = ('<p class="note">Mean over repetitions per unit. Click a column heading to sort. '
+            'Flagged cells (red, ⚑) are outliers of the lot; hover a cell for its spread and the reason. '
+            'Biases stored in g are shown in mg; a blank unit means dimensionless.</p>')
+    return note + table(headers, rows, cls="sortable params", group_row="".join(group), text_cols=1,
+                        attrs=' id="key-parameters"')
+
+
+# ----------------------------------------------------------------------------- strip plots
+
+def _jitter(i: int) -> float:
+    # deterministic spread of points around the box (golden-ratio sequence)
+    return ((i * 0.618034) % 1.0 - 0.5) * 0.5
+
+
+def _legend_top(y: float = 1.0) -> dict:
+    return {"orientation": "h", "y": y, "x": 1.0, "xanchor": "right", "yanchor": "bottom"}
+
+
+def strip_figure(ctx: LotContext, model: str) -> dict | None:
+    """One panel per parameter: the lot's unit means as a box (clean units) and points;
+    units flagged on that parameter as large red diamonds labelled with the unit id."""
+    s = ctx.summary
+    if s is None:
+        return None
+    sm = s[s["model"] == model]
+    names = ordered_params(model, sm["parameter"].unique())
+    if not names:
+        return None
+    ncols = min(6, len(names))
+    nrows = math.ceil(len(names) / ncols)
+    titles = []
+    for n in names:
+        p = ctx.info(model, n)
+        titles.append(f"{pretty_param(n)}{' [' + p.label + ']' if p.label else ''}")
+    layout, refs = grid(nrows, ncols, titles, hspace=0.055, vspace=0.42 / nrows)
+    data: list[dict] = []
+    unit_index = {u: i for i, u in enumerate(ctx.units)}
+    by_name = {str(k): g for k, g in sm.groupby("parameter", sort=False)}
+    for k, n in enumerate(names):
+        xr, yr = refs[k]
+        g = by_name[n]
+        p = ctx.info(model, n)
+        vals = g["mean"].to_numpy(dtype=float) * p.scale
+        flagged = g["flagged"].fillna(False).astype(bool).to_numpy() if "flagged" in g else np.zeros(len(g), bool)
+        units = g["unit"].astype(str).to_numpy()
+        x = np.array([_jitter(unit_index.get(u, i)) for i, u in enumerate(units)])
+        hover = np.array([f"{u}<br>{n} = {fmt(v, p.decimals)} {p.label}" for u, v in zip(units, vals)])
+        data.append({"type": "box", "y": arr(vals[~flagged]), "x0": 0, "name": "lot", "boxpoints": False,
+                     "marker": {"color": "#9fb3c8"}, "fillcolor": "rgba(159,179,200,0.25)",
+                     "line": {"width": 1}, "width": 0.8, "hoverinfo": "skip", "showlegend": False,
+                     "xaxis": xr, "yaxis": yr})
+        data.append({"type": "scatter", "x": arr(x[~flagged]), "y": arr(vals[~flagged]), "mode": "markers",
+                     "marker": {"color": CLEAN, "size": 6, "opacity": 0.85}, "name": "unit (in family)",
+                     "text": list(hover[~flagged]), "hoverinfo": "text", "showlegend": k == 0,
+                     "legendgroup": "clean", "xaxis": xr, "yaxis": yr})
+        if flagged.any():
+            reasons = g["flag_reason"].astype(str).to_numpy()[flagged] if "flag_reason" in g else [""] * int(flagged.sum())
+            data.append({"type": "scatter", "x": arr(x[flagged]), "y": arr(vals[flagged]),
+                         "mode": "markers+text", "name": "flagged unit",
+                         "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond",
+                                    "line": {"color": "#7f1d1d", "width": 1}},
+                         "text": list(units[flagged]), "textposition": "middle right",
+                         "textfont": {"color": FLAGGED, "size": 12},
+                         "hovertext": [f"{h}<br><b>flagged</b>: {r}" for h, r in zip(hover[flagged], reasons)],
+                         "hoverinfo": "text", "showlegend": False, "legendgroup": "flagged",
+                         "cliponaxis": False, "xaxis": xr, "yaxis": yr})
+        ax = "xaxis" + xr[1:]
+        layout[ax].update(range=[-0.6, 1.0], showticklabels=False, showgrid=False, zeroline=False)
+        layout["yaxis" + yr[1:]].update(
+            tickformat=f".{max(p.decimals - 1, 0)}~f" if p.decimals is not None else "", nticks=5)
+    # one legend entry for flagged units even if the first panel has none
+    data.append({"type": "scatter", "x": [None], "y": [None], "mode": "markers",
+                 "name": "flagged unit (labelled)", "xaxis": "x", "yaxis": "y",
+                 "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond"}, "showlegend": True})
+    layout.update(margin={"l": 60, "r": 20, "t": 50, "b": 20}, hovermode="closest",
+                  legend={**_legend_top(), "y": 1.0 + 0.25 / nrows / 1.5})
+    return {"data": data, "layout": layout}
+
+
+# ----------------------------------------------------------------------------- per unit tables
+
+def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
+    """xu2016 Table 1/2 layout: a row per parameter, a column per repetition, average, spread."""
+    p = ctx.parameters
+    if p is None:
+        return missing(MODEL_TITLES.get(model, model), "parameters.parquet is absent")
+    wide = ctx.rep_table(unit, model)
+    if wide is None:
+        return ""
+    pnames, reps, V, S = wide
+    names = ordered_params(model, pnames)
+    flagged = set()
+    uf = ctx.unit_flags(unit)
+    if uf is not None:
+        flagged = {r.parameter for r in uf.itertuples() if r.model == model}
+    headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Mean stderr"]
+    rows = []
+    row_of = {n: i for i, n in enumerate(pnames)}
+    for n in names:
+        info = ctx.info(model, n)
+        row = V[row_of[n]] * info.scale
+        vals = row[np.isfinite(row)]
+        avg = float(np.mean(vals)) if len(vals) else np.nan
+        spread = float(np.std(vals, ddof=1)) if len(vals) > 1 else np.nan
+        se = S[row_of[n]] * info.scale
+        se = se[np.isfinite(se)]
+        # standard error of the average of independent repetitions
+        mean_se = float(np.sqrt(np.sum(se ** 2)) / len(se)) if len(se) else np.nan
+        cells = [pretty_param(n), esc(info.label) or DASH]
+        cells += [fmt(v, info.decimals) for v in row]
+        cls = "avg flagged" if n in flagged else "avg"
+        cells += [f'<td class="{cls}">{fmt(avg, info.decimals)}</td>',
+                  f'<td class="spread">{fmt(spread, sig=2)}</td>', f'<td class="spread">{fmt(mean_se, sig=2)}</td>']
+        rows.append(cells)
+    return (f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>"
+            + table(headers, rows, cls="paper", text_cols=2, wrap=False))
+
+
+def compensation_table(ctx: LotContext, unit: str) -> str:
+    """xu2016 Table 3 layout: input axis x method rows, output axis columns, min ~ max."""
+    c = ctx.compensation
+    if c is None:
+        return missing("Table 3 (compensation errors)", "compensation.parquet is absent")
+    cache = ctx.__dict__.get("_comp")
+    if cache is None:
+        cc = c.assign(input_axis=c["input_axis"].astype(str), output_axis=c["output_axis"].astype(str),
+                      method=c["method"].astype(str))
+        agg = cc.groupby(["unit", "input_axis", "method", "output_axis"], sort=True).agg(
+            lo=("err_min", "min"), hi=("err_max", "max"), n_reps=("rep", "nunique"))
+        uom = cc.groupby("unit")["unit_of_measure"].first() if "unit_of_measure" in cc else pd.Series(dtype=object)
+        src = cc.groupby("unit")["source"].agg(lambda x: ", ".join(sorted({str(v) for v in x.dropna()}))) \
+            if "source" in cc else pd.Series(dtype=object)
+        cache = {"agg": {str(u): g.droplevel(0) for u, g in agg.groupby(level=0, sort=False)},
+                 "uom": uom.to_dict(), "src": src.to_dict()}
+        ctx.__dict__["_comp"] = cache
+    g = cache["agg"].get(unit)
+    if g is None or not len(g):
+        return '<p class="note">Table 3: no verification sweep for this unit.</p>'
+    uom = str(cache["uom"].get(unit) or "deg/s")
+    src = cache["src"].get(unit, "")
+    n_reps = int(g["n_reps"].max())
+    lookup = {k: (lo, hi) for k, lo, hi in zip(g.index, g["lo"], g["hi"])}
+    outs = sorted({k[2] for k in lookup})
+    present = {k[1] for k in lookup}
+    methods = [m for m in ("uncompensated", "proposed", "traditional") if m in present]
+    methods += sorted(present - set(methods))
+    rows = []
+    for inp in sorted({k[0] for k in lookup}):
+        for k, m in enumerate(methods):
+            cells = [f"<b>{esc(inp)}</b>" if k == 0 else "", esc(m)]
+            for o in outs:
+                if (inp, m, o) in lookup:
+                    lo, hi = lookup[(inp, m, o)]
+                    cells.append(f"{fmt(lo, 3)} ~ {fmt(hi, 3)}")
+                else:
+                    cells.append(DASH)
+            rows.append(({"class": "sep"} if k == 0 else {}, cells))
+    return ("<h4>Table 3 · output errors of the angular rates [" + esc(uom) + "]</h4>"
+            + table(["Input axis", "Method"] + [f"{esc(o)}-axis output" for o in outs], rows,
+                    cls="paper", text_cols=2, wrap=False)
+            + f'<p class="note">Envelope (min ~ max) over {n_reps} repetition(s){"; source: " + esc(src) if src else ""}.</p>')
+
+
+def other_models_tables(ctx: LotContext, unit: str) -> str:
+    p = ctx.parameters
+    if p is None:
+        return ""
+    models = ctx.unit_models(unit)
+    return "".join(repetition_table(ctx, unit, m) for m in models if m not in ("gyro", "accel"))
+
+
+# ----------------------------------------------------------------------------- residual plots
+
+def _models_of(d: pd.DataFrame) -> list[str]:
+    found = set(d["model"].astype(str))
+    return [m for m in ("baseline", "extended") if m in found] + sorted(found - {"baseline", "extended"})
+
+
+def _residual_figure(d: pd.DataFrame, channels: tuple[str, ...], x_of, scale: float, unit: str,
+                     x_title: str, symbol: str, categorical: bool) -> dict:
+    models = _models_of(d)
+    layout, refs = grid(1, len(models), [f"{m} model" for m in models], hspace=0.04, shared_y=True)
+    data = []
+    for j, m in enumerate(models):
+        xr, yr = refs[j]
+        by_ch = {str(k): g for k, g in d[d["model"] == m].groupby("channel", sort=False)}
+        for ch in channels:
+            dc = by_ch.get(ch)
+            if dc is None:
+                continue
+            y = dc["residual"].to_numpy(float) * scale
+            data.append({
+                "type": "scatter", "x": x_of(dc), "y": arr(y), "mode": "markers", "name": f"{ch} error",
+                "marker": {"color": CHANNEL_COLOURS[ch[1]], "size": 6, "symbol": symbol},
+                "error_y": {"type": "data", "symmetric": False,
+                            "array": arr(dc["rmax"].to_numpy(float) * scale - y),
+                            "arrayminus": arr(y - dc["rmin"].to_numpy(float) * scale),
+                            "thickness": 1, "width": 0, "color": CHANNEL_COLOURS[ch[1]]},
+                "legendgroup": ch, "showlegend": j == 0, "xaxis": xr, "yaxis": yr,
+                "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at %{{x}}<extra>{m} model</extra>"})
+        layout["xaxis" + xr[1:]].update(title={"text": x_title})
+        if categorical:
+            layout["xaxis" + xr[1:]].update(type="category", tickangle=-60, tickfont={"size": 10})
+    layout["yaxis"].update(title={"text": f"error [{unit}]"}, zeroline=True)
+    layout.update(legend=_legend_top(1.1), margin={"t": 70, "b": 90 if categorical else 45, "l": 65, "r": 15})
+    return {"data": data, "layout": layout}
+
+
+def gyro_residual_figure(ctx: LotContext, unit: str) -> dict | None:
+    a = ctx.unit_rows("residual_agg", unit)
+    if a is None:
+        return None
+    d = a[(a["test"] == "multirate") & a["channel"].isin(["gx", "gy", "gz"])].sort_values("rate_dps")
+    if not len(d):
+        return None
+    return _residual_figure(d, ("gx", "gy", "gz"), lambda dc: arr(dc["rate_dps"].to_numpy(float)),
+                            1.0, "deg/s", "table rate [deg/s]", "circle", False)
+
+
+def accel_residual_figure(ctx: LotContext, unit: str) -> dict | None:
+    a = ctx.unit_rows("residual_agg", unit)
+    if a is None:
+        return None
+    d = a[(a["test"] == "multiposition") & a["channel"].isin(["ax", "ay", "az"])].sort_values("step")
+    if not len(d):
+        return None
+
+    def labels(dc: pd.DataFrame) -> list[str]:
+        return [f"{u} up {float(h):g}°" for u, h in zip(dc["up_axis"].astype(str), dc["angle_deg"])]
+
+    return _residual_figure(d, ("ax", "ay", "az"), labels, 1e3, "mg",
+                            "orientation (axis up, heading)", "square", True)
+
+
+def _unit_ticks(ctx: LotContext) -> list[str]:
+    return [f"<span style='color:{FLAGGED}'><b>{u} ⚑</b></span>" if u in ctx.flagged_units else u
+            for u in ctx.units]
+
+
+def residual_overview_figure(ctx: LotContext) -> dict | None:
+    """RMS residual per unit and sensor, baseline vs extended model: one figure for the lot."""
+    a = ctx.residual_agg
+    if a is None or not len(a):
+        return None
+    a = a.assign(sensor=np.where(a["channel"].astype(str).str.startswith("g"), "gyro", "accel"),
+                 sq=a["residual"].astype(float) ** 2)
+    rms = (a.groupby(["unit", "sensor", "model"])["sq"].mean() ** 0.5).reset_index()
+    units = ctx.units
+    layout, refs = grid(1, 2, ["gyro RMS error [deg/s]", "accelerometer RMS error [mg]"], hspace=0.08)
+    styles = {"baseline": {"color": "#f58518", "symbol": "circle"},
+              "extended": {"color": "#4c78a8", "symbol": "x"}}
+    data = []
+    for j, sensor in enumerate(("gyro", "accel")):
+        scale = 1.0 if sensor == "gyro" else 1e3
+        xr, yr = refs[j]
+        for m in sorted(rms["model"].astype(str).unique()):
+            d = rms[(rms["sensor"] == sensor) & (rms["model"] == m)].set_index("unit").reindex(units)
+            data.append({"type": "scatter", "x": units, "y": arr(d["sq"].to_numpy(float) * scale),
+                         "mode": "markers", "name": f"{m} model",
+                         "marker": {"size": 8, **styles.get(m, {"color": "#54a24b", "symbol": "diamond"})},
+                         "legendgroup": m, "showlegend": j == 0, "xaxis": xr, "yaxis": yr})
+        layout["xaxis" + xr[1:]].update(type="category", tickvals=units, ticktext=_unit_ticks(ctx),
+                                        tickangle=-60)
+        layout["yaxis" + yr[1:]].update(rangemode="tozero")
+    layout.update(legend=_legend_top(1.1), margin={"t": 70, "b": 70, "l": 60, "r": 15})
+    return {"data": data, "layout": layout}
+
+
+# ----------------------------------------------------------------------------- discovery
+
+_DISC_ORDER = ["effect", "name", "axes", "estimate", "stderr", "evidence", "heldout_rms_before",
+               "heldout_rms_after", "gain", "misfit", "unexplained"]
+
+
+def discovery_table(df: pd.DataFrame, with_unit_col: bool) -> str:
+    cols = [c for c in _DISC_ORDER if c in df.columns]
+    cols += [c for c in df.columns if c not in cols and c not in ("lot", "unit")]
+    headers = (["Unit"] if with_unit_col else []) + [esc(c.replace("_", " ")) for c in cols]
+    rows = []
+    for r in df.to_dict("records"):
+        cells = [f'<a href="#unit-{esc(r["unit"])}">{esc(r["unit"])}</a>'] if with_unit_col else []
+        for c in cols:
+            v = r.get(c)
+            if isinstance(v, (bool, np.bool_)):
+                cells.append('<span class="badge warned">yes</span>' if v else "no")
+            elif isinstance(v, (float, np.floating, int, np.integer)) and not isinstance(v, bool):
+                cells.append(fmt(v, sig=3))
+            else:
+                cells.append(esc(v))
+        rows.append(cells)
+    return table(headers, rows, cls="sortable", text_cols=(2 if with_unit_col else 1) + ("axes" in cols))
+
+
+def discovery_figure(ctx: LotContext) -> dict | None:
+    d = ctx.discovery
+    if d is None or not len(d) or not {"heldout_rms_before", "heldout_rms_after"} <= set(d.columns):
+        return None
+    g = d.groupby("unit").agg(before=("heldout_rms_before", "max"), after=("heldout_rms_after", "min")).reindex(ctx.units)
+    data = [
+        {"type": "bar", "x": ctx.units, "y": arr(g["before"].to_numpy(float)),
+         "name": "held-out RMS, baseline model", "marker": {"color": "#f58518"}},
+        {"type": "bar", "x": ctx.units, "y": arr(g["after"].to_numpy(float)),
+         "name": "held-out RMS, with discovered effects", "marker": {"color": "#4c78a8"}},
+    ]
+    layout = {"barmode": "group", "legend": _legend_top(), "margin": {"t": 40, "b": 70, "l": 60, "r": 15},
+              "xaxis": {"type": "category", "tickvals": ctx.units, "ticktext": _unit_ticks(ctx), "tickangle": -60},
+              "yaxis": {"title": {"text": "held-out residual RMS"}, "rangemode": "tozero"}}
+    return {"data": data, "layout": layout}
+
+
+# ----------------------------------------------------------------------------- sessions
+
+def sessions_section(ctx: LotContext, link_units: bool = True) -> str:
+    s = ctx.sessions
+    if s is None:
+        return missing("Sessions", "sessions.parquet is absent")
+    out = []
+    failed = s[s["status"] == "failed"].sort_values(["unit", "rep"])
+    if len(failed):
+        rows = []
+        for r in failed.itertuples():
+            u = f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>' if link_units else esc(r.unit)
+            rows.append(({"data-unit": r.unit}, [u, str(r.rep), f'<span class="mono">{esc(r.error_code)}</span>',
+                                                 esc(r.message), f'<span class="mono">{esc(getattr(r, "path", ""))}</span>']))
+        out.append(f"<h3>Failed sessions ({len(failed)})</h3>"
+                   + table(["Unit", "Rep", "Error code", "Reason", "Session"], rows, cls="failed-sessions",
+                           text_cols=5))
+    else:
+        out.append('<p class="note">No failed session.</p>')
+    warned = s[s["status"] == "warned"].sort_values(["unit", "rep"])
+    if len(warned):
+        rows = [[esc(r.unit), str(r.rep), esc(getattr(r, "warnings", ""))] for r in warned.itertuples()]
+        out.append(f"<h3>Sessions with warnings ({len(warned)})</h3>"
+                   + table(["Unit", "Rep", "Warnings"], rows, text_cols=3))
+    u = ctx.units_table
+    if u is not None and len(u) and "state" in u:
+        stale = u[u["state"].astype(str) != "calibrated"]
+        if len(stale):
+            rows = [[esc(r.unit), esc(r.state), esc(getattr(r, "reason", ""))] for r in stale.itertuples()]
+            out.append(f"<h3>Units not freshly calibrated ({len(stale)})</h3>"
+                       + table(["Unit", "State", "Why"], rows, text_cols=3))
+    return "".join(out)
+
+
+# ----------------------------------------------------------------------------- unit section
+
+def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) -> str:
+    """The per-unit block of the lot report (and the body of the unit report)."""
+    c = ctx.session_counts(unit)
+    uf = ctx.unit_flags(unit)
+    n_flags = 0 if uf is None else len(uf)
+    meta = []
+    if c:
+        meta.append(f"sessions ok {c['ok']}, warned {c['warned']}, failed {c['failed']}")
+    badge = f'<span class="badge flag">⚑ {n_flags} flagged</span>' if n_flags else '<span class="badge ok">in family</span>'
+    if c.get("failed"):
+        badge += f' <span class="badge failed">{c["failed"]} failed session(s)</span>'
+    parts = []
+    if n_flags:
+        parts.append(flags_list(ctx, unit, link=False))
+    parts.append('<div class="grid2"><div>' + repetition_table(ctx, unit, "gyro") + "</div><div>"
+                 + repetition_table(ctx, unit, "accel") + "</div></div>")
+    parts.append(compensation_table(ctx, unit))
+    figs = []
+    gf = gyro_residual_figure(ctx, unit)
+    af = accel_residual_figure(ctx, unit)
+    if gf is not None:
+        figs.append("<h4>Gyro error vs table rate (mean over repetitions, bars: min..max)</h4>"
+                    + page.figure(gf, height=330, name=f"{unit} gyro residuals"))
+    if af is not None:
+        figs.append("<h4>Accelerometer error vs orientation (mean over repetitions, bars: min..max)</h4>"
+                    + page.figure(af, height=360, name=f"{unit} accel residuals"))
+    if figs:
+        parts.append("".join(figs))
+    elif ctx.residuals is None:
+        parts.append(missing("Residual plots", "residuals.parquet is absent"))
+    others = [repetition_table(ctx, unit, m) for m in ctx.unit_models(unit) if m not in ("gyro", "accel")]
+    others = [o for o in others if o]
+    if others:
+        parts.append('<div class="grid2">' + "".join(f"<div>{o}</div>" for o in others) + "</div>")
+    if ctx.discovery is not None:
+        d = ctx.unit_rows("discovery", unit)
+        if len(d):
+            parts.append("<h4>Model discovery</h4>" + discovery_table(d, with_unit_col=False))
+    if c.get("failed") and ctx.sessions is not None:
+        f = ctx.unit_rows("sessions", unit)
+        f = f[f["status"] == "failed"]
+        parts.append("<h4>Failed sessions</h4><ul class=\"flags\">" + "".join(
+            f"<li>rep {r.rep}: <span class=\"mono\">{esc(r.error_code)}</span> {esc(r.message)}</li>"
+            for r in f.itertuples()) + "</ul>")
+    return (f'<details class="unit" id="unit-{esc(unit)}" data-unit="{esc(unit)}"{" open" if open_ else ""}>'
+            f'<summary>{esc(unit)} {badge}<span class="meta">{"; ".join(meta)}</span></summary>'
+            f'<div class="body">{"".join(parts)}</div></details>')
