@@ -15,6 +15,7 @@ import pandas as pd
 from calib_core import xu2016
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
+from calib_core.guards import check_fits
 from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.steps import StepMeans
 
@@ -35,6 +36,11 @@ def calibrate_repetition(sm: StepMeans) -> SessionFit:
     warnings: list[str] = []
     fits["gyro"] = gyro = xu2016.fit_gyro_multirate(sm)
     fits["accel"] = xu2016.fit_accel_multiposition(sm)
+    implausible = check_fits(fits, sm)
+    if implausible:
+        raise DesignError("E_IMPLAUSIBLE", "estimates are not those of a working sensor: "
+                          + "; ".join(str(i) for i in implausible),
+                          undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible))
     trad = None
     for name, fitter in (("gyro_traditional", xu2016.fit_gyro_traditional),
                          ("accel_traditional", xu2016.fit_accel_traditional)):

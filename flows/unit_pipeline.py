@@ -16,7 +16,7 @@ from calib_core.results import Param, RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from schemas.averaging import read_step_means
 from schemas.dataset import SessionRef, fingerprint
-from schemas.errors import SessionError
+from schemas.errors import SessionError, from_design_error
 
 STATUS_OK, STATUS_WARNED, STATUS_FAILED = "ok", "warned", "failed"
 
@@ -49,11 +49,12 @@ def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionO
     except SessionError as exc:
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, exc.code, str(exc), [], fp)
     except DesignError as exc:
-        msg = f"{ref.key}: {ref.path}: {exc.code}: {exc.reason}"
-        return SessionOutcome(ref.key, ref.path, STATUS_FAILED, exc.code, msg, [], fp)
+        err = (from_design_error(exc, str(ref.key)) if exc.code == "E_UNDETERMINED"
+               else SessionError(exc.code, str(ref.key), "samples.parquet", exc.reason))
+        return SessionOutcome(ref.key, ref.path, STATUS_FAILED, err.code, str(err), [], fp)
     except Exception as exc:  # a bug must not stop the fleet; it is reported with its trace
         tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        msg = f"{ref.key}: {ref.path}: E_INTERNAL: unexpected error ({tb})"
+        msg = f"[E_INTERNAL] session {ref.key}, path {ref.path}: unexpected error ({tb})"
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, "E_INTERNAL", msg, [], fp)
     warning_texts = [str(w) for w in warns] + list(fit.calibration.warnings)
     fit.calibration.warnings = warning_texts
