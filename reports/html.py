@@ -70,7 +70,7 @@ p.note, .note { color:var(--muted); font-size:12.5px; margin:4px 0 8px; }
 p.missing { color:var(--warn); background:#fffbea; border-left:3px solid #f0b429;
             padding:6px 10px; margin:6px 0; }
 .kpis { display:flex; flex-wrap:wrap; gap:10px; margin:0; }
-.kpi { border:1px solid var(--line); border-radius:6px; padding:8px 12px; min-width:120px;
+.kpi { border:1px solid var(--line); border-radius:6px; padding:8px 12px; min-width:96px;
        background:#fff; }
 .kpi .k { font-size:11.5px; color:var(--muted); text-transform:uppercase; letter-spacing:.03em; }
 .kpi .v { font-size:18px; font-weight:600; }
@@ -83,6 +83,7 @@ th { background:#f0f4f8; font-weight:600; position:sticky; top:0; z-index:1; }
 thead tr.group th { top:0; text-align:center; border-left:1px solid var(--line); }
 thead tr.group + tr th { top:24px; }
 td.text, th.text { text-align:left; }
+table.failed-sessions td, table.wrap td { white-space:normal; min-width:60px; max-width:640px; }
 table.sortable thead tr:last-child th { cursor:pointer; user-select:none; }
 table.sortable th[aria-sort=ascending]::after { content:" \\25B2"; font-size:9px; }
 table.sortable th[aria-sort=descending]::after { content:" \\25BC"; font-size:9px; }
@@ -222,9 +223,10 @@ def display_unit(uom: str | None) -> tuple[str, float]:
     u = (uom or "").strip()
     if u in ("", "1", "-", "none", "dimensionless"):
         return "", 1.0
-    parts = u.split(" per ")
-    if len(parts) == 2 and parts[0].strip() == parts[1].strip():
-        return "", 1.0
+    for sep in (" per ", "/"):
+        parts = u.split(sep)
+        if len(parts) == 2 and parts[0].strip() == parts[1].strip():
+            return "", 1.0
     if u == "g":
         return "mg", 1e3
     return u, 1.0
@@ -305,12 +307,6 @@ def kpi(label: str, value: str, cls: str = "") -> str:
     return f'<div class="kpi {cls}"><div class="k">{esc(label)}</div><div class="v">{value}</div></div>'
 
 
-def f32(a: Any) -> np.ndarray:
-    """Figure data as float32: plotly.py writes numpy arrays base64-encoded, so float32
-    halves the bytes of float64 and is ample for a plot."""
-    return np.asarray(a, dtype=np.float32)
-
-
 def decimate(x: np.ndarray, y_list: Sequence[np.ndarray], max_points: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """Keep at most ~max_points of a trace: per bucket the first sample plus the samples at
     the min and max of each y (peaks survive, unlike plain striding). Sorted by index."""
@@ -323,12 +319,12 @@ def decimate(x: np.ndarray, y_list: Sequence[np.ndarray], max_points: int) -> tu
     keep = [starts, np.array([n - 1])]
     for y in y_list:
         y = np.asarray(y, dtype=float)
-        pad = np.full(len(starts) * size - n, np.nan)
-        yy = np.concatenate([np.where(np.isnan(y), np.inf, y), pad + np.inf]).reshape(-1, size)
+        n_pad = len(starts) * size - n   # < size: every bucket holds a real sample
+        yy = np.concatenate([np.where(np.isnan(y), np.inf, y), np.full(n_pad, np.inf)]).reshape(-1, size)
         keep.append(starts + np.argmin(yy, axis=1))
-        yy = np.concatenate([np.where(np.isnan(y), -np.inf, y), pad - np.inf]).reshape(-1, size)
+        yy = np.concatenate([np.where(np.isnan(y), -np.inf, y), np.full(n_pad, -np.inf)]).reshape(-1, size)
         keep.append(starts + np.argmax(yy, axis=1))
-    idx = np.unique(np.concatenate(keep).astype(int))
+    idx = np.unique(np.minimum(np.concatenate(keep).astype(int), n - 1))
     return np.asarray(x)[idx], [np.asarray(y)[idx] for y in y_list]
 
 

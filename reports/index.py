@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 
 from reports.history import GROUP_TITLES, KEY_ELEMENTS, history_frame
-from reports.html import DASH, Page, arr, esc, fmt, fmt_time, grid, kpi, missing, table, write_atomic
-from reports.lot import lot_report_path, safe_name
+from reports.html import DASH, Page, arr, esc, fmt_time, grid, kpi, missing, table, write_atomic
+from reports.lot import lot_report_path
 from reports.store import StoreView
 
 LOT_COLOURS = ["#4c78a8", "#f58518", "#54a24b", "#e45756", "#72b7b2", "#b279a2", "#eeca3b",

@@ -65,9 +65,18 @@ def render_lot_report(results_root: str | Path, lot: str) -> str:
     elif not len(ctx.discovery):
         disc = '<p class="note">Model discovery ran and found no effect.</p>'
     else:
+        d = ctx.discovery
+        found = d[d["effect"].notna()] if "effect" in d else d
+        notes = [f"Model discovery ran for {d['unit'].nunique()} unit(s); "
+                 f"{found['unit'].nunique()} with at least one named effect."]
+        for col, what in (("misfit", "baseline misfit"), ("unexplained", "residual structure left unexplained")):
+            if col in d:
+                us = sorted({str(u) for u in d.loc[d[col].fillna(False).astype(bool), "unit"]})
+                notes.append(f"{what.capitalize()}: {', '.join(us) if us else 'none'}.")
         fig = discovery_figure(ctx)
-        disc = ((page.figure(fig, height=330, name="discovery") if fig is not None else "")
-                + discovery_table(ctx.discovery.sort_values(["unit"]), with_unit_col=True))
+        disc = (f'<p class="note">{esc(" ".join(notes))}</p>'
+                + (page.figure(fig, height=330, name="discovery") if fig is not None else "")
+                + (discovery_table(found.sort_values(["unit"]), with_unit_col=True) if len(found) else ""))
     body.append(f'<section id="discovery"><h2>Model discovery</h2>{disc}</section>')
     body.append(f'<section id="sessions"><h2>Sessions</h2>{sessions_section(ctx)}</section>')
 

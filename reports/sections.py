@@ -35,11 +35,13 @@ PARAM_ORDER = {
     "gyro": [f"k_g{m}" for m in _MAT] + ["w0_x", "w0_y", "w0_z"],
     "accel": [f"k_a{m}" for m in _MAT] + ["f0_x", "f0_y", "f0_z"],
     "lever_arm": [f"r{i}{a}" for i in (1, 2, 3) for a in "xyz"],
+    # zhang2017: zero biases, scale factors, installation angles
+    "accel_static": ([f"{b}_{a}" for b in ("u0", "b") for a in "xyz"]
+                     + [f"{k}_{a}" for k in ("k", "s") for a in "xyz"]
+                     + [f"theta_{a}{b}" for a in "xyz" for b in "xyz"]),
+    "gyro_traditional": [f"s_g{m}" for m in _MAT] + [f"b_g_{a}" for a in "xyz"],
+    "accel_traditional": [f"s_a{m}" for m in _MAT] + [f"b_a_{a}" for a in "xyz"],
 }
-# Pretty names for the paper's parameters (HTML).
-_GREEK = {"w0": "ω<sub>0", "f0": "f<sub>0"}
-
-
 def pretty_param(name: str) -> str:
     n = str(name)
     for pre in ("k_g", "k_a", "s_g", "s_a"):
@@ -51,11 +53,6 @@ def pretty_param(name: str) -> str:
     if len(n) == 3 and n[0] == "r" and n[1] in "123" and n[2] in "xyz":
         return f"r<sub>{n[1]}{n[2]}</sub>"
     return esc(n)
-
-
-def plain_param(name: str) -> str:
-    """Parameter name for plotly text (which only knows a little HTML)."""
-    return pretty_param(name)
 
 
 def ordered_params(model: str, names: Iterable[str]) -> list[str]:
@@ -103,6 +100,7 @@ class LotContext:
     flags: pd.DataFrame | None = None                     # flagged summary rows
     flagged_units: list[str] = field(default_factory=list)
     residual_agg: pd.DataFrame | None = None
+    unit_level_flags: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def load(cls, view: StoreView, lot: str, unit: str | None = None) -> "LotContext":
@@ -123,6 +121,13 @@ class LotContext:
             f = ctx.summary[ctx.summary["flagged"].fillna(False).astype(bool)]
             ctx.flags = f
             ctx.flagged_units = sorted({str(u) for u in f["unit"]})
+        ut = ctx.units_table
+        if ut is not None and len(ut) and "flagged" in ut:
+            # unit-level flags (e.g. repetition spread) that name no single parameter
+            uf = ut[ut["flagged"].fillna(False).astype(bool)]
+            ctx.unit_level_flags = {str(r.unit): as_text(getattr(r, "flag_reason", "")) for r in uf.itertuples()
+                                    if str(r.unit) not in ctx.flagged_units}
+            ctx.flagged_units = sorted(set(ctx.flagged_units) | set(ctx.unit_level_flags))
         ctx.residual_agg = aggregate_residuals(ctx.residuals)
         if ctx.summary is not None and len(ctx.summary) and not ctx.units:
             ctx.units = sorted({str(u) for u in ctx.summary["unit"].dropna()})
@@ -240,10 +245,6 @@ def aggregate_residuals(res: pd.DataFrame | None) -> pd.DataFrame | None:
 
 # ----------------------------------------------------------------------------- header
 
-def header_block(ctx: LotContext, title: str, subtitle: str) -> str:
-    return (f'<header class="report"><h1>{title}</h1><div class="sub">{subtitle}</div></header>')
-
-
 def run_facts(ctx: LotContext) -> tuple[str, str, list[str]]:
     """(run time, run id(s), code version(s)) of the lot's current results."""
     run_ids: list[str] = []
@@ -294,9 +295,15 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
     f = ctx.flags if unit is None else ctx.unit_flags(unit)
     if ctx.summary is None:
         return missing("Outlier flags", "summary.parquet is absent")
-    if f is None or not len(f):
-        return '<p class="note">No parameter flagged.</p>'
     items = []
+    for u, reason in sorted(ctx.unit_level_flags.items()):
+        if unit is None or u == unit:
+            ul = f'<a href="#unit-{esc(u)}">{esc(u)}</a>' if link else esc(u)
+            items.append(f'<li data-unit="{esc(u)}"><span class="badge flag">flagged unit</span> '
+                         f'<b>{ul}</b> · {esc(reason)}</li>')
+    if (f is None or not len(f)) and not items:
+        return '<p class="note">No parameter flagged.</p>'
+    f = f if f is not None else ctx.summary.iloc[0:0]
     for r in f.sort_values(["unit", "model", "parameter"]).itertuples():
         p = ctx.info(r.model, r.parameter)
         u = f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>' if link else esc(r.unit)
@@ -334,7 +341,7 @@ def key_parameter_table(ctx: LotContext) -> str:
         group.append(f'<th colspan="{len(names)}">{title}</th>')
     group.append("</tr>")
     by_key = {(r.unit, r.model, r.parameter): r for r in s.itertuples()}
-    headers = ["Unit", "Sessions ok/all", "Flags"]
+    headers = ["Unit", "Sessions used/all", "Flags"]
     for m, n in cols:
         p = ctx.info(m, n)
         headers.append(f'{pretty_param(n)}<br><small>{esc(p.label) or "&nbsp;"}</small>')
@@ -343,7 +350,7 @@ def key_parameter_table(ctx: LotContext) -> str:
         c = ctx.session_counts(unit)
         n_all = sum(c.values()) if c else 0
         uf = ctx.unit_flags(unit)
-        n_flags = 0 if uf is None else len(uf)
+        n_flags = (0 if uf is None else len(uf)) + (unit in ctx.unit_level_flags)
         cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
                  + (' <span class="badge flag">⚑ flagged</span>' if n_flags else "") + "</td>",
                  f'<td data-sort="{c.get("ok", 0) + c.get("warned", 0)}">{c.get("ok", 0) + c.get("warned", 0)}/{n_all}'
@@ -399,7 +406,7 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
     for n in names:
         p = ctx.info(model, n)
         titles.append(f"{pretty_param(n)}{' [' + p.label + ']' if p.label else ''}")
-    layout, refs = grid(nrows, ncols, titles, hspace=0.055, vspace=0.42 / nrows)
+    layout, refs = grid(nrows, ncols, titles, hspace=0.055, vspace=0.3 / nrows)
     data: list[dict] = []
     unit_index = {u: i for i, u in enumerate(ctx.units)}
     by_name = {str(k): g for k, g in sm.groupby("parameter", sort=False)}
@@ -593,7 +600,8 @@ def accel_residual_figure(ctx: LotContext, unit: str) -> dict | None:
         return None
 
     def labels(dc: pd.DataFrame) -> list[str]:
-        return [f"{u} up {float(h):g}°" for u, h in zip(dc["up_axis"].astype(str), dc["angle_deg"])]
+        return [f"{u} up {float(h):g}°" if pd.notna(h) else f"{u} up, step {int(st)}"
+                for u, h, st in zip(dc["up_axis"].astype(str), dc["angle_deg"], dc["step"])]
 
     return _residual_figure(d, ("ax", "ay", "az"), labels, 1e3, "mg",
                             "orientation (axis up, heading)", "square", True)
@@ -641,14 +649,16 @@ _DISC_ORDER = ["effect", "name", "axes", "estimate", "stderr", "evidence", "held
 
 def discovery_table(df: pd.DataFrame, with_unit_col: bool) -> str:
     cols = [c for c in _DISC_ORDER if c in df.columns]
-    cols += [c for c in df.columns if c not in cols and c not in ("lot", "unit")]
+    cols += [c for c in df.columns if c not in cols and c not in ("lot", "unit", "run_id")]
     headers = (["Unit"] if with_unit_col else []) + [esc(c.replace("_", " ")) for c in cols]
     rows = []
     for r in df.to_dict("records"):
         cells = [f'<a href="#unit-{esc(r["unit"])}">{esc(r["unit"])}</a>'] if with_unit_col else []
         for c in cols:
             v = r.get(c)
-            if isinstance(v, (bool, np.bool_)):
+            if c in ("effect", "name") and (v is None or (isinstance(v, float) and math.isnan(v))):
+                cells.append('<span class="note">none found</span>')
+            elif isinstance(v, (bool, np.bool_)):
                 cells.append('<span class="badge warned">yes</span>' if v else "no")
             elif isinstance(v, (float, np.floating, int, np.integer)) and not isinstance(v, bool):
                 cells.append(fmt(v, sig=3))
@@ -677,6 +687,17 @@ def discovery_figure(ctx: LotContext) -> dict | None:
 
 # ----------------------------------------------------------------------------- sessions
 
+def as_text(v) -> str:
+    """A store cell as text: lists/arrays of warnings joined, missing values empty."""
+    if v is None:
+        return ""
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "; ".join(str(x) for x in v)
+    if isinstance(v, float) and math.isnan(v):
+        return ""
+    return str(v)
+
+
 def sessions_section(ctx: LotContext, link_units: bool = True) -> str:
     s = ctx.sessions
     if s is None:
@@ -687,8 +708,8 @@ def sessions_section(ctx: LotContext, link_units: bool = True) -> str:
         rows = []
         for r in failed.itertuples():
             u = f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>' if link_units else esc(r.unit)
-            rows.append(({"data-unit": r.unit}, [u, str(r.rep), f'<span class="mono">{esc(r.error_code)}</span>',
-                                                 esc(r.message), f'<span class="mono">{esc(getattr(r, "path", ""))}</span>']))
+            rows.append(({"data-unit": r.unit}, [u, str(r.rep), f'<span class="mono">{esc(as_text(r.error_code))}</span>',
+                                                 esc(as_text(r.message)), f'<span class="mono">{esc(getattr(r, "path", ""))}</span>']))
         out.append(f"<h3>Failed sessions ({len(failed)})</h3>"
                    + table(["Unit", "Rep", "Error code", "Reason", "Session"], rows, cls="failed-sessions",
                            text_cols=5))
@@ -696,16 +717,16 @@ def sessions_section(ctx: LotContext, link_units: bool = True) -> str:
         out.append('<p class="note">No failed session.</p>')
     warned = s[s["status"] == "warned"].sort_values(["unit", "rep"])
     if len(warned):
-        rows = [[esc(r.unit), str(r.rep), esc(getattr(r, "warnings", ""))] for r in warned.itertuples()]
+        rows = [[esc(r.unit), str(r.rep), esc(as_text(getattr(r, "warnings", "")))] for r in warned.itertuples()]
         out.append(f"<h3>Sessions with warnings ({len(warned)})</h3>"
-                   + table(["Unit", "Rep", "Warnings"], rows, text_cols=3))
+                   + table(["Unit", "Rep", "Warnings"], rows, cls="wrap", text_cols=3))
     u = ctx.units_table
     if u is not None and len(u) and "state" in u:
         stale = u[u["state"].astype(str) != "calibrated"]
         if len(stale):
             rows = [[esc(r.unit), esc(r.state), esc(getattr(r, "reason", ""))] for r in stale.itertuples()]
             out.append(f"<h3>Units not freshly calibrated ({len(stale)})</h3>"
-                       + table(["Unit", "State", "Why"], rows, text_cols=3))
+                       + table(["Unit", "State", "Why"], rows, cls="wrap", text_cols=3))
     return "".join(out)
 
 
@@ -715,7 +736,7 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     """The per-unit block of the lot report (and the body of the unit report)."""
     c = ctx.session_counts(unit)
     uf = ctx.unit_flags(unit)
-    n_flags = 0 if uf is None else len(uf)
+    n_flags = (0 if uf is None else len(uf)) + (unit in ctx.unit_level_flags)
     meta = []
     if c:
         meta.append(f"sessions ok {c['ok']}, warned {c['warned']}, failed {c['failed']}")

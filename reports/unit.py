@@ -7,10 +7,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
-from reports.history import GROUP_TITLES, KEY_ELEMENTS, history_frame
+from reports.history import KEY_ELEMENTS, history_frame
 from reports.html import (CASE_COLOURS, DASH, Page, arr, decimate, esc, fmt, fmt_time, grid, missing,
                           table, write_atomic)
 from reports.lot import ReportError, safe_name
@@ -132,10 +131,13 @@ def render_unit_report(results_root: str | Path, unit: str) -> str:
     body.append(f'<section id="navigation"><h2>Navigation drift</h2>{nav_html}</section>')
 
     h = history_frame(view, [unit])
-    if len(h):
+    if len(h) > 1:
         fig = history_figure(h)
         hist_html = (page.figure(fig, height=520, name="history")
                      + f"<h3>Calibration files ({len(h)})</h3>" + history_table(h))
+    elif len(h) == 1:
+        hist_html = ('<p class="note">One calibration so far: the history figure appears with the '
+                     'second one.</p>' + "<h3>Calibration files (1)</h3>" + history_table(h))
     else:
         hist_html = missing("Calibration history", f"no files under calibrations/{unit}/")
     body.append(f'<section id="history"><h2>History of calibrations</h2>{hist_html}</section>')

@@ -3,7 +3,6 @@ no JavaScript error, no network request, every figure drawn, the outlier units v
 marked in the table and in the plots (read from the DOM), a screenshot saved."""
 from __future__ import annotations
 
-import json
 import struct
 
 import pytest

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import re
 from html.parser import HTMLParser
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -173,3 +172,27 @@ def test_decimate_keeps_extremes_and_bounds_points():
     assert len(tx) <= 1500 + 2
     assert yx.max() == 1e4 and yx.min() == y.min()
     assert np.all(np.diff(tx) > 0) and tx[0] == t[0] and tx[-1] == t[-1]
+    # lengths that do not divide into equal buckets, and NaN gaps
+    for n in (4000, 4001, 60_007):
+        x = np.arange(n, dtype=float)
+        z = np.sin(x / 50.0)
+        z[n // 3] = np.nan
+        z[n - 1] = -5.0  # extreme in the last, partly padded bucket
+        xd, (zd,) = decimate(x, [z], 1500)
+        assert len(xd) <= 1502 and xd[-1] == n - 1 and np.nanmin(zd) == -5.0
+        assert np.nanmax(zd) == np.nanmax(z)
+
+
+@pytest.mark.slow
+def test_fifty_unit_lot_report_stays_under_10_mb(tmp_path):
+    truth = build_synthetic_store(tmp_path, n_units=50, n_reps=5, n_outliers=2, seed=50,
+                                  navigation=False)
+    path = write_lot_report(tmp_path, truth.lot)
+    text = path.read_text()
+    size = path.stat().st_size
+    assert size < 10e6, f"{size / 1e6:.2f} MB"
+    assert text.count("plotly.js v") == 1
+    # 50 units x 2 residual figures + 4 strip plots + residual overview + discovery
+    assert len(re.findall(r'<div class="figure" id="fig\d+"', text)) == 106
+    # what is not plotly.js is the data: ~2.4 MB for 50 units (about 48 kB per unit)
+    assert size - len(get_plotlyjs()) < 3.0e6
