@@ -29,7 +29,10 @@ Tests (alpha is the family-wise false-alarm rate per unit, default 1%):
 - a chosen term must fix at least one channel it acts on that misfit at baseline
   (per-channel lack-of-fit test at alpha/6); a term that leaves all of them misfit only
   soaks up part of something else and is reported as a *partial* candidate, not an effect.
-- **unexplained**: the lack-of-fit test still rejects after selection.
+- **misfit**: the baseline lack-of-fit test rejects, or a term was significant (a
+  targeted test is more powerful than the omnibus one).
+- **unexplained**: the lack-of-fit test still rejects after selection, or a partial term was
+  set aside.
 
 Held-out score: each repetition in turn is held out, the model is fitted on the others,
 the held-out repetition is predicted (its own biases fitted, as at turn-on) and its residual
@@ -331,19 +334,36 @@ class Diagnosis:
                        f0=np.mean([c.f0 for c in cals], axis=0))
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        """JSON-ready (non-finite numbers become None)."""
+        return _jsonable({
             "unit": self.unit, "lot": self.lot, "n_reps": self.n_reps, "alpha": self.alpha,
             "misfit": self.misfit, "unexplained": self.unexplained,
             "effects": [e.to_dict() for e in self.effects],
             "partial": [e.to_dict() for e in self.partial],
             "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
             "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
-            "misfit_channels_before": [c for c, t in self.channel_misfit_before.items() if t.rejects],
-            "misfit_channels_after": [c for c, t in self.channel_misfit_after.items() if t.rejects],
+            "misfit_channels_before": [c for c, t in self.channel_misfit_before.items()
+                                       if t.rejects],
+            "misfit_channels_after": [c for c, t in self.channel_misfit_after.items()
+                                      if t.rejects],
             "heldout_rms_baseline": self.heldout_rms_baseline,
             "heldout_rms_final": self.heldout_rms_final,
             "noise": self.noise.table.to_dict(orient="records"),
-        }
+        })
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if np.isfinite(v) else None
+    return v
 
 
 # -- the procedure ----------------------------------------------------------------------
@@ -391,7 +411,7 @@ class _Discovery:
             raise DesignError("E_DISCOVERY_NOISE", "zero noise estimate on some steps")
         return noise, sigma
 
-    def _pure_cells(self) -> list[tuple[int, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]]:
+    def _pure_cells(self) -> list[tuple]:
         """Per channel and test group: rows, and how to take their two-way residual."""
         if not hasattr(self, "_cells"):
             st, self._cells = self.st, []
@@ -497,17 +517,21 @@ class _Discovery:
             if not cands:
                 break
             thr = self.alpha / len(cands)
-            best, best_logp = None, 0.0
+            best, best_score = None, None
             for n in cands:
                 t = self.term_test(tuple(chosen), n, thr)
                 if not t.rejects:
                     continue
                 ch = self.channels_of(n)
-                if self.heldout_rms(tuple(chosen) + (n,), ch) >= self.heldout_rms(tuple(chosen), ch):
+                before = self.heldout_rms(tuple(chosen), ch)
+                if self.heldout_rms(tuple(chosen) + (n,), ch) >= before:
                     continue
-                logp = stats.f.logsf(t.statistic, t.dof1, t.dof2)
-                if best is None or logp < best_logp:
-                    best, best_logp = n, logp
+                # most significant first; p underflows for strong effects: then the larger
+                # explained sum of squares wins
+                score = (float(stats.f.logsf(t.statistic, t.dof1, t.dof2)),
+                         -t.statistic * t.dof1)
+                if best is None or score < best_score:
+                    best, best_score = n, score
             if best is None:
                 break
             chosen.append(best)
@@ -542,10 +566,7 @@ class _Discovery:
             partial.append(drop)
         return chosen, partial
 
-    _scale_model: tuple[str, ...] = ()
-
     def finding(self, chosen: list[str], name: str, threshold: float) -> EffectFinding:
-        self._scale_model = tuple(chosen)
         others = tuple(x for x in chosen if x != name)
         full = tuple(others) + (name,)
         f = self.fit(full)
@@ -554,7 +575,7 @@ class _Discovery:
         term = get_effect(name)
         p = term.n_params
         theta = f.theta[off:off + p]
-        se = np.sqrt(np.diag(f.cov)[off:off + p]) * np.sqrt(self._scale())
+        se = np.sqrt(np.diag(f.cov)[off:off + p] * self._scale(full))
         ch = self.channels_of(name)
         t = np.abs(theta) / np.where(np.isfinite(se) & (se > 0), se, np.inf)
         crit = stats.norm.isf(self.alpha / (2 * p))
@@ -575,19 +596,19 @@ class _Discovery:
             heldout_rms_before=self.heldout_rms(others, ch),
             heldout_rms_after=self.heldout_rms(full, ch))
 
-    def _scale(self) -> float:
+    def _scale(self, names: tuple[str, ...]) -> float:
         """Variance factor of the weighted residual: the pure-error mean square."""
-        ps, pd_ = self.pure(self._scale_model)
+        ps, pd_ = self.pure(names)
         return float(ps.sum() / max(pd_.sum(), 1))
 
     def calibrations(self, names: tuple[str, ...]) -> list[Calibration]:
-        self._scale_model = tuple(names)
         f = self.fit(names)
+        scale = self._scale(names)
         names_sorted = sorted(names)
         terms, off = [], 0
         for n in names_sorted:
             p = get_effect(n).n_params
-            se = np.sqrt(np.diag(f.cov)[off:off + p] * self._scale())
+            se = np.sqrt(np.diag(f.cov)[off:off + p] * scale)
             terms.append(TermValue(n, f.theta[off:off + p].copy(), se))
             off += p
         out = []
@@ -627,9 +648,12 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     chosen, partial = d.select()
     if chosen:
         # the affine model's K is distorted by the effects it misses, and the noise reaches
-        # the residual through K: estimate the noise again with the chosen model, reselect
-        d = _Discovery(step_means_by_rep, alpha, noise_model=d.noise_model(tuple(chosen)))
-        chosen, partial = d.select()
+        # the residual through K: estimate the noise again with the chosen model and, if it
+        # moved (more than 3 % on some channel and test group), select again with it
+        d2 = _Discovery(step_means_by_rep, alpha, noise_model=d.noise_model(tuple(chosen)))
+        if np.max(np.abs(np.log(d2.sigma / d.sigma))) > np.log(1.03):
+            d = d2
+            chosen, partial = d.select()
     lof_before = d.lack_of_fit((), alpha)
     chosen_t = tuple(chosen)
     lof_after = d.lack_of_fit(chosen_t, alpha)

@@ -126,7 +126,9 @@ class ThermalBiasDriftTerm(EffectTerm):
     name = "thermal_bias_drift"
     description = "bias drift with temperature (or with time when no temperature is recorded)"
     param_names = ("d_gx", "d_gy", "d_gz", "d_ax", "d_ay", "d_az")
-    param_units = ("deg/s per degC",) * 3 + ("mg per degC",) * 3
+    # the regressor is temperature when recorded, else time: the unit says both
+    param_units = ("deg/s per degC (per hour without temp_c)",) * 3 + (
+        "mg per degC (per hour without temp_c)",) * 3
 
     def regressors(self, ctx: MotionContext) -> np.ndarray:
         x = np.where(np.isfinite(ctx.temp_c), ctx.temp_c - THERMAL_REF_C, ctx.t / 3600.0)

@@ -14,7 +14,7 @@ Three rules, each flag naming the parameter, the unit's value, the lot median an
      parameter over all pooled units (clean, Gaussian) exceeds with probability
      ``family_alpha / n_parameters`` (so a clean fleet gets any robust flag with probability
      about ``family_alpha``), computed once per (lot sizes, n_parameters) by a seeded
-     simulation of the same statistic (3 lots of 20, 24 parameters: 6.08).
+     simulation of the same statistic (3 lots of 20, 24 parameters: 6.15).
      ``family_alpha = 0`` gives the plain 3.5 rule.
    The price: a unit must be ~7-8 lot sd away to be found reliably (a 6.7 sd shift is found
    about 2 times in 3 with 3 lots of 20; 10 sd almost always); docs/flows.md has the table.
@@ -228,15 +228,21 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     if family_alpha <= 0 or total < 3:
         return float(z_threshold)
     p = family_alpha / max(n_parameters, 1)
-    rows = int(min(200.0 / p, max(20_000, 8_000_000 // total)))
+    # ~2e7 normal draws at most, in chunks of ~2e6 (memory stays ~50 MB)
+    rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
+    chunk = max(1, 2_000_000 // total)
     rng = np.random.default_rng(20261121 + 7919 * total + len(sizes))
-    dev_parts = []
-    for n in sizes:
-        x = rng.normal(size=(rows, n))
-        dev_parts.append(x - np.median(x, axis=1, keepdims=True))
-    dev = np.abs(np.concatenate(dev_parts, axis=1)) if len(dev_parts) > 1 else np.abs(dev_parts[0])
-    scale = MAD_TO_SIGMA * np.median(dev, axis=1)
-    zmax = dev.max(axis=1) / np.where(scale > 0, scale, np.inf)
+    zmax_parts = []
+    for start in range(0, rows, chunk):
+        m = min(chunk, rows - start)
+        dev_parts = []
+        for n in sizes:
+            x = rng.normal(size=(m, n))
+            dev_parts.append(x - np.median(x, axis=1, keepdims=True))
+        dev = np.abs(np.concatenate(dev_parts, axis=1))
+        scale = MAD_TO_SIGMA * np.median(dev, axis=1)
+        zmax_parts.append(dev.max(axis=1) / np.where(scale > 0, scale, np.inf))
+    zmax = np.concatenate(zmax_parts)
     if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
     else:  # beyond the simulated resolution: extrapolate log-linearly from the last decade
@@ -256,7 +262,7 @@ def _lot_centred_scales(df: pd.DataFrame, min_units: int
                         ) -> dict[tuple[str, str], tuple[float, tuple[int, ...]]]:
     """Per (model, parameter): robust scale of the lot-centred unit means, pooled over every
     lot with at least ``min_units`` units, and the number of units pooled."""
-    out: dict[tuple[str, str], tuple[float, int]] = {}
+    out: dict[tuple[str, str], tuple[float, tuple[int, ...]]] = {}
     for (model, name), grp in df.groupby(["model", "parameter"], sort=True):
         parts, sizes = [], []
         for _, g in grp.groupby("lot", sort=True):
@@ -266,8 +272,12 @@ def _lot_centred_scales(df: pd.DataFrame, min_units: int
                 parts.append(x - np.median(x))
                 sizes.append(len(x))
         if parts:
-            c = np.concatenate(parts)
-            out[(model, name)] = (robust_scale(c), tuple(sorted(sizes)))
+            # MAD about 0 (each lot is centred on its own median), as robust_z_threshold
+            # simulates it; mean absolute deviation when more than half are exactly 0
+            c = np.abs(np.concatenate(parts))
+            mad = float(np.median(c))
+            scale = MAD_TO_SIGMA * mad if mad > 0 else MEANAD_TO_SIGMA * float(np.mean(c))
+            out[(model, name)] = (scale, tuple(sorted(sizes)))
     return out
 
 

@@ -212,3 +212,21 @@ def summarise_residuals(table: pd.DataFrame) -> pd.DataFrame:
             .agg(n=("z2", "size"), rms_z=("z2", lambda v: float(np.sqrt(v.mean()))),
                  rms_residual=("residual", lambda v: float(np.sqrt((v ** 2).mean()))))
             .reset_index())
+
+
+def xu2016_calibration(sm: StepMeans) -> Calibration:
+    """The production baseline of one session: xu2016 multirate (K_g, w0) and multiposition
+    (K_a, f0) fits, affine only."""
+    from calib_core import xu2016
+
+    g = xu2016.fit_gyro_multirate(sm)
+    a = xu2016.fit_accel_multiposition(sm)
+    return Calibration(K_g=g.K, w0=g.w0, K_a=a.K, f0=a.f0, gyro_unit=sm.gyro_unit,
+                       accel_unit=sm.accel_unit, g_local=sm.g_local)
+
+
+def replay_xu2016(sessions: list[StepMeans], noise: NoiseEstimate | None = None) -> pd.DataFrame:
+    """Each repetition's own xu2016 calibration replayed over all of its steps. The +/-
+    difference method is blind to even-in-rate errors and fits the accelerometers on static
+    steps only: what it leaves shows here (e.g. on the accelerometers during rotation)."""
+    return replay_unit([xu2016_calibration(sm) for sm in sessions], sessions, noise)

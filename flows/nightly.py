@@ -19,7 +19,7 @@ import os
 import sys
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -124,7 +124,7 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     from flows.unit_pipeline import aggregate_unit, calibrate_session
     t0 = time.perf_counter()
     outcomes = [calibrate_session(r) for r in sorted(job.refs, key=lambda r: r.key.rep)]
-    diag_doc, note, terms = None, None, ()
+    diag_doc, note, terms, extended = None, None, (), None
     good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
     if run_discovery and _discovery_available() and len(good_sm) >= 2:
         from calib_core.discovery import diagnose_unit
@@ -132,6 +132,7 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
             diag = diagnose_unit(good_sm, tables=False)
             diag_doc = diag.to_dict()
             terms = tuple(diag.terms)
+            extended = diag.calibration if terms else None
         except Exception as exc:  # discovery must not cost the unit its calibration
             note = f"model discovery failed: {type(exc).__name__}: {exc}"
     elif run_discovery and not _discovery_available():
@@ -139,7 +140,7 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     elif run_discovery:
         note = f"model discovery skipped: {len(good_sm)} good repetition(s), needs 2"
     try:
-        unit_out = aggregate_unit(job.lot, job.unit, outcomes, terms=terms)
+        unit_out = aggregate_unit(job.lot, job.unit, outcomes, terms=terms, extended=extended)
     except Exception as exc:  # a bug in aggregation must not stop the fleet
         from flows.unit_pipeline import UnitOutcome
         unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
@@ -155,7 +156,7 @@ def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[Uni
     return [calibrate_unit_job(j, run_discovery) for j in jobs]
 
 
-def _frame(rows: list[dict], name: str) -> pd.DataFrame:
+def _frame(rows: list[dict], name: str) -> pd.DataFrame:  # noqa: ARG001 (name: for reading)
     return pd.DataFrame(rows) if rows else pd.DataFrame()
 
 
@@ -289,6 +290,32 @@ def load_config(path: str | Path | None) -> OutlierConfig:
     return config_from_toml(text, source=str(p))
 
 
+def flagged_by_lot(store: ResultsStore) -> dict[str, set[str]]:
+    units = store.read("units")
+    out: dict[str, set[str]] = {}
+    if len(units) and "flagged" in units:
+        for r in units.itertuples():
+            out.setdefault(str(r.lot), set())
+            if r.flagged is not None and not pd.isna(r.flagged) and bool(r.flagged):
+                out[str(r.lot)].add(str(r.unit))
+    return out
+
+
+def reflag_after_update(store: ResultsStore, touched: list[str], config: OutlierConfig
+                        ) -> tuple[list[LotFlags], list[str]]:
+    """Re-flag every lot (the robust scale is pooled over all lots, so one lot's new values
+    move every lot's scores a little); return the flags of the touched lots and the lots
+    whose reports must be rebuilt: the touched ones and any whose flagged units changed."""
+    if not touched:
+        return [], []
+    before = flagged_by_lot(store)
+    all_lots = sorted(set(store.read("summary")["lot"].dropna().astype(str)) | set(touched))
+    lf = reflag_lots(store, all_lots, config)
+    after = flagged_by_lot(store)
+    changed = {lot for lot in all_lots if before.get(lot, set()) != after.get(lot, set())}
+    return [x for x in lf if x.lot in set(touched)], sorted(set(touched) | changed)
+
+
 def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: OutlierConfig
                 ) -> list[LotFlags]:
     """Recompute the flags of the given lots from the whole summary (the robust scale is
@@ -359,7 +386,7 @@ def calibrate_units_task(jobs: list[UnitJob], run_discovery: bool = True) -> lis
 
 
 class _Progress:
-    def __init__(self, total: int, stream=None, every_s: float = 0.0):
+    def __init__(self, total: int, stream=None):
         self.total = total
         self.done = 0
         self.failed_sessions = 0
@@ -439,8 +466,8 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         t_cal = time.monotonic() - t0
         stored = store_results(store, results_, run_id, version)
         lots = sorted({r.lot for r in results_})
-        lot_flags = reflag_lots(store, lots, cfg)
-        reports, problems = write_reports(results, lots) if lots else ([], [])
+        lot_flags, report_lots = reflag_after_update(store, lots, cfg)
+        reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
         for p in problems:
             logger.warning(p)
         failed = [{"session": str(s.key), "code": s.code, "message": s.message}
@@ -515,8 +542,8 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
                                "path_errors": [e.to_dict() for e in path_errors]}
         res = calibrate_units_task.submit([job], run_discovery).result()
         stored = store_results(store, res, run_id, version)
-        lf = reflag_lots(store, [lot], cfg)
-        reports, problems = write_reports(results, [lot])
+        lf, report_lots = reflag_after_update(store, [lot], cfg)
+        reports, problems = write_reports(results, report_lots)
         failed = [{"session": str(s.key), "code": s.code, "message": s.message}
                   for r in res for s in r.outcome.sessions if s.status == "failed"]
         log.update({

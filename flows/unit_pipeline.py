@@ -4,7 +4,7 @@ names its session, file, code and reason, and the rest of the unit goes on."""
 from __future__ import annotations
 
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pandas as pd
@@ -89,13 +89,23 @@ class UnitOutcome:
 
 
 def aggregate_unit(lot: str, unit: str, outcomes: list[SessionOutcome],
-                   terms: tuple[TermValue, ...] = ()) -> UnitOutcome:
-    """Average the unit's successful repetitions into its calibration."""
+                   terms: tuple[TermValue, ...] = (), extended: Calibration | None = None
+                   ) -> UnitOutcome:
+    """Average the unit's successful repetitions into its calibration.
+
+    ``extended`` is model discovery's calibration (K and biases re-estimated jointly with the
+    terms it kept). When given with terms it is the one applied: adding terms on top of the
+    xu2016 K would count twice what the xu2016 fit already absorbed of the effect (a cubic
+    rate error partly moves k_g33)."""
     good = [o.calibration for o in outcomes if o.succeeded and o.calibration is not None]
     out = UnitOutcome(lot, unit, sorted(outcomes, key=lambda o: o.key.rep), terms=terms)
     if good:
         out.calibration = UnitCalibration.from_reps(lot, unit, good)
-        out.applied = calibration_from_unit(out.calibration, terms)
+        if extended is not None and terms:
+            out.applied = replace(extended, metadata={
+                **calibration_from_unit(out.calibration).metadata, "model": "discovery (joint fit)"})
+        else:
+            out.applied = calibration_from_unit(out.calibration, terms)
     else:
         out.notes.append(f"unit {unit}: no session succeeded; no calibration produced")
     return out

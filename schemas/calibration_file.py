@@ -90,6 +90,10 @@ def write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
             fh.write("\n")
             fh.flush()
             os.fsync(fh.fileno())
+        # mkstemp creates 0600; a calibration is read by other users (firmware tooling)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o644 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

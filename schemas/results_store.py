@@ -90,6 +90,15 @@ def parse_when(text: str) -> datetime:
     return dt.astimezone(timezone.utc)
 
 
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
 # --- atomic writes ------------------------------------------------------------------------------
 def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
     """Parquet via a temp file in the same directory, fsync, then ``os.replace``."""
@@ -102,6 +111,7 @@ def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
         pq.write_table(table, tmp, compression="zstd")
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; the store is read by others
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
