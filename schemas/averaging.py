@@ -27,6 +27,12 @@ Steps left out, each named in a :class:`SessionWarning`:
   Limitation: a quantised channel that clips fewer than 25 % of a step's samples is not
   detected unless its full scale is declared (``gyro_full_scale_raw``) or, in physical units,
   reached; with noise below about half a quantum a noise tail can look like a clip.
+
+Speed (docs/benchmarks.md): the steps table's columns are taken out of pandas once; the
+sample -> step index comes from the reader (``SessionData.step_row``); per-step first / last
+sample times come from the boundaries of runs of equal step index (``t`` is strictly
+increasing, so a run's first and last samples are its extremes), not from ``ufunc.at`` over
+every sample; means and standard deviations are ``bincount`` sums over the kept samples.
 """
 from __future__ import annotations
 
@@ -54,6 +60,8 @@ QUANTISED_MIN_FRACTION = 0.25
 
 def _step_index(data: SessionData) -> np.ndarray:
     """Row of steps for every sample (-1 between steps)."""
+    if data.step_row is not None:
+        return data.step_row
     ids = data.steps["step"].to_numpy(np.int64)
     order = np.argsort(ids, kind="stable")
     pos = np.searchsorted(ids[order], data.step)
@@ -62,10 +70,35 @@ def _step_index(data: SessionData) -> np.ndarray:
     return np.where(data.step == -1, -1, idx)
 
 
-def _describe(steps: pd.DataFrame, i: int) -> str:
-    row = steps.iloc[i]
-    return (f"step {int(row['step'])} ({row['test']}, {row['up_axis']} up, "
-            f"{float(row['rate_dps']):g} deg/s)")
+def _describe(cols: dict[str, np.ndarray], i: int) -> str:
+    return (f"step {int(cols['step'][i])} ({cols['test'][i]}, {cols['up_axis'][i]} up, "
+            f"{float(cols['rate_dps'][i]):g} deg/s)")
+
+
+def _step_columns(steps: pd.DataFrame) -> dict[str, np.ndarray]:
+    """The steps table as numpy arrays, taken out of pandas once (each column access costs
+    tens of microseconds)."""
+    cols = {"step": steps["step"].to_numpy(np.int64), "test": steps["test"].to_numpy(str),
+            "up_axis": steps["up_axis"].to_numpy(str)}
+    for name in ("rate_dps", "angle_deg", "settle_s") + W_REF_COLUMNS + F_REF_COLUMNS:
+        cols[name] = steps[name].to_numpy(float)
+    return cols
+
+
+def _run_extremes(idx: np.ndarray, t: np.ndarray, n_steps: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """First and last ``t`` of each step (inf / -inf when absent) for ``t`` strictly
+    increasing: the extremes of a step are among the ends of its runs of equal ``idx``."""
+    lo = np.full(n_steps, np.inf)
+    hi = np.full(n_steps, -np.inf)
+    if len(idx) == 0:
+        return lo, hi
+    change = np.flatnonzero(idx[1:] != idx[:-1]) + 1
+    starts = np.concatenate(([0], change))
+    ends = np.concatenate((change - 1, [len(idx) - 1]))
+    np.minimum.at(lo, idx[starts], t[starts])  # one entry per run, not per sample
+    np.maximum.at(hi, idx[ends], t[ends])
+    return lo, hi
 
 
 def _saturation(columns: list[np.ndarray], idx: np.ndarray, count: np.ndarray, n_steps: int,
@@ -129,8 +162,8 @@ def average_session(data: SessionData, min_samples: int = 10
                     ) -> tuple[StepMeans, list[SessionWarning]]:
     """Average a validated session (see module docstring). Raises E_EMPTY_SESSION when no
     step is usable."""
-    steps = data.steps
-    n_steps = len(steps)
+    cols = _step_columns(data.steps)
+    n_steps = len(cols["step"])
     meta = data.meta
     idx_all = _step_index(data)
     in_step = idx_all >= 0
@@ -138,9 +171,8 @@ def average_session(data: SessionData, min_samples: int = 10
     t_in = data.t[in_step]
     n_any = np.bincount(idx_in, minlength=n_steps)
     # first sample time of each step (t is strictly increasing, so the first in file order)
-    t0 = np.full(n_steps, np.inf)
-    np.minimum.at(t0, idx_in, t_in)
-    settle = steps["settle_s"].to_numpy(float)
+    t0, _ = _run_extremes(idx_in, t_in, n_steps)
+    settle = cols["settle_s"]
     keep = in_step.copy()
     keep[in_step] = t_in - t0[idx_in] >= settle[idx_in] - SETTLE_TOLERANCE_S
     idx = idx_all[keep]
@@ -166,10 +198,7 @@ def average_session(data: SessionData, min_samples: int = 10
     gyro_k, accel_k = kept_columns(data.gyro), kept_columns(data.accel)
     gyro, gyro_std = mean_std(gyro_k)
     accel, accel_std = mean_std(accel_k)
-    t_lo = np.full(n_steps, np.inf)
-    t_hi = np.full(n_steps, -np.inf)
-    np.minimum.at(t_lo, idx, t)
-    np.maximum.at(t_hi, idx, t)
+    t_lo, t_hi = _run_extremes(idx, t, n_steps)
     t_mid = np.full(n_steps, np.nan)
     t_mid[count > 0] = (t_lo[count > 0] + t_hi[count > 0]) / 2.0
     temp = np.full(n_steps, np.nan)
@@ -189,10 +218,10 @@ def average_session(data: SessionData, min_samples: int = 10
 
     warnings: list[SessionWarning] = []
     usable = np.ones(n_steps, bool)
-    ids = steps["step"].to_numpy(np.int64)
+    ids = cols["step"]
     short = (n_any == 0) | (count < min_samples)
     for i in np.flatnonzero(short | sat_g | sat_a):  # per left-out step, not per sample
-        what = _describe(steps, i)
+        what = _describe(cols, i)
         if n_any[i] == 0:
             warnings.append(SessionWarning(W_EMPTY_STEP, f"{data.label}: {what} has no samples; "
                                            f"left out", step=int(ids[i])))
@@ -214,10 +243,10 @@ def average_session(data: SessionData, min_samples: int = 10
                            + ")")
     sm = StepMeans(
         key=data.key if data.key is not None else SessionKey("", data.label, 0),
-        step=ids, test=steps["test"].to_numpy(str), up_axis=steps["up_axis"].to_numpy(str),
-        rate_dps=steps["rate_dps"].to_numpy(float), angle_deg=steps["angle_deg"].to_numpy(float),
-        w_ref=steps[list(W_REF_COLUMNS)].to_numpy(float),
-        f_ref=steps[list(F_REF_COLUMNS)].to_numpy(float),
+        step=ids, test=cols["test"], up_axis=cols["up_axis"],
+        rate_dps=cols["rate_dps"], angle_deg=cols["angle_deg"],
+        w_ref=np.column_stack([cols[c] for c in W_REF_COLUMNS]),
+        f_ref=np.column_stack([cols[c] for c in F_REF_COLUMNS]),
         gyro=gyro, accel=accel, gyro_std=gyro_std, accel_std=accel_std, count=count,
         t_mid=t_mid, temp_c=temp, gyro_unit=meta.gyro_unit, accel_unit=meta.accel_unit,
         g_local=meta.g_local, sample_rate_hz=data.sample_rate_hz,

@@ -8,10 +8,20 @@ session's ``g_local``); ``LSB`` and ``V`` stay raw.
 Order of checks (the first failure is the one reported): files exist -> steps.parquet
 readable, columns, types, content -> samples.parquet readable, metadata, columns, types,
 content (step ids, time, finite values).
+
+Speed (docs/benchmarks.md): a session is read with two ``ParquetFile.read`` calls with column
+projection and no pandas on the sample path. ``steps.parquet`` is the same small table in every
+session of a fleet, so its validated form is cached by the SHA-256 of the file's bytes (an
+LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached, and every caller gets
+its own copy); the sample -> step-row index computed for the unknown-step check is handed to
+the averaging (``SessionData.step_row``) instead of being searched again.
 """
 from __future__ import annotations
 
+import hashlib
 import re
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping
@@ -35,6 +45,8 @@ from schemas.errors import (
 )
 
 INT32_MIN, INT32_MAX = -(2 ** 31), 2 ** 31 - 1
+STEPS_CACHE_SIZE = 16
+LOOKUP_MAX_ID = 1 << 20  # step ids in [-1, this): sample -> step row by a lookup table
 
 
 @dataclass(frozen=True)
@@ -51,6 +63,8 @@ class SessionData:
     accel: np.ndarray  # (n, 3) float64, meta.accel_unit
     temp_c: np.ndarray | None  # (n,) float64 or None when not recorded
     meta: SessionMeta
+    # (n,) row of ``steps`` of each sample (-1 between steps); None: the averaging computes it
+    step_row: np.ndarray | None = None
 
     @property
     def sample_rate_hz(self) -> float:
@@ -99,7 +113,7 @@ def _as_table(obj, file: str, label: str) -> pa.Table:
 def _strings(col: pa.ChunkedArray) -> np.ndarray:
     if pa.types.is_dictionary(col.type):
         col = col.cast(col.type.value_type)
-    return np.array(col.to_pylist(), dtype=object)
+    return np.asarray(col.to_numpy(zero_copy_only=False), dtype=object)
 
 
 def _floats(col: pa.ChunkedArray) -> np.ndarray:
@@ -149,7 +163,8 @@ def validate_steps(table: pa.Table | pd.DataFrame, label: str,
             raise SessionError(E_BAD_STEP_DEFINITION, label, file,
                                f"{name} {values[i]!r} is not one of {', '.join(allowed)} "
                                f"({int(bad.sum())} step(s))", column=name, step=int(ids[i]))
-        out[name] = values.astype(str)
+        # built as the pandas string dtype directly (an astype of the frame costs ~3 ms)
+        out[name] = pd.array(values.astype(str).astype(object), dtype="string")
     for name in ("rate_dps", "angle_deg") + W_REF_COLUMNS + F_REF_COLUMNS + ("settle_s",):
         values = _floats(table.column(name))
         bad = np.isinf(values) if name == "angle_deg" else ~np.isfinite(values)
@@ -168,16 +183,39 @@ def validate_steps(table: pa.Table | pd.DataFrame, label: str,
         col = table.column("duration_s")
         if pa.types.is_floating(col.type) or pa.types.is_integer(col.type):
             out["duration_s"] = _floats(col)
-    df = pd.DataFrame(out)
-    return df.astype({"test": "string", "up_axis": "string"})
+    return pd.DataFrame(out)
+
+
+_steps_cache: OrderedDict[bytes, pd.DataFrame] = OrderedDict()
+_steps_lock = threading.Lock()  # the nightly flow reads sessions from a thread pool
 
 
 def read_steps(path: Path, label: str) -> pd.DataFrame:
-    pf = _open(path, label)
+    _open(path, label)  # existence, type, size and Parquet checks, each with its own error
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise SessionError(E_UNREADABLE_FILE, label, path.name, f"cannot read {path}: {exc}") from exc
+    digest = hashlib.sha256(raw).digest()
+    with _steps_lock:
+        cached = _steps_cache.get(digest)
+        if cached is not None:
+            _steps_cache.move_to_end(digest)
+            return cached.copy()
+    try:
+        pf = pq.ParquetFile(pa.BufferReader(raw))
+    except (pa.ArrowException, OSError, ValueError) as exc:  # changed since _open looked at it
+        raise SessionError(E_UNREADABLE_FILE, label, path.name,
+                           f"not a readable Parquet file (truncated or corrupt?): {exc}") from exc
     names = check_columns(pf.schema_arrow, STEPS_RULES, label, path.name)
     if "duration_s" in pf.schema_arrow.names:
         names = names + ["duration_s"]
-    return validate_steps(_read(pf, names, label, path.name), label, path.name)
+    df = validate_steps(_read(pf, names, label, path.name), label, path.name)
+    with _steps_lock:
+        _steps_cache[digest] = df.copy()
+        while len(_steps_cache) > STEPS_CACHE_SIZE:
+            _steps_cache.popitem(last=False)
+    return df
 
 
 # --- samples ------------------------------------------------------------------------------
@@ -196,11 +234,11 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
     if n == 0:
         raise SessionError(E_EMPTY_SESSION, label, file, "samples table has no rows")
     step = _int_ids(table.column("step"), label, file, E_UNKNOWN_STEP)
-    known = np.append(steps["step"].to_numpy(np.int64), -1)
-    present = np.unique(step)
-    unknown = present[~np.isin(present, known)]
-    if len(unknown):
-        n_rows = int(np.isin(step, unknown).sum())
+    step_row = _step_rows(step, steps["step"].to_numpy(np.int64))
+    unknown_rows = step_row == -2
+    if unknown_rows.any():
+        unknown = np.unique(step[unknown_rows])
+        n_rows = int(unknown_rows.sum())
         raise SessionError(E_UNKNOWN_STEP, label, file,
                            f"step id {int(unknown[0])} is not in steps.parquet ({len(unknown)} "
                            f"unknown id(s), {n_rows} sample(s))", column="step",
@@ -258,7 +296,29 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
             raise SessionError(E_NONFINITE_VALUE, label, file,
                                f"temperature is infinite at row {i}", column="temp_c", step=s)
     return SessionData(key=key, label=label, steps=steps, step=step, t=t, gyro=gyro,
-                       accel=accel, temp_c=temp, meta=meta)
+                       accel=accel, temp_c=temp, meta=meta, step_row=step_row)
+
+
+def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Row of ``ids`` (unique step ids) for every sample's step id: -1 for the between-steps
+    id -1, -2 for an id not in ``ids``. A lookup table when the ids are small (the usual
+    0..N), a binary search otherwise; no sort of the samples either way."""
+    n_ids = len(ids)
+    lo = int(min(ids.min(initial=0), step.min(initial=0)))
+    hi = int(max(ids.max(initial=0), step.max(initial=0)))
+    rows = np.arange(n_ids, dtype=np.int32)
+    if lo >= -1 and hi < LOOKUP_MAX_ID:
+        lut = np.full(hi + 2, -2, dtype=np.int32)  # position 0 is id -1
+        lut[0] = -1
+        lut[ids + 1] = rows
+        return lut[step + 1]
+    order = np.argsort(ids, kind="stable")
+    sorted_ids = ids[order]
+    pos = np.clip(np.searchsorted(sorted_ids, step), 0, max(n_ids - 1, 0))
+    found = sorted_ids[pos] == step
+    out = np.where(found, order[pos], -2).astype(np.int32)
+    out[step == -1] = -1
+    return out
 
 
 def read_session(ref: SessionRef) -> SessionData:

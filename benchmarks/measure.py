@@ -1,0 +1,360 @@
+"""One measurement per process: ``python -m benchmarks.measure KIND [options]``.
+
+Each measurement runs in its own process so that its peak resident memory is its own (the
+parent, :mod:`benchmarks.run`, reads the child's ``ru_maxrss`` with ``os.wait4``) and so that
+imports and Prefect start-up are counted where they belong. The child prints one line
+``BENCH_RESULT {json}`` on stdout. Besides its own peak RSS, the child samples the RSS of its
+whole process tree (Prefect's temporary API server, Dask workers, a process pool) every 0.1 s
+with psutil and reports the peak of the sum as ``tree_peak_rss_mb``.
+
+Kinds:
+
+- ``simulate``: write a fleet with :func:`flows.fleet_sim.simulate_fleet`.
+- ``floor``: a bare ``pyarrow.dataset`` scan of every ``samples.parquet`` with column
+  projection (step + six sensor columns) and a group-by-step mean per file: the cost of just
+  reading the data and averaging it.
+- ``fit``: the fit phase (read, validate, average, fit, aggregate) through
+  :func:`flows.unit_pipeline.calibrate_unit` over all units, in one process or a pool of
+  ``--workers`` processes fed batches of units.
+- ``stages``: the same per session, split into read+validate, average, fit and aggregate, on
+  the first ``--units`` units (where the fit phase time goes).
+- ``nightly``: :func:`flows.nightly.nightly_fleet_calibration` end to end (``force=True``),
+  with the thread pool (``--dask-workers 0``) or a Dask ``LocalCluster`` of N single-threaded
+  worker processes; the run log gives the fit phase (``calibration_s``) and the rest
+  (store, flags, reports).
+- ``rerun``: :func:`flows.nightly.rerun_unit` of one unit on an existing results store.
+- ``unit``: :func:`flows.unit_pipeline.calibrate_unit` of one unit, no Prefect.
+- ``prefect``: Prefect start-up: ``import prefect`` and a trivial flow run with mimucal's
+  settings (a fresh ``PREFECT_HOME`` gives the first-run cost, an existing one the usual).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import threading
+import time
+from pathlib import Path
+
+SENSOR_COLUMNS = ["gx", "gy", "gz", "ax", "ay", "az"]
+
+
+class TreeRss:
+    """Peak of the summed RSS of this process and all its descendants, sampled."""
+
+    def __init__(self, interval_s: float = 0.1):
+        self.interval_s = interval_s
+        self.peak = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _sample(self) -> None:
+        import psutil
+        try:
+            me = psutil.Process()
+            procs = [me] + me.children(recursive=True)
+        except psutil.Error:
+            return
+        total = 0
+        for p in procs:
+            try:
+                total += p.memory_info().rss
+            except psutil.Error:
+                pass
+        self.peak = max(self.peak, total)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._sample()
+            self._stop.wait(self.interval_s)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._sample()
+        self._stop.set()
+        self._thread.join()
+        return False
+
+
+def cpu_s() -> float:
+    """User + system CPU seconds of this process and its waited-for children: less sensitive
+    than wall time to other work on a shared machine."""
+    a = resource.getrusage(resource.RUSAGE_SELF)
+    b = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+
+def _units(dataset: str):
+    from schemas.dataset import find_sessions
+    refs, errors = find_sessions(dataset)
+    by_unit: dict[tuple[str, str], list] = {}
+    for r in refs:
+        by_unit.setdefault((r.key.lot, r.key.unit), []).append(r)
+    return [by_unit[k] for k in sorted(by_unit)], errors
+
+
+def _sample_files(dataset: str) -> list[str]:
+    return sorted(str(p) for p in Path(dataset).glob("lot=*/unit=*/rep=*/samples.parquet"))
+
+
+# --- kinds ------------------------------------------------------------------------------------
+def do_simulate(a) -> dict:
+    from calib_core import protocols
+    from flows.fleet_sim import simulate_fleet
+    lots = max(1, -(-a.units // a.units_per_lot))
+    per_lot = a.units // lots
+    steps = protocols.default_session(duration_s=a.step_s)
+    t0 = time.perf_counter()
+    m = simulate_fleet(a.out, lots=lots, units=per_lot, reps=a.reps, seed=a.seed,
+                       sample_rate_hz=a.rate, protocol=steps)
+    elapsed = time.perf_counter() - t0
+    files = _sample_files(a.out)
+    size = sum(os.path.getsize(p) for p in Path(a.out).rglob("*.parquet"))
+    import pyarrow.parquet as pq
+    rows = pq.ParquetFile(files[0]).metadata.num_rows
+    return {"elapsed_s": elapsed, "lots": lots, "units": lots * per_lot, "reps": a.reps,
+            "sessions": len(files), "n_steps": m["n_steps"], "samples_per_session": rows,
+            "disk_mb": size / 1e6}
+
+
+def floor_scan(dataset: str) -> tuple[int, int]:
+    """Scan + group-by-step mean of every session (one result table per file, so memory is
+    bounded by a file). Returns (files, steps averaged)."""
+    import pyarrow as pa
+    import pyarrow.dataset as ds
+    files = _sample_files(dataset)
+    d = ds.dataset(files, format="parquet")
+    n_steps = 0
+    aggs = [(c, "mean") for c in SENSOR_COLUMNS]
+    # scan_batches keeps pyarrow's threaded read-ahead across files; a session's samples come
+    # in one or more batches tagged with their file, grouped when the file is complete
+    pending: list = []
+    current = None
+    for tagged in d.scanner(columns=["step"] + SENSOR_COLUMNS, use_threads=True,
+                            batch_size=1 << 20).scan_batches():
+        path = tagged.fragment.path
+        if current is not None and path != current:
+            n_steps += pa.Table.from_batches(pending).group_by("step").aggregate(aggs).num_rows
+            pending = []
+        current = path
+        pending.append(tagged.record_batch)
+    if pending:
+        n_steps += pa.Table.from_batches(pending).group_by("step").aggregate(aggs).num_rows
+    return len(files), n_steps
+
+
+def do_floor(a) -> dict:
+    import pyarrow  # noqa: F401  (import cost is not part of the floor)
+    import pyarrow.dataset  # noqa: F401
+    t0, c0 = time.perf_counter(), cpu_s()
+    n_files, n_steps = floor_scan(a.dataset)
+    return {"elapsed_s": time.perf_counter() - t0, "cpu_s": cpu_s() - c0, "sessions": n_files,
+            "steps": n_steps}
+
+
+def _fit_units(batch: list) -> tuple[int, int, float]:
+    from flows.unit_pipeline import calibrate_unit
+    ok = failed = 0
+    t0 = time.perf_counter()
+    for refs in batch:
+        u = calibrate_unit(refs, keep_step_means=False)
+        ok += sum(s.succeeded for s in u.sessions)
+        failed += sum(not s.succeeded for s in u.sessions)
+    return ok, failed, time.perf_counter() - t0
+
+
+def do_fit(a) -> dict:
+    import flows.unit_pipeline  # noqa: F401  (imports are not part of the fit phase)
+    t_list = time.perf_counter()
+    units, _ = _units(a.dataset)
+    t0, c0 = time.perf_counter(), cpu_s()
+    ok = failed = 0
+    if a.workers <= 1:
+        ok, failed, _ = _fit_units(units)
+    else:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+        batches = [units[i:i + a.batch] for i in range(0, len(units), a.batch)]
+        with ProcessPoolExecutor(a.workers, mp_context=mp.get_context("fork")) as pool:
+            for o, f, _ in pool.map(_fit_units, batches):
+                ok += o
+                failed += f
+    elapsed = time.perf_counter() - t0
+    cpu = cpu_s() - c0
+    return {"elapsed_s": elapsed, "cpu_s": cpu, "per_unit_cpu_ms": 1e3 * cpu / max(1, len(units)),
+            "find_s": t0 - t_list, "units": len(units),
+            "sessions_ok": ok, "sessions_failed": failed,
+            "per_unit_ms": 1e3 * elapsed / max(1, len(units)), "workers": a.workers}
+
+
+def do_stages(a) -> dict:
+    from calib_core.pipeline import calibrate_repetition
+    from flows.unit_pipeline import aggregate_unit, calibrate_session  # noqa: F401
+    from schemas.averaging import average_session
+    from schemas.reader import read_session
+    units, _ = _units(a.dataset)
+    units = units[: a.units]
+    t = {"read_validate": 0.0, "average": 0.0, "fit": 0.0, "aggregate": 0.0, "floor": 0.0}
+    n = 0
+    import pyarrow.dataset as ds
+    aggs = [(c, "mean") for c in SENSOR_COLUMNS]
+    for refs in units:
+        outcomes = []
+        for ref in refs:
+            t0 = time.perf_counter()
+            ds.dataset(str(ref.samples_path), format="parquet").to_table(
+                columns=["step"] + SENSOR_COLUMNS).group_by("step").aggregate(aggs)
+            t1 = time.perf_counter()
+            data = read_session(ref)
+            t2 = time.perf_counter()
+            sm, _ = average_session(data)
+            t3 = time.perf_counter()
+            calibrate_repetition(sm)
+            t4 = time.perf_counter()
+            t["floor"] += t1 - t0
+            t["read_validate"] += t2 - t1
+            t["average"] += t3 - t2
+            t["fit"] += t4 - t3
+            n += 1
+        t0 = time.perf_counter()
+        outcomes = [calibrate_session(r, keep_step_means=False) for r in refs]
+        t1 = time.perf_counter()
+        aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
+        t["aggregate"] += time.perf_counter() - t1
+        del t0
+    per_session_ms = {k: 1e3 * v / max(1, n) for k, v in t.items()}
+    per_session_ms["aggregate"] = 1e3 * t["aggregate"] / max(1, n)  # spread over sessions
+    return {"sessions": n, "per_session_ms": per_session_ms}
+
+
+def _prefect_env(results: str) -> None:
+    from flows import runtime
+    runtime.ensure_environment(results)
+
+
+def do_nightly(a) -> dict:
+    _prefect_env(a.results)
+    t_imp = time.perf_counter()
+    from flows import nightly
+    import_s = time.perf_counter() - t_imp
+    cluster = client = None
+    address = None
+    t_cluster = 0.0
+    if a.dask_workers > 0:
+        import logging
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+        from dask.distributed import LocalCluster
+        t0 = time.perf_counter()
+        cluster = LocalCluster(n_workers=a.dask_workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.WARNING)
+        address = cluster.scheduler_address
+        t_cluster = time.perf_counter() - t0
+    try:
+        t0 = time.perf_counter()
+        log = nightly.nightly_fleet_calibration(a.dataset, a.results, force=True,
+                                                dask_address=address, batch_size=a.batch,
+                                                progress=False)
+        wall = time.perf_counter() - t0
+    finally:
+        if cluster is not None:
+            cluster.close()
+    fit = float(log.get("calibration_s") or 0.0)
+    inflow = float(log.get("elapsed_s") or 0.0)
+    return {"wall_s": wall, "import_s": import_s, "cluster_start_s": t_cluster,
+            "flow_elapsed_s": inflow, "fit_phase_s": fit, "report_phase_s": inflow - fit,
+            "outside_flow_s": wall - inflow, "units_calibrated": log.get("units_calibrated"),
+            "sessions_calibrated": log.get("sessions_calibrated"),
+            "failed_sessions": len(log.get("failed_sessions") or []),
+            "reports": len(log.get("reports") or []),
+            "report_problems": log.get("report_problems") or [],
+            "dask_workers": a.dask_workers, "batch_size": a.batch}
+
+
+def do_rerun(a) -> dict:
+    _prefect_env(a.results)
+    t_imp = time.perf_counter()
+    from flows import nightly
+    import_s = time.perf_counter() - t_imp
+    t0 = time.perf_counter()
+    log = nightly.rerun_unit(a.dataset, a.results, a.unit)
+    wall = time.perf_counter() - t0
+    return {"wall_s": wall, "import_s": import_s, "flow_elapsed_s": float(log["elapsed_s"]),
+            "outside_flow_s": wall - float(log["elapsed_s"]),
+            "units_calibrated": log.get("units_calibrated"),
+            "report_problems": log.get("report_problems") or []}
+
+
+def do_unit(a) -> dict:
+    t_imp = time.perf_counter()
+    from flows.unit_pipeline import calibrate_unit
+    from schemas.dataset import find_sessions
+    import_s = time.perf_counter() - t_imp
+    t0 = time.perf_counter()
+    refs, _ = find_sessions(a.dataset, unit=a.unit)
+    u = calibrate_unit(refs)
+    return {"elapsed_s": time.perf_counter() - t0, "import_s": import_s,
+            "sessions_ok": sum(s.succeeded for s in u.sessions)}
+
+
+def do_prefect(a) -> dict:
+    _prefect_env(a.results)
+    t0 = time.perf_counter()
+    from prefect import flow
+    from flows import runtime
+    import_s = time.perf_counter() - t0
+
+    @flow(name="mimucal-bench-noop", persist_result=False)
+    def noop() -> int:
+        return 1
+
+    t1 = time.perf_counter()
+    with runtime.run_settings():
+        noop()
+    first = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    with runtime.run_settings():
+        noop()
+    second = time.perf_counter() - t2
+    return {"import_s": import_s, "first_flow_s": first, "second_flow_s": second,
+            "startup_s": import_s + first}
+
+
+KINDS = {"simulate": do_simulate, "floor": do_floor, "fit": do_fit, "stages": do_stages,
+         "nightly": do_nightly, "rerun": do_rerun, "unit": do_unit, "prefect": do_prefect}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="one benchmark measurement (see module docstring)")
+    ap.add_argument("kind", choices=sorted(KINDS))
+    ap.add_argument("--dataset")
+    ap.add_argument("--results")
+    ap.add_argument("--out")
+    ap.add_argument("--unit")
+    ap.add_argument("--units", type=int, default=10)
+    ap.add_argument("--units-per-lot", type=int, default=50)
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--step-s", type=float, default=3.0)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--dask-workers", type=int, default=0)
+    a = ap.parse_args(argv)
+    with TreeRss() as tree:
+        out = KINDS[a.kind](a)
+    out["tree_peak_rss_mb"] = tree.peak / 2 ** 20
+    out["process_cpu_s"] = cpu_s()
+    out["self_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out["children_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    sys.stdout.flush()
+    print("BENCH_RESULT " + json.dumps(out), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
