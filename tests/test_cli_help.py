@@ -37,3 +37,16 @@ def test_reproduce_xu2016_fast_prints_three_tables(capsys):
     line = next(l for l in text.splitlines() if l.startswith("k_g33"))
     published, ours = map(float, line.split()[1:3])
     assert published == 1.00579 and abs(ours - published) < 1e-3
+
+
+def test_reproduce_xu2016_through_samples_and_the_reader_at_a_low_rate(capsys):
+    """The whole path of the README command (simulated samples -> reader's averaging ->
+    fits), at 10 Hz to stay fast."""
+    from flows.cli import main
+    assert main(["reproduce", "xu2016", "--rate", "10", "--seed", "2"]) == 0
+    text = capsys.readouterr().out
+    line = next(l for l in text.splitlines() if l.startswith("k_g11"))
+    published, ours = map(float, line.split()[1:3])
+    assert abs(ours - published) < 1e-3
+    z = next(l for l in text.splitlines() if l.startswith("z     proposed       z"))
+    assert "-2.954" in z  # the published range stands beside ours
