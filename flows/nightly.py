@@ -64,6 +64,7 @@ class UnitResult:
     diagnosis: dict | None = None
     discovery_note: str | None = None
     elapsed_s: float = 0.0
+    navigation: pd.DataFrame | None = None  # zhang2017 drift curves (reruns only)
 
     @property
     def calibrated(self) -> bool:
@@ -121,6 +122,7 @@ def _discovery_available() -> bool:
 def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
+    from calib_core.pipeline import baseline_residuals
     from flows.unit_pipeline import aggregate_unit, calibrate_session
     t0 = time.perf_counter()
     outcomes = [calibrate_session(r) for r in sorted(job.refs, key=lambda r: r.key.rep)]
@@ -133,6 +135,11 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
             diag_doc = diag.to_dict()
             terms = tuple(diag.terms)
             extended = diag.calibration if terms else None
+            if terms:  # residuals of the extended model, for the before/after plots
+                good = [o for o in outcomes if o.succeeded and o.step_means is not None]
+                for o, cal in zip(good, diag.calibrations_after):
+                    ext = baseline_residuals(o.step_means, cal, model="extended")
+                    o.residuals = pd.concat([o.residuals, ext], ignore_index=True)
         except Exception as exc:  # discovery must not cost the unit its calibration
             note = f"model discovery failed: {type(exc).__name__}: {exc}"
     elif run_discovery and not _discovery_available():
@@ -175,7 +182,7 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     when = when or utc_now()
     stamp = iso(when)
     sess_rows, par_rows, sum_rows, unit_rows, disc_rows = [], [], [], [], []
-    res_frames, comp_frames = [], []
+    res_frames, comp_frames, nav_frames = [], [], []
     ok_units: set[tuple[str, str]] = set()
     stale_units: dict[tuple[str, str], str] = {}
     previous_units = store.read("units")
@@ -196,6 +203,8 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                 "n_warned": n_warned, "n_failed": n_failed, "run_id": run_id, "updated_at": stamp}
         if ur.calibrated:
             ok_units.add(key)
+            if ur.navigation is not None and len(ur.navigation):
+                nav_frames.append(ur.navigation.assign(lot=ur.lot, unit=ur.unit))
             for s in out.sessions:
                 if s.calibration is None or not s.succeeded:
                     continue
@@ -263,18 +272,24 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
             else:
                 disc_rows.append({**common, "effect": None})
     all_units = {(ur.lot, ur.unit) for ur in results}
-    store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)
     store.replace_units("units", _frame(unit_rows, "units"), all_units)
     store.replace_units("parameters", _frame(par_rows, "parameters"), ok_units)
     store.replace_units("summary", _frame(sum_rows, "summary"), ok_units)
     for name, frames in (("residuals", res_frames), ("compensation", comp_frames)):
         store.replace_units(name, pd.concat(frames, ignore_index=True) if frames else None,
                             ok_units)
+    nav_units = {(ur.lot, ur.unit) for ur in results if ur.navigation is not None}
+    if nav_units:
+        store.replace_units("navigation", pd.concat(nav_frames, ignore_index=True)
+                            if nav_frames else None, nav_units)
     disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
     if disc_units:
         store.replace_units("discovery", _frame(disc_rows, "discovery"), disc_units)
     for key, why in stale_units.items():
         store.update_rows("summary", {key}, stale=True, stale_reason=why)
+    # sessions.parquet last: its fingerprints tell the next run which units are done, so a
+    # crash before this point leaves the units "changed" and the rerun redoes them whole
+    store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)
     return {"calibrated": sorted(f"{lot}/{u}" for lot, u in ok_units),
             "stale": {f"{lot}/{u}": w for (lot, u), w in stale_units.items()}}
 
@@ -346,10 +361,30 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
     return lf
 
 
-def write_reports(results: str | Path, lots: list[str]) -> tuple[list[str], list[str]]:
-    """Lot reports and the fleet index; returns (paths written, problems). A report failure
-    never undoes a calibration."""
+def unit_navigation(ur: UnitResult) -> pd.DataFrame | None:
+    """Navigation drift of the unit's first repetition with a fully determined lever arm."""
+    from calib_core.navigation import navigation_table
+
+    if not ur.calibrated:
+        return None
+    for rep in ur.outcome.calibration.reps:
+        static, lever = rep.fits.get("accel_static"), rep.fits.get("lever_arm")
+        if static is not None and lever is not None and not lever.undetermined:
+            return navigation_table(static, lever)
+    return None
+
+
+def write_reports(results: str | Path, lots: list[str], units: tuple[str, ...] = ()
+                  ) -> tuple[list[str], list[str]]:
+    """Lot reports, unit reports of ``units`` (reruns) and the fleet index; returns (paths
+    written, problems). A report failure never undoes a calibration."""
     written, problems = [], []
+    for unit in units:
+        try:
+            from reports.unit import write_unit_report
+            written.append(str(write_unit_report(results, unit)))
+        except Exception as exc:
+            problems.append(f"unit report {unit}: {type(exc).__name__}: {exc}")
     try:
         from reports.lot import write_lot_report
     except ImportError as exc:
@@ -445,6 +480,11 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                                "dataset": str(dataset), "results": str(results),
                                "force": force, "code_version": version,
                                "config": config, "batch_size": batch_size}
+        # runs that died before their end (SIGKILL, power loss): what they stored is complete
+        # (atomic writes, fingerprints last), but their flags and reports may not be
+        interrupted = interrupted_runs(store)
+        if interrupted:
+            log["recovering_runs"] = interrupted
         refs, path_errors = find_sessions(dataset)
         jobs, skipped = plan_units(refs, store.fingerprints(), force)
         if run_discovery and not _discovery_available():
@@ -465,7 +505,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         results_ = _run_batches(jobs, batch_size, run_discovery, on_progress) if jobs else []
         t_cal = time.monotonic() - t0
         stored = store_results(store, results_, run_id, version)
-        lots = sorted({r.lot for r in results_})
+        lots = sorted({r.lot for r in results_} | (set(store.lots()) if interrupted else set()))
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
         reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
         for p in problems:
@@ -488,7 +528,25 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         })
         log["summary"] = summary_line(log)
         store.write_run(run_id, log)
+        for rid in interrupted:  # recovered: later runs need not redo it
+            doc = store.read_run(rid)
+            doc.update({"interrupted": True, "recovered_by": run_id})
+            store.write_run(rid, doc)
     return jsonable(log)
+
+
+def interrupted_runs(store: ResultsStore) -> list[str]:
+    """Ids of nightly runs whose log has a start but no end and that no later run recovered.
+    Called while holding the lock, so none of them is still running."""
+    out = []
+    for p in store.runs():
+        try:
+            doc = json.loads(p.read_text())
+        except (OSError, ValueError):
+            continue
+        if doc.get("kind") == "nightly" and "end" not in doc and "recovered_by" not in doc:
+            out.append(str(doc.get("run_id", p.stem)))
+    return out
 
 
 def summary_line(log: dict) -> str:
@@ -541,9 +599,15 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
                                "units_skipped": 0,
                                "path_errors": [e.to_dict() for e in path_errors]}
         res = calibrate_units_task.submit([job], run_discovery).result()
+        for r in res:
+            try:
+                r.navigation = unit_navigation(r)
+            except Exception as exc:  # the drift figure must not cost the unit its calibration
+                r.discovery_note = "; ".join(filter(None, [r.discovery_note,
+                                             f"navigation replay failed: {exc}"]))
         stored = store_results(store, res, run_id, version)
         lf, report_lots = reflag_after_update(store, [lot], cfg)
-        reports, problems = write_reports(results, report_lots)
+        reports, problems = write_reports(results, report_lots, units=(unit,))
         failed = [{"session": str(s.key), "code": s.code, "message": s.message}
                   for r in res for s in r.outcome.sessions if s.status == "failed"]
         log.update({

@@ -59,6 +59,8 @@ TABLE_COLUMNS: dict[str, list[str]] = {
     "residuals": ["lot", "unit", "rep"],
     "compensation": ["lot", "unit", "rep"],
     "discovery": ["lot", "unit", "effect"],
+    # zhang2017 navigation drift of a unit's own fitted model (written by reruns)
+    "navigation": ["lot", "unit", "case", "t", "vel_err", "pos_err"],
 }
 TABLES = tuple(TABLE_COLUMNS)
 # dtypes of key columns, so that empty tables and concatenations agree
@@ -292,6 +294,7 @@ class ResultsStore:
                                "since": iso(utc_now())})
             os.ftruncate(fd, 0)
             os.pwrite(fd, info.encode(), 0)
+            self.remove_stale_temp_files()
             try:
                 yield
             finally:
@@ -299,6 +302,23 @@ class ResultsStore:
                 fcntl.flock(fd, fcntl.LOCK_UN)
         finally:
             os.close(fd)
+
+    def remove_stale_temp_files(self) -> list[Path]:
+        """Delete the temp files (``.<name>.<random>.tmp``) of writers that died mid-write
+        (SIGKILL, power loss: their ``except`` never ran). Only called while holding the
+        lock, so no live writer owns them; the files they were replacing are intact."""
+        removed = []
+        for d in (self.root, self.runs_dir, *(self.calibrations_dir.glob("*")
+                                                if self.calibrations_dir.is_dir() else ())):
+            if not d.is_dir():
+                continue
+            for p in d.glob(".*.tmp"):
+                try:
+                    p.unlink()
+                    removed.append(p)
+                except FileNotFoundError:
+                    pass
+        return removed
 
     def lock_holder(self) -> str | None:
         try:
