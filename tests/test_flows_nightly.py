@@ -131,6 +131,12 @@ def test_rerun_changes_only_that_unit_and_a_failed_rerun_keeps_the_last_good(fle
     assert set(unit_rows(table(results, "parameters"), "U0007")["run_id"]) == {log["run_id"]}
     cal_new = find_calibration(results, "U0007")
     assert cal_new != cal_before and cal_before.exists()
+    # the rerun writes the unit report with the zhang2017 navigation drift of the unit's model
+    nav = unit_rows(table(results, "navigation"), "U0007")
+    assert set(nav["case"]) == {"none", "static", "static+dynamic"}
+    final = nav[nav["t"] == nav["t"].max()].set_index("case")
+    assert final.loc["static+dynamic", "vel_err"] < 1e-6 < final.loc["none", "vel_err"]
+    assert (results / "reports" / "units" / "U0007.html").exists()
 
     # damage every session of U0007: the rerun fails, the last good calibration stays
     good_params = unit_rows(table(results, "parameters"), "U0007")
