@@ -27,14 +27,16 @@ demo: setup
 	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results
 	@echo "Lot reports: $$(ls $(DEMO)/results/reports/*.html 2>/dev/null | tr '\n' ' ')"
 
+# --dist loadfile: a module's tests share one worker, so module fixtures (a 60-unit fleet,
+# a browser, a Prefect API) are built once, not once per worker.
 # The browser install is best effort here (no root: the browser tests skip and say why);
 # CI installs it first and must succeed (.ci/run).
 test: setup
 	-bash scripts/install-browser.sh
-	$(VENV)/bin/pytest -q -n 2 --durations=15
+	$(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=15
 
 test-fast: setup
-	$(VENV)/bin/pytest -q -n 2 -m "not slow and not browser and not server"
+	$(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow and not browser and not server"
 
 reproduce: setup
 	$(VENV)/bin/mimucal reproduce xu2016
