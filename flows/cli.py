@@ -38,4 +38,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # `python -m flows.cli`: call the importable module's main, so that CliError raised by
+    # the commands is the same class main() catches (not __main__.CliError)
+    from flows.cli import main as _main
+
+    sys.exit(_main())

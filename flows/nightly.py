@@ -631,6 +631,8 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
                               config: str | Path | None = None, wait: bool = False,
                               run_discovery: bool = True, progress: bool = True) -> dict:
     """Run the nightly flow once (thread pool of 2, or Dask at ``dask_address``)."""
+    if not wait:  # a clear refusal, not a failed flow run in Prefect's database
+        ResultsStore(Path(results)).ensure_unlocked()
     runner = make_task_runner(dask_address)
     with runtime.run_settings():
         return nightly_flow.with_options(task_runner=runner)(
@@ -641,6 +643,8 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
                        wait: bool = False) -> dict:
+    if not wait:
+        ResultsStore(Path(results)).ensure_unlocked()
     with runtime.run_settings():
         return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
 
@@ -648,6 +652,8 @@ def lot_quality_report(results: str | Path, lot: str, config: str | Path | None 
 def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
                config: str | Path | None = None, wait: bool = False,
                run_discovery: bool = True) -> dict:
+    if not wait:
+        ResultsStore(Path(results)).ensure_unlocked()
     with runtime.run_settings():
         return rerun_flow(str(dataset), str(results), unit,
                           None if config is None else str(config), wait, run_discovery)

@@ -303,6 +303,14 @@ class ResultsStore:
         finally:
             os.close(fd)
 
+    def ensure_unlocked(self) -> None:
+        """Refuse early (before any orchestration starts) when another run holds the root.
+        Advisory: the run still takes :meth:`lock`, which is what guarantees exclusion."""
+        if not self.lock_path.exists():
+            return
+        with self.lock("probe"):
+            pass
+
     def remove_stale_temp_files(self) -> list[Path]:
         """Delete the temp files (``.<name>.<random>.tmp``) of writers that died mid-write
         (SIGKILL, power loss: their ``except`` never ran). Only called while holding the
