@@ -54,6 +54,7 @@ from calib_core.errors import DesignError
 from calib_core.replay import (NoiseEstimate, estimate_noise_arrays, noise_sigma, replay_unit,
                                test_group, two_way_residual, white_sigma)
 from calib_core.steps import StepMeans
+from calib_core.results import to_jsonable
 
 DEFAULT_ALPHA = 0.01
 _RCOND = 1e-10
@@ -352,18 +353,7 @@ class Diagnosis:
         })
 
 
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if np.isfinite(v) else None
-    return v
+_jsonable = to_jsonable  # one JSON conversion for the whole project
 
 
 # -- the procedure ----------------------------------------------------------------------

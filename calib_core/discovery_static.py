@@ -63,6 +63,7 @@ from scipy import stats
 from calib_core.calibration import Calibration
 from calib_core.effects import CHANNELS, MotionContext, catalogue, get_effect
 from calib_core.errors import DesignError
+from calib_core.results import to_jsonable
 
 DEFAULT_ALPHA = 0.01
 EARTH_RATE_DPS = 360.0 / 86164.1  # 0.00418 deg/s, ignored (see the module docstring)
@@ -175,18 +176,7 @@ class StaticDiagnosis:
             "earth_rate_ignored_dps": EARTH_RATE_DPS})
 
 
-def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if np.isfinite(v) else None
-    return v
+_jsonable = to_jsonable  # one JSON conversion for the whole project
 
 
 # -- measured quantities and contexts ----------------------------------------------------

@@ -10,6 +10,24 @@ import numpy as np
 FORMAT_VERSION = "1.0"
 
 
+def to_jsonable(v: Any, default=lambda x: x) -> Any:
+    """JSON-safe copy: numpy scalars and arrays to Python, non-finite floats to None;
+    ``default`` converts anything else (e.g. datetimes, paths)."""
+    if isinstance(v, dict):
+        return {str(k): to_jsonable(x, default) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [to_jsonable(x, default) for x in v]
+    if isinstance(v, np.ndarray):
+        return to_jsonable(v.tolist(), default)
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if np.isfinite(v) else None
+    return default(v)
+
+
 @dataclass(frozen=True)
 class Param:
     """One estimated scalar: model it belongs to, name, value, standard error, unit."""

@@ -39,6 +39,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from calib_core.results import to_jsonable
 from schemas.calibration_file import write_json_atomic
 
 STORE_FORMAT_VERSION = "1.0"
@@ -371,26 +372,17 @@ def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
     return min(files, key=lambda f: abs((f[0] - at).total_seconds()))[1]
 
 
-def _jsonable(obj: Any) -> Any:
-    """JSON-safe copy: numpy scalars/arrays to Python, non-finite floats to None."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    if isinstance(obj, (datetime,)):
+def _store_default(obj: Any) -> Any:
+    if isinstance(obj, datetime):
         return iso(obj)
     if isinstance(obj, Path):
         return str(obj)
     return obj
+
+
+def _jsonable(obj: Any) -> Any:
+    """JSON-safe copy: numpy to Python, non-finite floats to None, datetimes and paths to str."""
+    return to_jsonable(obj, _store_default)
 
 
 jsonable = _jsonable
