@@ -273,3 +273,15 @@ def simulate_step_means(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Ge
         gyro_range_dps=tuple(truth.gyro_range_dps), accel_range_g=tuple(truth.accel_range_g),
     )
     return sm.select(ok)
+
+
+def simulate_repetition_step_means(truth: MimuTruth, steps: pd.DataFrame,
+                                   rng: np.random.Generator, sample_rate_hz: float,
+                                   key: SessionKey, averager=None) -> StepMeans:
+    """One repetition's step means: drawn directly (``averager=None``, fast path) or by
+    simulating raw samples and averaging them with ``averager(key, steps, samples,
+    metadata)`` (the reader's own averaging, so the whole path runs)."""
+    if averager is None:
+        return simulate_step_means(truth, steps, rng, sample_rate_hz, key=key)
+    samples = simulate_session(truth, steps, rng, sample_rate_hz=sample_rate_hz)
+    return averager(key, steps, samples, session_metadata(truth, sample_rate_hz))

@@ -140,11 +140,8 @@ def reproduce(rate_hz: float = 100.0, reps: int = 5, seed: int = 0, duration_s: 
     for r in range(reps):
         rep_truth = simulator.draw_repetition_truth(truth, rng)
         key = SessionKey("xu2016", "MIMU", r + 1)
-        if averager is None:
-            sm = simulator.simulate_step_means(rep_truth, steps, rng, rate_hz, key=key)
-        else:
-            samples = simulator.simulate_session(rep_truth, steps, rng, sample_rate_hz=rate_hz)
-            sm = averager(key, steps, samples, simulator.session_metadata(rep_truth, rate_hz))
+        sm = simulator.simulate_repetition_step_means(rep_truth, steps, rng, rate_hz, key,
+                                                      averager)
         g = xu2016.fit_gyro_multirate(sm)
         fits.append((sm, g, xu2016.fit_accel_multiposition(sm), xu2016.fit_gyro_traditional(sm)))
     lines: list[str] = []

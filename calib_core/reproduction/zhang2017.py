@@ -78,11 +78,7 @@ def reproduce(rate_hz: float = 100.0, reps: int = 5, seed: int = 0, duration_s: 
     for r in range(reps):
         rep = simulator.draw_repetition_truth(mimu, rng)
         key = SessionKey("zhang2017", "MS9005", r + 1)
-        if averager is None:
-            sm = simulator.simulate_step_means(rep, steps, rng, rate_hz, key=key)
-        else:
-            samples = simulator.simulate_session(rep, steps, rng, sample_rate_hz=rate_hz)
-            sm = averager(key, steps, samples, simulator.session_metadata(rep, rate_hz))
+        sm = simulator.simulate_repetition_step_means(rep, steps, rng, rate_hz, key, averager)
         st = fit_accel_static(sm)
         lv = fit_lever_arm(sm, st)
         fits.append((st, lv, paper_lever_arm(sm, st), rep))
