@@ -34,47 +34,19 @@ from prefect.futures import as_completed  # noqa: E402
 from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
 
 from calib_core.outliers import LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots  # noqa: E402
+from flows.task_runners import DASK_ENV, LOCAL_WORKERS, default_task_runner, make_task_runner  # noqa: E402,F401
+from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and tools import them here)
+    UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
+)
 from schemas.dataset import SessionRef, find_sessions  # noqa: E402
 from schemas.results_store import (  # noqa: E402
     STORE_FORMAT_VERSION, ResultsStore, iso, jsonable, utc_now,
 )
 
 DEFAULT_BATCH_SIZE = 8
-LOCAL_WORKERS = 2
-DASK_ENV = "MIMUCAL_DASK_ADDRESS"  # the served deployment reads its Dask address here
 
 
 # --- plain-Python pieces (tested without Prefect) ------------------------------------------------
-@dataclass
-class UnitJob:
-    lot: str
-    unit: str
-    refs: list[SessionRef]
-    reason: str  # why it is (re)calibrated: new, changed, forced, rerun
-
-
-@dataclass
-class UnitResult:
-    """What a task returns for one unit: the lead's UnitOutcome (step means dropped) plus
-    discovery."""
-
-    lot: str
-    unit: str
-    outcome: Any  # flows.unit_pipeline.UnitOutcome
-    diagnosis: dict | None = None
-    discovery_note: str | None = None
-    elapsed_s: float = 0.0
-    navigation: pd.DataFrame | None = None  # zhang2017 drift curves (reruns only)
-
-    @property
-    def calibrated(self) -> bool:
-        return self.outcome is not None and self.outcome.applied is not None
-
-    @property
-    def n_failed(self) -> int:
-        return sum(1 for s in self.outcome.sessions if s.status == "failed")
-
-
 def plan_units(refs: list[SessionRef], previous: dict[tuple[str, str, int], str],
                force: bool = False) -> tuple[list[UnitJob], list[tuple[str, str]]]:
     """Units to calibrate (new, changed, or all with ``force``) and units skipped because
@@ -109,58 +81,6 @@ def plan_units(refs: list[SessionRef], previous: dict[tuple[str, str, int], str]
         else:
             skipped.append((lot, unit))
     return jobs, skipped
-
-
-def _discovery_available() -> bool:
-    try:
-        import calib_core.discovery  # noqa: F401
-        return True
-    except ImportError:
-        return False
-
-
-def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
-    """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
-    Never raises on bad data (the unit pipeline turns it into failed sessions)."""
-    from calib_core.pipeline import baseline_residuals
-    from flows.unit_pipeline import aggregate_unit, calibrate_session
-    t0 = time.perf_counter()
-    outcomes = [calibrate_session(r) for r in sorted(job.refs, key=lambda r: r.key.rep)]
-    diag_doc, note, terms, extended = None, None, (), None
-    good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
-    if run_discovery and _discovery_available() and len(good_sm) >= 2:
-        from calib_core.discovery import diagnose_unit
-        try:
-            diag = diagnose_unit(good_sm, tables=False)
-            diag_doc = diag.to_dict()
-            terms = tuple(diag.terms)
-            extended = diag.calibration if terms else None
-            if terms:  # residuals of the extended model, for the before/after plots
-                good = [o for o in outcomes if o.succeeded and o.step_means is not None]
-                for o, cal in zip(good, diag.calibrations_after):
-                    ext = baseline_residuals(o.step_means, cal, model="extended")
-                    o.residuals = pd.concat([o.residuals, ext], ignore_index=True)
-        except Exception as exc:  # discovery must not cost the unit its calibration
-            note = f"model discovery failed: {type(exc).__name__}: {exc}"
-    elif run_discovery and not _discovery_available():
-        note = "model discovery skipped: calib_core.discovery is not available"
-    elif run_discovery:
-        note = f"model discovery skipped: {len(good_sm)} good repetition(s), needs 2"
-    try:
-        unit_out = aggregate_unit(job.lot, job.unit, outcomes, terms=terms, extended=extended)
-    except Exception as exc:  # a bug in aggregation must not stop the fleet
-        from flows.unit_pipeline import UnitOutcome
-        unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
-        unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: "
-                              f"{type(exc).__name__}: {exc}")
-        note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
-    for o in unit_out.sessions:  # step means are not kept past this point
-        o.step_means = None
-    return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0)
-
-
-def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
-    return [calibrate_unit_job(j, run_discovery) for j in jobs]
 
 
 def _frame(rows: list[dict], name: str) -> pd.DataFrame:  # noqa: ARG001 (name: for reading)
@@ -213,13 +133,10 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                                      "model": p.model, "parameter": p.name, "value": p.value,
                                      "stderr": p.stderr, "unit_of_measure": p.unit,
                                      "code_version": code_version, "run_id": run_id})
-                for frames, df in ((res_frames, s.residuals), (comp_frames, s.compensation)):
-                    if df is not None and len(df):
-                        df = df.copy()
-                        for c, v in (("lot", ur.lot), ("unit", ur.unit), ("rep", s.key.rep)):
-                            if c not in df:
-                                df.insert(0, c, v)
-                        frames.append(df)
+            for frames, df in ((res_frames, out.residuals_frame()),
+                               (comp_frames, out.compensation_frame())):
+                if df is not None:
+                    frames.append(df)
             for ps in out.calibration.summary:
                 sum_rows.append({"lot": ur.lot, "unit": ur.unit, "model": ps.model,
                                  "parameter": ps.name, "mean": ps.mean, "std": ps.std,
@@ -450,20 +367,8 @@ def _run_batches(jobs: list[UnitJob], batch_size: int, run_discovery: bool,
     return results
 
 
-def _default_task_runner():
-    address = os.environ.get(DASK_ENV)
-    return make_task_runner(address) if address else ThreadPoolTaskRunner(max_workers=LOCAL_WORKERS)
-
-
-def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_WORKERS):
-    if dask_address:
-        from prefect_dask import DaskTaskRunner
-        return DaskTaskRunner(address=dask_address)
-    return ThreadPoolTaskRunner(max_workers=max_workers)
-
-
 @flow(name="nightly-fleet-calibration", persist_result=False, log_prints=False,
-      task_runner=_default_task_runner())
+      task_runner=default_task_runner())
 def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,

@@ -3,9 +3,11 @@ and the CLI both call. Never raises on bad data: a bad session becomes a failed 
 names its session, file, code and reason, and the rest of the unit goes on."""
 from __future__ import annotations
 
+import time
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -87,6 +89,27 @@ class UnitOutcome:
     def parameter_rows(self) -> list[Param]:
         return [p for s in self.sessions if s.calibration for p in s.calibration.parameters()]
 
+    def residuals_frame(self) -> pd.DataFrame | None:
+        """The per-step residual rows of every successful session, one frame for the unit
+        (columns ``calib_core.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
+        return self._table("residuals")
+
+    def compensation_frame(self) -> pd.DataFrame | None:
+        """The xu2016 Table 3 rows of every successful session, one frame for the unit."""
+        return self._table("compensation")
+
+    def _table(self, attr: str) -> pd.DataFrame | None:
+        frames = []
+        for s in self.sessions:
+            df = getattr(s, attr)
+            if s.succeeded and s.calibration is not None and df is not None and len(df):
+                df = df.copy()
+                for c, v in (("lot", self.lot), ("unit", self.unit), ("rep", s.key.rep)):
+                    if c not in df:
+                        df.insert(0, c, v)
+                frames.append(df)
+        return pd.concat(frames, ignore_index=True) if frames else None
+
 
 def aggregate_unit(lot: str, unit: str, outcomes: list[SessionOutcome],
                    terms: tuple[TermValue, ...] = (), extended: Calibration | None = None
@@ -117,3 +140,88 @@ def calibrate_unit(refs: list[SessionRef], keep_step_means: bool = True) -> Unit
         raise ValueError("no sessions given")
     outcomes = [calibrate_session(r, keep_step_means) for r in refs]
     return aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
+
+
+# --- one unit as the nightly and rerun flows run it (discovery included) ---------------------
+@dataclass
+class UnitJob:
+    lot: str
+    unit: str
+    refs: list[SessionRef]
+    reason: str  # why it is (re)calibrated: new, changed, forced, rerun
+
+
+@dataclass
+class UnitResult:
+    """What a task returns for one unit: the lead's UnitOutcome (step means dropped) plus
+    discovery."""
+
+    lot: str
+    unit: str
+    outcome: Any  # flows.unit_pipeline.UnitOutcome
+    diagnosis: dict | None = None
+    discovery_note: str | None = None
+    elapsed_s: float = 0.0
+    navigation: pd.DataFrame | None = None  # zhang2017 drift curves (reruns only)
+
+    @property
+    def calibrated(self) -> bool:
+        return self.outcome is not None and self.outcome.applied is not None
+
+    @property
+    def n_failed(self) -> int:
+        return sum(1 for s in self.outcome.sessions if s.status == "failed")
+
+
+def _discovery_available() -> bool:
+    try:
+        import calib_core.discovery  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
+    """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
+    Never raises on bad data (the unit pipeline turns it into failed sessions)."""
+    from calib_core.pipeline import baseline_residuals
+    from flows.unit_pipeline import aggregate_unit, calibrate_session
+    t0 = time.perf_counter()
+    outcomes = [calibrate_session(r) for r in sorted(job.refs, key=lambda r: r.key.rep)]
+    diag_doc, note, terms, extended = None, None, (), None
+    good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
+    if run_discovery and _discovery_available() and len(good_sm) >= 2:
+        from calib_core.discovery import diagnose_unit
+        try:
+            diag = diagnose_unit(good_sm, tables=False)
+            diag_doc = diag.to_dict()
+            terms = tuple(diag.terms)
+            extended = diag.calibration if terms else None
+            if terms:  # residuals of the extended model, for the before/after plots
+                good = [o for o in outcomes if o.succeeded and o.step_means is not None]
+                for o, cal in zip(good, diag.calibrations_after):
+                    ext = baseline_residuals(o.step_means, cal, model="extended")
+                    o.residuals = pd.concat([o.residuals, ext], ignore_index=True)
+        except Exception as exc:  # discovery must not cost the unit its calibration
+            note = f"model discovery failed: {type(exc).__name__}: {exc}"
+    elif run_discovery and not _discovery_available():
+        note = "model discovery skipped: calib_core.discovery is not available"
+    elif run_discovery:
+        note = f"model discovery skipped: {len(good_sm)} good repetition(s), needs 2"
+    try:
+        unit_out = aggregate_unit(job.lot, job.unit, outcomes, terms=terms, extended=extended)
+    except Exception as exc:  # a bug in aggregation must not stop the fleet
+        from flows.unit_pipeline import UnitOutcome
+        unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
+        unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: "
+                              f"{type(exc).__name__}: {exc}")
+        note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
+    for o in unit_out.sessions:  # step means are not kept past this point
+        o.step_means = None
+    return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0)
+
+
+def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
+    return [calibrate_unit_job(j, run_discovery) for j in jobs]
+
+
