@@ -28,11 +28,21 @@ Steps left out, each named in a :class:`SessionWarning`:
   detected unless its full scale is declared (``gyro_full_scale_raw``) or, in physical units,
   reached; with noise below about half a quantum a noise tail can look like a clip.
 
-Speed (docs/benchmarks.md): the steps table's columns are taken out of pandas once; the
-sample -> step index comes from the reader (``SessionData.step_row``); per-step first / last
-sample times come from the boundaries of runs of equal step index (``t`` is strictly
-increasing, so a run's first and last samples are its extremes), not from ``ufunc.at`` over
-every sample; means and standard deviations are ``bincount`` sums over the kept samples.
+Speed (docs/benchmarks.md, docs/perf-read.md): the steps table's columns come from the reader
+(``SessionData.step_columns``, taken out of pandas once per distinct steps file), the sample ->
+step index too (``SessionData.step_row``), and the six channels as one ``(6, n)`` array
+(``SessionData.channels``). The samples of a step are contiguous runs, so every per-step
+quantity is computed per *segment* (a maximal run of kept samples of one step; one segment per
+step in the usual file) with ``np.add.reduceat`` over the segment boundaries, one call for all
+six channels, and segments are added up per step only when a step has several. The settling
+rule is evaluated per sample (exactly as before: ``t - t0 >= settle_s - tolerance``) and the
+segments are the runs of the result, so no assumption is made about where kept samples lie.
+Means and standard deviations are two-pass as before; the sums are ``reduceat``'s (pairwise)
+instead of ``bincount``'s (sequential), which changes results by rounding only (a few ulp).
+The saturation rules need per-sample work only when a channel's kept extreme reaches the
+declared full scale, or is repeated at least ``CLIP_MIN_REPEATS`` times in the whole session,
+or the session has no sample left: otherwise no step can be saturated, which per-segment
+maxima and minima and one comparison per channel show.
 """
 from __future__ import annotations
 
@@ -43,12 +53,12 @@ import pandas as pd
 import pyarrow as pa
 
 from calib_core.steps import SessionKey, StepMeans
-from schemas.contract import ACCEL_COLUMNS, F_REF_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE, W_REF_COLUMNS
+from schemas.contract import ACCEL_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE
 from schemas.dataset import SessionRef
 from schemas.errors import (
     E_EMPTY_SESSION, W_EMPTY_STEP, W_SATURATED, W_TOO_SHORT, SessionError, SessionWarning,
 )
-from schemas.reader import SessionData, read_session, session_from_tables
+from schemas.reader import SessionData, StepColumns, read_session, session_from_tables
 
 SETTLE_TOLERANCE_S = 1e-6  # t - t0 of a sample exactly at settle_s may round to 0.4999999
 CLIP_MIN_REPEATS = 3
@@ -62,7 +72,7 @@ def _step_index(data: SessionData) -> np.ndarray:
     """Row of steps for every sample (-1 between steps)."""
     if data.step_row is not None:
         return data.step_row
-    ids = data.steps["step"].to_numpy(np.int64)
+    ids = _columns(data).step
     order = np.argsort(ids, kind="stable")
     pos = np.searchsorted(ids[order], data.step)
     pos = np.clip(pos, 0, len(ids) - 1)
@@ -70,35 +80,54 @@ def _step_index(data: SessionData) -> np.ndarray:
     return np.where(data.step == -1, -1, idx)
 
 
-def _describe(cols: dict[str, np.ndarray], i: int) -> str:
-    return (f"step {int(cols['step'][i])} ({cols['test'][i]}, {cols['up_axis'][i]} up, "
-            f"{float(cols['rate_dps'][i]):g} deg/s)")
+def _columns(data: SessionData) -> StepColumns:
+    """The steps table as numpy arrays: the reader's, or taken out of pandas here."""
+    if data.step_columns is not None:
+        return data.step_columns
+    return StepColumns.from_frame(data.steps)
 
 
-def _step_columns(steps: pd.DataFrame) -> dict[str, np.ndarray]:
-    """The steps table as numpy arrays, taken out of pandas once (each column access costs
-    tens of microseconds)."""
-    cols = {"step": steps["step"].to_numpy(np.int64), "test": steps["test"].to_numpy(str),
-            "up_axis": steps["up_axis"].to_numpy(str)}
-    for name in ("rate_dps", "angle_deg", "settle_s") + W_REF_COLUMNS + F_REF_COLUMNS:
-        cols[name] = steps[name].to_numpy(float)
-    return cols
+def _same_view(a: np.ndarray, b: np.ndarray) -> bool:
+    return (a.shape == b.shape and a.strides == b.strides and a.dtype == b.dtype
+            and a.__array_interface__["data"][0] == b.__array_interface__["data"][0])
 
 
-def _run_extremes(idx: np.ndarray, t: np.ndarray, n_steps: int
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """First and last ``t`` of each step (inf / -inf when absent) for ``t`` strictly
-    increasing: the extremes of a step are among the ends of its runs of equal ``idx``."""
-    lo = np.full(n_steps, np.inf)
-    hi = np.full(n_steps, -np.inf)
-    if len(idx) == 0:
-        return lo, hi
-    change = np.flatnonzero(idx[1:] != idx[:-1]) + 1
+def _channels(data: SessionData) -> np.ndarray:
+    """(6, n) float64, rows gx gy gz ax ay az: the reader's array when ``gyro`` and ``accel``
+    are still views of it, else a copy."""
+    x = data.channels
+    if (x is not None and x.dtype == np.float64 and x.shape == (6, len(data.t))
+            and _same_view(data.gyro, x[:3].T) and _same_view(data.accel, x[3:].T)):
+        return x
+    return np.concatenate((np.asarray(data.gyro, np.float64).T,
+                           np.asarray(data.accel, np.float64).T))
+
+
+def _describe(cols: StepColumns, i: int) -> str:
+    return (f"step {int(cols.step[i])} ({cols.test[i]}, {cols.up_axis[i]} up, "
+            f"{float(cols.rate_dps[i]):g} deg/s)")
+
+
+def _runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(start, end, value) of each run of equal ``values`` (end exclusive)."""
+    n = len(values)
+    if n == 0:
+        empty = np.zeros(0, np.intp)
+        return empty, empty, values[:0]
+    change = np.flatnonzero(values[1:] != values[:-1]) + 1
     starts = np.concatenate(([0], change))
-    ends = np.concatenate((change - 1, [len(idx) - 1]))
-    np.minimum.at(lo, idx[starts], t[starts])  # one entry per run, not per sample
-    np.maximum.at(hi, idx[ends], t[ends])
-    return lo, hi
+    ends = np.concatenate((change, [n]))
+    return starts, ends, values[starts]
+
+
+def _per_step(values: np.ndarray, rows: np.ndarray, n_steps: int, unique: bool) -> np.ndarray:
+    """Per-segment ``values`` (..., R) added up per step row -> (..., n_steps), 0 where none."""
+    out = np.zeros(values.shape[:-1] + (n_steps,), values.dtype)
+    if unique:  # one segment per step (the usual file): a plain scatter
+        out[..., rows] = values
+    else:
+        np.add.at(out, (..., rows), values)
+    return out
 
 
 def _saturation(columns: list[np.ndarray], idx: np.ndarray, count: np.ndarray, n_steps: int,
@@ -162,63 +191,99 @@ def average_session(data: SessionData, min_samples: int = 10
                     ) -> tuple[StepMeans, list[SessionWarning]]:
     """Average a validated session (see module docstring). Raises E_EMPTY_SESSION when no
     step is usable."""
-    cols = _step_columns(data.steps)
-    n_steps = len(cols["step"])
+    cols = _columns(data)
+    n_steps = len(cols.step)
     meta = data.meta
     idx_all = _step_index(data)
-    in_step = idx_all >= 0
-    idx_in = idx_all[in_step]
-    t_in = data.t[in_step]
-    n_any = np.bincount(idx_in, minlength=n_steps)
-    # first sample time of each step (t is strictly increasing, so the first in file order)
-    t0, _ = _run_extremes(idx_in, t_in, n_steps)
-    settle = cols["settle_s"]
-    keep = in_step.copy()
-    keep[in_step] = t_in - t0[idx_in] >= settle[idx_in] - SETTLE_TOLERANCE_S
-    idx = idx_all[keep]
-    t = data.t[keep]
-    count = np.bincount(idx, minlength=n_steps)
+    t = data.t
+    n = len(t)
+    x = _channels(data)
+
+    # runs of equal step row: samples per step and each step's first sample time (t is
+    # strictly increasing, so a step's first sample starts one of its runs)
+    r_start, r_end, r_row = _runs(idx_all)
+    r_len = r_end - r_start
+    in_step = r_row >= 0
+    n_any = np.zeros(n_steps, np.int64)
+    np.add.at(n_any, r_row[in_step], r_len[in_step])
+    t0 = np.full(n_steps, np.inf)
+    np.minimum.at(t0, r_row[in_step], t[r_start[in_step]])
+    # settling, per sample as before: kept where t - t0 >= settle_s - tolerance (t0 and the
+    # threshold spread over the runs; between steps the threshold is +inf: never kept)
+    settle = cols.settle_s
+    r_t0 = np.where(in_step, t0[r_row], 0.0)
+    r_thr = np.where(in_step, (settle - SETTLE_TOLERANCE_S)[r_row], np.inf)
+    keep = t - np.repeat(r_t0, r_len) >= np.repeat(r_thr, r_len)
+    kept_row = np.where(keep, idx_all, -1)
+    # segments: runs of kept samples of one step
+    s_start, s_end, s_row = _runs(kept_row)
+    is_seg = s_row >= 0
+    s_start, s_end, s_row = s_start[is_seg], s_end[is_seg], s_row[is_seg]
+    n_seg = len(s_row)
+    count = np.zeros(n_steps, np.int64)
+    np.add.at(count, s_row, s_end - s_start)
+    unique = n_seg == np.count_nonzero(count)
     safe = np.maximum(count, 1)
     ok = count > 1
 
-    def kept_columns(values: np.ndarray) -> list[np.ndarray]:
-        # one contiguous 1-D array per channel: boolean indexing of a 2-D array is slower
-        return [np.ascontiguousarray(values[:, j])[keep] for j in range(3)]
-
-    def mean_std(columns: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        mean = np.empty((n_steps, 3))
-        std = np.full((n_steps, 3), np.nan)
-        for j, x in enumerate(columns):
-            mean[:, j] = np.bincount(idx, weights=x, minlength=n_steps) / safe
-            dev = x - mean[:, j][idx]  # two-pass: no cancellation on large means
-            ss = np.bincount(idx, weights=dev * dev, minlength=n_steps)
-            std[ok, j] = np.sqrt(ss[ok] / (count[ok] - 1))
-        return mean, std
-
-    gyro_k, accel_k = kept_columns(data.gyro), kept_columns(data.accel)
-    gyro, gyro_std = mean_std(gyro_k)
-    accel, accel_std = mean_std(accel_k)
-    t_lo, t_hi = _run_extremes(idx, t, n_steps)
+    mean = np.zeros((6, n_steps))
+    std = np.full((6, n_steps), np.nan)
     t_mid = np.full(n_steps, np.nan)
-    t_mid[count > 0] = (t_lo[count > 0] + t_hi[count > 0]) / 2.0
     temp = np.full(n_steps, np.nan)
-    if data.temp_c is not None:
-        tc = data.temp_c[keep]
-        finite = np.isfinite(tc)
-        n_t = np.bincount(idx[finite], minlength=n_steps)
-        s_t = np.bincount(idx[finite], weights=tc[finite], minlength=n_steps)
-        temp = np.where(n_t > 0, s_t / np.maximum(n_t, 1), np.nan)
+    if n_seg:
+        # reduceat over [s0, e0, s1, e1, ...]: even entries are the segments' sums (odd ones
+        # the gaps between them, discarded); an index may not be n, and the last segment
+        # runs to the end anyway
+        bounds = np.empty(2 * n_seg, np.intp)
+        bounds[0::2] = s_start
+        bounds[1::2] = s_end
+        if bounds[-1] == n:
+            bounds = bounds[:-1]
+        mean = _per_step(np.add.reduceat(x, bounds, axis=1)[:, 0::2], s_row, n_steps,
+                         unique) / safe
+        # two-pass: deviations from the step's mean (no cancellation on large means); the
+        # mean is spread over the pieces [0, b0), [b0, b1), ... that reduceat sums
+        piece_mean = np.zeros((6, len(bounds) + 1))
+        piece_mean[:, 1::2] = mean[:, s_row]
+        dev = np.repeat(piece_mean, np.diff(bounds, prepend=0, append=n), axis=1)
+        np.subtract(x, dev, out=dev)
+        np.multiply(dev, dev, out=dev)
+        ss = _per_step(np.add.reduceat(dev, bounds, axis=1)[:, 0::2], s_row, n_steps, unique)
+        std[:, ok] = np.sqrt(ss[:, ok] / (count[ok] - 1))
+        t_lo = np.full(n_steps, np.inf)
+        t_hi = np.full(n_steps, -np.inf)
+        np.minimum.at(t_lo, s_row, t[s_start])
+        np.maximum.at(t_hi, s_row, t[s_end - 1])
+        t_mid[count > 0] = (t_lo[count > 0] + t_hi[count > 0]) / 2.0
+        if data.temp_c is not None:
+            finite = np.isfinite(data.temp_c)
+            s_t = np.add.reduceat(np.where(finite, data.temp_c, 0.0), bounds)[0::2]
+            n_t = np.add.reduceat(finite, bounds, dtype=np.int64)[0::2]
+            s_t = _per_step(s_t, s_row, n_steps, unique)
+            n_t = _per_step(n_t, s_row, n_steps, unique)
+            temp = np.where(n_t > 0, s_t / np.maximum(n_t, 1), np.nan)
 
     g_fs = np.asarray(meta.gyro_range_dps, float) if meta.gyro_is_physical else (
         None if meta.gyro_full_scale_raw is None else np.asarray(meta.gyro_full_scale_raw, float))
     a_fs = np.asarray(meta.accel_range_g, float) if meta.accel_is_physical else (
         None if meta.accel_full_scale_raw is None else np.asarray(meta.accel_full_scale_raw, float))
-    sat_g, why_g = _saturation(gyro_k, idx, count, n_steps, g_fs, GYRO_COLUMNS, meta.gyro_unit)
-    sat_a, why_a = _saturation(accel_k, idx, count, n_steps, a_fs, ACCEL_COLUMNS, meta.accel_unit)
+    sat = {}
+    kept_idx = None
+    for rows, fs, names, unit in ((slice(0, 3), g_fs, GYRO_COLUMNS, meta.gyro_unit),
+                                  (slice(3, 6), a_fs, ACCEL_COLUMNS, meta.accel_unit)):
+        if n_seg and _may_saturate(x[rows], bounds, fs):
+            # the exact rules on the kept samples (rare: clipping or full scale in sight)
+            if kept_idx is None:
+                kept_idx = idx_all[keep]
+            kept = [np.ascontiguousarray(x[j])[keep] for j in range(6)[rows]]
+            sat[rows.start] = _saturation(kept, kept_idx, count, n_steps, fs, names, unit)
+        else:
+            sat[rows.start] = (np.zeros(n_steps, bool), [None] * n_steps)
+    (sat_g, why_g), (sat_a, why_a) = sat[0], sat[3]
 
     warnings: list[SessionWarning] = []
     usable = np.ones(n_steps, bool)
-    ids = cols["step"]
+    ids = cols.step
     short = (n_any == 0) | (count < min_samples)
     for i in np.flatnonzero(short | sat_g | sat_a):  # per left-out step, not per sample
         what = _describe(cols, i)
@@ -243,17 +308,54 @@ def average_session(data: SessionData, min_samples: int = 10
                            + ")")
     sm = StepMeans(
         key=data.key if data.key is not None else SessionKey("", data.label, 0),
-        step=ids, test=cols["test"], up_axis=cols["up_axis"],
-        rate_dps=cols["rate_dps"], angle_deg=cols["angle_deg"],
-        w_ref=np.column_stack([cols[c] for c in W_REF_COLUMNS]),
-        f_ref=np.column_stack([cols[c] for c in F_REF_COLUMNS]),
-        gyro=gyro, accel=accel, gyro_std=gyro_std, accel_std=accel_std, count=count,
-        t_mid=t_mid, temp_c=temp, gyro_unit=meta.gyro_unit, accel_unit=meta.accel_unit,
-        g_local=meta.g_local, sample_rate_hz=data.sample_rate_hz,
+        step=ids, test=cols.test, up_axis=cols.up_axis,
+        rate_dps=cols.rate_dps, angle_deg=cols.angle_deg, w_ref=cols.w_ref, f_ref=cols.f_ref,
+        gyro=mean[:3].T, accel=mean[3:].T, gyro_std=std[:3].T, accel_std=std[3:].T,
+        count=count, t_mid=t_mid, temp_c=temp, gyro_unit=meta.gyro_unit,
+        accel_unit=meta.accel_unit, g_local=meta.g_local, sample_rate_hz=data.sample_rate_hz,
         gyro_range_dps=tuple(meta.gyro_range_dps), accel_range_g=tuple(meta.accel_range_g),
         metadata=dict(meta.provenance),
     )
+    # select copies every array: the result shares nothing with the reader's cache
     return sm.select(usable), warnings
+
+
+def _may_saturate(x: np.ndarray, bounds: np.ndarray, full_scale: np.ndarray | None) -> bool:
+    """False when :func:`_saturation`'s rules cannot find a saturated step in these channels
+    (``x`` (k, n) all samples; ``bounds`` the kept segments as given to reduceat): no kept
+    sample reaches the full scale, and every kept extreme that the clip rule looks at occurs
+    fewer than ``CLIP_MIN_REPEATS`` times in the whole session (an upper bound of its repeats
+    in any one step, which must reach ``max(CLIP_MIN_REPEATS, ...)``). The session's extremes
+    bound the kept ones; the kept extremes themselves are computed only when the bound does
+    not settle it (a gyro near its range)."""
+    g_max, g_min = x.max(axis=1), x.min(axis=1)
+    for j in range(len(x)):
+        kept = {}  # sign -> the kept samples' extreme, computed on demand
+
+        def kept_extreme(sign: float) -> float:
+            if sign not in kept:
+                red = np.maximum if sign > 0 else np.minimum
+                kept[sign] = float(red.reduceat(x[j], bounds)[0::2].max() if sign > 0
+                                   else red.reduceat(x[j], bounds)[0::2].min())
+            return kept[sign]
+
+        if full_scale is not None and (
+                (g_max[j] >= full_scale[j] and kept_extreme(1.0) >= full_scale[j])
+                or (g_min[j] <= -full_scale[j] and kept_extreme(-1.0) <= -full_scale[j])):
+            return True
+        for sign, bound in ((1.0, g_max[j]), (-1.0, -g_min[j])):
+            # the rule's skips, first on the bound (kept extreme <= bound), then exactly
+            if (full_scale is not None and bound < CLIP_MIN_OF_FULL_SCALE * full_scale[j]) \
+                    or bound <= 0:
+                continue
+            value = kept_extreme(sign)
+            extreme = sign * value
+            if (full_scale is not None and extreme < CLIP_MIN_OF_FULL_SCALE * full_scale[j]) \
+                    or extreme <= 0:
+                continue
+            if np.count_nonzero(x[j] == value) >= CLIP_MIN_REPEATS:
+                return True
+    return False
 
 
 def read_step_means(ref: SessionRef, min_samples: int = 10

@@ -9,17 +9,22 @@ Order of checks (the first failure is the one reported): files exist -> steps.pa
 readable, columns, types, content -> samples.parquet readable, metadata, columns, types,
 content (step ids, time, finite values).
 
-Speed (docs/benchmarks.md): a session is read with two ``ParquetFile.read`` calls with column
-projection and no pandas on the sample path. ``steps.parquet`` is the same small table in every
-session of a fleet, so its validated form is cached by the SHA-256 of the file's bytes (an
-LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached, and every caller gets
-its own copy); the sample -> step-row index computed for the unknown-step check is handed to
-the averaging (``SessionData.step_row``) instead of being searched again.
+Speed (docs/benchmarks.md, docs/perf-read.md): a session is read with one ``ParquetFile.read``
+with column projection and no pandas on the sample path. ``steps.parquet`` is the same small
+table in every session of a fleet, so its validated form (the DataFrame and its columns as
+read-only numpy arrays, :class:`StepColumns`) is cached by the SHA-256 of the file's bytes (an
+LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached; a hit skips the Parquet
+parsing, and every caller gets its own copy-on-write copy of the frame). The six sensor columns
+are converted once into one ``(6, n)`` float64 array (``SessionData.channels``; ``gyro`` and
+``accel`` are views of it) and checked for finiteness in one pass; the per-column search that
+builds the error message runs only when that check fails. The sample -> step-row index
+computed for the unknown-step check is handed to the averaging (``SessionData.step_row``).
 """
 from __future__ import annotations
 
 import hashlib
 import re
+import stat
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -34,8 +39,8 @@ import pyarrow.parquet as pq
 from calib_core.steps import SessionKey
 from schemas.contract import (
     ACCEL_COLUMNS, ALLOWED_TESTS, ALLOWED_UP_AXES, F_REF_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE,
-    SAMPLES_RULES, STEPS_FILE, STEPS_RULES, W_REF_COLUMNS, SessionMeta, check_columns,
-    parse_metadata,
+    SAMPLES_RULES, SENSOR_COLUMNS, STEP_FLOAT_COLUMNS, STEPS_FILE, STEPS_RULES, W_REF_COLUMNS,
+    SessionMeta, check_columns, parse_metadata,
 )
 from schemas.dataset import SessionRef
 from schemas.errors import (
@@ -47,6 +52,41 @@ from schemas.errors import (
 INT32_MIN, INT32_MAX = -(2 ** 31), 2 ** 31 - 1
 STEPS_CACHE_SIZE = 16
 LOOKUP_MAX_ID = 1 << 20  # step ids in [-1, this): sample -> step row by a lookup table
+
+
+@dataclass(frozen=True)
+class StepColumns:
+    """The validated steps table as numpy arrays, in file order: what the averaging needs,
+    taken out of pandas once per distinct steps file (each pandas column access costs tens of
+    microseconds, the string columns milliseconds). Arrays are read-only: one instance is
+    shared by every session with the same steps.parquet."""
+
+    step: np.ndarray  # (k,) int64
+    test: np.ndarray  # (k,) str
+    up_axis: np.ndarray  # (k,) str
+    rate_dps: np.ndarray  # (k,) float64
+    angle_deg: np.ndarray  # (k,) float64
+    settle_s: np.ndarray  # (k,) float64
+    w_ref: np.ndarray  # (k, 3) float64
+    f_ref: np.ndarray  # (k, 3) float64
+
+    @classmethod
+    def from_frame(cls, steps: pd.DataFrame) -> "StepColumns":
+        """From a validated steps DataFrame (the contract columns)."""
+        def read_only(a: np.ndarray) -> np.ndarray:
+            a = np.array(a)  # own copy: never a view of the caller's frame
+            a.setflags(write=False)
+            return a
+        floats = {c: steps[c].to_numpy(float) for c in STEP_FLOAT_COLUMNS}
+        return cls(
+            step=read_only(steps["step"].to_numpy(np.int64)),
+            test=read_only(steps["test"].to_numpy(str)),
+            up_axis=read_only(steps["up_axis"].to_numpy(str)),
+            rate_dps=read_only(floats["rate_dps"]), angle_deg=read_only(floats["angle_deg"]),
+            settle_s=read_only(floats["settle_s"]),
+            w_ref=read_only(np.column_stack([floats[c] for c in W_REF_COLUMNS])),
+            f_ref=read_only(np.column_stack([floats[c] for c in F_REF_COLUMNS])),
+        )
 
 
 @dataclass(frozen=True)
@@ -63,8 +103,16 @@ class SessionData:
     accel: np.ndarray  # (n, 3) float64, meta.accel_unit
     temp_c: np.ndarray | None  # (n,) float64 or None when not recorded
     meta: SessionMeta
-    # (n,) row of ``steps`` of each sample (-1 between steps); None: the averaging computes it
+    # Derived forms handed from the reader to the averaging (None: the averaging derives them
+    # from the fields above). Replacing ``steps``, ``step``, ``gyro`` or ``accel`` with
+    # dataclasses.replace must replace these too (or set them to None).
+    # (n,) row of ``steps`` of each sample (-1 between steps)
     step_row: np.ndarray | None = None
+    # ``steps`` as numpy arrays
+    step_columns: StepColumns | None = None
+    # (6, n) float64, rows gx gy gz ax ay az; ``gyro`` is ``channels[:3].T``, ``accel``
+    # ``channels[3:].T`` (the averaging checks that they still are)
+    channels: np.ndarray | None = None
 
     @property
     def sample_rate_hz(self) -> float:
@@ -123,10 +171,15 @@ def _floats(col: pa.ChunkedArray) -> np.ndarray:
 
 
 def _int_ids(col: pa.ChunkedArray, label: str, file: str, null_code: str) -> np.ndarray:
+    """Step ids as int32 (zero-copy, possibly read-only) when the column is int32, else int64
+    after a range check."""
     if col.null_count:
         raise SessionError(null_code, label, file,
                            f"{col.null_count} row(s) have a null step id", column="step")
-    ids = col.to_numpy(zero_copy_only=False).astype(np.int64, copy=False)
+    ids = col.to_numpy(zero_copy_only=False)
+    if ids.dtype == np.int32:  # the contract's type: in range by construction, no copy
+        return ids
+    ids = ids.astype(np.int64, copy=False)
     if len(ids) and (ids.min() < INT32_MIN or ids.max() > INT32_MAX):
         bad = int(ids[(ids < INT32_MIN) | (ids > INT32_MAX)][0])
         raise SessionError(E_WRONG_TYPE, label, file,
@@ -138,7 +191,16 @@ def validate_steps(table: pa.Table | pd.DataFrame, label: str,
                    file: str = STEPS_FILE) -> pd.DataFrame:
     """Types and content of steps.parquet -> DataFrame with the contract dtypes (+ duration_s
     when present). Raises SessionError."""
-    table = _as_table(table, file, label)
+    return _validate_steps_frame(_as_table(table, file, label), label, file)
+
+
+def _validated_steps(table: pa.Table | pd.DataFrame, label: str,
+                     file: str = STEPS_FILE) -> tuple[pd.DataFrame, StepColumns]:
+    df = validate_steps(table, label, file)
+    return df, StepColumns.from_frame(df)
+
+
+def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFrame:
     names = check_columns(table.schema, STEPS_RULES, label, file)
     if table.num_rows == 0:
         raise SessionError(E_EMPTY_SESSION, label, file, "steps table has no rows")
@@ -186,36 +248,57 @@ def validate_steps(table: pa.Table | pd.DataFrame, label: str,
     return pd.DataFrame(out)
 
 
-_steps_cache: OrderedDict[bytes, pd.DataFrame] = OrderedDict()
+_steps_cache: OrderedDict[bytes, tuple[pd.DataFrame, StepColumns]] = OrderedDict()
 _steps_lock = threading.Lock()  # the nightly flow reads sessions from a thread pool
 
 
 def read_steps(path: Path, label: str) -> pd.DataFrame:
+    """Read and validate steps.parquet -> DataFrame (the caller's own deep copy)."""
+    return _read_steps_cached(path, label)[0].copy()
+
+
+def _read_steps_cached(path: Path, label: str) -> tuple[pd.DataFrame, StepColumns]:
+    """(the cached frame, its columns). The frame is shared: copy it before handing it out."""
+    file = path.name
+    try:
+        st = path.stat()
+    except OSError:
+        st = None
+    # a regular non-empty file whose bytes were validated before needs no Parquet parsing;
+    # anything else takes _open's checks, each with its own error
+    if st is not None and stat.S_ISREG(st.st_mode) and st.st_size > 0:
+        try:
+            raw = path.read_bytes()
+        except OSError:
+            raw = None
+        if raw is not None:
+            digest = hashlib.sha256(raw).digest()
+            with _steps_lock:
+                cached = _steps_cache.get(digest)
+                if cached is not None:
+                    _steps_cache.move_to_end(digest)
+                    return cached
     _open(path, label)  # existence, type, size and Parquet checks, each with its own error
     try:
         raw = path.read_bytes()
     except OSError as exc:
-        raise SessionError(E_UNREADABLE_FILE, label, path.name, f"cannot read {path}: {exc}") from exc
+        raise SessionError(E_UNREADABLE_FILE, label, file, f"cannot read {path}: {exc}") from exc
     digest = hashlib.sha256(raw).digest()
-    with _steps_lock:
-        cached = _steps_cache.get(digest)
-        if cached is not None:
-            _steps_cache.move_to_end(digest)
-            return cached.copy()
     try:
         pf = pq.ParquetFile(pa.BufferReader(raw))
     except (pa.ArrowException, OSError, ValueError) as exc:  # changed since _open looked at it
-        raise SessionError(E_UNREADABLE_FILE, label, path.name,
+        raise SessionError(E_UNREADABLE_FILE, label, file,
                            f"not a readable Parquet file (truncated or corrupt?): {exc}") from exc
-    names = check_columns(pf.schema_arrow, STEPS_RULES, label, path.name)
-    if "duration_s" in pf.schema_arrow.names:
+    schema = pf.schema_arrow
+    names = check_columns(schema, STEPS_RULES, label, file)
+    if "duration_s" in schema.names:
         names = names + ["duration_s"]
-    df = validate_steps(_read(pf, names, label, path.name), label, path.name)
+    entry = _validated_steps(_read(pf, names, label, file), label, file)
     with _steps_lock:
-        _steps_cache[digest] = df.copy()
+        _steps_cache[digest] = entry
         while len(_steps_cache) > STEPS_CACHE_SIZE:
             _steps_cache.popitem(last=False)
-    return df
+    return entry
 
 
 # --- samples ------------------------------------------------------------------------------
@@ -226,15 +309,19 @@ def _first_bad(bad: np.ndarray, step: np.ndarray | None) -> tuple[int, int | Non
 
 def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: SessionMeta,
                      label: str, file: str = SAMPLES_FILE,
-                     key: SessionKey | None = None) -> SessionData:
-    """Types and content of samples.parquet, unit conversion -> :class:`SessionData`."""
+                     key: SessionKey | None = None,
+                     step_columns: StepColumns | None = None) -> SessionData:
+    """Types and content of samples.parquet, unit conversion -> :class:`SessionData`.
+    ``step_columns``: ``steps`` as numpy arrays when the caller has them (else derived)."""
     table = _as_table(table, file, label)
     check_columns(table.schema, SAMPLES_RULES, label, file)
     n = table.num_rows
     if n == 0:
         raise SessionError(E_EMPTY_SESSION, label, file, "samples table has no rows")
+    if step_columns is None:
+        step_columns = StepColumns.from_frame(steps)
     step = _int_ids(table.column("step"), label, file, E_UNKNOWN_STEP)
-    step_row = _step_rows(step, steps["step"].to_numpy(np.int64))
+    step_row = _step_rows(step, step_columns.step)
     unknown_rows = step_row == -2
     if unknown_rows.any():
         unknown = np.unique(step[unknown_rows])
@@ -243,7 +330,7 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
                            f"step id {int(unknown[0])} is not in steps.parquet ({len(unknown)} "
                            f"unknown id(s), {n_rows} sample(s))", column="step",
                            step=int(unknown[0]))
-    step = step.astype(np.int32)
+    step = np.array(step, dtype=np.int32)  # own, writable copy (the Arrow buffer is read-only)
 
     t_col = table.column("t")
     t = _floats(t_col)
@@ -254,7 +341,8 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
         raise SessionError(E_NONFINITE_VALUE, label, file,
                            f"time is {what} at row {i} ({int(bad.sum())} row(s))", column="t",
                            step=s)
-    nonincreasing = np.diff(t) <= 0
+    # for finite t, t[i+1] - t[i] <= 0 exactly when t[i+1] <= t[i] (no float temporary)
+    nonincreasing = t[1:] <= t[:-1]
     if nonincreasing.any():
         i = int(np.flatnonzero(nonincreasing)[0]) + 1
         raise SessionError(E_NONINCREASING_TIME, label, file,
@@ -262,32 +350,23 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
                            f"t={float(t[i - 1])!r} s ({int(nonincreasing.sum())} such row(s))",
                            column="t", step=int(step[i]))
 
-    def sensor(names: tuple[str, ...], scale: float) -> np.ndarray:
-        out = np.empty((n, 3), order="F")  # column-major: per-channel work is contiguous
-        for j, name in enumerate(names):
-            col = table.column(name)
-            values = _floats(col)
-            bad = ~np.isfinite(values)
-            if bad.any():
-                i, s = _first_bad(bad, step)
-                kinds = []
-                if col.null_count:
-                    kinds.append(f"{col.null_count} null")
-                n_nan = int(np.isnan(values).sum()) - col.null_count
-                if n_nan:
-                    kinds.append(f"{n_nan} NaN")
-                if np.isinf(values).any():
-                    kinds.append(f"{int(np.isinf(values).sum())} infinite")
-                raise SessionError(E_NONFINITE_VALUE, label, file,
-                                   f"non-finite sensor values ({', '.join(kinds)}), first at "
-                                   f"row {i} (t={t[i]:.6g} s)", column=name, step=s)
-            out[:, j] = values
-        if scale != 1.0:
-            out *= scale
-        return out
-
-    gyro = sensor(GYRO_COLUMNS, meta.gyro_scale)
-    accel = sensor(ACCEL_COLUMNS, meta.accel_scale)
+    # one (6, n) array, one row per channel: each conversion from float32 is one contiguous
+    # copy, the finiteness check one pass over all channels, and the averaging reduces all
+    # channels in one call; gyro / accel are (n, 3) column-major views of it
+    channels = pool_empty((len(SENSOR_COLUMNS), n))
+    with np.errstate(invalid="ignore"):  # a signalling NaN in a float32 file stays a NaN
+        for j, name in enumerate(SENSOR_COLUMNS):
+            channels[j] = table.column(name).to_numpy()  # nulls become NaN
+    # a NaN or infinity makes its channel's sum non-finite (one pass, no boolean array); a
+    # non-finite sum of finite values (overflow) is told apart by the exact search
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.isfinite(channels.sum(axis=1)).all()
+    if not finite:
+        _raise_nonfinite_sensor(table, channels, step, t, label, file)
+    if meta.gyro_scale != 1.0:  # after the check, as file values are what the message names
+        channels[:3] *= meta.gyro_scale
+    if meta.accel_scale != 1.0:
+        channels[3:] *= meta.accel_scale
     temp = None
     if "temp_c" in table.schema.names:
         temp = _floats(table.column("temp_c"))  # NaN / null = not recorded for that sample
@@ -295,8 +374,42 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
             i, s = _first_bad(np.isinf(temp), step)
             raise SessionError(E_NONFINITE_VALUE, label, file,
                                f"temperature is infinite at row {i}", column="temp_c", step=s)
-    return SessionData(key=key, label=label, steps=steps, step=step, t=t, gyro=gyro,
-                       accel=accel, temp_c=temp, meta=meta, step_row=step_row)
+    return SessionData(key=key, label=label, steps=steps, step=step, t=t,
+                       gyro=channels[:3].T, accel=channels[3:].T, temp_c=temp, meta=meta,
+                       step_row=step_row, step_columns=step_columns, channels=channels)
+
+
+def _raise_nonfinite_sensor(table: pa.Table, channels: np.ndarray, step: np.ndarray,
+                            t: np.ndarray, label: str, file: str) -> None:
+    """The error for the first sensor column (gx .. az order) with a non-finite value."""
+    for j, name in enumerate(SENSOR_COLUMNS):
+        values = channels[j]
+        bad = ~np.isfinite(values)
+        if not bad.any():
+            continue
+        col = table.column(name)
+        i, s = _first_bad(bad, step)
+        kinds = []
+        if col.null_count:
+            kinds.append(f"{col.null_count} null")
+        n_nan = int(np.isnan(values).sum()) - col.null_count
+        if n_nan:
+            kinds.append(f"{n_nan} NaN")
+        if np.isinf(values).any():
+            kinds.append(f"{int(np.isinf(values).sum())} infinite")
+        raise SessionError(E_NONFINITE_VALUE, label, file,
+                           f"non-finite sensor values ({', '.join(kinds)}), first at "
+                           f"row {i} (t={t[i]:.6g} s)", column=name, step=s)
+    # every value finite, the sum overflowed: nothing to report
+
+
+def pool_empty(shape: tuple[int, ...]) -> np.ndarray:
+    """An uninitialised float64 array in Arrow's memory pool (mimalloc) instead of glibc's
+    malloc: glibc hands the ~1.7 MB arrays of a session back to the kernel when they are
+    freed and page-faults them in again for the next session (~850 minor faults, 1-3 ms of
+    system CPU per session, measured); the pool keeps freed pages for reuse."""
+    size = int(np.prod(shape)) * 8
+    return np.frombuffer(pa.allocate_buffer(size), np.float64).reshape(shape)
 
 
 def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -308,10 +421,12 @@ def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
     hi = int(max(ids.max(initial=0), step.max(initial=0)))
     rows = np.arange(n_ids, dtype=np.int32)
     if lo >= -1 and hi < LOOKUP_MAX_ID:
-        lut = np.full(hi + 2, -2, dtype=np.int32)  # position 0 is id -1
-        lut[0] = -1
-        lut[ids + 1] = rows
-        return lut[step + 1]
+        # positions 0..hi are ids; the last position (hi + 1, not an id) is where numpy's
+        # index -1 lands: the between-steps id
+        lut = np.full(hi + 2, -2, dtype=np.int32)
+        lut[-1] = -1
+        lut[ids] = rows
+        return lut[step]
     order = np.argsort(ids, kind="stable")
     sorted_ids = ids[order]
     pos = np.clip(np.searchsorted(sorted_ids, step), 0, max(n_ids - 1, 0))
@@ -329,13 +444,17 @@ def read_session(ref: SessionRef) -> SessionData:
         names = " and ".join(p.name for p in missing)
         raise SessionError(E_MISSING_FILE, label, missing[0].name,
                            f"{names} missing in {ref.path}")
-    steps = read_steps(ref.steps_path, label)
+    steps, step_columns = _read_steps_cached(ref.steps_path, label)
     pf = _open(ref.samples_path, label)
     file = ref.samples_path.name
-    meta = parse_metadata(pf.schema_arrow.metadata, label, file)
-    names = check_columns(pf.schema_arrow, SAMPLES_RULES, label, file)
+    schema = pf.schema_arrow  # built anew by every access (~0.25 ms): once
+    meta = parse_metadata(schema.metadata, label, file)
+    names = check_columns(schema, SAMPLES_RULES, label, file)
     table = _read(pf, names, label, file)
-    return validate_samples(table, steps, meta, label, file, key=ref.key)
+    # the frame is shared with the cache: a shallow copy is the caller's own under pandas'
+    # copy-on-write (writing to it copies), at no cost
+    return validate_samples(table, steps.copy(deep=False), meta, label, file, key=ref.key,
+                            step_columns=step_columns)
 
 
 def session_from_tables(key: SessionKey | str, steps: pa.Table | pd.DataFrame,
@@ -344,11 +463,12 @@ def session_from_tables(key: SessionKey | str, steps: pa.Table | pd.DataFrame,
     """Validate in-memory tables exactly as :func:`read_session` validates files. When
     ``metadata`` is None the samples table's schema metadata is used."""
     label = str(key)
-    steps_df = validate_steps(steps, label, STEPS_FILE)
+    steps_df, step_columns = _validated_steps(steps, label, STEPS_FILE)
     if metadata is None:
         metadata = samples.schema.metadata if isinstance(samples, pa.Table) else {}
     meta = parse_metadata(metadata, label, SAMPLES_FILE)
-    return validate_samples(samples, steps_df, meta, label, SAMPLES_FILE, key=parse_key(key))
+    return validate_samples(samples, steps_df, meta, label, SAMPLES_FILE, key=parse_key(key),
+                            step_columns=step_columns)
 
 
 def parse_key(key: SessionKey | str) -> SessionKey | None:
