@@ -271,7 +271,7 @@ def average_session(data: SessionData, min_samples: int = 10
     kept_idx = None
     for rows, fs, names, unit in ((slice(0, 3), g_fs, GYRO_COLUMNS, meta.gyro_unit),
                                   (slice(3, 6), a_fs, ACCEL_COLUMNS, meta.accel_unit)):
-        if n_seg and _may_saturate(x[rows], bounds, fs):
+        if n_seg and _may_saturate(x[rows], keep, bounds, fs):
             # the exact rules on the kept samples (rare: clipping or full scale in sight)
             if kept_idx is None:
                 kept_idx = idx_all[keep]
@@ -320,40 +320,31 @@ def average_session(data: SessionData, min_samples: int = 10
     return sm.select(usable), warnings
 
 
-def _may_saturate(x: np.ndarray, bounds: np.ndarray, full_scale: np.ndarray | None) -> bool:
+def _may_saturate(x: np.ndarray, keep: np.ndarray, bounds: np.ndarray,
+                  full_scale: np.ndarray | None) -> bool:
     """False when :func:`_saturation`'s rules cannot find a saturated step in these channels
-    (``x`` (k, n) all samples; ``bounds`` the kept segments as given to reduceat): no kept
-    sample reaches the full scale, and every kept extreme that the clip rule looks at occurs
-    fewer than ``CLIP_MIN_REPEATS`` times in the whole session (an upper bound of its repeats
-    in any one step, which must reach ``max(CLIP_MIN_REPEATS, ...)``). The session's extremes
-    bound the kept ones; the kept extremes themselves are computed only when the bound does
-    not settle it (a gyro near its range)."""
-    g_max, g_min = x.max(axis=1), x.min(axis=1)
+    (``x`` (k, n) all samples, ``keep`` (n,) the kept ones, ``bounds`` their segments as given
+    to reduceat): no kept sample reaches the full scale, and every kept extreme that the clip
+    rule looks at occurs fewer than ``CLIP_MIN_REPEATS`` times in the whole session (an upper
+    bound of its repeats in any one step, which must reach ``max(CLIP_MIN_REPEATS, ...)``).
+
+    A channel's kept extreme is its session extreme when that sample is kept (the usual
+    case), else it is reduced over the kept segments."""
     for j in range(len(x)):
-        kept = {}  # sign -> the kept samples' extreme, computed on demand
-
-        def kept_extreme(sign: float) -> float:
-            if sign not in kept:
-                red = np.maximum if sign > 0 else np.minimum
-                kept[sign] = float(red.reduceat(x[j], bounds)[0::2].max() if sign > 0
-                                   else red.reduceat(x[j], bounds)[0::2].min())
-            return kept[sign]
-
-        if full_scale is not None and (
-                (g_max[j] >= full_scale[j] and kept_extreme(1.0) >= full_scale[j])
-                or (g_min[j] <= -full_scale[j] and kept_extreme(-1.0) <= -full_scale[j])):
-            return True
-        for sign, bound in ((1.0, g_max[j]), (-1.0, -g_min[j])):
-            # the rule's skips, first on the bound (kept extreme <= bound), then exactly
-            if (full_scale is not None and bound < CLIP_MIN_OF_FULL_SCALE * full_scale[j]) \
-                    or bound <= 0:
-                continue
-            value = kept_extreme(sign)
-            extreme = sign * value
-            if (full_scale is not None and extreme < CLIP_MIN_OF_FULL_SCALE * full_scale[j]) \
-                    or extreme <= 0:
-                continue
-            if np.count_nonzero(x[j] == value) >= CLIP_MIN_REPEATS:
+        fs = np.inf if full_scale is None else float(full_scale[j])
+        min_look = 0.0 if full_scale is None else CLIP_MIN_OF_FULL_SCALE * fs
+        for sign, arg, red in ((1.0, np.argmax, np.maximum), (-1.0, np.argmin, np.minimum)):
+            at = int(arg(x[j]))
+            extreme = sign * x[j, at]  # the session's: bounds the kept samples' from above
+            if extreme < fs and (extreme < min_look or extreme <= 0):
+                continue  # neither full scale nor the clip rule can concern this side
+            if not keep[at]:  # the session's extreme is in a left-out sample
+                seg = red.reduceat(x[j], bounds)[0::2]
+                extreme = sign * (seg.max() if sign > 0 else seg.min())
+            if extreme >= fs:
+                return True
+            if extreme >= min_look and extreme > 0 \
+                    and np.count_nonzero(x[j] == sign * extreme) >= CLIP_MIN_REPEATS:
                 return True
     return False
 

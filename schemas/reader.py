@@ -321,16 +321,19 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
     if step_columns is None:
         step_columns = StepColumns.from_frame(steps)
     step = _int_ids(table.column("step"), label, file, E_UNKNOWN_STEP)
-    step_row = _step_rows(step, step_columns.step)
-    unknown_rows = step_row == -2
-    if unknown_rows.any():
-        unknown = np.unique(step[unknown_rows])
-        n_rows = int(unknown_rows.sum())
+    # the samples of a step come in runs: look the ids up once per run, not per sample
+    run_start, run_len = _runs(step)
+    run_row = _step_rows(step[run_start], step_columns.step)
+    unknown_runs = run_row == -2
+    if unknown_runs.any():
+        unknown = np.unique(step[run_start[unknown_runs]])
+        n_rows = int(run_len[unknown_runs].sum())
         raise SessionError(E_UNKNOWN_STEP, label, file,
                            f"step id {int(unknown[0])} is not in steps.parquet ({len(unknown)} "
                            f"unknown id(s), {n_rows} sample(s))", column="step",
                            step=int(unknown[0]))
     step = np.array(step, dtype=np.int32)  # own, writable copy (the Arrow buffer is read-only)
+    step_row = np.repeat(run_row, run_len)
 
     t_col = table.column("t")
     t = _floats(t_col)
@@ -410,6 +413,13 @@ def pool_empty(shape: tuple[int, ...]) -> np.ndarray:
     system CPU per session, measured); the pool keeps freed pages for reuse."""
     size = int(np.prod(shape)) * 8
     return np.frombuffer(pa.allocate_buffer(size), np.float64).reshape(shape)
+
+
+def _runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start and length of each run of equal ``values`` (non-empty)."""
+    start = np.flatnonzero(values[1:] != values[:-1]) + 1
+    start = np.concatenate(([0], start))
+    return start, np.diff(start, append=len(values))
 
 
 def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
