@@ -134,12 +134,14 @@ def find_sessions(root: Path | str, lot: str | None = None,
 
 def fingerprint(path: Path | str) -> str:
     """Cheap identity of a session's content: name, size and mtime_ns of both files (no
-    reading). Modifying, replacing or touching a file changes it; reading does not."""
-    path = Path(path)
+    reading). Modifying, replacing or touching a file changes it; reading does not.
+    Computed once or twice per session per run: string paths, not pathlib (half the cost,
+    ~0.03 ms)."""
+    base = os.fspath(path)
     h = hashlib.sha256()
     for name in (STEPS_FILE, SAMPLES_FILE):
         try:
-            st = os.stat(path / name)
+            st = os.stat(os.path.join(base, name))
             h.update(f"{name}:{st.st_size}:{st.st_mtime_ns};".encode())
         except FileNotFoundError:
             h.update(f"{name}:missing;".encode())
