@@ -2,9 +2,9 @@
 
 Samples with ``step == -1`` are dropped, then the first ``settle_s`` of each step (measured
 from the step's first sample time), then mean, standard deviation (ddof=1) and count per step
-and channel are computed with ``numpy.bincount`` over the step index of every sample (no
-Python loop over samples), two-pass so that large means (3600 deg/s, 32768 LSB) do not
-cancel the variance. ``t_mid`` is the middle of the averaged window, ``temp_c`` the mean
+and channel are computed with ``numpy.add.reduceat`` over the runs of kept samples of each
+step (no Python loop over samples), two-pass so that large means (3600 deg/s, 32768 LSB) do
+not cancel the variance. ``t_mid`` is the middle of the averaged window, ``temp_c`` the mean
 recorded temperature (NaN when not recorded).
 
 Steps left out, each named in a :class:`SessionWarning`:
@@ -41,8 +41,9 @@ Means and standard deviations are two-pass as before; the sums are ``reduceat``'
 instead of ``bincount``'s (sequential), which changes results by rounding only (a few ulp).
 The saturation rules need per-sample work only when a channel's kept extreme reaches the
 declared full scale, or is repeated at least ``CLIP_MIN_REPEATS`` times in the whole session,
-or the session has no sample left: otherwise no step can be saturated, which per-segment
-maxima and minima and one comparison per channel show.
+or the session has no sample left: otherwise no step can be saturated, which the session's
+extremes per channel (reduced over the kept segments when that sample was left out) and one
+comparison per channel show (:func:`_may_saturate`).
 """
 from __future__ import annotations
 
@@ -88,6 +89,7 @@ def _columns(data: SessionData) -> StepColumns:
 
 
 def _same_view(a: np.ndarray, b: np.ndarray) -> bool:
+    """Same memory, shape, strides and dtype: ``a`` is (still) the view ``b``."""
     return (a.shape == b.shape and a.strides == b.strides and a.dtype == b.dtype
             and a.__array_interface__["data"][0] == b.__array_interface__["data"][0])
 
