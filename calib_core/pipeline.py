@@ -16,17 +16,28 @@ from calib_core import xu2016
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
-from calib_core.results import RepetitionCalibration, UnitCalibration
+from calib_core.results import ColumnTable, RepetitionCalibration, UnitCalibration
 from calib_core.steps import StepMeans
 
 
 @dataclass
 class SessionFit:
-    """The fits of one session plus the tables the results store keeps."""
+    """The fits of one session plus the tables the results store keeps.
+
+    The tables are numpy columns (a DataFrame per session would cost more than the fits);
+    ``compensation`` / ``residuals`` give them as DataFrames on request."""
 
     calibration: RepetitionCalibration
-    compensation: pd.DataFrame  # xu2016 Table 3 rows
-    residuals: pd.DataFrame  # baseline replay residuals per step and channel
+    compensation_table: ColumnTable  # xu2016 Table 3 rows
+    residual_table: ColumnTable  # baseline replay residuals per step and channel
+
+    @property
+    def compensation(self) -> pd.DataFrame:
+        return self.compensation_table.to_frame()
+
+    @property
+    def residuals(self) -> pd.DataFrame:
+        return self.residual_table.to_frame()
 
 
 def calibrate_repetition(sm: StepMeans) -> SessionFit:
@@ -55,9 +66,9 @@ def calibrate_repetition(sm: StepMeans) -> SessionFit:
     rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=fits,
                                 warnings=warnings, provenance=dict(sm.metadata), derived=derived)
     source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
-    comp = xu2016.compensation_errors(sm, gyro, trad, tests=source)
+    comp = xu2016.compensation_error_table(sm, gyro, trad, tests=source)
     cal = calibration_from_fits(fits, sm)
-    return SessionFit(rep, comp, baseline_residuals(sm, cal))
+    return SessionFit(rep, comp, residual_table(sm, cal))
 
 
 def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict) -> None:
@@ -127,6 +138,14 @@ def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline")
 
     ``sigma`` is the white-noise part only (within-step scatter through K); the step-to-step
     part is estimated across repetitions by :mod:`calib_core.replay`."""
+    return residual_table(sm, cal, model).to_frame()
+
+
+CHANNELS = np.array(["gx", "gy", "gz", "ax", "ay", "az"])
+
+
+def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> ColumnTable:
+    """The rows of :func:`baseline_residuals` as numpy columns (no DataFrame)."""
     w, f = cal.apply(sm.gyro, sm.accel, temp_c=sm.temp_c, t=sm.t_mid)
     res = np.hstack([w - sm.w_ref, f - sm.f_ref])
     ref = np.hstack([sm.w_ref, sm.f_ref])
@@ -134,12 +153,11 @@ def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline")
     sg = np.sqrt((sm.gyro_std ** 2) @ (cal.K_g.T ** 2)) / n
     sa = np.sqrt((sm.accel_std ** 2) @ (cal.K_a.T ** 2)) / n
     sig = np.hstack([sg, sa])
-    channels = np.array(["gx", "gy", "gz", "ax", "ay", "az"])
     k = len(sm)
-    return pd.DataFrame({
+    return ColumnTable({
         "lot": sm.key.lot, "unit": sm.key.unit, "rep": sm.key.rep,
         "step": np.repeat(sm.step, 6), "test": np.repeat(sm.test, 6),
         "up_axis": np.repeat(sm.up_axis, 6), "rate_dps": np.repeat(sm.rate_dps, 6),
-        "angle_deg": np.repeat(sm.angle_deg, 6), "channel": np.tile(channels, k),
+        "angle_deg": np.repeat(sm.angle_deg, 6), "channel": np.tile(CHANNELS, k),
         "reference": ref.ravel(), "residual": res.ravel(), "sigma": sig.ravel(), "model": model,
-    }, columns=RESIDUAL_COLUMNS)
+    }, 6 * k)

@@ -91,7 +91,22 @@ class StepMeans:
         return replace(self, **arrays)
 
     def of_test(self, *tests: str) -> "StepMeans":
-        return self.select(np.isin(self.test, tests))
+        """Rows of the given tests (the same object on every call with the same tests)."""
+        # every fit of a session asks for the same few subsets: each is built once and kept
+        # on the instance (the arrays are never modified after construction)
+        subsets = self.__dict__.get("_subsets")
+        if subsets is None:
+            subsets = {}
+            object.__setattr__(self, "_subsets", subsets)
+        sub = subsets.get(tests)
+        if sub is None:
+            sub = subsets[tests] = self.select(np.isin(self.test, tests))
+        return sub
+
+    def __getstate__(self) -> dict:  # the subsets are a cache: not pickled
+        state = dict(self.__dict__)
+        state.pop("_subsets", None)
+        return state
 
     @property
     def has_temperature(self) -> bool:
