@@ -163,9 +163,38 @@ class ParamSummary:
 
 def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     """Mean, sample std (ddof=1), min, max over repetitions of every parameter."""
+    params = [rep.parameters() for rep in sorted(reps, key=lambda r: r.rep)]
+    if not params:
+        return []
+    keys = [(p.model, p.name) for p in params[0]]
+    if len(set(keys)) != len(keys) or any(
+            [(p.model, p.name) for p in ps] != keys for ps in params[1:]):
+        return _summarise_by_key(params)
+    # every repetition has the same parameters in the same order (the usual case): one
+    # (reps, parameters) matrix, every statistic a reduction over its first axis
+    v = np.array([[p.value for p in ps] for ps in params], dtype=float)
+    s = np.array([[p.stderr for p in ps] for ps in params], dtype=float)
+    n = len(params)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = v.mean(axis=0)
+        std = v.std(axis=0, ddof=1) if n > 1 else np.full(v.shape[1], np.nan)
+        has_se = np.isfinite(s).any(axis=0)
+        s_sum = np.where(np.isnan(s), 0.0, s).sum(axis=0)  # nanmean, same arithmetic
+        mean_se = np.where(has_se, s_sum / (~np.isnan(s)).sum(axis=0), np.nan)
+    vmin, vmax = v.min(axis=0), v.max(axis=0)
+    columns = v.T.tolist()
+    return [ParamSummary(model=model, name=name, unit=p.unit, mean=m, std=sd, min=lo, max=hi,
+                         n_reps=n, values=tuple(col), mean_stderr=se)
+            for (model, name), p, m, sd, lo, hi, col, se in zip(
+                keys, params[0], mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
+                columns, mean_se.tolist())]
+
+
+def _summarise_by_key(params: list[list[Param]]) -> list[ParamSummary]:
+    """summarise() when the repetitions do not list the same parameters."""
     by_key: dict[tuple[str, str], list[Param]] = {}
-    for rep in sorted(reps, key=lambda r: r.rep):
-        for p in rep.parameters():
+    for ps in params:
+        for p in ps:
             by_key.setdefault((p.model, p.name), []).append(p)
     out = []
     for (model, name), ps in by_key.items():
