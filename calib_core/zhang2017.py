@@ -24,6 +24,7 @@ the direction cosines, which are near zero for the off-diagonal components: kept
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
@@ -162,10 +163,31 @@ def _ls_cov(X: np.ndarray) -> np.ndarray:
     return (Vt.T / sv ** 2) @ Vt
 
 
+@dataclass(frozen=True)
+class _StaticDesign:
+    """What the static fit needs of its design [f_ref, 1] alone (read-only, shared)."""
+
+    sv: np.ndarray  # singular values, largest first
+    unscaled: np.ndarray  # (4, 4) (X^T X)^-1
+
+
+@lru_cache(maxsize=32)
+def _static_design(shape: tuple[int, int], data: bytes) -> _StaticDesign:
+    # [f_ref, 1] comes from the protocol's references, the same for every session of a
+    # fleet: its singular values and (X^T X)^-1 once per protocol, not twice per session
+    X = np.frombuffer(data, dtype=float).reshape(shape)
+    sv = np.linalg.svd(X, compute_uv=False)
+    unscaled = (_ls_cov(X) if sv[-1] > 1e-9 * sv[0]
+                else np.full((shape[1], shape[1]), np.nan))  # never used: the fit refuses
+    for a in (sv, unscaled):
+        a.setflags(write=False)
+    return _StaticDesign(sv, unscaled)
+
+
 def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> AccelStaticFit:
     """15-parameter static model from the static steps with known specific force.
 
-    Per channel i, A_i = M_i . f_ref + u0_i by least squares (lstsq); the residual variance is
+    Per channel i, A_i = M_i . f_ref + u0_i by least squares; the residual variance is
     pooled over the three channels in g (same accelerometer type: equal noise in physical
     units), which gives 3(n-4) degrees of freedom instead of n-4. Standard errors of k, u0 and
     the angles follow from the LS covariance through the Jacobian of the decomposition.
@@ -177,11 +199,14 @@ def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> Ac
                           f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
                           "at least 5 to estimate its noise", ("accel_static",))
     X = np.hstack([s.f_ref, np.ones((n, 1))])
-    sv = np.linalg.svd(X, compute_uv=False)
+    design = _static_design(X.shape, X.tobytes())
+    sv = design.sv
     if sv[-1] <= 1e-9 * sv[0]:
         raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
                           "directions and a constant: M and u0 are not determined",
                           ("accel_static",))
+    # lstsq per session (not a cached pseudo-inverse): the lever arms are fitted on this
+    # model's residuals, where a last-bit change of M shows as 1e-8 of a zero lever arm
     beta, *_ = np.linalg.lstsq(X, s.accel, rcond=None)  # (4,3): column i = (M_i, u0_i)
     M = beta[:3].T
     u0 = beta[3]
@@ -189,20 +214,16 @@ def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> Ac
     resid = s.accel - X @ beta
     dof_ch = n - 4
     var_g = float(np.sum((resid / k) ** 2) / (3 * dof_ch))
-    unscaled = _ls_cov(X)
-    channel_cov = np.stack([unscaled * var_g * k[i] ** 2 for i in range(3)])
-    k_se = np.empty(3)
+    channel_cov = design.unscaled * (var_g * k ** 2)[:, None, None]  # (3,4,4)
+    cov_m = channel_cov[:, :3, :3]
     u0_se = np.sqrt(channel_cov[:, 3, 3])
-    ang_se = np.empty((3, 3))
-    for i in range(3):
-        cov_m = channel_cov[i, :3, :3]
-        ci = C[:, i]
-        k_se[i] = np.sqrt(ci @ cov_m @ ci)  # dk/dM_i = c_i
-        dc = (np.eye(3) - np.outer(ci, ci)) / k[i]  # dc_i/dM_i
-        for j in range(3):
-            sin_t = np.sqrt(max(1.0 - ci[j] ** 2, 1e-300))
-            g = -dc[j] / sin_t  # d theta_ij / d M_i (rad)
-            ang_se[i, j] = np.degrees(np.sqrt(g @ cov_m @ g))
+    k_se = np.sqrt(np.einsum("ji,ijk,ki->i", C, cov_m, C))  # dk_i/dM_i = c_i
+    # dc_i/dM_i = (I - c_i c_i^T) / k_i; d theta_ij / d M_i = -(row j of it) / sin theta_ij
+    Ct = C.T  # row i = c_i
+    dc = (np.eye(3) - Ct[:, :, None] * Ct[:, None, :]) / k[:, None, None]
+    sin_t = np.sqrt(np.maximum(1.0 - Ct ** 2, 1e-300))
+    g = -dc / sin_t[:, :, None]
+    ang_se = np.degrees(np.sqrt(np.einsum("ijk,ikl,ijl->ij", g, cov_m, g)))
     return AccelStaticFit(
         scale=k, bias=u0, C=C, scale_stderr=k_se, bias_stderr=u0_se, angles_stderr=ang_se,
         channel_cov=channel_cov, condition_number=float(sv[0] / sv[-1]),
