@@ -88,13 +88,14 @@ def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict
         try:
             # the paper's model (projection on each accelerometer's sensitive axis) is what
             # is reported; the body-axis fit is what Calibration.apply subtracts after K_a
-            fits["lever_arm"] = lever = zhang2017.fit_lever_arm(sm, static, gyro_K=g.K,
-                                                                gyro_w0=g.w0)
+            # both projections from one set of inputs (dynamic steps, rates, f_hat)
+            inputs = zhang2017.lever_arm_inputs(sm, static, gyro_K=g.K, gyro_w0=g.w0)
+            fits["lever_arm"] = lever = zhang2017.fit_lever_arm_from(inputs)
             if lever.undetermined:  # stored as NaN; say why in the session's warnings
                 warnings.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
                                 + ", ".join(lever.undetermined) + " (add tilted steps)")
-            derived["lever_arm_body_mm"] = zhang2017.fit_lever_arm(
-                sm, static, gyro_K=g.K, gyro_w0=g.w0, projection="body_axis").r_mm
+            derived["lever_arm_body_mm"] = zhang2017.fit_lever_arm_from(
+                inputs, projection="body_axis").r_mm
         except DesignError as exc:
             warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
 

@@ -28,7 +28,7 @@ from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.linalg import qr
+from scipy.linalg.lapack import dgeqp3 as _geqp3
 
 from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
@@ -329,17 +329,45 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
     """
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    return fit_lever_arm_from(lever_arm_inputs(sm, static, gyro_K, gyro_w0), rcond, projection)
+
+
+@dataclass(frozen=True)
+class LeverArmInputs:
+    """What both projections of :func:`fit_lever_arm` share for one session: the dynamic
+    steps, their rate matrices and the statically compensated specific force."""
+
+    static: AccelStaticFit
+    d: StepMeans  # the dynamic steps
+    W: np.ndarray  # (n,3,3) lever matrices, g per mm
+    K_a: np.ndarray  # M^-1
+    f_hat: np.ndarray  # (n,3) statically compensated specific force, body frame
+    source: str  # "w_ref" or "gyro"
+
+
+def lever_arm_inputs(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None
+                     ) -> LeverArmInputs:
+    """The shared part of the lever-arm fit (compute once, fit both projections from it)."""
     d = sm.of_test("dynamic")
-    n = len(d)
-    if n == 0:
+    if len(d) == 0:
         raise DesignError("E_NO_DYNAMIC_STEPS", "no dynamic steps: lever arms need constant-rate "
                           "rotation", LEVER_NAMES)
     w, source = _step_rates(d, gyro_K, gyro_w0)
     W = lever_matrix(w) * (1e-3 / static.g_local)  # g per mm
+    K_a = np.linalg.inv(static.M)
+    f_hat = (d.accel - static.bias) @ K_a.T  # statically compensated specific force, body frame
+    return LeverArmInputs(static, d, W, K_a, f_hat, source)
+
+
+def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
+                       projection: str = "sensitive_axis") -> LeverArmFit:
+    """:func:`fit_lever_arm` on precomputed :func:`lever_arm_inputs`."""
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    static, d, W, K_a, f_hat = inputs.static, inputs.d, inputs.W, inputs.K_a, inputs.f_hat
+    n = len(d)
     k, C, u0 = static.scale, static.C, static.bias
     M = static.M
-    K_a = np.linalg.inv(M)
-    f_hat = (d.accel - u0) @ K_a.T  # statically compensated specific force, body frame
     r = np.full((3, 3), np.nan)
     se = np.full((3, 3), np.nan)
     undetermined: list[str] = []
@@ -353,8 +381,12 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
             X = W[:, i, :]
             y = f_hat[:, i] - d.f_ref[:, i]
         # rank-revealing QR: the trailing pivots with small diagonal are not observable
-        _, R, piv = qr(X, mode="economic", pivoting=True)
-        diag = np.abs(np.diag(R))
+        # (LAPACK geqp3 directly: what scipy.linalg.qr(pivoting=True) runs, minus its checks)
+        qr_, jpvt, _, _, info = _geqp3(X)
+        if info != 0:  # pragma: no cover - LAPACK argument error
+            raise DesignError("E_LEVER_RANK", f"pivoted QR failed (info={info})", LEVER_NAMES)
+        piv = jpvt - 1
+        diag = np.abs(np.diag(qr_))
         keep = np.sort(piv[: int(np.sum(diag >= rcond * diag[0]))]) if diag[0] > 0 else []
         for j in sorted(set(range(3)) - set(keep)):
             name = LEVER_NAMES[3 * i + j]
@@ -370,21 +402,22 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
         raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
                           LEVER_NAMES)
     A = np.zeros((3 * n, len(cols)))
-    full = np.zeros((3 * n, 9))
     Y = np.concatenate([b[2] for b in blocks])
-    for i, X, _, _ in blocks:
-        full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
     for c, (i, j) in enumerate(cols):
         A[i * n:(i + 1) * n, c] = blocks[i][1][:, j]
     theta, *_ = np.linalg.lstsq(A, Y, rcond=None)
     resid = Y - A @ theta
     dof = 3 * n - len(cols)
     var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
-    cov = _ls_cov(A) * var_g
+    # one SVD of A gives (A^T A)^-1, the pseudo-inverse and the condition number (the same
+    # operations as _ls_cov and np.linalg.pinv, which each took their own SVD)
+    U, sva, Vt = np.linalg.svd(A, full_matrices=False)
+    cov = ((Vt.T / sva ** 2) @ Vt) * var_g
+    s_inv = np.divide(1.0, sva, where=sva > 1e-15 * sva.max(), out=np.zeros_like(sva))
+    pinv = Vt.T @ (s_inv[:, None] * U.T)
     # propagate the static uncertainty, channel by channel (theta_l = (M_l, u0_l)):
     # sensitive axis: dy_l/dtheta_l = -(f_s + e_ls M_l / k_l^2, 1) / k_l (own block only);
     # body axis: y = K_a (A - u0) - f_ref, dy_i/dtheta_l = -K_a[i, l] (f_hat_s, 1)
-    pinv = np.linalg.pinv(A)
     ones = np.ones((n, 1))
     for l in range(3):
         dY = np.zeros((3 * n, 4))
@@ -400,14 +433,19 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
     for c, (i, j) in enumerate(cols):
         r[i, j] = theta[c]
         se[i, j] = np.sqrt(cov[c, c])
-    sva = np.linalg.svd(A, compute_uv=False)
-    svf = np.linalg.svd(full, compute_uv=False)
+    if len(cols) == 9:  # every column kept: the full design is A itself
+        svf = sva
+    else:
+        full = np.zeros((3 * n, 9))
+        for i, X, _, _ in blocks:
+            full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
+        svf = np.linalg.svd(full, compute_uv=False)
     return LeverArmFit(
         lever_arm_mm=r, stderr=se, condition_number=float(sva[0] / sva[-1]),
         condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
         undetermined=tuple(undetermined), reasons=reasons,
         residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
-        n_steps=n, rate_source=source, projection=projection,
+        n_steps=n, rate_source=inputs.source, projection=projection,
     )
 
 
