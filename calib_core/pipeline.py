@@ -16,7 +16,8 @@ from calib_core import xu2016
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
-from calib_core.results import ColumnTable, RepetitionCalibration, UnitCalibration
+from calib_core.results import RepetitionCalibration, UnitCalibration
+from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans
 
 
@@ -157,8 +158,9 @@ def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> 
     k = len(sm)
     return ColumnTable({
         "lot": sm.key.lot, "unit": sm.key.unit, "rep": sm.key.rep,
-        "step": np.repeat(sm.step, 6), "test": np.repeat(sm.test, 6),
-        "up_axis": np.repeat(sm.up_axis, 6), "rate_dps": np.repeat(sm.rate_dps, 6),
-        "angle_deg": np.repeat(sm.angle_deg, 6), "channel": np.tile(CHANNELS, k),
+        "step": np.repeat(sm.step, 6), "test": CodedStrings.of(sm.test).repeat(6),
+        "up_axis": CodedStrings.of(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
+        "angle_deg": np.repeat(sm.angle_deg, 6),
+        "channel": CodedStrings(CHANNELS, np.tile(np.arange(6), k)),
         "reference": ref.ravel(), "residual": res.ravel(), "sigma": sig.ravel(), "model": model,
     }, 6 * k)

@@ -10,72 +10,6 @@ import numpy as np
 FORMAT_VERSION = "1.0"
 
 
-class ColumnTable:
-    """Rows of a results table as named numpy columns, a column being either an (n,) array
-    or one scalar shared by every row.
-
-    Per-session tables (residuals, compensation errors) are built this way because a pandas
-    DataFrame costs ~1 ms to construct, more than the fit itself; a unit's sessions are
-    concatenated and turned into ONE DataFrame (:meth:`concat`, :meth:`to_frame`), which is
-    the same frame, column for column and dtype for dtype, as concatenating per-session
-    DataFrames."""
-
-    __slots__ = ("columns", "n_rows")
-
-    def __init__(self, columns: dict[str, Any], n_rows: int):
-        self.columns = dict(columns)
-        self.n_rows = int(n_rows)
-        for name, v in self.columns.items():
-            if isinstance(v, np.ndarray) and v.shape != (self.n_rows,):
-                raise ValueError(f"column {name!r} has shape {v.shape}, expected ({self.n_rows},)")
-
-    def __len__(self) -> int:
-        return self.n_rows
-
-    def __repr__(self) -> str:
-        return f"ColumnTable({self.n_rows} rows: {', '.join(self.columns)})"
-
-    def column(self, name: str) -> np.ndarray:
-        """One column as an (n,) array (a scalar column repeated)."""
-        v = self.columns[name]
-        return v if isinstance(v, np.ndarray) else np.full(self.n_rows, v)
-
-    def with_leading(self, name: str, value: Any) -> "ColumnTable":
-        """A copy with a constant column ``name`` inserted first (DataFrame.insert(0, ...))."""
-        return ColumnTable({name: value, **self.columns}, self.n_rows)
-
-    @staticmethod
-    def concat(tables: list["ColumnTable"]) -> "ColumnTable":
-        """Rows of every table in order; the tables must have the same columns in the same
-        order. A column that is the same scalar in every table stays a scalar."""
-        if not tables:
-            raise ValueError("no table to concatenate")
-        names = list(tables[0].columns)
-        for t in tables[1:]:
-            if list(t.columns) != names:
-                raise ValueError(f"columns differ: {names} vs {list(t.columns)}")
-        out: dict[str, Any] = {}
-        for name in names:
-            vals = [t.columns[name] for t in tables]
-            first = vals[0]
-            if not isinstance(first, np.ndarray) and all(
-                    not isinstance(v, np.ndarray) and type(v) is type(first) and v == first
-                    for v in vals[1:]):
-                out[name] = first
-            else:
-                out[name] = np.concatenate([t.column(name) for t in tables])
-        return ColumnTable(out, sum(t.n_rows for t in tables))
-
-    def to_frame(self):
-        """The pandas DataFrame (RangeIndex; scalar columns broadcast by pandas)."""
-        import pandas as pd
-
-        if self.n_rows == 0:
-            return pd.DataFrame(columns=list(self.columns))
-        return pd.DataFrame(self.columns, index=pd.RangeIndex(self.n_rows),
-                            columns=list(self.columns))
-
-
 def to_jsonable(v: Any, default=lambda x: x) -> Any:
     """JSON-safe copy: numpy scalars and arrays to Python, non-finite floats to None;
     ``default`` converts anything else (e.g. datetimes, paths)."""
@@ -118,13 +52,26 @@ class FitResult(Protocol):
 
 def matrix_params(model: str, prefix: str, M: np.ndarray, S: np.ndarray, unit: str) -> list[Param]:
     """Params ``prefix11 .. prefix33`` of a 3x3 matrix (paper numbering, row-major)."""
-    return [Param(model, f"{prefix}{i + 1}{j + 1}", float(M[i, j]), float(S[i, j]), unit)
-            for i in range(3) for j in range(3)]
+    # tolist() converts to Python floats in one call (float(M[i, j]) is one numpy scalar each)
+    values = np.asarray(M, dtype=float).ravel().tolist()
+    errors = np.asarray(S, dtype=float).ravel().tolist()
+    return [Param(model, f"{prefix}{name}", v, e, unit)
+            for name, v, e in zip(_MATRIX_SUFFIXES, values, errors)]
+
+
+_MATRIX_SUFFIXES = tuple(f"{i + 1}{j + 1}" for i in range(3) for j in range(3))
 
 
 def vector_params(model: str, names: Iterable[str], v: np.ndarray, s: np.ndarray,
                   unit: str) -> list[Param]:
-    return [Param(model, n, float(a), float(b), unit) for n, a, b in zip(names, v, s)]
+    values = np.asarray(v, dtype=float).ravel().tolist()
+    errors = np.asarray(s, dtype=float).ravel().tolist()
+    return [Param(model, n, a, b, unit) for n, a, b in zip(names, values, errors)]
+
+
+def _is_frozen(obj: Any) -> bool:
+    params = getattr(type(obj), "__dataclass_params__", None)
+    return bool(params is not None and params.frozen)
 
 
 @dataclass
@@ -142,7 +89,22 @@ class RepetitionCalibration:
     derived: dict[str, Any] = field(default_factory=dict)
 
     def parameters(self) -> list[Param]:
-        return [p for fit in self.fits.values() for p in fit.parameters()]
+        # listed again by summarise, the results store and the unit document: kept while
+        # the same (immutable) fit objects are in ``fits``
+        current = tuple(self.fits.items())
+        cached = self.__dict__.get("_parameters")
+        if cached is not None and len(cached[0]) == len(current) and all(
+                a == c and f is g for (a, f), (c, g) in zip(cached[0], current)):
+            return list(cached[1])
+        params = [p for fit in self.fits.values() for p in fit.parameters()]
+        if all(_is_frozen(f) for f in self.fits.values()):
+            self.__dict__["_parameters"] = (current, params)
+        return list(params)
+
+    def __getstate__(self) -> dict:  # the parameter list is a cache: not pickled
+        state = dict(self.__dict__)
+        state.pop("_parameters", None)
+        return state
 
 
 @dataclass(frozen=True)

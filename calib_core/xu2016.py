@@ -23,7 +23,8 @@ import pandas as pd
 
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq
-from calib_core.results import ColumnTable, Param, matrix_params, vector_params
+from calib_core.results import Param, matrix_params, vector_params
+from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans
 
 AXES = "xyz"
@@ -327,11 +328,13 @@ def compensation_error_table(sm: StepMeans, proposed: GyroMultirateFit,
         hi[:, k] = err[:, sel].max(axis=1)
         n_steps[k] = sel.sum()
     n_rows = len(methods) * len(present) * 3
-    axes = np.array(list(AXES))
     return ColumnTable({
-        "input_axis": np.tile(np.repeat(np.array(present), 3), len(methods)),
-        "output_axis": np.tile(axes, len(methods) * len(present)),
-        "method": np.repeat(np.array(methods), len(present) * 3),
+        "input_axis": CodedStrings(np.array(present), np.tile(
+            np.repeat(np.arange(len(present)), 3), len(methods))),
+        "output_axis": CodedStrings(np.array(list(AXES)), np.tile(
+            np.arange(3), len(methods) * len(present))),
+        "method": CodedStrings(np.array(methods), np.repeat(
+            np.arange(len(methods)), len(present) * 3)),
         "err_min": lo.ravel(), "err_max": hi.ravel(),
         "unit_of_measure": "deg/s", "source": "+".join(tests),
         "n_steps": np.tile(np.repeat(n_steps, 3), len(methods)),

@@ -38,6 +38,7 @@ from calib_core.steps import StepMeans
 
 AXES = "xyz"
 STATIC_TESTS = ("multiposition", "stationary")
+ANGLE_NAMES = tuple(f"theta_{a}{b}" for a in AXES for b in AXES)  # row-major, theta_ij
 # a lever-arm direction whose pivoted-QR diagonal is below this fraction of the largest one
 # is reported as undetermined (with x/y/z-up steps only, the off-diagonal components are seen
 # through direction cosines of ~0.01: the paper's "distortion")
@@ -134,13 +135,12 @@ class AccelStaticFit:
 
     def parameters(self) -> list[Param]:
         su = f"{self.unit}/g"
-        out = [Param(self.model, f"k_{a}", float(v), float(s), su)
-               for a, v, s in zip(AXES, self.scale, self.scale_stderr)]
-        out += [Param(self.model, f"u0_{a}", float(v), float(s), self.unit)
-                for a, v, s in zip(AXES, self.bias, self.bias_stderr)]
-        ang = self.angles_deg
-        out += [Param(self.model, f"theta_{AXES[i]}{AXES[j]}", float(ang[i, j]),
-                      float(self.angles_stderr[i, j]), "deg") for i in range(3) for j in range(3)]
+        out = [Param(self.model, f"k_{a}", v, s, su)
+               for a, v, s in zip(AXES, self.scale.tolist(), self.scale_stderr.tolist())]
+        out += [Param(self.model, f"u0_{a}", v, s, self.unit)
+                for a, v, s in zip(AXES, self.bias.tolist(), self.bias_stderr.tolist())]
+        out += [Param(self.model, name, v, s, "deg") for name, v, s in zip(
+            ANGLE_NAMES, self.angles_deg.ravel().tolist(), self.angles_stderr.ravel().tolist())]
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -277,8 +277,8 @@ class LeverArmFit:
         return np.nan_to_num(self.lever_arm_mm, nan=0.0)
 
     def parameters(self) -> list[Param]:
-        return [Param(self.model, LEVER_NAMES[3 * i + j], float(self.lever_arm_mm[i, j]),
-                      float(self.stderr[i, j]), "mm") for i in range(3) for j in range(3)]
+        return [Param(self.model, name, v, s, "mm") for name, v, s in zip(
+            LEVER_NAMES, self.lever_arm_mm.ravel().tolist(), self.stderr.ravel().tolist())]
 
     def to_dict(self) -> dict[str, Any]:
         def lst(a):
@@ -401,6 +401,8 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
     if not cols:
         raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
                           LEVER_NAMES)
+    if len(cols) == 9:
+        return _fit_all_determined(inputs, blocks, projection, reasons)
     A = np.zeros((3 * n, len(cols)))
     Y = np.concatenate([b[2] for b in blocks])
     for c, (i, j) in enumerate(cols):
@@ -444,6 +446,52 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
         lever_arm_mm=r, stderr=se, condition_number=float(sva[0] / sva[-1]),
         condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
         undetermined=tuple(undetermined), reasons=reasons,
+        residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
+        n_steps=n, rate_source=inputs.source, projection=projection,
+    )
+
+
+def _fit_all_determined(inputs: LeverArmInputs, blocks: list, projection: str,
+                        reasons: dict[str, str]) -> LeverArmFit:
+    """The joint fit when every component is determined (the usual case, tilted steps).
+
+    The design is then block diagonal with three (n,3) blocks, one per accelerometer, so one
+    batched SVD of the blocks gives what the general path gets from lstsq, two SVDs and a
+    pseudo-inverse of the (3n,9) design: the same estimates and covariance, to rounding."""
+    static, d, K_a, f_hat = inputs.static, inputs.d, inputs.K_a, inputs.f_hat
+    n = len(d)
+    k, M = static.scale, static.M
+    Xb = np.stack([b[1] for b in blocks])  # (3,n,3)
+    yb = np.stack([b[2] for b in blocks])  # (3,n)
+    U, sb, Vt = np.linalg.svd(Xb, full_matrices=False)  # (3,n,3), (3,3), (3,3,3)
+    V = np.swapaxes(Vt, 1, 2)
+    pinv = V @ (np.swapaxes(U, 1, 2) / sb[:, :, None])  # (3,3,n), block i = pinv(X_i)
+    theta = np.einsum("ikn,in->ik", pinv, yb)  # row i = r_i
+    resid = yb - np.einsum("ink,ik->in", Xb, theta)
+    dof = 3 * n - 9
+    var_g = float(np.sum(resid ** 2) / dof) if dof > 0 else float("nan")
+    blk = np.arange(3)
+    cov4 = np.zeros((3, 3, 3, 3))  # (i, j, i', j'): component (i,j) against (i',j')
+    cov4[blk, :, blk, :] = ((V / sb[:, None, :] ** 2) @ Vt) * var_g
+    # static uncertainty (see fit_lever_arm_from): sensitive axis, channel l moves block l
+    # only; body axis, channel l moves block i by -K_a[i, l] pinv(X_i) (f_hat, 1)
+    ones = np.ones((n, 1))
+    if projection == "sensitive_axis":
+        e = yb * k[:, None]  # raw residuals of the static model, (3,n)
+        dY = np.concatenate([d.f_ref[None] + e[:, :, None] * M[:, None, :] / k[:, None, None] ** 2,
+                             np.broadcast_to(ones, (3, n, 1))], axis=2) / -k[:, None, None]
+        J = pinv @ dY  # (3,3,4): block l, channel l
+        cov4[blk, :, blk, :] += np.einsum("lai,lij,lbj->lab", J, static.channel_cov, J)
+        cov = cov4.reshape(9, 9)
+    else:
+        P = pinv @ np.hstack([f_hat, ones])  # (3,3,4), block i
+        J = (-K_a.T[:, :, None, None] * P[None]).reshape(3, 9, 4)  # (l, component, 4)
+        cov = cov4.reshape(9, 9) + np.einsum("lai,lij,lbj->ab", J, static.channel_cov, J)
+    sv = sb.ravel()
+    cond = float(sv.max() / sv.min()) if sv.min() > 0 else float("inf")
+    return LeverArmFit(
+        lever_arm_mm=theta, stderr=np.sqrt(np.diag(cov)).reshape(3, 3), condition_number=cond,
+        condition_number_full=cond, undetermined=(), reasons=reasons,
         residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
         n_steps=n, rate_source=inputs.source, projection=projection,
     )

@@ -14,8 +14,9 @@ import pandas as pd
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.pipeline import calibrate_repetition, calibration_from_unit
-from calib_core.results import ColumnTable, Param, RepetitionCalibration, UnitCalibration
+from calib_core.results import Param, RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
+from calib_core.tables import ColumnTable
 from schemas.averaging import read_step_means
 from schemas.dataset import SessionRef, fingerprint
 from schemas.errors import SessionError, from_design_error
