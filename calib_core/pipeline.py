@@ -8,6 +8,7 @@ and applied (xu2016 section 3.1 averages the five repetitions the same way).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import pandas as pd
@@ -158,9 +159,26 @@ def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> 
     k = len(sm)
     return ColumnTable({
         "lot": sm.key.lot, "unit": sm.key.unit, "rep": sm.key.rep,
-        "step": np.repeat(sm.step, 6), "test": CodedStrings.of(sm.test).repeat(6),
-        "up_axis": CodedStrings.of(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
+        "step": np.repeat(sm.step, 6), "test": _coded(sm.test).repeat(6),
+        "up_axis": _coded(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
         "angle_deg": np.repeat(sm.angle_deg, 6),
         "channel": CodedStrings(CHANNELS, np.tile(np.arange(6), k)),
         "reference": ref.ravel(), "residual": res.ravel(), "sigma": sig.ravel(), "model": model,
     }, 6 * k)
+
+
+def _coded(values: np.ndarray) -> CodedStrings:
+    """Codes of a step-level string column; the same protocol gives the same column in every
+    session, so the (sorting) np.unique runs once per protocol."""
+    values = np.asarray(values)
+    if values.dtype.kind != "U":
+        return CodedStrings.of(values)
+    return _coded_cached(values.dtype.str, len(values), values.tobytes())
+
+
+@lru_cache(maxsize=64)
+def _coded_cached(dtype: str, n: int, data: bytes) -> CodedStrings:
+    coded = CodedStrings.of(np.frombuffer(data, dtype=dtype, count=n))
+    for a in (coded.categories, coded.codes):
+        a.setflags(write=False)
+    return coded

@@ -11,7 +11,7 @@ unit (``LSB``, ``V``) that the fitted matrices absorb; accelerometer channels ar
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -32,6 +32,10 @@ class SessionKey:
 
     def __str__(self) -> str:  # used verbatim in every error message
         return f"lot={self.lot}/unit={self.unit}/rep={self.rep}"
+
+
+_ROW_FIELDS = ("step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref", "gyro",
+               "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c")
 
 
 @dataclass(frozen=True)
@@ -81,14 +85,14 @@ class StepMeans:
     def select(self, mask: np.ndarray) -> "StepMeans":
         """Rows where ``mask`` is true (boolean array or index array)."""
         idx = np.asarray(mask)
-        arrays = {
-            name: getattr(self, name)[idx]
-            for name in (
-                "step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref", "gyro",
-                "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c",
-            )
-        }
-        return replace(self, **arrays)
+        state = {name: v for name, v in self.__dict__.items() if name != "_subsets"}
+        for name in _ROW_FIELDS:
+            state[name] = state[name][idx]
+        # rows of a valid StepMeans are a valid StepMeans: no need to run the shape checks
+        # of __init__ again (this is called a few times for every session)
+        out = object.__new__(type(self))
+        out.__dict__.update(state)
+        return out
 
     def of_test(self, *tests: str) -> "StepMeans":
         """Rows of the given tests (the same object on every call with the same tests)."""

@@ -306,30 +306,25 @@ def compensation_error_table(sm: StepMeans, proposed: GyroMultirateFit,
                              traditional: TraditionalFit | None = None,
                              tests: tuple[str, ...] = ("verification",)) -> ColumnTable:
     """The rows of :func:`compensation_errors` as numpy columns (no DataFrame)."""
-    st = sm.of_test(*tests)
-    st = st.select(np.abs(st.rate_dps) > 0) if len(st) else st
-    if len(st) == 0:
+    rows = _rotation_groups(tests, np.isin(sm.test, tests).tobytes(),
+                            sm.rate_dps.astype(float).tobytes(),
+                            np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
+    if rows is None:
         return ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0)
-    outputs = {"uncompensated": st.gyro if sm.gyro_unit == "deg/s"
-               else np.full_like(st.gyro, np.nan),
-               "proposed": proposed.compensate(st.gyro)}
+    idx, starts, present, n_steps = rows  # steps ordered by input axis, group starts
+    G, w_ref = sm.gyro[idx], sm.w_ref[idx]
+    outputs = [G if sm.gyro_unit == "deg/s" else np.full_like(G, np.nan),
+               proposed.compensate(G)]
+    methods = ["uncompensated", "proposed"]  # row order of xu2016 Table 3
     if traditional is not None:
-        outputs["traditional"] = traditional.compensate(st.gyro)
-    methods = list(outputs)  # row order: uncompensated, proposed, traditional
-    err = np.stack([outputs[m] for m in methods]) - st.w_ref  # (methods, steps, 3)
-    inp = input_axis_of(st.w_ref)
-    present = [a for a in AXES if (inp == a).any()]
-    lo = np.empty((len(methods), len(present), 3))
-    hi = np.empty_like(lo)
-    n_steps = np.empty(len(present), dtype=np.int64)
-    for k, a in enumerate(present):  # three input axes at most
-        sel = inp == a
-        lo[:, k] = err[:, sel].min(axis=1)
-        hi[:, k] = err[:, sel].max(axis=1)
-        n_steps[k] = sel.sum()
+        outputs.append(traditional.compensate(G))
+        methods.append("traditional")
+    err = np.stack(outputs) - w_ref  # (methods, steps, 3)
+    lo = np.minimum.reduceat(err, starts, axis=1)  # (methods, input axes, 3)
+    hi = np.maximum.reduceat(err, starts, axis=1)
     n_rows = len(methods) * len(present) * 3
     return ColumnTable({
-        "input_axis": CodedStrings(np.array(present), np.tile(
+        "input_axis": CodedStrings(present, np.tile(
             np.repeat(np.arange(len(present)), 3), len(methods))),
         "output_axis": CodedStrings(np.array(list(AXES)), np.tile(
             np.arange(3), len(methods) * len(present))),
@@ -339,3 +334,21 @@ def compensation_error_table(sm: StepMeans, proposed: GyroMultirateFit,
         "unit_of_measure": "deg/s", "source": "+".join(tests),
         "n_steps": np.tile(np.repeat(n_steps, 3), len(methods)),
     }, n_rows)
+
+
+@lru_cache(maxsize=64)
+def _rotation_groups(tests: tuple[str, ...], in_tests: bytes, rate_dps: bytes, w_ref: bytes):
+    """Rotation steps of the given tests grouped by input axis, for a protocol (the same for
+    every session of a fleet): (step indices ordered by input axis, start of each group,
+    the input axes present, steps per group), or None when there is no such step."""
+    mask = np.frombuffer(in_tests, dtype=bool) & (np.frombuffer(rate_dps, dtype=float) != 0)
+    idx = np.flatnonzero(mask)
+    if len(idx) == 0:
+        return None
+    axis = np.argmax(np.abs(np.frombuffer(w_ref, dtype=float).reshape(-1, 3)[idx]), axis=1)
+    order = np.argsort(axis, kind="stable")  # within a group, steps keep their order
+    present, starts, n_steps = np.unique(axis[order], return_index=True, return_counts=True)
+    out = (idx[order], starts, np.array(list(AXES))[present], n_steps.astype(np.int64))
+    for a in out:
+        a.setflags(write=False)
+    return out

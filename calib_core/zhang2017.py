@@ -372,26 +372,33 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
     se = np.full((3, 3), np.nan)
     undetermined: list[str] = []
     reasons: dict[str, str] = {}
+    # the three blocks (one per accelerometer) at once: X_i (n,3) and y_i (n,)
+    if projection == "sensitive_axis":
+        Xb = np.einsum("ji,njk->ink", C, W)  # row s of block i: c_i^T W_s
+        # f_ref @ M[i] one row at a time, as before: the lever term is a small difference
+        # of these, and d.f_ref @ M.T rounds differently (1e-10 of a near-zero lever arm)
+        yb = (d.accel.T - u0[:, None] - np.stack([d.f_ref @ M[i] for i in range(3)])) / k[:, None]
+    else:
+        Xb = np.ascontiguousarray(W.transpose(1, 0, 2))  # block i: rows i of W_s
+        yb = (f_hat - d.f_ref).T
     blocks = []
     for i in range(3):
-        if projection == "sensitive_axis":
-            X = np.einsum("j,njk->nk", C[:, i], W)  # c_i^T W_s, (n,3)
-            y = (d.accel[:, i] - u0[i] - d.f_ref @ M[i]) / k[i]
-        else:
-            X = W[:, i, :]
-            y = f_hat[:, i] - d.f_ref[:, i]
+        X, y = Xb[i], yb[i]
         # rank-revealing QR: the trailing pivots with small diagonal are not observable
         # (LAPACK geqp3 directly: what scipy.linalg.qr(pivoting=True) runs, minus its checks)
         qr_, jpvt, _, _, info = _geqp3(X)
         if info != 0:  # pragma: no cover - LAPACK argument error
             raise DesignError("E_LEVER_RANK", f"pivoted QR failed (info={info})", LEVER_NAMES)
-        piv = jpvt - 1
-        diag = np.abs(np.diag(qr_))
-        keep = np.sort(piv[: int(np.sum(diag >= rcond * diag[0]))]) if diag[0] > 0 else []
+        piv = (jpvt - 1).tolist()
+        diag = np.abs(qr_.diagonal()).tolist()
+        if diag[0] > 0:
+            keep = sorted(piv[: sum(1 for v in diag if v >= rcond * diag[0])])
+        else:
+            keep = []
         for j in sorted(set(range(3)) - set(keep)):
             name = LEVER_NAMES[3 * i + j]
             undetermined.append(name)
-            rel = diag[list(piv).index(j)] / diag[0] if diag[0] > 0 else 0.0
+            rel = diag[piv.index(j)] / diag[0] if diag[0] > 0 else 0.0
             reasons[name] = (f"not observable from these dynamic steps (relative pivot "
                              f"{rel:.2g} < {rcond:g}); add steps with the rate off the body "
                              "axes (protocols.dynamic_steps(tilted=True))")
