@@ -50,13 +50,27 @@ class FitResult(Protocol):
     def to_dict(self) -> dict[str, Any]: ...
 
 
+def param_list(model: str, names: Iterable[str], values: Iterable[float],
+               stderrs: Iterable[float], unit: str) -> list[Param]:
+    """Params of one model and unit, built without the frozen dataclass's per-field
+    ``object.__setattr__`` (a session lists ~70 parameters; the objects are identical)."""
+    out = []
+    for name, v, e in zip(names, values, stderrs):
+        p = _new(Param)
+        p.__dict__.update(model=model, name=name, value=v, stderr=e, unit=unit)
+        out.append(p)
+    return out
+
+
+_new = object.__new__
+
+
 def matrix_params(model: str, prefix: str, M: np.ndarray, S: np.ndarray, unit: str) -> list[Param]:
     """Params ``prefix11 .. prefix33`` of a 3x3 matrix (paper numbering, row-major)."""
     # tolist() converts to Python floats in one call (float(M[i, j]) is one numpy scalar each)
-    values = np.asarray(M, dtype=float).ravel().tolist()
-    errors = np.asarray(S, dtype=float).ravel().tolist()
-    return [Param(model, f"{prefix}{name}", v, e, unit)
-            for name, v, e in zip(_MATRIX_SUFFIXES, values, errors)]
+    return param_list(model, [f"{prefix}{suffix}" for suffix in _MATRIX_SUFFIXES],
+                      np.asarray(M, dtype=float).ravel().tolist(),
+                      np.asarray(S, dtype=float).ravel().tolist(), unit)
 
 
 _MATRIX_SUFFIXES = tuple(f"{i + 1}{j + 1}" for i in range(3) for j in range(3))
@@ -64,9 +78,8 @@ _MATRIX_SUFFIXES = tuple(f"{i + 1}{j + 1}" for i in range(3) for j in range(3))
 
 def vector_params(model: str, names: Iterable[str], v: np.ndarray, s: np.ndarray,
                   unit: str) -> list[Param]:
-    values = np.asarray(v, dtype=float).ravel().tolist()
-    errors = np.asarray(s, dtype=float).ravel().tolist()
-    return [Param(model, n, a, b, unit) for n, a, b in zip(names, values, errors)]
+    return param_list(model, names, np.asarray(v, dtype=float).ravel().tolist(),
+                      np.asarray(s, dtype=float).ravel().tolist(), unit)
 
 
 def _is_frozen(obj: Any) -> bool:
@@ -144,12 +157,15 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
         s_sum = np.where(np.isnan(s), 0.0, s).sum(axis=0)  # nanmean, same arithmetic
         mean_se = np.where(has_se, s_sum / (~np.isnan(s)).sum(axis=0), np.nan)
     vmin, vmax = v.min(axis=0), v.max(axis=0)
-    columns = v.T.tolist()
-    return [ParamSummary(model=model, name=name, unit=p.unit, mean=m, std=sd, min=lo, max=hi,
-                         n_reps=n, values=tuple(col), mean_stderr=se)
-            for (model, name), p, m, sd, lo, hi, col, se in zip(
-                keys, params[0], mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
-                columns, mean_se.tolist())]
+    out = []
+    for (model, name), p, m, sd, lo, hi, col, se in zip(
+            keys, params[0], mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
+            v.T.tolist(), mean_se.tolist()):
+        summary = _new(ParamSummary)  # as ParamSummary(...), minus the frozen __setattr__s
+        summary.__dict__.update(model=model, name=name, unit=p.unit, mean=m, std=sd, min=lo,
+                                max=hi, n_reps=n, values=tuple(col), mean_stderr=se)
+        out.append(summary)
+    return out
 
 
 def _summarise_by_key(params: list[list[Param]]) -> list[ParamSummary]:

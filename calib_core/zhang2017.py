@@ -33,12 +33,14 @@ from scipy.linalg.lapack import dgeqp3 as _geqp3
 from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
 from calib_core.errors import DesignError
-from calib_core.results import Param
+from calib_core.results import Param, param_list
 from calib_core.steps import StepMeans
 
 AXES = "xyz"
 STATIC_TESTS = ("multiposition", "stationary")
 ANGLE_NAMES = tuple(f"theta_{a}{b}" for a in AXES for b in AXES)  # row-major, theta_ij
+SCALE_NAMES = tuple(f"k_{a}" for a in AXES)
+BIAS_NAMES = tuple(f"u0_{a}" for a in AXES)
 # a lever-arm direction whose pivoted-QR diagonal is below this fraction of the largest one
 # is reported as undetermined (with x/y/z-up steps only, the off-diagonal components are seen
 # through direction cosines of ~0.01: the paper's "distortion")
@@ -134,14 +136,12 @@ class AccelStaticFit:
         return np.linalg.solve(self.C.T, self.sensed_along_axes(A_raw).T).T
 
     def parameters(self) -> list[Param]:
-        su = f"{self.unit}/g"
-        out = [Param(self.model, f"k_{a}", v, s, su)
-               for a, v, s in zip(AXES, self.scale.tolist(), self.scale_stderr.tolist())]
-        out += [Param(self.model, f"u0_{a}", v, s, self.unit)
-                for a, v, s in zip(AXES, self.bias.tolist(), self.bias_stderr.tolist())]
-        out += [Param(self.model, name, v, s, "deg") for name, v, s in zip(
-            ANGLE_NAMES, self.angles_deg.ravel().tolist(), self.angles_stderr.ravel().tolist())]
-        return out
+        return (param_list(self.model, SCALE_NAMES, self.scale.tolist(),
+                           self.scale_stderr.tolist(), f"{self.unit}/g")
+                + param_list(self.model, BIAS_NAMES, self.bias.tolist(),
+                             self.bias_stderr.tolist(), self.unit)
+                + param_list(self.model, ANGLE_NAMES, self.angles_deg.ravel().tolist(),
+                             self.angles_stderr.ravel().tolist(), "deg"))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -277,8 +277,8 @@ class LeverArmFit:
         return np.nan_to_num(self.lever_arm_mm, nan=0.0)
 
     def parameters(self) -> list[Param]:
-        return [Param(self.model, name, v, s, "mm") for name, v, s in zip(
-            LEVER_NAMES, self.lever_arm_mm.ravel().tolist(), self.stderr.ravel().tolist())]
+        return param_list(self.model, LEVER_NAMES, self.lever_arm_mm.ravel().tolist(),
+                          self.stderr.ravel().tolist(), "mm")
 
     def to_dict(self) -> dict[str, Any]:
         def lst(a):
