@@ -96,8 +96,9 @@ def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict
             if lever.undetermined:  # stored as NaN; say why in the session's warnings
                 warnings.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
                                 + ", ".join(lever.undetermined) + " (add tilted steps)")
-            derived["lever_arm_body_mm"] = zhang2017.fit_lever_arm_from(
-                inputs, projection="body_axis").r_mm
+            # only the estimate is applied (no standard errors needed)
+            derived["lever_arm_body_mm"] = zhang2017.lever_arm_estimate(
+                inputs, projection="body_axis")
         except DesignError as exc:
             warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
 

@@ -359,8 +359,16 @@ def lever_arm_inputs(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0
     return LeverArmInputs(static, d, W, K_a, f_hat, source)
 
 
+def lever_arm_estimate(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
+                       projection: str = "sensitive_axis") -> np.ndarray:
+    """``fit_lever_arm_from(...).r_mm`` (the same numbers) without the standard errors, for
+    callers that only apply the lever arms (the pipeline's body-axis fit)."""
+    return fit_lever_arm_from(inputs, rcond, projection, _estimate_only=True)
+
+
 def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
-                       projection: str = "sensitive_axis") -> LeverArmFit:
+                       projection: str = "sensitive_axis", _estimate_only: bool = False
+                       ) -> LeverArmFit:
     """:func:`fit_lever_arm` on precomputed :func:`lever_arm_inputs`."""
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
@@ -409,12 +417,16 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
         raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
                           LEVER_NAMES)
     if len(cols) == 9:
-        return _fit_all_determined(inputs, blocks, projection, reasons)
+        return _fit_all_determined(inputs, blocks, projection, reasons, _estimate_only)
     A = np.zeros((3 * n, len(cols)))
     Y = np.concatenate([b[2] for b in blocks])
     for c, (i, j) in enumerate(cols):
         A[i * n:(i + 1) * n, c] = blocks[i][1][:, j]
     theta, *_ = np.linalg.lstsq(A, Y, rcond=None)
+    if _estimate_only:
+        for c, (i, j) in enumerate(cols):
+            r[i, j] = theta[c]
+        return r
     resid = Y - A @ theta
     dof = 3 * n - len(cols)
     var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
@@ -459,7 +471,7 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
 
 
 def _fit_all_determined(inputs: LeverArmInputs, blocks: list, projection: str,
-                        reasons: dict[str, str]) -> LeverArmFit:
+                        reasons: dict[str, str], estimate_only: bool = False) -> LeverArmFit:
     """The joint fit when every component is determined (the usual case, tilted steps).
 
     The design is then block diagonal with three (n,3) blocks, one per accelerometer, so one
@@ -474,6 +486,8 @@ def _fit_all_determined(inputs: LeverArmInputs, blocks: list, projection: str,
     V = np.swapaxes(Vt, 1, 2)
     pinv = V @ (np.swapaxes(U, 1, 2) / sb[:, :, None])  # (3,3,n), block i = pinv(X_i)
     theta = np.einsum("ikn,in->ik", pinv, yb)  # row i = r_i
+    if estimate_only:
+        return theta
     resid = yb - np.einsum("ink,ik->in", Xb, theta)
     dof = 3 * n - 9
     var_g = float(np.sum(resid ** 2) / dof) if dof > 0 else float("nan")
