@@ -45,6 +45,9 @@ BIAS_NAMES = tuple(f"u0_{a}" for a in AXES)
 # is reported as undetermined (with x/y/z-up steps only, the off-diagonal components are seen
 # through direction cosines of ~0.01: the paper's "distortion")
 UNDETERMINED_RCOND = 0.05
+# the lever-arm fit takes its block-diagonal shortcut when every component is determined
+# (tests switch it off to compare with the general joint solve)
+_BLOCK_PATH = True
 
 
 # -- conversions between the 15-parameter form and the paper's 12-parameter affine form --------
@@ -416,7 +419,7 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
     if not cols:
         raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
                           LEVER_NAMES)
-    if len(cols) == 9:
+    if len(cols) == 9 and _BLOCK_PATH:
         return _fit_all_determined(inputs, blocks, projection, reasons, _estimate_only)
     A = np.zeros((3 * n, len(cols)))
     Y = np.concatenate([b[2] for b in blocks])
