@@ -7,6 +7,7 @@ and applied (xu2016 section 3.1 averages the five repetitions the same way).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -42,9 +43,15 @@ class SessionFit:
         return self.residual_table.to_frame()
 
 
-def calibrate_repetition(sm: StepMeans) -> SessionFit:
+def calibrate_repetition(sm: StepMeans, cpu_by_stage: dict[str, float] | None = None
+                         ) -> SessionFit:
     """Fit every applicable model to one session. Raises DesignError when the xu2016 base
-    model cannot be determined; optional models that cannot be fitted become warnings."""
+    model cannot be determined; optional models that cannot be fitted become warnings.
+
+    ``cpu_by_stage``: when given, the CPU seconds of each stage are added to it (keys
+    ``STAGES``: xu2016 fits, zhang2017 static fit, lever arms, result tables), for the
+    benchmark's split of the fit phase; the results do not depend on it."""
+    lap = _Lap(cpu_by_stage)
     fits: dict = {}
     warnings: list[str] = []
     fits["gyro"] = gyro = xu2016.fit_gyro_multirate(sm)
@@ -62,18 +69,39 @@ def calibrate_repetition(sm: StepMeans) -> SessionFit:
         except DesignError as exc:
             warnings.append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
     trad = fits.get("gyro_traditional")
+    lap("xu2016")
     derived: dict = {}
-    _fit_zhang2017(sm, fits, warnings, derived)
+    _fit_zhang2017(sm, fits, warnings, derived, lap)
     key = sm.key
     rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=fits,
                                 warnings=warnings, provenance=dict(sm.metadata), derived=derived)
     source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
     comp = xu2016.compensation_error_table(sm, gyro, trad, tests=source)
     cal = calibration_from_fits(fits, sm)
-    return SessionFit(rep, comp, residual_table(sm, cal))
+    fit = SessionFit(rep, comp, residual_table(sm, cal))
+    lap("tables")
+    return fit
 
 
-def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict) -> None:
+STAGES = ("xu2016", "zhang2017_static", "lever_arm", "tables")
+
+
+class _Lap:
+    """Adds the CPU time since the previous lap to ``cpu[stage]`` (nothing when cpu is None)."""
+
+    def __init__(self, cpu: dict[str, float] | None):
+        self.cpu = cpu
+        self.t = time.process_time() if cpu is not None else 0.0
+
+    def __call__(self, stage: str) -> None:
+        if self.cpu is not None:
+            now = time.process_time()
+            self.cpu[stage] = self.cpu.get(stage, 0.0) + (now - self.t)
+            self.t = now
+
+
+def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict,
+                   lap: _Lap = _Lap(None)) -> None:
     """The 15-parameter static model and, with dynamic steps, the lever arms."""
     try:
         from calib_core import zhang2017
@@ -83,8 +111,10 @@ def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict
         static = zhang2017.fit_accel_static(sm)
     except DesignError as exc:
         warnings.append(f"W_ACCEL_STATIC_SKIPPED: {exc.reason}")
+        lap("zhang2017_static")
         return
     fits["accel_static"] = static
+    lap("zhang2017_static")
     if (sm.test == "dynamic").any():
         g = fits["gyro"]
         try:
@@ -101,6 +131,7 @@ def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict
                 inputs, projection="body_axis")
         except DesignError as exc:
             warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
+        lap("lever_arm")
 
 
 def calibration_from_fits(fits: dict, sm: StepMeans, terms: tuple[TermValue, ...] = ()

@@ -11,7 +11,7 @@ unit (``LSB``, ``V``) that the fitted matrices absorb; accelerometer channels ar
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -85,6 +85,8 @@ class StepMeans:
     def select(self, mask: np.ndarray) -> "StepMeans":
         """Rows where ``mask`` is true (boolean array or index array)."""
         idx = np.asarray(mask)
+        if idx.ndim != 1:  # not a row mask or index list: let __init__ check the result
+            return replace(self, **{name: getattr(self, name)[idx] for name in _ROW_FIELDS})
         state = {name: v for name, v in self.__dict__.items() if name != "_subsets"}
         for name in _ROW_FIELDS:
             state[name] = state[name][idx]

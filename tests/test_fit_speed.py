@@ -241,3 +241,21 @@ def test_of_test_subsets_are_kept_and_equal_a_fresh_selection():
     assert "_subsets" not in again.__dict__
     np.testing.assert_array_equal(again.of_test("dynamic").gyro, dyn.gyro)
     assert "_subsets" not in replace(sm).__dict__
+
+
+def test_cpu_by_stage_adds_up_and_changes_nothing():
+    import time
+
+    from calib_core.pipeline import STAGES
+    sm = _sessions(1)[0]
+    plain = calibrate_repetition(sm)
+    cpu: dict = {}
+    t0 = time.process_time()
+    timed = calibrate_repetition(sm, cpu_by_stage=cpu)
+    total = time.process_time() - t0
+    assert set(cpu) == set(STAGES) and all(v >= 0 for v in cpu.values())
+    assert sum(cpu.values()) <= total + 1e-6
+    assert timed.calibration.parameters() == plain.calibration.parameters()
+    pd.testing.assert_frame_equal(timed.residuals, plain.residuals, check_exact=True)
+    calibrate_repetition(sm, cpu_by_stage=cpu)  # a second session adds to the same dict
+    assert sum(cpu.values()) > 0
