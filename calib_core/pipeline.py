@@ -7,7 +7,9 @@ and applied (xu2016 section 3.1 averages the five repetitions the same way).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import pandas as pd
@@ -17,21 +19,39 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
 from calib_core.results import RepetitionCalibration, UnitCalibration
+from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans
 
 
 @dataclass
 class SessionFit:
-    """The fits of one session plus the tables the results store keeps."""
+    """The fits of one session plus the tables the results store keeps.
+
+    The tables are numpy columns (a DataFrame per session would cost more than the fits);
+    ``compensation`` / ``residuals`` give them as DataFrames on request."""
 
     calibration: RepetitionCalibration
-    compensation: pd.DataFrame  # xu2016 Table 3 rows
-    residuals: pd.DataFrame  # baseline replay residuals per step and channel
+    compensation_table: ColumnTable  # xu2016 Table 3 rows
+    residual_table: ColumnTable  # baseline replay residuals per step and channel
+
+    @property
+    def compensation(self) -> pd.DataFrame:
+        return self.compensation_table.to_frame()
+
+    @property
+    def residuals(self) -> pd.DataFrame:
+        return self.residual_table.to_frame()
 
 
-def calibrate_repetition(sm: StepMeans) -> SessionFit:
+def calibrate_repetition(sm: StepMeans, cpu_by_stage: dict[str, float] | None = None
+                         ) -> SessionFit:
     """Fit every applicable model to one session. Raises DesignError when the xu2016 base
-    model cannot be determined; optional models that cannot be fitted become warnings."""
+    model cannot be determined; optional models that cannot be fitted become warnings.
+
+    ``cpu_by_stage``: when given, the CPU seconds of each stage are added to it (keys
+    ``STAGES``: xu2016 fits, zhang2017 static fit, lever arms, result tables), for the
+    benchmark's split of the fit phase; the results do not depend on it."""
+    lap = _Lap(cpu_by_stage)
     fits: dict = {}
     warnings: list[str] = []
     fits["gyro"] = gyro = xu2016.fit_gyro_multirate(sm)
@@ -49,18 +69,39 @@ def calibrate_repetition(sm: StepMeans) -> SessionFit:
         except DesignError as exc:
             warnings.append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
     trad = fits.get("gyro_traditional")
+    lap("xu2016")
     derived: dict = {}
-    _fit_zhang2017(sm, fits, warnings, derived)
+    _fit_zhang2017(sm, fits, warnings, derived, lap)
     key = sm.key
     rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=fits,
                                 warnings=warnings, provenance=dict(sm.metadata), derived=derived)
     source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
-    comp = xu2016.compensation_errors(sm, gyro, trad, tests=source)
+    comp = xu2016.compensation_error_table(sm, gyro, trad, tests=source)
     cal = calibration_from_fits(fits, sm)
-    return SessionFit(rep, comp, baseline_residuals(sm, cal))
+    fit = SessionFit(rep, comp, residual_table(sm, cal))
+    lap("tables")
+    return fit
 
 
-def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict) -> None:
+STAGES = ("xu2016", "zhang2017_static", "lever_arm", "tables")
+
+
+class _Lap:
+    """Adds the CPU time since the previous lap to ``cpu[stage]`` (nothing when cpu is None)."""
+
+    def __init__(self, cpu: dict[str, float] | None):
+        self.cpu = cpu
+        self.t = time.process_time() if cpu is not None else 0.0
+
+    def __call__(self, stage: str) -> None:
+        if self.cpu is not None:
+            now = time.process_time()
+            self.cpu[stage] = self.cpu.get(stage, 0.0) + (now - self.t)
+            self.t = now
+
+
+def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict,
+                   lap: _Lap = _Lap(None)) -> None:
     """The 15-parameter static model and, with dynamic steps, the lever arms."""
     try:
         from calib_core import zhang2017
@@ -70,22 +111,27 @@ def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict
         static = zhang2017.fit_accel_static(sm)
     except DesignError as exc:
         warnings.append(f"W_ACCEL_STATIC_SKIPPED: {exc.reason}")
+        lap("zhang2017_static")
         return
     fits["accel_static"] = static
+    lap("zhang2017_static")
     if (sm.test == "dynamic").any():
         g = fits["gyro"]
         try:
             # the paper's model (projection on each accelerometer's sensitive axis) is what
             # is reported; the body-axis fit is what Calibration.apply subtracts after K_a
-            fits["lever_arm"] = lever = zhang2017.fit_lever_arm(sm, static, gyro_K=g.K,
-                                                                gyro_w0=g.w0)
+            # both projections from one set of inputs (dynamic steps, rates, f_hat)
+            inputs = zhang2017.lever_arm_inputs(sm, static, gyro_K=g.K, gyro_w0=g.w0)
+            fits["lever_arm"] = lever = zhang2017.fit_lever_arm_from(inputs)
             if lever.undetermined:  # stored as NaN; say why in the session's warnings
                 warnings.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
                                 + ", ".join(lever.undetermined) + " (add tilted steps)")
-            derived["lever_arm_body_mm"] = zhang2017.fit_lever_arm(
-                sm, static, gyro_K=g.K, gyro_w0=g.w0, projection="body_axis").r_mm
+            # only the estimate is applied (no standard errors needed)
+            derived["lever_arm_body_mm"] = zhang2017.lever_arm_estimate(
+                inputs, projection="body_axis")
         except DesignError as exc:
             warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
+        lap("lever_arm")
 
 
 def calibration_from_fits(fits: dict, sm: StepMeans, terms: tuple[TermValue, ...] = ()
@@ -127,6 +173,14 @@ def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline")
 
     ``sigma`` is the white-noise part only (within-step scatter through K); the step-to-step
     part is estimated across repetitions by :mod:`calib_core.replay`."""
+    return residual_table(sm, cal, model).to_frame()
+
+
+CHANNELS = np.array(["gx", "gy", "gz", "ax", "ay", "az"])
+
+
+def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> ColumnTable:
+    """The rows of :func:`baseline_residuals` as numpy columns (no DataFrame)."""
     w, f = cal.apply(sm.gyro, sm.accel, temp_c=sm.temp_c, t=sm.t_mid)
     res = np.hstack([w - sm.w_ref, f - sm.f_ref])
     ref = np.hstack([sm.w_ref, sm.f_ref])
@@ -134,12 +188,29 @@ def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline")
     sg = np.sqrt((sm.gyro_std ** 2) @ (cal.K_g.T ** 2)) / n
     sa = np.sqrt((sm.accel_std ** 2) @ (cal.K_a.T ** 2)) / n
     sig = np.hstack([sg, sa])
-    channels = np.array(["gx", "gy", "gz", "ax", "ay", "az"])
     k = len(sm)
-    return pd.DataFrame({
+    return ColumnTable({
         "lot": sm.key.lot, "unit": sm.key.unit, "rep": sm.key.rep,
-        "step": np.repeat(sm.step, 6), "test": np.repeat(sm.test, 6),
-        "up_axis": np.repeat(sm.up_axis, 6), "rate_dps": np.repeat(sm.rate_dps, 6),
-        "angle_deg": np.repeat(sm.angle_deg, 6), "channel": np.tile(channels, k),
+        "step": np.repeat(sm.step, 6), "test": _coded(sm.test).repeat(6),
+        "up_axis": _coded(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
+        "angle_deg": np.repeat(sm.angle_deg, 6),
+        "channel": CodedStrings(CHANNELS, np.tile(np.arange(6), k)),
         "reference": ref.ravel(), "residual": res.ravel(), "sigma": sig.ravel(), "model": model,
-    }, columns=RESIDUAL_COLUMNS)
+    }, 6 * k)
+
+
+def _coded(values: np.ndarray) -> CodedStrings:
+    """Codes of a step-level string column; the same protocol gives the same column in every
+    session, so the (sorting) np.unique runs once per protocol."""
+    values = np.asarray(values)
+    if values.dtype.kind != "U":
+        return CodedStrings.of(values)
+    return _coded_cached(values.dtype.str, len(values), values.tobytes())
+
+
+@lru_cache(maxsize=64)
+def _coded_cached(dtype: str, n: int, data: bytes) -> CodedStrings:
+    coded = CodedStrings.of(np.frombuffer(data, dtype=dtype, count=n))
+    for a in (coded.categories, coded.codes):
+        a.setflags(write=False)
+    return coded

@@ -34,6 +34,10 @@ class SessionKey:
         return f"lot={self.lot}/unit={self.unit}/rep={self.rep}"
 
 
+_ROW_FIELDS = ("step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref", "gyro",
+               "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c")
+
+
 @dataclass(frozen=True)
 class StepMeans:
     """Averaged sensor outputs and nominal references, one row per usable step.
@@ -81,17 +85,34 @@ class StepMeans:
     def select(self, mask: np.ndarray) -> "StepMeans":
         """Rows where ``mask`` is true (boolean array or index array)."""
         idx = np.asarray(mask)
-        arrays = {
-            name: getattr(self, name)[idx]
-            for name in (
-                "step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref", "gyro",
-                "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c",
-            )
-        }
-        return replace(self, **arrays)
+        if idx.ndim != 1:  # not a row mask or index list: let __init__ check the result
+            return replace(self, **{name: getattr(self, name)[idx] for name in _ROW_FIELDS})
+        state = {name: v for name, v in self.__dict__.items() if name != "_subsets"}
+        for name in _ROW_FIELDS:
+            state[name] = state[name][idx]
+        # rows of a valid StepMeans are a valid StepMeans: no need to run the shape checks
+        # of __init__ again (this is called a few times for every session)
+        out = object.__new__(type(self))
+        out.__dict__.update(state)
+        return out
 
     def of_test(self, *tests: str) -> "StepMeans":
-        return self.select(np.isin(self.test, tests))
+        """Rows of the given tests (the same object on every call with the same tests)."""
+        # every fit of a session asks for the same few subsets: each is built once and kept
+        # on the instance (the arrays are never modified after construction)
+        subsets = self.__dict__.get("_subsets")
+        if subsets is None:
+            subsets = {}
+            object.__setattr__(self, "_subsets", subsets)
+        sub = subsets.get(tests)
+        if sub is None:
+            sub = subsets[tests] = self.select(np.isin(self.test, tests))
+        return sub
+
+    def __getstate__(self) -> dict:  # the subsets are a cache: not pickled
+        state = dict(self.__dict__)
+        state.pop("_subsets", None)
+        return state
 
     @property
     def has_temperature(self) -> bool:

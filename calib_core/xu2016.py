@@ -15,6 +15,7 @@ possible from only three stationary steps.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,7 @@ import pandas as pd
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq
 from calib_core.results import Param, matrix_params, vector_params
+from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans
 
 AXES = "xyz"
@@ -52,23 +54,37 @@ def multirate_pairs(sm: StepMeans) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Returns (dG (n,3) raw, dW (n,3) deg/s, index pairs (n,2) into ``sm``). A step whose
     partner is missing (saturated, too short) is left out: the difference needs both.
     """
-    idx = np.flatnonzero(sm.test == "multirate")
+    multirate = sm.test == "multirate"
+    # the pairing depends on the protocol only (tests, rates, reference rates), the same for
+    # every session of a fleet: found once per protocol, not once per session
+    pairs_arr = _pairs_of_protocol(multirate.tobytes(), sm.rate_dps.astype(float).tobytes(),
+                                   np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
+    dG = sm.gyro[pairs_arr[:, 0]] - sm.gyro[pairs_arr[:, 1]]
+    dW = sm.w_ref[pairs_arr[:, 0]] - sm.w_ref[pairs_arr[:, 1]]
+    return dG, dW, pairs_arr.copy()
+
+
+@lru_cache(maxsize=64)
+def _pairs_of_protocol(multirate: bytes, rate_dps: bytes, w_ref: bytes) -> np.ndarray:
+    """(n,2) index pairs (+rate step, -rate step) of a protocol, read-only (it is shared)."""
+    rate = np.frombuffer(rate_dps, dtype=float)
+    w_ref_arr = np.frombuffer(w_ref, dtype=float).reshape(-1, 3)
+    idx = np.flatnonzero(np.frombuffer(multirate, dtype=bool))
     groups: dict[tuple, dict[int, list[int]]] = {}
-    for i in idx:
-        rate = sm.rate_dps[i]
-        if rate == 0:
+    for i in idx:  # one pass over the protocol's steps, once per protocol
+        r = rate[i]
+        if r == 0:
             continue
-        direction = np.round(sm.w_ref[i] / rate, 6) + 0.0  # rotation axis, sign-free
-        key = (round(abs(rate), 6), tuple(direction))
-        groups.setdefault(key, {1: [], -1: []})[int(np.sign(rate))].append(i)
+        direction = np.round(w_ref_arr[i] / r, 6) + 0.0  # rotation axis, sign-free
+        key = (round(abs(r), 6), tuple(direction))
+        groups.setdefault(key, {1: [], -1: []})[int(np.sign(r))].append(i)
     pairs = []
     for sides in groups.values():
         for p, m in zip(sides[1], sides[-1]):
             pairs.append((p, m))
     pairs_arr = np.array(sorted(pairs), dtype=int).reshape(-1, 2)
-    dG = sm.gyro[pairs_arr[:, 0]] - sm.gyro[pairs_arr[:, 1]]
-    dW = sm.w_ref[pairs_arr[:, 0]] - sm.w_ref[pairs_arr[:, 1]]
-    return dG, dW, pairs_arr
+    pairs_arr.setflags(write=False)
+    return pairs_arr
 
 
 @dataclass(frozen=True)
@@ -240,7 +256,7 @@ class TraditionalFit:
 
 def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> TraditionalFit:
     X = np.hstack([ref, np.ones((len(ref), 1))])
-    ls = solve_lstsq(X, raw)
+    ls = solve_lstsq(X, raw, reuse_design=True)  # [references, 1]: the protocol's
     if ls.rank < 4 or ls.condition_number > MAX_CONDITION:
         raise DesignError("E_UNDETERMINED", f"{model}: design is singular "
                           f"(condition number {ls.condition_number:.3g})")
@@ -269,6 +285,10 @@ def input_axis_of(w_ref: np.ndarray) -> np.ndarray:
     return np.array(list(AXES))[np.argmax(np.abs(w_ref), axis=1)]
 
 
+COMPENSATION_COLUMNS = ["input_axis", "output_axis", "method", "err_min", "err_max",
+                        "unit_of_measure", "source", "n_steps"]
+
+
 def compensation_errors(sm: StepMeans, proposed: GyroMultirateFit,
                         traditional: TraditionalFit | None = None,
                         tests: tuple[str, ...] = ("verification",)) -> pd.DataFrame:
@@ -276,29 +296,59 @@ def compensation_errors(sm: StepMeans, proposed: GyroMultirateFit,
     uncompensated / proposed / traditional, on rotation steps of the given tests.
 
     Uncompensated errors are only meaningful when the raw unit is deg/s (else NaN)."""
-    st = sm.of_test(*tests)
-    st = st.select(np.abs(st.rate_dps) > 0) if len(st) else st
-    cols = ["input_axis", "output_axis", "method", "err_min", "err_max", "unit_of_measure",
-            "source", "n_steps"]
-    if len(st) == 0:
-        return pd.DataFrame(columns=cols)
-    outputs = {"proposed": proposed.compensate(st.gyro)}
+    table = compensation_error_table(sm, proposed, traditional, tests)
+    if len(table) == 0:
+        return pd.DataFrame(columns=COMPENSATION_COLUMNS)
+    return table.to_frame()
+
+
+def compensation_error_table(sm: StepMeans, proposed: GyroMultirateFit,
+                             traditional: TraditionalFit | None = None,
+                             tests: tuple[str, ...] = ("verification",)) -> ColumnTable:
+    """The rows of :func:`compensation_errors` as numpy columns (no DataFrame)."""
+    rows = _rotation_groups(tests, np.isin(sm.test, tests).tobytes(),
+                            sm.rate_dps.astype(float).tobytes(),
+                            np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
+    if rows is None:
+        return ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0)
+    idx, starts, present, n_steps = rows  # steps ordered by input axis, group starts
+    G, w_ref = sm.gyro[idx], sm.w_ref[idx]
+    outputs = [G if sm.gyro_unit == "deg/s" else np.full_like(G, np.nan),
+               proposed.compensate(G)]
+    methods = ["uncompensated", "proposed"]  # row order of xu2016 Table 3
     if traditional is not None:
-        outputs["traditional"] = traditional.compensate(st.gyro)
-    outputs["uncompensated"] = st.gyro if sm.gyro_unit == "deg/s" else np.full_like(st.gyro, np.nan)
-    inp = input_axis_of(st.w_ref)
-    rows = []
-    for method in ("uncompensated", "proposed", "traditional"):
-        if method not in outputs:
-            continue
-        err = outputs[method] - st.w_ref
-        for a in AXES:
-            sel = inp == a
-            if not sel.any():
-                continue
-            for j, b in enumerate(AXES):
-                rows.append({"input_axis": a, "output_axis": b, "method": method,
-                             "err_min": float(err[sel, j].min()), "err_max": float(err[sel, j].max()),
-                             "unit_of_measure": "deg/s", "source": "+".join(tests),
-                             "n_steps": int(sel.sum())})
-    return pd.DataFrame(rows, columns=cols)
+        outputs.append(traditional.compensate(G))
+        methods.append("traditional")
+    err = np.stack(outputs) - w_ref  # (methods, steps, 3)
+    lo = np.minimum.reduceat(err, starts, axis=1)  # (methods, input axes, 3)
+    hi = np.maximum.reduceat(err, starts, axis=1)
+    n_rows = len(methods) * len(present) * 3
+    return ColumnTable({
+        "input_axis": CodedStrings(present, np.tile(
+            np.repeat(np.arange(len(present)), 3), len(methods))),
+        "output_axis": CodedStrings(np.array(list(AXES)), np.tile(
+            np.arange(3), len(methods) * len(present))),
+        "method": CodedStrings(np.array(methods), np.repeat(
+            np.arange(len(methods)), len(present) * 3)),
+        "err_min": lo.ravel(), "err_max": hi.ravel(),
+        "unit_of_measure": "deg/s", "source": "+".join(tests),
+        "n_steps": np.tile(np.repeat(n_steps, 3), len(methods)),
+    }, n_rows)
+
+
+@lru_cache(maxsize=64)
+def _rotation_groups(tests: tuple[str, ...], in_tests: bytes, rate_dps: bytes, w_ref: bytes):
+    """Rotation steps of the given tests grouped by input axis, for a protocol (the same for
+    every session of a fleet): (step indices ordered by input axis, start of each group,
+    the input axes present, steps per group), or None when there is no such step."""
+    mask = np.frombuffer(in_tests, dtype=bool) & (np.frombuffer(rate_dps, dtype=float) != 0)
+    idx = np.flatnonzero(mask)
+    if len(idx) == 0:
+        return None
+    axis = np.argmax(np.abs(np.frombuffer(w_ref, dtype=float).reshape(-1, 3)[idx]), axis=1)
+    order = np.argsort(axis, kind="stable")  # within a group, steps keep their order
+    present, starts, n_steps = np.unique(axis[order], return_index=True, return_counts=True)
+    out = (idx[order], starts, np.array(list(AXES))[present], n_steps.astype(np.int64))
+    for a in out:
+        a.setflags(write=False)
+    return out

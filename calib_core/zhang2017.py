@@ -24,23 +24,30 @@ the direction cosines, which are near zero for the off-diagonal components: kept
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.linalg import qr
+from scipy.linalg.lapack import dgeqp3 as _geqp3
 
 from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
 from calib_core.errors import DesignError
-from calib_core.results import Param
+from calib_core.results import Param, param_list
 from calib_core.steps import StepMeans
 
 AXES = "xyz"
 STATIC_TESTS = ("multiposition", "stationary")
+ANGLE_NAMES = tuple(f"theta_{a}{b}" for a in AXES for b in AXES)  # row-major, theta_ij
+SCALE_NAMES = tuple(f"k_{a}" for a in AXES)
+BIAS_NAMES = tuple(f"u0_{a}" for a in AXES)
 # a lever-arm direction whose pivoted-QR diagonal is below this fraction of the largest one
 # is reported as undetermined (with x/y/z-up steps only, the off-diagonal components are seen
 # through direction cosines of ~0.01: the paper's "distortion")
 UNDETERMINED_RCOND = 0.05
+# the lever-arm fit takes its block-diagonal shortcut when every component is determined
+# (tests switch it off to compare with the general joint solve)
+_BLOCK_PATH = True
 
 
 # -- conversions between the 15-parameter form and the paper's 12-parameter affine form --------
@@ -132,15 +139,12 @@ class AccelStaticFit:
         return np.linalg.solve(self.C.T, self.sensed_along_axes(A_raw).T).T
 
     def parameters(self) -> list[Param]:
-        su = f"{self.unit}/g"
-        out = [Param(self.model, f"k_{a}", float(v), float(s), su)
-               for a, v, s in zip(AXES, self.scale, self.scale_stderr)]
-        out += [Param(self.model, f"u0_{a}", float(v), float(s), self.unit)
-                for a, v, s in zip(AXES, self.bias, self.bias_stderr)]
-        ang = self.angles_deg
-        out += [Param(self.model, f"theta_{AXES[i]}{AXES[j]}", float(ang[i, j]),
-                      float(self.angles_stderr[i, j]), "deg") for i in range(3) for j in range(3)]
-        return out
+        return (param_list(self.model, SCALE_NAMES, self.scale.tolist(),
+                           self.scale_stderr.tolist(), f"{self.unit}/g")
+                + param_list(self.model, BIAS_NAMES, self.bias.tolist(),
+                             self.bias_stderr.tolist(), self.unit)
+                + param_list(self.model, ANGLE_NAMES, self.angles_deg.ravel().tolist(),
+                             self.angles_stderr.ravel().tolist(), "deg"))
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -162,10 +166,31 @@ def _ls_cov(X: np.ndarray) -> np.ndarray:
     return (Vt.T / sv ** 2) @ Vt
 
 
+@dataclass(frozen=True)
+class _StaticDesign:
+    """What the static fit needs of its design [f_ref, 1] alone (read-only, shared)."""
+
+    sv: np.ndarray  # singular values, largest first
+    unscaled: np.ndarray  # (4, 4) (X^T X)^-1
+
+
+@lru_cache(maxsize=32)
+def _static_design(shape: tuple[int, int], data: bytes) -> _StaticDesign:
+    # [f_ref, 1] comes from the protocol's references, the same for every session of a
+    # fleet: its singular values and (X^T X)^-1 once per protocol, not twice per session
+    X = np.frombuffer(data, dtype=float).reshape(shape)
+    sv = np.linalg.svd(X, compute_uv=False)
+    unscaled = (_ls_cov(X) if sv[-1] > 1e-9 * sv[0]
+                else np.full((shape[1], shape[1]), np.nan))  # never used: the fit refuses
+    for a in (sv, unscaled):
+        a.setflags(write=False)
+    return _StaticDesign(sv, unscaled)
+
+
 def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> AccelStaticFit:
     """15-parameter static model from the static steps with known specific force.
 
-    Per channel i, A_i = M_i . f_ref + u0_i by least squares (lstsq); the residual variance is
+    Per channel i, A_i = M_i . f_ref + u0_i by least squares; the residual variance is
     pooled over the three channels in g (same accelerometer type: equal noise in physical
     units), which gives 3(n-4) degrees of freedom instead of n-4. Standard errors of k, u0 and
     the angles follow from the LS covariance through the Jacobian of the decomposition.
@@ -177,11 +202,14 @@ def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> Ac
                           f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
                           "at least 5 to estimate its noise", ("accel_static",))
     X = np.hstack([s.f_ref, np.ones((n, 1))])
-    sv = np.linalg.svd(X, compute_uv=False)
+    design = _static_design(X.shape, X.tobytes())
+    sv = design.sv
     if sv[-1] <= 1e-9 * sv[0]:
         raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
                           "directions and a constant: M and u0 are not determined",
                           ("accel_static",))
+    # lstsq per session (not a cached pseudo-inverse): the lever arms are fitted on this
+    # model's residuals, where a last-bit change of M shows as 1e-8 of a zero lever arm
     beta, *_ = np.linalg.lstsq(X, s.accel, rcond=None)  # (4,3): column i = (M_i, u0_i)
     M = beta[:3].T
     u0 = beta[3]
@@ -189,20 +217,16 @@ def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> Ac
     resid = s.accel - X @ beta
     dof_ch = n - 4
     var_g = float(np.sum((resid / k) ** 2) / (3 * dof_ch))
-    unscaled = _ls_cov(X)
-    channel_cov = np.stack([unscaled * var_g * k[i] ** 2 for i in range(3)])
-    k_se = np.empty(3)
+    channel_cov = design.unscaled * (var_g * k ** 2)[:, None, None]  # (3,4,4)
+    cov_m = channel_cov[:, :3, :3]
     u0_se = np.sqrt(channel_cov[:, 3, 3])
-    ang_se = np.empty((3, 3))
-    for i in range(3):
-        cov_m = channel_cov[i, :3, :3]
-        ci = C[:, i]
-        k_se[i] = np.sqrt(ci @ cov_m @ ci)  # dk/dM_i = c_i
-        dc = (np.eye(3) - np.outer(ci, ci)) / k[i]  # dc_i/dM_i
-        for j in range(3):
-            sin_t = np.sqrt(max(1.0 - ci[j] ** 2, 1e-300))
-            g = -dc[j] / sin_t  # d theta_ij / d M_i (rad)
-            ang_se[i, j] = np.degrees(np.sqrt(g @ cov_m @ g))
+    k_se = np.sqrt(np.einsum("ji,ijk,ki->i", C, cov_m, C))  # dk_i/dM_i = c_i
+    # dc_i/dM_i = (I - c_i c_i^T) / k_i; d theta_ij / d M_i = -(row j of it) / sin theta_ij
+    Ct = C.T  # row i = c_i
+    dc = (np.eye(3) - Ct[:, :, None] * Ct[:, None, :]) / k[:, None, None]
+    sin_t = np.sqrt(np.maximum(1.0 - Ct ** 2, 1e-300))
+    g = -dc / sin_t[:, :, None]
+    ang_se = np.degrees(np.sqrt(np.einsum("ijk,ikl,ijl->ij", g, cov_m, g)))
     return AccelStaticFit(
         scale=k, bias=u0, C=C, scale_stderr=k_se, bias_stderr=u0_se, angles_stderr=ang_se,
         channel_cov=channel_cov, condition_number=float(sv[0] / sv[-1]),
@@ -256,8 +280,8 @@ class LeverArmFit:
         return np.nan_to_num(self.lever_arm_mm, nan=0.0)
 
     def parameters(self) -> list[Param]:
-        return [Param(self.model, LEVER_NAMES[3 * i + j], float(self.lever_arm_mm[i, j]),
-                      float(self.stderr[i, j]), "mm") for i in range(3) for j in range(3)]
+        return param_list(self.model, LEVER_NAMES, self.lever_arm_mm.ravel().tolist(),
+                          self.stderr.ravel().tolist(), "mm")
 
     def to_dict(self) -> dict[str, Any]:
         def lst(a):
@@ -308,37 +332,84 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
     """
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    return fit_lever_arm_from(lever_arm_inputs(sm, static, gyro_K, gyro_w0), rcond, projection)
+
+
+@dataclass(frozen=True)
+class LeverArmInputs:
+    """What both projections of :func:`fit_lever_arm` share for one session: the dynamic
+    steps, their rate matrices and the statically compensated specific force."""
+
+    static: AccelStaticFit
+    d: StepMeans  # the dynamic steps
+    W: np.ndarray  # (n,3,3) lever matrices, g per mm
+    K_a: np.ndarray  # M^-1
+    f_hat: np.ndarray  # (n,3) statically compensated specific force, body frame
+    source: str  # "w_ref" or "gyro"
+
+
+def lever_arm_inputs(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None
+                     ) -> LeverArmInputs:
+    """The shared part of the lever-arm fit (compute once, fit both projections from it)."""
     d = sm.of_test("dynamic")
-    n = len(d)
-    if n == 0:
+    if len(d) == 0:
         raise DesignError("E_NO_DYNAMIC_STEPS", "no dynamic steps: lever arms need constant-rate "
                           "rotation", LEVER_NAMES)
     w, source = _step_rates(d, gyro_K, gyro_w0)
     W = lever_matrix(w) * (1e-3 / static.g_local)  # g per mm
+    K_a = np.linalg.inv(static.M)
+    f_hat = (d.accel - static.bias) @ K_a.T  # statically compensated specific force, body frame
+    return LeverArmInputs(static, d, W, K_a, f_hat, source)
+
+
+def lever_arm_estimate(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
+                       projection: str = "sensitive_axis") -> np.ndarray:
+    """``fit_lever_arm_from(...).r_mm`` (the same numbers) without the standard errors, for
+    callers that only apply the lever arms (the pipeline's body-axis fit)."""
+    return fit_lever_arm_from(inputs, rcond, projection, _estimate_only=True)
+
+
+def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
+                       projection: str = "sensitive_axis", _estimate_only: bool = False
+                       ) -> LeverArmFit:
+    """:func:`fit_lever_arm` on precomputed :func:`lever_arm_inputs`."""
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    static, d, W, K_a, f_hat = inputs.static, inputs.d, inputs.W, inputs.K_a, inputs.f_hat
+    n = len(d)
     k, C, u0 = static.scale, static.C, static.bias
     M = static.M
-    K_a = np.linalg.inv(M)
-    f_hat = (d.accel - u0) @ K_a.T  # statically compensated specific force, body frame
     r = np.full((3, 3), np.nan)
     se = np.full((3, 3), np.nan)
     undetermined: list[str] = []
     reasons: dict[str, str] = {}
+    # the three blocks (one per accelerometer) at once: X_i (n,3) and y_i (n,)
+    if projection == "sensitive_axis":
+        Xb = np.einsum("ji,njk->ink", C, W)  # row s of block i: c_i^T W_s
+        # f_ref @ M[i] one row at a time, as before: the lever term is a small difference
+        # of these, and d.f_ref @ M.T rounds differently (1e-10 of a near-zero lever arm)
+        yb = (d.accel.T - u0[:, None] - np.stack([d.f_ref @ M[i] for i in range(3)])) / k[:, None]
+    else:
+        Xb = np.ascontiguousarray(W.transpose(1, 0, 2))  # block i: rows i of W_s
+        yb = (f_hat - d.f_ref).T
     blocks = []
     for i in range(3):
-        if projection == "sensitive_axis":
-            X = np.einsum("j,njk->nk", C[:, i], W)  # c_i^T W_s, (n,3)
-            y = (d.accel[:, i] - u0[i] - d.f_ref @ M[i]) / k[i]
-        else:
-            X = W[:, i, :]
-            y = f_hat[:, i] - d.f_ref[:, i]
+        X, y = Xb[i], yb[i]
         # rank-revealing QR: the trailing pivots with small diagonal are not observable
-        _, R, piv = qr(X, mode="economic", pivoting=True)
-        diag = np.abs(np.diag(R))
-        keep = np.sort(piv[: int(np.sum(diag >= rcond * diag[0]))]) if diag[0] > 0 else []
+        # (LAPACK geqp3 directly: what scipy.linalg.qr(pivoting=True) runs, minus its checks)
+        qr_, jpvt, _, _, info = _geqp3(X)
+        if info != 0:  # pragma: no cover - LAPACK argument error
+            raise DesignError("E_LEVER_RANK", f"pivoted QR failed (info={info})", LEVER_NAMES)
+        piv = (jpvt - 1).tolist()
+        diag = np.abs(qr_.diagonal()).tolist()
+        if diag[0] > 0:
+            keep = sorted(piv[: sum(1 for v in diag if v >= rcond * diag[0])])
+        else:
+            keep = []
         for j in sorted(set(range(3)) - set(keep)):
             name = LEVER_NAMES[3 * i + j]
             undetermined.append(name)
-            rel = diag[list(piv).index(j)] / diag[0] if diag[0] > 0 else 0.0
+            rel = diag[piv.index(j)] / diag[0] if diag[0] > 0 else 0.0
             reasons[name] = (f"not observable from these dynamic steps (relative pivot "
                              f"{rel:.2g} < {rcond:g}); add steps with the rate off the body "
                              "axes (protocols.dynamic_steps(tilted=True))")
@@ -348,22 +419,29 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
     if not cols:
         raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
                           LEVER_NAMES)
+    if len(cols) == 9 and _BLOCK_PATH:
+        return _fit_all_determined(inputs, blocks, projection, reasons, _estimate_only)
     A = np.zeros((3 * n, len(cols)))
-    full = np.zeros((3 * n, 9))
     Y = np.concatenate([b[2] for b in blocks])
-    for i, X, _, _ in blocks:
-        full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
     for c, (i, j) in enumerate(cols):
         A[i * n:(i + 1) * n, c] = blocks[i][1][:, j]
     theta, *_ = np.linalg.lstsq(A, Y, rcond=None)
+    if _estimate_only:
+        for c, (i, j) in enumerate(cols):
+            r[i, j] = theta[c]
+        return r
     resid = Y - A @ theta
     dof = 3 * n - len(cols)
     var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
-    cov = _ls_cov(A) * var_g
+    # one SVD of A gives (A^T A)^-1, the pseudo-inverse and the condition number (the same
+    # operations as _ls_cov and np.linalg.pinv, which each took their own SVD)
+    U, sva, Vt = np.linalg.svd(A, full_matrices=False)
+    cov = ((Vt.T / sva ** 2) @ Vt) * var_g
+    s_inv = np.divide(1.0, sva, where=sva > 1e-15 * sva.max(), out=np.zeros_like(sva))
+    pinv = Vt.T @ (s_inv[:, None] * U.T)
     # propagate the static uncertainty, channel by channel (theta_l = (M_l, u0_l)):
     # sensitive axis: dy_l/dtheta_l = -(f_s + e_ls M_l / k_l^2, 1) / k_l (own block only);
     # body axis: y = K_a (A - u0) - f_ref, dy_i/dtheta_l = -K_a[i, l] (f_hat_s, 1)
-    pinv = np.linalg.pinv(A)
     ones = np.ones((n, 1))
     for l in range(3):
         dY = np.zeros((3 * n, 4))
@@ -379,14 +457,67 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
     for c, (i, j) in enumerate(cols):
         r[i, j] = theta[c]
         se[i, j] = np.sqrt(cov[c, c])
-    sva = np.linalg.svd(A, compute_uv=False)
-    svf = np.linalg.svd(full, compute_uv=False)
+    if len(cols) == 9:  # every column kept: the full design is A itself
+        svf = sva
+    else:
+        full = np.zeros((3 * n, 9))
+        for i, X, _, _ in blocks:
+            full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
+        svf = np.linalg.svd(full, compute_uv=False)
     return LeverArmFit(
         lever_arm_mm=r, stderr=se, condition_number=float(sva[0] / sva[-1]),
         condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
         undetermined=tuple(undetermined), reasons=reasons,
         residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
-        n_steps=n, rate_source=source, projection=projection,
+        n_steps=n, rate_source=inputs.source, projection=projection,
+    )
+
+
+def _fit_all_determined(inputs: LeverArmInputs, blocks: list, projection: str,
+                        reasons: dict[str, str], estimate_only: bool = False) -> LeverArmFit:
+    """The joint fit when every component is determined (the usual case, tilted steps).
+
+    The design is then block diagonal with three (n,3) blocks, one per accelerometer, so one
+    batched SVD of the blocks gives what the general path gets from lstsq, two SVDs and a
+    pseudo-inverse of the (3n,9) design: the same estimates and covariance, to rounding."""
+    static, d, K_a, f_hat = inputs.static, inputs.d, inputs.K_a, inputs.f_hat
+    n = len(d)
+    k, M = static.scale, static.M
+    Xb = np.stack([b[1] for b in blocks])  # (3,n,3)
+    yb = np.stack([b[2] for b in blocks])  # (3,n)
+    U, sb, Vt = np.linalg.svd(Xb, full_matrices=False)  # (3,n,3), (3,3), (3,3,3)
+    V = np.swapaxes(Vt, 1, 2)
+    pinv = V @ (np.swapaxes(U, 1, 2) / sb[:, :, None])  # (3,3,n), block i = pinv(X_i)
+    theta = np.einsum("ikn,in->ik", pinv, yb)  # row i = r_i
+    if estimate_only:
+        return theta
+    resid = yb - np.einsum("ink,ik->in", Xb, theta)
+    dof = 3 * n - 9
+    var_g = float(np.sum(resid ** 2) / dof) if dof > 0 else float("nan")
+    blk = np.arange(3)
+    cov4 = np.zeros((3, 3, 3, 3))  # (i, j, i', j'): component (i,j) against (i',j')
+    cov4[blk, :, blk, :] = ((V / sb[:, None, :] ** 2) @ Vt) * var_g
+    # static uncertainty (see fit_lever_arm_from): sensitive axis, channel l moves block l
+    # only; body axis, channel l moves block i by -K_a[i, l] pinv(X_i) (f_hat, 1)
+    ones = np.ones((n, 1))
+    if projection == "sensitive_axis":
+        e = yb * k[:, None]  # raw residuals of the static model, (3,n)
+        dY = np.concatenate([d.f_ref[None] + e[:, :, None] * M[:, None, :] / k[:, None, None] ** 2,
+                             np.broadcast_to(ones, (3, n, 1))], axis=2) / -k[:, None, None]
+        J = pinv @ dY  # (3,3,4): block l, channel l
+        cov4[blk, :, blk, :] += np.einsum("lai,lij,lbj->lab", J, static.channel_cov, J)
+        cov = cov4.reshape(9, 9)
+    else:
+        P = pinv @ np.hstack([f_hat, ones])  # (3,3,4), block i
+        J = (-K_a.T[:, :, None, None] * P[None]).reshape(3, 9, 4)  # (l, component, 4)
+        cov = cov4.reshape(9, 9) + np.einsum("lai,lij,lbj->ab", J, static.channel_cov, J)
+    sv = sb.ravel()
+    cond = float(sv.max() / sv.min()) if sv.min() > 0 else float("inf")
+    return LeverArmFit(
+        lever_arm_mm=theta, stderr=np.sqrt(np.diag(cov)).reshape(3, 3), condition_number=cond,
+        condition_number_full=cond, undetermined=(), reasons=reasons,
+        residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
+        n_steps=n, rate_source=inputs.source, projection=projection,
     )
 
 

@@ -16,6 +16,7 @@ from calib_core.errors import DesignError
 from calib_core.pipeline import calibrate_repetition, calibration_from_unit
 from calib_core.results import Param, RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
+from calib_core.tables import ColumnTable
 from schemas.averaging import read_step_means
 from schemas.dataset import SessionRef, fingerprint
 from schemas.errors import SessionError, from_design_error
@@ -33,13 +34,24 @@ class SessionOutcome:
     warnings: list[str]
     fingerprint: str
     calibration: RepetitionCalibration | None = None
-    residuals: pd.DataFrame | None = None
-    compensation: pd.DataFrame | None = None
+    # the session's tables as numpy columns: the unit builds one DataFrame of all its
+    # sessions (UnitOutcome.residuals_frame / compensation_frame), not one per session
+    residual_table: ColumnTable | None = None
+    compensation_table: ColumnTable | None = None
     step_means: StepMeans | None = None  # kept for discovery; dropped before storing
 
     @property
     def succeeded(self) -> bool:
         return self.status != STATUS_FAILED
+
+    @property
+    def residuals(self) -> pd.DataFrame | None:
+        """This session's residual rows as a DataFrame (built on each call)."""
+        return None if self.residual_table is None else self.residual_table.to_frame()
+
+    @property
+    def compensation(self) -> pd.DataFrame | None:
+        return None if self.compensation_table is None else self.compensation_table.to_frame()
 
 
 def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionOutcome:
@@ -63,7 +75,7 @@ def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionO
     fit.calibration.provenance.update({"path": str(ref.path), "fingerprint": fp})
     status = STATUS_WARNED if warning_texts else STATUS_OK
     return SessionOutcome(ref.key, ref.path, status, None, None, warning_texts, fp,
-                          fit.calibration, fit.residuals, fit.compensation,
+                          fit.calibration, fit.residual_table, fit.compensation_table,
                           sm if keep_step_means else None)
 
 
@@ -92,23 +104,22 @@ class UnitOutcome:
     def residuals_frame(self) -> pd.DataFrame | None:
         """The per-step residual rows of every successful session, one frame for the unit
         (columns ``calib_core.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
-        return self._table("residuals")
+        return self._table("residual_table")
 
     def compensation_frame(self) -> pd.DataFrame | None:
         """The xu2016 Table 3 rows of every successful session, one frame for the unit."""
-        return self._table("compensation")
+        return self._table("compensation_table")
 
     def _table(self, attr: str) -> pd.DataFrame | None:
-        frames = []
+        tables = []
         for s in self.sessions:
-            df = getattr(s, attr)
-            if s.succeeded and s.calibration is not None and df is not None and len(df):
-                df = df.copy()
+            t = getattr(s, attr)
+            if s.succeeded and s.calibration is not None and t is not None and len(t):
                 for c, v in (("lot", self.lot), ("unit", self.unit), ("rep", s.key.rep)):
-                    if c not in df:
-                        df.insert(0, c, v)
-                frames.append(df)
-        return pd.concat(frames, ignore_index=True) if frames else None
+                    if c not in t.columns:  # each inserted first, as DataFrame.insert(0, ...)
+                        t = t.with_leading(c, v)
+                tables.append(t)
+        return ColumnTable.concat(tables).to_frame() if tables else None
 
 
 def aggregate_unit(lot: str, unit: str, outcomes: list[SessionOutcome],
@@ -184,7 +195,7 @@ def _discovery_available() -> bool:
 def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
-    from calib_core.pipeline import baseline_residuals
+    from calib_core.pipeline import residual_table
     from flows.unit_pipeline import aggregate_unit, calibrate_session
     t0 = time.perf_counter()
     outcomes = [calibrate_session(r) for r in sorted(job.refs, key=lambda r: r.key.rep)]
@@ -200,8 +211,8 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
             if terms:  # residuals of the extended model, for the before/after plots
                 good = [o for o in outcomes if o.succeeded and o.step_means is not None]
                 for o, cal in zip(good, diag.calibrations_after):
-                    ext = baseline_residuals(o.step_means, cal, model="extended")
-                    o.residuals = pd.concat([o.residuals, ext], ignore_index=True)
+                    ext = residual_table(o.step_means, cal, model="extended")
+                    o.residual_table = ColumnTable.concat([o.residual_table, ext])
         except Exception as exc:  # discovery must not cost the unit its calibration
             note = f"model discovery failed: {type(exc).__name__}: {exc}"
     elif run_discovery and not _discovery_available():
