@@ -85,6 +85,7 @@ class _UnitGrid:
     names: list[str]  # catalogue terms, sorted; Z's columns in this order
     offset: dict[str, tuple[int, int]]
     live: list[np.ndarray]  # per channel: columns of Z not identically 0 on it
+    live_mask: np.ndarray  # (6, P) bool, the same
     balanced: bool  # every repetition has the same steps in the same order
 
     @classmethod
@@ -120,16 +121,18 @@ class _UnitGrid:
             for nm, t in zip(names, terms):
                 a, b = offset[nm]
                 Z[r, :m, :, a:b] = -_term_regressors(t, ctx)
-        tg = np.array([test_group(t) for t in test[real]], dtype=object)
+        tests, t_idx = np.unique(test[real].astype(str), return_inverse=True)
+        tg = np.array([test_group(t) for t in tests], dtype=object)[t_idx]
         groups = sorted(set(tg))
         gcode = np.full((R, n), -1, np.int64)
         gcode[real] = np.searchsorted(np.array(groups, dtype=object), tg)
-        live = [np.flatnonzero(np.abs(Z[:, :, c, :]).sum(axis=(0, 1)) > 0) for c in range(6)]
+        live_mask = np.abs(Z).sum(axis=(0, 1)) > 0  # (6, P)
+        live = [np.flatnonzero(m) for m in live_mask]
         balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
                     and all(np.array_equal(gcode[0], g) for g in gcode)
                     and len(np.unique(step[0])) == n)
         return cls(R, n, real, step, gcode, groups, y, raw, std, count, Z, list(names), offset,
-                   live, balanced)
+                   live, live_mask, balanced)
 
     @property
     def P(self) -> int:
@@ -460,7 +463,9 @@ class _Discovery:
         with the affine model projected out (fits of any term subset)."""
         g, R, P = self.g, self.g.R, self.g.P
         self.Mc, self.mu, self.Rf, self.Rrep, self.Rpure = [], [], [], [], []
+        self.K_solve = []
         self.pure_dof = None
+        self._check_rank()  # before anything solves with the affine part
         stacks = []
         for c in range(6):
             L = g.live[c]
@@ -481,12 +486,13 @@ class _Discovery:
             self.mu.append(mu)
             self.Rrep.append(Rrep)
             self.Rf.append(Rf)
+            # K_c = R_base^-1 (R_base,y - R_base,terms theta): solved once per fold
+            self.K_solve.append(np.linalg.solve(Rf[:, :3, :3], Rf[:, :3, 3:]))
             self.Rpure.append(_qr_r(e))
             # the affine model projected out: the trailing block of the fold's factor
             T = np.zeros((R + 1, k - 3, P + 1))
             T[:, :, np.append(L, P)] = Rf[:, 3:, 3:]
             stacks.append(T)
-        self._check_rank()
         S = np.concatenate(stacks, axis=1)
         if S.shape[1] < P + 1:
             S = np.concatenate([S, np.zeros((R + 1, P + 1 - S.shape[1], P + 1))], axis=1)
@@ -550,9 +556,9 @@ class _Discovery:
         K = np.zeros((6, 3))
         v = []
         for c in range(6):
-            Rf = self.Rf[c][fi]
+            KS = self.K_solve[c][fi]  # R_base^-1 [R_base,terms | R_base,y]
             tc = theta_full[g.live[c]]
-            K[c] = np.linalg.solve(Rf[:3, :3], Rf[:3, -1] - Rf[:3, 3:-1] @ tc)
+            K[c] = KS[:, -1] - KS[:, :-1] @ tc
             v.append(np.concatenate([-K[c], -tc, [1.0]]))
         ss_c = pure_c = None
         if fold is None:
@@ -611,7 +617,7 @@ class _Discovery:
         cols = self.g.cols(tuple(sorted(names)))
         out = {}
         for c in range(6):
-            n_params = int(np.isin(cols, self.g.live[c]).sum())
+            n_params = int(self.g.live_mask[c, cols].sum())
             dof_res = self.rows_channel - self.base_rank[c] - min(n_params, f.rank)
             out[CHANNELS[c]] = _f_test(float(f.ss_channel[c]) - ps[c], dof_res - int(pd_[c]),
                                        ps[c], int(pd_[c]), threshold)
@@ -624,11 +630,11 @@ class _Discovery:
         return _f_test(a.ss - b.ss, b.rank - a.rank, pss, pdof, threshold)
 
     def channels_of(self, name: str) -> tuple[int, ...]:
-        cols = np.arange(*self.g.offset[name])
-        return tuple(c for c in range(6) if np.isin(cols, self.g.live[c]).any())
+        a, b = self.g.offset[name]
+        return tuple(int(c) for c in np.flatnonzero(self.g.live_mask[:, a:b].any(axis=1)))
 
     def column_channels(self, col: int) -> list[int]:
-        return [c for c in range(6) if col in self.g.live[c]]
+        return [int(c) for c in np.flatnonzero(self.g.live_mask[:, col])]
 
     # selection
     def select(self) -> tuple[list[str], list[str]]:
@@ -742,15 +748,21 @@ class _Discovery:
         return out
 
 
+_BLAS_CONTROLLER: list = []  # threadpoolctl.ThreadpoolController, found once per process
+
+
 def _single_thread_blas():
     """Many small factorisations: BLAS threads only cost synchronisation here (6x slower
-    on a loaded 2-core machine). threadpoolctl is optional."""
+    on a loaded 2-core machine). threadpoolctl is optional. The controller is built once:
+    finding the loaded libraries (reading /proc/self/maps) cost ~5 ms per unit."""
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import ThreadpoolController
     except ImportError:  # pragma: no cover
         import contextlib
         return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    if not _BLAS_CONTROLLER:
+        _BLAS_CONTROLLER.append(ThreadpoolController())
+    return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
 
 
 def diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float = DEFAULT_ALPHA,
