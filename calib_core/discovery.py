@@ -87,6 +87,8 @@ class _UnitGrid:
     live: list[np.ndarray]  # per channel: columns of Z not identically 0 on it
     live_mask: np.ndarray  # (6, P) bool, the same
     balanced: bool  # every repetition has the same steps in the same order
+    M: np.ndarray  # (6, R, n, k) per channel: [raw_c | live term columns | 0 | y_c]
+    colmap: np.ndarray  # (6, k - 4) global term column of M's term columns (P + 1: padding)
 
     @classmethod
     def build(cls, sessions: list[StepMeans], names: list[str]) -> "_UnitGrid":
@@ -131,8 +133,20 @@ class _UnitGrid:
         balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
                     and all(np.array_equal(gcode[0], g) for g in gcode)
                     and len(np.unique(step[0])) == n)
+        # every channel's design [raw_c | its live term columns | zero columns | y_c], padded
+        # to one width so that all six channels are factorised by one batched call
+        # (a zero column changes no fit: it adds nothing to A^T A)
+        k = 3 + max(len(L) for L in live) + 1
+        M = np.zeros((6, R, n, k))
+        colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
+        for c in range(6):
+            L = live[c]
+            M[c, :, :, :3] = raw[:, :, c]
+            M[c, :, :, 3:3 + len(L)] = Z[:, :, c][..., L]
+            M[c, :, :, -1] = y[:, :, c]
+            colmap[c, :len(L)] = L
         return cls(R, n, real, step, gcode, groups, y, raw, std, count, Z, list(names), offset,
-                   live, live_mask, balanced)
+                   live, live_mask, balanced, M, colmap)
 
     @property
     def P(self) -> int:
@@ -151,8 +165,8 @@ class _UnitGrid:
 
     # -- pure error: the two-way (step x repetition) residual within each test group ------
     def two_way(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Two-way residual of X (R, n, k) per test group (a value per step and per
-        repetition removed, :func:`calib_core.replay.two_way_residual`), as rows (m, k),
+        """Two-way residual of X (..., R, n, k) per test group (a value per step and per
+        repetition removed, :func:`calib_core.replay.two_way_residual`), as rows (..., m, k),
         the group of each row (m,) and the degrees of freedom per group."""
         ng = len(self.groups)
         if self.balanced:  # double centring of every group's (step x repetition) table
@@ -160,20 +174,28 @@ class _UnitGrid:
             G = np.zeros((self.n, ng))
             G[np.arange(self.n), g] = 1.0
             cnt = G.sum(axis=0)
-            rep_mean = np.einsum("rnk,ng->rgk", X, G) / cnt[None, :, None]
-            e = (X - X.mean(axis=0, keepdims=True) - rep_mean[:, g]
-                 + rep_mean.mean(axis=0)[None, g])
+            rep_mean = (X.swapaxes(-1, -2) @ G) / cnt  # (..., R, k, ng)
+            grand = rep_mean.mean(axis=-3, keepdims=True)
+            e = (X - X.mean(axis=-3, keepdims=True)
+                 - (rep_mean - grand)[..., g].swapaxes(-1, -2))
             dof = ((cnt - 1) * (self.R - 1)).astype(np.int64)
-            return e.reshape(-1, X.shape[-1]), np.tile(g, self.R), dof
-        rows, grp, dof = [], [], np.zeros(ng, np.int64)
+            return (e.reshape(X.shape[:-3] + (-1, X.shape[-1])), np.tile(g, self.R), dof)
+        lead = X.shape[:-3]
+        Xf = X.reshape((-1,) + X.shape[-3:])
+        out, grp, dof = [], None, np.zeros(ng, np.int64)
         r_idx = np.broadcast_to(np.arange(self.R)[:, None], self.real.shape)
-        for gi in range(ng):
-            m = self.gcode == gi
-            e, d = _two_way_matrix(X[m], self.step[m], r_idx[m])
-            rows.append(e)
-            grp.append(np.full(len(e), gi))
-            dof[gi] = d
-        return np.concatenate(rows), np.concatenate(grp), dof
+        for Xi in Xf:  # one per channel at most
+            rows, grp = [], []
+            for gi in range(ng):
+                m = self.gcode == gi
+                e, d = _two_way_matrix(Xi[m], self.step[m], r_idx[m])
+                rows.append(e)
+                grp.append(np.full(len(e), gi))
+                dof[gi] = d
+            out.append(np.concatenate(rows))
+            grp = np.concatenate(grp)
+        e = np.stack(out).reshape(lead + (-1, X.shape[-1]))
+        return e, grp, dof
 
 
 def _two_way_matrix(X: np.ndarray, cell: np.ndarray, rep: np.ndarray) -> tuple[np.ndarray, int]:
@@ -223,11 +245,12 @@ def _qr_r(X: np.ndarray) -> np.ndarray:
 
 
 def _centre(M: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Columns M (R, n, k) minus their w^2-weighted mean per repetition (the repetition's
-    bias fitted: Frisch-Waugh-Lovell for the per-repetition bias columns), and the means."""
+    """Columns M (..., R, n, k) minus their w^2-weighted mean per repetition (the
+    repetition's bias fitted: Frisch-Waugh-Lovell for the per-repetition bias columns), and
+    the means (..., R, k)."""
     w2 = w ** 2
-    mu = np.einsum("rn,rnk->rk", w2, M) / w2.sum(axis=1)[:, None]
-    return M - mu[:, None, :], mu
+    mu = np.einsum("...n,...nk->...k", w2, M) / w2.sum(axis=-1)[..., None]
+    return M - mu[..., None, :], mu
 
 
 @dataclass
@@ -238,7 +261,7 @@ class _FitResult:
     rank: int
     ss: float  # weighted residual sum of squares
     K: np.ndarray  # (6, 3)
-    v: list[np.ndarray]  # per channel: [-K_c, -theta on the channel's live columns, 1]
+    v: np.ndarray  # (6, k) per channel: [-K_c, -theta on its live term columns, 0..., 1]
     ss_channel: np.ndarray | None  # (6,) weighted residual sum of squares (fold of all reps)
     pure_channel: np.ndarray | None  # (6,) its pure-error part
 
@@ -372,9 +395,11 @@ _jsonable = to_jsonable  # one JSON conversion for the whole project
 # -- the procedure ----------------------------------------------------------------------
 class _Discovery:
     def __init__(self, sessions: list[StepMeans], alpha: float,
-                 noise_model: tuple[np.ndarray, np.ndarray] | None = None):
+                 noise_model: tuple[np.ndarray, np.ndarray] | None = None,
+                 grid: "_UnitGrid | None" = None):
         """``noise_model`` = (K rows (6, 3), physical residual (R, n, 6) on the grid) of the
-        model whose residuals estimate the noise; default: the affine model."""
+        model whose residuals estimate the noise; default: the affine model. ``grid``: the
+        same sessions already laid out (a second pass over the unit reuses it)."""
         if len(sessions) < 2:
             raise DesignError("E_DISCOVERY_REPS",
                               "model discovery needs at least 2 repetitions of the unit: the "
@@ -385,7 +410,7 @@ class _Discovery:
         self.sessions = sorted(sessions, key=lambda s: s.key.rep)
         self.alpha = alpha
         self.names = sorted(catalogue())
-        self.g = _UnitGrid.build(self.sessions, self.names)
+        self.g = grid if grid is not None else _UnitGrid.build(self.sessions, self.names)
         if noise_model is None:
             # affine fit weighted by within-step scatter only, to get K and residuals
             white = self.g.white_sigma(np.tile(np.eye(3), (2, 1)))
@@ -401,18 +426,15 @@ class _Discovery:
     # -- set-up ---------------------------------------------------------------------------
     def _affine_fit(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """K rows and physical residual (R, n, 6) of the affine model (own biases per
-        repetition) weighted by w."""
+        repetition) weighted by w (R, n, 6)."""
         g = self.g
-        K = np.zeros((6, 3))
-        resid = np.zeros((g.R, g.n, 6))
-        for c in range(6):
-            Mc, _ = _centre(np.concatenate([g.raw[:, :, c], g.y[:, :, c, None]], axis=2),
-                            w[..., c])
-            Mc[~g.real] = 0.0
-            Rf = _qr_r((w[..., c, None] * Mc).reshape(-1, 4))
-            K[c] = np.linalg.solve(Rf[:3, :3], Rf[:3, 3])
-            resid[..., c] = Mc[..., 3] - Mc[..., :3] @ K[c]
-        return K, resid
+        wc = np.moveaxis(w, -1, 0)  # (6, R, n)
+        Mc, _ = _centre(g.M[..., [0, 1, 2, -1]], wc)
+        Mc[:, ~g.real] = 0.0
+        Rf = _qr_r((wc[..., None] * Mc).reshape(6, -1, 4))
+        K = np.linalg.solve(Rf[:, :3, :3], Rf[:, :3, 3:])[..., 0]  # (6, 3)
+        resid = Mc[..., 3] - np.einsum("crnk,ck->crn", Mc[..., :3], K)
+        return K, np.moveaxis(resid, 0, -1)
 
     def _noise(self, K: np.ndarray, resid: np.ndarray) -> tuple[list, np.ndarray]:
         """:func:`calib_core.replay.estimate_noise_arrays` and :func:`noise_sigma` on the
@@ -422,12 +444,10 @@ class _Discovery:
         ng = len(g.groups)
         e, grp, dof = g.two_way(resid)
         ss = np.zeros((6, ng))
+        w2 = np.zeros((6, ng))
         for gi in range(ng):  # per test group: a handful
             ss[:, gi] = np.sum(e[grp == gi] ** 2, axis=0)
-        w2 = np.zeros((6, ng))
-        for gi in range(ng):
-            m = g.gcode == gi
-            w2[:, gi] = np.mean(white[m] ** 2, axis=0)
+            w2[:, gi] = np.mean(white[g.gcode == gi] ** 2, axis=0)
         rows, inst = [], np.zeros((6, ng))
         for c, ch in enumerate(CHANNELS):
             pooled_ss, pooled_dof = 0.0, 0
@@ -440,8 +460,7 @@ class _Discovery:
                 var = float(ss[c, gi]) / int(dof[gi]) if dof[gi] >= MIN_POOL_DOF else pooled_var
                 step_sd = float(np.sqrt(var)) if np.isfinite(var) else wsd
                 inst[c, gi] = float(np.sqrt(max(step_sd ** 2 - wsd ** 2, 0.0)))
-                rows.append({"channel": ch, "group": gname, "dof": int(dof[gi]),
-                             "step_sd": step_sd, "white_sd": wsd, "instability_sd": inst[c, gi]})
+                rows.append((ch, gname, int(dof[gi]), step_sd, wsd, inst[c, gi]))
         inst_row = np.where(g.real[..., None], inst.T[np.maximum(g.gcode, 0)], 0.0)
         sigma = np.sqrt(white ** 2 + np.nan_to_num(inst_row) ** 2)
         if not np.all(sigma[g.real] > 0):
@@ -452,81 +471,69 @@ class _Discovery:
     @property
     def noise(self) -> NoiseEstimate:
         if not hasattr(self, "_noise_estimate"):
-            self._noise_estimate = NoiseEstimate(pd.DataFrame(self._noise_rows),
-                                                 from_repetitions=True)
+            cols = ("channel", "group", "dof", "step_sd", "white_sd", "instability_sd")
+            table = pd.DataFrame({c: [r[i] for r in self._noise_rows]
+                                  for i, c in enumerate(cols)})
+            self._noise_estimate = NoiseEstimate(table, from_repetitions=True)
         return self._noise_estimate
 
     def _factorise(self) -> None:
         """Per channel c, the weighted bias-removed design A_c = [raw_c | live terms | y]:
         R factors per repetition (held-out residuals), per fold (repetitions but one;
-        fold 0 = all), of its pure-error part; per fold, the factor of every term column
-        with the affine model projected out (fits of any term subset)."""
+        fold 0 = all, fold 1 + h leaves h out), of its pure-error part; per fold, the factor
+        of every term column with the affine model projected out (fits of any subset)."""
         g, R, P = self.g, self.g.R, self.g.P
-        self.Mc, self.mu, self.Rf, self.Rrep, self.Rpure = [], [], [], [], []
-        self.K_solve = []
-        self.pure_dof = None
         self._check_rank()  # before anything solves with the affine part
-        stacks = []
+        w = np.moveaxis(self.weight, -1, 0)  # (6, R, n)
+        Mc, self.mu = _centre(g.M, w)  # (6, R, n, k), (6, R, k)
+        Mc[:, ~g.real] = 0.0
+        self.Mc = Mc
+        A = w[..., None] * Mc
+        k = A.shape[-1]
+        self.Rrep = _qr_r(A)  # (6, R, k, k)
+        folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
+        folds[:, np.arange(1, R + 1), np.arange(R)] = 0.0
+        self.Rf = _qr_r(folds.reshape(6, R + 1, R * k, k))  # (6, R+1, k, k)
+        # K_c = R_base^-1 (R_base,y - R_base,terms theta): solved once per fold
+        self.K_solve = np.linalg.solve(self.Rf[..., :3, :3], self.Rf[..., :3, 3:])
+        e, _, self.pure_dof = g.two_way(A)
+        self.Rpure = _qr_r(e)  # (6, k, k)
+        # the affine model projected out: the trailing block of each fold's factor, every
+        # channel's term columns put back in their global place (P + 1: padding, dropped)
+        T = np.zeros((R + 1, 6, k - 3, P + 2))
         for c in range(6):
-            L = g.live[c]
-            M = np.concatenate([g.raw[:, :, c], g.Z[:, :, c][..., L], g.y[:, :, c, None]],
-                               axis=2)
-            w = self.weight[..., c]
-            Mc, mu = _centre(M, w)
-            Mc[~g.real] = 0.0
-            A = w[..., None] * Mc
-            k = A.shape[-1]
-            Rrep = _qr_r(A)  # (R, k, k)
-            folds = np.broadcast_to(Rrep, (R + 1, R, k, k)).copy()
-            folds[np.arange(1, R + 1), np.arange(R)] = 0.0  # fold 1+h leaves repetition h out
-            Rf = _qr_r(folds.reshape(R + 1, R * k, k))  # (R+1, k, k)
-            e, _, dof = g.two_way(A)
-            self.pure_dof = dof
-            self.Mc.append(Mc)
-            self.mu.append(mu)
-            self.Rrep.append(Rrep)
-            self.Rf.append(Rf)
-            # K_c = R_base^-1 (R_base,y - R_base,terms theta): solved once per fold
-            self.K_solve.append(np.linalg.solve(Rf[:, :3, :3], Rf[:, :3, 3:]))
-            self.Rpure.append(_qr_r(e))
-            # the affine model projected out: the trailing block of the fold's factor
-            T = np.zeros((R + 1, k - 3, P + 1))
-            T[:, :, np.append(L, P)] = Rf[:, 3:, 3:]
-            stacks.append(T)
-        S = np.concatenate(stacks, axis=1)
-        if S.shape[1] < P + 1:
-            S = np.concatenate([S, np.zeros((R + 1, P + 1 - S.shape[1], P + 1))], axis=1)
+            T[:, c][..., np.append(g.colmap[c], P)] = self.Rf[c, :, 3:, 3:]
+        S = T.reshape(R + 1, 6 * (k - 3), P + 2)[..., :P + 1]
         self.Rg = _qr_r(S)  # (R+1, P+1, P+1): [R_terms c; 0 sqrt(ss_perp)] per fold
         self.rows_channel = int(g.real.sum())
         self.base_rank = [3 + R] * 6
 
     def _check_rank(self) -> None:
         """The affine model (K row + a bias per repetition) must be determined on every
-        channel and fold: numpy's matrix_rank of the weighted design, from its R factor."""
+        channel and fold: numpy's matrix_rank test on the weighted design, whose singular
+        values are those of the repetitions' R factors placed block by block."""
         g, R = self.g, self.g.R
         eps = np.finfo(float).eps
+        w = np.moveaxis(self.weight, -1, 0)[..., None]  # (6, R, n, 1)
+        R4 = _qr_r(np.concatenate([w * g.M[..., :3], w], axis=-1))  # (6, R, 4, 4)
+        Y = np.zeros((6, R + 1, R, 4, 3 + R))
+        Y[..., :3] = R4[:, None, :, :, :3]
+        for r in range(R):  # bias column of repetition r
+            Y[:, :, r, :, 3 + r] = R4[:, None, r, :, 3]
+        Y[:, np.arange(1, R + 1), np.arange(R)] = 0.0
+        s = np.linalg.svd(Y.reshape(6, R + 1, 4 * R, 3 + R), compute_uv=False)
         rows = g.real.sum(axis=1)
-        for c in range(6):
-            w = self.weight[..., c]
-            B = np.concatenate([w[..., None] * g.raw[:, :, c], w[..., None]], axis=2)
-            R4 = _qr_r(B)  # (R, 4, 4)
-            Y = np.zeros((R + 1, R, 4, 3 + R))
-            Y[:, :, :, :3] = R4[None, :, :, :3]
-            for r in range(R):  # bias column of repetition r
-                Y[:, r, :, 3 + r] = R4[r, :, 3]
-            Y[np.arange(1, R + 1), np.arange(R)] = 0.0
-            s = np.linalg.svd(Y.reshape(R + 1, 4 * R, 3 + R), compute_uv=False)
-            n_rows = np.array([rows.sum()] + [rows.sum() - rows[h] for h in range(R)])
-            n_cols = np.array([3 + R] + [3 + R - 1] * R)
-            tol = s.max(axis=1) * np.maximum(n_rows, n_cols) * eps
-            rank = (s > tol[:, None]).sum(axis=1)
-            bad = np.flatnonzero(rank < n_cols)
-            if bad.size:
-                f = bad[0]
-                raise DesignError("E_DISCOVERY_RANK",
-                                  f"channel {CHANNELS[c]}: the steps cannot determine the "
-                                  f"affine model (rank {int(rank[f])} < {int(n_cols[f])})",
-                                  (CHANNELS[c],))
+        n_rows = np.array([rows.sum()] + [rows.sum() - rows[h] for h in range(R)])
+        n_cols = np.array([3 + R] + [3 + R - 1] * R)
+        tol = s.max(axis=-1) * np.maximum(n_rows, n_cols) * eps
+        rank = (s > tol[..., None]).sum(axis=-1)  # (6, R+1)
+        bad = np.argwhere(rank < n_cols)
+        if bad.size:
+            c, f = bad[0]
+            raise DesignError("E_DISCOVERY_RANK",
+                              f"channel {CHANNELS[c]}: the steps cannot determine the "
+                              f"affine model (rank {int(rank[c, f])} < {int(n_cols[f])})",
+                              (CHANNELS[c],))
 
     # -- fits -----------------------------------------------------------------------------
     def fit(self, names: tuple[str, ...], fold: int | None = None) -> _FitResult:
@@ -550,32 +557,28 @@ class _Discovery:
         else:
             theta, cov, rank = np.zeros(0), np.zeros((0, 0)), 0
             ss = float(c_all @ c_all) + ss_perp
-        theta_full = np.zeros(P)
-        theta_full[cols] = theta
+        theta_ext = np.zeros(P + 2)
+        theta_ext[cols] = theta
+        tc = theta_ext[g.colmap]  # (6, k - 4) each channel's term coefficients
         # affine coefficients by back-substitution on the fold's factor of each channel
-        K = np.zeros((6, 3))
-        v = []
-        for c in range(6):
-            KS = self.K_solve[c][fi]  # R_base^-1 [R_base,terms | R_base,y]
-            tc = theta_full[g.live[c]]
-            K[c] = KS[:, -1] - KS[:, :-1] @ tc
-            v.append(np.concatenate([-K[c], -tc, [1.0]]))
+        KS = self.K_solve[:, fi]  # (6, 3, k - 3)
+        K = KS[..., -1] - np.einsum("cij,cj->ci", KS[..., :-1], tc)
+        v = np.concatenate([-K, -tc, np.ones((6, 1))], axis=1)  # (6, k)
         ss_c = pure_c = None
         if fold is None:
-            ss_c = np.array([np.sum((self.Rf[c][0] @ v[c]) ** 2) for c in range(6)])
-            pure_c = np.array([np.sum((self.Rpure[c] @ v[c]) ** 2) for c in range(6)])
+            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf[:, 0], v) ** 2, axis=1)
+            pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
         return _FitResult(names=list(names), theta=theta, cov=cov, rank=rank, ss=ss, K=K, v=v,
                           ss_channel=ss_c, pure_channel=pure_c)
 
     def biases(self, f: _FitResult) -> np.ndarray:
         """Each repetition's biases (R, 6) under a fit of all repetitions: the weighted mean
         of what the fit leaves on the repetition."""
-        return np.stack([self.mu[c] @ f.v[c] for c in range(6)], axis=1)
+        return np.einsum("crk,ck->rc", self.mu, f.v)
 
     def noise_model(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         f = self.fit(names)
-        resid = np.stack([self.Mc[c] @ f.v[c] for c in range(6)], axis=-1)
-        return f.K, resid
+        return f.K, np.einsum("crnk,ck->rnc", self.Mc, f.v)
 
     def pure(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Pure-error sum of squares and dof per channel of a model's weighted residual: its
@@ -591,9 +594,8 @@ class _Discovery:
         if key not in self._heldout:
             ss = np.zeros(6)
             for h in range(self.g.R):
-                f = self.fit(key, h)
-                for c in range(6):
-                    ss[c] += np.sum((self.Rrep[c][h] @ f.v[c]) ** 2)
+                v = self.fit(key, h).v
+                ss += np.sum(np.einsum("cij,cj->ci", self.Rrep[:, h], v) ** 2, axis=1)
             self._heldout[key] = ss
         return self._heldout[key]
 
@@ -783,7 +785,8 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
         # the affine model's K is distorted by the effects it misses, and the noise reaches
         # the residual through K: estimate the noise again with the chosen model and, if it
         # moved (more than 3 % on some channel and test group), select again with it
-        d2 = _Discovery(step_means_by_rep, alpha, noise_model=d.noise_model(tuple(chosen)))
+        d2 = _Discovery(step_means_by_rep, alpha, noise_model=d.noise_model(tuple(chosen)),
+                        grid=d.g)
         if np.max(np.abs(np.log(d2.sigma / d.sigma))) > np.log(1.03):
             d = d2
             chosen, partial = d.select()
