@@ -81,7 +81,6 @@ class _UnitGrid:
     raw: np.ndarray  # (R, n, 6, 3) raw outputs of each channel's sensor
     std: np.ndarray  # (R, n, 6, 3) within-step std of each channel's sensor outputs
     count: np.ndarray  # (R, n) samples averaged (1 on padding)
-    Z: np.ndarray  # (R, n, 6, P) design columns of every catalogue term (minus regressors)
     names: list[str]  # catalogue terms, sorted; Z's columns in this order
     offset: dict[str, tuple[int, int]]
     live: list[np.ndarray]  # per channel: columns of Z not identically 0 on it
@@ -103,54 +102,50 @@ class _UnitGrid:
         P = off
         real = np.zeros((R, n), bool)
         step = np.full((R, n), -1, np.int64)
-        test = np.full((R, n), "", object)
         y = np.zeros((R, n, 6))
         raw = np.zeros((R, n, 6, 3))
         std = np.zeros((R, n, 6, 3))
         count = np.ones((R, n))
-        Z = np.zeros((R, n, 6, P))
+        Zs, live_mask, tests = [], np.zeros((6, P), bool), []
         for r, sm in enumerate(sessions):
             m = len(sm)
             real[r, :m] = True
             step[r, :m] = sm.step.astype(np.int64)
-            test[r, :m] = np.asarray(sm.test, object)
             y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
             raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
             std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
             count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
             ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
                                           g_local=sm.g_local)
-            for nm, t in zip(names, terms):
-                a, b = offset[nm]
-                Z[r, :m, :, a:b] = -_term_regressors(t, ctx)
-        tests, t_idx = np.unique(test[real].astype(str), return_inverse=True)
-        tg = np.array([test_group(t) for t in tests], dtype=object)[t_idx]
-        groups = sorted(set(tg))
+            Zr, live_r = _design_columns(terms, ctx)
+            Zs.append(Zr)
+            live_mask |= live_r
+            tests.append(np.unique(np.asarray(sm.test).astype(str), return_inverse=True))
+        # test groups: mapped per distinct test name, not per step
+        groups = sorted({test_group(t) for u, _ in tests for t in u})
         gcode = np.full((R, n), -1, np.int64)
-        gcode[real] = np.searchsorted(np.array(groups, dtype=object), tg)
-        live_mask = np.abs(Z).sum(axis=(0, 1)) > 0  # (6, P)
+        for r, (u, inv) in enumerate(tests):
+            gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
         live = [np.flatnonzero(m) for m in live_mask]
         balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
                     and all(np.array_equal(gcode[0], g) for g in gcode)
                     and len(np.unique(step[0])) == n)
-        # every channel's design [raw_c | its live term columns | zero columns | y_c], padded
-        # to one width so that all six channels are factorised by one batched call
-        # (a zero column changes no fit: it adds nothing to A^T A)
         k = 3 + max(len(L) for L in live) + 1
         M = np.zeros((6, R, n, k))
         colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
+        M[..., :3] = np.moveaxis(raw, 2, 0)
+        M[..., -1] = np.moveaxis(y, 2, 0)
         for c in range(6):
             L = live[c]
-            M[c, :, :, :3] = raw[:, :, c]
-            M[c, :, :, 3:3 + len(L)] = Z[:, :, c][..., L]
-            M[c, :, :, -1] = y[:, :, c]
             colmap[c, :len(L)] = L
-        return cls(R, n, real, step, gcode, groups, y, raw, std, count, Z, list(names), offset,
+            for r, Zr in enumerate(Zs):
+                M[c, r, :lens[r], 3:3 + len(L)] = Zr[:, c, L]
+        return cls(R, n, real, step, gcode, groups, y, raw, std, count, list(names), offset,
                    live, live_mask, balanced, M, colmap)
 
     @property
     def P(self) -> int:
-        return self.Z.shape[-1]
+        return self.live_mask.shape[1]
 
     def cols(self, names: tuple[str, ...]) -> np.ndarray:
         if not names:
@@ -216,21 +211,23 @@ def _two_way_matrix(X: np.ndarray, cell: np.ndarray, rep: np.ndarray) -> tuple[n
     return X - D @ coef, int(n - rank)
 
 
-_REGRESSOR_CACHE: dict[tuple, np.ndarray] = {}
-_REGRESSOR_CACHE_MAX = 256
+_DESIGN_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+_DESIGN_CACHE_MAX = 64
 
 
-def _term_regressors(term, ctx: MotionContext) -> np.ndarray:
-    """term.regressors(ctx), remembered by the bytes of the motion (units of one protocol
-    share it; a term that reads temperature or time misses when those differ)."""
-    key = (type(term), ctx.g_local, ctx.w.tobytes(), ctx.f.tobytes(), ctx.dwdt.tobytes(),
-           ctx.temp_c.tobytes(), ctx.t.tobytes())
-    out = _REGRESSOR_CACHE.get(key)
+def _design_columns(terms: list, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
+    """Design columns of every term, (n, 6, P) (minus the regressors: ref = ... - E theta),
+    and which are not identically 0 per channel, (6, P). Remembered by the bytes of the
+    motion: the units of one protocol share it (a miss where temperature or time differ)."""
+    key = (tuple(type(t) for t in terms), ctx.g_local, ctx.w.tobytes(), ctx.f.tobytes(),
+           ctx.dwdt.tobytes(), ctx.temp_c.tobytes(), ctx.t.tobytes())
+    out = _DESIGN_CACHE.get(key)
     if out is None:
-        out = np.asarray(term.regressors(ctx), float)
-        if len(_REGRESSOR_CACHE) >= _REGRESSOR_CACHE_MAX:
-            _REGRESSOR_CACHE.clear()
-        _REGRESSOR_CACHE[key] = out
+        Z = -np.concatenate([np.asarray(t.regressors(ctx), float) for t in terms], axis=-1)
+        out = (Z, np.abs(Z).sum(axis=0) > 0)
+        if len(_DESIGN_CACHE) >= _DESIGN_CACHE_MAX:
+            _DESIGN_CACHE.clear()
+        _DESIGN_CACHE[key] = out
     return out
 
 
