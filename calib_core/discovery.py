@@ -51,7 +51,8 @@ from scipy import special, stats
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import CHANNELS, MotionContext, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.replay import MIN_POOL_DOF, NoiseEstimate, replay_unit, test_group
+from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, replay_unit,
+                               test_group)
 from calib_core.steps import StepMeans
 from calib_core.results import to_jsonable
 
@@ -284,6 +285,20 @@ def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, in
     return theta, cov, rank
 
 
+def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """theta of :func:`_lstsq_cov` for a stack of problems, Z (B, m, p), y (B, m): one
+    batched SVD for the held-out folds instead of one call each."""
+    norms = np.linalg.norm(Z, axis=-2)  # (B, p)
+    live = norms > 1e-12 * np.maximum(norms.max(axis=-1, keepdims=True), 1e-300)
+    scale = np.where(live, norms, 1.0)
+    U, s, Vt = np.linalg.svd(Z / scale[:, None, :], full_matrices=False)
+    keep = (s > _RCOND ** 0.5 * s[:, :1]) & (s[:, :1] > 0) & (s > 0)
+    inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    uy = np.einsum("bmk,bm->bk", U, y)
+    theta = np.einsum("bkp,bk->bp", Vt, inv_s * uy) / scale
+    return np.where(live, theta, 0.0)
+
+
 # -- results --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class FTest:
@@ -382,7 +397,7 @@ class Diagnosis:
                                       if t.rejects],
             "heldout_rms_baseline": self.heldout_rms_baseline,
             "heldout_rms_final": self.heldout_rms_final,
-            "noise": self.noise.table.to_dict(orient="records"),
+            "noise": self.noise.records(),
         })
 
 
@@ -468,10 +483,8 @@ class _Discovery:
     @property
     def noise(self) -> NoiseEstimate:
         if not hasattr(self, "_noise_estimate"):
-            cols = ("channel", "group", "dof", "step_sd", "white_sd", "instability_sd")
-            table = pd.DataFrame({c: [r[i] for r in self._noise_rows]
-                                  for i, c in enumerate(cols)})
-            self._noise_estimate = NoiseEstimate(table, from_repetitions=True)
+            self._noise_estimate = NoiseEstimate.from_records(
+                [dict(zip(NOISE_COLUMNS, r)) for r in self._noise_rows], from_repetitions=True)
         return self._noise_estimate
 
     def _factorise(self) -> None:
@@ -586,14 +599,22 @@ class _Discovery:
 
     def heldout_ss(self, names: tuple[str, ...]) -> np.ndarray:
         """Sum of squares of the held-out normalised residual per channel (each repetition
-        predicted by the fold holding it out, its own biases fitted on itself)."""
+        predicted by the fold holding it out, its own biases fitted on itself); the R
+        folds' fits are solved together."""
         key = tuple(sorted(names))
         if key not in self._heldout:
-            ss = np.zeros(6)
-            for h in range(self.g.R):
-                v = self.fit(key, h).v
-                ss += np.sum(np.einsum("cij,cj->ci", self.Rrep[:, h], v) ** 2, axis=1)
-            self._heldout[key] = ss
+            g, P, R = self.g, self.g.P, self.g.R
+            Rg = self.Rg[1:]  # (R, P+1, P+1) the folds leaving one repetition out
+            cols = g.cols(key)
+            theta_ext = np.zeros((R, P + 2))
+            if cols.size:
+                theta_ext[:, cols] = _lstsq_theta_stack(Rg[:, :P][:, :, cols], Rg[:, :P, P])
+            tc = theta_ext[:, g.colmap]  # (R, 6, k - 4)
+            KS = self.K_solve[:, 1:]  # (6, R, 3, k - 3)
+            K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
+            v = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
+            z = np.einsum("chij,chj->chi", self.Rrep, v)  # Rrep[:, h]: repetition h's factor
+            self._heldout[key] = np.sum(z ** 2, axis=(1, 2))
         return self._heldout[key]
 
     def heldout_rms(self, names: tuple[str, ...], channels: tuple[int, ...] | None = None) -> float:
