@@ -444,7 +444,11 @@ class _Discovery:
         Mc, _ = _centre(g.M[..., [0, 1, 2, -1]], wc)
         Mc[:, ~g.real] = 0.0
         Rf = _qr_r((wc[..., None] * Mc).reshape(6, -1, 4))
-        K = np.linalg.solve(Rf[:, :3, :3], Rf[:, :3, 3:])[..., 0]  # (6, 3)
+        try:
+            K = np.linalg.solve(Rf[:, :3, :3], Rf[:, :3, 3:])[..., 0]  # (6, 3)
+        except np.linalg.LinAlgError:
+            self._check_rank(w)  # says which channel cannot be determined
+            raise
         resid = Mc[..., 3] - np.einsum("crnk,ck->crn", Mc[..., :3], K)
         return K, np.moveaxis(resid, 0, -1)
 
@@ -493,7 +497,7 @@ class _Discovery:
         fold 0 = all, fold 1 + h leaves h out), of its pure-error part; per fold, the factor
         of every term column with the affine model projected out (fits of any subset)."""
         g, R, P = self.g, self.g.R, self.g.P
-        self._check_rank()  # before anything solves with the affine part
+        self._check_rank(self.weight)  # before anything solves with the affine part
         w = np.moveaxis(self.weight, -1, 0)  # (6, R, n)
         Mc, self.mu = _centre(g.M, w)  # (6, R, n, k), (6, R, k)
         Mc[:, ~g.real] = 0.0
@@ -518,13 +522,13 @@ class _Discovery:
         self.rows_channel = int(g.real.sum())
         self.base_rank = [3 + R] * 6
 
-    def _check_rank(self) -> None:
+    def _check_rank(self, weight: np.ndarray) -> None:
         """The affine model (K row + a bias per repetition) must be determined on every
         channel and fold: numpy's matrix_rank test on the weighted design, whose singular
         values are those of the repetitions' R factors placed block by block."""
         g, R = self.g, self.g.R
         eps = np.finfo(float).eps
-        w = np.moveaxis(self.weight, -1, 0)[..., None]  # (6, R, n, 1)
+        w = np.moveaxis(weight, -1, 0)[..., None]  # (6, R, n, 1)
         R4 = _qr_r(np.concatenate([w * g.M[..., :3], w], axis=-1))  # (6, R, 4, 4)
         Y = np.zeros((6, R + 1, R, 4, 3 + R))
         Y[..., :3] = R4[:, None, :, :, :3]
@@ -537,9 +541,9 @@ class _Discovery:
         n_cols = np.array([3 + R] + [3 + R - 1] * R)
         tol = s.max(axis=-1) * np.maximum(n_rows, n_cols) * eps
         rank = (s > tol[..., None]).sum(axis=-1)  # (6, R+1)
-        bad = np.argwhere(rank < n_cols)
+        bad = np.argwhere((rank < n_cols).T)  # fold by fold, channel by channel
         if bad.size:
-            c, f = bad[0]
+            f, c = bad[0]
             raise DesignError("E_DISCOVERY_RANK",
                               f"channel {CHANNELS[c]}: the steps cannot determine the "
                               f"affine model (rank {int(rank[c, f])} < {int(n_cols[f])})",

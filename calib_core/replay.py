@@ -207,7 +207,11 @@ def noise_sigma(noise: NoiseEstimate, channel: np.ndarray, group: np.ndarray,
     """sigma = sqrt(white**2 + instability**2) per entry (instability 0 where unknown)."""
     tab = noise.table
     lut = {(c, g): v for c, g, v in zip(tab["channel"], tab["group"], tab["instability_sd"])}
-    inst = np.array([lut.get((c, g), 0.0) for c, g in zip(channel, group)], float)
+    # looked up once per distinct (channel, group), not once per row
+    ch_names, ch_idx = np.unique(np.asarray(channel, str), return_inverse=True)
+    gr_names, gr_idx = np.unique(np.asarray(group, str), return_inverse=True)
+    per_pair = np.array([[lut.get((c, g), 0.0) for g in gr_names] for c in ch_names], float)
+    inst = per_pair[ch_idx.reshape(-1), gr_idx.reshape(-1)] if len(ch_names) else np.zeros(0)
     return np.sqrt(white ** 2 + np.nan_to_num(inst) ** 2)
 
 

@@ -175,7 +175,9 @@ def test_undetermined_affine_model_is_a_design_error():
         sm.gyro[:, 1] = 1.0 + sm.key.rep
     with pytest.raises(DesignError) as err:
         diagnose_unit(sessions, tables=False)
+    # 3 repetitions: 3 gains + 3 biases, one raw column is a copy of the biases: rank 5
     assert err.value.code == "E_DISCOVERY_RANK" and "gx" in str(err.value)
+    assert "rank 5 < 6" in str(err.value)
 
 
 def test_same_motion_shares_design_columns_and_decisions_repeat():
