@@ -82,9 +82,9 @@ class _UnitGrid:
     raw: np.ndarray  # (R, n, 6, 3) raw outputs of each channel's sensor
     std: np.ndarray  # (R, n, 6, 3) within-step std of each channel's sensor outputs
     count: np.ndarray  # (R, n) samples averaged (1 on padding)
-    names: list[str]  # catalogue terms, sorted; Z's columns in this order
+    names: list[str]  # catalogue terms, sorted; the P term columns in this order
     offset: dict[str, tuple[int, int]]
-    live: list[np.ndarray]  # per channel: columns of Z not identically 0 on it
+    live: list[np.ndarray]  # per channel: term columns not identically 0 on it
     live_mask: np.ndarray  # (6, P) bool, the same
     balanced: bool  # every repetition has the same steps in the same order
     M: np.ndarray  # (6, R, n, k) per channel: [raw_c | live term columns | 0 | y_c]
