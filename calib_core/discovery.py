@@ -46,13 +46,13 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy import special, stats
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import CHANNELS, MotionContext, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.replay import (NoiseEstimate, estimate_noise_arrays, noise_sigma, replay_unit,
-                               test_group, two_way_residual, white_sigma)
+from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, replay_unit,
+                               test_group)
 from calib_core.steps import StepMeans
 from calib_core.results import to_jsonable
 
@@ -60,163 +60,195 @@ DEFAULT_ALPHA = 0.01
 _RCOND = 1e-10
 
 
-# -- the stacked data of one unit -------------------------------------------------------
+# -- one unit on a (repetition, step) grid ----------------------------------------------
+# Why this layout: every quantity discovery needs (fits of any term subset on any
+# leave-one-repetition-out fold, per-channel residual sums of squares, pure error, held-out
+# residuals) is a quadratic form in a small coefficient vector v_c = [-K_c, -theta, 1] over
+# the channel's weighted, bias-removed design A_c = w (M_c - weighted mean per repetition).
+# Factorising A_c once per (channel, repetition) block (R factors, k x k with k ~ 10) turns
+# all of them into products of small triangular matrices: nothing per row after the set-up.
 @dataclass
-class UnitStack:
-    """All repetitions of a unit in long form: one row per (repetition, step, channel)."""
+class _UnitGrid:
+    """Repetitions of a unit on a (repetition, step) grid, padded to the longest repetition
+    (padding rows: ``real`` False, weight 0, in no sum)."""
 
-    sessions: list[StepMeans]
-    rep_index: np.ndarray  # (N,) 0..R-1
-    channel: np.ndarray  # (N,) 0..5
-    step: np.ndarray  # (N,) step id
-    group: np.ndarray  # (N,) test group (noise pooling)
-    y: np.ndarray  # (N,) reference of the channel
-    raw: np.ndarray  # (N, 3) raw outputs of the channel's sensor
-    contexts: list[MotionContext]
-
-    @property
-    def n_reps(self) -> int:
-        return len(self.sessions)
+    R: int
+    n: int
+    real: np.ndarray  # (R, n) bool
+    step: np.ndarray  # (R, n) step id, -1 on padding
+    gcode: np.ndarray  # (R, n) index into groups, -1 on padding
+    groups: list[str]  # test groups (noise pooling), sorted
+    y: np.ndarray  # (R, n, 6) references
+    raw: np.ndarray  # (R, n, 6, 3) raw outputs of each channel's sensor
+    std: np.ndarray  # (R, n, 6, 3) within-step std of each channel's sensor outputs
+    count: np.ndarray  # (R, n) samples averaged (1 on padding)
+    names: list[str]  # catalogue terms, sorted; the P term columns in this order
+    offset: dict[str, tuple[int, int]]
+    live: list[np.ndarray]  # per channel: term columns not identically 0 on it
+    live_mask: np.ndarray  # (6, P) bool, the same
+    balanced: bool  # every repetition has the same steps in the same order
+    M: np.ndarray  # (6, R, n, k) per channel: [raw_c | live term columns | 0 | y_c]
+    colmap: np.ndarray  # (6, k - 4) global term column of M's term columns (P + 1: padding)
 
     @classmethod
-    def build(cls, sessions: list[StepMeans]) -> "UnitStack":
-        rep_index, channel, step, group, y, raw, ctxs = [], [], [], [], [], [], []
+    def build(cls, sessions: list[StepMeans], names: list[str]) -> "_UnitGrid":
+        R = len(sessions)
+        lens = [len(sm) for sm in sessions]
+        n = max(lens)
+        terms = [get_effect(nm) for nm in names]
+        offset, off = {}, 0
+        for nm, t in zip(names, terms):
+            offset[nm] = (off, off + t.n_params)
+            off += t.n_params
+        P = off
+        real = np.zeros((R, n), bool)
+        step = np.full((R, n), -1, np.int64)
+        y = np.zeros((R, n, 6))
+        raw = np.zeros((R, n, 6, 3))
+        std = np.zeros((R, n, 6, 3))
+        count = np.ones((R, n))
+        Zs, live_mask, tests = [], np.zeros((6, P), bool), []
         for r, sm in enumerate(sessions):
-            n = len(sm)
-            rep_index.append(np.full(6 * n, r))
-            channel.append(np.tile(np.arange(6), n))
-            step.append(np.repeat(sm.step.astype(np.int64), 6))
-            group.append(np.repeat([test_group(t) for t in sm.test], 6))
-            y.append(np.hstack([sm.w_ref, sm.f_ref]).ravel())
-            rr = np.empty((n, 6, 3))
-            rr[:, :3, :] = sm.gyro[:, None, :]
-            rr[:, 3:, :] = sm.accel[:, None, :]
-            raw.append(rr.reshape(6 * n, 3))
-            ctxs.append(MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c,
-                                                t=sm.t_mid, g_local=sm.g_local))
-        return cls(sessions=list(sessions), rep_index=np.concatenate(rep_index),
-                   channel=np.concatenate(channel), step=np.concatenate(step),
-                   group=np.concatenate(group).astype(str), y=np.concatenate(y),
-                   raw=np.concatenate(raw), contexts=ctxs)
-
-    def regressors(self, name: str) -> np.ndarray:
-        """Design columns of a term, (N, p): minus its regressors (ref = ... - E theta)."""
-        term = get_effect(name)
-        return -np.concatenate([term.regressors(c).reshape(len(c) * 6, term.n_params)
-                                for c in self.contexts])
-
-    def white_sigma(self, K: np.ndarray) -> np.ndarray:
-        """Within-step scatter through the 6x3 gain rows K (gyro rows then accel rows)."""
-        out = []
-        for sm in self.sessions:
-            cal = Calibration(K_g=K[:3], w0=np.zeros(3), K_a=K[3:], f0=np.zeros(3))
-            out.append(white_sigma(cal, sm).ravel())
-        return np.concatenate(out)
-
-
-# -- weighted least squares with the base model projected out (Frisch-Waugh-Lovell) -------
-class _Fold:
-    """The base model (K rows + per-repetition biases, per channel) fitted on the training
-    rows; term columns are fitted after projecting the base out, channel by channel."""
-
-    def __init__(self, st: UnitStack, weight: np.ndarray, held_out: int | None):
-        self.st, self.w, self.held_out = st, weight, held_out
-        train = np.ones(len(st.y), bool) if held_out is None else st.rep_index != held_out
-        self.reps = [r for r in range(st.n_reps) if r != held_out]
-        self.idx, self.Q, self.R, self.rank = [], [], [], []
+            m = len(sm)
+            real[r, :m] = True
+            step[r, :m] = sm.step.astype(np.int64)
+            y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
+            raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
+            std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
+            count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
+            ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
+                                          g_local=sm.g_local)
+            Zr, live_r = _design_columns(terms, ctx)
+            Zs.append(Zr)
+            live_mask |= live_r
+            tests.append(np.unique(np.asarray(sm.test).astype(str), return_inverse=True))
+        # test groups: mapped per distinct test name, not per step
+        groups = sorted({test_group(t) for u, _ in tests for t in u})
+        gcode = np.full((R, n), -1, np.int64)
+        for r, (u, inv) in enumerate(tests):
+            gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
+        live = [np.flatnonzero(m) for m in live_mask]
+        balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
+                    and all(np.array_equal(gcode[0], g) for g in gcode)
+                    and len(np.unique(step[0])) == n)
+        k = 3 + max(len(L) for L in live) + 1
+        M = np.zeros((6, R, n, k))
+        colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
+        M[..., :3] = np.moveaxis(raw, 2, 0)
+        M[..., -1] = np.moveaxis(y, 2, 0)
         for c in range(6):
-            idx = np.flatnonzero(train & (st.channel == c))
-            X = self._base_design(idx) * weight[idx, None]
-            Q, R = np.linalg.qr(X)
-            self.idx.append(idx)
-            self.Q.append(Q)
-            self.R.append(R)
-            self.rank.append(int(np.linalg.matrix_rank(X)))
-            if self.rank[-1] < X.shape[1]:
-                raise DesignError("E_DISCOVERY_RANK",
-                                  f"channel {CHANNELS[c]}: the steps cannot determine the "
-                                  f"affine model (rank {self.rank[-1]} < {X.shape[1]})",
-                                  (CHANNELS[c],))
-        self.rows = np.concatenate(self.idx)
-        self.y_res = self._project_out(st.y[:, None])[:, 0]
-
-    def _base_design(self, idx: np.ndarray) -> np.ndarray:
-        onehot = (self.st.rep_index[idx, None] == np.array(self.reps)[None, :]).astype(float)
-        return np.hstack([self.st.raw[idx], onehot])
-
-    def _project_out(self, cols: np.ndarray) -> np.ndarray:
-        out = []
-        for idx, Q in zip(self.idx, self.Q):
-            a = cols[idx] * self.w[idx, None]
-            out.append(a - Q @ (Q.T @ a))
-        return np.concatenate(out)
-
-    def _all_terms(self, Zs: dict[str, np.ndarray]) -> None:
-        """One QR of every catalogue column with the base projected out: any subset of
-        terms is then fitted on the small triangular factor (exactly, no normal equations):
-        min |y - Z_S theta|^2 = min |Q^T y - R_S theta|^2 + |y - Q Q^T y|^2."""
-        if hasattr(self, "_R_all"):
-            return
-        names = sorted(Zs)
-        self._offset, off = {}, 0
-        for n in names:
-            self._offset[n] = (off, off + Zs[n].shape[1])
-            off += Zs[n].shape[1]
-        self._Z_all = self._project_out(np.hstack([Zs[n] for n in names]))
-        Q, self._R_all = np.linalg.qr(self._Z_all)
-        self._c_all = Q.T @ self.y_res
-        self._ss_perp = float(max(self.y_res @ self.y_res - self._c_all @ self._c_all, 0.0))
-
-    def _cols(self, names: list[str]) -> np.ndarray:
-        return np.concatenate([np.arange(*self._offset[n]) for n in names])
+            L = live[c]
+            colmap[c, :len(L)] = L
+            for r, Zr in enumerate(Zs):
+                M[c, r, :lens[r], 3:3 + len(L)] = Zr[:, c, L]
+        return cls(R, n, real, step, gcode, groups, y, raw, std, count, list(names), offset,
+                   live, live_mask, balanced, M, colmap)
 
     @property
-    def base_rank(self) -> int:
-        return int(sum(self.rank))
+    def P(self) -> int:
+        return self.live_mask.shape[1]
 
-    def fit(self, names: list[str], Zs: dict[str, np.ndarray], residual: bool = False
-            ) -> "_FitResult":
-        if names:
-            self._all_terms(Zs)
-            cols = self._cols(names)
-            R_S = self._R_all[:, cols]
-            theta, cov, rank = _lstsq_cov(R_S, self._c_all)
-            d = self._c_all - R_S @ theta
-            ss = float(d @ d) + self._ss_perp
-        else:
-            theta, cov, rank = np.zeros(0), np.zeros((0, 0)), 0
-            ss = float(self.y_res @ self.y_res)
-        z = None
-        if residual:  # weighted residual in the stack's row order (NaN off the training rows)
-            z = np.full(len(self.st.y), np.nan)
-            z[self.rows] = self.y_res - (self._Z_all[:, self._cols(names)] @ theta
-                                         if names else 0.0)
-        # base coefficients by back-substitution: beta_c = R^-1 Q^T (y_w - Z_w theta)
-        Zfull = np.hstack([Zs[n] for n in names]) if names else np.zeros((len(self.st.y), 0))
-        target = self.st.y - Zfull @ theta
-        K = np.zeros((6, 3))
-        b = np.zeros((self.st.n_reps, 6))
-        for c, (idx, Q, R) in enumerate(zip(self.idx, self.Q, self.R)):
-            beta = np.linalg.solve(R, Q.T @ (target[idx] * self.w[idx]))
-            K[c] = beta[:3]
-            b[self.reps, c] = beta[3:]
-        return _FitResult(names=list(names), theta=theta, cov=cov, rank=rank, ss=ss, z=z,
-                          K=K, b=b)
+    def cols(self, names: tuple[str, ...]) -> np.ndarray:
+        if not names:
+            return np.zeros(0, np.int64)
+        return np.concatenate([np.arange(*self.offset[n]) for n in names])
 
-    def heldout_z(self, fit: "_FitResult", Zs: dict[str, np.ndarray]) -> np.ndarray:
-        """Normalised residual of the held-out repetition, its biases fitted on itself."""
-        st, h = self.st, self.held_out
-        rows = np.flatnonzero(st.rep_index == h)
-        pred = np.einsum("ij,ij->i", st.raw[rows], fit.K[st.channel[rows]])
-        if fit.names:
-            pred = pred + np.hstack([Zs[n][rows] for n in fit.names]) @ fit.theta
-        w = self.w[rows]
-        z = (st.y[rows] - pred) * w
-        ch = st.channel[rows]
-        for c in range(6):
-            m = ch == c
-            z[m] -= w[m] * (z[m] @ w[m]) / (w[m] @ w[m])
-        return z
+    def white_sigma(self, K: np.ndarray) -> np.ndarray:
+        """Within-step scatter of the step mean through the 6x3 gain rows K, (R, n, 6)
+        (:func:`calib_core.replay.white_sigma` for every repetition at once)."""
+        return np.sqrt(np.einsum("rnck,ck->rnc", self.std ** 2, K ** 2)) \
+            / np.sqrt(self.count)[..., None]
+
+    # -- pure error: the two-way (step x repetition) residual within each test group ------
+    def two_way(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Two-way residual of X (..., R, n, k) per test group (a value per step and per
+        repetition removed, :func:`calib_core.replay.two_way_residual`), as rows (..., m, k),
+        the group of each row (m,) and the degrees of freedom per group."""
+        ng = len(self.groups)
+        if self.balanced:  # double centring of every group's (step x repetition) table
+            g = self.gcode[0]
+            G = np.zeros((self.n, ng))
+            G[np.arange(self.n), g] = 1.0
+            cnt = G.sum(axis=0)
+            rep_mean = (X.swapaxes(-1, -2) @ G) / cnt  # (..., R, k, ng)
+            grand = rep_mean.mean(axis=-3, keepdims=True)
+            e = (X - X.mean(axis=-3, keepdims=True)
+                 - (rep_mean - grand)[..., g].swapaxes(-1, -2))
+            dof = ((cnt - 1) * (self.R - 1)).astype(np.int64)
+            return (e.reshape(X.shape[:-3] + (-1, X.shape[-1])), np.tile(g, self.R), dof)
+        lead = X.shape[:-3]
+        Xf = X.reshape((-1,) + X.shape[-3:])
+        out, grp, dof = [], None, np.zeros(ng, np.int64)
+        r_idx = np.broadcast_to(np.arange(self.R)[:, None], self.real.shape)
+        for Xi in Xf:  # one per channel at most
+            rows, grp = [], []
+            for gi in range(ng):
+                m = self.gcode == gi
+                e, d = _two_way_matrix(Xi[m], self.step[m], r_idx[m])
+                rows.append(e)
+                grp.append(np.full(len(e), gi))
+                dof[gi] = d
+            out.append(np.concatenate(rows))
+            grp = np.concatenate(grp)
+        e = np.stack(out).reshape(lead + (-1, X.shape[-1]))
+        return e, grp, dof
+
+
+def _two_way_matrix(X: np.ndarray, cell: np.ndarray, rep: np.ndarray) -> tuple[np.ndarray, int]:
+    """:func:`calib_core.replay.two_way_residual` for every column of X (m, k) at once."""
+    ci, cell_idx = np.unique(cell, return_inverse=True)
+    ri, rep_idx = np.unique(rep, return_inverse=True)
+    n = len(X)
+    if n == len(ci) * len(ri) and len(np.unique(cell_idx * len(ri) + rep_idx)) == n:
+        table = np.zeros((len(ci), len(ri), X.shape[1]))
+        table[cell_idx, rep_idx] = X
+        e = (table - table.mean(axis=1, keepdims=True) - table.mean(axis=0, keepdims=True)
+             + table.mean(axis=(0, 1), keepdims=True))
+        return e[cell_idx, rep_idx], int((len(ci) - 1) * (len(ri) - 1))
+    D = np.zeros((n, len(ci) + len(ri)))
+    D[np.arange(n), cell_idx] = 1.0
+    D[np.arange(n), len(ci) + rep_idx] = 1.0
+    coef, _, rank, _ = np.linalg.lstsq(D, X, rcond=None)
+    return X - D @ coef, int(n - rank)
+
+
+_DESIGN_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+_DESIGN_CACHE_MAX = 64
+
+
+def _design_columns(terms: list, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
+    """Design columns of every term, (n, 6, P) (minus the regressors: ref = ... - E theta),
+    and which are not identically 0 per channel, (6, P). Remembered by the bytes of the
+    motion: the units of one protocol share it (a miss where temperature or time differ)."""
+    key = (tuple(type(t) for t in terms), ctx.g_local, ctx.w.tobytes(), ctx.f.tobytes(),
+           ctx.dwdt.tobytes(), ctx.temp_c.tobytes(), ctx.t.tobytes())
+    out = _DESIGN_CACHE.get(key)
+    if out is None:
+        Z = -np.concatenate([np.asarray(t.regressors(ctx), float) for t in terms], axis=-1)
+        out = (Z, np.abs(Z).sum(axis=0) > 0)
+        if len(_DESIGN_CACHE) >= _DESIGN_CACHE_MAX:
+            _DESIGN_CACHE.clear()
+        _DESIGN_CACHE[key] = out
+    return out
+
+
+def _qr_r(X: np.ndarray) -> np.ndarray:
+    """R factor of each matrix of a stack, padded with zero rows to square."""
+    Rf = np.linalg.qr(X, mode="r")
+    k = X.shape[-1]
+    if Rf.shape[-2] < k:
+        pad = np.zeros(Rf.shape[:-2] + (k - Rf.shape[-2], k))
+        Rf = np.concatenate([Rf, pad], axis=-2)
+    return Rf
+
+
+def _centre(M: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Columns M (..., R, n, k) minus their w^2-weighted mean per repetition (the
+    repetition's bias fitted: Frisch-Waugh-Lovell for the per-repetition bias columns), and
+    the means (..., R, k)."""
+    w2 = w ** 2
+    mu = np.einsum("...n,...nk->...k", w2, M) / w2.sum(axis=-1)[..., None]
+    return M - mu[..., None, :], mu
 
 
 @dataclass
@@ -226,9 +258,10 @@ class _FitResult:
     cov: np.ndarray  # of theta, in units of the weighted residual variance (1 if sigma right)
     rank: int
     ss: float  # weighted residual sum of squares
-    z: np.ndarray | None  # weighted residual per stack row (fold of all repetitions only)
     K: np.ndarray  # (6, 3)
-    b: np.ndarray  # (R, 6)
+    v: np.ndarray  # (6, k) per channel: [-K_c, -theta on its live term columns, 0..., 1]
+    ss_channel: np.ndarray | None  # (6,) weighted residual sum of squares (fold of all reps)
+    pure_channel: np.ndarray | None  # (6,) its pure-error part
 
 
 def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
@@ -250,6 +283,20 @@ def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, in
     cov[:, undetermined] = np.nan
     theta[undetermined] = np.where(live[undetermined], theta[undetermined], 0.0)
     return theta, cov, rank
+
+
+def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """theta of :func:`_lstsq_cov` for a stack of problems, Z (B, m, p), y (B, m): one
+    batched SVD for the held-out folds instead of one call each."""
+    norms = np.linalg.norm(Z, axis=-2)  # (B, p)
+    live = norms > 1e-12 * np.maximum(norms.max(axis=-1, keepdims=True), 1e-300)
+    scale = np.where(live, norms, 1.0)
+    U, s, Vt = np.linalg.svd(Z / scale[:, None, :], full_matrices=False)
+    keep = (s > _RCOND ** 0.5 * s[:, :1]) & (s[:, :1] > 0) & (s > 0)
+    inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    uy = np.einsum("bmk,bm->bk", U, y)
+    theta = np.einsum("bkp,bk->bp", Vt, inv_s * uy) / scale
+    return np.where(live, theta, 0.0)
 
 
 # -- results --------------------------------------------------------------------------
@@ -274,7 +321,8 @@ def _f_test(ss_num: float, dof_num: int, ss_den: float, dof_den: int, threshold:
     if dof_num <= 0 or dof_den <= 0 or ss_den <= 0:
         return FTest(float("nan"), int(dof_num), int(dof_den), 1.0, threshold)
     F = (max(ss_num, 0.0) / dof_num) / (ss_den / dof_den)
-    return FTest(float(F), int(dof_num), int(dof_den), float(stats.f.sf(F, dof_num, dof_den)),
+    # special.fdtrc is what stats.f.sf evaluates, without its argument checking overhead
+    return FTest(float(F), int(dof_num), int(dof_den), float(special.fdtrc(dof_num, dof_den, F)),
                  threshold)
 
 
@@ -349,7 +397,7 @@ class Diagnosis:
                                       if t.rejects],
             "heldout_rms_baseline": self.heldout_rms_baseline,
             "heldout_rms_final": self.heldout_rms_final,
-            "noise": self.noise.table.to_dict(orient="records"),
+            "noise": self.noise.records(),
         })
 
 
@@ -359,9 +407,11 @@ _jsonable = to_jsonable  # one JSON conversion for the whole project
 # -- the procedure ----------------------------------------------------------------------
 class _Discovery:
     def __init__(self, sessions: list[StepMeans], alpha: float,
-                 noise_model: tuple[np.ndarray, np.ndarray] | None = None):
-        """``noise_model`` = (K rows (6, 3), physical residual per stack row) of the model
-        whose residuals estimate the noise; default: the affine model."""
+                 noise_model: tuple[np.ndarray, np.ndarray] | None = None,
+                 grid: "_UnitGrid | None" = None):
+        """``noise_model`` = (K rows (6, 3), physical residual (R, n, 6) on the grid) of the
+        model whose residuals estimate the noise; default: the affine model. ``grid``: the
+        same sessions already laid out (a second pass over the unit reuses it)."""
         if len(sessions) < 2:
             raise DesignError("E_DISCOVERY_REPS",
                               "model discovery needs at least 2 repetitions of the unit: the "
@@ -371,107 +421,216 @@ class _Discovery:
             raise ValueError(f"sessions of several units: {sorted(units)}")
         self.sessions = sorted(sessions, key=lambda s: s.key.rep)
         self.alpha = alpha
-        self.st = UnitStack.build(self.sessions)
         self.names = sorted(catalogue())
-        self.Zs = {n: self.st.regressors(n) for n in self.names}
+        self.g = grid if grid is not None else _UnitGrid.build(self.sessions, self.names)
         if noise_model is None:
             # affine fit weighted by within-step scatter only, to get K and residuals
-            w0 = 1.0 / np.maximum(self.st.white_sigma(np.tile(np.eye(3), (2, 1))), 1e-300)
-            fit0 = _Fold(self.st, w0, None).fit([], self.Zs, residual=True)
-            noise_model = (fit0.K, fit0.z / w0)
+            white = self.g.white_sigma(np.tile(np.eye(3), (2, 1)))
+            w0 = np.where(self.g.real[..., None], 1.0 / np.maximum(white, 1e-300), 0.0)
+            noise_model = self._affine_fit(w0)
         # noise from the data: within-step scatter through K + repetition scatter
-        self.noise, self.sigma = self._noise(*noise_model)
-        self.weight = 1.0 / self.sigma
-        self.folds = {h: _Fold(self.st, self.weight, h) for h in [None, *range(self.st.n_reps)]}
+        self._noise_rows, self.sigma = self._noise(*noise_model)
+        self.weight = np.where(self.g.real[..., None], 1.0 / self.sigma, 0.0)
+        self._factorise()
         self._fits: dict[tuple, _FitResult] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
-        self._pure_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+    # -- set-up ---------------------------------------------------------------------------
+    def _affine_fit(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """K rows and physical residual (R, n, 6) of the affine model (own biases per
+        repetition) weighted by w (R, n, 6)."""
+        g = self.g
+        wc = np.moveaxis(w, -1, 0)  # (6, R, n)
+        Mc, _ = _centre(g.M[..., [0, 1, 2, -1]], wc)
+        Mc[:, ~g.real] = 0.0
+        Rf = _qr_r((wc[..., None] * Mc).reshape(6, -1, 4))
+        try:
+            K = np.linalg.solve(Rf[:, :3, :3], Rf[:, :3, 3:])[..., 0]  # (6, 3)
+        except np.linalg.LinAlgError:
+            self._check_rank(w)  # says which channel cannot be determined
+            raise
+        resid = Mc[..., 3] - np.einsum("crnk,ck->crn", Mc[..., :3], K)
+        return K, np.moveaxis(resid, 0, -1)
+
+    def _noise(self, K: np.ndarray, resid: np.ndarray) -> tuple[list, np.ndarray]:
+        """:func:`calib_core.replay.estimate_noise_arrays` and :func:`noise_sigma` on the
+        grid (same pooling, same numbers)."""
+        g = self.g
+        white = g.white_sigma(K)
+        ng = len(g.groups)
+        e, grp, dof = g.two_way(resid)
+        ss = np.zeros((6, ng))
+        w2 = np.zeros((6, ng))
+        for gi in range(ng):  # per test group: a handful
+            ss[:, gi] = np.sum(e[grp == gi] ** 2, axis=0)
+            w2[:, gi] = np.mean(white[g.gcode == gi] ** 2, axis=0)
+        rows, inst = [], np.zeros((6, ng))
+        for c, ch in enumerate(CHANNELS):
+            pooled_ss, pooled_dof = 0.0, 0
+            for gi in range(ng):
+                pooled_ss += float(ss[c, gi])
+                pooled_dof += int(dof[gi])
+            pooled_var = pooled_ss / pooled_dof if pooled_dof else np.nan
+            for gi, gname in enumerate(g.groups):
+                wsd = float(np.sqrt(w2[c, gi]))
+                var = float(ss[c, gi]) / int(dof[gi]) if dof[gi] >= MIN_POOL_DOF else pooled_var
+                step_sd = float(np.sqrt(var)) if np.isfinite(var) else wsd
+                inst[c, gi] = float(np.sqrt(max(step_sd ** 2 - wsd ** 2, 0.0)))
+                rows.append((ch, gname, int(dof[gi]), step_sd, wsd, inst[c, gi]))
+        inst_row = np.where(g.real[..., None], inst.T[np.maximum(g.gcode, 0)], 0.0)
+        sigma = np.sqrt(white ** 2 + np.nan_to_num(inst_row) ** 2)
+        if not np.all(sigma[g.real] > 0):
+            raise DesignError("E_DISCOVERY_NOISE", "zero noise estimate on some steps")
+        sigma[~g.real] = 1.0
+        return rows, sigma
+
+    @property
+    def noise(self) -> NoiseEstimate:
+        if not hasattr(self, "_noise_estimate"):
+            self._noise_estimate = NoiseEstimate.from_records(
+                [dict(zip(NOISE_COLUMNS, r)) for r in self._noise_rows], from_repetitions=True)
+        return self._noise_estimate
+
+    def _factorise(self) -> None:
+        """Per channel c, the weighted bias-removed design A_c = [raw_c | live terms | y]:
+        R factors per repetition (held-out residuals), per fold (repetitions but one;
+        fold 0 = all, fold 1 + h leaves h out), of its pure-error part; per fold, the factor
+        of every term column with the affine model projected out (fits of any subset)."""
+        g, R, P = self.g, self.g.R, self.g.P
+        self._check_rank(self.weight)  # before anything solves with the affine part
+        w = np.moveaxis(self.weight, -1, 0)  # (6, R, n)
+        Mc, self.mu = _centre(g.M, w)  # (6, R, n, k), (6, R, k)
+        Mc[:, ~g.real] = 0.0
+        self.Mc = Mc
+        A = w[..., None] * Mc
+        k = A.shape[-1]
+        self.Rrep = _qr_r(A)  # (6, R, k, k)
+        folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
+        folds[:, np.arange(1, R + 1), np.arange(R)] = 0.0
+        self.Rf = _qr_r(folds.reshape(6, R + 1, R * k, k))  # (6, R+1, k, k)
+        # K_c = R_base^-1 (R_base,y - R_base,terms theta): solved once per fold
+        self.K_solve = np.linalg.solve(self.Rf[..., :3, :3], self.Rf[..., :3, 3:])
+        e, _, self.pure_dof = g.two_way(A)
+        self.Rpure = _qr_r(e)  # (6, k, k)
+        # the affine model projected out: the trailing block of each fold's factor, every
+        # channel's term columns put back in their global place (P + 1: padding, dropped)
+        T = np.zeros((R + 1, 6, k - 3, P + 2))
+        for c in range(6):
+            T[:, c][..., np.append(g.colmap[c], P)] = self.Rf[c, :, 3:, 3:]
+        S = T.reshape(R + 1, 6 * (k - 3), P + 2)[..., :P + 1]
+        self.Rg = _qr_r(S)  # (R+1, P+1, P+1): [R_terms c; 0 sqrt(ss_perp)] per fold
+        self.rows_channel = int(g.real.sum())
+        self.base_rank = [3 + R] * 6
+
+    def _check_rank(self, weight: np.ndarray) -> None:
+        """The affine model (K row + a bias per repetition) must be determined on every
+        channel and fold: numpy's matrix_rank test on the weighted design, whose singular
+        values are those of the repetitions' R factors placed block by block."""
+        g, R = self.g, self.g.R
+        eps = np.finfo(float).eps
+        w = np.moveaxis(weight, -1, 0)[..., None]  # (6, R, n, 1)
+        R4 = _qr_r(np.concatenate([w * g.M[..., :3], w], axis=-1))  # (6, R, 4, 4)
+        Y = np.zeros((6, R + 1, R, 4, 3 + R))
+        Y[..., :3] = R4[:, None, :, :, :3]
+        for r in range(R):  # bias column of repetition r
+            Y[:, :, r, :, 3 + r] = R4[:, None, r, :, 3]
+        Y[:, np.arange(1, R + 1), np.arange(R)] = 0.0
+        s = np.linalg.svd(Y.reshape(6, R + 1, 4 * R, 3 + R), compute_uv=False)
+        rows = g.real.sum(axis=1)
+        n_rows = np.array([rows.sum()] + [rows.sum() - rows[h] for h in range(R)])
+        n_cols = np.array([3 + R] + [3 + R - 1] * R)
+        tol = s.max(axis=-1) * np.maximum(n_rows, n_cols) * eps
+        rank = (s > tol[..., None]).sum(axis=-1)  # (6, R+1)
+        bad = np.argwhere((rank < n_cols).T)  # fold by fold, channel by channel
+        if bad.size:
+            f, c = bad[0]
+            raise DesignError("E_DISCOVERY_RANK",
+                              f"channel {CHANNELS[c]}: the steps cannot determine the "
+                              f"affine model (rank {int(rank[c, f])} < {int(n_cols[f])})",
+                              (CHANNELS[c],))
+
+    # -- fits -----------------------------------------------------------------------------
+    def fit(self, names: tuple[str, ...], fold: int | None = None) -> _FitResult:
+        key = (tuple(sorted(names)), fold)
+        if key not in self._fits:
+            self._fits[key] = self._fit(key[0], fold)
+        return self._fits[key]
+
+    def _fit(self, names: tuple[str, ...], fold: int | None) -> _FitResult:
+        g, P = self.g, self.g.P
+        fi = 0 if fold is None else 1 + fold
+        Rg = self.Rg[fi]
+        c_all = Rg[:P, P]
+        ss_perp = float(Rg[P, P] ** 2)
+        cols = g.cols(names)
+        if cols.size:
+            R_S = Rg[:P, cols]
+            theta, cov, rank = _lstsq_cov(R_S, c_all)
+            d = c_all - R_S @ theta
+            ss = float(d @ d) + ss_perp
+        else:
+            theta, cov, rank = np.zeros(0), np.zeros((0, 0)), 0
+            ss = float(c_all @ c_all) + ss_perp
+        theta_ext = np.zeros(P + 2)
+        theta_ext[cols] = theta
+        tc = theta_ext[g.colmap]  # (6, k - 4) each channel's term coefficients
+        # affine coefficients by back-substitution on the fold's factor of each channel
+        KS = self.K_solve[:, fi]  # (6, 3, k - 3)
+        K = KS[..., -1] - np.einsum("cij,cj->ci", KS[..., :-1], tc)
+        v = np.concatenate([-K, -tc, np.ones((6, 1))], axis=1)  # (6, k)
+        ss_c = pure_c = None
+        if fold is None:
+            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf[:, 0], v) ** 2, axis=1)
+            pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
+        return _FitResult(names=list(names), theta=theta, cov=cov, rank=rank, ss=ss, K=K, v=v,
+                          ss_channel=ss_c, pure_channel=pure_c)
+
+    def biases(self, f: _FitResult) -> np.ndarray:
+        """Each repetition's biases (R, 6) under a fit of all repetitions: the weighted mean
+        of what the fit leaves on the repetition."""
+        return np.einsum("crk,ck->rc", self.mu, f.v)
 
     def noise_model(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         f = self.fit(names)
-        return f.K, f.z / self.weight
-
-    def _noise(self, K: np.ndarray, resid: np.ndarray) -> tuple[NoiseEstimate, np.ndarray]:
-        st = self.st
-        names = np.array(CHANNELS)[st.channel]
-        white = st.white_sigma(K)
-        noise = estimate_noise_arrays(names, st.group, st.rep_index, st.step, resid, white)
-        sigma = noise_sigma(noise, names, st.group, white)
-        if not np.all(sigma > 0):
-            raise DesignError("E_DISCOVERY_NOISE", "zero noise estimate on some steps")
-        return noise, sigma
-
-    def _pure_cells(self) -> list[tuple]:
-        """Per channel and test group: rows, and how to take their two-way residual."""
-        if not hasattr(self, "_cells"):
-            st, self._cells = self.st, []
-            for c in range(6):
-                for g in np.unique(st.group):
-                    rows = np.flatnonzero((st.channel == c) & (st.group == g))
-                    if rows.size == 0:
-                        continue
-                    _, ci = np.unique(st.step[rows], return_inverse=True)
-                    ri = st.rep_index[rows]
-                    shape = (ci.max() + 1, st.n_reps)
-                    balanced = rows.size == shape[0] * shape[1] and \
-                        np.unique(ci * shape[1] + ri).size == rows.size
-                    self._cells.append((c, rows, (ci, ri, shape) if balanced else None,
-                                        st.step[rows], ri))
-        return self._cells
+        return f.K, np.einsum("crnk,ck->rnc", self.Mc, f.v)
 
     def pure(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Pure-error sum of squares and dof per channel of a model's weighted residual: its
         repetition-to-repetition scatter of the same step. Computed per model because the
         noise reaches the residual through that model's own K."""
-        key = tuple(sorted(names))
-        if key not in self._pure_cache:
-            z = self.fit(key).z
-            ss, dof = np.zeros(6), np.zeros(6, int)
-            for c, rows, bal, step, rep in self._pure_cells():
-                if bal is not None:  # double centring (same as two_way_residual, faster)
-                    ci, ri, shape = bal
-                    t = np.zeros(shape)
-                    t[ci, ri] = z[rows]
-                    e = t - t.mean(axis=1, keepdims=True) - t.mean(axis=0, keepdims=True) + t.mean()
-                    ss[c] += float(np.sum(e * e))
-                    dof[c] += (shape[0] - 1) * (shape[1] - 1)
-                else:
-                    e, d = two_way_residual(z[rows], step, rep)
-                    ss[c] += e @ e
-                    dof[c] += d
-            self._pure_cache[key] = (ss, dof)
-        return self._pure_cache[key]
+        f = self.fit(names)
+        return f.pure_channel, np.full(6, int(self.pure_dof.sum()), np.int64)
 
-    # cached fits
-    def fit(self, names: tuple[str, ...], fold: int | None = None) -> _FitResult:
-        key = (tuple(sorted(names)), fold)
-        if key not in self._fits:
-            self._fits[key] = self.folds[fold].fit(list(key[0]), self.Zs,
-                                                   residual=fold is None)
-        return self._fits[key]
-
-    def heldout(self, names: tuple[str, ...]) -> np.ndarray:
-        """Held-out normalised residual of every row (each row from the fold holding out
-        its repetition)."""
+    def heldout_ss(self, names: tuple[str, ...]) -> np.ndarray:
+        """Sum of squares of the held-out normalised residual per channel (each repetition
+        predicted by the fold holding it out, its own biases fitted on itself); the R
+        folds' fits are solved together."""
         key = tuple(sorted(names))
         if key not in self._heldout:
-            z = np.empty(len(self.st.y))
-            for h in range(self.st.n_reps):
-                rows = self.st.rep_index == h
-                z[rows] = self.folds[h].heldout_z(self.fit(key, h), self.Zs)
-            self._heldout[key] = z
+            g, P, R = self.g, self.g.P, self.g.R
+            Rg = self.Rg[1:]  # (R, P+1, P+1) the folds leaving one repetition out
+            cols = g.cols(key)
+            theta_ext = np.zeros((R, P + 2))
+            if cols.size:
+                theta_ext[:, cols] = _lstsq_theta_stack(Rg[:, :P][:, :, cols], Rg[:, :P, P])
+            tc = theta_ext[:, g.colmap]  # (R, 6, k - 4)
+            KS = self.K_solve[:, 1:]  # (6, R, 3, k - 3)
+            K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
+            v = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
+            z = np.einsum("chij,chj->chi", self.Rrep, v)  # Rrep[:, h]: repetition h's factor
+            self._heldout[key] = np.sum(z ** 2, axis=(1, 2))
         return self._heldout[key]
 
     def heldout_rms(self, names: tuple[str, ...], channels: tuple[int, ...] | None = None) -> float:
-        z = self.heldout(names)
-        if channels is not None:
-            z = z[np.isin(self.st.channel, channels)]
-        return float(np.sqrt(np.mean(z ** 2)))
+        ss = self.heldout_ss(names)
+        ch = list(range(6)) if channels is None else list(channels)
+        n_rows = self.rows_channel * len(ch)
+        return float(np.sqrt(ss[ch].sum() / n_rows))
 
     # tests
     def lack_of_fit(self, names: tuple[str, ...], threshold: float) -> FTest:
         f = self.fit(names)
-        dof_res = len(self.st.y) - self.folds[None].base_rank - f.rank
+        dof_res = 6 * self.rows_channel - sum(self.base_rank) - f.rank
         ps, pd_ = self.pure(names)
         pss, pdof = ps.sum(), int(pd_.sum())
         return _f_test(f.ss - pss, dof_res - pdof, pss, pdof, threshold)
@@ -479,14 +638,13 @@ class _Discovery:
     def channel_lack_of_fit(self, names: tuple[str, ...], threshold: float) -> dict[str, FTest]:
         f = self.fit(names)
         ps, pd_ = self.pure(names)
+        cols = self.g.cols(tuple(sorted(names)))
         out = {}
         for c in range(6):
-            m = self.st.channel == c
-            n_params = sum(int((np.abs(self.Zs[n][m]).sum(axis=0) > 0).sum()) for n in names)
-            dof_res = int(m.sum()) - self.folds[None].rank[c] - min(n_params, f.rank)
-            ss = float(np.nansum(f.z[m] ** 2))
-            out[CHANNELS[c]] = _f_test(ss - ps[c], dof_res - int(pd_[c]), ps[c], int(pd_[c]),
-                                       threshold)
+            n_params = int(self.g.live_mask[c, cols].sum())
+            dof_res = self.rows_channel - self.base_rank[c] - min(n_params, f.rank)
+            out[CHANNELS[c]] = _f_test(float(f.ss_channel[c]) - ps[c], dof_res - int(pd_[c]),
+                                       ps[c], int(pd_[c]), threshold)
         return out
 
     def term_test(self, current: tuple[str, ...], name: str, threshold: float) -> FTest:
@@ -496,8 +654,11 @@ class _Discovery:
         return _f_test(a.ss - b.ss, b.rank - a.rank, pss, pdof, threshold)
 
     def channels_of(self, name: str) -> tuple[int, ...]:
-        touched = np.abs(self.Zs[name]).sum(axis=1) > 0
-        return tuple(int(c) for c in np.unique(self.st.channel[touched]))
+        a, b = self.g.offset[name]
+        return tuple(int(c) for c in np.flatnonzero(self.g.live_mask[:, a:b].any(axis=1)))
+
+    def column_channels(self, col: int) -> list[int]:
+        return [int(c) for c in np.flatnonzero(self.g.live_mask[:, col])]
 
     # selection
     def select(self) -> tuple[list[str], list[str]]:
@@ -574,8 +735,7 @@ class _Discovery:
             sig = np.array([int(np.nanargmax(t))])
         axes = set()
         for k in sig:
-            touched = np.abs(self.Zs[name][:, k]) > 0
-            for c in np.unique(self.st.channel[touched]):
+            for c in self.column_channels(self.g.offset[name][0] + int(k)):
                 axes.add(CHANNELS[c][1])
         return EffectFinding(
             name=name, axes=tuple(sorted(axes)),
@@ -601,25 +761,32 @@ class _Discovery:
             se = np.sqrt(np.diag(f.cov)[off:off + p] * scale)
             terms.append(TermValue(n, f.theta[off:off + p].copy(), se))
             off += p
+        b = self.biases(f)
         out = []
         for r, sm in enumerate(self.sessions):
             out.append(Calibration(
-                K_g=f.K[:3].copy(), w0=f.b[r, :3].copy(), K_a=f.K[3:].copy(), f0=f.b[r, 3:].copy(),
+                K_g=f.K[:3].copy(), w0=b[r, :3].copy(), K_a=f.K[3:].copy(), f0=b[r, 3:].copy(),
                 gyro_unit=sm.gyro_unit, accel_unit=sm.accel_unit, terms=tuple(terms),
                 g_local=sm.g_local, kind="turntable",
                 metadata={"source": "mimucal discovery joint fit", "rep": int(sm.key.rep)}))
         return out
 
 
+_BLAS_CONTROLLER: list = []  # threadpoolctl.ThreadpoolController, found once per process
+
+
 def _single_thread_blas():
     """Many small factorisations: BLAS threads only cost synchronisation here (6x slower
-    on a loaded 2-core machine). threadpoolctl is optional."""
+    on a loaded 2-core machine). threadpoolctl is optional. The controller is built once:
+    finding the loaded libraries (reading /proc/self/maps) cost ~5 ms per unit."""
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import ThreadpoolController
     except ImportError:  # pragma: no cover
         import contextlib
         return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    if not _BLAS_CONTROLLER:
+        _BLAS_CONTROLLER.append(ThreadpoolController())
+    return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
 
 
 def diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float = DEFAULT_ALPHA,
@@ -640,7 +807,8 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
         # the affine model's K is distorted by the effects it misses, and the noise reaches
         # the residual through K: estimate the noise again with the chosen model and, if it
         # moved (more than 3 % on some channel and test group), select again with it
-        d2 = _Discovery(step_means_by_rep, alpha, noise_model=d.noise_model(tuple(chosen)))
+        d2 = _Discovery(step_means_by_rep, alpha, noise_model=d.noise_model(tuple(chosen)),
+                        grid=d.g)
         if np.max(np.abs(np.log(d2.sigma / d.sigma))) > np.log(1.03):
             d = d2
             chosen, partial = d.select()

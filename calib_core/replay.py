@@ -24,7 +24,6 @@ would cry wolf on any unit with bias instability; :mod:`calib_core.discovery` re
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -95,17 +94,47 @@ def replay_session(cal: Calibration, sm: StepMeans) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=list(REPLAY_COLUMNS))
 
 
-@dataclass(frozen=True)
+NOISE_COLUMNS = ("channel", "group", "dof", "step_sd", "white_sd", "instability_sd")
+
+
 class NoiseEstimate:
     """Noise of a step mean per channel and test group, estimated from the data.
 
     ``table`` columns: channel, group, dof (degrees of freedom of the repetition scatter),
     step_sd (pooled scatter of a step mean across repetitions, physical units), white_sd
     (rms within-step scatter through K), instability_sd (the excess, 0 if none).
+
+    Built from a table or from its rows (:meth:`from_records`); the other form is made on
+    first use: the nightly run only ever needs the rows (JSON), and a DataFrame round trip
+    cost ~2 ms per unit.
     """
 
-    table: pd.DataFrame
-    from_repetitions: bool
+    def __init__(self, table: pd.DataFrame | None, from_repetitions: bool,
+                 records: list[dict] | None = None):
+        if table is None and records is None:
+            raise ValueError("NoiseEstimate needs a table or its records")
+        self._table = table
+        self._records = records
+        self.from_repetitions = bool(from_repetitions)
+
+    @classmethod
+    def from_records(cls, records: list[dict], from_repetitions: bool) -> "NoiseEstimate":
+        return cls(None, from_repetitions, records)
+
+    @property
+    def table(self) -> pd.DataFrame:
+        if self._table is None:
+            self._table = pd.DataFrame({c: [r[c] for r in self._records] for c in NOISE_COLUMNS})
+        return self._table
+
+    def records(self) -> list[dict]:
+        """One dict per row (what ``table.to_dict(orient="records")`` gives)."""
+        if self._records is None:
+            self._records = self.table.to_dict(orient="records")
+        return [dict(r) for r in self._records]
+
+    def __repr__(self) -> str:
+        return f"NoiseEstimate(from_repetitions={self.from_repetitions}, rows={len(self.records())})"
 
 
 
@@ -178,7 +207,11 @@ def noise_sigma(noise: NoiseEstimate, channel: np.ndarray, group: np.ndarray,
     """sigma = sqrt(white**2 + instability**2) per entry (instability 0 where unknown)."""
     tab = noise.table
     lut = {(c, g): v for c, g, v in zip(tab["channel"], tab["group"], tab["instability_sd"])}
-    inst = np.array([lut.get((c, g), 0.0) for c, g in zip(channel, group)], float)
+    # looked up once per distinct (channel, group), not once per row
+    ch_names, ch_idx = np.unique(np.asarray(channel, str), return_inverse=True)
+    gr_names, gr_idx = np.unique(np.asarray(group, str), return_inverse=True)
+    per_pair = np.array([[lut.get((c, g), 0.0) for g in gr_names] for c in ch_names], float)
+    inst = per_pair[ch_idx.reshape(-1), gr_idx.reshape(-1)] if len(ch_names) else np.zeros(0)
     return np.sqrt(white ** 2 + np.nan_to_num(inst) ** 2)
 
 
