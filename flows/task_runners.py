@@ -138,10 +138,12 @@ def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_W
     if kind == "processes":
         return SharedApiProcessPoolTaskRunner(max_workers=max_workers)
     if kind == "dask":
+        import logging
+
         from distributed import LocalCluster
         return _dask_runner_class()(cluster_class=LocalCluster, cluster_kwargs={
             "n_workers": max_workers, "threads_per_worker": 1, "processes": True,
-            "dashboard_address": None})
+            "dashboard_address": None, "silence_logs": logging.WARNING})
     raise ValueError(f"unknown task runner {kind!r} (${RUNNER_ENV}): choose one of "
                      + ", ".join(RUNNER_KINDS))
 
