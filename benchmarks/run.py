@@ -6,11 +6,12 @@ work directory, and measures in one run, each in its own process (see
 :mod:`benchmarks.measure`):
 
 - the floor: a bare ``pyarrow.dataset`` scan + group-by-step mean of the same files;
-- the fit phase through :func:`flows.unit_pipeline.calibrate_unit` over all units, in one
-  process and in a pool of 2 processes;
+- the nightly fit phase without Prefect (read, validate, average, fit, discovery, aggregate,
+  flag) with the floor measured again in the same process, in one process and in a pool of 2;
 - where the fit phase time goes, per session (read + validate, average, fit, aggregate);
 - the nightly flow end to end (fit phase and report phase from its run log) with the thread
-  pool, and on a Dask ``LocalCluster`` of 1 and of 2 workers (``--dask-sizes``, default 50);
+  pool, and at ``--dask-sizes`` (default 50) with the process pool and on a Dask
+  ``LocalCluster`` of 1 and of 2 workers;
 - a single-unit rerun (``mimucal rerun``'s flow) and Prefect start-up separately;
 - peak resident memory of each (the process itself, and its whole process tree).
 
@@ -18,6 +19,7 @@ Writes ``BENCHMARKS.md`` (``--output``) and the raw numbers as JSON next to it, 
 the work directory (``--keep`` keeps it). Options::
 
     python -m benchmarks.run --sizes 10,50,200 [--with-1000] [--workdir DIR]
+    python -m benchmarks.run --quick [--rate 10]                                  # development
     python -m benchmarks.run --sizes 2 --rate 10 --no-nightly --output /tmp/b.md   # smoke
 """
 from __future__ import annotations
