@@ -320,10 +320,14 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
         growth = rss[big] / rss[small] if len(rss) >= 2 else 1.0
         slope = ((rss[big] - rss[small]) / (big - small)) if len(rss) >= 2 else 0.0
         ok = worst <= TARGETS["rss_mb"] and growth <= 1.25
+        if worst > TARGETS["rss_mb"]:
+            verdict = f"missed: {worst:.0f} MB"
+        elif len(rss) < 2:
+            verdict = "under 1.5 GB; flatness not judged (one fleet size)"
+        else:
+            verdict = "met" if ok else f"missed: grows {growth:.2f}x"
         rows.append((f"peak RSS flat in fleet size, < 1.5 GB: {label}",
-                     ", ".join(f"{n}: {v:.0f} MB" for n, v in sorted(rss.items())),
-                     "met" if ok else (f"missed: {worst:.0f} MB" if worst > TARGETS["rss_mb"]
-                                       else f"missed: grows {growth:.2f}x"),
+                     ", ".join(f"{n}: {v:.0f} MB" for n, v in sorted(rss.items())), verdict,
                      f"{big}/{small} units {growth:.2f}x, {slope:.2f} MB per unit"
                      + (f" (extrapolated to 1,000 units: {rss[big] + slope * (1000 - big):.0f} MB)"
                         if slope > 0.05 else "")))
