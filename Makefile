@@ -42,8 +42,9 @@ reproduce: setup
 	$(VENV)/bin/mimucal reproduce xu2016
 	$(VENV)/bin/mimucal reproduce zhang2017
 
+# make bench BENCH_ARGS=--quick: the few-minute development version (docs/benchmarks.md)
 bench: setup
-	$(PY) -m benchmarks.run
+	$(PY) -m benchmarks.run $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) $(DEMO) .pytest_cache

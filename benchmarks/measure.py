@@ -13,14 +13,17 @@ Kinds:
 - ``floor``: a bare ``pyarrow.dataset`` scan of every ``samples.parquet`` with column
   projection (step + six sensor columns) and a group-by-step mean per file: the cost of just
   reading the data and averaging it.
-- ``fit``: the fit phase (read, validate, average, fit, aggregate) through
-  :func:`flows.unit_pipeline.calibrate_unit` over all units, in one process or a pool of
-  ``--workers`` processes fed batches of units.
+- ``fit``: the nightly fit phase without Prefect: read, validate, average, fit, model
+  discovery, aggregate (:func:`flows.unit_pipeline.calibrate_batch`, what a nightly task runs)
+  over all units, in one process or a pool of ``--workers`` processes fed batches of units,
+  then flag every lot (:func:`calib_core.outliers.flag_lots`); the floor is measured in the
+  same process just before and just after (``floor_before``, ``floor_after``), so the ratio
+  holds on a noisy machine. ``--no-discovery`` leaves discovery out.
 - ``stages``: the same per session, split into read+validate, average, fit and aggregate, on
   the first ``--units`` units (where the fit phase time goes).
 - ``nightly``: :func:`flows.nightly.nightly_fleet_calibration` end to end (``force=True``),
-  with the thread pool (``--dask-workers 0``) or a Dask ``LocalCluster`` of N single-threaded
-  worker processes; the run log gives the fit phase (``calibration_s``) and the rest
+  with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or a Dask
+  ``LocalCluster`` of N single-threaded worker processes; the run log gives the fit phase (``calibration_s``) and the rest
   (store, flags, reports).
 - ``rerun``: :func:`flows.nightly.rerun_unit` of one unit on an existing results store.
 - ``unit``: :func:`flows.unit_pipeline.calibrate_unit` of one unit, no Prefect.
@@ -47,6 +50,7 @@ class TreeRss:
     def __init__(self, interval_s: float = 0.1):
         self.interval_s = interval_s
         self.peak = 0
+        self.cpu: dict[int, float] = {}  # last CPU seconds seen per pid of the tree
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
@@ -61,6 +65,8 @@ class TreeRss:
         for p in procs:
             try:
                 total += p.memory_info().rss
+                t = p.cpu_times()
+                self.cpu[p.pid] = t.user + t.system
             except psutil.Error:
                 pass
         self.peak = max(self.peak, total)
@@ -157,39 +163,79 @@ def do_floor(a) -> dict:
             "steps": n_steps}
 
 
-def _fit_units(batch: list) -> tuple[int, int, float]:
-    from flows.unit_pipeline import calibrate_unit
+def _fit_units(batch: list, run_discovery: bool = True) -> tuple[list, int, int, float]:
+    """One batch of units as a nightly task calibrates them (read, validate, average, fit,
+    model discovery, aggregate): :func:`flows.unit_pipeline.calibrate_batch`. Returns the
+    units' summary rows (what flagging reads), sessions ok / failed, and CPU seconds."""
+    from flows.unit_pipeline import UnitJob, calibrate_batch
+    c0 = time.process_time()
+    jobs = [UnitJob(refs[0].key.lot, refs[0].key.unit, refs, "benchmark") for refs in batch]
     ok = failed = 0
-    t0 = time.perf_counter()
-    for refs in batch:
-        u = calibrate_unit(refs, keep_step_means=False)
-        ok += sum(s.succeeded for s in u.sessions)
-        failed += sum(not s.succeeded for s in u.sessions)
-    return ok, failed, time.perf_counter() - t0
+    rows = []
+    for ur in calibrate_batch(jobs, run_discovery):
+        ok += sum(s.succeeded for s in ur.outcome.sessions)
+        failed += sum(not s.succeeded for s in ur.outcome.sessions)
+        if ur.calibrated:
+            rows += [{"lot": ur.lot, "unit": ur.unit, "model": ps.model, "parameter": ps.name,
+                      "mean": ps.mean, "std": ps.std, "n_reps": ps.n_reps}
+                     for ps in ur.outcome.calibration.summary]
+    return rows, ok, failed, time.process_time() - c0
+
+
+def _timed_floor(dataset: str) -> dict:
+    t0, c0 = time.perf_counter(), cpu_s()
+    n_files, n_steps = floor_scan(dataset)
+    return {"elapsed_s": time.perf_counter() - t0, "cpu_s": cpu_s() - c0, "sessions": n_files,
+            "steps": n_steps}
 
 
 def do_fit(a) -> dict:
-    import flows.unit_pipeline  # noqa: F401  (imports are not part of the fit phase)
-    t_list = time.perf_counter()
+    """The nightly fit phase without Prefect (read, validate, average, fit, discovery,
+    aggregate, then flag every lot), with the floor measured in the same process just before
+    and just after it, so that the ratio holds on a noisy machine."""
+    import pandas as pd
+    import pyarrow.dataset  # noqa: F401  (imports are part of neither)
+    import calib_core.discovery  # noqa: F401
+    import flows.unit_pipeline  # noqa: F401
+    from calib_core.outliers import OutlierConfig, flag_lots
     units, _ = _units(a.dataset)
+    floor_before = _timed_floor(a.dataset)
     t0, c0 = time.perf_counter(), cpu_s()
     ok = failed = 0
+    rows: list = []
+    worker_cpu = []
     if a.workers <= 1:
-        ok, failed, _ = _fit_units(units)
+        rows, ok, failed, c = _fit_units(units, a.discovery)
+        worker_cpu.append(c)
     else:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
+        from functools import partial
         batches = [units[i:i + a.batch] for i in range(0, len(units), a.batch)]
         with ProcessPoolExecutor(a.workers, mp_context=mp.get_context("fork")) as pool:
-            for o, f, _ in pool.map(_fit_units, batches):
+            for r, o, f, c in pool.map(partial(_fit_units, run_discovery=a.discovery), batches):
+                rows += r
                 ok += o
                 failed += f
-    elapsed = time.perf_counter() - t0
-    cpu = cpu_s() - c0
-    return {"elapsed_s": elapsed, "cpu_s": cpu, "per_unit_cpu_ms": 1e3 * cpu / max(1, len(units)),
-            "find_s": t0 - t_list, "units": len(units),
-            "sessions_ok": ok, "sessions_failed": failed,
-            "per_unit_ms": 1e3 * elapsed / max(1, len(units)), "workers": a.workers}
+                worker_cpu.append(c)
+    t_cal, c_cal = time.perf_counter() - t0, cpu_s() - c0
+    t1, c1 = time.perf_counter(), cpu_s()
+    flags = flag_lots(pd.DataFrame(rows), OutlierConfig()) if rows else []
+    t_flag, c_flag = time.perf_counter() - t1, cpu_s() - c1
+    elapsed, cpu = time.perf_counter() - t0, cpu_s() - c0
+    floor_after = _timed_floor(a.dataset)
+    floor = min((floor_before, floor_after), key=lambda f: f["cpu_s"])
+    n = max(1, len(units))
+    return {"elapsed_s": elapsed, "cpu_s": cpu, "per_unit_cpu_ms": 1e3 * cpu / n,
+            "per_unit_ms": 1e3 * elapsed / n, "units": len(units),
+            "sessions_ok": ok, "sessions_failed": failed, "workers": a.workers,
+            "discovery": a.discovery, "calibrate_s": t_cal, "calibrate_cpu_s": c_cal,
+            "flag_s": t_flag, "flag_cpu_s": c_flag, "worker_cpu_s": sum(worker_cpu),
+            "flagged_units": len({(f.lot, f.unit) for lf in flags for f in lf.flags}),
+            "floor_before": floor_before, "floor_after": floor_after,
+            "floor_cpu_s": floor["cpu_s"], "floor_s": min(floor_before["elapsed_s"],
+                                                           floor_after["elapsed_s"]),
+            "fit_vs_floor_cpu": cpu / floor["cpu_s"] if floor["cpu_s"] else None}
 
 
 def do_stages(a) -> dict:
@@ -239,6 +285,7 @@ def _prefect_env(results: str) -> None:
 
 def do_nightly(a) -> dict:
     _prefect_env(a.results)
+    os.environ["MIMUCAL_TASK_RUNNER"] = a.runner  # read by flows.task_runners.make_task_runner
     t_imp = time.perf_counter()
     from flows import nightly
     import_s = time.perf_counter() - t_imp
@@ -272,7 +319,8 @@ def do_nightly(a) -> dict:
             "failed_sessions": len(log.get("failed_sessions") or []),
             "reports": len(log.get("reports") or []),
             "report_problems": log.get("report_problems") or [],
-            "dask_workers": a.dask_workers, "batch_size": a.batch}
+            "dask_workers": a.dask_workers, "runner": "dask" if a.dask_workers else a.runner,
+            "batch_size": a.batch}
 
 
 def do_rerun(a) -> dict:
@@ -344,10 +392,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--dask-workers", type=int, default=0)
+    ap.add_argument("--runner", default="threads", choices=["threads", "processes"],
+                    help="nightly: the local task runner (flows.task_runners) when no Dask")
+    ap.add_argument("--no-discovery", dest="discovery", action="store_false",
+                    help="fit: leave model discovery out (the fit phase before issue 7)")
     a = ap.parse_args(argv)
     with TreeRss() as tree:
         out = KINDS[a.kind](a)
     out["tree_peak_rss_mb"] = tree.peak / 2 ** 20
+    out["tree_cpu_s"] = sum(tree.cpu.values())  # children sampled every 0.1 s: a lower bound
     out["process_cpu_s"] = cpu_s()
     out["self_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     out["children_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024

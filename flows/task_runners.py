@@ -1,24 +1,154 @@
-"""Which Prefect task runner a flow uses: a local pool by default, Dask at an address.
+"""Which Prefect task runner a flow uses, and the settings its workers run with.
 
 The nightly and rerun flows call :func:`default_task_runner` / :func:`make_task_runner`; the
-choice of pool (and its size) lives here so that the flows stay orchestration only."""
+choice of pool (and its size) lives here so that the flows stay orchestration only.
+
+Runners (``MIMUCAL_TASK_RUNNER``, or the ``kind`` argument; Dask at an address always wins):
+
+- ``threads`` (default): a thread pool of :data:`LOCAL_WORKERS`. Cheapest per task (~4 ms),
+  no start-up, but the unit work is Python and holds the GIL: the fit phase uses one core.
+- ``processes``: Prefect's ``ProcessPoolTaskRunner`` of :data:`LOCAL_WORKERS` spawned
+  processes: both cores, but each worker pays its imports once (~2-4 s CPU) and every batch's
+  results are pickled back (~0.5 MB per unit). It pays on large fleets only
+  (docs/perf-parallel.md has the measurements); the flows' caller chooses it explicitly.
+- ``dask``: a Dask ``LocalCluster`` of :data:`LOCAL_WORKERS` single-threaded worker
+  processes, started and stopped by the flow (for comparison with a remote scheduler; on one
+  machine it costs more than ``processes``).
+
+Why the runners below are subclasses: a task that runs in another process (a Dask worker, a
+process-pool worker) builds its own Prefect client from the settings shipped with the task.
+Without ``PREFECT_API_URL`` set, that client starts *its own* temporary API server (a uvicorn
+subprocess on the same SQLite database) in every worker: 15-30 s of start-up per worker on a
+loaded machine, SQLite contention with the flow's server for every task-run state, and a
+worker that hangs at shutdown. This was most of the 4.5x gap between Dask and the thread pool
+in the first benchmark. The subclasses put the flow's own API URL into the settings a task
+carries, so every worker talks to the one server the flow already runs.
+"""
 from __future__ import annotations
 
+import ipaddress
 import os
+import socket
+from contextlib import nullcontext
+from typing import Any
+from urllib.parse import urlparse
 
-from prefect.task_runners import ThreadPoolTaskRunner
+from prefect.task_runners import ProcessPoolTaskRunner, ThreadPoolTaskRunner
 
 LOCAL_WORKERS = 2
 DASK_ENV = "MIMUCAL_DASK_ADDRESS"  # the served deployment reads its Dask address here
+RUNNER_ENV = "MIMUCAL_TASK_RUNNER"  # threads | processes | dask (a local cluster)
+RUNNER_KINDS = ("threads", "processes", "dask")
+DEFAULT_KIND = "threads"
+
+# BLAS/OpenMP pools sized to one thread in worker processes: two workers on two cores must
+# not each start a pool of two (Dask's nanny sets the same for its workers).
+_ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_WORKERS):
+def _is_local_host(host: str | None) -> bool:
+    if not host:
+        return True
+    if host in ("localhost", socket.gethostname()):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def flow_api_url() -> str | None:
+    """The API URL the current flow run's client talks to (its temporary local server, or a
+    real server), or None outside a flow run."""
+    from prefect.context import FlowRunContext, TaskRunContext
+    ctx = FlowRunContext.get() or TaskRunContext.get()
+    url = getattr(getattr(ctx, "client", None), "api_url", None)
+    return str(url).rstrip("/") if url else None
+
+
+def shared_api_settings(worker_address: str | None = None):
+    """A context in which the settings serialised for a task name the flow's API URL, so that
+    a task run in another process reports to the flow's server instead of starting its own.
+
+    Nothing changes when ``PREFECT_API_URL`` is already set (a real server: it travels with
+    the settings anyway), outside a flow run, or when the flow's server is a loopback one and
+    the workers are on another machine (``worker_address`` not local: they could not reach
+    it; such a deployment needs a real server, see docs/flows.md)."""
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+    if PREFECT_API_URL.value():
+        return nullcontext()
+    url = flow_api_url()
+    if not url:
+        return nullcontext()
+    if worker_address is not None and not _is_local_host(urlparse(worker_address).hostname) \
+            and _is_local_host(urlparse(url).hostname):
+        return nullcontext()
+    return temporary_settings(updates={PREFECT_API_URL: url})
+
+
+def limit_worker_threads() -> None:
+    """Process-pool worker initializer: one BLAS/OpenMP thread per worker process (set before
+    numpy is imported, and applied to any pool already loaded)."""
+    for k, v in _ONE_THREAD_ENV.items():
+        os.environ[k] = v
+    try:
+        from threadpoolctl import threadpool_limits
+        threadpool_limits(limits=1)
+    except Exception:  # threadpoolctl missing or no pool loaded yet: the env vars do it
+        pass
+
+
+class SharedApiProcessPoolTaskRunner(ProcessPoolTaskRunner):
+    """Prefect's process pool whose workers report to the flow's API server (see module doc)
+    and run one BLAS thread each."""
+
+    def __init__(self, max_workers: int | None = None, **kwargs: Any):
+        kwargs.setdefault("initializer", limit_worker_threads)
+        super().__init__(max_workers=max_workers, **kwargs)
+
+    def submit(self, task, parameters, wait_for=None, dependencies=None):
+        with shared_api_settings():
+            return super().submit(task, parameters, wait_for=wait_for, dependencies=dependencies)
+
+
+def _dask_runner_class():
+    from prefect_dask import DaskTaskRunner
+
+    class SharedApiDaskTaskRunner(DaskTaskRunner):
+        """prefect-dask's runner whose workers report to the flow's API server (see module
+        doc) when they can reach it."""
+
+        def submit(self, task, parameters, wait_for=None, dependencies=None):
+            with shared_api_settings(self.address):
+                return super().submit(task, parameters, wait_for=wait_for,
+                                      dependencies=dependencies)
+
+    return SharedApiDaskTaskRunner
+
+
+def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_WORKERS,
+                     kind: str | None = None):
+    """The runner for a flow: Dask at ``dask_address`` when given, else ``kind`` (default:
+    ``$MIMUCAL_TASK_RUNNER``, else ``threads``) with ``max_workers`` workers."""
     if dask_address:
-        from prefect_dask import DaskTaskRunner
-        return DaskTaskRunner(address=dask_address)
-    return ThreadPoolTaskRunner(max_workers=max_workers)
+        return _dask_runner_class()(address=dask_address)
+    kind = (kind or os.environ.get(RUNNER_ENV) or DEFAULT_KIND).strip().lower()
+    if kind == "threads":
+        return ThreadPoolTaskRunner(max_workers=max_workers)
+    if kind == "processes":
+        return SharedApiProcessPoolTaskRunner(max_workers=max_workers)
+    if kind == "dask":
+        import logging
+
+        from distributed import LocalCluster
+        return _dask_runner_class()(cluster_class=LocalCluster, cluster_kwargs={
+            "n_workers": max_workers, "threads_per_worker": 1, "processes": True,
+            "dashboard_address": None, "silence_logs": logging.WARNING})
+    raise ValueError(f"unknown task runner {kind!r} (${RUNNER_ENV}): choose one of "
+                     + ", ".join(RUNNER_KINDS))
 
 
 def default_task_runner():
-    address = os.environ.get(DASK_ENV)
-    return make_task_runner(address) if address else ThreadPoolTaskRunner(max_workers=LOCAL_WORKERS)
+    """The runner a flow gets when its caller does not choose: Dask at ``$MIMUCAL_DASK_ADDRESS``
+    when set, else :func:`make_task_runner`'s default."""
+    return make_task_runner(os.environ.get(DASK_ENV) or None)
