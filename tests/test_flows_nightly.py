@@ -202,7 +202,7 @@ def test_second_concurrent_run_is_refused(small, capsys):
         assert cli_main(["nightly", str(data), "--results", str(results), "--quiet",
                          "--no-discovery"]) == 2
         assert "in use by run other-run" in capsys.readouterr().err
-    assert not (results / "sessions.parquet").exists()
+    assert not ResultsStore(results).exists() and not (results / "tables").exists()
 
 
 def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
@@ -227,7 +227,7 @@ def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
 def test_report_command_rebuilds_the_lot_report(small, capsys):
     data, base, _ = small
     results = base / "r_threads"
-    if not (results / "summary.parquet").exists():
+    if not ResultsStore(results).has_table("summary"):
         nightly_fleet_calibration(data, results, progress=False)
     assert cli_main(["report", "--results", str(results), "--lot", "L01"]) == 0
     out = capsys.readouterr().out
@@ -242,7 +242,7 @@ def _step_means(df: pd.DataFrame, cols) -> pd.DataFrame:
 def test_apply_calibrates_raw_samples_and_refuses_unit_mismatch(small, tmp_path, capsys):
     data, base, manifest = small
     results = base / "r_threads"
-    if not (results / "summary.parquet").exists():
+    if not ResultsStore(results).has_table("summary"):
         nightly_fleet_calibration(data, results, progress=False)
     unit = manifest["units"][1]
     cal = find_calibration(results, unit["unit"])
