@@ -301,9 +301,9 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
     if not todo:
         return []
     lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
-    summary = apply_flags(summary, lf)
-    store.write("summary", summary, skip_unchanged=True)
+    store.write("summary", apply_flags(summary, lf), skip_unchanged=True, previous=summary)
     units = store.read("units")
+    units_before = units.copy()
     if len(units):
         flagged = {}
         for f in lf:
@@ -315,7 +315,7 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
                             for k, m, v in zip(keys, in_lots, units.get("flagged", [False] * len(units)))]
         units["flag_reason"] = ["; ".join(flagged.get(k, [])) if m else (v if isinstance(v, str) else "")
                                 for k, m, v in zip(keys, in_lots, units.get("flag_reason", [""] * len(units)))]
-        store.write("units", units, skip_unchanged=True)
+        store.write("units", units, skip_unchanged=True, previous=units_before)
     return lf
 
 

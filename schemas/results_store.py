@@ -374,14 +374,20 @@ class ResultsStore:
         return table.to_pandas()
 
     def write(self, name: str, df: pd.DataFrame, lots: Iterable[Any] | None = None,
-              skip_unchanged: bool = False) -> list[str | None]:
+              skip_unchanged: bool = False, previous: pd.DataFrame | None = None
+              ) -> list[str | None]:
         """Write ``df`` as the table's rows of ``lots`` (default: the whole table, so lots
         absent from ``df`` lose their file). Only the lots' files are rewritten, each
         atomically; a lot left without rows loses its file. ``skip_unchanged``: leave a lot's
-        file alone when its rows are equal to what is stored. Returns the lots written."""
+        file alone when its rows are equal to what is stored, i.e. to its rows in
+        ``previous`` (the table as the caller read it) or else to its file. Returns the lots
+        written."""
         self._migrate()
         df = _sorted(_normalise(df, name))
         by_lot = _split_by_lot(df)
+        before = None
+        if skip_unchanged and previous is not None:
+            before = _split_by_lot(_sorted(_normalise(previous, name)))
         current = self.partitions(name)
         if lots is None:
             targets = set(current) | set(by_lot)
@@ -401,9 +407,11 @@ class ResultsStore:
                     path.unlink()
                     written.append(lot)
                 continue
-            if skip_unchanged and lot in current and _same_frame(
-                    _normalise(_read_files([current[lot]]), name), part):
-                continue
+            if skip_unchanged and lot in current:
+                old = before.get(lot) if before is not None else \
+                    _normalise(_read_files([current[lot]]), name)
+                if old is not None and _same_frame(old, part):
+                    continue
             write_parquet_atomic(part, path)
             written.append(lot)
         return written

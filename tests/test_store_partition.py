@@ -135,6 +135,17 @@ def test_write_of_some_lots_refuses_rows_of_others_and_skips_unchanged(tmp_path)
     after = lot_files(st, "summary")
     assert after["L01"] == before["L01"] and after["L10"] == before["L10"]
     assert (st.read("summary", lots=["L02"])["score"] == 1.5).all()
+    # compared with the table as the caller read it (no second read of the files)
+    before = lot_files(st, "summary")
+    previous = st.read("summary")
+    changed = previous.copy()
+    changed.loc[changed["lot"] == "L10", "flagged"] = True
+    assert st.write("summary", changed, skip_unchanged=True, previous=previous) == ["L10"]
+    after = lot_files(st, "summary")
+    assert after["L01"] == before["L01"] and after["L02"] == before["L02"]
+    assert after["L10"] != before["L10"]
+    got = st.read("summary")
+    assert got.loc[got["lot"] == "L10", "flagged"].all() and not got.loc[got["lot"] != "L10", "flagged"].any()
 
 
 def test_odd_lot_names_and_missing_lots_round_trip(tmp_path):
