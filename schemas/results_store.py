@@ -244,6 +244,10 @@ def _split_by_lot(df: pd.DataFrame) -> dict[str | None, pd.DataFrame]:
 
 
 def _lot_set(lots: Iterable[Any]) -> set[str | None]:
+    """Distinct lots (None: missing); a column of a frame is reduced to its distinct values
+    first (it has one value per row)."""
+    if isinstance(lots, pd.Series):
+        lots = lots.unique()
     return {None if (x is None or (not isinstance(x, str) and pd.isna(x))) else str(x)
             for x in lots}
 
