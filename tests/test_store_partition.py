@@ -146,6 +146,13 @@ def test_write_of_some_lots_refuses_rows_of_others_and_skips_unchanged(tmp_path)
     assert after["L10"] != before["L10"]
     got = st.read("summary")
     assert got.loc[got["lot"] == "L10", "flagged"].all() and not got.loc[got["lot"] != "L10", "flagged"].any()
+    # the same strings built in memory (object dtype) as read back (string dtype): unchanged
+    same = got.copy()
+    same["flag_reason"] = [str(x) for x in got["flag_reason"]]
+    same["flagged"] = [bool(x) for x in got["flagged"]]
+    assert st.write("summary", same, skip_unchanged=True, previous=got) == []
+    same.loc[0, "mean"] = same.loc[0, "mean"] + 1e-15  # any change of value is written
+    assert st.write("summary", same, skip_unchanged=True, previous=got) == [same.loc[0, "lot"]]
 
 
 def test_odd_lot_names_and_missing_lots_round_trip(tmp_path):
