@@ -19,7 +19,8 @@ import os
 import sys
 import time
 import uuid
-from dataclasses import dataclass
+from collections import Counter, deque
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -105,7 +106,8 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     res_frames, comp_frames, nav_frames = [], [], []
     ok_units: set[tuple[str, str]] = set()
     stale_units: dict[tuple[str, str], str] = {}
-    previous_units = store.read("units")
+    previous_units = store.read("units", lots={ur.lot for ur in results},
+                                columns=["lot", "unit", "calibration_file", "calibrated_at"])
     prev_state = {(r.lot, r.unit): r for r in previous_units.itertuples()}
     for ur in results:
         key = (ur.lot, ur.unit)
@@ -211,6 +213,44 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
             "stale": {f"{lot}/{u}": w for (lot, u), w in stale_units.items()}}
 
 
+@dataclass
+class RunTally:
+    """What the run log needs of the units once their results are stored and dropped: the
+    nightly flow stores lot by lot and keeps only this (memory bounded by one lot)."""
+
+    calibrated: list[str] = field(default_factory=list)
+    stale: dict[tuple[str, str], str] = field(default_factory=dict)
+    failed_units: list[str] = field(default_factory=list)
+    sessions_calibrated: int = 0
+    failed_sessions: list[tuple[tuple, dict[str, Any]]] = field(default_factory=list)
+    discovery_notes: set[str] = field(default_factory=set)
+    lots: set[str] = field(default_factory=set)
+
+    def add(self, results: list[UnitResult], stored: dict[str, Any]) -> None:
+        self.calibrated.extend(stored["calibrated"])
+        for r in results:  # keyed by (lot, unit): the order the units were sorted in
+            name = f"{r.lot}/{r.unit}"
+            if name in stored["stale"]:
+                self.stale[(r.lot, r.unit)] = stored["stale"][name]
+        self.lots.update(r.lot for r in results)
+        self.failed_units.extend(f"{r.lot}/{r.unit}" for r in results if not r.calibrated)
+        self.sessions_calibrated += sum(1 for r in results for s in r.outcome.sessions
+                                        if s.status != "failed")
+        self.failed_sessions.extend(
+            ((r.lot, r.unit, i), {"session": str(s.key), "code": s.code, "message": s.message})
+            for r in results for i, s in enumerate(r.outcome.sessions) if s.status == "failed")
+        self.discovery_notes.update(r.discovery_note for r in results if r.discovery_note)
+
+    def log_fields(self) -> dict[str, Any]:
+        # sorted as the run log had them when every unit was stored at once
+        return {"units_calibrated": len(self.calibrated),
+                "units_stale": {f"{lot}/{u}": self.stale[(lot, u)] for lot, u in sorted(self.stale)},
+                "units_failed": sorted(self.failed_units),
+                "sessions_calibrated": self.sessions_calibrated,
+                "failed_sessions": [f for _, f in sorted(self.failed_sessions,
+                                                         key=lambda x: x[0])]}
+
+
 def load_config(path: str | Path | None) -> OutlierConfig:
     if not path:
         return OutlierConfig()
@@ -223,7 +263,7 @@ def load_config(path: str | Path | None) -> OutlierConfig:
 
 
 def flagged_by_lot(store: ResultsStore) -> dict[str, set[str]]:
-    units = store.read("units")
+    units = store.read("units", columns=["lot", "unit", "flagged"])
     out: dict[str, set[str]] = {}
     if len(units) and "flagged" in units:
         for r in units.itertuples():
@@ -241,7 +281,7 @@ def reflag_after_update(store: ResultsStore, touched: list[str], config: Outlier
     if not touched:
         return [], []
     before = flagged_by_lot(store)
-    all_lots = sorted(set(store.read("summary")["lot"].dropna().astype(str)) | set(touched))
+    all_lots = sorted(set(store.table_lots("summary")) | set(touched))
     lf = reflag_lots(store, all_lots, config)
     after = flagged_by_lot(store)
     changed = {lot for lot in all_lots if before.get(lot, set()) != after.get(lot, set())}
@@ -251,7 +291,8 @@ def reflag_after_update(store: ResultsStore, touched: list[str], config: Outlier
 def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: OutlierConfig
                 ) -> list[LotFlags]:
     """Recompute the flags of the given lots from the whole summary (the robust scale is
-    pooled over all lots) and write them to summary.parquet and units.parquet."""
+    pooled over all lots: the summary is small, ~100 rows per unit, and read whole) and write
+    them to the summary and units tables, rewriting only the lots whose rows changed."""
     summary = store.read("summary")
     if not len(summary) or not lots:
         return []
@@ -260,9 +301,9 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
     if not todo:
         return []
     lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
-    summary = apply_flags(summary, lf)
-    store.write("summary", summary)
+    store.write("summary", apply_flags(summary, lf), skip_unchanged=True, previous=summary)
     units = store.read("units")
+    units_before = units.copy()
     if len(units):
         flagged = {}
         for f in lf:
@@ -274,7 +315,7 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
                             for k, m, v in zip(keys, in_lots, units.get("flagged", [False] * len(units)))]
         units["flag_reason"] = ["; ".join(flagged.get(k, [])) if m else (v if isinstance(v, str) else "")
                                 for k, m, v in zip(keys, in_lots, units.get("flag_reason", [""] * len(units)))]
-        store.write("units", units)
+        store.write("units", units, skip_unchanged=True, previous=units_before)
     return lf
 
 
@@ -355,16 +396,41 @@ class _Progress:
         return line
 
 
+DEFAULT_MAX_IN_FLIGHT = 4  # batches submitted at once: 2 workers busy + 2 queued
+DASK_MAX_IN_FLIGHT = 16
+
+
 def _run_batches(jobs: list[UnitJob], batch_size: int, run_discovery: bool,
-                 on_progress: Callable[[list[UnitResult]], None]) -> list[UnitResult]:
-    futures = [calibrate_units_task.submit(b, run_discovery) for b in make_batches(jobs, batch_size)]
-    results: list[UnitResult] = []
-    for fut in as_completed(futures):
+                 on_progress: Callable[[list[UnitResult]], None],
+                 on_lot: Callable[[str, list[UnitResult]], None],
+                 max_in_flight: int = DEFAULT_MAX_IN_FLIGHT) -> None:
+    """Calibrate the jobs (sorted by lot) in batches; hand each lot's results (sorted by
+    unit) to ``on_lot`` as soon as every unit of the lot is done, then forget them.
+
+    Memory is bounded by one lot plus the batches in flight: at most ``max_in_flight``
+    batches are submitted at a time (Prefect's ``as_completed`` keeps every future it is
+    given, and each future its result, until the iteration ends, so the futures of a whole
+    fleet submitted at once would hold every unit's results), and a future is dropped once
+    its result is taken."""
+    pending = deque(make_batches(jobs, batch_size))
+    units_left = Counter(j.lot for j in jobs)
+    done: dict[str, list[UnitResult]] = {}
+    window: list = []
+    max_in_flight = max(1, int(max_in_flight))
+    while pending or window:
+        while pending and len(window) < max_in_flight:
+            window.append(calibrate_units_task.submit(pending.popleft(), run_discovery))
+        fut = next(as_completed(window))
+        window = [f for f in window if f is not fut]
         batch = fut.result()
-        results.extend(batch)
+        del fut
         on_progress(batch)
-    results.sort(key=lambda r: (r.lot, r.unit))
-    return results
+        for r in batch:
+            done.setdefault(r.lot, []).append(r)
+            units_left[r.lot] -= 1
+        del batch
+        for lot in sorted(lot for lot in done if units_left[lot] == 0):
+            on_lot(lot, sorted(done.pop(lot), key=lambda r: r.unit))
 
 
 @flow(name="nightly-fleet-calibration", persist_result=False, log_prints=False,
@@ -372,8 +438,9 @@ def _run_batches(jobs: list[UnitJob], batch_size: int, run_discovery: bool,
 def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,
-                 progress: bool = True) -> dict:
-    """Find sessions, calibrate new/changed units in batches, store, flag, report."""
+                 progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT) -> dict:
+    """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
+    report."""
     logger = get_run_logger()
     run_id = new_run_id()
     store = ResultsStore(Path(results))
@@ -407,28 +474,34 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                                "failed_sessions": prog.failed_sessions, "line": line}
             store.write_run(run_id, log)
 
-        results_ = _run_batches(jobs, batch_size, run_discovery, on_progress) if jobs else []
-        t_cal = time.monotonic() - t0
-        stored = store_results(store, results_, run_id, version)
-        lots = sorted({r.lot for r in results_} | (set(store.lots()) if interrupted else set()))
+        tally = RunTally()
+        store_s = [0.0]
+
+        def on_lot(lot: str, lot_results: list[UnitResult]) -> None:
+            # stored as soon as the lot is complete, then dropped: memory is one lot, not the
+            # fleet; flags and reports wait for every lot (the robust scale is pooled)
+            t = time.monotonic()
+            tally.add(lot_results, store_results(store, lot_results, run_id, version))
+            store_s[0] += time.monotonic() - t
+
+        if jobs:
+            _run_batches(jobs, batch_size, run_discovery, on_progress, on_lot, max_in_flight)
+        # calibration_s is the fit phase as before (read ... aggregate), without the storing
+        # that now overlaps it
+        t_cal = time.monotonic() - t0 - store_s[0]
+        lots = sorted(tally.lots | (set(store.lots()) if interrupted else set()))
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
         reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
         for p in problems:
             logger.warning(p)
-        failed = [{"session": str(s.key), "code": s.code, "message": s.message}
-                  for r in results_ for s in r.outcome.sessions if s.status == "failed"]
         flagged = sorted({f"{f.lot}/{f.unit}" for lf in lot_flags for f in lf.flags})
         log.update({
             "end": iso(utc_now()), "elapsed_s": round(time.monotonic() - t0, 3),
-            "calibration_s": round(t_cal, 3),
-            "units_calibrated": len(stored["calibrated"]), "units_stale": stored["stale"],
-            "units_failed": sorted(f"{r.lot}/{r.unit}" for r in results_ if not r.calibrated),
-            "sessions_calibrated": sum(1 for r in results_ for s in r.outcome.sessions
-                                       if s.status != "failed"),
-            "failed_sessions": failed, "flagged_units": flagged,
+            "calibration_s": round(t_cal, 3), "store_s": round(store_s[0], 3),
+            **tally.log_fields(), "flagged_units": flagged,
             "flags": [lf.to_dict() for lf in lot_flags], "lots_touched": lots,
             "reports": reports, "report_problems": problems,
-            "discovery_notes": sorted({r.discovery_note for r in results_ if r.discovery_note}),
+            "discovery_notes": sorted(tally.discovery_notes),
             "summary": None,
         })
         log["summary"] = summary_line(log)
@@ -470,9 +543,7 @@ def lot_report_flow(results: str, lot: str, config: str | None = None,
     store = ResultsStore(Path(results))
     cfg = load_config(config)
     with store.lock(owner=f"report-{lot}", wait=wait):
-        summary = store.read("summary")
-        if not (summary["lot"].astype(str) == lot).any() and not \
-                (store.read("sessions")["lot"].astype(str) == lot).any():
+        if lot not in store.table_lots("summary") and lot not in store.table_lots("sessions"):
             raise LookupError(f"lot {lot!r} is not in the results store {results}")
         lf = reflag_lots(store, [lot], cfg)
         reports, problems = write_reports(results, [lot])
@@ -503,6 +574,8 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
                                "lot": lot, "code_version": version, "units_found": 1,
                                "units_skipped": 0,
                                "path_errors": [e.to_dict() for e in path_errors]}
+        phases: dict[str, float] = {}
+        t = time.monotonic()
         res = calibrate_units_task.submit([job], run_discovery).result()
         for r in res:
             try:
@@ -510,9 +583,13 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             except Exception as exc:  # the drift figure must not cost the unit its calibration
                 r.discovery_note = "; ".join(filter(None, [r.discovery_note,
                                              f"navigation replay failed: {exc}"]))
-        stored = store_results(store, res, run_id, version)
+        phases["calibrate"], t = time.monotonic() - t, time.monotonic()
+        stored = store_results(store, res, run_id, version)  # reads/rewrites its lot only
+        phases["store"], t = time.monotonic() - t, time.monotonic()
         lf, report_lots = reflag_after_update(store, [lot], cfg)
+        phases["reflag"], t = time.monotonic() - t, time.monotonic()
         reports, problems = write_reports(results, report_lots, units=(unit,))
+        phases["reports"] = time.monotonic() - t
         failed = [{"session": str(s.key), "code": s.code, "message": s.message}
                   for r in res for s in r.outcome.sessions if s.status == "failed"]
         log.update({
@@ -523,6 +600,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             "failed_sessions": failed,
             "flagged_units": sorted({f"{f.lot}/{f.unit}" for x in lf for f in x.flags}),
             "flags": [x.to_dict() for x in lf], "reports": reports, "report_problems": problems,
+            "phases_s": {k: round(v, 3) for k, v in phases.items()},
         })
         log["summary"] = summary_line(log)
         store.write_run(run_id, log)
@@ -539,11 +617,13 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
     if not wait:  # a clear refusal, not a failed flow run in Prefect's database
         ResultsStore(Path(results)).ensure_unlocked()
     runner = make_task_runner(dask_address)
+    # Dask may have many workers: keep them all fed (memory: this many batches in flight)
+    in_flight = DASK_MAX_IN_FLIGHT if dask_address else DEFAULT_MAX_IN_FLIGHT
     with runtime.run_settings():
         return nightly_flow.with_options(task_runner=runner)(
             str(dataset), str(results), force=force, batch_size=batch_size,
             config=None if config is None else str(config), wait=wait,
-            run_discovery=run_discovery, progress=progress)
+            run_discovery=run_discovery, progress=progress, max_in_flight=in_flight)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,

@@ -1,8 +1,9 @@
 """Read access to the results store for the reports (never raw data).
 
 Tables come through :class:`schemas.results_store.ResultsStore` (its column order and key
-dtypes); a table whose file is absent is ``None`` so a report can say so and still render.
-``navigation.parquet`` is not one of the store's own tables and is read with pandas.
+dtypes, either store format); a table that was never written is ``None`` so a report can say
+so and still render. The store is partitioned by lot: a report of one lot or unit reads only
+that lot's files (:meth:`StoreView.of`); only the fleet index reads whole tables.
 """
 from __future__ import annotations
 
@@ -14,11 +15,18 @@ from typing import Any
 
 import pandas as pd
 
-from schemas.results_store import TABLE_COLUMNS, ResultsStore
+from schemas.results_store import ResultsStore
 
 # Tables a report may use; missing ones are reported as missing, not an error.
 REPORT_TABLES = ("sessions", "parameters", "summary", "units", "residuals", "compensation",
                  "discovery", "navigation")
+
+
+def _keys_as_objects(df: pd.DataFrame) -> pd.DataFrame:
+    for key in ("lot", "unit"):
+        if key in df.columns:
+            df[key] = df[key].astype(object).where(df[key].notna(), None)
+    return df
 
 
 class StoreView:
@@ -28,37 +36,38 @@ class StoreView:
         self.root = Path(results_root)
         self.store = ResultsStore(self.root)
         self._cache: dict[str, pd.DataFrame | None] = {}
+        self._lot_cache: dict[tuple[str, str], pd.DataFrame | None] = {}
 
     @property
     def reports_dir(self) -> Path:
         return self.root / "reports"
 
     def table(self, name: str) -> pd.DataFrame | None:
+        """The whole table (every lot); None when it was never written."""
         if name not in self._cache:
-            path = self.root / f"{name}.parquet"
-            if not path.exists():
-                df = None
-            elif name in TABLE_COLUMNS:
-                df = self.store.read(name)
-            else:
-                df = pd.read_parquet(path)
-            if df is not None:
-                for key in ("lot", "unit"):
-                    if key in df.columns:
-                        df[key] = df[key].astype(object).where(df[key].notna(), None)
-            self._cache[name] = df
+            df = self.store.read(name) if self.store.has_table(name) else None
+            self._cache[name] = None if df is None else _keys_as_objects(df)
         return self._cache[name]
+
+    def _lot_table(self, name: str, lot: str) -> pd.DataFrame | None:
+        """One lot's rows of a table (only its file is read); None when the table does not
+        exist."""
+        if name in self._cache:  # the whole table is already in memory
+            df = self._cache[name]
+            return None if df is None else df[df["lot"] == lot]
+        key = (name, lot)
+        if key not in self._lot_cache:
+            df = self.store.read(name, lots=[lot]) if self.store.has_table(name) else None
+            self._lot_cache[key] = None if df is None else _keys_as_objects(df)
+        return self._lot_cache[key]
 
     def of(self, name: str, lot: str | None = None, unit: str | None = None) -> pd.DataFrame | None:
         """Rows of a table for a lot and/or unit; None when the table does not exist."""
-        if name == "navigation" and unit is not None and name not in self._cache:
+        if name == "navigation" and unit is not None and lot is not None \
+                and name not in self._cache:
             # raw-rate traces can be millions of rows: read only this unit's row groups
-            path = self.root / f"{name}.parquet"
-            if not path.exists():
-                return None
-            filters = [("unit", "==", unit)] + ([("lot", "==", lot)] if lot is not None else [])
-            return pd.read_parquet(path, filters=filters)
-        df = self.table(name)
+            return self._unit_rows(name, lot, unit)
+        df = self.table(name) if lot is None else self._lot_table(name, lot)
         if df is None:
             return None
         m = pd.Series(True, index=df.index)
@@ -68,18 +77,32 @@ class StoreView:
             m &= df["unit"] == unit
         return df[m]
 
+    def _unit_rows(self, name: str, lot: str, unit: str) -> pd.DataFrame | None:
+        if not self.store.has_table(name):
+            return None
+        legacy = self.store.legacy_path(name)
+        path = legacy if legacy.exists() else self.store.partition_path(name, lot)
+        if not path.exists():
+            return _keys_as_objects(self.store.read(name, lots=[]))
+        filters = [("unit", "==", unit), ("lot", "==", lot)]
+        return pd.read_parquet(path, filters=filters)
+
     def lots(self) -> list[str]:
+        """Lots with rows in the units, sessions or summary table (from the lot files' names:
+        no table is read)."""
         found: set[str] = set()
         for name in ("units", "sessions", "summary"):
-            df = self.table(name)
-            if df is not None and "lot" in df.columns:
-                found |= {str(x) for x in df["lot"].dropna().unique()}
+            found |= set(self.store.table_lots(name))
         return sorted(found)
 
     def lot_of_unit(self, unit: str) -> str | None:
         for name in ("units", "summary", "sessions", "parameters"):
-            df = self.table(name)
-            if df is not None and len(df) and "unit" in df.columns:
+            df = self._cache.get(name)
+            if df is None:
+                if not self.store.has_table(name):
+                    continue
+                df = _keys_as_objects(self.store.read(name, columns=["lot", "unit"]))
+            if len(df) and "unit" in df.columns:
                 lots = df.loc[df["unit"] == unit, "lot"].dropna()
                 if len(lots):
                     # a unit re-binned into another lot: the most recent rows win

@@ -1,23 +1,37 @@
 """The results store: what the nightly flow, reruns and reports share, under ``--results``.
 
-Layout (all Parquet written with a temp file in the same directory and ``os.replace``)::
+Layout, format 2.0 (every Parquet file written to a temp file in the same directory, fsynced,
+then ``os.replace``d)::
 
-    sessions.parquet       one row per session ever seen: status, error, fingerprint, run id
-    parameters.parquet     one row per lot/unit/rep/model/parameter
-    summary.parquet        one row per lot/unit/model/parameter over reps, outlier flags, stale
-    units.parquet          one row per unit: state (calibrated | stale | failed), why, file
-    residuals.parquet      per-step residuals of every calibrated session
-    compensation.parquet   xu2016 Table 3 rows of every calibrated session
-    discovery.parquet      one row per unit and effect found by model discovery
+    tables/<name>/lot=<lot>.parquet   one file per table and lot (lot percent-encoded), for
+                                      every table below; a table's directory exists once the
+                                      table has been written, even with no rows
+    store.json             {"format_version": "2.0"}
     calibrations/<unit>/<YYYYmmddTHHMMSS.ffffffZ>.json   every calibration ever produced
     runs/<run_id>.json     run log (start, end, counts, progress, errors)
     reports/               written by ``reports.*``
     .lock                  held (flock) by the run writing the store
 
+Tables: ``sessions`` (one row per session ever seen: status, error, fingerprint, run id),
+``parameters`` (lot/unit/rep/model/parameter), ``summary`` (lot/unit/model/parameter over
+reps, outlier flags, stale), ``units`` (state: calibrated | stale | failed, why, file),
+``residuals`` (per-step residuals of every calibrated session), ``compensation`` (xu2016
+Table 3 rows), ``discovery`` (unit and effect found), ``navigation`` (reruns' drift curves).
+
+Why partitions by lot: a rerun of one unit and a nightly run that stores lot by lot read and
+rewrite only the lots they touch (the residuals table alone is ~3,500 rows per unit), and the
+reports read only the lot they show. ``read(name)`` concatenates the lots in sorted order
+(rows sorted by lot, unit, rep, ... as format 1.0 had them in its single file).
+
+Format 1.0 (``<name>.parquet`` at the root, one file per table) is read transparently and
+migrated to 2.0 by the first write (callers hold the lock): each flat table is split into
+its lot files, then the flat file is removed. A flat file that is present is authoritative
+(a migration that died half-way is redone).
+
 Updating a unit replaces only that unit's rows. A unit whose recalibration fails keeps its
-last good parameters, summary and calibration files; ``units.parquet`` and the ``stale`` /
-``stale_reason`` columns of ``summary.parquet`` say that they are stale and why, and
-``sessions.parquet`` holds the failures.
+last good parameters, summary and calibration files; the ``units`` table and the ``stale`` /
+``stale_reason`` columns of ``summary`` say that they are stale and why, and ``sessions``
+holds the failures.
 """
 from __future__ import annotations
 
@@ -28,11 +42,13 @@ import os
 import socket
 import tempfile
 import time
+from collections.abc import Iterable
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, Iterator
+from urllib.parse import quote, unquote
 
 import numpy as np
 import pandas as pd
@@ -42,7 +58,8 @@ import pyarrow.parquet as pq
 from calib_core.results import to_jsonable
 from schemas.calibration_file import write_json_atomic
 
-STORE_FORMAT_VERSION = "1.0"
+STORE_FORMAT_VERSION = "2.0"
+LEGACY_FORMAT_VERSION = "1.0"  # flat <name>.parquet at the root; read, and migrated on write
 TIMESTAMP_FORMAT = "%Y%m%dT%H%M%S.%fZ"
 
 # column order of each table (documented in docs/flows.md); extra columns are kept
@@ -122,6 +139,54 @@ def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
         raise
 
 
+def _fsync_dir(path: Path) -> None:
+    """Make renames and unlinks in a directory durable."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _read_files(files: list[Path], columns: list[str] | None = None) -> pd.DataFrame:
+    """Lot files concatenated in the given order. Arrow promotes types across files (a column
+    that is all null in one lot and float in another comes back float), as one file written
+    from the whole frame would have them."""
+    tables = []
+    for f in files:
+        cols = None
+        if columns is not None:
+            names = set(pq.read_schema(f).names)
+            cols = [c for c in columns if c in names]
+        tables.append(pq.read_table(f, columns=cols))
+    if not tables:
+        return pd.DataFrame()
+    if len(tables) == 1:
+        return tables[0].to_pandas()
+    return pa.concat_tables(tables, promote_options="permissive").to_pandas()
+
+
+def _same_frame(a: pd.DataFrame, b: pd.DataFrame) -> bool:
+    """Same columns and exactly the same values (NaN equal to NaN). Dtypes may differ where
+    the values do not (a column of Python strings built in memory against the string dtype
+    it reads back as): rewriting such a lot would store the same thing again."""
+    if list(a.columns) != list(b.columns) or len(a) != len(b):
+        return False
+    a, b = a.reset_index(drop=True), b.reset_index(drop=True)
+    if a.equals(b):
+        return True
+    try:
+        pd.testing.assert_frame_equal(a, b, check_dtype=False, check_exact=True)
+    except (AssertionError, TypeError, ValueError):
+        return False
+    return True
+
+
 def _normalise(df: pd.DataFrame, name: str) -> pd.DataFrame:
     cols = TABLE_COLUMNS[name]
     df = df.copy()
@@ -135,6 +200,68 @@ def _normalise(df: pd.DataFrame, name: str) -> pd.DataFrame:
     return df[cols + extra]
 
 
+# --- partitions -----------------------------------------------------------------------------------
+TABLES_DIR = "tables"
+FORMAT_FILE = "store.json"
+_LOT_PREFIX = "lot="
+# rows whose lot is missing; ``quote`` never produces this name (it has no "lot=" prefix)
+_NO_LOT_FILE = "nolot.parquet"
+
+
+def partition_file_name(lot: Any) -> str:
+    """``lot=<lot>.parquet``, the lot percent-encoded (a lot name is a directory name of the
+    dataset, but may hold characters a file name should not)."""
+    if lot is None or (not isinstance(lot, str) and pd.isna(lot)):
+        return _NO_LOT_FILE
+    return f"{_LOT_PREFIX}{quote(str(lot), safe='')}.parquet"
+
+
+def lot_of_partition(file_name: str) -> tuple[bool, str | None]:
+    """(is a partition file, its lot) for a file name of a table directory."""
+    if file_name == _NO_LOT_FILE:
+        return True, None
+    if file_name.startswith(_LOT_PREFIX) and file_name.endswith(".parquet"):
+        return True, unquote(file_name[len(_LOT_PREFIX):-len(".parquet")])
+    return False, None
+
+
+def _lot_order(lot: str | None) -> tuple[bool, str]:
+    """Sort order of lots: as pandas sorts the lot column (strings, missing last)."""
+    return (lot is None, lot or "")
+
+
+_SORT_KEYS = ("lot", "unit", "rep", "model", "parameter", "effect")
+
+
+def _sorted(df: pd.DataFrame) -> pd.DataFrame:
+    sort = [c for c in _SORT_KEYS if c in df]
+    if len(df) and sort:
+        df = df.sort_values(sort, kind="stable")
+    return df.reset_index(drop=True)
+
+
+def _split_by_lot(df: pd.DataFrame) -> dict[str | None, pd.DataFrame]:
+    """Rows of a normalised frame per lot (None: missing lot), order kept."""
+    if not len(df):
+        return {}
+    codes, lots = pd.factorize(df["lot"].astype(object), use_na_sentinel=True)
+    out: dict[str | None, pd.DataFrame] = {}
+    for i, lot in enumerate(lots):
+        out[str(lot)] = df[codes == i].reset_index(drop=True)
+    if (codes < 0).any():
+        out[None] = df[codes < 0].reset_index(drop=True)
+    return out
+
+
+def _lot_set(lots: Iterable[Any]) -> set[str | None]:
+    """Distinct lots (None: missing); a column of a frame is reduced to its distinct values
+    first (it has one value per row)."""
+    if isinstance(lots, pd.Series):
+        lots = lots.unique()
+    return {None if (x is None or (not isinstance(x, str) and pd.isna(x))) else str(x)
+            for x in lots}
+
+
 # --- the store ------------------------------------------------------------------------------------
 @dataclass
 class ResultsStore:
@@ -144,10 +271,31 @@ class ResultsStore:
         self.root = Path(self.root)
 
     # paths
-    def table_path(self, name: str) -> Path:
+    def _check(self, name: str) -> None:
         if name not in TABLE_COLUMNS:
             raise KeyError(f"unknown table {name!r}; tables: {', '.join(TABLES)}")
+
+    @property
+    def tables_dir(self) -> Path:
+        return self.root / TABLES_DIR
+
+    def table_dir(self, name: str) -> Path:
+        """``tables/<name>/``: one Parquet file per lot."""
+        self._check(name)
+        return self.tables_dir / name
+
+    def partition_path(self, name: str, lot: str | None) -> Path:
+        """``tables/<name>/lot=<lot>.parquet``."""
+        return self.table_dir(name) / partition_file_name(lot)
+
+    def legacy_path(self, name: str) -> Path:
+        """Where format 1.0 kept the whole table (``<name>.parquet`` at the root)."""
+        self._check(name)
         return self.root / f"{name}.parquet"
+
+    @property
+    def format_path(self) -> Path:
+        return self.root / FORMAT_FILE
 
     @property
     def calibrations_dir(self) -> Path:
@@ -165,42 +313,148 @@ class ResultsStore:
     def lock_path(self) -> Path:
         return self.root / ".lock"
 
+    def format_version(self) -> str | None:
+        """``1.0`` while any flat format-1.0 table is present (not yet migrated), ``2.0`` once
+        written by this code, None for an empty root."""
+        if any(self.legacy_path(n).exists() for n in TABLES):
+            return LEGACY_FORMAT_VERSION
+        if self.format_path.exists() or self.tables_dir.is_dir():
+            return STORE_FORMAT_VERSION
+        return None
+
+    def has_table(self, name: str) -> bool:
+        """Whether the table was ever written (it may have no rows)."""
+        return self.legacy_path(name).exists() or self.table_dir(name).is_dir()
+
     def exists(self) -> bool:
-        return self.table_path("sessions").exists()
+        return self.has_table("sessions")
+
+    def partitions(self, name: str) -> dict[str | None, Path]:
+        """The table's lot files, lot -> path, in lot order (format 2.0 only)."""
+        d = self.table_dir(name)
+        found = {}
+        if d.is_dir():
+            for p in d.iterdir():
+                ok, lot = lot_of_partition(p.name)
+                if ok:
+                    found[lot] = p
+        return {k: found[k] for k in sorted(found, key=_lot_order)}
+
+    def table_lots(self, name: str) -> list[str]:
+        """Lots that have rows in the table (from the file names; no data read)."""
+        legacy = self.legacy_path(name)
+        if legacy.exists():
+            try:
+                lots = pq.read_table(legacy, columns=["lot"]).column("lot").to_pylist()
+            except FileNotFoundError:  # migrated meanwhile
+                return self.table_lots(name)
+            return sorted({str(x) for x in lots if x is not None})
+        return [lot for lot in self.partitions(name) if lot is not None]
 
     # tables
-    def read(self, name: str) -> pd.DataFrame:
-        """A table (an empty frame with its columns when it was never written)."""
-        path = self.table_path(name)
-        if not path.exists():
-            return _normalise(pd.DataFrame(), name)
-        return _normalise(pq.read_table(path).to_pandas(), name)
-
-    def write(self, name: str, df: pd.DataFrame) -> None:
+    def read(self, name: str, lots: Iterable[Any] | None = None,
+             columns: list[str] | None = None) -> pd.DataFrame:
+        """A table, or the rows of some lots (``lots``; all by default), lots concatenated in
+        sorted order; an empty frame with its columns when there is no row. ``columns``
+        projects (missing ones come back empty)."""
+        self._check(name)
+        want = None if lots is None else _lot_set(lots)
+        legacy = self.legacy_path(name)
+        if legacy.exists():
+            try:
+                df = self._read_legacy(legacy, want, columns)
+            except FileNotFoundError:  # migrated between the check and the read
+                return self.read(name, lots, columns)
+        else:
+            parts = self.partitions(name)
+            files = [p for lot, p in parts.items() if want is None or lot in want]
+            df = _read_files(files, columns)
         df = _normalise(df, name)
-        sort = [c for c in ("lot", "unit", "rep", "model", "parameter", "effect") if c in df]
-        if len(df) and sort:
-            df = df.sort_values(sort, kind="stable").reset_index(drop=True)
-        write_parquet_atomic(df, self.table_path(name))
+        return df if columns is None else df[list(columns)]
+
+    @staticmethod
+    def _read_legacy(path: Path, want: set[str | None] | None,
+                     columns: list[str] | None) -> pd.DataFrame:
+        cols = None
+        if columns is not None:
+            names = set(pq.read_schema(path).names)
+            cols = [c for c in dict.fromkeys([*columns, "lot"]) if c in names]
+        table = pq.read_table(path, columns=cols)
+        if want is not None:
+            lot = table.column("lot").to_pandas().astype(object)
+            lot = lot.where(lot.notna(), None)
+            table = table.filter(pa.array(lot.isin(want).to_numpy()
+                                          | (lot.isna().to_numpy() & (None in want))))
+        return table.to_pandas()
+
+    def write(self, name: str, df: pd.DataFrame, lots: Iterable[Any] | None = None,
+              skip_unchanged: bool = False, previous: pd.DataFrame | None = None
+              ) -> list[str | None]:
+        """Write ``df`` as the table's rows of ``lots`` (default: the whole table, so lots
+        absent from ``df`` lose their file). Only the lots' files are rewritten, each
+        atomically; a lot left without rows loses its file. ``skip_unchanged``: leave a lot's
+        file alone when its rows are equal to what is stored, i.e. to its rows in
+        ``previous`` (the table as the caller read it) or else to its file. Returns the lots
+        written."""
+        self._migrate()
+        df = _sorted(_normalise(df, name))
+        by_lot = _split_by_lot(df)
+        before = None
+        if skip_unchanged and previous is not None:
+            before = _split_by_lot(_sorted(_normalise(previous, name)))
+        current = self.partitions(name)
+        if lots is None:
+            targets = set(current) | set(by_lot)
+        else:
+            targets = _lot_set(lots)
+            outside = set(by_lot) - targets
+            if outside:
+                raise ValueError(f"table {name}: rows of lots {sorted(map(str, outside))} given "
+                                 f"to a write of lots {sorted(map(str, targets))}")
+        self.table_dir(name).mkdir(parents=True, exist_ok=True)
+        written = []
+        for lot in sorted(targets, key=_lot_order):
+            part = by_lot.get(lot)
+            path = self.partition_path(name, lot)
+            if part is None or not len(part):
+                if path.exists():
+                    path.unlink()
+                    written.append(lot)
+                continue
+            if skip_unchanged and lot in current:
+                old = before.get(lot) if before is not None else \
+                    _normalise(_read_files([current[lot]]), name)
+                if old is not None and _same_frame(old, part):
+                    continue
+            write_parquet_atomic(part, path)
+            written.append(lot)
+        return written
 
     def replace_units(self, name: str, new_rows: pd.DataFrame | None,
                       units: set[tuple[str, str]]) -> pd.DataFrame:
-        """Replace every row of the given (lot, unit)s by ``new_rows``; other rows unchanged."""
-        old = self.read(name)
+        """Replace every row of the given (lot, unit)s by ``new_rows``; other rows unchanged.
+        Reads and rewrites only the lots of ``units`` and ``new_rows``; returns their rows."""
+        new = None if new_rows is None else _normalise(new_rows, name)
+        lots = _lot_set(lot for lot, _ in units)
+        if new is not None:
+            lots |= _lot_set(new["lot"])
+        old = self.read(name, lots=lots) if lots else _normalise(pd.DataFrame(), name)
         if units and len(old):
             keys = pd.MultiIndex.from_frame(old[["lot", "unit"]].astype(object))
-            keep = ~keys.isin(list(units))
-            old = old[keep]
-        parts = [p for p in (old, None if new_rows is None else _normalise(new_rows, name))
-                 if p is not None and len(p)]
+            old = old[~keys.isin(list(units))]
+        parts = [p for p in (old, new) if p is not None and len(p)]
         df = pd.concat(parts, ignore_index=True) if parts else _normalise(pd.DataFrame(), name)
-        self.write(name, df)
+        self.write(name, df, lots=lots)
         return df
 
     def update_rows(self, name: str, units: set[tuple[str, str]], **values: Any) -> None:
-        """Set columns of the rows of the given units (e.g. ``stale=True``)."""
-        df = self.read(name)
-        if not len(df) or not units:
+        """Set columns of the rows of the given units (e.g. ``stale=True``); rewrites only
+        their lots."""
+        if not units:
+            return
+        lots = _lot_set(lot for lot, _ in units)
+        df = self.read(name, lots=lots)
+        if not len(df):
             return
         keys = pd.MultiIndex.from_frame(df[["lot", "unit"]].astype(object))
         hit = keys.isin(list(units))
@@ -212,16 +466,47 @@ class ResultsStore:
             elif isinstance(v, str):
                 df[col] = df[col].astype(object)
             df.loc[hit, col] = v
-        self.write(name, df)
+        self.write(name, df, lots=lots)
+
+    # format 1.0 -> 2.0
+    def _migrate(self) -> list[str]:
+        """Split every flat format-1.0 table into its lot files, then remove the flat file;
+        mark the root as format 2.0. Runs on the first write (under the caller's lock);
+        idempotent, and a migration that died half-way is redone from the flat file."""
+        migrated = []
+        for name in TABLES:
+            legacy = self.legacy_path(name)
+            if not legacy.exists():
+                continue
+            df = _sorted(_normalise(pq.read_table(legacy).to_pandas(), name))
+            d = self.table_dir(name)
+            d.mkdir(parents=True, exist_ok=True)
+            by_lot = _split_by_lot(df)
+            for lot, path in self.partitions(name).items():  # left by a dead migration
+                if lot not in by_lot:
+                    path.unlink()
+            for lot, part in by_lot.items():
+                write_parquet_atomic(part, self.partition_path(name, lot))
+            _fsync_dir(d)
+            legacy.unlink()
+            migrated.append(name)
+        if migrated or not self.format_path.exists():
+            self.root.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(self.format_path, {
+                "format_version": STORE_FORMAT_VERSION,
+                "layout": "tables/<name>/lot=<lot>.parquet",
+                **({"migrated_from": LEGACY_FORMAT_VERSION, "migrated_tables": migrated,
+                    "migrated_at": iso(utc_now())} if migrated else {})})
+        return migrated
 
     # fingerprints of the last run: (lot, unit, rep) -> fingerprint
     def fingerprints(self) -> dict[tuple[str, str, int], str]:
-        df = self.read("sessions")
+        df = self.read("sessions", columns=["lot", "unit", "rep", "fingerprint"])
         return {(str(r.lot), str(r.unit), int(r.rep)): str(r.fingerprint)
                 for r in df.itertuples() if pd.notna(r.rep)}
 
     def lots(self) -> list[str]:
-        return sorted(self.read("units")["lot"].dropna().unique().tolist())
+        return self.table_lots("units")
 
     # calibrations
     def save_calibration(self, cal, unit: str, extra: dict[str, Any],
@@ -318,7 +603,8 @@ class ResultsStore:
         lock, so no live writer owns them; the files they were replacing are intact."""
         removed = []
         for d in (self.root, self.runs_dir, *(self.calibrations_dir.glob("*")
-                                                if self.calibrations_dir.is_dir() else ())):
+                                                if self.calibrations_dir.is_dir() else ()),
+                  *(self.tables_dir.glob("*") if self.tables_dir.is_dir() else ())):
             if not d.is_dir():
                 continue
             for p in d.glob(".*.tmp"):

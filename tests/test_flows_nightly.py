@@ -38,6 +38,19 @@ def table(results: Path, name: str) -> pd.DataFrame:
     return ResultsStore(results).read(name)
 
 
+def lot_files(results: Path) -> dict[tuple[str, str], tuple[int, int]]:
+    """(table, lot) -> (inode, mtime_ns) of every lot file of the store: a rewrite (temp file
+    + os.replace) changes the inode."""
+    store = ResultsStore(results)
+    out = {}
+    for name in ("sessions", "parameters", "summary", "units", "residuals", "compensation",
+                 "discovery", "navigation"):
+        for lot, path in store.partitions(name).items():
+            st = path.stat()
+            out[(name, lot)] = (st.st_ino, st.st_mtime_ns)
+    return out
+
+
 def unit_rows(df: pd.DataFrame, unit: str) -> pd.DataFrame:
     return df[df["unit"] == unit].reset_index(drop=True)
 
@@ -109,8 +122,13 @@ def test_second_run_recalibrates_nothing_then_one_touched_session_one_unit(fleet
     target = data / "lot=L02" / "unit=U0025" / "rep=3" / "samples.parquet"
     st = target.stat()
     os.utime(target, ns=(st.st_atime_ns, st.st_mtime_ns + 10_000_000_000))
+    files_before = lot_files(results)
     log = nightly_fleet_calibration(data, results, run_discovery=False, progress=False)
     assert log["units_calibrated"] == 1 and log["units_skipped"] == 59
+    files_after = lot_files(results)
+    assert {k: v for k, v in files_after.items() if k[1] != "L02"} == \
+        {k: v for k, v in files_before.items() if k[1] != "L02"}
+    assert files_after[("parameters", "L02")] != files_before[("parameters", "L02")]
     after = table(results, "parameters")
     pd.testing.assert_frame_equal(other_rows(after, "U0025"), other_rows(params_before, "U0025"))
     assert set(unit_rows(after, "U0025")["run_id"]) == {log["run_id"]}
@@ -122,8 +140,16 @@ def test_rerun_changes_only_that_unit_and_a_failed_rerun_keeps_the_last_good(fle
     data, results, manifest, _ = fleet
     tables = {n: table(results, n) for n in ("parameters", "summary", "sessions", "residuals")}
     cal_before = find_calibration(results, "U0007")
+    files_before = lot_files(results)
     log = rerun_unit(data, results, "U0007", run_discovery=False)
     assert log["units_calibrated"] == 1 and not log["units_failed"]
+    # the store is partitioned by lot: the rerun of a unit of L01 rewrote L01's files only (the
+    # other lots' flags did not move: their values are the same and so is the pooled scale)
+    files_after = lot_files(results)
+    assert {k: v for k, v in files_after.items() if k[1] != "L01"} == \
+        {k: v for k, v in files_before.items() if k[1] != "L01"}
+    assert files_after[("residuals", "L01")] != files_before[("residuals", "L01")]
+    assert set(log["phases_s"]) == {"calibrate", "store", "reflag", "reports"}
     for name, before in tables.items():
         after = table(results, name)
         pd.testing.assert_frame_equal(other_rows(after, "U0007"), other_rows(before, "U0007"),
@@ -202,7 +228,7 @@ def test_second_concurrent_run_is_refused(small, capsys):
         assert cli_main(["nightly", str(data), "--results", str(results), "--quiet",
                          "--no-discovery"]) == 2
         assert "in use by run other-run" in capsys.readouterr().err
-    assert not (results / "sessions.parquet").exists()
+    assert not ResultsStore(results).exists() and not (results / "tables").exists()
 
 
 def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
@@ -227,7 +253,7 @@ def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
 def test_report_command_rebuilds_the_lot_report(small, capsys):
     data, base, _ = small
     results = base / "r_threads"
-    if not (results / "summary.parquet").exists():
+    if not ResultsStore(results).has_table("summary"):
         nightly_fleet_calibration(data, results, progress=False)
     assert cli_main(["report", "--results", str(results), "--lot", "L01"]) == 0
     out = capsys.readouterr().out
@@ -242,7 +268,7 @@ def _step_means(df: pd.DataFrame, cols) -> pd.DataFrame:
 def test_apply_calibrates_raw_samples_and_refuses_unit_mismatch(small, tmp_path, capsys):
     data, base, manifest = small
     results = base / "r_threads"
-    if not (results / "summary.parquet").exists():
+    if not ResultsStore(results).has_table("summary"):
         nightly_fleet_calibration(data, results, progress=False)
     unit = manifest["units"][1]
     cal = find_calibration(results, unit["unit"])

@@ -16,6 +16,8 @@ from flows import runtime
 
 runtime.ensure_environment()
 
+from schemas.results_store import ResultsStore  # noqa: E402
+
 pytestmark = [pytest.mark.server, pytest.mark.slow]
 
 DEPLOYMENT = "nightly-fleet-calibration/mimucal-nightly"
@@ -65,7 +67,8 @@ def test_serve_registers_cron_deployment_and_a_triggered_run_completes(tmp_path)
             assert dep.parameters["results"] == str(results.resolve())
             run = run_deployment(DEPLOYMENT, timeout=240)
             assert run.state.is_completed(), run.state
-        assert (results / "sessions.parquet").exists()
+        assert ResultsStore(results).exists()
+        assert list((results / "tables" / "sessions").glob("lot=*.parquet"))
         assert (results / "runs").glob("*.json")
     finally:
         os.killpg(proc.pid, signal.SIGTERM)

@@ -189,7 +189,8 @@ def test_sigkill_at_several_points_then_rerun_equals_an_uninterrupted_run(prefec
          lambda: any((crashed / "calibrations").rglob("*.json"))
          if (crashed / "calibrations").is_dir() else False),
         ("first table written by this run",
-         lambda: any(p.stat().st_mtime > started for p in crashed.glob("*.parquet"))),
+         lambda: any(p.stat().st_mtime > started
+                     for p in (crashed / "tables").rglob("lot=*.parquet"))),
     ]
     killed = []
     for i, (what, ready) in enumerate(points):

@@ -65,11 +65,11 @@ def test_crash_after_any_table_write_then_rerun_gives_the_clean_results(fleet, c
     original = ResultsStore.write
     calls = []
 
-    def dying_write(self, name, df):
-        original(self, name, df)
+    def dying_write(self, name, df, *args, **kwargs):
+        original(self, name, df, *args, **kwargs)
         calls.append(name)
         if len(calls) == crash_after:
-            raise SimulatedCrash(f"died after writing {name}.parquet")
+            raise SimulatedCrash(f"died after writing table {name}")
 
     monkeypatch.setattr(ResultsStore, "write", dying_write)
     with pytest.raises(Exception) as info:
@@ -98,16 +98,19 @@ def test_stale_temp_files_are_removed_by_the_next_lock_holder(tmp_path):
     store = ResultsStore(tmp_path)
     (tmp_path / "calibrations" / "U1").mkdir(parents=True)
     (tmp_path / "runs").mkdir()
+    (tmp_path / "tables" / "sessions").mkdir(parents=True)
     stale = [tmp_path / ".sessions.parquet.k2j3.tmp",
+             tmp_path / "tables" / "sessions" / ".lot=L01.parquet.k2j3.tmp",
              tmp_path / "calibrations" / "U1" / ".20261122T000000.000000Z.json.ab12.tmp",
              tmp_path / "runs" / ".r1.json.zz.tmp"]
-    keep = [tmp_path / "sessions.parquet", tmp_path / "notes.tmp.txt"]
+    keep = [tmp_path / "sessions.parquet", tmp_path / "notes.tmp.txt",
+            tmp_path / "tables" / "sessions" / "lot=L01.parquet"]
     for p in stale + keep:
         p.write_bytes(b"partial")
     with store.lock(owner="holder"):
         assert all(not p.exists() for p in stale)
         # the holder's own write in progress: a refused second run must not touch it
-        in_progress = tmp_path / ".units.parquet.x1y2.tmp"
+        in_progress = tmp_path / "tables" / "sessions" / ".lot=L02.parquet.x1y2.tmp"
         in_progress.write_bytes(b"being written")
         with pytest.raises(StoreLockedError):
             with ResultsStore(tmp_path).lock(owner="second"):

@@ -106,11 +106,25 @@ def test_lot_report_numbers_carry_units_and_precision(lot_store, lot_html):
     assert re.fullmatch(r"\d\.\d{6}", cell), cell
 
 
+def drop_table(root, name):
+    """Remove a table from a results store in either layout (format 1.0: one flat file at
+    the root, as reports.synthetic writes it; 2.0: a directory of lot files)."""
+    import shutil
+    from schemas.results_store import ResultsStore
+    st = ResultsStore(root)
+    assert st.has_table(name)
+    if st.legacy_path(name).exists():
+        st.legacy_path(name).unlink()
+    if st.table_dir(name).exists():
+        shutil.rmtree(st.table_dir(name))
+    assert not st.has_table(name)
+
+
 def test_missing_tables_still_render(tmp_path):
     truth = build_synthetic_store(tmp_path, n_units=5, n_outliers=1, seed=3, discovery=False,
                                   navigation=False)
     for name in ("residuals", "compensation", "parameters"):
-        (tmp_path / f"{name}.parquet").unlink()
+        drop_table(tmp_path, name)
     text = write_lot_report(tmp_path, truth.lot).read_text()
     assert "Model discovery not available" in text
     assert "Residuals not available" in text
@@ -118,7 +132,7 @@ def test_missing_tables_still_render(tmp_path):
     assert "Table 1 · gyroscope output model (multirate) not available" in text
     unit_text = write_unit_report(tmp_path, truth.units[0]).read_text()
     assert "Navigation drift not available" in unit_text
-    (tmp_path / "summary.parquet").unlink()
+    drop_table(tmp_path, "summary")
     text = write_lot_report(tmp_path, truth.lot).read_text()
     assert "Key-parameter table not available" in text and "Strip plots not available" in text
 

@@ -58,15 +58,17 @@ def test_replace_units_touches_only_that_unit(tmp_path):
 def test_failed_write_keeps_old_file_and_leaves_no_temp(tmp_path, monkeypatch):
     st = ResultsStore(tmp_path)
     st.write("parameters", params("L1", "U1"))
-    old = (tmp_path / "parameters.parquet").read_bytes()
+    lot_file = tmp_path / "tables" / "parameters" / "lot=L1.parquet"
+    old = lot_file.read_bytes()
 
     def boom(*a, **k):
         raise OSError("disk full")
     monkeypatch.setattr(pq, "write_table", boom)
     with pytest.raises(OSError, match="disk full"):
         st.write("parameters", params("L1", "U1", value=5.0))
-    assert (tmp_path / "parameters.parquet").read_bytes() == old
+    assert lot_file.read_bytes() == old
     assert temp_files(tmp_path) == []
+    assert st.read("parameters")["value"].tolist() == [2.0, 3.0]
 
 
 def test_second_run_is_refused_with_the_holder_named(tmp_path):

@@ -25,9 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not (Path(args.results) / "summary.parquet").exists() and \
-            not (Path(args.results) / "sessions.parquet").exists():
-        raise CliError(f"{args.results} is not a results store (no sessions.parquet); run "
+    from schemas.results_store import ResultsStore
+    store = ResultsStore(Path(args.results))
+    if not store.has_table("summary") and not store.has_table("sessions"):
+        raise CliError(f"{args.results} is not a results store (no sessions table); run "
                        f"'mimucal nightly' first")
     from flows import runtime
     runtime.ensure_environment(args.results)

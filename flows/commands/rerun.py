@@ -1,7 +1,7 @@
 """``mimucal rerun DATASET --results DIR --unit UNIT``: recalibrate one unit now.
 
 Its rows are replaced only if the recalibration succeeds; otherwise its last good calibration
-is kept and marked stale (units.parquet, summary.parquet) with the reason, and the exit code
+is kept and marked stale (the units and summary tables) with the reason, and the exit code
 is 1. Its lot's flags and report are rebuilt either way."""
 from __future__ import annotations
 
