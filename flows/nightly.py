@@ -35,7 +35,11 @@ from prefect.futures import as_completed  # noqa: E402
 from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
 
 from calib_core.outliers import LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots  # noqa: E402
-from flows.task_runners import DASK_ENV, LOCAL_WORKERS, default_task_runner, make_task_runner  # noqa: E402,F401
+from flows.compute_pool import run_in_pool  # noqa: E402
+from flows.task_runners import (  # noqa: E402,F401
+    DASK_ENV, LOCAL_WORKERS, default_task_runner, make_task_runner, resolve_kind, unit_work_pool,
+    uses_unit_work_pool,
+)
 from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and tools import them here)
     UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
 )
@@ -374,8 +378,10 @@ def new_run_id() -> str:
 # --- Prefect tasks and flows ------------------------------------------------------------------
 @task(name="calibrate-units", persist_result=False, cache_policy=NO_CACHE, log_prints=False)
 def calibrate_units_task(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
-    """One batch of units: paths in, fitted results out (in memory only)."""
-    return calibrate_batch(jobs, run_discovery)
+    """One batch of units: paths in, fitted results out (in memory only). The work runs in
+    the flow's worker processes when the run opened them (runner ``processes``/``auto``),
+    else here."""
+    return run_in_pool(calibrate_batch, jobs, run_discovery)
 
 
 class _Progress:
@@ -438,9 +444,11 @@ def _run_batches(jobs: list[UnitJob], batch_size: int, run_discovery: bool,
 def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,
-                 progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT) -> dict:
+                 progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
+                 runner: str | None = None) -> dict:
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
-    report."""
+    report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
+    worker processes; ``dask`` means the task runner already sends it elsewhere."""
     logger = get_run_logger()
     run_id = new_run_id()
     store = ResultsStore(Path(results))
@@ -485,7 +493,12 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
             store_s[0] += time.monotonic() - t
 
         if jobs:
-            _run_batches(jobs, batch_size, run_discovery, on_progress, on_lot, max_in_flight)
+            pooled = runner != "dask" and uses_unit_work_pool(runner, len(jobs))
+            log["unit_work"] = "worker processes" if pooled else "task runner"
+            with unit_work_pool(None if runner == "dask" else runner,
+                                len(jobs) if pooled else 0):
+                _run_batches(jobs, batch_size, run_discovery, on_progress, on_lot,
+                             max_in_flight)
         # calibration_s is the fit phase as before (read ... aggregate), without the storing
         # that now overlaps it
         t_cal = time.monotonic() - t0 - store_s[0]
@@ -612,18 +625,23 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
                               dask_address: str | None = None,
                               batch_size: int = DEFAULT_BATCH_SIZE,
                               config: str | Path | None = None, wait: bool = False,
-                              run_discovery: bool = True, progress: bool = True) -> dict:
-    """Run the nightly flow once (thread pool of 2, or Dask at ``dask_address``)."""
+                              run_discovery: bool = True, progress: bool = True,
+                              runner: str | None = None) -> dict:
+    """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
+    (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
+    see flows.task_runners)."""
     if not wait:  # a clear refusal, not a failed flow run in Prefect's database
         ResultsStore(Path(results)).ensure_unlocked()
-    runner = make_task_runner(dask_address)
+    kind = "dask" if dask_address else resolve_kind(runner)
+    task_runner = make_task_runner(dask_address, kind=None if dask_address else kind)
     # Dask may have many workers: keep them all fed (memory: this many batches in flight)
-    in_flight = DASK_MAX_IN_FLIGHT if dask_address else DEFAULT_MAX_IN_FLIGHT
+    in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     with runtime.run_settings():
-        return nightly_flow.with_options(task_runner=runner)(
+        return nightly_flow.with_options(task_runner=task_runner)(
             str(dataset), str(results), force=force, batch_size=batch_size,
             config=None if config is None else str(config), wait=wait,
-            run_discovery=run_discovery, progress=progress, max_in_flight=in_flight)
+            run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
+            runner=kind)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,

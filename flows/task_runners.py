@@ -3,14 +3,20 @@
 The nightly and rerun flows call :func:`default_task_runner` / :func:`make_task_runner`; the
 choice of pool (and its size) lives here so that the flows stay orchestration only.
 
-Runners (``MIMUCAL_TASK_RUNNER``, or the ``kind`` argument; Dask at an address always wins):
+Runners (``MIMUCAL_TASK_RUNNER``, ``mimucal nightly --runner``, or the ``kind`` argument; Dask
+at an address always wins):
 
-- ``threads`` (default): a thread pool of :data:`LOCAL_WORKERS`. Cheapest per task (~4 ms),
-  no start-up, but the unit work is Python and holds the GIL: the fit phase uses one core.
-- ``processes``: Prefect's ``ProcessPoolTaskRunner`` of :data:`LOCAL_WORKERS` spawned
-  processes: both cores, but each worker pays its imports once (~2-4 s CPU) and every batch's
-  results are pickled back (~0.5 MB per unit). It pays on large fleets only
-  (docs/perf-parallel.md has the measurements); the flows' caller chooses it explicitly.
+- ``auto`` (default): ``processes`` when the run has at least :data:`AUTO_PROCESSES_MIN_UNITS`
+  units to calibrate, else ``threads`` (the pool's ~3 s start-up does not pay on a few units).
+- ``threads``: a thread pool of :data:`LOCAL_WORKERS`. Cheapest per task (~4 ms), no
+  start-up, but the unit work is Python and holds the GIL: the fit phase uses one core.
+- ``processes``: the same thread pool of Prefect tasks, each handing its batch to a pool of
+  :data:`LOCAL_WORKERS` worker processes forked from a forkserver that imported the numerics
+  once (:mod:`flows.compute_pool`): both cores, ~3 s of start-up per run, no Prefect in the
+  workers.
+- ``prefect-processes``: Prefect's ``ProcessPoolTaskRunner`` (every task run in a spawned
+  worker with its own Prefect client): both cores, but each worker pays its imports and
+  Prefect's task context once (8-10 s CPU, docs/perf-parallel.md).
 - ``dask``: a Dask ``LocalCluster`` of :data:`LOCAL_WORKERS` single-threaded worker
   processes, started and stopped by the flow (for comparison with a remote scheduler; on one
   machine it costs more than ``processes``).
@@ -37,9 +43,10 @@ from prefect.task_runners import ProcessPoolTaskRunner, ThreadPoolTaskRunner
 
 LOCAL_WORKERS = 2
 DASK_ENV = "MIMUCAL_DASK_ADDRESS"  # the served deployment reads its Dask address here
-RUNNER_ENV = "MIMUCAL_TASK_RUNNER"  # threads | processes | dask (a local cluster)
-RUNNER_KINDS = ("threads", "processes", "dask")
-DEFAULT_KIND = "threads"
+RUNNER_ENV = "MIMUCAL_TASK_RUNNER"  # auto | threads | processes | prefect-processes | dask
+RUNNER_KINDS = ("auto", "threads", "processes", "prefect-processes", "dask")
+DEFAULT_KIND = "auto"
+AUTO_PROCESSES_MIN_UNITS = 24  # three batches of 8: below that the pool's start-up dominates
 
 # BLAS/OpenMP pools sized to one thread in worker processes: two workers on two cores must
 # not each start a pool of two (Dask's nanny sets the same for its workers).
@@ -126,26 +133,49 @@ def _dask_runner_class():
     return SharedApiDaskTaskRunner
 
 
+def resolve_kind(kind: str | None = None) -> str:
+    """``kind``, else ``$MIMUCAL_TASK_RUNNER``, else ``auto``; checked against RUNNER_KINDS."""
+    kind = (kind or os.environ.get(RUNNER_ENV) or DEFAULT_KIND).strip().lower()
+    if kind not in RUNNER_KINDS:
+        raise ValueError(f"unknown task runner {kind!r} (${RUNNER_ENV}): choose one of "
+                         + ", ".join(RUNNER_KINDS))
+    return kind
+
+
 def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_WORKERS,
                      kind: str | None = None):
-    """The runner for a flow: Dask at ``dask_address`` when given, else ``kind`` (default:
-    ``$MIMUCAL_TASK_RUNNER``, else ``threads``) with ``max_workers`` workers."""
+    """The Prefect task runner for a flow: Dask at ``dask_address`` when given, else ``kind``
+    (see module doc) with ``max_workers`` workers. ``auto`` and ``processes`` run their
+    Prefect tasks in a thread pool; :func:`unit_work_pool` adds the worker processes."""
     if dask_address:
         return _dask_runner_class()(address=dask_address)
-    kind = (kind or os.environ.get(RUNNER_ENV) or DEFAULT_KIND).strip().lower()
-    if kind == "threads":
+    kind = resolve_kind(kind)
+    if kind in ("auto", "threads", "processes"):
         return ThreadPoolTaskRunner(max_workers=max_workers)
-    if kind == "processes":
+    if kind == "prefect-processes":
         return SharedApiProcessPoolTaskRunner(max_workers=max_workers)
-    if kind == "dask":
-        import logging
+    import logging
 
-        from distributed import LocalCluster
-        return _dask_runner_class()(cluster_class=LocalCluster, cluster_kwargs={
-            "n_workers": max_workers, "threads_per_worker": 1, "processes": True,
-            "dashboard_address": None, "silence_logs": logging.WARNING})
-    raise ValueError(f"unknown task runner {kind!r} (${RUNNER_ENV}): choose one of "
-                     + ", ".join(RUNNER_KINDS))
+    from distributed import LocalCluster
+    return _dask_runner_class()(cluster_class=LocalCluster, cluster_kwargs={
+        "n_workers": max_workers, "threads_per_worker": 1, "processes": True,
+        "dashboard_address": None, "silence_logs": logging.WARNING})
+
+
+def uses_unit_work_pool(kind: str | None, n_units: int) -> bool:
+    """Whether a run of ``n_units`` units with runner ``kind`` hands its batches to
+    :mod:`flows.compute_pool` worker processes."""
+    kind = resolve_kind(kind)
+    return kind == "processes" or (kind == "auto" and n_units >= AUTO_PROCESSES_MIN_UNITS)
+
+
+def unit_work_pool(kind: str | None, n_units: int, workers: int = LOCAL_WORKERS):
+    """The context in which a flow runs its batches: a :func:`flows.compute_pool.compute_pool`
+    of ``workers`` processes when :func:`uses_unit_work_pool`, else nothing."""
+    if uses_unit_work_pool(kind, n_units) and workers > 1:
+        from flows.compute_pool import compute_pool
+        return compute_pool(workers)
+    return nullcontext()
 
 
 def default_task_runner():

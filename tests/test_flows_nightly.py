@@ -219,6 +219,25 @@ def test_dask_local_cluster_gives_the_same_results(small):
         [b["session"] for b in manifest["bad_sessions"]]
 
 
+def test_worker_processes_give_the_same_results_as_threads(small):
+    """runner=processes (flows.compute_pool: a forkserver pool doing the unit work) stores
+    exactly what the thread pool stores; the run log says where the work ran."""
+    data, base, manifest = small
+    log_t = nightly_fleet_calibration(data, base / "r_threads2", progress=False, batch_size=2,
+                                      runner="threads")
+    log_p = nightly_fleet_calibration(data, base / "r_procs", progress=False, batch_size=2,
+                                      runner="processes")
+    assert log_t["unit_work"] == "task runner" and log_p["unit_work"] == "worker processes"
+    assert log_t["units_calibrated"] == log_p["units_calibrated"] == 5
+    for name in ("parameters", "summary", "sessions", "discovery", "residuals",
+                 "compensation"):
+        a = table(base / "r_threads2", name).drop(columns=["run_id", "calibrated_at"],
+                                                  errors="ignore")
+        b = table(base / "r_procs", name).drop(columns=["run_id", "calibrated_at"],
+                                               errors="ignore")
+        pd.testing.assert_frame_equal(a, b)
+
+
 def test_second_concurrent_run_is_refused(small, capsys):
     data, base, _ = small
     results = base / "r_lock"

@@ -33,13 +33,13 @@ def test_default_is_a_thread_pool_of_two(monkeypatch):
 
 def test_runner_kind_from_argument_and_environment(monkeypatch):
     monkeypatch.delenv(tr.DASK_ENV, raising=False)
-    p = tr.make_task_runner(kind="processes", max_workers=3)
+    p = tr.make_task_runner(kind="prefect-processes", max_workers=3)
     assert isinstance(p, tr.SharedApiProcessPoolTaskRunner)
     assert p._max_workers == 3 and p._initializer is tr.limit_worker_threads
     # the runner Prefect makes for each flow run keeps the class and the initializer
     d = p.duplicate()
     assert type(d) is tr.SharedApiProcessPoolTaskRunner and d._initializer is tr.limit_worker_threads
-    monkeypatch.setenv(tr.RUNNER_ENV, "processes")
+    monkeypatch.setenv(tr.RUNNER_ENV, "prefect-processes")
     assert isinstance(tr.make_task_runner(), tr.SharedApiProcessPoolTaskRunner)
     assert isinstance(tr.default_task_runner(), tr.SharedApiProcessPoolTaskRunner)
     monkeypatch.setenv(tr.RUNNER_ENV, "threads")
@@ -51,7 +51,7 @@ def test_runner_kind_from_argument_and_environment(monkeypatch):
 
 def test_dask_address_wins_and_keeps_the_shared_api_class(monkeypatch):
     pytest.importorskip("prefect_dask")
-    monkeypatch.setenv(tr.RUNNER_ENV, "processes")
+    monkeypatch.setenv(tr.RUNNER_ENV, "prefect-processes")
     r = tr.make_task_runner("tcp://127.0.0.1:8786")
     assert r.address == "tcp://127.0.0.1:8786"
     assert type(r.duplicate()) is type(r) and type(r).__name__ == "SharedApiDaskTaskRunner"
@@ -119,7 +119,7 @@ if __name__ == "__main__":
 
 @pytest.mark.slow
 def test_workers_in_other_processes_use_the_flows_api_server(tmp_path):
-    kinds = ["processes"]
+    kinds = ["prefect-processes"]
     try:
         import prefect_dask  # noqa: F401
         kinds.append("dask")

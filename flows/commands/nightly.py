@@ -11,6 +11,7 @@ EPILOG = """examples:
   mimucal nightly data/fleet --results results
   mimucal nightly data/fleet --results results --force --config limits.toml
   mimucal nightly data/fleet --results results --dask-address tcp://10.0.0.5:8786
+  mimucal nightly data/fleet --results results --runner threads
 
 Sessions whose input fingerprint (size and mtime of both files) is unchanged since the last
 run are skipped; a unit with any new, changed or removed session is recalibrated as a whole.
@@ -27,6 +28,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="recalibrate every unit")
     p.add_argument("--dask-address", metavar="ADDR", default=None,
                    help="run the per-unit tasks on this Dask scheduler (tcp://host:port)")
+    p.add_argument("--runner", default=None,
+                   choices=["auto", "threads", "processes", "prefect-processes", "dask"],
+                   help="where the unit work runs without --dask-address: auto (default: "
+                        "worker processes from 24 units to calibrate, else threads), threads "
+                        "(one core), processes (a forkserver pool, both cores, ~3 s start-up), "
+                        "prefect-processes (Prefect's process pool), dask (a local Dask "
+                        "cluster); default $MIMUCAL_TASK_RUNNER or auto")
     p.add_argument("--config", metavar="TOML", default=None,
                    help="outlier options and per-parameter limits (see docs/flows.md)")
     p.add_argument("--batch-size", type=int, default=None, metavar="N",
@@ -46,6 +54,11 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"configuration {args.config} does not exist")
     if args.batch_size is not None and args.batch_size < 1:
         raise CliError("--batch-size must be >= 1")
+    from flows.task_runners import resolve_kind
+    try:
+        resolve_kind(args.runner)  # a bad $MIMUCAL_TASK_RUNNER is refused before start-up
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
     from flows import runtime
     runtime.ensure_environment(args.results)
     from calib_core.outliers import OutlierConfigError
@@ -55,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
         log = nightly.nightly_fleet_calibration(
             dataset, args.results, force=args.force, dask_address=args.dask_address,
             batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
-            wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet)
+            wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet,
+            runner=args.runner)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
