@@ -211,6 +211,48 @@ def robust_z(x: np.ndarray) -> np.ndarray:
     return (x - np.median(x)) / s
 
 
+# Thresholds already simulated, by (sorted group sizes, n_parameters, z_threshold,
+# family_alpha). The simulation is deterministic (seeded) but costs 1-2 s of CPU per layout,
+# which every fresh process (a rerun, the lot-report command) would pay again: the flows keep
+# these values in the results store and hand them back with remember_thresholds. Bump
+# THRESHOLD_SIMULATION_VERSION when the simulation changes, so that old values are not reused.
+THRESHOLD_SIMULATION_VERSION = 1
+_KNOWN_THRESHOLDS: dict[tuple, float] = {}
+
+
+def _threshold_key(sizes: tuple[int, ...], n_parameters: int, z_threshold: float,
+                   family_alpha: float) -> tuple:
+    return (tuple(sizes), int(n_parameters), float(z_threshold), float(family_alpha))
+
+
+def known_thresholds() -> dict:
+    """The simulated thresholds of this process, as a JSON-ready document."""
+    return {"version": THRESHOLD_SIMULATION_VERSION,
+            "thresholds": [{"group_sizes": list(k[0]), "n_parameters": k[1],
+                            "z_threshold": k[2], "family_alpha": k[3], "q": v}
+                           for k, v in sorted(_KNOWN_THRESHOLDS.items())]}
+
+
+def remember_thresholds(doc: dict | None) -> int:
+    """Take thresholds simulated by an earlier process (:func:`known_thresholds`'s document);
+    a document of another simulation version, or malformed entries, are ignored. Returns how
+    many were taken."""
+    if not isinstance(doc, dict) or doc.get("version") != THRESHOLD_SIMULATION_VERSION:
+        return 0
+    n = 0
+    for e in doc.get("thresholds") or []:
+        try:
+            key = _threshold_key(tuple(int(x) for x in e["group_sizes"]), e["n_parameters"],
+                                 e["z_threshold"], e["family_alpha"])
+            q = float(e["q"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        if math.isfinite(q):
+            _KNOWN_THRESHOLDS.setdefault(key, q)
+            n += 1
+    return n
+
+
 @lru_cache(maxsize=256)
 def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
                        z_threshold: float = 3.5, family_alpha: float = 0.01) -> float:
@@ -227,6 +269,9 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     total = sum(sizes)
     if family_alpha <= 0 or total < 3:
         return float(z_threshold)
+    key = _threshold_key(sizes, n_parameters, z_threshold, family_alpha)
+    if key in _KNOWN_THRESHOLDS:
+        return float(max(z_threshold, _KNOWN_THRESHOLDS[key]))
     p = family_alpha / max(n_parameters, 1)
     # ~2e7 normal draws at most, in chunks of ~2e6 (memory stays ~50 MB)
     rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
@@ -250,6 +295,7 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
         q1 = float(np.quantile(zmax, 1.0 - p_hi))
         q2 = float(np.quantile(zmax, 1.0 - p_hi / 10.0))
         q = q2 + (q2 - q1) * math.log10(p_hi / 10.0 / p)
+    _KNOWN_THRESHOLDS[key] = float(q)
     return float(max(z_threshold, q))
 
 

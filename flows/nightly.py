@@ -34,7 +34,10 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402
 from prefect.futures import as_completed  # noqa: E402
 from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
 
-from calib_core.outliers import LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots  # noqa: E402
+from calib_core.outliers import (  # noqa: E402
+    LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots, known_thresholds,
+    remember_thresholds,
+)
 from flows.compute_pool import run_in_pool  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
     DASK_ENV, LOCAL_WORKERS, default_task_runner, make_task_runner, resolve_kind, unit_work_pool,
@@ -304,7 +307,12 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
     todo = sorted(set(map(str, lots)) & present)
     if not todo:
         return []
+    cached = store.read_outlier_thresholds()
+    remember_thresholds(cached)
     lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
+    now = known_thresholds()
+    if now != cached:  # new lot layouts simulated: keep them for the next process
+        store.write_outlier_thresholds(now)
     store.write("summary", apply_flags(summary, lf), skip_unchanged=True, previous=summary)
     units = store.read("units")
     units_before = units.copy()

@@ -539,6 +539,23 @@ class ResultsStore:
                          before_after: str = "before") -> Path:
         return find_calibration(self.root, unit, at, before_after)
 
+    # derived values worth keeping between processes
+    @property
+    def outlier_thresholds_path(self) -> Path:
+        return self.root / "cache" / "outlier_thresholds.json"
+
+    def read_outlier_thresholds(self) -> dict | None:
+        """The outlier thresholds simulated by earlier runs (calib_core.outliers'
+        ``known_thresholds`` document), or None when absent or unreadable: a cache, never
+        a source of truth (the values are recomputed when missing)."""
+        try:
+            return json.loads(self.outlier_thresholds_path.read_text())
+        except (OSError, ValueError):
+            return None
+
+    def write_outlier_thresholds(self, doc: dict) -> None:
+        write_json_atomic(self.outlier_thresholds_path, _jsonable(doc))
+
     # run logs
     def write_run(self, run_id: str, doc: dict[str, Any]) -> Path:
         path = self.runs_dir / f"{run_id}.json"
@@ -602,7 +619,7 @@ class ResultsStore:
         (SIGKILL, power loss: their ``except`` never ran). Only called while holding the
         lock, so no live writer owns them; the files they were replacing are intact."""
         removed = []
-        for d in (self.root, self.runs_dir, *(self.calibrations_dir.glob("*")
+        for d in (self.root, self.runs_dir, self.root / "cache", *(self.calibrations_dir.glob("*")
                                                 if self.calibrations_dir.is_dir() else ()),
                   *(self.tables_dir.glob("*") if self.tables_dir.is_dir() else ())):
             if not d.is_dir():
