@@ -320,6 +320,7 @@ def do_nightly(a) -> dict:
             "reports": len(log.get("reports") or []),
             "report_problems": log.get("report_problems") or [],
             "dask_workers": a.dask_workers, "runner": "dask" if a.dask_workers else a.runner,
+            "unit_work": log.get("unit_work"), "store_s": log.get("store_s"),
             "batch_size": a.batch}
 
 
@@ -334,6 +335,7 @@ def do_rerun(a) -> dict:
     return {"wall_s": wall, "import_s": import_s, "flow_elapsed_s": float(log["elapsed_s"]),
             "outside_flow_s": wall - float(log["elapsed_s"]),
             "units_calibrated": log.get("units_calibrated"),
+            "phases_s": log.get("phases_s"),
             "report_problems": log.get("report_problems") or []}
 
 
@@ -392,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--dask-workers", type=int, default=0)
-    ap.add_argument("--runner", default="threads", choices=["threads", "processes"],
+    ap.add_argument("--runner", default="threads", choices=["auto", "threads", "processes", "prefect-processes"],
                     help="nightly: the local task runner (flows.task_runners) when no Dask")
     ap.add_argument("--no-discovery", dest="discovery", action="store_false",
                     help="fit: leave model discovery out (the fit phase before issue 7)")
