@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, Page, arr, decimals_for, display_unit,
-                          esc, fmt, fmt_time, grid, kpi, missing, table, with_unit)
+                          esc, fmt, fmt_many, fmt_time, grid, kpi, missing, table, with_unit)
 from reports.store import StoreView
 
 # Models in the key-parameter table and strip plots, with their headings.
@@ -195,8 +195,14 @@ class LotContext:
         return cache.get((unit, model))
 
     def unit_models(self, unit: str) -> list[str]:
-        self.rep_table(unit, "")
-        return ordered_models(m for (u, m) in self.__dict__["_rep_tables"] if u == unit)
+        cache = self.__dict__.get("_unit_models")
+        if cache is None:
+            self.rep_table(unit, "")
+            found: dict[str, list[str]] = {}
+            for u, m in self.__dict__["_rep_tables"]:
+                found.setdefault(u, []).append(m)
+            cache = self.__dict__["_unit_models"] = {u: ordered_models(ms) for u, ms in found.items()}
+        return cache.get(unit, [])
 
     def info(self, model: str, name: str) -> ParamInfo:
         return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None)
@@ -213,14 +219,47 @@ class LotContext:
             return None
         return self.unit_rows("flags", unit)
 
+    def _flag_index(self) -> dict[str, dict[str, set[str]]]:
+        """unit -> model -> names of its flagged parameters, from the flagged summary rows
+        once (reading them back per unit and per table costs ~1 ms a time in pandas)."""
+        cache = self.__dict__.get("_flags_by_unit")
+        if cache is None:
+            cache = {}
+            rows: dict[str, int] = {}
+            f = self.flags
+            if f is not None and len(f):
+                for u, m, n in zip(list(f["unit"]), list(f["model"]), list(f["parameter"])):
+                    cache.setdefault(str(u), {}).setdefault(m, set()).add(n)
+                    rows[str(u)] = rows.get(str(u), 0) + 1
+            self.__dict__["_flags_by_unit"] = cache
+            self.__dict__["_flag_rows"] = rows
+        return cache
+
+    def n_param_flags(self, unit: str) -> int:
+        """Flagged summary rows of a unit (0 when there is no summary)."""
+        self._flag_index()
+        return self.__dict__["_flag_rows"].get(unit, 0)
+
+    def flagged_params(self, unit: str, model: str) -> set[str]:
+        return self._flag_index().get(unit, {}).get(model, set())
+
     def session_counts(self, unit: str | None = None) -> dict[str, int]:
         s = self.sessions
         if s is None:
             return {}
-        if unit is not None:
-            s = self.unit_rows("sessions", unit)
-        vc = s["status"].astype(str).value_counts()
-        return {k: int(vc.get(k, 0)) for k in ("ok", "warned", "failed")}
+        if unit is None:
+            vc = s["status"].astype(str).value_counts()
+            return {k: int(vc.get(k, 0)) for k in ("ok", "warned", "failed")}
+        cache = self.__dict__.get("_session_counts")
+        if cache is None:
+            # one group-by for the lot instead of a value_counts per unit
+            size = s.groupby([s["unit"], s["status"].astype(str)], sort=False).size()
+            cache = {}
+            for (u, st), n in size.items():
+                cache.setdefault(str(u), {})[st] = int(n)
+            self.__dict__["_session_counts"] = cache
+        c = cache.get(unit, {})
+        return {k: c.get(k, 0) for k in ("ok", "warned", "failed")}
 
 
 def aggregate_residuals(res: pd.DataFrame | None) -> pd.DataFrame | None:
@@ -285,7 +324,7 @@ def kpi_block(ctx: LotContext, unit: str | None = None) -> str:
         items += [kpi("Units", str(len(ctx.units))),
                   kpi("Units flagged", f"{n_flag}", "bad" if n_flag else "good")]
     else:
-        n = 0 if ctx.unit_flags(unit) is None else len(ctx.unit_flags(unit))
+        n = ctx.n_param_flags(unit)
         items.append(kpi("Flagged parameters", str(n), "bad" if n else "good"))
     extra = f'<p class="note">Run id: <span class="mono">{esc(run_ids or "unknown")}</span></p>'
     return f'<div class="kpis">{"".join(items)}</div>{extra}'
@@ -349,8 +388,7 @@ def key_parameter_table(ctx: LotContext) -> str:
     for unit in ctx.units:
         c = ctx.session_counts(unit)
         n_all = sum(c.values()) if c else 0
-        uf = ctx.unit_flags(unit)
-        n_flags = (0 if uf is None else len(uf)) + (unit in ctx.unit_level_flags)
+        n_flags = ctx.n_param_flags(unit) + (unit in ctx.unit_level_flags)
         cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
                  + (' <span class="badge flag">⚑ flagged</span>' if n_flags else "") + "</td>",
                  f'<td data-sort="{c.get("ok", 0) + c.get("warned", 0)}">{c.get("ok", 0) + c.get("warned", 0)}/{n_all}'
@@ -453,6 +491,30 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
 
 # ----------------------------------------------------------------------------- per unit tables
 
+def _rep_stats(V: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row (parameter) of repetition values V and their stderrs S: average and spread
+    (std, ddof 1) over the finite values, and the standard error of the average of
+    independent repetitions. Rows without a missing value are reduced together (the same
+    arithmetic, row by row, as np.mean / np.std of that row); the others one by one."""
+    n_rows, n_reps = V.shape
+    avg, spread, mean_se = np.full(n_rows, np.nan), np.full(n_rows, np.nan), np.full(n_rows, np.nan)
+    full_v = np.isfinite(V).all(axis=1)
+    full_s = np.isfinite(S).all(axis=1)
+    if n_reps:
+        avg[full_v] = np.mean(V[full_v], axis=1)
+        mean_se[full_s] = np.sqrt(np.sum(S[full_s] ** 2, axis=1)) / n_reps
+    if n_reps > 1:
+        spread[full_v] = np.std(V[full_v], axis=1, ddof=1)
+    for k in np.flatnonzero(~full_v):
+        vals = V[k][np.isfinite(V[k])]
+        avg[k] = float(np.mean(vals)) if len(vals) else np.nan
+        spread[k] = float(np.std(vals, ddof=1)) if len(vals) > 1 else np.nan
+    for k in np.flatnonzero(~full_s):
+        se = S[k][np.isfinite(S[k])]
+        mean_se[k] = float(np.sqrt(np.sum(se ** 2)) / len(se)) if len(se) else np.nan
+    return avg, spread, mean_se
+
+
 def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
     """xu2016 Table 1/2 layout: a row per parameter, a column per repetition, average, spread."""
     p = ctx.parameters
@@ -463,28 +525,21 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
         return ""
     pnames, reps, V, S = wide
     names = ordered_params(model, pnames)
-    flagged = set()
-    uf = ctx.unit_flags(unit)
-    if uf is not None:
-        flagged = {r.parameter for r in uf.itertuples() if r.model == model}
+    flagged = ctx.flagged_params(unit, model)
     headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Mean stderr"]
-    rows = []
     row_of = {n: i for i, n in enumerate(pnames)}
-    for n in names:
-        info = ctx.info(model, n)
-        row = V[row_of[n]] * info.scale
-        vals = row[np.isfinite(row)]
-        avg = float(np.mean(vals)) if len(vals) else np.nan
-        spread = float(np.std(vals, ddof=1)) if len(vals) > 1 else np.nan
-        se = S[row_of[n]] * info.scale
-        se = se[np.isfinite(se)]
-        # standard error of the average of independent repetitions
-        mean_se = float(np.sqrt(np.sum(se ** 2)) / len(se)) if len(se) else np.nan
+    infos = [ctx.info(model, n) for n in names]
+    order = [row_of[n] for n in names]
+    scale = np.array([info.scale for info in infos])[:, None]
+    Vs, Ss = V[order] * scale, S[order] * scale
+    avg, spread, mean_se = _rep_stats(Vs, Ss)
+    rows = []
+    for k, (n, info) in enumerate(zip(names, infos)):
         cells = [pretty_param(n), esc(info.label) or DASH]
-        cells += [fmt(v, info.decimals) for v in row]
+        cells += fmt_many(Vs[k], info.decimals)
         cls = "avg flagged" if n in flagged else "avg"
-        cells += [f'<td class="{cls}">{fmt(avg, info.decimals)}</td>',
-                  f'<td class="spread">{fmt(spread, sig=2)}</td>', f'<td class="spread">{fmt(mean_se, sig=2)}</td>']
+        cells += [f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>',
+                  f'<td class="spread">{fmt(spread[k], sig=2)}</td>', f'<td class="spread">{fmt(mean_se[k], sig=2)}</td>']
         rows.append(cells)
     return (f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>"
             + table(headers, rows, cls="paper", text_cols=2, wrap=False))
@@ -735,8 +790,7 @@ def sessions_section(ctx: LotContext, link_units: bool = True) -> str:
 def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) -> str:
     """The per-unit block of the lot report (and the body of the unit report)."""
     c = ctx.session_counts(unit)
-    uf = ctx.unit_flags(unit)
-    n_flags = (0 if uf is None else len(uf)) + (unit in ctx.unit_level_flags)
+    n_flags = ctx.n_param_flags(unit) + (unit in ctx.unit_level_flags)
     meta = []
     if c:
         meta.append(f"sessions ok {c['ok']}, warned {c['warned']}, failed {c['failed']}")
