@@ -559,16 +559,24 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
         uom = cc.groupby("unit")["unit_of_measure"].first() if "unit_of_measure" in cc else pd.Series(dtype=object)
         src = cc.groupby("unit")["source"].agg(lambda x: ", ".join(sorted({str(v) for v in x.dropna()}))) \
             if "source" in cc else pd.Series(dtype=object)
-        cache = {"agg": {str(u): g.droplevel(0) for u, g in agg.groupby(level=0, sort=False)},
-                 "uom": uom.to_dict(), "src": src.to_dict()}
+        # per unit: {(input, method, output): (lo, hi)} and the number of repetitions, read
+        # out of the aggregate once (pandas row access per unit costs ~4 ms a unit)
+        lookups: dict[str, dict] = {}
+        n_reps_of: dict[str, int] = {}
+        idx = agg.index
+        for u, inp, m, o, lo, hi, n in zip(idx.get_level_values(0), idx.get_level_values(1),
+                                           idx.get_level_values(2), idx.get_level_values(3),
+                                           agg["lo"].tolist(), agg["hi"].tolist(), agg["n_reps"].tolist()):
+            lookups.setdefault(str(u), {})[(inp, m, o)] = (lo, hi)
+            n_reps_of[str(u)] = max(n_reps_of.get(str(u), n), n)
+        cache = {"lookup": lookups, "n_reps": n_reps_of, "uom": uom.to_dict(), "src": src.to_dict()}
         ctx.__dict__["_comp"] = cache
-    g = cache["agg"].get(unit)
-    if g is None or not len(g):
+    lookup = cache["lookup"].get(unit)
+    if not lookup:
         return '<p class="note">Table 3: no verification sweep for this unit.</p>'
     uom = str(cache["uom"].get(unit) or "deg/s")
     src = cache["src"].get(unit, "")
-    n_reps = int(g["n_reps"].max())
-    lookup = {k: (lo, hi) for k, lo, hi in zip(g.index, g["lo"], g["hi"])}
+    n_reps = int(cache["n_reps"][unit])
     outs = sorted({k[2] for k in lookup})
     present = {k[1] for k in lookup}
     methods = [m for m in ("uncompensated", "proposed", "traditional") if m in present]
@@ -747,11 +755,34 @@ _DISC_ORDER = ["effect", "name", "axes", "estimate", "stderr", "evidence", "held
 
 
 def discovery_table(df: pd.DataFrame, with_unit_col: bool) -> str:
-    cols = [c for c in _DISC_ORDER if c in df.columns]
-    cols += [c for c in df.columns if c not in cols and c not in ("lot", "unit", "run_id")]
+    return _discovery_table(list(df.columns), df.to_dict("records"), with_unit_col)
+
+
+def unit_discovery_table(ctx: LotContext, unit: str) -> str:
+    """``discovery_table`` of one unit's rows ("" when it has none), from the lot's rows
+    converted to records once."""
+    cache = ctx.__dict__.get("_disc_records")
+    if cache is None:
+        cache = {}
+        d = ctx.discovery
+        if d is not None and len(d):
+            for r in d.to_dict("records"):
+                u = r.get("unit")
+                if u is not None and not (isinstance(u, float) and math.isnan(u)):
+                    cache.setdefault(str(u), []).append(r)
+        ctx.__dict__["_disc_records"] = cache
+    records = cache.get(unit)
+    if not records:
+        return ""
+    return _discovery_table(list(ctx.discovery.columns), records, with_unit_col=False)
+
+
+def _discovery_table(columns: list[str], records: list[dict], with_unit_col: bool) -> str:
+    cols = [c for c in _DISC_ORDER if c in columns]
+    cols += [c for c in columns if c not in cols and c not in ("lot", "unit", "run_id")]
     headers = (["Unit"] if with_unit_col else []) + [esc(c.replace("_", " ")) for c in cols]
     rows = []
-    for r in df.to_dict("records"):
+    for r in records:
         cells = [f'<a href="#unit-{esc(r["unit"])}">{esc(r["unit"])}</a>'] if with_unit_col else []
         for c in cols:
             v = r.get(c)
@@ -865,9 +896,9 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     if others:
         parts.append('<div class="grid2">' + "".join(f"<div>{o}</div>" for o in others) + "</div>")
     if ctx.discovery is not None:
-        d = ctx.unit_rows("discovery", unit)
-        if len(d):
-            parts.append("<h4>Model discovery</h4>" + discovery_table(d, with_unit_col=False))
+        dt = unit_discovery_table(ctx, unit)
+        if dt:
+            parts.append("<h4>Model discovery</h4>" + dt)
     if c.get("failed") and ctx.sessions is not None:
         f = ctx.unit_rows("sessions", unit)
         f = f[f["status"] == "failed"]
