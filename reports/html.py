@@ -253,19 +253,19 @@ def fmt(v: Any, decimals: int | None = None, sig: int = 5) -> str:
     return s
 
 
-def fmt_many(values: Any, decimals: int | None = None, sig: int = 5) -> list[str]:
-    """``[fmt(v, decimals, sig) for v in values]`` for numeric values, with the format
-    specification built once (tables of a 50-unit lot hold ~25,000 numbers)."""
-    x = np.asarray(values, dtype=float)
+def td_numbers(values: Sequence[float], finite: Sequence[bool], decimals: int | None = None,
+               sig: int = 5) -> str:
+    """``"".join(f"<td>{fmt(v, decimals, sig)}</td>")`` over a row of Python floats and
+    their finiteness (from ``ndarray.tolist()``), the format specification built once."""
     spec = f".{decimals}f" if decimals is not None else f".{sig}g"
     out = []
-    for v, ok in zip(x.tolist(), np.isfinite(x).tolist()):
-        if not ok:
-            out.append(DASH)
-            continue
-        t = format(v, spec)
-        out.append(MINUS + t[1:] if t[0] == "-" else t)
-    return out
+    for v, ok in zip(values, finite):
+        if ok:
+            t = format(v, spec)
+            out.append("<td>" + (MINUS + t[1:] if t[0] == "-" else t) + "</td>")
+        else:
+            out.append("<td>" + DASH + "</td>")
+    return "".join(out)
 
 
 def with_unit(label: str) -> str:
@@ -295,6 +295,9 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[str]], cls: str = "",
                    for i, h in enumerate(headers))
     body = []
     for r in rows:
+        if isinstance(r, str):  # a ready-made <tr>...</tr>
+            body.append(r)
+            continue
         row_attr = ""
         if isinstance(r, tuple) and len(r) == 2 and isinstance(r[0], dict):
             row_attr = " " + " ".join(f'{k}="{esc(v)}"' for k, v in r[0].items())
