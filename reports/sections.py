@@ -139,14 +139,21 @@ class LotContext:
             src = self.parameters.rename(columns={"value": "mean"})
         if src is None:
             return
-        for (model, name), g in src.groupby(["model", "parameter"], sort=False):
-            uom = str(g["unit_of_measure"].dropna().iloc[0]) if "unit_of_measure" in g and g["unit_of_measure"].notna().any() else ""
+        # one pass over the columns as numpy/lists, positions per (model, parameter) from a
+        # single group-by (pandas operations per group cost ~1 ms each, ~60 groups a lot)
+        uoms = list(src["unit_of_measure"]) if "unit_of_measure" in src else None
+        stds = src["std"].to_numpy(dtype=float) if "std" in src else None
+        means = src["mean"].to_numpy(dtype=float)
+        for (model, name), pos in src.groupby(["model", "parameter"], sort=False).indices.items():
+            uom = ""
+            if uoms is not None:
+                uom = next((str(uoms[i]) for i in pos if pd.notna(uoms[i])), "")
             label, scale = display_unit(uom)
             spread = np.nan
-            if "std" in g and g["std"].notna().any():
-                spread = float(np.nanmedian(g["std"].to_numpy(dtype=float)))
+            if stds is not None and (~np.isnan(stds[pos])).any():
+                spread = float(np.nanmedian(stds[pos]))
             if not (math.isfinite(spread) and spread > 0):
-                m = g["mean"].to_numpy(dtype=float)
+                m = means[pos]
                 spread = float(np.nanmedian(np.abs(m - np.nanmedian(m)))) * 1.4826 if len(m) > 1 else np.nan
             dec = decimals_for(spread * scale, extra=1)
             self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec)
@@ -182,14 +189,15 @@ class LotContext:
                 V, S = w["value"].to_numpy(float), w["stderr"].to_numpy(float)
                 idx = w.index
                 keys = list(zip(idx.get_level_values(0), idx.get_level_values(1)))
+                names = [str(x) for x in idx.get_level_values(2)]
+                have_all = np.isfinite(V)
                 start = 0
                 for k in range(1, len(keys) + 1):
                     if k == len(keys) or keys[k] != keys[start]:
                         sl = slice(start, k)
-                        v = V[sl]
-                        have = np.isfinite(v).any(axis=0)  # repetitions this unit has
-                        cache[keys[start]] = ([str(x) for x in idx.get_level_values(2)[sl]],
-                                              [r for r, h in zip(reps, have) if h], v[:, have], S[sl][:, have])
+                        have = have_all[sl].any(axis=0)  # repetitions this unit has
+                        cache[keys[start]] = (names[sl], [r for r, h in zip(reps, have) if h],
+                                              V[sl][:, have], S[sl][:, have])
                         start = k
             self.__dict__["_rep_tables"] = cache
         return cache.get((unit, model))
