@@ -257,6 +257,9 @@ def td_numbers(values: Sequence[float], finite: Sequence[bool], decimals: int | 
                sig: int = 5) -> str:
     """``"".join(f"<td>{fmt(v, decimals, sig)}</td>")`` over a row of Python floats and
     their finiteness (from ``ndarray.tolist()``), the format specification built once."""
+    if decimals is not None and all(finite):
+        # fixed-point text holds no '-' but a leading sign: one replace for the whole row
+        return ("<td>" + "</td><td>".join(map(f"{{:.{decimals}f}}".format, values)) + "</td>").replace("-", MINUS)
     spec = f".{decimals}f" if decimals is not None else f".{sig}g"
     out = []
     for v, ok in zip(values, finite):

@@ -197,6 +197,7 @@ class LotContext:
                 keys = list(zip(py_values(idx.get_level_values(0)), py_values(idx.get_level_values(1))))
                 names = [str(x) for x in py_values(idx.get_level_values(2))]
                 have_all = np.isfinite(V)
+                offsets = {}
                 start = 0
                 for k in range(1, len(keys) + 1):
                     if k == len(keys) or keys[k] != keys[start]:
@@ -204,9 +205,22 @@ class LotContext:
                         have = have_all[sl].any(axis=0)  # repetitions this unit has
                         cache[keys[start]] = (names[sl], [r for r, h in zip(reps, have) if h],
                                               V[sl][:, have], S[sl][:, have])
+                        offsets[keys[start]] = start
                         start = k
+                # average, spread and mean stderr of every row of the lot at once, in display
+                # units: the finite values of a row are the same with or without the
+                # repetitions its unit lacks, so these equal the per-table statistics
+                scale = np.array([self.info(m, n).scale for (_, m), n in zip(keys, names)])[:, None]
+                self.__dict__["_rep_stat_rows"] = (offsets, *_rep_stats(V * scale, S * scale))
             self.__dict__["_rep_tables"] = cache
         return cache.get((unit, model))
+
+    def rep_stats(self, unit: str, model: str, rows: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(average, spread, mean stderr) in display units of rows ``rows`` of
+        ``rep_table(unit, model)``."""
+        offsets, avg, spread, mean_se = self.__dict__["_rep_stat_rows"]
+        at = offsets[(unit, model)] + np.asarray(rows, dtype=int)
+        return avg[at], spread[at], mean_se[at]
 
     def unit_models(self, unit: str) -> list[str]:
         cache = self.__dict__.get("_unit_models")
@@ -548,9 +562,8 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
     row_of = {n: i for i, n in enumerate(pnames)}
     infos = [ctx.info(model, n) for n in names]
     order = [row_of[n] for n in names]
-    scale = np.array([info.scale for info in infos])[:, None]
-    Vs, Ss = V[order] * scale, S[order] * scale
-    avg, spread, mean_se = _rep_stats(Vs, Ss)
+    Vs = V[order] * np.array([info.scale for info in infos])[:, None]
+    avg, spread, mean_se = ctx.rep_stats(unit, model, order)
     rows = []
     values, finite = Vs.tolist(), np.isfinite(Vs).tolist()
     for k, (n, info) in enumerate(zip(names, infos)):
