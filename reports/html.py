@@ -12,6 +12,7 @@ from ``file://`` with no network.
 from __future__ import annotations
 
 import base64
+import functools
 import html
 import json
 import math
@@ -426,12 +427,18 @@ class Page:
             "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
             f"<title>{esc(self.title)}</title><style>{_CSS}</style>"
-            f"<script>{get_plotlyjs()}</script></head>"
+            f"<script>{plotly_js()}</script></head>"
             f"<body data-figures-total=\"{self.n_figures}\">{header_html}<main>{body_html}</main>"
             f"<footer>mimucal report · generated {generated} · {self.n_figures} figures · "
             "self-contained (plotly.js embedded), works offline</footer>"
             f"<script>{runtime}</script></body></html>\n"
         )
+
+
+@functools.lru_cache(maxsize=1)
+def plotly_js() -> str:
+    """plotly.js, read from plotly's package once per process (a 4.6 MB file)."""
+    return get_plotlyjs()
 
 
 def write_atomic(path, text: str) -> None:
