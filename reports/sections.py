@@ -563,20 +563,29 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
     if wide is None:
         return ""
     pnames, reps, V, S = wide
-    names = ordered_params(model, pnames)
+    # row order, display facts and the two text cells of each row: the same for every unit
+    # with the same parameters, so worked out once per model and parameter list
+    layouts = ctx.__dict__.setdefault("_rep_layouts", {})
+    layout = layouts.get((model, tuple(pnames)))
+    if layout is None:
+        names = ordered_params(model, pnames)
+        row_of = {n: i for i, n in enumerate(pnames)}
+        infos = [ctx.info(model, n) for n in names]
+        heads = [f'<tr><td class="text">{pretty_param(n)}</td><td class="text">{esc(info.label) or DASH}</td>'
+                 for n, info in zip(names, infos)]
+        layout = layouts[(model, tuple(pnames))] = (
+            names, [row_of[n] for n in names], infos, heads, np.array([info.scale for info in infos])[:, None])
+    names, order, infos, heads, scale = layout
     flagged = ctx.flagged_params(unit, model)
     headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Mean stderr"]
-    row_of = {n: i for i, n in enumerate(pnames)}
-    infos = [ctx.info(model, n) for n in names]
-    order = [row_of[n] for n in names]
-    Vs = V[order] * np.array([info.scale for info in infos])[:, None]
+    Vs = V[order] * scale
     avg, spread, mean_se = ctx.rep_stats(unit, model, order)
     rows = []
     values, finite = Vs.tolist(), np.isfinite(Vs).tolist()
     for k, (n, info) in enumerate(zip(names, infos)):
         # the row as html.table would write it (two text cells, numbers right-aligned)
         cls = "avg flagged" if n in flagged else "avg"
-        rows.append(f'<tr><td class="text">{pretty_param(n)}</td><td class="text">{esc(info.label) or DASH}</td>'
+        rows.append(heads[k]
                     + td_numbers(values[k], finite[k], info.decimals)
                     + f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>'
                     f'<td class="spread">{fmt(spread[k], sig=2)}</td><td class="spread">{fmt(mean_se[k], sig=2)}</td></tr>')
