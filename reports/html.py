@@ -12,6 +12,7 @@ from ``file://`` with no network.
 from __future__ import annotations
 
 import base64
+import functools
 import html
 import json
 import math
@@ -253,6 +254,24 @@ def fmt(v: Any, decimals: int | None = None, sig: int = 5) -> str:
     return s
 
 
+def td_numbers(values: Sequence[float], finite: Sequence[bool], decimals: int | None = None,
+               sig: int = 5) -> str:
+    """``"".join(f"<td>{fmt(v, decimals, sig)}</td>")`` over a row of Python floats and
+    their finiteness (from ``ndarray.tolist()``), the format specification built once."""
+    if decimals is not None and all(finite):
+        # fixed-point text holds no '-' but a leading sign: one replace for the whole row
+        return ("<td>" + "</td><td>".join(map(f"{{:.{decimals}f}}".format, values)) + "</td>").replace("-", MINUS)
+    spec = f".{decimals}f" if decimals is not None else f".{sig}g"
+    out = []
+    for v, ok in zip(values, finite):
+        if ok:
+            t = format(v, spec)
+            out.append("<td>" + (MINUS + t[1:] if t[0] == "-" else t) + "</td>")
+        else:
+            out.append("<td>" + DASH + "</td>")
+    return "".join(out)
+
+
 def with_unit(label: str) -> str:
     return f" [{label}]" if label else ""
 
@@ -280,6 +299,9 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[str]], cls: str = "",
                    for i, h in enumerate(headers))
     body = []
     for r in rows:
+        if isinstance(r, str):  # a ready-made <tr>...</tr>
+            body.append(r)
+            continue
         row_attr = ""
         if isinstance(r, tuple) and len(r) == 2 and isinstance(r[0], dict):
             row_attr = " " + " ".join(f'{k}="{esc(v)}"' for k, v in r[0].items())
@@ -405,12 +427,18 @@ class Page:
             "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
             f"<title>{esc(self.title)}</title><style>{_CSS}</style>"
-            f"<script>{get_plotlyjs()}</script></head>"
+            f"<script>{plotly_js()}</script></head>"
             f"<body data-figures-total=\"{self.n_figures}\">{header_html}<main>{body_html}</main>"
             f"<footer>mimucal report · generated {generated} · {self.n_figures} figures · "
             "self-contained (plotly.js embedded), works offline</footer>"
             f"<script>{runtime}</script></body></html>\n"
         )
+
+
+@functools.lru_cache(maxsize=1)
+def plotly_js() -> str:
+    """plotly.js, read from plotly's package once per process (a 4.6 MB file)."""
+    return get_plotlyjs()
 
 
 def write_atomic(path, text: str) -> None:

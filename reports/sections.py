@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, Page, arr, decimals_for, display_unit,
-                          esc, fmt, fmt_time, grid, kpi, missing, table, with_unit)
+                          esc, fmt, fmt_time, grid, kpi, missing, table, td_numbers, with_unit)
 from reports.store import StoreView
 
 # Models in the key-parameter table and strip plots, with their headings.
@@ -42,6 +42,12 @@ PARAM_ORDER = {
     "gyro_traditional": [f"s_g{m}" for m in _MAT] + [f"b_g_{a}" for a in "xyz"],
     "accel_traditional": [f"s_a{m}" for m in _MAT] + [f"b_a_{a}" for a in "xyz"],
 }
+def py_values(x: pd.Series | pd.Index) -> list:
+    """The elements of a Series or Index as Python objects, as ``list(x)`` gives them, without
+    iterating an Arrow-backed string array element by element (~4 us an element)."""
+    return x.to_numpy(dtype=object).tolist()
+
+
 def pretty_param(name: str) -> str:
     n = str(name)
     for pre in ("k_g", "k_a", "s_g", "s_a"):
@@ -139,14 +145,21 @@ class LotContext:
             src = self.parameters.rename(columns={"value": "mean"})
         if src is None:
             return
-        for (model, name), g in src.groupby(["model", "parameter"], sort=False):
-            uom = str(g["unit_of_measure"].dropna().iloc[0]) if "unit_of_measure" in g and g["unit_of_measure"].notna().any() else ""
+        # one pass over the columns as numpy/lists, positions per (model, parameter) from a
+        # single group-by (pandas operations per group cost ~1 ms each, ~60 groups a lot)
+        uoms = py_values(src["unit_of_measure"]) if "unit_of_measure" in src else None
+        stds = src["std"].to_numpy(dtype=float) if "std" in src else None
+        means = src["mean"].to_numpy(dtype=float)
+        for (model, name), pos in src.groupby(["model", "parameter"], sort=False).indices.items():
+            uom = ""
+            if uoms is not None:
+                uom = next((str(uoms[i]) for i in pos if pd.notna(uoms[i])), "")
             label, scale = display_unit(uom)
             spread = np.nan
-            if "std" in g and g["std"].notna().any():
-                spread = float(np.nanmedian(g["std"].to_numpy(dtype=float)))
+            if stds is not None and (~np.isnan(stds[pos])).any():
+                spread = float(np.nanmedian(stds[pos]))
             if not (math.isfinite(spread) and spread > 0):
-                m = g["mean"].to_numpy(dtype=float)
+                m = means[pos]
                 spread = float(np.nanmedian(np.abs(m - np.nanmedian(m)))) * 1.4826 if len(m) > 1 else np.nan
             dec = decimals_for(spread * scale, extra=1)
             self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec)
@@ -181,22 +194,43 @@ class LotContext:
                 reps = [int(r) for r in w["value"].columns]
                 V, S = w["value"].to_numpy(float), w["stderr"].to_numpy(float)
                 idx = w.index
-                keys = list(zip(idx.get_level_values(0), idx.get_level_values(1)))
+                keys = list(zip(py_values(idx.get_level_values(0)), py_values(idx.get_level_values(1))))
+                names = [str(x) for x in py_values(idx.get_level_values(2))]
+                have_all = np.isfinite(V)
+                offsets = {}
                 start = 0
                 for k in range(1, len(keys) + 1):
                     if k == len(keys) or keys[k] != keys[start]:
                         sl = slice(start, k)
-                        v = V[sl]
-                        have = np.isfinite(v).any(axis=0)  # repetitions this unit has
-                        cache[keys[start]] = ([str(x) for x in idx.get_level_values(2)[sl]],
-                                              [r for r, h in zip(reps, have) if h], v[:, have], S[sl][:, have])
+                        have = have_all[sl].any(axis=0)  # repetitions this unit has
+                        cache[keys[start]] = (names[sl], [r for r, h in zip(reps, have) if h],
+                                              V[sl][:, have], S[sl][:, have])
+                        offsets[keys[start]] = start
                         start = k
+                # average, spread and mean stderr of every row of the lot at once, in display
+                # units: the finite values of a row are the same with or without the
+                # repetitions its unit lacks, so these equal the per-table statistics
+                scale = np.array([self.info(m, n).scale for (_, m), n in zip(keys, names)])[:, None]
+                self.__dict__["_rep_stat_rows"] = (offsets, *_rep_stats(V * scale, S * scale))
             self.__dict__["_rep_tables"] = cache
         return cache.get((unit, model))
 
+    def rep_stats(self, unit: str, model: str, rows: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(average, spread, mean stderr) in display units of rows ``rows`` of
+        ``rep_table(unit, model)``."""
+        offsets, avg, spread, mean_se = self.__dict__["_rep_stat_rows"]
+        at = offsets[(unit, model)] + np.asarray(rows, dtype=int)
+        return avg[at], spread[at], mean_se[at]
+
     def unit_models(self, unit: str) -> list[str]:
-        self.rep_table(unit, "")
-        return ordered_models(m for (u, m) in self.__dict__["_rep_tables"] if u == unit)
+        cache = self.__dict__.get("_unit_models")
+        if cache is None:
+            self.rep_table(unit, "")
+            found: dict[str, list[str]] = {}
+            for u, m in self.__dict__["_rep_tables"]:
+                found.setdefault(u, []).append(m)
+            cache = self.__dict__["_unit_models"] = {u: ordered_models(ms) for u, ms in found.items()}
+        return cache.get(unit, [])
 
     def info(self, model: str, name: str) -> ParamInfo:
         return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None)
@@ -213,14 +247,47 @@ class LotContext:
             return None
         return self.unit_rows("flags", unit)
 
+    def _flag_index(self) -> dict[str, dict[str, set[str]]]:
+        """unit -> model -> names of its flagged parameters, from the flagged summary rows
+        once (reading them back per unit and per table costs ~1 ms a time in pandas)."""
+        cache = self.__dict__.get("_flags_by_unit")
+        if cache is None:
+            cache = {}
+            rows: dict[str, int] = {}
+            f = self.flags
+            if f is not None and len(f):
+                for u, m, n in zip(py_values(f["unit"]), py_values(f["model"]), py_values(f["parameter"])):
+                    cache.setdefault(str(u), {}).setdefault(m, set()).add(n)
+                    rows[str(u)] = rows.get(str(u), 0) + 1
+            self.__dict__["_flags_by_unit"] = cache
+            self.__dict__["_flag_rows"] = rows
+        return cache
+
+    def n_param_flags(self, unit: str) -> int:
+        """Flagged summary rows of a unit (0 when there is no summary)."""
+        self._flag_index()
+        return self.__dict__["_flag_rows"].get(unit, 0)
+
+    def flagged_params(self, unit: str, model: str) -> set[str]:
+        return self._flag_index().get(unit, {}).get(model, set())
+
     def session_counts(self, unit: str | None = None) -> dict[str, int]:
         s = self.sessions
         if s is None:
             return {}
-        if unit is not None:
-            s = self.unit_rows("sessions", unit)
-        vc = s["status"].astype(str).value_counts()
-        return {k: int(vc.get(k, 0)) for k in ("ok", "warned", "failed")}
+        if unit is None:
+            vc = s["status"].astype(str).value_counts()
+            return {k: int(vc.get(k, 0)) for k in ("ok", "warned", "failed")}
+        cache = self.__dict__.get("_session_counts")
+        if cache is None:
+            # one group-by for the lot instead of a value_counts per unit
+            size = s.groupby([s["unit"], s["status"].astype(str)], sort=False).size()
+            cache = {}
+            for (u, st), n in size.items():
+                cache.setdefault(str(u), {})[st] = int(n)
+            self.__dict__["_session_counts"] = cache
+        c = cache.get(unit, {})
+        return {k: c.get(k, 0) for k in ("ok", "warned", "failed")}
 
 
 def aggregate_residuals(res: pd.DataFrame | None) -> pd.DataFrame | None:
@@ -285,7 +352,7 @@ def kpi_block(ctx: LotContext, unit: str | None = None) -> str:
         items += [kpi("Units", str(len(ctx.units))),
                   kpi("Units flagged", f"{n_flag}", "bad" if n_flag else "good")]
     else:
-        n = 0 if ctx.unit_flags(unit) is None else len(ctx.unit_flags(unit))
+        n = ctx.n_param_flags(unit)
         items.append(kpi("Flagged parameters", str(n), "bad" if n else "good"))
     extra = f'<p class="note">Run id: <span class="mono">{esc(run_ids or "unknown")}</span></p>'
     return f'<div class="kpis">{"".join(items)}</div>{extra}'
@@ -340,7 +407,10 @@ def key_parameter_table(ctx: LotContext) -> str:
         title = dict(KEY_MODELS).get(m, m)
         group.append(f'<th colspan="{len(names)}">{title}</th>')
     group.append("</tr>")
-    by_key = {(r.unit, r.model, r.parameter): r for r in s.itertuples()}
+    # the summary's columns as Python lists once (itertuples over ~3,000 rows costs ~40 ms)
+    col = {c: py_values(s[c]) for c in ("mean", "std", "n_reps", "flagged", "flag_reason") if c in s}
+    by_key = {k: i for i, k in enumerate(zip(py_values(s["unit"]), py_values(s["model"]), py_values(s["parameter"])))}
+    no_flags = [False] * len(s)
     headers = ["Unit", "Sessions used/all", "Flags"]
     for m, n in cols:
         p = ctx.info(m, n)
@@ -349,28 +419,28 @@ def key_parameter_table(ctx: LotContext) -> str:
     for unit in ctx.units:
         c = ctx.session_counts(unit)
         n_all = sum(c.values()) if c else 0
-        uf = ctx.unit_flags(unit)
-        n_flags = (0 if uf is None else len(uf)) + (unit in ctx.unit_level_flags)
+        n_flags = ctx.n_param_flags(unit) + (unit in ctx.unit_level_flags)
         cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
                  + (' <span class="badge flag">⚑ flagged</span>' if n_flags else "") + "</td>",
                  f'<td data-sort="{c.get("ok", 0) + c.get("warned", 0)}">{c.get("ok", 0) + c.get("warned", 0)}/{n_all}'
                  + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
                  f'<td data-sort="{n_flags}">{n_flags or ""}</td>']
         for m, n in cols:
-            r = by_key.get((unit, m, n))
-            if r is None:
+            i = by_key.get((unit, m, n))
+            if i is None:
                 cells.append(f'<td data-sort="">{DASH}</td>')
                 continue
             p = ctx.info(m, n)
-            val = ctx.value(m, n, r.mean)
-            std = fmt(float(r.std) * p.scale, sig=2) if pd.notna(r.std) else DASH
-            tip = f"{m} {n} = {val} {p.label} (spread over {r.n_reps} reps: {std})"
-            if bool(getattr(r, "flagged", False)):
-                tip += f" — FLAGGED: {getattr(r, 'flag_reason', '')}"
-                cells.append(f'<td class="flagged" data-flagged="1" data-param="{esc(n)}" data-sort="{float(r.mean)!r}" '
+            mean, r_std = col["mean"][i], col["std"][i]
+            val = ctx.value(m, n, mean)
+            std = fmt(float(r_std) * p.scale, sig=2) if pd.notna(r_std) else DASH
+            tip = f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: {std})"
+            if bool(col.get("flagged", no_flags)[i]):
+                tip += f" — FLAGGED: {col['flag_reason'][i] if 'flag_reason' in col else ''}"
+                cells.append(f'<td class="flagged" data-flagged="1" data-param="{esc(n)}" data-sort="{float(mean)!r}" '
                              f'title="{esc(tip)}">{val}</td>')
             else:
-                cells.append(f'<td data-param="{esc(n)}" data-sort="{float(r.mean)!r}" title="{esc(tip)}">{val}</td>')
+                cells.append(f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>')
         rows.append(({"class": "flagged-unit" if n_flags else "", "data-unit": unit}, cells))
     note = ('<p class="note">Mean over repetitions per unit. Click a column heading to sort. '
             'Flagged cells (red, ⚑) are outliers of the lot; hover a cell for its spread and the reason. '
@@ -409,14 +479,21 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
     layout, refs = grid(nrows, ncols, titles, hspace=0.055, vspace=0.3 / nrows)
     data: list[dict] = []
     unit_index = {u: i for i, u in enumerate(ctx.units)}
-    by_name = {str(k): g for k, g in sm.groupby("parameter", sort=False)}
+    # the model's columns once, then each parameter's rows by position (pandas per parameter
+    # costs ~1 ms a panel, 45 panels a lot)
+    by_name = {str(k): pos for k, pos in sm.groupby("parameter", sort=False).indices.items()}
+    mean_all = sm["mean"].to_numpy(dtype=float)
+    flagged_all = (sm["flagged"].fillna(False).astype(bool).to_numpy() if "flagged" in sm
+                   else np.zeros(len(sm), bool))
+    units_all = sm["unit"].astype(str).to_numpy()
+    reasons_all = sm["flag_reason"].astype(str).to_numpy() if "flag_reason" in sm else None
     for k, n in enumerate(names):
         xr, yr = refs[k]
-        g = by_name[n]
+        pos = by_name[n]
         p = ctx.info(model, n)
-        vals = g["mean"].to_numpy(dtype=float) * p.scale
-        flagged = g["flagged"].fillna(False).astype(bool).to_numpy() if "flagged" in g else np.zeros(len(g), bool)
-        units = g["unit"].astype(str).to_numpy()
+        vals = mean_all[pos] * p.scale
+        flagged = flagged_all[pos]
+        units = units_all[pos]
         x = np.array([_jitter(unit_index.get(u, i)) for i, u in enumerate(units)])
         hover = np.array([f"{u}<br>{n} = {fmt(v, p.decimals)} {p.label}" for u, v in zip(units, vals)])
         data.append({"type": "box", "y": arr(vals[~flagged]), "x0": 0, "name": "lot", "boxpoints": False,
@@ -428,7 +505,7 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
                      "text": list(hover[~flagged]), "hoverinfo": "text", "showlegend": k == 0,
                      "legendgroup": "clean", "xaxis": xr, "yaxis": yr})
         if flagged.any():
-            reasons = g["flag_reason"].astype(str).to_numpy()[flagged] if "flag_reason" in g else [""] * int(flagged.sum())
+            reasons = reasons_all[pos][flagged] if reasons_all is not None else [""] * int(flagged.sum())
             data.append({"type": "scatter", "x": arr(x[flagged]), "y": arr(vals[flagged]),
                          "mode": "markers+text", "name": "flagged unit",
                          "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond",
@@ -453,6 +530,30 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
 
 # ----------------------------------------------------------------------------- per unit tables
 
+def _rep_stats(V: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row (parameter) of repetition values V and their stderrs S: average and spread
+    (std, ddof 1) over the finite values, and the standard error of the average of
+    independent repetitions. Rows without a missing value are reduced together (the same
+    arithmetic, row by row, as np.mean / np.std of that row); the others one by one."""
+    n_rows, n_reps = V.shape
+    avg, spread, mean_se = np.full(n_rows, np.nan), np.full(n_rows, np.nan), np.full(n_rows, np.nan)
+    full_v = np.isfinite(V).all(axis=1)
+    full_s = np.isfinite(S).all(axis=1)
+    if n_reps:
+        avg[full_v] = np.mean(V[full_v], axis=1)
+        mean_se[full_s] = np.sqrt(np.sum(S[full_s] ** 2, axis=1)) / n_reps
+    if n_reps > 1:
+        spread[full_v] = np.std(V[full_v], axis=1, ddof=1)
+    for k in np.flatnonzero(~full_v):
+        vals = V[k][np.isfinite(V[k])]
+        avg[k] = float(np.mean(vals)) if len(vals) else np.nan
+        spread[k] = float(np.std(vals, ddof=1)) if len(vals) > 1 else np.nan
+    for k in np.flatnonzero(~full_s):
+        se = S[k][np.isfinite(S[k])]
+        mean_se[k] = float(np.sqrt(np.sum(se ** 2)) / len(se)) if len(se) else np.nan
+    return avg, spread, mean_se
+
+
 def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
     """xu2016 Table 1/2 layout: a row per parameter, a column per repetition, average, spread."""
     p = ctx.parameters
@@ -462,30 +563,32 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
     if wide is None:
         return ""
     pnames, reps, V, S = wide
-    names = ordered_params(model, pnames)
-    flagged = set()
-    uf = ctx.unit_flags(unit)
-    if uf is not None:
-        flagged = {r.parameter for r in uf.itertuples() if r.model == model}
+    # row order, display facts and the two text cells of each row: the same for every unit
+    # with the same parameters, so worked out once per model and parameter list
+    layouts = ctx.__dict__.setdefault("_rep_layouts", {})
+    layout = layouts.get((model, tuple(pnames)))
+    if layout is None:
+        names = ordered_params(model, pnames)
+        row_of = {n: i for i, n in enumerate(pnames)}
+        infos = [ctx.info(model, n) for n in names]
+        heads = [f'<tr><td class="text">{pretty_param(n)}</td><td class="text">{esc(info.label) or DASH}</td>'
+                 for n, info in zip(names, infos)]
+        layout = layouts[(model, tuple(pnames))] = (
+            names, [row_of[n] for n in names], infos, heads, np.array([info.scale for info in infos])[:, None])
+    names, order, infos, heads, scale = layout
+    flagged = ctx.flagged_params(unit, model)
     headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Mean stderr"]
+    Vs = V[order] * scale
+    avg, spread, mean_se = ctx.rep_stats(unit, model, order)
     rows = []
-    row_of = {n: i for i, n in enumerate(pnames)}
-    for n in names:
-        info = ctx.info(model, n)
-        row = V[row_of[n]] * info.scale
-        vals = row[np.isfinite(row)]
-        avg = float(np.mean(vals)) if len(vals) else np.nan
-        spread = float(np.std(vals, ddof=1)) if len(vals) > 1 else np.nan
-        se = S[row_of[n]] * info.scale
-        se = se[np.isfinite(se)]
-        # standard error of the average of independent repetitions
-        mean_se = float(np.sqrt(np.sum(se ** 2)) / len(se)) if len(se) else np.nan
-        cells = [pretty_param(n), esc(info.label) or DASH]
-        cells += [fmt(v, info.decimals) for v in row]
+    values, finite = Vs.tolist(), np.isfinite(Vs).tolist()
+    for k, (n, info) in enumerate(zip(names, infos)):
+        # the row as html.table would write it (two text cells, numbers right-aligned)
         cls = "avg flagged" if n in flagged else "avg"
-        cells += [f'<td class="{cls}">{fmt(avg, info.decimals)}</td>',
-                  f'<td class="spread">{fmt(spread, sig=2)}</td>', f'<td class="spread">{fmt(mean_se, sig=2)}</td>']
-        rows.append(cells)
+        rows.append(heads[k]
+                    + td_numbers(values[k], finite[k], info.decimals)
+                    + f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>'
+                    f'<td class="spread">{fmt(spread[k], sig=2)}</td><td class="spread">{fmt(mean_se[k], sig=2)}</td></tr>')
     return (f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>"
             + table(headers, rows, cls="paper", text_cols=2, wrap=False))
 
@@ -502,18 +605,30 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
         agg = cc.groupby(["unit", "input_axis", "method", "output_axis"], sort=True).agg(
             lo=("err_min", "min"), hi=("err_max", "max"), n_reps=("rep", "nunique"))
         uom = cc.groupby("unit")["unit_of_measure"].first() if "unit_of_measure" in cc else pd.Series(dtype=object)
-        src = cc.groupby("unit")["source"].agg(lambda x: ", ".join(sorted({str(v) for v in x.dropna()}))) \
-            if "source" in cc else pd.Series(dtype=object)
-        cache = {"agg": {str(u): g.droplevel(0) for u, g in agg.groupby(level=0, sort=False)},
-                 "uom": uom.to_dict(), "src": src.to_dict()}
+        # per unit: its distinct sources, sorted and joined
+        src_sets: dict[Any, set[str]] = {}
+        if "source" in cc:
+            pairs = cc[["unit", "source"]].dropna(subset=["source"]).drop_duplicates()
+            for u, v in zip(py_values(pairs["unit"]), py_values(pairs["source"])):
+                src_sets.setdefault(u, set()).add(str(v))
+        # per unit: {(input, method, output): (lo, hi)} and the number of repetitions, read
+        # out of the aggregate once (pandas row access per unit costs ~4 ms a unit)
+        lookups: dict[str, dict] = {}
+        n_reps_of: dict[str, int] = {}
+        idx = agg.index
+        for u, inp, m, o, lo, hi, n in zip(*(py_values(idx.get_level_values(k)) for k in range(4)),
+                                           agg["lo"].tolist(), agg["hi"].tolist(), agg["n_reps"].tolist()):
+            lookups.setdefault(str(u), {})[(inp, m, o)] = (lo, hi)
+            n_reps_of[str(u)] = max(n_reps_of.get(str(u), n), n)
+        cache = {"lookup": lookups, "n_reps": n_reps_of, "uom": uom.to_dict(),
+                 "src": {u: ", ".join(sorted(v)) for u, v in src_sets.items()}}
         ctx.__dict__["_comp"] = cache
-    g = cache["agg"].get(unit)
-    if g is None or not len(g):
+    lookup = cache["lookup"].get(unit)
+    if not lookup:
         return '<p class="note">Table 3: no verification sweep for this unit.</p>'
     uom = str(cache["uom"].get(unit) or "deg/s")
     src = cache["src"].get(unit, "")
-    n_reps = int(g["n_reps"].max())
-    lookup = {k: (lo, hi) for k, lo, hi in zip(g.index, g["lo"], g["hi"])}
+    n_reps = int(cache["n_reps"][unit])
     outs = sorted({k[2] for k in lookup})
     present = {k[1] for k in lookup}
     methods = [m for m in ("uncompensated", "proposed", "traditional") if m in present]
@@ -545,30 +660,74 @@ def other_models_tables(ctx: LotContext, unit: str) -> str:
 
 # ----------------------------------------------------------------------------- residual plots
 
-def _models_of(d: pd.DataFrame) -> list[str]:
-    found = set(d["model"].astype(str))
-    return [m for m in ("baseline", "extended") if m in found] + sorted(found - {"baseline", "extended"})
+class ResidualIndex:
+    """The aggregated residuals of a lot as numpy columns plus each unit's row positions,
+    built once per report: per-unit figures then cost a few array takes instead of pandas
+    filters, sorts and group-bys per unit (~35 ms a unit)."""
+
+    def __init__(self, a: pd.DataFrame) -> None:
+        self.rows = {str(u): pos for u, pos in a.groupby("unit", sort=False).indices.items()}
+        self.is_gyro = (((a["test"] == "multirate") & a["channel"].isin(["gx", "gy", "gz"]))
+                        .fillna(False).to_numpy(bool))
+        self.is_accel = (((a["test"] == "multiposition") & a["channel"].isin(["ax", "ay", "az"]))
+                         .fillna(False).to_numpy(bool))
+        self.model = a["model"].astype(str).to_numpy(object)
+        self.channel = a["channel"].to_numpy(object)
+        self.up_axis = a["up_axis"].astype(str).to_numpy(object)
+        self.step = a["step"].to_numpy()
+        self.angle_deg = a["angle_deg"].to_numpy(float)
+        self.rate_dps = a["rate_dps"].to_numpy(float)
+        self.residual = a["residual"].to_numpy(float)
+        self.rmin = a["rmin"].to_numpy(float)
+        self.rmax = a["rmax"].to_numpy(float)
+
+    def select(self, unit: str, which: np.ndarray, by: np.ndarray) -> np.ndarray | None:
+        """Row positions of a unit where ``which``, ordered by ``by`` as pandas
+        ``sort_values`` orders them (numpy quicksort of the non-NaN values, NaNs last), so
+        that the points come out in the same order as before."""
+        pos = self.rows.get(unit)
+        if pos is None:
+            return None
+        pos = pos[which[pos]]
+        key = by[pos]
+        nan = np.isnan(key) if key.dtype.kind == "f" else np.zeros(len(key), bool)
+        ok = np.flatnonzero(~nan)
+        order = np.concatenate([ok[key[ok].argsort(kind="quicksort")], np.flatnonzero(nan)])
+        return pos[order]
 
 
-def _residual_figure(d: pd.DataFrame, channels: tuple[str, ...], x_of, scale: float, unit: str,
-                     x_title: str, symbol: str, categorical: bool) -> dict:
-    models = _models_of(d)
+def residual_index(ctx: LotContext) -> ResidualIndex | None:
+    if ctx.residual_agg is None:
+        return None
+    ri = ctx.__dict__.get("_residual_index")
+    if ri is None:
+        ri = ctx.__dict__["_residual_index"] = ResidualIndex(ctx.residual_agg)
+    return ri
+
+
+def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...], x_of, scale: float,
+                     unit: str, x_title: str, symbol: str, categorical: bool) -> dict:
+    """``d``: row positions in ``ri`` of one unit's points, in drawing order."""
+    model = ri.model[d]
+    found = set(model)
+    models = [m for m in ("baseline", "extended") if m in found] + sorted(found - {"baseline", "extended"})
     layout, refs = grid(1, len(models), [f"{m} model" for m in models], hspace=0.04, shared_y=True)
     data = []
+    channel = ri.channel[d]
     for j, m in enumerate(models):
         xr, yr = refs[j]
-        by_ch = {str(k): g for k, g in d[d["model"] == m].groupby("channel", sort=False)}
+        of_model = model == m
         for ch in channels:
-            dc = by_ch.get(ch)
-            if dc is None:
+            dc = d[of_model & (channel == ch)]
+            if not len(dc):
                 continue
-            y = dc["residual"].to_numpy(float) * scale
+            y = ri.residual[dc] * scale
             data.append({
                 "type": "scatter", "x": x_of(dc), "y": arr(y), "mode": "markers", "name": f"{ch} error",
                 "marker": {"color": CHANNEL_COLOURS[ch[1]], "size": 6, "symbol": symbol},
                 "error_y": {"type": "data", "symmetric": False,
-                            "array": arr(dc["rmax"].to_numpy(float) * scale - y),
-                            "arrayminus": arr(y - dc["rmin"].to_numpy(float) * scale),
+                            "array": arr(ri.rmax[dc] * scale - y),
+                            "arrayminus": arr(y - ri.rmin[dc] * scale),
                             "thickness": 1, "width": 0, "color": CHANNEL_COLOURS[ch[1]]},
                 "legendgroup": ch, "showlegend": j == 0, "xaxis": xr, "yaxis": yr,
                 "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at %{{x}}<extra>{m} model</extra>"})
@@ -581,29 +740,29 @@ def _residual_figure(d: pd.DataFrame, channels: tuple[str, ...], x_of, scale: fl
 
 
 def gyro_residual_figure(ctx: LotContext, unit: str) -> dict | None:
-    a = ctx.unit_rows("residual_agg", unit)
-    if a is None:
+    ri = residual_index(ctx)
+    if ri is None:
         return None
-    d = a[(a["test"] == "multirate") & a["channel"].isin(["gx", "gy", "gz"])].sort_values("rate_dps")
-    if not len(d):
+    d = ri.select(unit, ri.is_gyro, ri.rate_dps)
+    if d is None or not len(d):
         return None
-    return _residual_figure(d, ("gx", "gy", "gz"), lambda dc: arr(dc["rate_dps"].to_numpy(float)),
+    return _residual_figure(ri, d, ("gx", "gy", "gz"), lambda dc: arr(ri.rate_dps[dc]),
                             1.0, "deg/s", "table rate [deg/s]", "circle", False)
 
 
 def accel_residual_figure(ctx: LotContext, unit: str) -> dict | None:
-    a = ctx.unit_rows("residual_agg", unit)
-    if a is None:
+    ri = residual_index(ctx)
+    if ri is None:
         return None
-    d = a[(a["test"] == "multiposition") & a["channel"].isin(["ax", "ay", "az"])].sort_values("step")
-    if not len(d):
+    d = ri.select(unit, ri.is_accel, ri.step)
+    if d is None or not len(d):
         return None
 
-    def labels(dc: pd.DataFrame) -> list[str]:
-        return [f"{u} up {float(h):g}°" if pd.notna(h) else f"{u} up, step {int(st)}"
-                for u, h, st in zip(dc["up_axis"].astype(str), dc["angle_deg"], dc["step"])]
+    def labels(dc: np.ndarray) -> list[str]:
+        return [f"{u} up {h:g}°" if h == h else f"{u} up, step {int(st)}"
+                for u, h, st in zip(ri.up_axis[dc], ri.angle_deg[dc].tolist(), ri.step[dc].tolist())]
 
-    return _residual_figure(d, ("ax", "ay", "az"), labels, 1e3, "mg",
+    return _residual_figure(ri, d, ("ax", "ay", "az"), labels, 1e3, "mg",
                             "orientation (axis up, heading)", "square", True)
 
 
@@ -648,11 +807,34 @@ _DISC_ORDER = ["effect", "name", "axes", "estimate", "stderr", "evidence", "held
 
 
 def discovery_table(df: pd.DataFrame, with_unit_col: bool) -> str:
-    cols = [c for c in _DISC_ORDER if c in df.columns]
-    cols += [c for c in df.columns if c not in cols and c not in ("lot", "unit", "run_id")]
+    return _discovery_table(list(df.columns), df.to_dict("records"), with_unit_col)
+
+
+def unit_discovery_table(ctx: LotContext, unit: str) -> str:
+    """``discovery_table`` of one unit's rows ("" when it has none), from the lot's rows
+    converted to records once."""
+    cache = ctx.__dict__.get("_disc_records")
+    if cache is None:
+        cache = {}
+        d = ctx.discovery
+        if d is not None and len(d):
+            for r in d.to_dict("records"):
+                u = r.get("unit")
+                if u is not None and not (isinstance(u, float) and math.isnan(u)):
+                    cache.setdefault(str(u), []).append(r)
+        ctx.__dict__["_disc_records"] = cache
+    records = cache.get(unit)
+    if not records:
+        return ""
+    return _discovery_table(list(ctx.discovery.columns), records, with_unit_col=False)
+
+
+def _discovery_table(columns: list[str], records: list[dict], with_unit_col: bool) -> str:
+    cols = [c for c in _DISC_ORDER if c in columns]
+    cols += [c for c in columns if c not in cols and c not in ("lot", "unit", "run_id")]
     headers = (["Unit"] if with_unit_col else []) + [esc(c.replace("_", " ")) for c in cols]
     rows = []
-    for r in df.to_dict("records"):
+    for r in records:
         cells = [f'<a href="#unit-{esc(r["unit"])}">{esc(r["unit"])}</a>'] if with_unit_col else []
         for c in cols:
             v = r.get(c)
@@ -735,8 +917,7 @@ def sessions_section(ctx: LotContext, link_units: bool = True) -> str:
 def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) -> str:
     """The per-unit block of the lot report (and the body of the unit report)."""
     c = ctx.session_counts(unit)
-    uf = ctx.unit_flags(unit)
-    n_flags = (0 if uf is None else len(uf)) + (unit in ctx.unit_level_flags)
+    n_flags = ctx.n_param_flags(unit) + (unit in ctx.unit_level_flags)
     meta = []
     if c:
         meta.append(f"sessions ok {c['ok']}, warned {c['warned']}, failed {c['failed']}")
@@ -767,9 +948,9 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     if others:
         parts.append('<div class="grid2">' + "".join(f"<div>{o}</div>" for o in others) + "</div>")
     if ctx.discovery is not None:
-        d = ctx.unit_rows("discovery", unit)
-        if len(d):
-            parts.append("<h4>Model discovery</h4>" + discovery_table(d, with_unit_col=False))
+        dt = unit_discovery_table(ctx, unit)
+        if dt:
+            parts.append("<h4>Model discovery</h4>" + dt)
     if c.get("failed") and ctx.sessions is not None:
         f = ctx.unit_rows("sessions", unit)
         f = f[f["status"] == "failed"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from reports.history import KEY_ELEMENTS, history_frame
@@ -34,13 +35,22 @@ def navigation_figure(nav: pd.DataFrame) -> dict | None:
     found = {str(c) for c in nav["case"].unique()}
     cases = [c for c in ("none", "static", "static+dynamic") if c in found]
     cases += sorted(found - set(cases))
-    by_case = {str(k): g for k, g in nav.groupby("case", sort=False)}
+    # row positions per case, and only the columns drawn, as numpy (sub-frames of a 60,000-
+    # sample trace with its string columns cost more than the decimation)
+    by_case = {str(k): pos for k, pos in nav.groupby("case", sort=False).indices.items()}
+    t_all = nav["t"].to_numpy(float)
+    y_all = [nav[p].to_numpy(float) for p in panels]
     labels = {"none": "uncalibrated", "static": "static calibration",
               "static+dynamic": "static + dynamic (lever arms)"}
     data = []
     for case in cases:
-        d = by_case[case].sort_values("t")
-        t, ys = decimate(d["t"].to_numpy(float), [d[p].to_numpy(float) for p in panels], NAV_MAX_POINTS)
+        pos = by_case[case]
+        t_case = t_all[pos]
+        # in time order as DataFrame.sort_values("t") gives it: quicksort, NaN times last
+        nan = np.isnan(t_case)
+        ok = np.flatnonzero(~nan)
+        pos = pos[np.concatenate([ok[t_case[ok].argsort(kind="quicksort")], np.flatnonzero(nan)])]
+        t, ys = decimate(t_all[pos], [y[pos] for y in y_all], NAV_MAX_POINTS)
         for k, (p, y) in enumerate(zip(panels, ys)):
             xr, yr = refs[k]
             data.append({"type": "scattergl" if len(t) > 5000 else "scatter", "x": arr(t), "y": arr(y),
