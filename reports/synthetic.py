@@ -187,7 +187,7 @@ def _write(path: Path, df: pd.DataFrame) -> None:
     store = ResultsStore(path.parent)
     name = path.stem
     if name in TABLE_COLUMNS:
-        old = store.read(name) if path.exists() else None
+        old = store.read(name) if store.has_table(name) else None
         store.write(name, df if old is None else pd.concat([old, df], ignore_index=True))
     else:
         if path.exists():
