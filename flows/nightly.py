@@ -15,6 +15,7 @@ heartbeat off and call the flows.
 from __future__ import annotations
 
 import json
+from concurrent.futures import ThreadPoolExecutor
 import os
 import sys
 import time
@@ -492,24 +493,39 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
 
         tally = RunTally()
         store_s = [0.0]
+        writes: deque = deque()
 
-        def on_lot(lot: str, lot_results: list[UnitResult]) -> None:
-            # stored as soon as the lot is complete, then dropped: memory is one lot, not the
-            # fleet; flags and reports wait for every lot (the robust scale is pooled)
+        def store_lot(lot_results: list[UnitResult]) -> None:
             t = time.monotonic()
             tally.add(lot_results, store_results(store, lot_results, run_id, version))
             store_s[0] += time.monotonic() - t
 
+        def on_lot(lot: str, lot_results: list[UnitResult]) -> None:
+            # stored as soon as the lot is complete, then dropped: memory is one lot, not the
+            # fleet; flags and reports wait for every lot (the robust scale is pooled). The
+            # writing runs in one writer thread so that batches keep being submitted meanwhile
+            # (with worker processes the workers would otherwise wait for it); at most one
+            # more lot waits behind the one being written (memory: two lots), and a failed
+            # write fails the run as before
+            while len(writes) >= 2:
+                writes.popleft().result()
+            writes.append(writer.submit(store_lot, lot_results))
+
         if jobs:
             pooled = runner != "dask" and uses_unit_work_pool(runner, len(jobs))
             log["unit_work"] = "worker processes" if pooled else "task runner"
-            with unit_work_pool(None if runner == "dask" else runner,
-                                len(jobs) if pooled else 0):
+            with ThreadPoolExecutor(1, thread_name_prefix="mimucal-store") as writer, \
+                    unit_work_pool(None if runner == "dask" else runner,
+                                   len(jobs) if pooled else 0):
                 _run_batches(jobs, batch_size, run_discovery, on_progress, on_lot,
                              max_in_flight)
-        # calibration_s is the fit phase as before (read ... aggregate), without the storing
-        # that now overlaps it
-        t_cal = time.monotonic() - t0 - store_s[0]
+                t_cal = time.monotonic() - t0
+                while writes:
+                    writes.popleft().result()
+        else:
+            t_cal = time.monotonic() - t0
+        # calibration_s: the fit phase (read ... aggregate) until the last batch is back; the
+        # storing of lots overlaps it (store_s: time spent storing, in the writer thread)
         lots = sorted(tally.lots | (set(store.lots()) if interrupted else set()))
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
         reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
