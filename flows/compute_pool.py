@@ -37,6 +37,8 @@ _broken = False
 
 def _init_worker() -> None:
     # one BLAS thread per worker: two workers on two cores must not each start a pool of two
+    # (flows.task_runners.limit_worker_threads does the same, but referencing it would make
+    # every worker import that module and with it Prefect, which these workers never need)
     try:
         from threadpoolctl import threadpool_limits
         threadpool_limits(1)
