@@ -52,7 +52,7 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import CHANNELS, MotionContext, catalogue, get_effect
 from calib_core.errors import DesignError
 from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, replay_unit,
-                               test_group)
+                               test_group, two_way_residual)
 from calib_core.steps import StepMeans
 from calib_core.results import to_jsonable
 
@@ -184,7 +184,7 @@ class _UnitGrid:
             rows, grp = [], []
             for gi in range(ng):
                 m = self.gcode == gi
-                e, d = _two_way_matrix(Xi[m], self.step[m], r_idx[m])
+                e, d = two_way_residual(Xi[m], self.step[m], r_idx[m])
                 rows.append(e)
                 grp.append(np.full(len(e), gi))
                 dof[gi] = d
@@ -192,24 +192,6 @@ class _UnitGrid:
             grp = np.concatenate(grp)
         e = np.stack(out).reshape(lead + (-1, X.shape[-1]))
         return e, grp, dof
-
-
-def _two_way_matrix(X: np.ndarray, cell: np.ndarray, rep: np.ndarray) -> tuple[np.ndarray, int]:
-    """:func:`calib_core.replay.two_way_residual` for every column of X (m, k) at once."""
-    ci, cell_idx = np.unique(cell, return_inverse=True)
-    ri, rep_idx = np.unique(rep, return_inverse=True)
-    n = len(X)
-    if n == len(ci) * len(ri) and len(np.unique(cell_idx * len(ri) + rep_idx)) == n:
-        table = np.zeros((len(ci), len(ri), X.shape[1]))
-        table[cell_idx, rep_idx] = X
-        e = (table - table.mean(axis=1, keepdims=True) - table.mean(axis=0, keepdims=True)
-             + table.mean(axis=(0, 1), keepdims=True))
-        return e[cell_idx, rep_idx], int((len(ci) - 1) * (len(ri) - 1))
-    D = np.zeros((n, len(ci) + len(ri)))
-    D[np.arange(n), cell_idx] = 1.0
-    D[np.arange(n), len(ci) + rep_idx] = 1.0
-    coef, _, rank, _ = np.linalg.lstsq(D, X, rcond=None)
-    return X - D @ coef, int(n - rank)
 
 
 _DESIGN_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}

@@ -144,22 +144,28 @@ def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray
 
     Removing a value per cell (step) takes out any systematic model error, identical in
     every repetition; removing a value per repetition takes out its turn-on offset; what is
-    left is the repetition-to-repetition scatter of a step mean (pure error)."""
+    left is the repetition-to-repetition scatter of a step mean (pure error). ``values`` is
+    (n,) or (n, k): k columns are fitted at once (model discovery's design columns)."""
+    X = np.asarray(values, float)
+    flat = X.ndim == 1
+    X = X[:, None] if flat else X
     ci, cell_idx = np.unique(cell, return_inverse=True)
     ri, rep_idx = np.unique(rep, return_inverse=True)
-    n = len(values)
+    n = len(X)
     if n == len(ci) * len(ri) and len(np.unique(cell_idx * len(ri) + rep_idx)) == n:
         # balanced (every step in every repetition once): double centring is the fit
-        table = np.zeros((len(ci), len(ri)))
-        table[cell_idx, rep_idx] = values
+        table = np.zeros((len(ci), len(ri), X.shape[1]))
+        table[cell_idx, rep_idx] = X
         e = (table - table.mean(axis=1, keepdims=True) - table.mean(axis=0, keepdims=True)
-             + table.mean())
-        return e[cell_idx, rep_idx], int((len(ci) - 1) * (len(ri) - 1))
-    X = np.zeros((n, len(ci) + len(ri)))
-    X[np.arange(n), cell_idx] = 1.0
-    X[np.arange(n), len(ci) + rep_idx] = 1.0
-    coef, _, rank, _ = np.linalg.lstsq(X, values, rcond=None)
-    return values - X @ coef, int(n - rank)
+             + table.mean(axis=(0, 1), keepdims=True))
+        e, dof = e[cell_idx, rep_idx], int((len(ci) - 1) * (len(ri) - 1))
+    else:
+        D = np.zeros((n, len(ci) + len(ri)))
+        D[np.arange(n), cell_idx] = 1.0
+        D[np.arange(n), len(ci) + rep_idx] = 1.0
+        coef, _, rank, _ = np.linalg.lstsq(D, X, rcond=None)
+        e, dof = X - D @ coef, int(n - rank)
+    return (e[:, 0] if flat else e), dof
 
 
 def estimate_noise(table: pd.DataFrame) -> NoiseEstimate:
