@@ -277,16 +277,8 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
     chunk = max(1, 2_000_000 // total)
     rng = np.random.default_rng(20261121 + 7919 * total + len(sizes))
-    zmax_parts = []
-    for start in range(0, rows, chunk):
-        m = min(chunk, rows - start)
-        dev_parts = []
-        for n in sizes:
-            x = rng.normal(size=(m, n))
-            dev_parts.append(x - np.median(x, axis=1, keepdims=True))
-        dev = np.abs(np.concatenate(dev_parts, axis=1))
-        scale = MAD_TO_SIGMA * np.median(dev, axis=1)
-        zmax_parts.append(dev.max(axis=1) / np.where(scale > 0, scale, np.inf))
+    zmax_parts = [_simulated_zmax(rng, min(chunk, rows - start), sizes)
+                  for start in range(0, rows, chunk)]
     zmax = np.concatenate(zmax_parts)
     if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
@@ -297,6 +289,34 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
         q = q2 + (q2 - q1) * math.log10(p_hi / 10.0 / p)
     _KNOWN_THRESHOLDS[key] = float(q)
     return float(max(z_threshold, q))
+
+
+def _simulated_zmax(rng: np.random.Generator, m: int, sizes: tuple[int, ...]) -> np.ndarray:
+    """``m`` draws of the largest lot-centred |z| of clean Gaussian lots of ``sizes`` units
+    (sorted), the draws taken from ``rng`` in the order lot by lot, (m, n) each.
+
+    The lots of one size are drawn in one (k, m, n) call: the same numbers in the same order
+    as k calls of (m, n) (``standard_normal`` is ``normal(0, 1)`` without its affine pass).
+    Medians and maxima do not depend on the order of a row, so the medians partition in place
+    (``overwrite_input``) instead of copying: the same statistic, to the bit, in ~half the
+    CPU (the draws themselves are the rest)."""
+    parts = []
+    i = 0
+    while i < len(sizes):
+        n = sizes[i]
+        k = 1
+        while i + k < len(sizes) and sizes[i + k] == n:
+            k += 1
+        x = rng.standard_normal(size=(k, m, n))
+        med = np.median(x, axis=-1, keepdims=True, overwrite_input=True)
+        np.subtract(x, med, out=x)
+        np.abs(x, out=x)
+        parts.append(x.transpose(1, 0, 2).reshape(m, k * n))
+        i += k
+    dev = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    top = dev.max(axis=1)
+    scale = MAD_TO_SIGMA * np.median(dev, axis=1, overwrite_input=True)
+    return top / np.where(scale > 0, scale, np.inf)
 
 
 # --- flags --------------------------------------------------------------------------------------
