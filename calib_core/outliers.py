@@ -297,9 +297,10 @@ def _simulated_zmax(rng: np.random.Generator, m: int, sizes: tuple[int, ...]) ->
 
     The lots of one size are drawn in one (k, m, n) call: the same numbers in the same order
     as k calls of (m, n) (``standard_normal`` is ``normal(0, 1)`` without its affine pass).
-    Medians and maxima do not depend on the order of a row, so the medians partition in place
-    (``overwrite_input``) instead of copying: the same statistic, to the bit, in ~half the
-    CPU (the draws themselves are the rest)."""
+    Medians and maxima do not depend on the order of a row, so each row is sorted in place
+    and read at its middle and end: numpy's vectorised sort of short rows costs ~1/5 of
+    ``np.median``'s selection, and the middle of a sorted row is the same number (for an
+    even count the mean of the two middle values, as ``np.median`` takes it)."""
     parts = []
     i = 0
     while i < len(sizes):
@@ -308,15 +309,22 @@ def _simulated_zmax(rng: np.random.Generator, m: int, sizes: tuple[int, ...]) ->
         while i + k < len(sizes) and sizes[i + k] == n:
             k += 1
         x = rng.standard_normal(size=(k, m, n))
-        med = np.median(x, axis=-1, keepdims=True, overwrite_input=True)
-        np.subtract(x, med, out=x)
+        x.sort(axis=-1)
+        np.subtract(x, _sorted_median(x)[..., None], out=x)
         np.abs(x, out=x)
         parts.append(x.transpose(1, 0, 2).reshape(m, k * n))
         i += k
     dev = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
-    top = dev.max(axis=1)
-    scale = MAD_TO_SIGMA * np.median(dev, axis=1, overwrite_input=True)
-    return top / np.where(scale > 0, scale, np.inf)
+    dev.sort(axis=1)
+    scale = MAD_TO_SIGMA * _sorted_median(dev)
+    return dev[:, -1] / np.where(scale > 0, scale, np.inf)
+
+
+def _sorted_median(s: np.ndarray) -> np.ndarray:
+    """Median along the last axis of rows already sorted: ``np.median``'s value."""
+    n = s.shape[-1]
+    h = n // 2
+    return s[..., h] if n % 2 else (s[..., h - 1] + s[..., h]) / 2
 
 
 # --- flags --------------------------------------------------------------------------------------
