@@ -277,16 +277,8 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
     chunk = max(1, 2_000_000 // total)
     rng = np.random.default_rng(20261121 + 7919 * total + len(sizes))
-    zmax_parts = []
-    for start in range(0, rows, chunk):
-        m = min(chunk, rows - start)
-        dev_parts = []
-        for n in sizes:
-            x = rng.normal(size=(m, n))
-            dev_parts.append(x - np.median(x, axis=1, keepdims=True))
-        dev = np.abs(np.concatenate(dev_parts, axis=1))
-        scale = MAD_TO_SIGMA * np.median(dev, axis=1)
-        zmax_parts.append(dev.max(axis=1) / np.where(scale > 0, scale, np.inf))
+    zmax_parts = [_simulated_zmax(rng, min(chunk, rows - start), sizes)
+                  for start in range(0, rows, chunk)]
     zmax = np.concatenate(zmax_parts)
     if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
@@ -299,9 +291,77 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     return float(max(z_threshold, q))
 
 
+def _simulated_zmax(rng: np.random.Generator, m: int, sizes: tuple[int, ...]) -> np.ndarray:
+    """``m`` draws of the largest lot-centred |z| of clean Gaussian lots of ``sizes`` units
+    (sorted), the draws taken from ``rng`` in the order lot by lot, (m, n) each.
+
+    The lots of one size are drawn in one (k, m, n) call: the same numbers in the same order
+    as k calls of (m, n) (``standard_normal`` is ``normal(0, 1)`` without its affine pass).
+    Medians and maxima do not depend on the order of a row, so each row is sorted in place
+    and read at its middle and end: numpy's vectorised sort of short rows costs ~1/5 of
+    ``np.median``'s selection, and the middle of a sorted row is the same number (for an
+    even count the mean of the two middle values, as ``np.median`` takes it)."""
+    parts = []
+    i = 0
+    while i < len(sizes):
+        n = sizes[i]
+        k = 1
+        while i + k < len(sizes) and sizes[i + k] == n:
+            k += 1
+        x = rng.standard_normal(size=(k, m, n))
+        x.sort(axis=-1)
+        np.subtract(x, _sorted_median(x)[..., None], out=x)
+        np.abs(x, out=x)
+        parts.append(x.transpose(1, 0, 2).reshape(m, k * n))
+        i += k
+    dev = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    dev.sort(axis=1)
+    scale = MAD_TO_SIGMA * _sorted_median(dev)
+    return dev[:, -1] / np.where(scale > 0, scale, np.inf)
+
+
+def _sorted_median(s: np.ndarray) -> np.ndarray:
+    """Median along the last axis of rows already sorted: ``np.median``'s value."""
+    n = s.shape[-1]
+    h = n // 2
+    return s[..., h] if n % 2 else (s[..., h - 1] + s[..., h]) / 2
+
+
 # --- flags --------------------------------------------------------------------------------------
 def _fmt(v: float) -> str:
     return f"{v:.6g}"
+
+
+def _key_groups(*cols: np.ndarray) -> list[tuple[tuple, np.ndarray]]:
+    """(key, row positions in their original order) per distinct key tuple of ``cols``, keys
+    in sorted order: what ``DataFrame.groupby(cols, sort=True)`` iterates, without a pandas
+    frame per group (a lot of 50 units has ~70 parameters: the slicing cost more than the
+    statistics)."""
+    n = len(cols[0])
+    if n == 0:
+        return []
+    code = np.zeros(n, np.int64)
+    for c in cols:
+        # hashing, then a sort of the distinct values only (not of every row's string)
+        inv, uniques = pd.factorize(c, sort=True)
+        code = code * (len(uniques) + 1) + inv  # -1: a missing key
+    missing = np.zeros(n, bool)
+    for c in cols:
+        missing |= pd.isna(c)
+    if missing.any():  # groupby leaves rows with a missing key out
+        code = np.where(missing, -1, code)
+    order = np.argsort(code, kind="stable")  # rows of a group keep their order
+    sorted_code = code[order]
+    starts = np.flatnonzero(np.r_[True, sorted_code[1:] != sorted_code[:-1]])
+    ends = np.r_[starts[1:], n]
+    out = []
+    for a, b in zip(starts.tolist(), ends.tolist()):
+        if sorted_code[a] < 0:
+            continue
+        rows = order[a:b]
+        first = rows[0]
+        out.append((tuple(c[first] for c in cols), rows))
+    return out
 
 
 def _lot_centred_scales(df: pd.DataFrame, min_units: int
@@ -309,10 +369,14 @@ def _lot_centred_scales(df: pd.DataFrame, min_units: int
     """Per (model, parameter): robust scale of the lot-centred unit means, pooled over every
     lot with at least ``min_units`` units, and the number of units pooled."""
     out: dict[tuple[str, str], tuple[float, tuple[int, ...]]] = {}
-    for (model, name), grp in df.groupby(["model", "parameter"], sort=True):
+    model_col = df["model"].to_numpy(object)
+    name_col = df["parameter"].to_numpy(object)
+    lot_col = df["lot"].to_numpy(object)
+    mean_col = df["mean"].to_numpy(float)
+    for (model, name), rows in _key_groups(model_col, name_col):
         parts, sizes = [], []
-        for _, g in grp.groupby("lot", sort=True):
-            x = g["mean"].to_numpy(float)
+        for _, lot_rows in _key_groups(lot_col[rows]):  # lots in sorted order
+            x = mean_col[rows[lot_rows]]
             x = x[np.isfinite(x)]
             if len(x) >= min_units:
                 parts.append(x - np.median(x))
@@ -349,10 +413,20 @@ def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
         pd.Series(True, index=df.index)
     pooled = _lot_centred_scales(df[robust_rows], cfg.min_units) if cfg.scale_pool == "fleet" \
         else {}
+    robust = robust_rows.to_numpy(bool)
     todo = sorted(df["lot"].unique()) if lots is None else [str(x) for x in lots]
-    return [_flag_one_lot(df[df["lot"] == lot].reset_index(drop=True),
-                          df[robust_rows & (df["lot"] == lot)].reset_index(drop=True),
-                          lot, cfg, pooled) for lot in todo]
+    # the columns as numpy arrays once (not a frame per lot and per parameter)
+    cols = {c: df[c].to_numpy(object) for c in ("lot", "unit", "model", "parameter")}
+    cols.update({c: df[c].to_numpy(float) for c in ("mean", "std", "n_reps")})
+    out = []
+    for lot in todo:
+        in_lot = cols["lot"] == lot
+        n_params = len(set(zip(cols["model"][in_lot & robust].tolist(),
+                               cols["parameter"][in_lot & robust].tolist())))
+        rows = np.flatnonzero(in_lot)
+        out.append(_flag_one_lot({c: v[rows] for c, v in cols.items()}, n_params, lot, cfg,
+                                 pooled))
+    return out
 
 
 def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
@@ -369,19 +443,23 @@ def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
     return flag_lots(rows, local, [str(lot)])[0]
 
 
-def _flag_one_lot(df: pd.DataFrame, robust_df: pd.DataFrame, lot: str, cfg: OutlierConfig,
+def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: OutlierConfig,
                   pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]]) -> LotFlags:
-    units = sorted(df["unit"].unique())
+    """Flags of one lot: ``cols`` its rows' columns (unit, model, parameter, mean, std,
+    n_reps), ``n_params`` its number of distinct (model, parameter) in the robust models."""
+    unit_col = cols["unit"]
+    units = sorted(set(unit_col.tolist()))
     n_units = len(units)
-    n_params = int(robust_df[["model", "parameter"]].drop_duplicates().shape[0])
     robust = n_units >= cfg.min_units
     flags: list[Flag] = []
-    score = np.full(len(df), np.nan)
-    median = np.full(len(df), np.nan)
+    n_rows = len(unit_col)
+    score = np.full(n_rows, np.nan)
+    median = np.full(n_rows, np.nan)
     thresholds: list[float] = []
-    for (model, name), grp in df.groupby(["model", "parameter"], sort=True):
-        idx = grp.index.to_numpy()
-        x = grp["mean"].to_numpy(float)
+    mean_col, std_col, nreps_col = cols["mean"], cols["std"], cols["n_reps"]
+    for (model, name), idx in _key_groups(cols["model"], cols["parameter"]):
+        x = mean_col[idx]
+        grp_units = unit_col[idx]
         ok = np.isfinite(x)
         if not ok.any():
             continue
@@ -398,20 +476,20 @@ def _flag_one_lot(df: pd.DataFrame, robust_df: pd.DataFrame, lot: str, cfg: Outl
             z = np.where(ok, (x - med) / scale, np.nan) if scale > 0 else np.zeros(len(x))
             score[idx] = z
             for i in np.flatnonzero(np.abs(np.nan_to_num(z)) > thr):
-                u = str(grp["unit"].iloc[i])
+                u = str(grp_units[i])
                 flags.append(Flag(lot, u, model, name, KIND_ROBUST, float(x[i]), med,
                                   float(z[i]), thr,
                                   f"{model}.{name} = {_fmt(x[i])}, lot median {_fmt(med)}, "
                                   f"robust z {z[i]:+.1f} (|z| > {thr:.2f})"))
-            s = grp["std"].to_numpy(float)
-            nr = grp["n_reps"].to_numpy(float)
+            s = std_col[idx]
+            nr = nreps_col[idx]
             use = np.isfinite(s) & (nr >= MIN_REPS_FOR_SPREAD)
             if use.sum() >= cfg.min_units:
                 med_s = float(np.median(s[use]))
                 if med_s > 0:
                     ratio = np.where(use, s / med_s, np.nan)
                     for i in np.flatnonzero(np.nan_to_num(ratio) > cfg.spread_factor):
-                        u = str(grp["unit"].iloc[i])
+                        u = str(grp_units[i])
                         flags.append(Flag(
                             lot, u, model, name, KIND_SPREAD, float(s[i]), med_s,
                             float(ratio[i]), cfg.spread_factor,
@@ -421,7 +499,7 @@ def _flag_one_lot(df: pd.DataFrame, robust_df: pd.DataFrame, lot: str, cfg: Outl
         if lim is not None:
             for i in range(len(x)):
                 v = x[i]
-                u = str(grp["unit"].iloc[i])
+                u = str(grp_units[i])
                 if lim.min is not None and not v >= lim.min:
                     flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), med,
                                       float(v - lim.min), lim.min,
@@ -442,9 +520,8 @@ def _flag_one_lot(df: pd.DataFrame, robust_df: pd.DataFrame, lot: str, cfg: Outl
     else:
         note = (f"{n_units} unit(s) in lot {lot}: fewer than {cfg.min_units}, no robust z or "
                 f"spread flags (only configured limits)")
-    scores = pd.DataFrame({"lot": lot, "unit": df["unit"].to_numpy(),
-                           "model": df["model"].to_numpy(), "parameter": df["parameter"].to_numpy(),
-                           "score": score, "lot_median": median})
+    scores = pd.DataFrame({"lot": lot, "unit": unit_col, "model": cols["model"],
+                           "parameter": cols["parameter"], "score": score, "lot_median": median})
     return LotFlags(lot, n_units, robust, thr_used, note, flags, scores)
 
 

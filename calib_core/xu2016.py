@@ -37,7 +37,8 @@ def _axis_names(prefix: str) -> list[str]:
 
 def _check_determined(sm: StepMeans, excitation: np.ndarray, what: str, needed: str) -> None:
     """Name the axes the design never excites (rank deficiency with a physical reason)."""
-    missing = [AXES[i] for i in range(3) if np.max(np.abs(excitation[:, i]), initial=0.0) < 1e-9]
+    peak = np.abs(excitation).max(axis=0, initial=0.0)  # per axis, one reduction
+    missing = [AXES[i] for i in range(3) if peak[i] < 1e-9]
     if missing:
         raise DesignError(
             "E_UNDETERMINED",

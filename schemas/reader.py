@@ -218,7 +218,12 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
                            step=int(dup[0]))
     out = {"step": ids.astype(np.int32)}
     for name, allowed in (("test", ALLOWED_TESTS), ("up_axis", ALLOWED_UP_AXES)):
-        values = _strings(table.column(name))
+        try:
+            values = _strings(table.column(name))
+        except (pa.ArrowException, UnicodeDecodeError) as exc:  # bytes that are not UTF-8
+            raise SessionError(E_UNREADABLE_FILE, label, file,
+                               f"{name} strings cannot be decoded (corrupt file?): {exc}",
+                               column=name) from exc
         bad = ~np.isin(values, np.array(allowed, dtype=object))
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
