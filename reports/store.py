@@ -87,6 +87,11 @@ class StoreView:
         filters = [("unit", "==", unit), ("lot", "==", lot)]
         return pd.read_parquet(path, filters=filters)
 
+    def forget_lot(self, lot: str) -> None:
+        """Drop the cached rows of one lot (a pass over many lots keeps one lot in memory)."""
+        for key in [k for k in self._lot_cache if k[1] == lot]:
+            del self._lot_cache[key]
+
     def lots(self) -> list[str]:
         """Lots with rows in the units, sessions or summary table (from the lot files' names:
         no table is read)."""
