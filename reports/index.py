@@ -51,19 +51,21 @@ def trend_figure(tr: pd.DataFrame, group: str) -> dict:
     by_lot = {}
     for lot in lots:
         d = tr[tr["lot"] == lot]
-        by_lot[lot] = (d, [t.isoformat() for t in d["time"]],
+        cols = {c: d[c].to_numpy(float) for e in elems for c in (e[1], e[1] + "_spread")}
+        by_lot[lot] = (cols, [t.isoformat() for t in d["time"]],
                        [f"{lot} · run {r} · {u} units" for r, u in zip(d["run"], d["n_units"])])
     data = []
     for k, e in enumerate(elems):
         xr, yr = refs[k]
         n = e[1]
         for li, lot in enumerate(lots):
-            d, times, texts = by_lot[lot]
+            cols, times, texts = by_lot[lot]
+            spread = cols[n + "_spread"]
             c = LOT_COLOURS[li % len(LOT_COLOURS)]
             data.append({"type": "scatter", "x": list(times),
-                         "y": arr(d[n].to_numpy(float)), "mode": "lines+markers", "name": lot,
+                         "y": arr(cols[n]), "mode": "lines+markers", "name": lot,
                          "marker": {"color": c, "size": 6}, "line": {"color": c, "width": 1.5},
-                         "error_y": {"type": "data", "array": arr(d[n + "_spread"].fillna(0).to_numpy(float)),
+                         "error_y": {"type": "data", "array": arr(np.where(np.isnan(spread), 0.0, spread)),
                                      "color": c, "thickness": 1, "width": 3},
                          "legendgroup": lot, "showlegend": k == 0, "xaxis": xr, "yaxis": yr,
                          "text": list(texts),

@@ -98,3 +98,34 @@ def test_preload_imports_in_a_thread_and_reports_failures():
 def test_preloaded_modules_exist(name):
     import importlib
     importlib.import_module(name)
+
+
+def test_history_cache_gives_the_rows_of_the_files(tmp_path):
+    from reports import history
+    from reports.store import StoreView
+    truth = build_synthetic_store(tmp_path / "s", n_units=5, n_outliers=0, n_failed=0, seed=9,
+                                  nav_samples=100)
+    view = StoreView(truth.root)
+    path = history.history_cache_path(view)
+    assert not path.exists()
+    cold = history.history_frame(view)
+    assert path.exists() and len(cold) > 0
+    # the rows straight from the files (independent of the cache): one per file
+    files = [(u, p) for u in view.history_units() for _, p in view.store.calibration_files(u)]
+    assert sorted(zip(cold["unit"], cold["file"])) == sorted((u, p.name) for u, p in files)
+    u0, p0 = files[0]
+    doc = __import__("json").loads(p0.read_text())
+    row = cold[(cold["unit"] == u0) & (cold["file"] == p0.name)].iloc[0]
+    assert row["k_g11"] == doc["K_g"][0][0] and row["f0_z"] == doc["f0"][2] * 1e3
+    warm = history.history_frame(StoreView(truth.root))
+    pd.testing.assert_frame_equal(cold, warm)
+    # a stale entry (the file changed) is parsed again, a broken cache is ignored
+    p0.write_text(p0.read_text().replace(repr(doc["K_g"][0][0]), "1.5", 1))
+    again = history.history_frame(StoreView(truth.root))
+    assert again.loc[(again["unit"] == u0) & (again["file"] == p0.name), "k_g11"].iloc[0] == 1.5
+    path.write_text("{not json")
+    pd.testing.assert_frame_equal(history.history_frame(StoreView(truth.root)), again)
+    # one unit's pass keeps the other units' entries
+    history.history_frame(StoreView(truth.root), [u0])
+    cached = __import__("json").loads(path.read_text())["files"]
+    assert len(cached) == len(files)
