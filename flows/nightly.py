@@ -801,10 +801,11 @@ def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
     global _rerun_preload
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
-    _rerun_preload = _Preload(RERUN_PRELOAD)  # overlaps Prefect's start-up (see RERUN_PRELOAD)
+    preload = _rerun_preload = _Preload(RERUN_PRELOAD)  # overlaps Prefect's start-up
     try:
         with runtime.run_settings():
             return rerun_flow(str(dataset), str(results), unit,
                               None if config is None else str(config), wait, run_discovery)
     finally:
         _rerun_preload = None
+        preload.wait()  # a flow that never started leaves no import running behind it
