@@ -78,19 +78,22 @@ def _align(u: np.ndarray) -> np.ndarray:
 
 
 def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    a1, b1, c1, d1 = p
-    a2, b2, c2, d2 = q
-    return np.array([a1 * a2 - b1 * b2 - c1 * c2 - d1 * d2,
+    """Hamilton product of quaternions (scalar first) along the last axis: (4,) or (n, 4)."""
+    a1, b1, c1, d1 = np.moveaxis(p, -1, 0)
+    a2, b2, c2, d2 = np.moveaxis(q, -1, 0)
+    return np.stack([a1 * a2 - b1 * b2 - c1 * c2 - d1 * d2,
                      a1 * b2 + b1 * a2 + c1 * d2 - d1 * c2,
                      a1 * c2 - b1 * d2 + c1 * a2 + d1 * b2,
-                     a1 * d2 + b1 * c2 - c1 * b2 + d1 * a2])
+                     a1 * d2 + b1 * c2 - c1 * b2 + d1 * a2], axis=-1)
 
 
 def _quat_to_dcm(q: np.ndarray) -> np.ndarray:
-    a, b, c, d = q
-    return np.array([[a*a + b*b - c*c - d*d, 2*(b*c - a*d), 2*(b*d + a*c)],
-                     [2*(b*c + a*d), a*a - b*b + c*c - d*d, 2*(c*d - a*b)],
-                     [2*(b*d - a*c), 2*(c*d + a*b), a*a - b*b - c*c + d*d]])
+    """Direction cosine matrix of unit quaternions: (4,) -> (3, 3), (n, 4) -> (n, 3, 3)."""
+    a, b, c, d = np.moveaxis(q, -1, 0)
+    return np.stack([np.stack([a*a + b*b - c*c - d*d, 2*(b*c - a*d), 2*(b*d + a*c)], axis=-1),
+                     np.stack([2*(b*c + a*d), a*a - b*b + c*c - d*d, 2*(c*d - a*b)], axis=-1),
+                     np.stack([2*(b*d - a*c), 2*(c*d + a*b), a*a - b*b - c*c + d*d], axis=-1)],
+                    axis=-2)
 
 
 def _dcm_to_quat(C: np.ndarray) -> np.ndarray:
@@ -99,21 +102,36 @@ def _dcm_to_quat(C: np.ndarray) -> np.ndarray:
                      (C[1, 0] - C[0, 1]) / (4 * w)])
 
 
+def _prefix_products(dq: np.ndarray) -> np.ndarray:
+    """``out[k] = dq[0] dq[1] ... dq[k]`` for unit quaternions (n, 4), by a doubling scan
+    (Hillis-Steele): log2(n) vectorised products instead of n sequential ones. The product is
+    associative, so this is the sequential product up to rounding; each pass renormalises,
+    as the sequential update did after every step."""
+    out = dq.copy()
+    shift = 1
+    while shift < len(out):
+        out[shift:] = _quat_mul(out[:-shift], out[shift:])
+        out /= np.linalg.norm(out, axis=1, keepdims=True)
+        shift *= 2
+    return out
+
+
 def integrate_attitude(C0: np.ndarray, w_dps: np.ndarray, dt: float) -> np.ndarray:
     """C_nb over time from gyro rates: rotation-vector update with the trapezoidal increment
-    (exact for a fixed axis and a rate linear within the interval)."""
+    (exact for a fixed axis and a rate linear within the interval). The per-step rotations
+    are composed by a prefix scan (no per-sample loop)."""
     n = len(w_dps)
-    q = _dcm_to_quat(C0)
     out = np.empty((n, 3, 3))
     out[0] = C0
+    if n < 2:
+        return out
     inc = 0.5 * (w_dps[1:] + w_dps[:-1]) * np.radians(dt)
-    for k in range(n - 1):
-        a = inc[k]
-        ang = np.linalg.norm(a)
-        dq = np.concatenate([[np.cos(ang / 2)], np.sinc(ang / (2 * np.pi)) * a / 2])
-        q = _quat_mul(q, dq)
-        q = q / np.linalg.norm(q)
-        out[k + 1] = _quat_to_dcm(q)
+    ang = np.linalg.norm(inc, axis=1)
+    dq = np.concatenate([np.cos(ang / 2)[:, None],
+                         np.sinc(ang / (2 * np.pi))[:, None] * inc / 2], axis=1)
+    q = _quat_mul(_dcm_to_quat(C0), _prefix_products(dq))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    out[1:] = _quat_to_dcm(q)
     return out
 
 

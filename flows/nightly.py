@@ -29,6 +29,7 @@ from flows import runtime
 
 runtime.ensure_environment()
 
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from prefect import flow, get_run_logger, task  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402
@@ -271,10 +272,14 @@ def load_config(path: str | Path | None) -> OutlierConfig:
 
 
 def flagged_by_lot(store: ResultsStore) -> dict[str, set[str]]:
-    units = store.read("units", columns=["lot", "unit", "flagged"])
+    return _flagged_units(store.read("units", columns=["lot", "unit", "flagged"]))
+
+
+def _flagged_units(units: pd.DataFrame) -> dict[str, set[str]]:
+    """Lot -> its flagged units (every lot of the units table, possibly with none)."""
     out: dict[str, set[str]] = {}
     if len(units) and "flagged" in units:
-        for r in units.itertuples():
+        for r in units[["lot", "unit", "flagged"]].itertuples():
             out.setdefault(str(r.lot), set())
             if r.flagged is not None and not pd.isna(r.flagged) and bool(r.flagged):
                 out[str(r.lot)].add(str(r.unit))
@@ -288,10 +293,8 @@ def reflag_after_update(store: ResultsStore, touched: list[str], config: Outlier
     whose reports must be rebuilt: the touched ones and any whose flagged units changed."""
     if not touched:
         return [], []
-    before = flagged_by_lot(store)
     all_lots = sorted(set(store.table_lots("summary")) | set(touched))
-    lf = reflag_lots(store, all_lots, config)
-    after = flagged_by_lot(store)
+    lf, before, after = _reflag(store, all_lots, config)
     changed = {lot for lot in all_lots if before.get(lot, set()) != after.get(lot, set())}
     return [x for x in lf if x.lot in set(touched)], sorted(set(touched) | changed)
 
@@ -301,20 +304,65 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
     """Recompute the flags of the given lots from the whole summary (the robust scale is
     pooled over all lots: the summary is small, ~100 rows per unit, and read whole) and write
     them to the summary and units tables, rewriting only the lots whose rows changed."""
+    return _reflag(store, lots, config)[0]
+
+
+# the summary columns calib_core.outliers.apply_flags sets; it leaves every other one alone
+_FLAG_COLUMNS = ("flagged", "flag_reason", "score", "lot_median")
+
+
+def _lots_with_new_flags(before: pd.DataFrame, after: pd.DataFrame) -> list[str] | None:
+    """Lots whose summary rows differ between ``before`` and ``after = apply_flags(before)``
+    (same rows, same order): only the flag columns can differ, compared exactly (NaN equal
+    to NaN, a missing value unequal to any value), as the store's skip-unchanged comparison
+    would decide, without its per-lot frame comparison (~0.2 s when a lot differs)."""
+    differs = np.zeros(len(after), dtype=bool)
+    for col in _FLAG_COLUMNS:
+        if col not in before:
+            differs[:] = True
+            break
+        a, b = before[col], after[col]
+        a_na, b_na = a.isna().to_numpy(), b.isna().to_numpy()
+        both = ~a_na & ~b_na
+        if col in ("score", "lot_median"):
+            a_v, b_v = a.to_numpy(float, na_value=np.nan), b.to_numpy(float, na_value=np.nan)
+            differs |= (a_na != b_na) | (both & (a_v != b_v))
+        else:
+            a_v, b_v = a.to_numpy(object), b.to_numpy(object)
+            ne = np.zeros(len(a_v), dtype=bool)
+            ne[both] = a_v[both] != b_v[both]
+            differs |= (a_na != b_na) | ne
+    lots = after["lot"].to_numpy(object, na_value=None)[differs]
+    if any(x is None for x in lots):
+        return None  # rows without a lot: let the store compare them (never seen)
+    return sorted({str(x) for x in lots})
+
+
+def _reflag(store: ResultsStore, lots: set[str] | list[str], config: OutlierConfig
+            ) -> tuple[list[LotFlags], dict[str, set[str]], dict[str, set[str]]]:
+    """reflag_lots, plus each lot's flagged units before and after (from the units table it
+    reads and writes anyway)."""
     summary = store.read("summary")
     if not len(summary) or not lots:
-        return []
+        return [], {}, {}
     present = set(summary["lot"].dropna().astype(str))
     todo = sorted(set(map(str, lots)) & present)
     if not todo:
-        return []
+        return [], {}, {}
     cached = store.read_outlier_thresholds()
     remember_thresholds(cached)
     lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
     now = known_thresholds()
     if now != cached:  # new lot layouts simulated: keep them for the next process
         store.write_outlier_thresholds(now)
-    store.write("summary", apply_flags(summary, lf), skip_unchanged=True, previous=summary)
+    flagged_summary = apply_flags(summary, lf)
+    # rows of lots whose flags changed are rewritten, the other lots' files left alone
+    changed = _lots_with_new_flags(summary, flagged_summary)
+    if changed is None:
+        store.write("summary", flagged_summary, skip_unchanged=True, previous=summary)
+    elif changed:
+        in_changed = flagged_summary["lot"].astype(object).isin(changed).to_numpy()
+        store.write("summary", flagged_summary[in_changed], lots=changed)
     units = store.read("units")
     units_before = units.copy()
     if len(units):
@@ -329,7 +377,7 @@ def reflag_lots(store: ResultsStore, lots: set[str] | list[str], config: Outlier
         units["flag_reason"] = ["; ".join(flagged.get(k, [])) if m else (v if isinstance(v, str) else "")
                                 for k, m, v in zip(keys, in_lots, units.get("flag_reason", [""] * len(units)))]
         store.write("units", units, skip_unchanged=True, previous=units_before)
-    return lf
+    return lf, _flagged_units(units_before), _flagged_units(units)
 
 
 def unit_navigation(ur: UnitResult) -> pd.DataFrame | None:
@@ -348,26 +396,37 @@ def unit_navigation(ur: UnitResult) -> pd.DataFrame | None:
 def write_reports(results: str | Path, lots: list[str], units: tuple[str, ...] = ()
                   ) -> tuple[list[str], list[str]]:
     """Lot reports, unit reports of ``units`` (reruns) and the fleet index; returns (paths
-    written, problems). A report failure never undoes a calibration."""
+    written, problems). A report failure never undoes a calibration.
+
+    The reports share one read view of the store, so a unit report and its lot's report read
+    the lot's tables once; each lot's cached rows are dropped once its report is written
+    (memory: one lot)."""
     written, problems = [], []
+    try:
+        from reports.store import StoreView
+        view = StoreView(results)
+    except ImportError as exc:
+        return [], [f"reports not available ({exc}); no report written"]
     for unit in units:
         try:
             from reports.unit import write_unit_report
-            written.append(str(write_unit_report(results, unit)))
+            written.append(str(write_unit_report(results, unit, view=view)))
         except Exception as exc:
             problems.append(f"unit report {unit}: {type(exc).__name__}: {exc}")
     try:
         from reports.lot import write_lot_report
     except ImportError as exc:
-        return [], [f"reports.lot not available ({exc}); no lot report written"]
+        return written, problems + [f"reports.lot not available ({exc}); no lot report written"]
     for lot in sorted(lots):
         try:
-            written.append(str(write_lot_report(results, lot)))
+            written.append(str(write_lot_report(results, lot, view=view)))
         except Exception as exc:
             problems.append(f"lot report {lot}: {type(exc).__name__}: {exc}")
+        finally:
+            view.forget_lot(lot)
     try:
         from reports.index import write_fleet_index
-        written.append(str(write_fleet_index(results)))
+        written.append(str(write_fleet_index(results, view=view)))
     except ImportError as exc:
         problems.append(f"reports.index not available ({exc}); no fleet index written")
     except Exception as exc:
@@ -588,18 +647,76 @@ def lot_report_flow(results: str, lot: str, config: str | None = None,
             "flags": [f.to_dict() for f in lf]}
 
 
-@flow(name="rerun-unit", persist_result=False, log_prints=False,
-      task_runner=ThreadPoolTaskRunner(max_workers=1))
+# Modules a rerun needs once its flow runs (the numerics' first import pulls in scipy.stats and
+# scipy.linalg, ~1.5-2 s CPU; the report builders plotly). rerun_unit imports them in a thread
+# while Prefect starts (which mostly waits for its API server, a subprocess), so that the flow
+# does not pay them; the flow waits for that thread first and logs what it cost.
+RERUN_PRELOAD = ("calib_core.discovery", "calib_core.zhang2017", "calib_core.navigation",
+                 "calib_core.pipeline", "schemas.unit_document", "reports.unit", "reports.lot",
+                 "reports.index")
+
+
+class _Preload:
+    """Import modules in a daemon thread; ``wait()`` joins it and says what it cost. A module
+    that fails to import here is simply imported (and fails) where it is used."""
+
+    def __init__(self, modules: tuple[str, ...]) -> None:
+        import threading
+        self.modules = modules
+        self.wall_s = self.cpu_s = 0.0
+        self.failed: list[str] = []
+        self._thread = threading.Thread(target=self._run, name="mimucal-preload", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import importlib
+        t, c = time.perf_counter(), time.thread_time()
+        for m in self.modules:
+            try:
+                importlib.import_module(m)
+            except Exception as exc:  # noqa: BLE001 (reported, and raised again where used)
+                self.failed.append(f"{m}: {type(exc).__name__}: {exc}")
+        self.wall_s, self.cpu_s = time.perf_counter() - t, time.thread_time() - c
+
+    def wait(self) -> dict[str, Any]:
+        t = time.perf_counter()
+        self._thread.join()
+        return {"modules": len(self.modules), "import_wall_s": round(self.wall_s, 3),
+                "import_cpu_s": round(self.cpu_s, 3),
+                "waited_in_flow_s": round(time.perf_counter() - t, 3),
+                **({"failed": self.failed} if self.failed else {})}
+
+
+_rerun_preload: _Preload | None = None
+
+
+@flow(name="rerun-unit", persist_result=False, log_prints=False)
 def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
                wait: bool = False, run_discovery: bool = True) -> dict:
     """Recalibrate one unit now; its rows are replaced only if it succeeds (otherwise its last
-    good calibration stays and is marked stale); its lot is re-flagged and its report rebuilt."""
+    good calibration stays and is marked stale); its lot is re-flagged and its report rebuilt.
+
+    The unit is calibrated in the flow's own thread, not in a Prefect task: a rerun is one
+    unit, and the first task run of a process costs more Prefect bookkeeping than the batching
+    of tasks saves (the flow run, its state and the run log record the rerun)."""
+    global _rerun_preload
     run_id = new_run_id()
     store = ResultsStore(Path(results))
     cfg = load_config(config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
         t0 = time.monotonic()
+        phases: dict[str, float] = {}
+        cpu: dict[str, float] = {}
+        t, c = time.monotonic(), time.process_time()
+
+        def phase(name: str) -> None:
+            nonlocal t, c
+            phases[name], cpu[name] = time.monotonic() - t, time.process_time() - c
+            t, c = time.monotonic(), time.process_time()
+
+        preload, _rerun_preload = _rerun_preload, None
+        preloaded = preload.wait() if preload is not None else None
         refs, path_errors = find_sessions(dataset, unit=unit)
         if not refs:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
@@ -611,22 +728,22 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
                                "lot": lot, "code_version": version, "units_found": 1,
                                "units_skipped": 0,
                                "path_errors": [e.to_dict() for e in path_errors]}
-        phases: dict[str, float] = {}
-        t = time.monotonic()
-        res = calibrate_units_task.submit([job], run_discovery).result()
+        if preloaded is not None:
+            log["preload"] = preloaded
+        res = calibrate_batch([job], run_discovery)
         for r in res:
             try:
                 r.navigation = unit_navigation(r)
             except Exception as exc:  # the drift figure must not cost the unit its calibration
                 r.discovery_note = "; ".join(filter(None, [r.discovery_note,
                                              f"navigation replay failed: {exc}"]))
-        phases["calibrate"], t = time.monotonic() - t, time.monotonic()
+        phase("calibrate")
         stored = store_results(store, res, run_id, version)  # reads/rewrites its lot only
-        phases["store"], t = time.monotonic() - t, time.monotonic()
+        phase("store")
         lf, report_lots = reflag_after_update(store, [lot], cfg)
-        phases["reflag"], t = time.monotonic() - t, time.monotonic()
+        phase("reflag")
         reports, problems = write_reports(results, report_lots, units=(unit,))
-        phases["reports"] = time.monotonic() - t
+        phase("reports")
         failed = [{"session": str(s.key), "code": s.code, "message": s.message}
                   for r in res for s in r.outcome.sessions if s.status == "failed"]
         log.update({
@@ -638,6 +755,8 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             "flagged_units": sorted({f"{f.lot}/{f.unit}" for x in lf for f in x.flags}),
             "flags": [x.to_dict() for x in lf], "reports": reports, "report_problems": problems,
             "phases_s": {k: round(v, 3) for k, v in phases.items()},
+            # CPU seconds of the process per phase (wall time is unreliable on a shared machine)
+            "phases_cpu_s": {k: round(v, 3) for k, v in cpu.items()},
         })
         log["summary"] = summary_line(log)
         store.write_run(run_id, log)
@@ -679,8 +798,14 @@ def lot_quality_report(results: str | Path, lot: str, config: str | Path | None 
 def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
                config: str | Path | None = None, wait: bool = False,
                run_discovery: bool = True) -> dict:
+    global _rerun_preload
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
-    with runtime.run_settings():
-        return rerun_flow(str(dataset), str(results), unit,
-                          None if config is None else str(config), wait, run_discovery)
+    preload = _rerun_preload = _Preload(RERUN_PRELOAD)  # overlaps Prefect's start-up
+    try:
+        with runtime.run_settings():
+            return rerun_flow(str(dataset), str(results), unit,
+                              None if config is None else str(config), wait, run_discovery)
+    finally:
+        _rerun_preload = None
+        preload.wait()  # a flow that never started leaves no import running behind it

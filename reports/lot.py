@@ -27,8 +27,10 @@ def safe_name(name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_.=" else "_" for ch in str(name)) or "_"
 
 
-def render_lot_report(results_root: str | Path, lot: str) -> str:
-    view = StoreView(results_root)
+def render_lot_report(results_root: str | Path, lot: str, view: StoreView | None = None) -> str:
+    """``view``: a StoreView of ``results_root`` to share its cached reads with other reports
+    written in the same pass."""
+    view = view if view is not None else StoreView(results_root)
     if lot not in view.lots():
         known = ", ".join(view.lots()) or "none"
         raise ReportError(f"lot {lot!r} not found in results store {results_root} (lots: {known})")
@@ -97,9 +99,9 @@ def render_lot_report(results_root: str | Path, lot: str) -> str:
     return page.render(header, "".join(body))
 
 
-def write_lot_report(results_root: str | Path, lot: str) -> Path:
+def write_lot_report(results_root: str | Path, lot: str, view: StoreView | None = None) -> Path:
     """Write ``results_root/reports/<lot>.html`` and return its path."""
-    text = render_lot_report(results_root, lot)
+    text = render_lot_report(results_root, lot, view)
     path = lot_report_path(results_root, lot)
     write_atomic(path, text)
     return path

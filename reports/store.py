@@ -13,6 +13,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from schemas.results_store import ResultsStore
@@ -23,9 +24,16 @@ REPORT_TABLES = ("sessions", "parameters", "summary", "units", "residuals", "com
 
 
 def _keys_as_objects(df: pd.DataFrame) -> pd.DataFrame:
+    """lot and unit as Python objects, None where missing. Through the distinct values (a
+    lot's residual table has ~10^5 rows and 50 units): converting every row's string and
+    then masking the missing ones cost ~0.15 s per lot."""
     for key in ("lot", "unit"):
         if key in df.columns:
-            df[key] = df[key].astype(object).where(df[key].notna(), None)
+            codes, uniques = pd.factorize(df[key], use_na_sentinel=True)
+            lookup = np.empty(len(uniques) + 1, dtype=object)
+            lookup[:-1] = np.asarray(uniques, dtype=object)
+            lookup[-1] = None  # code -1: missing
+            df[key] = pd.Series(lookup[codes], index=df.index, dtype=object)
     return df
 
 
@@ -86,6 +94,11 @@ class StoreView:
             return _keys_as_objects(self.store.read(name, lots=[]))
         filters = [("unit", "==", unit), ("lot", "==", lot)]
         return pd.read_parquet(path, filters=filters)
+
+    def forget_lot(self, lot: str) -> None:
+        """Drop the cached rows of one lot (a pass over many lots keeps one lot in memory)."""
+        for key in [k for k in self._lot_cache if k[1] == lot]:
+            del self._lot_cache[key]
 
     def lots(self) -> list[str]:
         """Lots with rows in the units, sessions or summary table (from the lot files' names:

@@ -114,8 +114,10 @@ def history_table(h: pd.DataFrame) -> str:
     return table(heads, rows, cls="sortable", text_cols=4)
 
 
-def render_unit_report(results_root: str | Path, unit: str) -> str:
-    view = StoreView(results_root)
+def render_unit_report(results_root: str | Path, unit: str, view: StoreView | None = None) -> str:
+    """``view``: a StoreView of ``results_root`` to share its cached reads with other reports
+    written in the same pass (a rerun writes the unit's report, then its lot's)."""
+    view = view if view is not None else StoreView(results_root)
     lot = view.lot_of_unit(unit)
     if lot is None and not view.history(unit):
         raise ReportError(f"unit {unit!r} not found in results store {results_root}")
@@ -158,9 +160,9 @@ def render_unit_report(results_root: str | Path, unit: str) -> str:
     return page.render(header, "".join(body))
 
 
-def write_unit_report(results_root: str | Path, unit: str) -> Path:
+def write_unit_report(results_root: str | Path, unit: str, view: StoreView | None = None) -> Path:
     """Write ``results_root/reports/units/<unit>.html`` and return its path."""
-    text = render_unit_report(results_root, unit)
+    text = render_unit_report(results_root, unit, view)
     path = unit_report_path(results_root, unit)
     write_atomic(path, text)
     return path
