@@ -226,7 +226,10 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     all_units = {(ur.lot, ur.unit) for ur in results}
     store.replace_units("units", _frame(unit_rows, "units"), all_units)
     store.replace_units("parameters", _frame(par_rows, "parameters"), ok_units)
-    store.replace_units("summary", _frame(sum_rows, "summary"), ok_units)
+    # units whose recalibration failed keep their rows, marked stale in the same write
+    store.replace_units("summary", _frame(sum_rows, "summary"), ok_units,
+                        set_values={key: {"stale": True, "stale_reason": why}
+                                    for key, why in stale_units.items()})
     calibrated = [ur for ur in results if ur.calibrated]
     for name, attr in (("residuals", "residual_table"), ("compensation", "compensation_table")):
         store.replace_units(name, _session_rows(calibrated, attr), ok_units)
@@ -237,8 +240,6 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
     if disc_units:
         store.replace_units("discovery", _frame(disc_rows, "discovery"), disc_units)
-    for key, why in stale_units.items():
-        store.update_rows("summary", {key}, stale=True, stale_reason=why)
     # sessions.parquet last: its fingerprints tell the next run which units are done, so a
     # crash before this point leaves the units "changed" and the rerun redoes them whole
     store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)

@@ -53,6 +53,7 @@ from urllib.parse import quote, unquote
 import numpy as np
 import pandas as pd
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from calib_core.results import to_jsonable
@@ -128,9 +129,13 @@ ROW_GROUP_ROWS = 65_536
 # --- atomic writes ------------------------------------------------------------------------------
 def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
     """Parquet via a temp file in the same directory, fsync, then ``os.replace``."""
+    write_table_atomic(pa.Table.from_pandas(df, preserve_index=False), path)
+
+
+def write_table_atomic(table: pa.Table, path: Path) -> None:
+    """An Arrow table as :func:`write_parquet_atomic` writes a frame."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    table = pa.Table.from_pandas(df, preserve_index=False)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
@@ -236,6 +241,23 @@ def _normalise(df: pd.DataFrame, name: str) -> pd.DataFrame:
             df[c] = df[c].astype(dt)
     extra = [c for c in df.columns if c not in cols]
     return df[cols + extra]
+
+
+def _is_string(t: pa.DataType) -> bool:
+    return pa.types.is_string(t) or pa.types.is_large_string(t)
+
+
+def _set_columns(df: pd.DataFrame, hit: np.ndarray, values: dict[str, Any]) -> None:
+    """Set columns of the rows ``hit`` in place (booleans as the nullable boolean dtype,
+    strings in an object column)."""
+    for col, v in values.items():
+        if col not in df:
+            df[col] = None
+        if isinstance(v, bool):
+            df[col] = df[col].astype("boolean")
+        elif isinstance(v, str):
+            df[col] = df[col].astype(object)
+        df.loc[hit, col] = v
 
 
 # --- partitions -----------------------------------------------------------------------------------
@@ -472,21 +494,97 @@ class ResultsStore:
         return written
 
     def replace_units(self, name: str, new_rows: pd.DataFrame | None,
-                      units: set[tuple[str, str]]) -> pd.DataFrame:
+                      units: set[tuple[str, str]],
+                      set_values: dict[tuple[str, str], dict[str, Any]] | None = None) -> None:
         """Replace every row of the given (lot, unit)s by ``new_rows``; other rows unchanged.
-        Reads and rewrites only the lots of ``units`` and ``new_rows``, each once; returns
-        their rows. A lot whose stored rows all belong to ``units`` (a nightly run that
-        recalibrates the whole lot) is not read beyond its unit column."""
+        ``set_values``: columns to set on the kept rows of other units (as
+        :meth:`update_rows`), in the same write. Reads and rewrites only the lots of
+        ``units``, ``new_rows`` and ``set_values``, each lot file once.
+
+        A lot whose stored rows all belong to ``units`` (a nightly run recalibrating the
+        whole lot) is not read beyond its unit column. Otherwise (a rerun) the lot file is
+        filtered and merged in Arrow when the new rows have the stored types: the stored rows
+        are sorted (every write sorts them), so the new rows, sorted, go in by unit (a stable
+        sort on the unit alone) instead of converting and sorting the whole lot in pandas."""
+        self._migrate()
         new = None if new_rows is None else _normalise(new_rows, name)
-        lots = _lot_set(lot for lot, _ in units)
-        if new is not None:
-            lots |= _lot_set(new["lot"])
-        kept = [self._rows_kept(name, lot, {u for lt, u in units if _lot_set([lt]) == {lot}})
-                for lot in sorted(lots, key=_lot_order)]
-        parts = [p for p in (*kept, new) if p is not None and len(p)]
-        df = pd.concat(parts, ignore_index=True) if parts else _normalise(pd.DataFrame(), name)
-        self.write(name, df, lots=lots)
-        return df
+        set_values = set_values or {}
+        lots = _lot_set(lot for lot, _ in units) | _lot_set(lot for lot, _ in set_values)
+        new_by_lot = _split_by_lot(_sorted(new)) if new is not None else {}
+        lots |= set(new_by_lot)
+        self.table_dir(name).mkdir(parents=True, exist_ok=True)
+        for lot in sorted(lots, key=_lot_order):
+            lot_units = {u for lt, u in units if _lot_set([lt]) == {lot}}
+            lot_new = new_by_lot.get(lot)
+            lot_values = {u: v for (lt, u), v in set_values.items() if _lot_set([lt]) == {lot}}
+            if not lot_values and self._merge_lot_arrow(name, lot, lot_units, lot_new):
+                continue
+            kept = self._rows_kept(name, lot, lot_units)
+            if kept is not None and lot_values:
+                kept = kept.copy()
+                for unit, values in lot_values.items():
+                    _set_columns(kept, kept["unit"].astype(object).eq(unit).to_numpy(), values)
+            parts = [p for p in (kept, lot_new) if p is not None and len(p)]
+            df = (pd.concat(parts, ignore_index=True) if len(parts) > 1 else parts[0] if parts
+                  else _normalise(pd.DataFrame(), name))
+            self.write(name, df, lots=[lot])
+
+    def _merge_lot_arrow(self, name: str, lot: str | None, units: set[str],
+                         new: pd.DataFrame | None) -> bool:
+        """The Arrow path of :meth:`replace_units` for one lot; False (nothing done) when it
+        does not apply: no stored file, new rows of other units, other column types."""
+        path = self.partition_path(name, lot)
+        if self.legacy_path(name).exists() or not path.exists():
+            return False
+        if new is not None and len(new) and not set(new["unit"].astype(object)) <= units:
+            return False
+        schema = pq.read_schema(path)  # the stored Arrow types, with the pandas metadata
+        if "unit" not in schema.names or not _is_string(schema.field("unit").type):
+            return False
+        if new is not None and len(new):
+            add = pa.Table.from_pandas(new, preserve_index=False, nthreads=1)
+            if not add.schema.remove_metadata().equals(schema.remove_metadata()):
+                return False
+            add = add.replace_schema_metadata(schema.metadata)
+        else:
+            add = None
+        # strings read as dictionaries (decoding them is most of a read), back to the stored
+        # type for writing
+        old = pq.read_table(path, read_dictionary=[f.name for f in schema
+                                                   if _is_string(f.type)])
+        unit = old.column("unit").combine_chunks()
+        names = unit.dictionary.to_pylist()
+        codes = unit.indices.fill_null(len(names)).to_numpy()
+        rank = np.empty(len(names) + 1, dtype=np.int64)  # a missing unit last, as pandas sorts
+        rank[np.argsort(np.array(names, dtype=object), kind="stable")] = np.arange(len(names))
+        rank[len(names)] = len(names)
+        keep = ~np.array([n in units for n in names] + [False])[codes]
+        kept = old.filter(pa.array(keep)).cast(schema)
+        if add is None:
+            if not kept.num_rows:
+                return False  # the lot loses its file: write() does that
+            write_table_atomic(kept, path)
+            return True
+        kept_rank = rank[codes[keep]]
+        lo, hi = min(add.column("unit").to_pylist()), max(add.column("unit").to_pylist())
+        below = np.array([n < lo for n in names] + [False])[codes[keep]]
+        between = np.array([lo <= n <= hi for n in names] + [False])[codes[keep]]
+        if np.all(np.diff(kept_rank) >= 0) and not between.any():
+            # the usual case (one unit rerun): the new rows go in at one place
+            at = int(below.sum())
+            table = pa.concat_tables([kept.slice(0, at), add, kept.slice(at)])
+        else:  # stable sort on the unit alone: stored rows are sorted within their unit
+            table = pa.concat_tables([kept, add])
+            codes = pc.dictionary_encode(table.column("unit").combine_chunks())
+            names = codes.dictionary.to_pylist()
+            rank = np.empty(len(names) + 1, dtype=np.int64)
+            rank[np.argsort(np.array(names, dtype=object), kind="stable")] = \
+                np.arange(len(names))
+            rank[len(names)] = len(names)
+            idx = codes.indices.fill_null(len(names)).to_numpy()
+            table = table.take(np.argsort(rank[idx], kind="stable"))
+        write_table_atomic(table, path)
+        return True
 
     def _rows_kept(self, name: str, lot: str | None, units: set[str]) -> pd.DataFrame | None:
         """The stored rows of one lot that are not of ``units`` (None when there is none)."""
@@ -514,15 +612,7 @@ class ResultsStore:
         if not len(df):
             return
         keys = pd.MultiIndex.from_frame(df[["lot", "unit"]].astype(object))
-        hit = keys.isin(list(units))
-        for col, v in values.items():
-            if col not in df:
-                df[col] = None
-            if isinstance(v, bool):
-                df[col] = df[col].astype("boolean")
-            elif isinstance(v, str):
-                df[col] = df[col].astype(object)
-            df.loc[hit, col] = v
+        _set_columns(df, keys.isin(list(units)), values)
         self.write(name, df, lots=lots)
 
     # format 1.0 -> 2.0
