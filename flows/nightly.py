@@ -41,6 +41,7 @@ from calib_core.outliers import (  # noqa: E402
     remember_thresholds,
 )
 from flows.compute_pool import run_in_pool  # noqa: E402
+from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
     DASK_ENV, LOCAL_WORKERS, default_task_runner, make_task_runner, resolve_kind, unit_work_pool,
     uses_unit_work_pool,
@@ -553,7 +554,12 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         # calibration_s: the fit phase (read ... aggregate) until the last batch is back; the
         # storing of lots overlaps it (store_s: time spent storing, in the writer thread)
         lots = sorted(tally.lots | (set(store.lots()) if interrupted else set()))
+        # the pages the fit phase and the lots' storing freed (in the task runner's and the
+        # writer's malloc arenas), given back before flags and reports allocate theirs in
+        # this thread's arena (flows.memory; docs/perf3-store.md)
+        release_memory()
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
+        release_memory()
         reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
         for p in problems:
             logger.warning(p)
