@@ -525,6 +525,8 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         def store_lot(lot_results: list[UnitResult]) -> None:
             t = time.monotonic()
             tally.add(lot_results, store_results(store, lot_results, run_id, version))
+            del lot_results[:]  # this thread's reference: the lot's results can go now
+            release_memory()  # its frames' pages back before the next lot (flows.memory)
             store_s[0] += time.monotonic() - t
 
         def on_lot(lot: str, lot_results: list[UnitResult]) -> None:
