@@ -36,11 +36,13 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402
 from prefect.futures import as_completed  # noqa: E402
 from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
 
+from calib_core.tables import ColumnTable  # noqa: E402
 from calib_core.outliers import (  # noqa: E402
     LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots, known_thresholds,
     remember_thresholds,
 )
 from flows.compute_pool import run_in_pool  # noqa: E402
+from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
     DASK_ENV, LOCAL_WORKERS, default_task_runner, make_task_runner, resolve_kind, unit_work_pool,
     uses_unit_work_pool,
@@ -104,6 +106,32 @@ def _flatten_effect(e: dict) -> dict:
     return out
 
 
+def _session_rows(results: list[UnitResult], attr: str) -> pd.DataFrame | None:
+    """The per-session tables (``residual_table`` / ``compensation_table``) of the units'
+    successful sessions as ONE DataFrame, lot, unit and rep inserted first: equal to
+    concatenating the units' ``residuals_frame()`` / ``compensation_frame()``, without
+    building a DataFrame per unit (~1 ms each plus the concatenation)."""
+    tables = []
+    for ur in results:
+        out = ur.outcome
+        for s in out.sessions:
+            t = getattr(s, attr)
+            if s.succeeded and s.calibration is not None and t is not None and len(t):
+                for c, v in (("lot", out.lot), ("unit", out.unit), ("rep", s.key.rep)):
+                    if c not in t.columns:  # each inserted first, as DataFrame.insert(0, ...)
+                        t = t.with_leading(c, v)
+                tables.append(t)
+    if not tables:
+        return None
+    try:
+        return ColumnTable.concat(tables).to_frame()
+    except ValueError:  # columns differ between sessions: per unit, as UnitOutcome builds them
+        frames = [f for f in (getattr(ur.outcome, "residuals_frame" if attr == "residual_table"
+                                      else "compensation_frame")() for ur in results)
+                  if f is not None]
+        return pd.concat(frames, ignore_index=True) if frames else None
+
+
 def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                   code_version: str, when=None) -> dict[str, Any]:
     """Write the units' rows (replacing only those units), their calibration files, and mark
@@ -112,7 +140,7 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     when = when or utc_now()
     stamp = iso(when)
     sess_rows, par_rows, sum_rows, unit_rows, disc_rows = [], [], [], [], []
-    res_frames, comp_frames, nav_frames = [], [], []
+    nav_frames = []
     ok_units: set[tuple[str, str]] = set()
     stale_units: dict[tuple[str, str], str] = {}
     previous_units = store.read("units", lots={ur.lot for ur in results},
@@ -144,10 +172,6 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                                      "model": p.model, "parameter": p.name, "value": p.value,
                                      "stderr": p.stderr, "unit_of_measure": p.unit,
                                      "code_version": code_version, "run_id": run_id})
-            for frames, df in ((res_frames, out.residuals_frame()),
-                               (comp_frames, out.compensation_frame())):
-                if df is not None:
-                    frames.append(df)
             for ps in out.calibration.summary:
                 sum_rows.append({"lot": ur.lot, "unit": ur.unit, "model": ps.model,
                                  "parameter": ps.name, "mean": ps.mean, "std": ps.std,
@@ -171,7 +195,9 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                     k: ur.diagnosis.get(k) for k in ("misfit", "unexplained", "effects")},
             }, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
                 "repetitions": doc["reps"]}
-            path = store.save_calibration(out.applied, ur.unit, jsonable(extra), when)
+            # numpy values and NaNs of ``extra`` are converted while writing (as jsonable()
+            # would, without a second walk over the document)
+            path = store.save_calibration(out.applied, ur.unit, extra, when, jsonable=True)
             unit_rows.append({**base, "state": "calibrated", "reason": "",
                               "calibration_file": str(path.relative_to(store.root)),
                               "calibrated_at": stamp})
@@ -202,10 +228,13 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     all_units = {(ur.lot, ur.unit) for ur in results}
     store.replace_units("units", _frame(unit_rows, "units"), all_units)
     store.replace_units("parameters", _frame(par_rows, "parameters"), ok_units)
-    store.replace_units("summary", _frame(sum_rows, "summary"), ok_units)
-    for name, frames in (("residuals", res_frames), ("compensation", comp_frames)):
-        store.replace_units(name, pd.concat(frames, ignore_index=True) if frames else None,
-                            ok_units)
+    # units whose recalibration failed keep their rows, marked stale in the same write
+    store.replace_units("summary", _frame(sum_rows, "summary"), ok_units,
+                        set_values={key: {"stale": True, "stale_reason": why}
+                                    for key, why in stale_units.items()})
+    calibrated = [ur for ur in results if ur.calibrated]
+    for name, attr in (("residuals", "residual_table"), ("compensation", "compensation_table")):
+        store.replace_units(name, _session_rows(calibrated, attr), ok_units)
     nav_units = {(ur.lot, ur.unit) for ur in results if ur.navigation is not None}
     if nav_units:
         store.replace_units("navigation", pd.concat(nav_frames, ignore_index=True)
@@ -213,8 +242,6 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
     if disc_units:
         store.replace_units("discovery", _frame(disc_rows, "discovery"), disc_units)
-    for key, why in stale_units.items():
-        store.update_rows("summary", {key}, stale=True, stale_reason=why)
     # sessions.parquet last: its fingerprints tell the next run which units are done, so a
     # crash before this point leaves the units "changed" and the rerun redoes them whole
     store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)
@@ -557,6 +584,8 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         def store_lot(lot_results: list[UnitResult]) -> None:
             t = time.monotonic()
             tally.add(lot_results, store_results(store, lot_results, run_id, version))
+            del lot_results[:]  # this thread's reference: the lot's results can go now
+            release_memory()  # its frames' pages back before the next lot (flows.memory)
             store_s[0] += time.monotonic() - t
 
         def on_lot(lot: str, lot_results: list[UnitResult]) -> None:
@@ -586,7 +615,12 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         # calibration_s: the fit phase (read ... aggregate) until the last batch is back; the
         # storing of lots overlaps it (store_s: time spent storing, in the writer thread)
         lots = sorted(tally.lots | (set(store.lots()) if interrupted else set()))
+        # the pages the fit phase and the lots' storing freed (in the task runner's and the
+        # writer's malloc arenas), given back before flags and reports allocate theirs in
+        # this thread's arena (flows.memory; docs/perf3-store.md)
+        release_memory()
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
+        release_memory()
         reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
         for p in problems:
             logger.warning(p)
