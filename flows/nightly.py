@@ -451,6 +451,8 @@ def write_reports(results: str | Path, lots: list[str], units: tuple[str, ...] =
             problems.append(f"lot report {lot}: {type(exc).__name__}: {exc}")
         finally:
             view.forget_lot(lot)
+        if len(lots) > 1:  # each lot report's ~100 MB of pages back before the next one
+            release_memory()  # (flows.memory); a rerun's single lot does not pay the 0.1 s
     try:
         from reports.index import write_fleet_index
         written.append(str(write_fleet_index(results, view=view)))
