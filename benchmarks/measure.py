@@ -22,9 +22,12 @@ Kinds:
 - ``stages``: the same per session, split into read+validate, average, fit and aggregate, on
   the first ``--units`` units (where the fit phase time goes).
 - ``nightly``: :func:`flows.nightly.nightly_fleet_calibration` end to end (``force=True``),
-  with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or a Dask
-  ``LocalCluster`` of N single-threaded worker processes; the run log gives the fit phase (``calibration_s``) and the rest
-  (store, flags, reports).
+  with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or the
+  ``dask`` runner with a ``LocalCluster`` of N single-threaded worker processes (started and
+  warmed before the flow's body: ``cluster_start_s``, ``dask_warmup_s``); the run log gives the
+  fit phase (``calibration_s``) and the rest (store, flags, reports); ``fit_phase_cpu_s`` is the
+  CPU of the flow's process, its store-writer thread, the API server and the workers during
+  the fit phase (:class:`CpuByRole`).
 - ``rerun``: :func:`flows.nightly.rerun_unit` of one unit on an existing results store.
 - ``unit``: :func:`flows.unit_pipeline.calibrate_unit` of one unit, no Prefect.
 - ``prefect``: Prefect start-up: ``import prefect`` and a trivial flow run with mimucal's
@@ -94,8 +97,9 @@ class CpuByRole:
     ``mimucal-store`` thread), ``api`` (Prefect's temporary API server), ``workers`` (Dask
     workers and nannies, process-pool workers: every other descendant)."""
 
-    def __init__(self, interval_s: float = 0.2):
+    def __init__(self, interval_s: float = 0.25):
         self.interval_s = interval_s
+        self._roles: dict[int, str] = {}
         self.samples: list[tuple[float, dict[str, float]]] = []
         self._last: dict[int, tuple[str, float]] = {}  # pid or "t<tid>" -> (role, cpu)
         self._stop = threading.Event()
@@ -118,7 +122,10 @@ class CpuByRole:
             return
         for p in kids:
             try:
-                role = "api" if "prefect.server" in " ".join(p.cmdline()) else "workers"
+                if p.pid not in self._roles:  # cmdline once per process: sampling stays cheap
+                    self._roles[p.pid] = ("api" if "prefect.server" in " ".join(p.cmdline())
+                                          else "workers")
+                role = self._roles[p.pid]
                 t = p.cpu_times()
                 self._last[p.pid] = (role, t.user + t.system)
             except psutil.Error:
@@ -359,33 +366,22 @@ def do_nightly(a) -> dict:
     t_imp = time.perf_counter()
     from flows import nightly
     import_s = time.perf_counter() - t_imp
-    cluster = None
-    address = None
-    t_cluster = 0.0
     if a.dask_workers > 0:
-        # the cluster is started here and its address given to the flow (the remote-scheduler
-        # path); the flow's dask runner connects and warms the workers before its fit phase
+        # the dask runner as a nightly run uses it: its LocalCluster of N workers is started,
+        # and warmed, by the flow's task runner before the flow's body (outside the fit phase;
+        # its times are reported below, from flows.compute_pool.last_dask_startup)
         import logging
         logging.getLogger("distributed").setLevel(logging.WARNING)
-        from dask.distributed import LocalCluster
+        os.environ["MIMUCAL_TASK_RUNNER"] = "dask"
+        os.environ["MIMUCAL_DASK_WORKERS"] = str(a.dask_workers)
+    with CpuByRole() as roles:
         t0 = time.perf_counter()
-        cluster = LocalCluster(n_workers=a.dask_workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.WARNING)
-        address = cluster.scheduler_address
-        t_cluster = time.perf_counter() - t0
-    try:
-        with CpuByRole() as roles:
-            t0 = time.perf_counter()
-            log = nightly.nightly_fleet_calibration(a.dataset, a.results, force=True,
-                                                    dask_address=address, batch_size=a.batch,
-                                                    progress=False)
-            wall = time.perf_counter() - t0
-    finally:
-        if cluster is not None:
-            cluster.close()
+        log = nightly.nightly_fleet_calibration(a.dataset, a.results, force=True,
+                                                batch_size=a.batch, progress=False)
+        wall = time.perf_counter() - t0
     fit = float(log.get("calibration_s") or 0.0)
     inflow = float(log.get("elapsed_s") or 0.0)
-    out = {"wall_s": wall, "import_s": import_s, "cluster_start_s": t_cluster,
+    out = {"wall_s": wall, "import_s": import_s, "cluster_start_s": 0.0,
            "flow_elapsed_s": inflow, "fit_phase_s": fit, "report_phase_s": inflow - fit,
            "outside_flow_s": wall - inflow, "units_calibrated": log.get("units_calibrated"),
            "sessions_calibrated": log.get("sessions_calibrated"),
@@ -401,8 +397,9 @@ def do_nightly(a) -> dict:
         out["fit_phase_cpu_s"] = roles.window(t_start, t_start + fit)
     if a.dask_workers > 0:
         from flows.compute_pool import last_dask_startup
-        out["dask_connect_s"] = last_dask_startup.get("connect_s")
-        out["dask_warmup_s"] = last_dask_startup.get("warmup_s")  # in the flow, before its t0
+        out["cluster_start_s"] = last_dask_startup.get("cluster_start_s") or 0.0
+        out["dask_warmup_s"] = last_dask_startup.get("warmup_s")
+        out["dask_workers_seen"] = last_dask_startup.get("workers")
     return out
 
 

@@ -115,18 +115,27 @@ def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool
     global _pool, _broken
     import logging as _logging
 
+    import dask
     from distributed import Client, LocalCluster
     startup: dict[str, Any] = {"address": address, "cluster_start_s": 0.0}
     cluster = None
     t0 = time.perf_counter()
     if address is None:
-        cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1,
-                               processes=True, dashboard_address=None,
-                               silence_logs=_logging.WARNING)
+        # the scheduler and the nannies run in this (the flow's) process and share its GIL
+        # with Prefect: their system monitors (psutil every 0.5 s, for a dashboard this
+        # cluster does not have) sample rarely
+        with dask.config.set({"distributed.admin.system-monitor.interval": "10s"}):
+            cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1,
+                                   processes=True, dashboard_address=None,
+                                   silence_logs=_logging.WARNING)
         startup["cluster_start_s"] = time.perf_counter() - t0
     try:
         t1 = time.perf_counter()
-        client = Client(cluster if cluster is not None else address, set_as_default=False)
+        # results straight from the worker to this client: through the scheduler they would
+        # be read and written once more (in this process, for a local cluster); workers at a
+        # remote scheduler may not be reachable from here, so only for local ones
+        client = Client(cluster if cluster is not None else address, set_as_default=False,
+                        direct_to_workers=_is_local_address(address))
         startup["connect_s"] = time.perf_counter() - t1
         try:
             t2 = time.perf_counter()
@@ -158,6 +167,21 @@ def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool
     finally:
         if cluster is not None:
             cluster.close()
+
+
+def _is_local_address(address: str | None) -> bool:
+    """Whether a scheduler address (None: a LocalCluster of ours) is on this machine."""
+    import ipaddress
+    from urllib.parse import urlparse
+    if address is None:
+        return True
+    host = urlparse(address if "://" in address else "tcp://" + address).hostname
+    if host in (None, "localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def active() -> bool:

@@ -45,6 +45,7 @@ from prefect.task_runners import ProcessPoolTaskRunner, ThreadPoolTaskRunner
 
 LOCAL_WORKERS = 2
 DASK_ENV = "MIMUCAL_DASK_ADDRESS"  # the served deployment reads its Dask address here
+DASK_WORKERS_ENV = "MIMUCAL_DASK_WORKERS"  # workers of the dask runner's LocalCluster (default 2)
 RUNNER_ENV = "MIMUCAL_TASK_RUNNER"  # auto | threads | processes | prefect-processes | dask
 RUNNER_KINDS = ("auto", "threads", "processes", "prefect-processes", "dask")
 DEFAULT_KIND = "auto"
@@ -132,29 +133,36 @@ class DaskPoolTaskRunner(ThreadPoolTaskRunner):
     runner at the start of the flow run, before the flow's body: the fit phase no longer pays
     a worker's imports nor Prefect's task context in the worker (8-10 s CPU per worker before,
     docs/perf3-dask.md). Task-run states stay in the flow's process; the workers never talk to
-    Prefect's API. ``max_workers`` task threads (each waits on one batch) keep every Dask worker
-    fed; they cost no CPU while they wait."""
+    Prefect's API. Task threads (each waits on one batch; no CPU while it waits): ``max_workers``
+    when given, else two per Dask worker found at the start (at most :data:`DASK_TASK_THREADS`),
+    enough to keep every worker fed; each thread builds its own Prefect client on its first task
+    (~20-40 ms of CPU, mostly an SSL context), so idle extra threads are not free."""
 
     def __init__(self, address: str | None = None, n_workers: int = LOCAL_WORKERS,
                  max_workers: int | None = None):
         super().__init__(max_workers=max_workers or DASK_TASK_THREADS)
         self.address = address
         self.n_workers = n_workers
+        self._threads_given = max_workers
         self._dask_pool = None
 
     def duplicate(self):
         return type(self)(address=self.address, n_workers=self.n_workers,
-                          max_workers=self._max_workers)
+                          max_workers=self._threads_given)
 
     def __eq__(self, value: object) -> bool:
         return (isinstance(value, DaskPoolTaskRunner) and value.address == self.address
-                and value.n_workers == self.n_workers and super().__eq__(value))
+                and value.n_workers == self.n_workers
+                and value._threads_given == self._threads_given)
 
     def __enter__(self):
-        from flows.compute_pool import dask_pool
+        from flows.compute_pool import dask_pool, last_dask_startup
         pool = dask_pool(self.address, self.n_workers)
         pool.__enter__()  # may raise (no scheduler at the address): nothing to undo then
         self._dask_pool = pool
+        if not self._threads_given:
+            workers = int(last_dask_startup.get("workers") or self.n_workers)
+            self._max_workers = min(DASK_TASK_THREADS, max(2, 2 * workers))
         try:
             return super().__enter__()
         except BaseException:
@@ -192,7 +200,7 @@ def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_W
         return ThreadPoolTaskRunner(max_workers=max_workers)
     if kind == "prefect-processes":
         return SharedApiProcessPoolTaskRunner(max_workers=max_workers)
-    return DaskPoolTaskRunner(n_workers=max_workers)
+    return DaskPoolTaskRunner(n_workers=int(os.environ.get(DASK_WORKERS_ENV) or max_workers))
 
 
 def uses_unit_work_pool(kind: str | None, n_units: int) -> bool:

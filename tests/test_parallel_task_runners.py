@@ -62,6 +62,8 @@ def test_dask_address_wins_and_the_dask_runner_keeps_its_cluster_settings(monkey
     local = tr.make_task_runner(kind="dask")
     assert local.address is None and local.n_workers == tr.LOCAL_WORKERS == 2
     assert local != r and tr.make_task_runner(kind="dask", max_workers=1).n_workers == 1
+    # task threads: as given, and kept by the copy
+    assert tr.DaskPoolTaskRunner(max_workers=3).duplicate()._max_workers == 3
 
 
 def test_local_host_detection():
@@ -164,7 +166,9 @@ def batch(i):
 
 @flow(persist_result=False)
 def probe(n):
+    from prefect.context import FlowRunContext
     return {"flow_pid": os.getpid(), "dask_active": compute_pool.dask_active(),
+            "threads": FlowRunContext.get().task_runner._max_workers,
             "no_process_pool": not uses_unit_work_pool("auto", 1000),
             "startup": dict(compute_pool.last_dask_startup),
             "tasks": [f.result() for f in [batch.submit(i) for i in range(n)]]}
@@ -197,6 +201,7 @@ def test_dask_runner_keeps_prefect_in_the_flow_and_the_numerics_on_warm_workers(
     # process pool is not opened on top of it
     assert out["dask_active"] and out["no_process_pool"]
     assert out["startup"]["workers"] == 2 and out["startup"]["cluster_start_s"] > 0
+    assert out["threads"] == 4  # two task threads per Dask worker
     assert sorted(t["square"] for t in out["tasks"]) == [0, 1, 4, 9]
     for t in out["tasks"]:
         assert t["task_pid"] == out["flow_pid"]  # the Prefect task run: in the flow's process
