@@ -103,8 +103,19 @@ class DaskPool:
 
     def run(self, fn: Callable[..., Any], *args: Any) -> Any:
         # pure=False: no hashing of the arguments to make a key, and no deduplication of two
-        # identical calls (every batch is its own piece of work)
-        return self.client.submit(fn, *args, pure=False).result()
+        # identical calls (every batch is its own piece of work). The result comes back as one
+        # pickled blob: left to Dask, every numpy buffer of the result's tables travels as a
+        # frame of its own (961 frames for a 4-unit batch, 70 ms to serialise in the worker
+        # against 24 ms for one pickle), each read separately by this process, which also runs
+        # Prefect and the store (docs/perf3-dask.md)
+        import pickle
+        blob = self.client.submit(_call_pickled, fn, *args, pure=False).result()
+        return pickle.loads(blob)
+
+
+def _call_pickled(fn: Callable[..., Any], *args: Any) -> bytes:
+    import pickle
+    return pickle.dumps(fn(*args), protocol=pickle.HIGHEST_PROTOCOL)
 
 
 @contextmanager

@@ -64,18 +64,39 @@ def _die_unless(flow_pid: int, marker: str | None = None) -> int:
     return os.getpid()
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    """A scheduler with one worker, standing for a cluster at an address (``--dask-address``)."""
+def _one_worker_cluster():
+    """A scheduler with one worker, standing for a cluster at an address (``--dask-address``);
+    a task that kills two workers fails (``KilledWorker``)."""
     import logging
 
     import dask
     from distributed import LocalCluster
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        c = LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                         dashboard_address=None, silence_logs=logging.ERROR)
+        return LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                            dashboard_address=None, silence_logs=logging.ERROR)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    c = _one_worker_cluster()
     yield c
     c.close()
+
+
+@pytest.fixture
+def own_cluster():
+    c = _one_worker_cluster()
+    yield c
+    c.close()
+
+
+@pytest.mark.slow
+def test_a_batch_that_kills_every_worker_runs_in_the_flows_process(own_cluster):
+    # allowed-failures 1: the scheduler tries the batch twice, then gives up (KilledWorker);
+    # the batch then runs here, and the pool keeps working
+    with cp.dask_pool(own_cluster.scheduler_address):
+        assert cp.run_in_pool(_die_unless, os.getpid()) == os.getpid()
+        assert cp.run_in_pool(_where_and_what, 2)["pid"] != os.getpid()
 
 
 @pytest.mark.slow
@@ -103,12 +124,3 @@ def test_a_dead_dask_worker_costs_time_not_the_batch(cluster, tmp_path):
         # again there (not in this process)
         assert os.path.exists(marker) and pid != os.getpid()
         assert cp.run_in_pool(_where_and_what, 5)["square"] == 25
-
-
-@pytest.mark.slow
-def test_a_batch_that_kills_every_worker_runs_in_the_flows_process(cluster):
-    # allowed-failures 1: the scheduler tries the batch twice, then gives up (KilledWorker);
-    # the batch then runs here, and the pool keeps working
-    with cp.dask_pool(cluster.scheduler_address):
-        assert cp.run_in_pool(_die_unless, os.getpid()) == os.getpid()
-        assert cp.run_in_pool(_where_and_what, 2)["pid"] != os.getpid()
