@@ -147,12 +147,10 @@ def test_workers_in_other_processes_use_the_flows_api_server(tmp_path):
 
 _DASK_SCRIPT = """
 import json, os, sys
-from flows import runtime
-runtime.ensure_environment()
-from prefect import flow, task
-from prefect.cache_policies import NO_CACHE
-from flows import compute_pool
-from flows.task_runners import make_task_runner, uses_unit_work_pool
+
+# only the standard library at the top: Dask's worker processes are spawned, and a spawned
+# process runs the parent's main module again (as __mp_main__) before its first task
+
 
 def numerics_where(i):
     from threadpoolctl import threadpool_info
@@ -160,21 +158,29 @@ def numerics_where(i):
     return {"pid": os.getpid(), "prefect": "prefect" in sys.modules, "blas": blas,
             "warm": "calib_core.discovery" in sys.modules, "square": i * i}
 
-@task(persist_result=False, cache_policy=NO_CACHE)
-def batch(i):
-    return {"task_pid": os.getpid(), **compute_pool.run_in_pool(numerics_where, i)}
 
-@flow(persist_result=False)
-def probe(n):
-    from prefect.context import FlowRunContext
-    return {"flow_pid": os.getpid(), "dask_active": compute_pool.dask_active(),
-            "threads": FlowRunContext.get().task_runner._max_workers,
-            "no_process_pool": not uses_unit_work_pool("auto", 1000),
-            "startup": dict(compute_pool.last_dask_startup),
-            "tasks": [f.result() for f in [batch.submit(i) for i in range(n)]]}
-
-if __name__ == "__main__":
+def main():
     import psutil
+    from flows import runtime
+    runtime.ensure_environment()
+    from prefect import flow, task
+    from prefect.cache_policies import NO_CACHE
+    from flows import compute_pool
+    from flows.task_runners import make_task_runner, uses_unit_work_pool
+
+    @task(persist_result=False, cache_policy=NO_CACHE)
+    def batch(i):
+        return {"task_pid": os.getpid(), **compute_pool.run_in_pool(numerics_where, i)}
+
+    @flow(persist_result=False)
+    def probe(n):
+        from prefect.context import FlowRunContext
+        return {"flow_pid": os.getpid(), "dask_active": compute_pool.dask_active(),
+                "threads": FlowRunContext.get().task_runner._max_workers,
+                "no_process_pool": not uses_unit_work_pool("auto", 1000),
+                "startup": dict(compute_pool.last_dask_startup),
+                "tasks": [f.result() for f in [batch.submit(i) for i in range(n)]]}
+
     out = probe.with_options(task_runner=make_task_runner(kind="dask", max_workers=2))(4)
     out["servers"] = len([p for p in psutil.Process().children(recursive=True)
                           if "prefect.server" in " ".join(p.cmdline())])
@@ -183,6 +189,10 @@ if __name__ == "__main__":
                                             ("prefect.server", "resource_tracker"))])
     out["active_after"] = compute_pool.active()
     print("RESULT " + json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
 """
 
 
