@@ -380,8 +380,12 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
             load = doc["machine"].get("load_start", (float("nan"),))[0]
             why = (f"{doc['machine']['nproc']} cores, load average {load:.1f} at the start; "
                    f"{n_batches} tasks of {batch} units: 2 workers can at best reach "
-                   f"{ideal:.2f}x; workers warmed before the fit phase (warm-up "
-                   f"{d2.get('dask_warmup_s') or 0:.1f} s, outside it)")
+                   f"{ideal:.2f}x; " + (
+                       f"workers warmed before the fit phase (warm-up "
+                       f"{d2['dask_warmup_s']:.1f} s, outside it)"
+                       if d2.get("dask_warmup_s") is not None else  # results before round 3
+                       "each worker process pays its imports and its first Prefect client "
+                       "once"))
             cpu1, cpu2 = d1.get("fit_phase_cpu_s") or {}, d2.get("fit_phase_cpu_s") or {}
             if cpu1.get("workers") and cpu2.get("workers"):
                 # what the 2 cores also had to run during the fit phase: the flow's process
