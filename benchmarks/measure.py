@@ -22,9 +22,12 @@ Kinds:
 - ``stages``: the same per session, split into read+validate, average, fit and aggregate, on
   the first ``--units`` units (where the fit phase time goes).
 - ``nightly``: :func:`flows.nightly.nightly_fleet_calibration` end to end (``force=True``),
-  with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or a Dask
-  ``LocalCluster`` of N single-threaded worker processes; the run log gives the fit phase (``calibration_s``) and the rest
-  (store, flags, reports).
+  with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or the
+  ``dask`` runner with a ``LocalCluster`` of N single-threaded worker processes (started and
+  warmed before the flow's body: ``cluster_start_s``, ``dask_warmup_s``); the run log gives the
+  fit phase (``calibration_s``) and the rest (store, flags, reports); ``fit_phase_cpu_s`` is the
+  CPU of the flow's process, its store-writer thread, the API server and the workers during
+  the fit phase (:class:`CpuByRole`).
 - ``rerun``: :func:`flows.nightly.rerun_unit` of one unit on an existing results store.
 - ``unit``: :func:`flows.unit_pipeline.calibrate_unit` of one unit, no Prefect.
 - ``prefect``: Prefect start-up: ``import prefect`` and a trivial flow run with mimucal's
@@ -75,6 +78,76 @@ class TreeRss:
         while not self._stop.is_set():
             self._sample()
             self._stop.wait(self.interval_s)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._sample()
+        self._stop.set()
+        self._thread.join()
+        return False
+
+
+class CpuByRole:
+    """CPU seconds of this process tree by role, sampled every ``interval_s`` with a wall-clock
+    time stamp, so that the CPU spent inside a window (the nightly fit phase) can be taken
+    afterwards: ``flow`` (this process less its store-writer thread), ``writer`` (the flow's
+    ``mimucal-store`` thread), ``api`` (Prefect's temporary API server), ``workers`` (Dask
+    workers and nannies, process-pool workers: every other descendant)."""
+
+    def __init__(self, interval_s: float = 0.25):
+        self.interval_s = interval_s
+        self._roles: dict[int, str] = {}
+        self.samples: list[tuple[float, dict[str, float]]] = []
+        self._last: dict[int, tuple[str, float]] = {}  # pid or "t<tid>" -> (role, cpu)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _sample(self) -> None:
+        import psutil
+        now = time.time()
+        try:
+            me = psutil.Process()
+            kids = me.children(recursive=True)
+            writer_tids = {t.native_id for t in threading.enumerate()
+                           if t.name.startswith("mimucal-store")}
+            t = me.cpu_times()
+            self._last[me.pid] = ("flow", t.user + t.system)
+            for th in me.threads():
+                if th.id in writer_tids:
+                    self._last[f"t{th.id}"] = ("writer", th.user_time + th.system_time)
+        except psutil.Error:
+            return
+        for p in kids:
+            try:
+                if p.pid not in self._roles:  # cmdline once per process: sampling stays cheap
+                    self._roles[p.pid] = ("api" if "prefect.server" in " ".join(p.cmdline())
+                                          else "workers")
+                role = self._roles[p.pid]
+                t = p.cpu_times()
+                self._last[p.pid] = (role, t.user + t.system)
+            except psutil.Error:
+                pass  # gone: its last value stays
+        roles: dict[str, float] = {}
+        for role, cpu in self._last.values():
+            roles[role] = roles.get(role, 0.0) + cpu
+        roles["flow"] = roles.get("flow", 0.0) - roles.get("writer", 0.0)
+        self.samples.append((now, roles))
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._sample()
+            self._stop.wait(self.interval_s)
+
+    def window(self, t0: float, t1: float) -> dict[str, float]:
+        """CPU seconds by role between the samples nearest the wall-clock times t0 and t1."""
+        if not self.samples:
+            return {}
+        a = min(self.samples, key=lambda s: abs(s[0] - t0))[1]
+        b = min(self.samples, key=lambda s: abs(s[0] - t1))[1]
+        return {k: round(b.get(k, 0.0) - a.get(k, 0.0), 2) for k in sorted(set(a) | set(b))}
 
     def __enter__(self):
         self._thread.start()
@@ -293,39 +366,41 @@ def do_nightly(a) -> dict:
     t_imp = time.perf_counter()
     from flows import nightly
     import_s = time.perf_counter() - t_imp
-    cluster = client = None
-    address = None
-    t_cluster = 0.0
     if a.dask_workers > 0:
+        # the dask runner as a nightly run uses it: its LocalCluster of N workers is started,
+        # and warmed, by the flow's task runner before the flow's body (outside the fit phase;
+        # its times are reported below, from flows.compute_pool.last_dask_startup)
         import logging
         logging.getLogger("distributed").setLevel(logging.WARNING)
-        from dask.distributed import LocalCluster
-        t0 = time.perf_counter()
-        cluster = LocalCluster(n_workers=a.dask_workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, silence_logs=logging.WARNING)
-        address = cluster.scheduler_address
-        t_cluster = time.perf_counter() - t0
-    try:
+        os.environ["MIMUCAL_TASK_RUNNER"] = "dask"
+        os.environ["MIMUCAL_DASK_WORKERS"] = str(a.dask_workers)
+    with CpuByRole() as roles:
         t0 = time.perf_counter()
         log = nightly.nightly_fleet_calibration(a.dataset, a.results, force=True,
-                                                dask_address=address, batch_size=a.batch,
-                                                progress=False)
+                                                batch_size=a.batch, progress=False)
         wall = time.perf_counter() - t0
-    finally:
-        if cluster is not None:
-            cluster.close()
     fit = float(log.get("calibration_s") or 0.0)
     inflow = float(log.get("elapsed_s") or 0.0)
-    return {"wall_s": wall, "import_s": import_s, "cluster_start_s": t_cluster,
-            "flow_elapsed_s": inflow, "fit_phase_s": fit, "report_phase_s": inflow - fit,
-            "outside_flow_s": wall - inflow, "units_calibrated": log.get("units_calibrated"),
-            "sessions_calibrated": log.get("sessions_calibrated"),
-            "failed_sessions": len(log.get("failed_sessions") or []),
-            "reports": len(log.get("reports") or []),
-            "report_problems": log.get("report_problems") or [],
-            "dask_workers": a.dask_workers, "runner": "dask" if a.dask_workers else a.runner,
-            "unit_work": log.get("unit_work"), "store_s": log.get("store_s"),
-            "batch_size": a.batch}
+    out = {"wall_s": wall, "import_s": import_s, "cluster_start_s": 0.0,
+           "flow_elapsed_s": inflow, "fit_phase_s": fit, "report_phase_s": inflow - fit,
+           "outside_flow_s": wall - inflow, "units_calibrated": log.get("units_calibrated"),
+           "sessions_calibrated": log.get("sessions_calibrated"),
+           "failed_sessions": len(log.get("failed_sessions") or []),
+           "reports": len(log.get("reports") or []),
+           "report_problems": log.get("report_problems") or [],
+           "dask_workers": a.dask_workers, "runner": "dask" if a.dask_workers else a.runner,
+           "unit_work": log.get("unit_work"), "store_s": log.get("store_s"),
+           "batch_size": a.batch}
+    if log.get("start"):  # CPU by role during the fit phase (wall-clock window of the log)
+        from datetime import datetime
+        t_start = datetime.fromisoformat(str(log["start"]).replace("Z", "+00:00")).timestamp()
+        out["fit_phase_cpu_s"] = roles.window(t_start, t_start + fit)
+    if a.dask_workers > 0:
+        from flows.compute_pool import last_dask_startup
+        out["cluster_start_s"] = last_dask_startup.get("cluster_start_s") or 0.0
+        out["dask_warmup_s"] = last_dask_startup.get("warmup_s")
+        out["dask_workers_seen"] = last_dask_startup.get("workers")
+    return out
 
 
 def do_rerun(a) -> dict:

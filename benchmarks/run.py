@@ -380,8 +380,19 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
             load = doc["machine"].get("load_start", (float("nan"),))[0]
             why = (f"{doc['machine']['nproc']} cores, load average {load:.1f} at the start; "
                    f"{n_batches} tasks of {batch} units: 2 workers can at best reach "
-                   f"{ideal:.2f}x; each worker process pays its imports and its first Prefect "
-                   f"client once")
+                   f"{ideal:.2f}x; " + (
+                       f"workers warmed before the fit phase (warm-up "
+                       f"{d2['dask_warmup_s']:.1f} s, outside it)"
+                       if d2.get("dask_warmup_s") is not None else  # results before round 3
+                       "each worker process pays its imports and its first Prefect client "
+                       "once"))
+            cpu1, cpu2 = d1.get("fit_phase_cpu_s") or {}, d2.get("fit_phase_cpu_s") or {}
+            if cpu1.get("workers") and cpu2.get("workers"):
+                # what the 2 cores also had to run during the fit phase: the flow's process
+                # (Prefect, results, the scheduler) and the API server
+                other = sum(v for k, v in cpu2.items() if k != "workers")
+                why += (f"; fit-phase CPU, workers {cpu1['workers']:.1f} s -> "
+                        f"{cpu2['workers']:.1f} s, flow + API {other:.1f} s with 2 workers")
             if nt.get("fit_phase_s"):
                 why += (f"; thread pool fit phase {nt['fit_phase_s']:.1f} s "
                         f"(1 Dask worker {d1['fit_phase_s'] / nt['fit_phase_s']:.2f}x of it)")
@@ -498,8 +509,12 @@ def markdown(doc: dict) -> str:
             if "error" in d:
                 out.append(f"| {n} | {label} | | failed: {d['error']} | | | | | |")
                 continue
-            start = (f" (+ cluster start {d['cluster_start_s']:.1f})"
-                     if d.get("cluster_start_s") else "")
+            if d.get("dask_warmup_s") is not None:  # started by the flow's runner: inside
+                start = (f" (of which cluster start {d.get('cluster_start_s') or 0:.1f}, "
+                         f"warm-up {d['dask_warmup_s']:.1f})")
+            else:  # older results: a cluster started before the flow
+                start = (f" (+ cluster start {d['cluster_start_s']:.1f})"
+                         if d.get("cluster_start_s") else "")
             out.append(f"| {n} | {label} | {d.get('batch_size', '')} | {d['fit_phase_s']:.2f} "
                        f"| {d['report_phase_s']:.2f} | {d['outside_flow_s']:.2f}{start} "
                        f"| {d['wall_s']:.2f} | {_f(_rss(d), '{:.0f}')} / "

@@ -15,14 +15,25 @@ results (pickled: ~0.1 MB per unit).
 
 A worker that dies (killed, out of memory) breaks the pool; the batch is then run again in the
 flow's process, so a crash costs time, never a unit (``run_in_pool``).
+
+The ``dask`` runner uses the same arrangement with a Dask cluster as the pool
+(:func:`dask_pool`): a local ``LocalCluster`` of single-threaded worker processes, or the
+scheduler at an address. Its workers run only the batch function (no Prefect, no task context,
+no API traffic) and are warmed before the flow's fit phase starts (the numerics imported once
+per worker: :data:`PRELOAD`); the start-up and warm-up times are kept in :data:`last_dask_startup`.
+A Dask worker that dies is replaced (nanny) and the scheduler runs its batch again elsewhere;
+a batch that keeps killing workers (``KilledWorker``) or a lost scheduler runs in the flow's
+process instead, as above.
 """
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
 import threading
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+import time
+from concurrent.futures import CancelledError
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
@@ -31,8 +42,11 @@ PRELOAD = ("__main__", "flows.unit_pipeline", "calib_core.discovery", "calib_cor
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
-_pool: ProcessPoolExecutor | None = None
+_pool: "ProcessPoolExecutor | DaskPool | None" = None
 _broken = False
+# how long the last dask_pool took to start (cluster_start_s: a LocalCluster; connect_s: the
+# client; warmup_s: the workers' imports) and how many workers it had
+last_dask_startup: dict[str, Any] = {}
 
 
 def _init_worker() -> None:
@@ -64,8 +78,135 @@ def compute_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
+def _import_numerics() -> None:
+    import importlib
+    for name in PRELOAD:
+        if name != "__main__":
+            importlib.import_module(name)
+
+
+def _warm_worker() -> int:
+    """Run once on every Dask worker before the fit phase: import the numerics (what
+    unpickling the first batch would otherwise do inside the fit phase) and one BLAS thread."""
+    import os
+    _import_numerics()
+    _init_worker()
+    return os.getpid()
+
+
+class DaskPool:
+    """A Dask client used as the flow's pool: ``run`` sends one call to a worker and waits for
+    its result. Thread-safe (the flow's task threads share it)."""
+
+    def __init__(self, client: Any):
+        self.client = client
+
+    def run(self, fn: Callable[..., Any], *args: Any) -> Any:
+        # pure=False: no hashing of the arguments to make a key, and no deduplication of two
+        # identical calls (every batch is its own piece of work). The result comes back as one
+        # pickled blob: left to Dask, every numpy buffer of the result's tables travels as a
+        # frame of its own (961 frames for a 4-unit batch, 70 ms to serialise in the worker
+        # against 24 ms for one pickle), each read separately by this process, which also runs
+        # Prefect and the store (docs/perf3-dask.md)
+        import pickle
+        blob = self.client.submit(_call_pickled, fn, *args, pure=False).result()
+        return pickle.loads(blob)
+
+
+def _call_pickled(fn: Callable[..., Any], *args: Any) -> bytes:
+    import pickle
+    return pickle.dumps(fn(*args), protocol=pickle.HIGHEST_PROTOCOL)
+
+
+@contextmanager
+def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool]:
+    """A Dask cluster that :func:`run_in_pool` uses while the block runs: the scheduler at
+    ``address``, else a ``LocalCluster`` of ``workers`` single-threaded worker processes
+    (closed at the end). Every worker is warmed (:func:`_warm_worker`) before the block."""
+    global _pool, _broken
+    import logging as _logging
+
+    import dask
+    from distributed import Client, LocalCluster
+    startup: dict[str, Any] = {"address": address, "cluster_start_s": 0.0}
+    cluster = None
+    t0 = time.perf_counter()
+    if address is None:
+        # the scheduler and the nannies run in this (the flow's) process and share its CPU
+        # with Prefect and the store: their periodic callbacks run rarely. Idle, they cost
+        # this process 0.04 CPU s per second with Dask's defaults, 0.009 with these: system
+        # monitor (psutil, for a dashboard this cluster does not have) 0.5 -> 10 s, event-loop
+        # health tick 20 -> 500 ms, nanny memory check 0.1 -> 1 s (still well before a
+        # worker could fill this machine's memory)
+        with dask.config.set({"distributed.admin.system-monitor.interval": "10s",
+                              "distributed.admin.tick.interval": "500ms",
+                              "distributed.worker.memory.monitor-interval": "1s"}):
+            cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1,
+                                   processes=True, dashboard_address=None,
+                                   silence_logs=_logging.WARNING)
+        startup["cluster_start_s"] = time.perf_counter() - t0
+    try:
+        t1 = time.perf_counter()
+        # results straight from the worker to this client: through the scheduler they would
+        # be read and written once more (in this process, for a local cluster); workers at a
+        # remote scheduler may not be reachable from here, so only for local ones
+        client = Client(cluster if cluster is not None else address, set_as_default=False,
+                        direct_to_workers=_is_local_address(address))
+        startup["connect_s"] = time.perf_counter() - t1
+        try:
+            t2 = time.perf_counter()
+            # the workers import in their processes while this one imports the same modules:
+            # the flow needs them to unpickle the results (and its discovery check imports
+            # scipy.stats), ~2 s of CPU that would otherwise be in the fit phase
+            with ThreadPoolExecutor(1) as one:
+                warming = one.submit(client.run, _warm_worker)
+                _import_numerics()
+                pids = warming.result()
+            startup["warmup_s"] = time.perf_counter() - t2
+            startup["workers"] = len(pids)
+            startup["total_s"] = time.perf_counter() - t0
+            last_dask_startup.clear()
+            last_dask_startup.update(startup)
+            _log.info("Dask pool ready: %d workers, %.1f s (cluster %.1f s, warm-up %.1f s)",
+                      len(pids), startup["total_s"], startup["cluster_start_s"],
+                      startup["warmup_s"])
+            pool = DaskPool(client)
+            with _lock:
+                previous, _pool, _broken = _pool, pool, False
+            try:
+                yield pool
+            finally:
+                with _lock:
+                    _pool = previous
+        finally:
+            client.close()
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def _is_local_address(address: str | None) -> bool:
+    """Whether a scheduler address (None: a LocalCluster of ours) is on this machine."""
+    import ipaddress
+    from urllib.parse import urlparse
+    if address is None:
+        return True
+    host = urlparse(address if "://" in address else "tcp://" + address).hostname
+    if host in (None, "localhost"):
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def active() -> bool:
     return _pool is not None
+
+
+def dask_active() -> bool:
+    """Whether the active pool is a Dask cluster (the ``dask`` runner opened it)."""
+    return isinstance(_pool, DaskPool)
 
 
 def run_in_pool(fn: Callable[..., Any], *args: Any) -> Any:
@@ -75,6 +216,8 @@ def run_in_pool(fn: Callable[..., Any], *args: Any) -> Any:
     pool = _pool
     if pool is None or _broken:
         return fn(*args)
+    if isinstance(pool, DaskPool):
+        return _run_on_dask(pool, fn, *args)
     try:
         return pool.submit(fn, *args).result()
     except BrokenProcessPool as exc:
@@ -82,4 +225,24 @@ def run_in_pool(fn: Callable[..., Any], *args: Any) -> Any:
             _broken = True
         _log.warning("compute pool broken (%s); running the remaining batches in the flow's "
                      "process", exc)
+        return fn(*args)
+
+
+def _run_on_dask(pool: DaskPool, fn: Callable[..., Any], *args: Any) -> Any:
+    global _broken
+    from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
+    try:
+        return pool.run(fn, *args)
+    except KilledWorker as exc:
+        # the scheduler already ran it again on other workers and each died: run it here once
+        _log.warning("Dask workers died running a batch (%s); running it in the flow's process",
+                     exc)
+        return fn(*args)
+    except (CancelledError, CommClosedError) as exc:
+        # the scheduler is gone (its futures are cancelled): the rest runs here
+        with _lock:
+            _broken = True
+        _log.warning("Dask cluster lost (%s: %s); running the remaining batches in the flow's "
+                     "process", type(exc).__name__, exc)
         return fn(*args)

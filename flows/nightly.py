@@ -44,8 +44,8 @@ from calib_core.outliers import (  # noqa: E402
 from flows.compute_pool import run_in_pool  # noqa: E402
 from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
-    DASK_ENV, LOCAL_WORKERS, default_task_runner, make_task_runner, resolve_kind, unit_work_pool,
-    uses_unit_work_pool,
+    DASK_ENV, DASK_TASK_THREADS, LOCAL_WORKERS, default_task_runner, make_task_runner,
+    resolve_kind, unit_work_pool, uses_unit_work_pool,
 )
 from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and tools import them here)
     UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
@@ -476,8 +476,8 @@ def new_run_id() -> str:
 @task(name="calibrate-units", persist_result=False, cache_policy=NO_CACHE, log_prints=False)
 def calibrate_units_task(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
     """One batch of units: paths in, fitted results out (in memory only). The work runs in
-    the flow's worker processes when the run opened them (runner ``processes``/``auto``),
-    else here."""
+    the flow's worker processes when the run opened them (runner ``processes``/``auto``), on
+    the Dask cluster when the ``dask`` runner opened it, else here."""
     return run_in_pool(calibrate_batch, jobs, run_discovery)
 
 
@@ -500,7 +500,7 @@ class _Progress:
 
 
 DEFAULT_MAX_IN_FLIGHT = 4  # batches submitted at once: 2 workers busy + 2 queued
-DASK_MAX_IN_FLIGHT = 16
+DASK_MAX_IN_FLIGHT = DASK_TASK_THREADS  # as many as the dask runner's task threads
 
 
 def _run_batches(jobs: list[UnitJob], batch_size: int, run_discovery: bool,

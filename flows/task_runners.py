@@ -17,18 +17,20 @@ at an address always wins):
 - ``prefect-processes``: Prefect's ``ProcessPoolTaskRunner`` (every task run in a spawned
   worker with its own Prefect client): both cores, but each worker pays its imports and
   Prefect's task context once (8-10 s CPU, docs/perf-parallel.md).
-- ``dask``: a Dask ``LocalCluster`` of :data:`LOCAL_WORKERS` single-threaded worker
-  processes, started and stopped by the flow (for comparison with a remote scheduler; on one
-  machine it costs more than ``processes``).
+- ``dask``: the same thread pool of Prefect tasks, each handing its batch to a Dask cluster
+  (:class:`DaskPoolTaskRunner`): a ``LocalCluster`` of :data:`LOCAL_WORKERS` single-threaded
+  worker processes started, and warmed, before the flow's body, or the scheduler at
+  ``MIMUCAL_DASK_ADDRESS`` / ``--dask-address``. No Prefect in the workers.
 
-Why the runners below are subclasses: a task that runs in another process (a Dask worker, a
-process-pool worker) builds its own Prefect client from the settings shipped with the task.
-Without ``PREFECT_API_URL`` set, that client starts *its own* temporary API server (a uvicorn
+Why the process-pool runner below is a subclass: a task that runs in another process builds
+its own Prefect client from the settings shipped with the task. Without ``PREFECT_API_URL`` set, that client starts *its own* temporary API server (a uvicorn
 subprocess on the same SQLite database) in every worker: 15-30 s of start-up per worker on a
 loaded machine, SQLite contention with the flow's server for every task-run state, and a
 worker that hangs at shutdown. This was most of the 4.5x gap between Dask and the thread pool
-in the first benchmark. The subclasses put the flow's own API URL into the settings a task
-carries, so every worker talks to the one server the flow already runs.
+in the first benchmark. The subclass puts the flow's own API URL into the settings a task
+carries, so every worker talks to the one server the flow already runs. (The ``dask`` runner
+used prefect-dask's ``DaskTaskRunner`` the same way until the third round; it now keeps the
+task runs in the flow's process, docs/perf3-dask.md.)
 """
 from __future__ import annotations
 
@@ -43,10 +45,14 @@ from prefect.task_runners import ProcessPoolTaskRunner, ThreadPoolTaskRunner
 
 LOCAL_WORKERS = 2
 DASK_ENV = "MIMUCAL_DASK_ADDRESS"  # the served deployment reads its Dask address here
+DASK_WORKERS_ENV = "MIMUCAL_DASK_WORKERS"  # workers of the dask runner's LocalCluster (default 2)
 RUNNER_ENV = "MIMUCAL_TASK_RUNNER"  # auto | threads | processes | prefect-processes | dask
 RUNNER_KINDS = ("auto", "threads", "processes", "prefect-processes", "dask")
 DEFAULT_KIND = "auto"
 AUTO_PROCESSES_MIN_UNITS = 24  # three batches of 8: below that the pool's start-up dominates
+# task threads of the dask runner: each waits on one batch at the cluster, so this bounds the
+# batches the cluster works on at once (a remote cluster may have many workers)
+DASK_TASK_THREADS = 16
 
 # BLAS/OpenMP pools sized to one thread in worker processes: two workers on two cores must
 # not each start a pool of two (Dask's nanny sets the same for its workers).
@@ -118,19 +124,59 @@ class SharedApiProcessPoolTaskRunner(ProcessPoolTaskRunner):
             return super().submit(task, parameters, wait_for=wait_for, dependencies=dependencies)
 
 
-def _dask_runner_class():
-    from prefect_dask import DaskTaskRunner
+class DaskPoolTaskRunner(ThreadPoolTaskRunner):
+    """The ``dask`` runner: Prefect tasks in the flow's thread pool (as ``processes``), each
+    handing its batch's numerics to a Dask cluster through :func:`flows.compute_pool.dask_pool`
+    (``address``: a running scheduler; else a ``LocalCluster`` of ``n_workers`` started here).
 
-    class SharedApiDaskTaskRunner(DaskTaskRunner):
-        """prefect-dask's runner whose workers report to the flow's API server (see module
-        doc) when they can reach it."""
+    The cluster is opened, and its workers warmed (numerics imported), when Prefect enters the
+    runner at the start of the flow run, before the flow's body: the fit phase no longer pays
+    a worker's imports nor Prefect's task context in the worker (8-10 s CPU per worker before,
+    docs/perf3-dask.md). Task-run states stay in the flow's process; the workers never talk to
+    Prefect's API. Task threads (each waits on one batch; no CPU while it waits): ``max_workers``
+    when given, else two per Dask worker found at the start (at most :data:`DASK_TASK_THREADS`),
+    enough to keep every worker fed; each thread builds its own Prefect client on its first task
+    (~20-40 ms of CPU, mostly an SSL context), so idle extra threads are not free."""
 
-        def submit(self, task, parameters, wait_for=None, dependencies=None):
-            with shared_api_settings(self.address):
-                return super().submit(task, parameters, wait_for=wait_for,
-                                      dependencies=dependencies)
+    def __init__(self, address: str | None = None, n_workers: int = LOCAL_WORKERS,
+                 max_workers: int | None = None):
+        super().__init__(max_workers=max_workers or DASK_TASK_THREADS)
+        self.address = address
+        self.n_workers = n_workers
+        self._threads_given = max_workers
+        self._dask_pool = None
 
-    return SharedApiDaskTaskRunner
+    def duplicate(self):
+        return type(self)(address=self.address, n_workers=self.n_workers,
+                          max_workers=self._threads_given)
+
+    def __eq__(self, value: object) -> bool:
+        return (isinstance(value, DaskPoolTaskRunner) and value.address == self.address
+                and value.n_workers == self.n_workers
+                and value._threads_given == self._threads_given)
+
+    def __enter__(self):
+        from flows.compute_pool import dask_pool, last_dask_startup
+        pool = dask_pool(self.address, self.n_workers)
+        pool.__enter__()  # may raise (no scheduler at the address): nothing to undo then
+        self._dask_pool = pool
+        if not self._threads_given:
+            workers = int(last_dask_startup.get("workers") or self.n_workers)
+            self._max_workers = min(DASK_TASK_THREADS, max(2, 2 * workers))
+        try:
+            return super().__enter__()
+        except BaseException:
+            self._dask_pool, pool = None, self._dask_pool
+            pool.__exit__(None, None, None)
+            raise
+
+    def __exit__(self, exc_type: Any, exc_value: Any, traceback: Any) -> None:
+        try:
+            super().__exit__(exc_type, exc_value, traceback)
+        finally:
+            pool, self._dask_pool = self._dask_pool, None
+            if pool is not None:
+                pool.__exit__(None, None, None)
 
 
 def resolve_kind(kind: str | None = None) -> str:
@@ -148,23 +194,21 @@ def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_W
     (see module doc) with ``max_workers`` workers. ``auto`` and ``processes`` run their
     Prefect tasks in a thread pool; :func:`unit_work_pool` adds the worker processes."""
     if dask_address:
-        return _dask_runner_class()(address=dask_address)
+        return DaskPoolTaskRunner(address=dask_address)
     kind = resolve_kind(kind)
     if kind in ("auto", "threads", "processes"):
         return ThreadPoolTaskRunner(max_workers=max_workers)
     if kind == "prefect-processes":
         return SharedApiProcessPoolTaskRunner(max_workers=max_workers)
-    import logging
-
-    from distributed import LocalCluster
-    return _dask_runner_class()(cluster_class=LocalCluster, cluster_kwargs={
-        "n_workers": max_workers, "threads_per_worker": 1, "processes": True,
-        "dashboard_address": None, "silence_logs": logging.WARNING})
+    return DaskPoolTaskRunner(n_workers=int(os.environ.get(DASK_WORKERS_ENV) or max_workers))
 
 
 def uses_unit_work_pool(kind: str | None, n_units: int) -> bool:
     """Whether a run of ``n_units`` units with runner ``kind`` hands its batches to
     :mod:`flows.compute_pool` worker processes."""
+    from flows.compute_pool import dask_active
+    if dask_active():  # the flow's task runner already sends the work to a Dask cluster
+        return False
     kind = resolve_kind(kind)
     return kind == "processes" or (kind == "auto" and n_units >= AUTO_PROCESSES_MIN_UNITS)
 

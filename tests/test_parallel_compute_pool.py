@@ -1,9 +1,11 @@
-"""flows.compute_pool: the unit work in forkserver worker processes, and what happens when a
-worker dies."""
+"""flows.compute_pool: the unit work in forkserver worker processes or on a Dask cluster, and
+what happens when a worker dies."""
 from __future__ import annotations
 
 import os
 import signal
+
+import pytest
 
 from flows import compute_pool as cp
 
@@ -43,3 +45,82 @@ def test_a_dead_worker_costs_time_not_the_batch(tmp_path):
         # the pool is broken: later batches run here too, none is lost
         assert cp.run_in_pool(_pid_and_square, 4) == (os.getpid(), 16)
     assert not cp.active()
+
+
+# --- the Dask backend (the ``dask`` runner) ------------------------------------------------------
+def _where_and_what(x: int) -> dict:
+    import sys
+    return {"pid": os.getpid(), "square": x * x, "prefect": "prefect" in sys.modules,
+            "numerics": "calib_core.discovery" in sys.modules}
+
+
+def _die_unless(flow_pid: int, marker: str | None = None) -> int:
+    # kills the Dask worker that runs it (as the OOM killer would): always, or only the first
+    # time when a marker file is given; returns normally in the flow's process
+    if os.getpid() != flow_pid and (marker is None or not os.path.exists(marker)):
+        if marker is not None:
+            open(marker, "w").close()
+        os.kill(os.getpid(), signal.SIGKILL)
+    return os.getpid()
+
+
+def _one_worker_cluster():
+    """A scheduler with one worker, standing for a cluster at an address (``--dask-address``);
+    a task that kills two workers fails (``KilledWorker``)."""
+    import logging
+
+    import dask
+    from distributed import LocalCluster
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        return LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                            dashboard_address=None, silence_logs=logging.ERROR)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    c = _one_worker_cluster()
+    yield c
+    c.close()
+
+
+@pytest.fixture
+def own_cluster():
+    c = _one_worker_cluster()
+    yield c
+    c.close()
+
+
+@pytest.mark.slow
+def test_a_batch_that_kills_every_worker_runs_in_the_flows_process(own_cluster):
+    # allowed-failures 1: the scheduler tries the batch twice, then gives up (KilledWorker);
+    # the batch then runs here, and the pool keeps working
+    with cp.dask_pool(own_cluster.scheduler_address):
+        assert cp.run_in_pool(_die_unless, os.getpid()) == os.getpid()
+        assert cp.run_in_pool(_where_and_what, 2)["pid"] != os.getpid()
+
+
+@pytest.mark.slow
+def test_dask_workers_are_warmed_before_the_first_batch_and_run_no_prefect(cluster):
+    with cp.dask_pool(cluster.scheduler_address) as pool:
+        assert cp.active() and cp.dask_active()
+        start = dict(cp.last_dask_startup)
+        out = [cp.run_in_pool(_where_and_what, i) for i in range(3)]
+    assert [o["square"] for o in out] == [0, 1, 4]
+    assert all(o["pid"] != os.getpid() for o in out)  # ran on the worker
+    assert not any(o["prefect"] for o in out)  # the worker never imported Prefect
+    assert all(o["numerics"] for o in out)  # imported by the warm-up, before the batch
+    assert start["workers"] == 1 and start["warmup_s"] > 0 and start["cluster_start_s"] == 0
+    assert not cp.active() and not cp.dask_active()
+    # a cluster at an address is not ours to close: still there after the pool
+    assert len(cluster.scheduler_info["workers"]) == 1
+
+
+@pytest.mark.slow
+def test_a_dead_dask_worker_costs_time_not_the_batch(cluster, tmp_path):
+    marker = str(tmp_path / "died")
+    with cp.dask_pool(cluster.scheduler_address):
+        pid = cp.run_in_pool(_die_unless, os.getpid(), marker)
+        # the worker died once; its nanny started a new one and the scheduler ran the batch
+        # again there (not in this process)
+        assert os.path.exists(marker) and pid != os.getpid()
+        assert cp.run_in_pool(_where_and_what, 5)["square"] == 25
