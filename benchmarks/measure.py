@@ -280,7 +280,14 @@ def do_fit(a) -> dict:
     rows: list = []
     worker_cpu = []
     if a.workers <= 1:
-        rows, ok, failed, c = _fit_units(units, a.discovery)
+        # batch by batch, as a nightly task: calibrate_batch returns its whole batch's
+        # results, so one call over the fleet would hold every unit's (~0.4 MB each) at once
+        # and the peak would grow with the fleet for the harness's sake, not the pipeline's
+        c = 0.0
+        for i in range(0, len(units), a.batch):
+            b_rows, b_ok, b_failed, b_c = _fit_units(units[i:i + a.batch], a.discovery)
+            rows += b_rows
+            ok, failed, c = ok + b_ok, failed + b_failed, c + b_c
         worker_cpu.append(c)
     else:
         import multiprocessing as mp
