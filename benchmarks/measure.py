@@ -47,15 +47,41 @@ from pathlib import Path
 SENSOR_COLUMNS = ["gx", "gy", "gz", "ax", "ay", "az"]
 
 
-class TreeRss:
+class _SamplerThread:
+    """A daemon thread that calls ``_sample`` every ``interval_s`` while the block runs, and
+    once more at its end."""
+
+    def __init__(self, interval_s: float):
+        self.interval_s = interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _sample(self) -> None:
+        raise NotImplementedError
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._sample()
+            self._stop.wait(self.interval_s)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._sample()
+        self._stop.set()
+        self._thread.join()
+        return False
+
+
+class TreeRss(_SamplerThread):
     """Peak of the summed RSS of this process and all its descendants, sampled."""
 
     def __init__(self, interval_s: float = 0.1):
-        self.interval_s = interval_s
+        super().__init__(interval_s)
         self.peak = 0
         self.cpu: dict[int, float] = {}  # last CPU seconds seen per pid of the tree
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _sample(self) -> None:
         import psutil
@@ -74,23 +100,9 @@ class TreeRss:
                 pass
         self.peak = max(self.peak, total)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self._sample()
-            self._stop.wait(self.interval_s)
-
-    def __enter__(self):
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._sample()
-        self._stop.set()
-        self._thread.join()
-        return False
 
 
-class CpuByRole:
+class CpuByRole(_SamplerThread):
     """CPU seconds of this process tree by role, sampled every ``interval_s`` with a wall-clock
     time stamp, so that the CPU spent inside a window (the nightly fit phase) can be taken
     afterwards: ``flow`` (this process less its store-writer thread), ``writer`` (the flow's
@@ -98,12 +110,10 @@ class CpuByRole:
     workers and nannies, process-pool workers: every other descendant)."""
 
     def __init__(self, interval_s: float = 0.25):
-        self.interval_s = interval_s
+        super().__init__(interval_s)
         self._roles: dict[int, str] = {}
         self.samples: list[tuple[float, dict[str, float]]] = []
         self._last: dict[int, tuple[str, float]] = {}  # pid or "t<tid>" -> (role, cpu)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _sample(self) -> None:
         import psutil
@@ -136,11 +146,6 @@ class CpuByRole:
         roles["flow"] = roles.get("flow", 0.0) - roles.get("writer", 0.0)
         self.samples.append((now, roles))
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self._sample()
-            self._stop.wait(self.interval_s)
-
     def window(self, t0: float, t1: float) -> dict[str, float]:
         """CPU seconds by role between the samples nearest the wall-clock times t0 and t1."""
         if not self.samples:
@@ -148,16 +153,6 @@ class CpuByRole:
         a = min(self.samples, key=lambda s: abs(s[0] - t0))[1]
         b = min(self.samples, key=lambda s: abs(s[0] - t1))[1]
         return {k: round(b.get(k, 0.0) - a.get(k, 0.0), 2) for k in sorted(set(a) | set(b))}
-
-    def __enter__(self):
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._sample()
-        self._stop.set()
-        self._thread.join()
-        return False
 
 
 def cpu_s() -> float:

@@ -61,20 +61,30 @@ def _init_worker() -> None:
 
 
 @contextmanager
+def _active(pool: "ProcessPoolExecutor | DaskPool") -> Iterator[None]:
+    """Make ``pool`` the one :func:`run_in_pool` uses while the block runs (and not broken);
+    the previous one is active again afterwards."""
+    global _pool, _broken
+    with _lock:
+        previous, _pool, _broken = _pool, pool, False
+    try:
+        yield
+    finally:
+        with _lock:
+            _pool = previous
+
+
+@contextmanager
 def compute_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
     """A pool of ``workers`` processes that :func:`run_in_pool` uses while the block runs."""
-    global _pool, _broken
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(list(PRELOAD))
     pool = ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=ctx,
                                initializer=_init_worker)
-    with _lock:
-        previous, _pool, _broken = _pool, pool, False
     try:
-        yield pool
+        with _active(pool):
+            yield pool
     finally:
-        with _lock:
-            _pool = previous
         pool.shutdown(wait=True, cancel_futures=True)
 
 
@@ -123,7 +133,6 @@ def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool
     """A Dask cluster that :func:`run_in_pool` uses while the block runs: the scheduler at
     ``address``, else a ``LocalCluster`` of ``workers`` single-threaded worker processes
     (closed at the end). Every worker is warmed (:func:`_warm_worker`) before the block."""
-    global _pool, _broken
     import logging as _logging
 
     import dask
@@ -171,13 +180,8 @@ def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool
                       len(pids), startup["total_s"], startup["cluster_start_s"],
                       startup["warmup_s"])
             pool = DaskPool(client)
-            with _lock:
-                previous, _pool, _broken = _pool, pool, False
-            try:
+            with _active(pool):
                 yield pool
-            finally:
-                with _lock:
-                    _pool = previous
         finally:
             client.close()
     finally:

@@ -111,16 +111,7 @@ def _session_rows(results: list[UnitResult], attr: str) -> pd.DataFrame | None:
     successful sessions as ONE DataFrame, lot, unit and rep inserted first: equal to
     concatenating the units' ``residuals_frame()`` / ``compensation_frame()``, without
     building a DataFrame per unit (~1 ms each plus the concatenation)."""
-    tables = []
-    for ur in results:
-        out = ur.outcome
-        for s in out.sessions:
-            t = getattr(s, attr)
-            if s.succeeded and s.calibration is not None and t is not None and len(t):
-                for c, v in (("lot", out.lot), ("unit", out.unit), ("rep", s.key.rep)):
-                    if c not in t.columns:  # each inserted first, as DataFrame.insert(0, ...)
-                        t = t.with_leading(c, v)
-                tables.append(t)
+    tables = [t for ur in results for t in ur.outcome.session_tables(attr)]
     if not tables:
         return None
     try:

@@ -111,6 +111,12 @@ class UnitOutcome:
         return self._table("compensation_table")
 
     def _table(self, attr: str) -> pd.DataFrame | None:
+        tables = self.session_tables(attr)
+        return ColumnTable.concat(tables).to_frame() if tables else None
+
+    def session_tables(self, attr: str) -> list[ColumnTable]:
+        """The successful sessions' ``attr`` tables (``residual_table`` /
+        ``compensation_table``), each with lot, unit and rep as its leading columns."""
         tables = []
         for s in self.sessions:
             t = getattr(s, attr)
@@ -119,7 +125,7 @@ class UnitOutcome:
                     if c not in t.columns:  # each inserted first, as DataFrame.insert(0, ...)
                         t = t.with_leading(c, v)
                 tables.append(t)
-        return ColumnTable.concat(tables).to_frame() if tables else None
+        return tables
 
 
 def aggregate_unit(lot: str, unit: str, outcomes: list[SessionOutcome],
