@@ -231,23 +231,30 @@ def do_floor(a) -> dict:
             "steps": n_steps}
 
 
-def _fit_units(batch: list, run_discovery: bool = True) -> tuple[list, int, int, float]:
+SUMMARY_COLUMNS = ("lot", "unit", "model", "parameter", "mean", "std", "n_reps")
+
+
+def _fit_units(batch: list, run_discovery: bool = True) -> tuple["pd.DataFrame", int, int, float]:
     """One batch of units as a nightly task calibrates them (read, validate, average, fit,
     model discovery, aggregate): :func:`flows.unit_pipeline.calibrate_batch`. Returns the
     units' summary rows (what flagging reads), sessions ok / failed, and CPU seconds."""
+    import pandas as pd
     from flows.unit_pipeline import UnitJob, calibrate_batch
     c0 = time.process_time()
     jobs = [UnitJob(refs[0].key.lot, refs[0].key.unit, refs, "benchmark") for refs in batch]
     ok = failed = 0
-    rows = []
+    cols: dict[str, list] = {k: [] for k in SUMMARY_COLUMNS}
     for ur in calibrate_batch(jobs, run_discovery):
         ok += sum(s.succeeded for s in ur.outcome.sessions)
         failed += sum(not s.succeeded for s in ur.outcome.sessions)
         if ur.calibrated:
-            rows += [{"lot": ur.lot, "unit": ur.unit, "model": ps.model, "parameter": ps.name,
-                      "mean": ps.mean, "std": ps.std, "n_reps": ps.n_reps}
-                     for ps in ur.outcome.calibration.summary]
-    return rows, ok, failed, time.process_time() - c0
+            for ps in ur.outcome.calibration.summary:
+                for k, v in zip(SUMMARY_COLUMNS, (ur.lot, ur.unit, ps.model, ps.name, ps.mean,
+                                                  ps.std, ps.n_reps)):
+                    cols[k].append(v)
+    # one small frame per batch, as the flow holds the summary (a table read from the store),
+    # not ~70 dicts per unit (30 KB per unit, which made the harness's peak grow with the fleet)
+    return pd.DataFrame(cols), ok, failed, time.process_time() - c0
 
 
 def _timed_floor(dataset: str) -> dict:
@@ -272,7 +279,7 @@ def do_fit(a) -> dict:
     floor_before = _timed_floor(a.dataset) if a.floor else None
     t0, c0 = time.perf_counter(), cpu_s()
     ok = failed = 0
-    rows: list = []
+    frames: list = []  # each batch's summary rows
     worker_cpu = []
     if a.workers <= 1:
         # batch by batch, as a nightly task: calibrate_batch returns its whole batch's
@@ -280,8 +287,8 @@ def do_fit(a) -> dict:
         # and the peak would grow with the fleet for the harness's sake, not the pipeline's
         c = 0.0
         for i in range(0, len(units), a.batch):
-            b_rows, b_ok, b_failed, b_c = _fit_units(units[i:i + a.batch], a.discovery)
-            rows += b_rows
+            b_summary, b_ok, b_failed, b_c = _fit_units(units[i:i + a.batch], a.discovery)
+            frames.append(b_summary)
             ok, failed, c = ok + b_ok, failed + b_failed, c + b_c
         worker_cpu.append(c)
     else:
@@ -291,13 +298,15 @@ def do_fit(a) -> dict:
         batches = [units[i:i + a.batch] for i in range(0, len(units), a.batch)]
         with ProcessPoolExecutor(a.workers, mp_context=mp.get_context("fork")) as pool:
             for r, o, f, c in pool.map(partial(_fit_units, run_discovery=a.discovery), batches):
-                rows += r
+                frames.append(r)
                 ok += o
                 failed += f
                 worker_cpu.append(c)
     t_cal, c_cal = time.perf_counter() - t0, cpu_s() - c0
     t1, c1 = time.perf_counter(), cpu_s()
-    flags = flag_lots(pd.DataFrame(rows), OutlierConfig()) if rows else []
+    summary = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    del frames
+    flags = flag_lots(summary, OutlierConfig()) if len(summary) else []
     t_flag, c_flag = time.perf_counter() - t1, cpu_s() - c1
     elapsed, cpu = time.perf_counter() - t0, cpu_s() - c0
     floor_after = _timed_floor(a.dataset) if a.floor else None
