@@ -51,36 +51,90 @@ def calibrate_repetition(sm: StepMeans, cpu_by_stage: dict[str, float] | None = 
     ``cpu_by_stage``: when given, the CPU seconds of each stage are added to it (keys
     ``STAGES``: xu2016 fits, zhang2017 static fit, lever arms, result tables), for the
     benchmark's split of the fit phase; the results do not depend on it."""
+    return _calibrate_together([sm], cpu_by_stage)[0]
+
+
+def calibrate_repetitions(sms: list[StepMeans]) -> list[SessionFit | Exception]:
+    """:func:`calibrate_repetition` of each session (the repetitions of a unit), item i the
+    fit of ``sms[i]`` or the exception it raises, the same as each alone would give.
+
+    Sessions that share a step layout (same steps, tests and references: every session of
+    one protocol) are fitted together, one stacked LAPACK / BLAS call per operation instead
+    of one per session: the per-call overhead of the small numpy operations is most of the
+    fits' cost. When a session of such a group would fail or warn, the group is fitted
+    session by session instead, so each error and warning stays its session's own."""
+    out: list[SessionFit | Exception | None] = [None] * len(sms)
+    for group in _same_layout(sms):
+        fits = None
+        if len(group) > 1:
+            try:
+                fits = _calibrate_together([sms[i] for i in group])
+            except Exception:  # noqa: BLE001 - some session fails or warns: each alone
+                fits = None
+        for k, i in enumerate(group):
+            if fits is not None:
+                out[i] = fits[k]
+                continue
+            try:
+                out[i] = calibrate_repetition(sms[i])
+            except Exception as exc:  # noqa: BLE001 - the caller reports it for its session
+                out[i] = exc
+    return out
+
+
+def _same_layout(sms: list[StepMeans]) -> list[list[int]]:
+    """Indices of the sessions grouped by step layout (first-seen order)."""
+    groups: dict[tuple, list[int]] = {}
+    for i, sm in enumerate(sms):
+        layout = (sm.gyro_unit, sm.accel_unit, sm.g_local) + tuple(
+            (a.dtype.str, a.shape, a.tobytes()) for a in (
+                sm.step, sm.test, sm.up_axis, sm.rate_dps, sm.angle_deg, sm.w_ref, sm.f_ref))
+        groups.setdefault(layout, []).append(i)
+    return list(groups.values())
+
+
+def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | None = None
+                        ) -> list[SessionFit]:
+    """The fits of sessions that share a step layout, the stacked parts solved together.
+
+    One session: exactly :func:`calibrate_repetition`. Several: whatever one of them would
+    fail on or warn about from a stacked fit raises (the caller then fits each alone)."""
     lap = _Lap(cpu_by_stage)
-    fits: dict = {}
-    warnings: list[str] = []
-    fits["gyro"] = gyro = xu2016.fit_gyro_multirate(sm)
-    fits["accel"] = xu2016.fit_accel_multiposition(sm)
-    implausible = check_fits(fits, sm)
-    if implausible:
-        raise DesignError("E_IMPLAUSIBLE", "estimates are not those of a working sensor: "
-                          + "; ".join(str(i) for i in implausible),
-                          undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible))
-    trad = None
-    for name, fitter in (("gyro_traditional", xu2016.fit_gyro_traditional),
-                         ("accel_traditional", xu2016.fit_accel_traditional)):
+    alone = len(sms) == 1
+    fits: list[dict] = [{} for _ in sms]
+    warnings: list[list[str]] = [[] for _ in sms]
+    for f, gyro, accel in zip(fits, xu2016.fit_gyro_multirate_stack(sms),
+                              xu2016.fit_accel_multiposition_stack(sms)):
+        f["gyro"], f["accel"] = gyro, accel
+    for f, sm in zip(fits, sms):
+        implausible = check_fits(f, sm)
+        if implausible:
+            raise DesignError("E_IMPLAUSIBLE", "estimates are not those of a working sensor: "
+                              + "; ".join(str(i) for i in implausible),
+                              undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible))
+    for name, fitter in (("gyro_traditional", xu2016.fit_gyro_traditional_stack),
+                         ("accel_traditional", xu2016.fit_accel_traditional_stack)):
         try:
-            fits[name] = fitter(sm)
+            for f, trad in zip(fits, fitter(sms)):
+                f[name] = trad
         except DesignError as exc:
-            warnings.append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
-    trad = fits.get("gyro_traditional")
+            if not alone:
+                raise
+            warnings[0].append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
     lap("xu2016")
-    derived: dict = {}
-    _fit_zhang2017(sm, fits, warnings, derived, lap)
-    key = sm.key
-    rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=fits,
-                                warnings=warnings, provenance=dict(sm.metadata), derived=derived)
-    source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
-    comp = xu2016.compensation_error_table(sm, gyro, trad, tests=source)
-    cal = calibration_from_fits(fits, sm)
-    fit = SessionFit(rep, comp, residual_table(sm, cal))
-    lap("tables")
-    return fit
+    out = []
+    for sm, f, w in zip(sms, fits, warnings):
+        derived: dict = {}
+        _fit_zhang2017(sm, f, w, derived, lap)
+        key = sm.key
+        rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=f,
+                                    warnings=w, provenance=dict(sm.metadata), derived=derived)
+        source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
+        comp = xu2016.compensation_error_table(sm, f["gyro"], f.get("gyro_traditional"),
+                                               tests=source)
+        out.append(SessionFit(rep, comp, residual_table(sm, calibration_from_fits(f, sm))))
+        lap("tables")
+    return out
 
 
 STAGES = ("xu2016", "zhang2017_static", "lever_arm", "tables")
