@@ -122,18 +122,18 @@ def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | N
                 raise
             warnings[0].append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
     lap("xu2016")
+    derived: list[dict] = [{} for _ in sms]
+    _fit_zhang2017(sms, fits, warnings, derived, lap)
     out = []
-    for sm, f, w in zip(sms, fits, warnings):
-        derived: dict = {}
-        _fit_zhang2017(sm, f, w, derived, lap)
+    for sm, f, w, d in zip(sms, fits, warnings, derived):
         key = sm.key
         rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=f,
-                                    warnings=w, provenance=dict(sm.metadata), derived=derived)
+                                    warnings=w, provenance=dict(sm.metadata), derived=d)
         source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
         comp = xu2016.compensation_error_table(sm, f["gyro"], f.get("gyro_traditional"),
                                                tests=source)
         out.append(SessionFit(rep, comp, residual_table(sm, calibration_from_fits(f, sm))))
-        lap("tables")
+    lap("tables")
     return out
 
 
@@ -154,37 +154,48 @@ class _Lap:
             self.t = now
 
 
-def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict,
-                   lap: _Lap = _Lap(None)) -> None:
-    """The 15-parameter static model and, with dynamic steps, the lever arms."""
+def _fit_zhang2017(sms: list[StepMeans], fits: list[dict], warnings: list[list[str]],
+                   derived: list[dict], lap: _Lap = _Lap(None)) -> None:
+    """The 15-parameter static model and, with dynamic steps, the lever arms, of sessions
+    that share a step layout (as :func:`_calibrate_together`: with several sessions, a
+    DesignError raises instead of becoming the sessions' warning)."""
     try:
         from calib_core import zhang2017
     except ImportError:  # pragma: no cover - module always present in a full install
         return
+    alone = len(sms) == 1
     try:
-        static = zhang2017.fit_accel_static(sm)
+        statics = zhang2017.fit_accel_static_stack(sms)
     except DesignError as exc:
-        warnings.append(f"W_ACCEL_STATIC_SKIPPED: {exc.reason}")
+        if not alone:
+            raise
+        warnings[0].append(f"W_ACCEL_STATIC_SKIPPED: {exc.reason}")
         lap("zhang2017_static")
         return
-    fits["accel_static"] = static
+    for f, static in zip(fits, statics):
+        f["accel_static"] = static
     lap("zhang2017_static")
-    if (sm.test == "dynamic").any():
-        g = fits["gyro"]
+    if (sms[0].test == "dynamic").any():
         try:
             # the paper's model (projection on each accelerometer's sensitive axis) is what
             # is reported; the body-axis fit is what Calibration.apply subtracts after K_a
             # both projections from one set of inputs (dynamic steps, rates, f_hat)
-            inputs = zhang2017.lever_arm_inputs(sm, static, gyro_K=g.K, gyro_w0=g.w0)
-            fits["lever_arm"] = lever = zhang2017.fit_lever_arm_from(inputs)
-            if lever.undetermined:  # stored as NaN; say why in the session's warnings
-                warnings.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
-                                + ", ".join(lever.undetermined) + " (add tilted steps)")
+            inputs = zhang2017.lever_arm_inputs_stack(
+                sms, statics, gyro_Ks=[f["gyro"].K for f in fits],
+                gyro_w0s=[f["gyro"].w0 for f in fits])
+            for f, w, lever in zip(fits, warnings, zhang2017.fit_lever_arm_from_stack(inputs)):
+                f["lever_arm"] = lever
+                if lever.undetermined:  # stored as NaN; say why in the session's warnings
+                    w.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
+                             + ", ".join(lever.undetermined) + " (add tilted steps)")
             # only the estimate is applied (no standard errors needed)
-            derived["lever_arm_body_mm"] = zhang2017.lever_arm_estimate(
-                inputs, projection="body_axis")
+            for d, r_mm in zip(derived, zhang2017.fit_lever_arm_from_stack(
+                    inputs, projection="body_axis", estimate_only=True)):
+                d["lever_arm_body_mm"] = r_mm
         except DesignError as exc:
-            warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
+            if not alone:
+                raise
+            warnings[0].append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
         lap("lever_arm")
 
 
