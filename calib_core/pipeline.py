@@ -20,7 +20,7 @@ from calib_core.errors import DesignError
 from calib_core.guards import check_fits
 from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.tables import CodedStrings, ColumnTable
-from calib_core.steps import StepMeans
+from calib_core.steps import StepMeans, stack_field
 
 
 @dataclass
@@ -124,15 +124,18 @@ def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | N
     lap("xu2016")
     derived: list[dict] = [{} for _ in sms]
     _fit_zhang2017(sms, fits, warnings, derived, lap)
+    sm = sms[0]
+    source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
+    comps = xu2016.compensation_error_tables(sms, [f["gyro"] for f in fits],
+                                             [f.get("gyro_traditional") for f in fits],
+                                             tests=source)
+    residuals = residual_tables(sms, [calibration_from_fits(f, s) for f, s in zip(fits, sms)])
     out = []
-    for sm, f, w, d in zip(sms, fits, warnings, derived):
+    for sm, f, w, d, comp, res in zip(sms, fits, warnings, derived, comps, residuals):
         key = sm.key
         rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=f,
                                     warnings=w, provenance=dict(sm.metadata), derived=d)
-        source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
-        comp = xu2016.compensation_error_table(sm, f["gyro"], f.get("gyro_traditional"),
-                                               tests=source)
-        out.append(SessionFit(rep, comp, residual_table(sm, calibration_from_fits(f, sm))))
+        out.append(SessionFit(rep, comp, res))
     lap("tables")
     return out
 
@@ -246,22 +249,43 @@ CHANNELS = np.array(["gx", "gy", "gz", "ax", "ay", "az"])
 
 def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> ColumnTable:
     """The rows of :func:`baseline_residuals` as numpy columns (no DataFrame)."""
-    w, f = cal.apply(sm.gyro, sm.accel, temp_c=sm.temp_c, t=sm.t_mid)
-    res = np.hstack([w - sm.w_ref, f - sm.f_ref])
-    ref = np.hstack([sm.w_ref, sm.f_ref])
-    n = np.sqrt(np.maximum(sm.count, 1))[:, None]
-    sg = np.sqrt((sm.gyro_std ** 2) @ (cal.K_g.T ** 2)) / n
-    sa = np.sqrt((sm.accel_std ** 2) @ (cal.K_a.T ** 2)) / n
-    sig = np.hstack([sg, sa])
+    return residual_tables([sm], [cal], model)[0]
+
+
+def residual_tables(sms: list[StepMeans], cals: list[Calibration], model: str = "baseline"
+                    ) -> list[ColumnTable]:
+    """:func:`residual_table` of sessions that share a step layout, each with its own
+    calibration, computed together (table r is ``residual_table(sms[r], cals[r])``). The
+    columns that come from the layout alone (step, test, references, ...) are built once and
+    shared by the tables, read-only."""
+    sm = sms[0]
     k = len(sm)
-    return ColumnTable({
-        "lot": sm.key.lot, "unit": sm.key.unit, "rep": sm.key.rep,
+    applied = [cal.apply(s.gyro, s.accel, temp_c=s.temp_c, t=s.t_mid) for s, cal in zip(sms, cals)]
+    w = np.stack([w for w, _ in applied])
+    f = np.stack([f for _, f in applied])
+    res = np.concatenate([w - sm.w_ref, f - sm.f_ref], axis=2)
+    n = np.sqrt(np.maximum(stack_field(sms, "count"), 1))[:, :, None]
+    K_g2 = np.stack([cal.K_g.T for cal in cals]) ** 2
+    K_a2 = np.stack([cal.K_a.T for cal in cals]) ** 2
+    sg = np.sqrt(stack_field(sms, "gyro_std") ** 2 @ K_g2) / n
+    sa = np.sqrt(stack_field(sms, "accel_std") ** 2 @ K_a2) / n
+    sig = np.concatenate([sg, sa], axis=2)
+    layout = {
         "step": np.repeat(sm.step, 6), "test": _coded(sm.test).repeat(6),
         "up_axis": _coded(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
         "angle_deg": np.repeat(sm.angle_deg, 6),
         "channel": CodedStrings(CHANNELS, np.tile(np.arange(6), k)),
-        "reference": ref.ravel(), "residual": res.ravel(), "sigma": sig.ravel(), "model": model,
-    }, 6 * k)
+        "reference": np.hstack([sm.w_ref, sm.f_ref]).ravel(),
+    }
+    if len(sms) > 1:
+        for v in layout.values():
+            (v.codes if isinstance(v, CodedStrings) else v).setflags(write=False)
+    return [ColumnTable({
+        "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep,
+        **{c: layout[c] for c in ("step", "test", "up_axis", "rate_dps", "angle_deg", "channel",
+                                  "reference")},
+        "residual": res[r].ravel(), "sigma": sig[r].ravel(), "model": model,
+    }, 6 * k) for r, s in enumerate(sms)]
 
 
 def _coded(values: np.ndarray) -> CodedStrings:

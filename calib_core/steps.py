@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -133,3 +133,9 @@ class StepMeans:
     @property
     def has_temperature(self) -> bool:
         return bool(np.isfinite(self.temp_c).any())
+
+
+def stack_field(sms: Sequence[StepMeans], name: str) -> np.ndarray:
+    """Field ``name`` of every session (sessions of one step layout), stacked on a leading
+    axis: (R, n) or (R, n, 3), for the fits that run a unit's repetitions together."""
+    return np.stack([getattr(sm, name) for sm in sms])

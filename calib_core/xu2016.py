@@ -25,7 +25,7 @@ from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq_stack
 from calib_core.results import Param, matrix_params, vector_params
 from calib_core.tables import CodedStrings, ColumnTable
-from calib_core.steps import StepMeans
+from calib_core.steps import StepMeans, stack_field
 
 AXES = "xyz"
 MAX_CONDITION = 1e6  # beyond this the design cannot separate the parameters
@@ -146,7 +146,7 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
                           f"gyro: {len(pairs)} complete +/- multirate pairs, at least 4 needed "
                           "to determine the 9 elements of K_g with a residual")
     _check_determined(sm, dW, "gyro", "multirate rotation")
-    G = _stacked(sms, "gyro")  # (R, n, 3)
+    G = stack_field(sms, "gyro")  # (R, n, 3)
     # eq. 6-8 for all three rows at once: dW (n,3) = dG (n,3) K^T
     ls = solve_lstsq_stack(G[:, pairs[:, 0]] - G[:, pairs[:, 1]], dW)
     singular = (ls.rank < 3) | (ls.condition_number > MAX_CONDITION)
@@ -177,11 +177,6 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
         residual_rms=residual_rms[r], condition_number=float(ls.condition_number[r]),
         n_pairs=len(pairs), n_stationary=len(stat), w0_source=source, raw_unit=sm.gyro_unit,
     ) for r in range(len(sms))]
-
-
-def _stacked(sms: Sequence[StepMeans], field: str) -> np.ndarray:
-    """One (n, 3) column of every session, stacked (R, n, 3)."""
-    return np.stack([getattr(sm, field) for sm in sms])
 
 
 # --------------------------------------------------------------------------- accel
@@ -232,7 +227,7 @@ def fit_accel_multiposition_stack(sms: Sequence[StepMeans]) -> list[AccelMultipo
                           "12 parameters of K_a and f0 with a residual")
     f_ref = sm.f_ref[rows]
     _check_determined(sm, f_ref, "accel", "multiposition specific force")
-    X = np.concatenate([_stacked(sms, "accel")[:, rows], np.ones((len(sms), n, 1))], axis=2)
+    X = np.concatenate([stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))], axis=2)
     ls = solve_lstsq_stack(X, f_ref)
     singular = (ls.rank < 4) | (ls.condition_number > MAX_CONDITION)
     if singular.any():
@@ -315,7 +310,7 @@ def fit_gyro_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit]
     rows = sm.rows_of_test("multirate", "stationary")
     w_ref = sm.w_ref[rows]
     _check_determined(sm, w_ref, "gyro_traditional", "multirate rotation")
-    return _fit_traditional("gyro_traditional", w_ref, _stacked(sms, "gyro")[:, rows],
+    return _fit_traditional("gyro_traditional", w_ref, stack_field(sms, "gyro")[:, rows],
                             sm.gyro_unit, "deg/s")
 
 
@@ -330,7 +325,7 @@ def fit_accel_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit
     rows = sm.rows_of_test("multiposition")
     f_ref = sm.f_ref[rows]
     _check_determined(sm, f_ref, "accel_traditional", "multiposition specific force")
-    return _fit_traditional("accel_traditional", f_ref, _stacked(sms, "accel")[:, rows],
+    return _fit_traditional("accel_traditional", f_ref, stack_field(sms, "accel")[:, rows],
                             sm.accel_unit, "g")
 
 
@@ -361,34 +356,57 @@ def compensation_error_table(sm: StepMeans, proposed: GyroMultirateFit,
                              traditional: TraditionalFit | None = None,
                              tests: tuple[str, ...] = ("verification",)) -> ColumnTable:
     """The rows of :func:`compensation_errors` as numpy columns (no DataFrame)."""
+    return compensation_error_tables([sm], [proposed], [traditional], tests)[0]
+
+
+def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroMultirateFit],
+                              traditional: Sequence[TraditionalFit | None],
+                              tests: tuple[str, ...] = ("verification",)) -> list[ColumnTable]:
+    """:func:`compensation_error_table` of sessions that share a step layout, each with its
+    own fits, computed together (table r is ``compensation_error_table(sms[r], ...[r])``).
+    The columns that come from the layout alone are built once and shared, read-only."""
+    if len({t is None for t in traditional}) > 1:  # not one set of methods: each alone
+        return [compensation_error_table(sm, p, t, tests)
+                for sm, p, t in zip(sms, proposed, traditional)]
+    sm = sms[0]
     rows = _rotation_groups(tests, np.isin(sm.test, tests).tobytes(),
                             sm.rate_dps.astype(float).tobytes(),
                             np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
     if rows is None:
-        return ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0)
+        return [ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0) for _ in sms]
     idx, starts, present, n_steps = rows  # steps ordered by input axis, group starts
-    G, w_ref = sm.gyro[idx], sm.w_ref[idx]
+    G, w_ref = stack_field(sms, "gyro")[:, idx], sm.w_ref[idx]  # (R, steps, 3)
+    # GyroMultirateFit.compensate and TraditionalFit.compensate of every session at once
+    w0 = np.stack([p.w0 for p in proposed])[:, None]
     outputs = [G if sm.gyro_unit == "deg/s" else np.full_like(G, np.nan),
-               proposed.compensate(G)]
+               G @ np.stack([p.K.T for p in proposed]) + w0]
     methods = ["uncompensated", "proposed"]  # row order of xu2016 Table 3
-    if traditional is not None:
-        outputs.append(traditional.compensate(G))
+    if traditional[0] is not None:
+        b = np.stack([t.b for t in traditional])[:, None]
+        outputs.append(np.swapaxes(np.linalg.solve(np.stack([t.S for t in traditional]),
+                                                   np.swapaxes(G - b, 1, 2)), 1, 2))
         methods.append("traditional")
-    err = np.stack(outputs) - w_ref  # (methods, steps, 3)
-    lo = np.minimum.reduceat(err, starts, axis=1)  # (methods, input axes, 3)
-    hi = np.maximum.reduceat(err, starts, axis=1)
+    err = np.stack(outputs, axis=1) - w_ref  # (R, methods, steps, 3)
+    lo = np.minimum.reduceat(err, starts, axis=2)  # (R, methods, input axes, 3)
+    hi = np.maximum.reduceat(err, starts, axis=2)
     n_rows = len(methods) * len(present) * 3
-    return ColumnTable({
+    layout = {
         "input_axis": CodedStrings(present, np.tile(
             np.repeat(np.arange(len(present)), 3), len(methods))),
         "output_axis": CodedStrings(np.array(list(AXES)), np.tile(
             np.arange(3), len(methods) * len(present))),
         "method": CodedStrings(np.array(methods), np.repeat(
             np.arange(len(methods)), len(present) * 3)),
-        "err_min": lo.ravel(), "err_max": hi.ravel(),
-        "unit_of_measure": "deg/s", "source": "+".join(tests),
         "n_steps": np.tile(np.repeat(n_steps, 3), len(methods)),
-    }, n_rows)
+    }
+    if len(sms) > 1:
+        for v in layout.values():
+            (v.codes if isinstance(v, CodedStrings) else v).setflags(write=False)
+    return [ColumnTable({
+        "input_axis": layout["input_axis"], "output_axis": layout["output_axis"],
+        "method": layout["method"], "err_min": lo[r].ravel(), "err_max": hi[r].ravel(),
+        "unit_of_measure": "deg/s", "source": "+".join(tests), "n_steps": layout["n_steps"],
+    }, n_rows) for r in range(len(sms))]
 
 
 @lru_cache(maxsize=64)

@@ -34,7 +34,7 @@ from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
 from calib_core.errors import DesignError
 from calib_core.results import Param, param_list
-from calib_core.steps import StepMeans
+from calib_core.steps import StepMeans, stack_field
 
 AXES = "xyz"
 STATIC_TESTS = ("multiposition", "stationary")
@@ -218,7 +218,7 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
         raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
                           "directions and a constant: M and u0 are not determined",
                           ("accel_static",))
-    A = np.stack([s.accel[rows] for s in sms])  # (R, n, 3)
+    A = stack_field(sms, "accel")[:, rows]  # (R, n, 3)
     # lstsq per session (not a cached pseudo-inverse): the lever arms are fitted on this
     # model's residuals, where a last-bit change of M shows as 1e-8 of a zero lever arm;
     # nor one lstsq of all sessions' columns, which rounds differently
@@ -385,7 +385,7 @@ def lever_arm_inputs_stack(sms: Sequence[StepMeans], statics: Sequence[AccelStat
     K_a = np.linalg.inv(np.stack([static.M for static in statics]))
     bias = np.stack([static.bias for static in statics])
     # statically compensated specific force, body frame
-    f_hat = (np.stack([d.accel for d in ds]) - bias[:, None, :]) @ np.swapaxes(K_a, 1, 2)
+    f_hat = (stack_field(ds, "accel") - bias[:, None, :]) @ np.swapaxes(K_a, 1, 2)
     return [LeverArmInputs(statics[r], ds[r], W[r], K_a[r], f_hat[r], rates[r][1])
             for r in range(R)]
 
