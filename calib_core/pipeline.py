@@ -1,7 +1,8 @@
 """Everything mimucal fits on one session, and the calibration it applies for one unit.
 
 ``calibrate_repetition`` runs the xu2016 fits (required: the session fails without them), the
-traditional inverse model, and the zhang2017 static and lever-arm fits where the steps allow.
+traditional inverse model, and the zhang2017 static and lever-arm fits where the steps allow;
+``calibrate_repetitions`` does the same for a unit's repetitions, fitted together.
 ``calibration_from_unit`` averages the repetitions into the :class:`Calibration` that is saved
 and applied (xu2016 section 3.1 averages the five repetitions the same way).
 """
