@@ -27,28 +27,50 @@ class LstsqResult:
 
 
 @dataclass(frozen=True)
+class LstsqStack:
+    """R least-squares problems of one shape solved together (the repetitions of a unit):
+    every field of :class:`LstsqResult` with a leading axis of R (``dof``,
+    ``condition_number`` and ``rank`` are (R,) arrays). Problem r's numbers are those
+    :func:`solve_lstsq` gives for it alone, bit for bit: the stacked LAPACK and BLAS calls
+    run the same routine on each problem."""
+
+    coef: np.ndarray
+    cov_unscaled: np.ndarray
+    sigma2: np.ndarray
+    stderr: np.ndarray
+    residuals: np.ndarray
+    dof: np.ndarray
+    condition_number: np.ndarray
+    rank: np.ndarray
+
+
+@dataclass(frozen=True)
 class _Factorisation:
-    """What the solve needs of a design X alone (its arrays are shared: read-only)."""
+    """What the solve needs of a design X alone (its arrays are shared: read-only); for a
+    stack of designs (..., n, p) every field has the stack's leading axes."""
 
     norms: np.ndarray
     U: np.ndarray
     s_inv: np.ndarray
     Vt: np.ndarray
-    rank: int
-    cond: float
+    rank: np.ndarray
+    cond: np.ndarray
     cov_unscaled: np.ndarray
 
 
 def _factorise(X: np.ndarray, rcond: float) -> _Factorisation:
-    norms = np.linalg.norm(X, axis=0)
+    norms = np.linalg.norm(X, axis=-2)
     norms[norms == 0] = 1.0
-    Xs = X / norms
+    Xs = X / norms[..., None, :]
     U, s, Vt = np.linalg.svd(Xs, full_matrices=False)
-    rank = int((s > rcond * s[0]).sum()) if s.size and s[0] > 0 else 0
-    cond = float(s[0] / s[-1]) if s.size and s[-1] > 0 else float("inf")
-    s_inv = np.where(s > rcond * (s[0] if s.size else 0), 1.0 / np.where(s == 0, 1, s), 0.0)
-    cov_s = (Vt.T * s_inv ** 2) @ Vt
-    cov_unscaled = cov_s / np.outer(norms, norms)
+    largest, smallest = s[..., :1], s[..., -1]
+    kept = s > rcond * largest
+    rank = kept.sum(axis=-1)  # 0 when the largest singular value is 0
+    with np.errstate(divide="ignore"):
+        cond = np.where(smallest > 0, s[..., 0] / smallest, np.inf)
+    s_inv = np.where(kept, 1.0 / np.where(s == 0, 1, s), 0.0)
+    cov_s = (np.swapaxes(Vt, -1, -2) * s_inv[..., None, :] ** 2) @ Vt
+    cov_unscaled = cov_s / (norms[..., :, None] * norms[..., None, :])
     return _Factorisation(norms, U, s_inv, Vt, rank, cond, cov_unscaled)
 
 
@@ -75,21 +97,42 @@ def solve_lstsq(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10,
     X = np.asarray(X, dtype=float)
     Y = np.asarray(Y, dtype=float)
     squeeze = Y.ndim == 1
+    # a stack of one problem (a shared design stays 2-D: it is the cache's key)
+    ls = solve_lstsq_stack(X if reuse_design else X[None], (Y[:, None] if squeeze else Y)[None],
+                           rcond, reuse_design)
+    coef, resid, stderr = ls.coef[0], ls.residuals[0], ls.stderr[0]
     if squeeze:
-        Y = Y[:, None]
-    n, p = X.shape
+        coef, resid, stderr = coef[:, 0], resid[:, 0], stderr[:, 0]
+    return LstsqResult(coef, ls.cov_unscaled[0], ls.sigma2[0], stderr, resid, int(ls.dof[0]),
+                       float(ls.condition_number[0]), int(ls.rank[0]))
+
+
+def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10,
+                      reuse_design: bool = False) -> LstsqStack:
+    """:func:`solve_lstsq` of R problems at once: X (R, n, p), or (n, p) when the design is
+    the same for all; Y (R, n, k), or (n, k) when the right-hand sides are. One stacked SVD
+    and one matmul per step instead of R of each (problem r's numbers are those of
+    ``solve_lstsq(X[r], Y[r])``); ``reuse_design`` as there, for a shared 2-D X."""
+    X = np.asarray(X, dtype=float)
+    Y = np.asarray(Y, dtype=float)
     if reuse_design:
         X = np.ascontiguousarray(X)
         fac = _factorise_cached(X.shape, X.tobytes(), float(rcond))
     else:
         fac = _factorise(X, rcond)
-    coef_s = fac.Vt.T @ (fac.s_inv[:, None] * (fac.U.T @ Y))
-    coef = coef_s / fac.norms[:, None]
+    coef_s = np.swapaxes(fac.Vt, -1, -2) @ (
+        fac.s_inv[..., :, None] * (np.swapaxes(fac.U, -1, -2) @ Y))
+    coef = coef_s / fac.norms[..., :, None]
     resid = Y - X @ coef
-    dof = n - fac.rank
-    sigma2 = (resid ** 2).sum(axis=0) / dof if dof > 0 else np.full(Y.shape[1], np.nan)
-    cov_unscaled = fac.cov_unscaled.copy()
-    stderr = np.sqrt(np.outer(np.diag(cov_unscaled), sigma2))
-    if squeeze:
-        coef, resid, stderr = coef[:, 0], resid[:, 0], stderr[:, 0]
-    return LstsqResult(coef, cov_unscaled, sigma2, stderr, resid, dof, fac.cond, fac.rank)
+    n_problems = coef.shape[0]
+    dof = np.broadcast_to(X.shape[-2] - fac.rank, (n_problems,))
+    sum_sq = (resid ** 2).sum(axis=-2)
+    sigma2 = np.full(sum_sq.shape, np.nan)
+    np.divide(sum_sq, dof[:, None], out=sigma2, where=dof[:, None] > 0)
+    cov_unscaled = np.broadcast_to(fac.cov_unscaled, (n_problems,) + fac.cov_unscaled.shape[-2:]
+                                   ).copy()
+    variance = np.diagonal(cov_unscaled, axis1=-2, axis2=-1)
+    stderr = np.sqrt(variance[:, :, None] * sigma2[:, None, :])
+    return LstsqStack(coef, cov_unscaled, sigma2, stderr, resid, dof,
+                      np.broadcast_to(fac.cond, (n_problems,)),
+                      np.broadcast_to(fac.rank, (n_problems,)))

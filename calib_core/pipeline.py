@@ -1,7 +1,8 @@
 """Everything mimucal fits on one session, and the calibration it applies for one unit.
 
 ``calibrate_repetition`` runs the xu2016 fits (required: the session fails without them), the
-traditional inverse model, and the zhang2017 static and lever-arm fits where the steps allow.
+traditional inverse model, and the zhang2017 static and lever-arm fits where the steps allow;
+``calibrate_repetitions`` does the same for a unit's repetitions, fitted together.
 ``calibration_from_unit`` averages the repetitions into the :class:`Calibration` that is saved
 and applied (xu2016 section 3.1 averages the five repetitions the same way).
 """
@@ -20,7 +21,7 @@ from calib_core.errors import DesignError
 from calib_core.guards import check_fits
 from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.tables import CodedStrings, ColumnTable
-from calib_core.steps import StepMeans
+from calib_core.steps import StepMeans, stack_field
 
 
 @dataclass
@@ -51,36 +52,93 @@ def calibrate_repetition(sm: StepMeans, cpu_by_stage: dict[str, float] | None = 
     ``cpu_by_stage``: when given, the CPU seconds of each stage are added to it (keys
     ``STAGES``: xu2016 fits, zhang2017 static fit, lever arms, result tables), for the
     benchmark's split of the fit phase; the results do not depend on it."""
+    return _calibrate_together([sm], cpu_by_stage)[0]
+
+
+def calibrate_repetitions(sms: list[StepMeans]) -> list[SessionFit | Exception]:
+    """:func:`calibrate_repetition` of each session (the repetitions of a unit), item i the
+    fit of ``sms[i]`` or the exception it raises, the same as each alone would give.
+
+    Sessions that share a step layout (same steps, tests and references: every session of
+    one protocol) are fitted together, one stacked LAPACK / BLAS call per operation instead
+    of one per session: the per-call overhead of the small numpy operations is most of the
+    fits' cost. When a session of such a group would fail or warn, the group is fitted
+    session by session instead, so each error and warning stays its session's own."""
+    out: list[SessionFit | Exception | None] = [None] * len(sms)
+    for group in _same_layout(sms):
+        fits = None
+        if len(group) > 1:
+            try:
+                fits = _calibrate_together([sms[i] for i in group])
+            except Exception:  # noqa: BLE001 - some session fails or warns: each alone
+                fits = None
+        for k, i in enumerate(group):
+            if fits is not None:
+                out[i] = fits[k]
+                continue
+            try:
+                out[i] = calibrate_repetition(sms[i])
+            except Exception as exc:  # noqa: BLE001 - the caller reports it for its session
+                out[i] = exc
+    return out
+
+
+def _same_layout(sms: list[StepMeans]) -> list[list[int]]:
+    """Indices of the sessions grouped by step layout (first-seen order)."""
+    groups: dict[tuple, list[int]] = {}
+    for i, sm in enumerate(sms):
+        layout = (sm.gyro_unit, sm.accel_unit, sm.g_local) + tuple(
+            (a.dtype.str, a.shape, a.tobytes()) for a in (
+                sm.step, sm.test, sm.up_axis, sm.rate_dps, sm.angle_deg, sm.w_ref, sm.f_ref))
+        groups.setdefault(layout, []).append(i)
+    return list(groups.values())
+
+
+def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | None = None
+                        ) -> list[SessionFit]:
+    """The fits of sessions that share a step layout, the stacked parts solved together.
+
+    One session: exactly :func:`calibrate_repetition`. Several: whatever one of them would
+    fail on or warn about from a stacked fit raises (the caller then fits each alone)."""
     lap = _Lap(cpu_by_stage)
-    fits: dict = {}
-    warnings: list[str] = []
-    fits["gyro"] = gyro = xu2016.fit_gyro_multirate(sm)
-    fits["accel"] = xu2016.fit_accel_multiposition(sm)
-    implausible = check_fits(fits, sm)
-    if implausible:
-        raise DesignError("E_IMPLAUSIBLE", "estimates are not those of a working sensor: "
-                          + "; ".join(str(i) for i in implausible),
-                          undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible))
-    trad = None
-    for name, fitter in (("gyro_traditional", xu2016.fit_gyro_traditional),
-                         ("accel_traditional", xu2016.fit_accel_traditional)):
+    alone = len(sms) == 1
+    fits: list[dict] = [{} for _ in sms]
+    warnings: list[list[str]] = [[] for _ in sms]
+    for f, gyro, accel in zip(fits, xu2016.fit_gyro_multirate_stack(sms),
+                              xu2016.fit_accel_multiposition_stack(sms)):
+        f["gyro"], f["accel"] = gyro, accel
+    for f, sm in zip(fits, sms):
+        implausible = check_fits(f, sm)
+        if implausible:
+            raise DesignError("E_IMPLAUSIBLE", "estimates are not those of a working sensor: "
+                              + "; ".join(str(i) for i in implausible),
+                              undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible))
+    for name, fitter in (("gyro_traditional", xu2016.fit_gyro_traditional_stack),
+                         ("accel_traditional", xu2016.fit_accel_traditional_stack)):
         try:
-            fits[name] = fitter(sm)
+            for f, trad in zip(fits, fitter(sms)):
+                f[name] = trad
         except DesignError as exc:
-            warnings.append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
-    trad = fits.get("gyro_traditional")
+            if not alone:
+                raise
+            warnings[0].append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
     lap("xu2016")
-    derived: dict = {}
-    _fit_zhang2017(sm, fits, warnings, derived, lap)
-    key = sm.key
-    rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=fits,
-                                warnings=warnings, provenance=dict(sm.metadata), derived=derived)
+    derived: list[dict] = [{} for _ in sms]
+    _fit_zhang2017(sms, fits, warnings, derived, lap)
+    sm = sms[0]
     source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
-    comp = xu2016.compensation_error_table(sm, gyro, trad, tests=source)
-    cal = calibration_from_fits(fits, sm)
-    fit = SessionFit(rep, comp, residual_table(sm, cal))
+    comps = xu2016.compensation_error_tables(sms, [f["gyro"] for f in fits],
+                                             [f.get("gyro_traditional") for f in fits],
+                                             tests=source)
+    residuals = residual_tables(sms, [calibration_from_fits(f, s) for f, s in zip(fits, sms)])
+    out = []
+    for sm, f, w, d, comp, res in zip(sms, fits, warnings, derived, comps, residuals):
+        key = sm.key
+        rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=f,
+                                    warnings=w, provenance=dict(sm.metadata), derived=d)
+        out.append(SessionFit(rep, comp, res))
     lap("tables")
-    return fit
+    return out
 
 
 STAGES = ("xu2016", "zhang2017_static", "lever_arm", "tables")
@@ -100,37 +158,48 @@ class _Lap:
             self.t = now
 
 
-def _fit_zhang2017(sm: StepMeans, fits: dict, warnings: list[str], derived: dict,
-                   lap: _Lap = _Lap(None)) -> None:
-    """The 15-parameter static model and, with dynamic steps, the lever arms."""
+def _fit_zhang2017(sms: list[StepMeans], fits: list[dict], warnings: list[list[str]],
+                   derived: list[dict], lap: _Lap = _Lap(None)) -> None:
+    """The 15-parameter static model and, with dynamic steps, the lever arms, of sessions
+    that share a step layout (as :func:`_calibrate_together`: with several sessions, a
+    DesignError raises instead of becoming the sessions' warning)."""
     try:
         from calib_core import zhang2017
     except ImportError:  # pragma: no cover - module always present in a full install
         return
+    alone = len(sms) == 1
     try:
-        static = zhang2017.fit_accel_static(sm)
+        statics = zhang2017.fit_accel_static_stack(sms)
     except DesignError as exc:
-        warnings.append(f"W_ACCEL_STATIC_SKIPPED: {exc.reason}")
+        if not alone:
+            raise
+        warnings[0].append(f"W_ACCEL_STATIC_SKIPPED: {exc.reason}")
         lap("zhang2017_static")
         return
-    fits["accel_static"] = static
+    for f, static in zip(fits, statics):
+        f["accel_static"] = static
     lap("zhang2017_static")
-    if (sm.test == "dynamic").any():
-        g = fits["gyro"]
+    if (sms[0].test == "dynamic").any():
         try:
             # the paper's model (projection on each accelerometer's sensitive axis) is what
             # is reported; the body-axis fit is what Calibration.apply subtracts after K_a
             # both projections from one set of inputs (dynamic steps, rates, f_hat)
-            inputs = zhang2017.lever_arm_inputs(sm, static, gyro_K=g.K, gyro_w0=g.w0)
-            fits["lever_arm"] = lever = zhang2017.fit_lever_arm_from(inputs)
-            if lever.undetermined:  # stored as NaN; say why in the session's warnings
-                warnings.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
-                                + ", ".join(lever.undetermined) + " (add tilted steps)")
+            inputs = zhang2017.lever_arm_inputs_stack(
+                sms, statics, gyro_Ks=[f["gyro"].K for f in fits],
+                gyro_w0s=[f["gyro"].w0 for f in fits])
+            for f, w, lever in zip(fits, warnings, zhang2017.fit_lever_arm_from_stack(inputs)):
+                f["lever_arm"] = lever
+                if lever.undetermined:  # stored as NaN; say why in the session's warnings
+                    w.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
+                             + ", ".join(lever.undetermined) + " (add tilted steps)")
             # only the estimate is applied (no standard errors needed)
-            derived["lever_arm_body_mm"] = zhang2017.lever_arm_estimate(
-                inputs, projection="body_axis")
+            for d, r_mm in zip(derived, zhang2017.fit_lever_arm_from_stack(
+                    inputs, projection="body_axis", estimate_only=True)):
+                d["lever_arm_body_mm"] = r_mm
         except DesignError as exc:
-            warnings.append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
+            if not alone:
+                raise
+            warnings[0].append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
         lap("lever_arm")
 
 
@@ -181,22 +250,43 @@ CHANNELS = np.array(["gx", "gy", "gz", "ax", "ay", "az"])
 
 def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> ColumnTable:
     """The rows of :func:`baseline_residuals` as numpy columns (no DataFrame)."""
-    w, f = cal.apply(sm.gyro, sm.accel, temp_c=sm.temp_c, t=sm.t_mid)
-    res = np.hstack([w - sm.w_ref, f - sm.f_ref])
-    ref = np.hstack([sm.w_ref, sm.f_ref])
-    n = np.sqrt(np.maximum(sm.count, 1))[:, None]
-    sg = np.sqrt((sm.gyro_std ** 2) @ (cal.K_g.T ** 2)) / n
-    sa = np.sqrt((sm.accel_std ** 2) @ (cal.K_a.T ** 2)) / n
-    sig = np.hstack([sg, sa])
+    return residual_tables([sm], [cal], model)[0]
+
+
+def residual_tables(sms: list[StepMeans], cals: list[Calibration], model: str = "baseline"
+                    ) -> list[ColumnTable]:
+    """:func:`residual_table` of sessions that share a step layout, each with its own
+    calibration, computed together (table r is ``residual_table(sms[r], cals[r])``). The
+    columns that come from the layout alone (step, test, references, ...) are built once and
+    shared by the tables, read-only."""
+    sm = sms[0]
     k = len(sm)
-    return ColumnTable({
-        "lot": sm.key.lot, "unit": sm.key.unit, "rep": sm.key.rep,
+    applied = [cal.apply(s.gyro, s.accel, temp_c=s.temp_c, t=s.t_mid) for s, cal in zip(sms, cals)]
+    w = np.stack([w for w, _ in applied])
+    f = np.stack([f for _, f in applied])
+    res = np.concatenate([w - sm.w_ref, f - sm.f_ref], axis=2)
+    n = np.sqrt(np.maximum(stack_field(sms, "count"), 1))[:, :, None]
+    K_g2 = np.stack([cal.K_g.T for cal in cals]) ** 2
+    K_a2 = np.stack([cal.K_a.T for cal in cals]) ** 2
+    sg = np.sqrt(stack_field(sms, "gyro_std") ** 2 @ K_g2) / n
+    sa = np.sqrt(stack_field(sms, "accel_std") ** 2 @ K_a2) / n
+    sig = np.concatenate([sg, sa], axis=2)
+    layout = {
         "step": np.repeat(sm.step, 6), "test": _coded(sm.test).repeat(6),
         "up_axis": _coded(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
         "angle_deg": np.repeat(sm.angle_deg, 6),
         "channel": CodedStrings(CHANNELS, np.tile(np.arange(6), k)),
-        "reference": ref.ravel(), "residual": res.ravel(), "sigma": sig.ravel(), "model": model,
-    }, 6 * k)
+        "reference": np.hstack([sm.w_ref, sm.f_ref]).ravel(),
+    }
+    if len(sms) > 1:
+        for v in layout.values():
+            (v.codes if isinstance(v, CodedStrings) else v).setflags(write=False)
+    return [ColumnTable({
+        "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep,
+        **{c: layout[c] for c in ("step", "test", "up_axis", "rate_dps", "angle_deg", "channel",
+                                  "reference")},
+        "residual": res[r].ravel(), "sigma": sig[r].ravel(), "model": model,
+    }, 6 * k) for r, s in enumerate(sms)]
 
 
 def _coded(values: np.ndarray) -> CodedStrings:

@@ -16,16 +16,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
 
 from calib_core.errors import DesignError
-from calib_core.linalg import solve_lstsq
+from calib_core.linalg import solve_lstsq_stack
 from calib_core.results import Param, matrix_params, vector_params
 from calib_core.tables import CodedStrings, ColumnTable
-from calib_core.steps import StepMeans
+from calib_core.steps import StepMeans, stack_field
 
 AXES = "xyz"
 MAX_CONDITION = 1e6  # beyond this the design cannot separate the parameters
@@ -55,14 +55,18 @@ def multirate_pairs(sm: StepMeans) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Returns (dG (n,3) raw, dW (n,3) deg/s, index pairs (n,2) into ``sm``). A step whose
     partner is missing (saturated, too short) is left out: the difference needs both.
     """
-    multirate = sm.test == "multirate"
-    # the pairing depends on the protocol only (tests, rates, reference rates), the same for
-    # every session of a fleet: found once per protocol, not once per session
-    pairs_arr = _pairs_of_protocol(multirate.tobytes(), sm.rate_dps.astype(float).tobytes(),
-                                   np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
+    pairs_arr = _protocol_pairs(sm)
     dG = sm.gyro[pairs_arr[:, 0]] - sm.gyro[pairs_arr[:, 1]]
     dW = sm.w_ref[pairs_arr[:, 0]] - sm.w_ref[pairs_arr[:, 1]]
     return dG, dW, pairs_arr.copy()
+
+
+def _protocol_pairs(sm: StepMeans) -> np.ndarray:
+    # the pairing depends on the protocol only (tests, rates, reference rates), the same for
+    # every session of a fleet: found once per protocol, not once per session
+    multirate = sm.test == "multirate"
+    return _pairs_of_protocol(multirate.tobytes(), sm.rate_dps.astype(float).tobytes(),
+                              np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
 
 
 @lru_cache(maxsize=64)
@@ -126,39 +130,53 @@ class GyroMultirateFit:
 
 def fit_gyro_multirate(sm: StepMeans) -> GyroMultirateFit:
     """xu2016 eq. 5-11 on one session's step means."""
-    dG, dW, pairs = multirate_pairs(sm)
+    return fit_gyro_multirate_stack([sm])[0]
+
+
+def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]:
+    """:func:`fit_gyro_multirate` of sessions that share one step layout (the repetitions of
+    a unit: same steps, tests and references), solved together; session r's fit is the one
+    ``fit_gyro_multirate(sms[r])`` returns, bit for bit. Raises the DesignError of the first
+    session that has one."""
+    sm = sms[0]  # the layout every session shares
+    pairs = _protocol_pairs(sm)
+    dW = sm.w_ref[pairs[:, 0]] - sm.w_ref[pairs[:, 1]]
     if len(pairs) < 4:
         raise DesignError("E_UNDETERMINED",
                           f"gyro: {len(pairs)} complete +/- multirate pairs, at least 4 needed "
                           "to determine the 9 elements of K_g with a residual")
     _check_determined(sm, dW, "gyro", "multirate rotation")
+    G = stack_field(sms, "gyro")  # (R, n, 3)
     # eq. 6-8 for all three rows at once: dW (n,3) = dG (n,3) K^T
-    ls = solve_lstsq(dG, dW)
-    if ls.rank < 3 or ls.condition_number > MAX_CONDITION:
+    ls = solve_lstsq_stack(G[:, pairs[:, 0]] - G[:, pairs[:, 1]], dW)
+    singular = (ls.rank < 3) | (ls.condition_number > MAX_CONDITION)
+    if singular.any():
+        cond = float(ls.condition_number[np.argmax(singular)])
         raise DesignError("E_UNDETERMINED",
                           f"gyro: multirate design is singular (condition number "
-                          f"{ls.condition_number:.3g}): the rotation axes do not span 3-D")
-    K = ls.coef.T
-    K_se = ls.stderr.T
+                          f"{cond:.3g}): the rotation axes do not span 3-D")
+    K = np.swapaxes(ls.coef, 1, 2)
+    K_se = np.swapaxes(ls.stderr, 1, 2)
     # A difference holds the noise of two steps: step-level variance is half the residual's.
     step_sigma = np.sqrt(ls.sigma2 / 2.0)
     stat = np.flatnonzero(sm.test == "stationary")
     if len(stat):
-        G0 = sm.gyro[stat].mean(axis=0)
+        G0 = G[:, stat].mean(axis=1)
         n0, source = len(stat), "stationary"
     else:  # a linear sensor's +/- midpoint is its zero-rate output
-        G0 = 0.5 * (sm.gyro[pairs[:, 0]] + sm.gyro[pairs[:, 1]]).mean(axis=0)
+        G0 = 0.5 * (G[:, pairs[:, 0]] + G[:, pairs[:, 1]]).mean(axis=1)
         n0, source = 2 * len(pairs), "pair_midpoints"
-    w0 = -K @ G0  # eq. 10-11
+    w0 = (-K @ G0[:, :, None])[:, :, 0]  # eq. 10-11
     # var(w0_i) = step noise / n0  +  G0^T cov(K_i) G0   (independent steps)
-    var_k = np.array([G0 @ (ls.cov_unscaled * ls.sigma2[i]) @ G0 for i in range(3)])
+    var_k = np.array([[g0 @ (cov * s2[i]) @ g0 for i in range(3)]
+                      for g0, cov, s2 in zip(G0, ls.cov_unscaled, ls.sigma2)])
     w0_se = np.sqrt(step_sigma ** 2 / n0 + var_k)
-    return GyroMultirateFit(
-        K=K, w0=w0, K_stderr=K_se, w0_stderr=w0_se, step_sigma=step_sigma,
-        residual_rms=np.sqrt((ls.residuals ** 2).mean(axis=0)),
-        condition_number=ls.condition_number, n_pairs=len(pairs), n_stationary=len(stat),
-        w0_source=source, raw_unit=sm.gyro_unit,
-    )
+    residual_rms = np.sqrt((ls.residuals ** 2).mean(axis=1))
+    return [GyroMultirateFit(
+        K=K[r], w0=w0[r], K_stderr=K_se[r], w0_stderr=w0_se[r], step_sigma=step_sigma[r],
+        residual_rms=residual_rms[r], condition_number=float(ls.condition_number[r]),
+        n_pairs=len(pairs), n_stationary=len(stat), w0_source=source, raw_unit=sm.gyro_unit,
+    ) for r in range(len(sms))]
 
 
 # --------------------------------------------------------------------------- accel
@@ -192,29 +210,39 @@ class AccelMultipositionFit:
         }
 
 
-def _static_steps(sm: StepMeans) -> StepMeans:
-    return sm.of_test("multiposition")
-
-
 def fit_accel_multiposition(sm: StepMeans) -> AccelMultipositionFit:
     """xu2016 eq. 12-16: F = K_a A + f0 over all multiposition steps."""
-    st = _static_steps(sm)
-    if len(st) < 5:
+    return fit_accel_multiposition_stack([sm])[0]
+
+
+def fit_accel_multiposition_stack(sms: Sequence[StepMeans]) -> list[AccelMultipositionFit]:
+    """:func:`fit_accel_multiposition` of sessions that share one step layout, solved
+    together (as :func:`fit_gyro_multirate_stack`)."""
+    sm = sms[0]
+    rows = sm.rows_of_test("multiposition")
+    n = len(rows)
+    if n < 5:
         raise DesignError("E_UNDETERMINED",
-                          f"accel: {len(st)} multiposition steps, at least 5 needed for the "
+                          f"accel: {n} multiposition steps, at least 5 needed for the "
                           "12 parameters of K_a and f0 with a residual")
-    _check_determined(st, st.f_ref, "accel", "multiposition specific force")
-    X = np.hstack([st.accel, np.ones((len(st), 1))])
-    ls = solve_lstsq(X, st.f_ref)
-    if ls.rank < 4 or ls.condition_number > MAX_CONDITION:
+    f_ref = sm.f_ref[rows]
+    _check_determined(sm, f_ref, "accel", "multiposition specific force")
+    X = np.concatenate([stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))], axis=2)
+    ls = solve_lstsq_stack(X, f_ref)
+    singular = (ls.rank < 4) | (ls.condition_number > MAX_CONDITION)
+    if singular.any():
+        cond = float(ls.condition_number[np.argmax(singular)])
         raise DesignError("E_UNDETERMINED",
                           f"accel: multiposition design is singular (condition number "
-                          f"{ls.condition_number:.3g}): orientations do not span 3-D")
-    return AccelMultipositionFit(
-        K=ls.coef[:3].T, f0=ls.coef[3], K_stderr=ls.stderr[:3].T, f0_stderr=ls.stderr[3],
-        residual_rms=np.sqrt((ls.residuals ** 2).mean(axis=0)),
-        condition_number=ls.condition_number, n_steps=len(st), raw_unit=sm.accel_unit,
-    )
+                          f"{cond:.3g}): orientations do not span 3-D")
+    K = np.swapaxes(ls.coef[:, :3], 1, 2)
+    K_se = np.swapaxes(ls.stderr[:, :3], 1, 2)
+    residual_rms = np.sqrt((ls.residuals ** 2).mean(axis=1))
+    return [AccelMultipositionFit(
+        K=K[r], f0=ls.coef[r, 3], K_stderr=K_se[r], f0_stderr=ls.stderr[r, 3],
+        residual_rms=residual_rms[r], condition_number=float(ls.condition_number[r]),
+        n_steps=n, raw_unit=sm.accel_unit,
+    ) for r in range(len(sms))]
 
 
 # --------------------------------------------------------------------------- traditional
@@ -255,29 +283,50 @@ class TraditionalFit:
                 "units": {"S": f"{self.raw_unit} per {self.physical_unit}", "b": self.raw_unit}}
 
 
-def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> TraditionalFit:
+def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> list[TraditionalFit]:
+    """raw (R, n, 3) of R sessions on the references ref (n, 3) they share."""
     X = np.hstack([ref, np.ones((len(ref), 1))])
-    ls = solve_lstsq(X, raw, reuse_design=True)  # [references, 1]: the protocol's
-    if ls.rank < 4 or ls.condition_number > MAX_CONDITION:
+    ls = solve_lstsq_stack(X, raw, reuse_design=True)  # [references, 1]: the protocol's
+    rank, cond = int(ls.rank[0]), float(ls.condition_number[0])  # the design's: shared
+    if rank < 4 or cond > MAX_CONDITION:
         raise DesignError("E_UNDETERMINED", f"{model}: design is singular "
-                          f"(condition number {ls.condition_number:.3g})")
-    return TraditionalFit(model=model, S=ls.coef[:3].T, b=ls.coef[3], S_stderr=ls.stderr[:3].T,
-                          b_stderr=ls.stderr[3], condition_number=ls.condition_number,
-                          n_steps=len(ref), raw_unit=raw_unit, physical_unit=phys_unit)
+                          f"(condition number {cond:.3g})")
+    S = np.swapaxes(ls.coef[:, :3], 1, 2)
+    S_se = np.swapaxes(ls.stderr[:, :3], 1, 2)
+    return [TraditionalFit(model=model, S=S[r], b=ls.coef[r, 3], S_stderr=S_se[r],
+                           b_stderr=ls.stderr[r, 3], condition_number=cond, n_steps=len(ref),
+                           raw_unit=raw_unit, physical_unit=phys_unit)
+            for r in range(len(raw))]
 
 
 def fit_gyro_traditional(sm: StepMeans) -> TraditionalFit:
     """G = S w + b over the same multirate and stationary steps as the proposed fit."""
-    st = sm.of_test("multirate", "stationary")
-    _check_determined(st, st.w_ref, "gyro_traditional", "multirate rotation")
-    return _fit_traditional("gyro_traditional", st.w_ref, st.gyro, sm.gyro_unit, "deg/s")
+    return fit_gyro_traditional_stack([sm])[0]
+
+
+def fit_gyro_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit]:
+    """:func:`fit_gyro_traditional` of sessions that share one step layout, together."""
+    sm = sms[0]
+    rows = sm.rows_of_test("multirate", "stationary")
+    w_ref = sm.w_ref[rows]
+    _check_determined(sm, w_ref, "gyro_traditional", "multirate rotation")
+    return _fit_traditional("gyro_traditional", w_ref, stack_field(sms, "gyro")[:, rows],
+                            sm.gyro_unit, "deg/s")
 
 
 def fit_accel_traditional(sm: StepMeans) -> TraditionalFit:
     """A = S f + b over the same multiposition steps as the proposed fit."""
-    st = _static_steps(sm)
-    _check_determined(st, st.f_ref, "accel_traditional", "multiposition specific force")
-    return _fit_traditional("accel_traditional", st.f_ref, st.accel, sm.accel_unit, "g")
+    return fit_accel_traditional_stack([sm])[0]
+
+
+def fit_accel_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit]:
+    """:func:`fit_accel_traditional` of sessions that share one step layout, together."""
+    sm = sms[0]
+    rows = sm.rows_of_test("multiposition")
+    f_ref = sm.f_ref[rows]
+    _check_determined(sm, f_ref, "accel_traditional", "multiposition specific force")
+    return _fit_traditional("accel_traditional", f_ref, stack_field(sms, "accel")[:, rows],
+                            sm.accel_unit, "g")
 
 
 # --------------------------------------------------------------------------- Table 3
@@ -307,34 +356,57 @@ def compensation_error_table(sm: StepMeans, proposed: GyroMultirateFit,
                              traditional: TraditionalFit | None = None,
                              tests: tuple[str, ...] = ("verification",)) -> ColumnTable:
     """The rows of :func:`compensation_errors` as numpy columns (no DataFrame)."""
+    return compensation_error_tables([sm], [proposed], [traditional], tests)[0]
+
+
+def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroMultirateFit],
+                              traditional: Sequence[TraditionalFit | None],
+                              tests: tuple[str, ...] = ("verification",)) -> list[ColumnTable]:
+    """:func:`compensation_error_table` of sessions that share a step layout, each with its
+    own fits, computed together (table r is ``compensation_error_table(sms[r], ...[r])``).
+    The columns that come from the layout alone are built once and shared, read-only."""
+    if len({t is None for t in traditional}) > 1:  # not one set of methods: each alone
+        return [compensation_error_table(sm, p, t, tests)
+                for sm, p, t in zip(sms, proposed, traditional)]
+    sm = sms[0]
     rows = _rotation_groups(tests, np.isin(sm.test, tests).tobytes(),
                             sm.rate_dps.astype(float).tobytes(),
                             np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
     if rows is None:
-        return ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0)
+        return [ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0) for _ in sms]
     idx, starts, present, n_steps = rows  # steps ordered by input axis, group starts
-    G, w_ref = sm.gyro[idx], sm.w_ref[idx]
+    G, w_ref = stack_field(sms, "gyro")[:, idx], sm.w_ref[idx]  # (R, steps, 3)
+    # GyroMultirateFit.compensate and TraditionalFit.compensate of every session at once
+    w0 = np.stack([p.w0 for p in proposed])[:, None]
     outputs = [G if sm.gyro_unit == "deg/s" else np.full_like(G, np.nan),
-               proposed.compensate(G)]
+               G @ np.stack([p.K.T for p in proposed]) + w0]
     methods = ["uncompensated", "proposed"]  # row order of xu2016 Table 3
-    if traditional is not None:
-        outputs.append(traditional.compensate(G))
+    if traditional[0] is not None:
+        b = np.stack([t.b for t in traditional])[:, None]
+        outputs.append(np.swapaxes(np.linalg.solve(np.stack([t.S for t in traditional]),
+                                                   np.swapaxes(G - b, 1, 2)), 1, 2))
         methods.append("traditional")
-    err = np.stack(outputs) - w_ref  # (methods, steps, 3)
-    lo = np.minimum.reduceat(err, starts, axis=1)  # (methods, input axes, 3)
-    hi = np.maximum.reduceat(err, starts, axis=1)
+    err = np.stack(outputs, axis=1) - w_ref  # (R, methods, steps, 3)
+    lo = np.minimum.reduceat(err, starts, axis=2)  # (R, methods, input axes, 3)
+    hi = np.maximum.reduceat(err, starts, axis=2)
     n_rows = len(methods) * len(present) * 3
-    return ColumnTable({
+    layout = {
         "input_axis": CodedStrings(present, np.tile(
             np.repeat(np.arange(len(present)), 3), len(methods))),
         "output_axis": CodedStrings(np.array(list(AXES)), np.tile(
             np.arange(3), len(methods) * len(present))),
         "method": CodedStrings(np.array(methods), np.repeat(
             np.arange(len(methods)), len(present) * 3)),
-        "err_min": lo.ravel(), "err_max": hi.ravel(),
-        "unit_of_measure": "deg/s", "source": "+".join(tests),
         "n_steps": np.tile(np.repeat(n_steps, 3), len(methods)),
-    }, n_rows)
+    }
+    if len(sms) > 1:
+        for v in layout.values():
+            (v.codes if isinstance(v, CodedStrings) else v).setflags(write=False)
+    return [ColumnTable({
+        "input_axis": layout["input_axis"], "output_axis": layout["output_axis"],
+        "method": layout["method"], "err_min": lo[r].ravel(), "err_max": hi[r].ravel(),
+        "unit_of_measure": "deg/s", "source": "+".join(tests), "n_steps": layout["n_steps"],
+    }, n_rows) for r in range(len(sms))]
 
 
 @lru_cache(maxsize=64)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Sequence
 
 import numpy as np
 from scipy.linalg.lapack import dgeqp3 as _geqp3
@@ -34,7 +34,7 @@ from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
 from calib_core.errors import DesignError
 from calib_core.results import Param, param_list
-from calib_core.steps import StepMeans
+from calib_core.steps import StepMeans, stack_field
 
 AXES = "xyz"
 STATIC_TESTS = ("multiposition", "stationary")
@@ -57,12 +57,13 @@ def static_matrix(scale: np.ndarray, C: np.ndarray) -> np.ndarray:
 
 
 def decompose_static(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact decomposition M -> (k, C): k_i = |M_i|, column i of C is M_i / k_i."""
+    """Exact decomposition M -> (k, C): k_i = |M_i|, column i of C is M_i / k_i (for a stack
+    of matrices (..., 3, 3), each)."""
     M = np.asarray(M, float)
-    k = np.linalg.norm(M, axis=1)
+    k = np.linalg.norm(M, axis=-1)
     if np.any(k == 0) or not np.all(np.isfinite(k)):
         raise DesignError("E_ZERO_SCALE", "a row of the static matrix is zero: no scale factor")
-    return k, (M / k[:, None]).T
+    return k, np.swapaxes(M / k[..., None], -1, -2)
 
 
 def angles_from_C(C: np.ndarray) -> np.ndarray:
@@ -195,44 +196,55 @@ def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> Ac
     units), which gives 3(n-4) degrees of freedom instead of n-4. Standard errors of k, u0 and
     the angles follow from the LS covariance through the Jacobian of the decomposition.
     """
-    s = sm.of_test(*tests)
-    n = len(s)
+    return fit_accel_static_stack([sm], tests)[0]
+
+
+def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = STATIC_TESTS
+                           ) -> list[AccelStaticFit]:
+    """:func:`fit_accel_static` of sessions that share one step layout (the repetitions of a
+    unit), together: session r's fit is the one ``fit_accel_static(sms[r])`` returns, bit for
+    bit. Raises the DesignError of the first session that has one."""
+    sm = sms[0]  # the layout every session shares
+    rows = sm.rows_of_test(*tests)
+    n = len(rows)
     if n < 5:
         raise DesignError("E_TOO_FEW_STATIC_STEPS",
                           f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
                           "at least 5 to estimate its noise", ("accel_static",))
-    X = np.hstack([s.f_ref, np.ones((n, 1))])
+    X = np.hstack([sm.f_ref[rows], np.ones((n, 1))])
     design = _static_design(X.shape, X.tobytes())
     sv = design.sv
     if sv[-1] <= 1e-9 * sv[0]:
         raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
                           "directions and a constant: M and u0 are not determined",
                           ("accel_static",))
+    A = stack_field(sms, "accel")[:, rows]  # (R, n, 3)
     # lstsq per session (not a cached pseudo-inverse): the lever arms are fitted on this
-    # model's residuals, where a last-bit change of M shows as 1e-8 of a zero lever arm
-    beta, *_ = np.linalg.lstsq(X, s.accel, rcond=None)  # (4,3): column i = (M_i, u0_i)
-    M = beta[:3].T
-    u0 = beta[3]
+    # model's residuals, where a last-bit change of M shows as 1e-8 of a zero lever arm;
+    # nor one lstsq of all sessions' columns, which rounds differently
+    beta = np.stack([np.linalg.lstsq(X, a, rcond=None)[0] for a in A])  # column i: (M_i, u0_i)
+    M = np.swapaxes(beta[:, :3], 1, 2)
+    u0 = beta[:, 3]
     k, C = decompose_static(M)
-    resid = s.accel - X @ beta
+    resid = A - X @ beta
     dof_ch = n - 4
-    var_g = float(np.sum((resid / k) ** 2) / (3 * dof_ch))
-    channel_cov = design.unscaled * (var_g * k ** 2)[:, None, None]  # (3,4,4)
-    cov_m = channel_cov[:, :3, :3]
-    u0_se = np.sqrt(channel_cov[:, 3, 3])
-    k_se = np.sqrt(np.einsum("ji,ijk,ki->i", C, cov_m, C))  # dk_i/dM_i = c_i
+    var_g = ((resid / k[:, None, :]) ** 2).reshape(len(sms), -1).sum(axis=1) / (3 * dof_ch)
+    channel_cov = design.unscaled * (var_g[:, None] * k ** 2)[:, :, None, None]  # (R,3,4,4)
+    cov_m = channel_cov[:, :, :3, :3]
+    u0_se = np.sqrt(channel_cov[:, :, 3, 3])
+    k_se = np.sqrt(np.einsum("rji,rijk,rki->ri", C, cov_m, C))  # dk_i/dM_i = c_i
     # dc_i/dM_i = (I - c_i c_i^T) / k_i; d theta_ij / d M_i = -(row j of it) / sin theta_ij
-    Ct = C.T  # row i = c_i
-    dc = (np.eye(3) - Ct[:, :, None] * Ct[:, None, :]) / k[:, None, None]
+    Ct = np.swapaxes(C, 1, 2)  # row i = c_i
+    dc = (np.eye(3) - Ct[:, :, :, None] * Ct[:, :, None, :]) / k[:, :, None, None]
     sin_t = np.sqrt(np.maximum(1.0 - Ct ** 2, 1e-300))
-    g = -dc / sin_t[:, :, None]
-    ang_se = np.degrees(np.sqrt(np.einsum("ijk,ikl,ijl->ij", g, cov_m, g)))
-    return AccelStaticFit(
-        scale=k, bias=u0, C=C, scale_stderr=k_se, bias_stderr=u0_se, angles_stderr=ang_se,
-        channel_cov=channel_cov, condition_number=float(sv[0] / sv[-1]),
-        residual_rms_g=float(np.sqrt(var_g)), dof=3 * dof_ch, n_steps=n, unit=sm.accel_unit,
-        g_local=sm.g_local,
-    )
+    g = -dc / sin_t[:, :, :, None]
+    ang_se = np.degrees(np.sqrt(np.einsum("rijk,rikl,rijl->rij", g, cov_m, g)))
+    return [AccelStaticFit(
+        scale=k[r], bias=u0[r], C=C[r], scale_stderr=k_se[r], bias_stderr=u0_se[r],
+        angles_stderr=ang_se[r], channel_cov=channel_cov[r],
+        condition_number=float(sv[0] / sv[-1]), residual_rms_g=float(np.sqrt(var_g[r])),
+        dof=3 * dof_ch, n_steps=n, unit=sm.accel_unit, g_local=sm.g_local,
+    ) for r in range(len(sms))]
 
 
 # -- lever arms ----------------------------------------------------------------------------------
@@ -351,15 +363,31 @@ class LeverArmInputs:
 def lever_arm_inputs(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None
                      ) -> LeverArmInputs:
     """The shared part of the lever-arm fit (compute once, fit both projections from it)."""
-    d = sm.of_test("dynamic")
-    if len(d) == 0:
+    return lever_arm_inputs_stack([sm], [static], None if gyro_K is None else [gyro_K],
+                                  None if gyro_w0 is None else [gyro_w0])[0]
+
+
+def lever_arm_inputs_stack(sms: Sequence[StepMeans], statics: Sequence[AccelStaticFit],
+                           gyro_Ks=None, gyro_w0s=None) -> list[LeverArmInputs]:
+    """:func:`lever_arm_inputs` of sessions that share one step layout (with their static
+    fits and, optionally, gyro calibrations), computed together; item r is bit for bit
+    ``lever_arm_inputs(sms[r], statics[r], gyro_Ks[r], gyro_w0s[r])``."""
+    ds = [sm.of_test("dynamic") for sm in sms]
+    if len(ds[0]) == 0:
         raise DesignError("E_NO_DYNAMIC_STEPS", "no dynamic steps: lever arms need constant-rate "
                           "rotation", LEVER_NAMES)
-    w, source = _step_rates(d, gyro_K, gyro_w0)
-    W = lever_matrix(w) * (1e-3 / static.g_local)  # g per mm
-    K_a = np.linalg.inv(static.M)
-    f_hat = (d.accel - static.bias) @ K_a.T  # statically compensated specific force, body frame
-    return LeverArmInputs(static, d, W, K_a, f_hat, source)
+    rates = [_step_rates(d, None if gyro_Ks is None else gyro_Ks[r],
+                         None if gyro_w0s is None else gyro_w0s[r]) for r, d in enumerate(ds)]
+    w = np.stack([w for w, _ in rates])  # (R, n, 3)
+    R, n = w.shape[:2]
+    g_per_mm = 1e-3 / np.array([static.g_local for static in statics])
+    W = lever_matrix(w.reshape(R * n, 3)).reshape(R, n, 3, 3) * g_per_mm[:, None, None, None]
+    K_a = np.linalg.inv(np.stack([static.M for static in statics]))
+    bias = np.stack([static.bias for static in statics])
+    # statically compensated specific force, body frame
+    f_hat = (stack_field(ds, "accel") - bias[:, None, :]) @ np.swapaxes(K_a, 1, 2)
+    return [LeverArmInputs(statics[r], ds[r], W[r], K_a[r], f_hat[r], rates[r][1])
+            for r in range(R)]
 
 
 def lever_arm_estimate(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
@@ -373,14 +401,44 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
                        projection: str = "sensitive_axis", _estimate_only: bool = False
                        ) -> LeverArmFit:
     """:func:`fit_lever_arm` on precomputed :func:`lever_arm_inputs`."""
+    return fit_lever_arm_from_stack([inputs], rcond, projection, _estimate_only)[0]
+
+
+def fit_lever_arm_from_stack(inputs: Sequence[LeverArmInputs],
+                             rcond: float = UNDETERMINED_RCOND,
+                             projection: str = "sensitive_axis", estimate_only: bool = False
+                             ) -> list:
+    """:func:`fit_lever_arm_from` of sessions that share one step layout (their
+    :func:`lever_arm_inputs_stack`): item r is bit for bit ``fit_lever_arm_from(inputs[r])``
+    (with ``estimate_only``, its ``r_mm`` as :func:`lever_arm_estimate` gives it). The
+    sessions' block-diagonal solves run together when every component of every session is
+    determined (the usual case), else each session alone."""
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
-    static, d, W, K_a, f_hat = inputs.static, inputs.d, inputs.W, inputs.K_a, inputs.f_hat
-    n = len(d)
+    blocks = [_lever_blocks(x, rcond, projection) for x in inputs]
+    determined = [_BLOCK_PATH and len(b.cols) == 9 for b in blocks]
+    if all(determined):
+        return _fit_all_determined(inputs, blocks, projection, estimate_only)
+    return [_fit_all_determined([x], [b], projection, estimate_only)[0] if all_determined
+            else _fit_joint(x, b, projection, estimate_only)
+            for x, b, all_determined in zip(inputs, blocks, determined)]
+
+
+@dataclass(frozen=True)
+class _LeverBlocks:
+    """One session's lever-arm design, block i (accelerometer i): X (n,3), y (n,), and the
+    components the rank-revealing QR keeps."""
+
+    blocks: list  # (i, X_i, y_i, kept columns of block i)
+    cols: list  # (i, j) of every kept component, block by block
+    undetermined: list
+    reasons: dict
+
+
+def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str) -> _LeverBlocks:
+    static, d, W, f_hat = inputs.static, inputs.d, inputs.W, inputs.f_hat
     k, C, u0 = static.scale, static.C, static.bias
     M = static.M
-    r = np.full((3, 3), np.nan)
-    se = np.full((3, 3), np.nan)
     undetermined: list[str] = []
     reasons: dict[str, str] = {}
     # the three blocks (one per accelerometer) at once: X_i (n,3) and y_i (n,)
@@ -419,14 +477,25 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
     if not cols:
         raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
                           LEVER_NAMES)
-    if len(cols) == 9 and _BLOCK_PATH:
-        return _fit_all_determined(inputs, blocks, projection, reasons, _estimate_only)
+    return _LeverBlocks(blocks, cols, undetermined, reasons)
+
+
+def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
+               estimate_only: bool = False):
+    """The joint least squares of one session over its determined components (the general
+    path: some component undetermined, or the block path switched off)."""
+    static, d, K_a, f_hat = inputs.static, inputs.d, inputs.K_a, inputs.f_hat
+    n = len(d)
+    k, M = static.scale, static.M
+    blocks, cols, undetermined, reasons = lb.blocks, lb.cols, lb.undetermined, lb.reasons
+    r = np.full((3, 3), np.nan)
+    se = np.full((3, 3), np.nan)
     A = np.zeros((3 * n, len(cols)))
     Y = np.concatenate([b[2] for b in blocks])
     for c, (i, j) in enumerate(cols):
         A[i * n:(i + 1) * n, c] = blocks[i][1][:, j]
     theta, *_ = np.linalg.lstsq(A, Y, rcond=None)
-    if _estimate_only:
+    if estimate_only:
         for c, (i, j) in enumerate(cols):
             r[i, j] = theta[c]
         return r
@@ -473,52 +542,66 @@ def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND
     )
 
 
-def _fit_all_determined(inputs: LeverArmInputs, blocks: list, projection: str,
-                        reasons: dict[str, str], estimate_only: bool = False) -> LeverArmFit:
-    """The joint fit when every component is determined (the usual case, tilted steps).
+def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_LeverBlocks],
+                        projection: str, estimate_only: bool = False) -> list:
+    """The joint fits of sessions whose every component is determined (the usual case,
+    tilted steps), all sessions together.
 
     The design is then block diagonal with three (n,3) blocks, one per accelerometer, so one
-    batched SVD of the blocks gives what the general path gets from lstsq, two SVDs and a
-    pseudo-inverse of the (3n,9) design: the same estimates and covariance, to rounding."""
-    static, d, K_a, f_hat = inputs.static, inputs.d, inputs.K_a, inputs.f_hat
-    n = len(d)
-    k, M = static.scale, static.M
-    Xb = np.stack([b[1] for b in blocks])  # (3,n,3)
-    yb = np.stack([b[2] for b in blocks])  # (3,n)
-    U, sb, Vt = np.linalg.svd(Xb, full_matrices=False)  # (3,n,3), (3,3), (3,3,3)
-    V = np.swapaxes(Vt, 1, 2)
-    pinv = V @ (np.swapaxes(U, 1, 2) / sb[:, :, None])  # (3,3,n), block i = pinv(X_i)
-    theta = np.einsum("ikn,in->ik", pinv, yb)  # row i = r_i
+    batched SVD of the blocks (of every session) gives what the general path gets from
+    lstsq, two SVDs and a pseudo-inverse of the (3n,9) design: the same estimates and
+    covariance, to rounding."""
+    d = inputs[0].d
+    R, n = len(inputs), len(d)
+    k = np.stack([x.static.scale for x in inputs])  # (R,3)
+    Xb = np.stack([np.stack([b[1] for b in lb.blocks]) for lb in blocks])  # (R,3,n,3)
+    yb = np.stack([np.stack([b[2] for b in lb.blocks]) for lb in blocks])  # (R,3,n)
+    U, sb, Vt = np.linalg.svd(Xb, full_matrices=False)  # (R,3,n,3), (R,3,3), (R,3,3,3)
+    V = np.swapaxes(Vt, -1, -2)
+    pinv = V @ (np.swapaxes(U, -1, -2) / sb[..., :, None])  # block i = pinv(X_i)
+    theta = np.einsum("rikn,rin->rik", pinv, yb)  # row i = r_i
     if estimate_only:
-        return theta
-    resid = yb - np.einsum("ink,ik->in", Xb, theta)
+        return list(theta)
+    resid = yb - np.einsum("rink,rik->rin", Xb, theta)
     dof = 3 * n - 9
-    var_g = float(np.sum(resid ** 2) / dof) if dof > 0 else float("nan")
-    blk = np.arange(3)
-    cov4 = np.zeros((3, 3, 3, 3))  # (i, j, i', j'): component (i,j) against (i',j')
-    cov4[blk, :, blk, :] = ((V / sb[:, None, :] ** 2) @ Vt) * var_g
-    # static uncertainty (see fit_lever_arm_from): sensitive axis, channel l moves block l
-    # only; body axis, channel l moves block i by -K_a[i, l] pinv(X_i) (f_hat, 1)
+    var_g = ((resid ** 2).reshape(R, -1).sum(axis=1) / dof if dof > 0
+             else np.full(R, np.nan))
+    cov4 = np.zeros((R, 3, 3, 3, 3))  # (r, i, j, i', j'): component (i,j) against (i',j')
+    cov_blocks = ((V / sb[..., None, :] ** 2) @ Vt) * var_g[:, None, None, None]
+    for i in range(3):
+        cov4[:, i, :, i, :] = cov_blocks[:, i]
+    # static uncertainty (see _fit_joint): sensitive axis, channel l moves block l only;
+    # body axis, channel l moves block i by -K_a[i, l] pinv(X_i) (f_hat, 1)
+    channel_cov = np.stack([x.static.channel_cov for x in inputs])  # (R,3,4,4)
     ones = np.ones((n, 1))
     if projection == "sensitive_axis":
-        e = yb * k[:, None]  # raw residuals of the static model, (3,n)
-        dY = np.concatenate([d.f_ref[None] + e[:, :, None] * M[:, None, :] / k[:, None, None] ** 2,
-                             np.broadcast_to(ones, (3, n, 1))], axis=2) / -k[:, None, None]
-        J = pinv @ dY  # (3,3,4): block l, channel l
-        cov4[blk, :, blk, :] += np.einsum("lai,lij,lbj->lab", J, static.channel_cov, J)
-        cov = cov4.reshape(9, 9)
+        M = np.stack([x.static.M for x in inputs])
+        e = yb * k[:, :, None]  # raw residuals of the static model, (R,3,n)
+        dY = np.concatenate([d.f_ref + e[..., None] * M[:, :, None, :] / k[..., None, None] ** 2,
+                             np.broadcast_to(ones, (R, 3, n, 1))], axis=3) / -k[..., None, None]
+        J = pinv @ dY  # (R,3,3,4): block l, channel l
+        diag_blocks = np.einsum("rlai,rlij,rlbj->rlab", J, channel_cov, J)
+        for i in range(3):
+            cov4[:, i, :, i, :] += diag_blocks[:, i]
+        cov = cov4.reshape(R, 9, 9)
     else:
-        P = pinv @ np.hstack([f_hat, ones])  # (3,3,4), block i
-        J = (-K_a.T[:, :, None, None] * P[None]).reshape(3, 9, 4)  # (l, component, 4)
-        cov = cov4.reshape(9, 9) + np.einsum("lai,lij,lbj->ab", J, static.channel_cov, J)
-    sv = sb.ravel()
-    cond = float(sv.max() / sv.min()) if sv.min() > 0 else float("inf")
-    return LeverArmFit(
-        lever_arm_mm=theta, stderr=np.sqrt(np.diag(cov)).reshape(3, 3), condition_number=cond,
-        condition_number_full=cond, undetermined=(), reasons=reasons,
-        residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
-        n_steps=n, rate_source=inputs.source, projection=projection,
-    )
+        f_hat = np.stack([x.f_hat for x in inputs])
+        K_a = np.stack([x.K_a for x in inputs])
+        P = pinv @ np.concatenate([f_hat, np.broadcast_to(ones, (R, n, 1))], axis=2)[:, None]
+        J = (-np.swapaxes(K_a, 1, 2)[..., None, None] * P[:, None]).reshape(R, 3, 9, 4)
+        cov = cov4.reshape(R, 9, 9) + np.einsum("rlai,rlij,rlbj->rab", J, channel_cov, J)
+    stderr = np.sqrt(np.diagonal(cov, axis1=1, axis2=2)).reshape(R, 3, 3)
+    out = []
+    for r, (x, lb) in enumerate(zip(inputs, blocks)):
+        sv = sb[r].ravel()
+        cond = float(sv.max() / sv.min()) if sv.min() > 0 else float("inf")
+        out.append(LeverArmFit(
+            lever_arm_mm=theta[r], stderr=stderr[r], condition_number=cond,
+            condition_number_full=cond, undetermined=(), reasons=lb.reasons,
+            residual_rms_g=float(np.sqrt(var_g[r])) if dof > 0 else float("nan"), dof=dof,
+            n_steps=n, rate_source=x.source, projection=projection,
+        ))
+    return out
 
 
 def paper_lever_arm(sm: StepMeans, static: AccelStaticFit) -> np.ndarray:

@@ -13,7 +13,7 @@ import pandas as pd
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.pipeline import calibrate_repetition, calibration_from_unit
+from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
 from calib_core.results import Param, RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
@@ -56,27 +56,53 @@ class SessionOutcome:
 
 def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionOutcome:
     """Read, validate, average and fit one session."""
-    fp = _safe_fingerprint(ref.path)
-    try:
-        sm, warns = read_step_means(ref)
-        fit = calibrate_repetition(sm)
-    except SessionError as exc:
+    return calibrate_sessions([ref], keep_step_means)[0]
+
+
+def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True
+                       ) -> list[SessionOutcome]:
+    """:func:`calibrate_session` of each session (the repetitions of a unit): every session
+    read first, then the fits of those read together (``calibrate_repetitions`` stacks the
+    sessions that share a step layout); each outcome is the one its session gives alone."""
+    fps = []
+    read: list[tuple[int, StepMeans, list]] = []
+    outcomes: list[SessionOutcome | None] = [None] * len(refs)
+    for i, ref in enumerate(refs):
+        fps.append(_safe_fingerprint(ref.path))
+        try:
+            sm, warns = read_step_means(ref)
+        except Exception as exc:  # noqa: BLE001 - mapped to the session's failure below
+            outcomes[i] = _failed(ref, fps[i], exc)
+            continue
+        read.append((i, sm, warns))
+    fits = calibrate_repetitions([sm for _, sm, _ in read])
+    for (i, sm, warns), fit in zip(read, fits):
+        ref, fp = refs[i], fps[i]
+        if isinstance(fit, Exception):
+            outcomes[i] = _failed(ref, fp, fit)
+            continue
+        warning_texts = [str(w) for w in warns] + list(fit.calibration.warnings)
+        fit.calibration.warnings = warning_texts
+        fit.calibration.provenance.update({"path": str(ref.path), "fingerprint": fp})
+        status = STATUS_WARNED if warning_texts else STATUS_OK
+        outcomes[i] = SessionOutcome(ref.key, ref.path, status, None, None, warning_texts, fp,
+                                     fit.calibration, fit.residual_table,
+                                     fit.compensation_table, sm if keep_step_means else None)
+    return outcomes
+
+
+def _failed(ref: SessionRef, fp: str, exc: Exception) -> SessionOutcome:
+    """The failed outcome of a session whose reading or fitting raised ``exc``."""
+    if isinstance(exc, SessionError):
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, exc.code, str(exc), [], fp)
-    except DesignError as exc:
+    if isinstance(exc, DesignError):
         err = (from_design_error(exc, str(ref.key)) if exc.code == "E_UNDETERMINED"
                else SessionError(exc.code, str(ref.key), "samples.parquet", exc.reason))
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, err.code, str(err), [], fp)
-    except Exception as exc:  # a bug must not stop the fleet; it is reported with its trace
-        tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        msg = f"[E_INTERNAL] session {ref.key}, path {ref.path}: unexpected error ({tb})"
-        return SessionOutcome(ref.key, ref.path, STATUS_FAILED, "E_INTERNAL", msg, [], fp)
-    warning_texts = [str(w) for w in warns] + list(fit.calibration.warnings)
-    fit.calibration.warnings = warning_texts
-    fit.calibration.provenance.update({"path": str(ref.path), "fingerprint": fp})
-    status = STATUS_WARNED if warning_texts else STATUS_OK
-    return SessionOutcome(ref.key, ref.path, status, None, None, warning_texts, fp,
-                          fit.calibration, fit.residual_table, fit.compensation_table,
-                          sm if keep_step_means else None)
+    # a bug must not stop the fleet; it is reported with its trace
+    tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
+    msg = f"[E_INTERNAL] session {ref.key}, path {ref.path}: unexpected error ({tb})"
+    return SessionOutcome(ref.key, ref.path, STATUS_FAILED, "E_INTERNAL", msg, [], fp)
 
 
 def _safe_fingerprint(path: Path) -> str:
@@ -202,9 +228,9 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
     from calib_core.pipeline import residual_table
-    from flows.unit_pipeline import aggregate_unit, calibrate_session
+    from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     t0 = time.perf_counter()
-    outcomes = [calibrate_session(r) for r in sorted(job.refs, key=lambda r: r.key.rep)]
+    outcomes = calibrate_sessions(sorted(job.refs, key=lambda r: r.key.rep))
     diag_doc, note, terms, extended = None, None, (), None
     good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
     if run_discovery and _discovery_available() and len(good_sm) >= 2:
