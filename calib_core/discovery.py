@@ -92,57 +92,21 @@ class _UnitGrid:
 
     @classmethod
     def build(cls, sessions: list[StepMeans], names: list[str]) -> "_UnitGrid":
-        R = len(sessions)
-        lens = [len(sm) for sm in sessions]
-        n = max(lens)
-        terms = [get_effect(nm) for nm in names]
-        offset, off = {}, 0
-        for nm, t in zip(names, terms):
-            offset[nm] = (off, off + t.n_params)
-            off += t.n_params
-        P = off
-        real = np.zeros((R, n), bool)
-        step = np.full((R, n), -1, np.int64)
-        y = np.zeros((R, n, 6))
+        lay = _layout(sessions, names)
+        R, n = lay.M.shape[1:3]
         raw = np.zeros((R, n, 6, 3))
         std = np.zeros((R, n, 6, 3))
         count = np.ones((R, n))
-        Zs, live_mask, tests = [], np.zeros((6, P), bool), []
         for r, sm in enumerate(sessions):
             m = len(sm)
-            real[r, :m] = True
-            step[r, :m] = sm.step.astype(np.int64)
-            y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
             raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
             std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
             count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
-            ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
-                                          g_local=sm.g_local)
-            Zr, live_r = _design_columns(terms, ctx)
-            Zs.append(Zr)
-            live_mask |= live_r
-            tests.append(np.unique(np.asarray(sm.test).astype(str), return_inverse=True))
-        # test groups: mapped per distinct test name, not per step
-        groups = sorted({test_group(t) for u, _ in tests for t in u})
-        gcode = np.full((R, n), -1, np.int64)
-        for r, (u, inv) in enumerate(tests):
-            gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
-        live = [np.flatnonzero(m) for m in live_mask]
-        balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
-                    and all(np.array_equal(gcode[0], g) for g in gcode)
-                    and len(np.unique(step[0])) == n)
-        k = 3 + max(len(L) for L in live) + 1
-        M = np.zeros((6, R, n, k))
-        colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
+        M = lay.M.copy()  # the layout's term and reference columns; the unit's outputs:
         M[..., :3] = np.moveaxis(raw, 2, 0)
-        M[..., -1] = np.moveaxis(y, 2, 0)
-        for c in range(6):
-            L = live[c]
-            colmap[c, :len(L)] = L
-            for r, Zr in enumerate(Zs):
-                M[c, r, :lens[r], 3:3 + len(L)] = Zr[:, c, L]
-        return cls(R, n, real, step, gcode, groups, y, raw, std, count, list(names), offset,
-                   live, live_mask, balanced, M, colmap)
+        return cls(R, n, lay.real, lay.step, lay.gcode, list(lay.groups), lay.y, raw, std,
+                   count, list(names), dict(lay.offset), list(lay.live), lay.live_mask,
+                   lay.balanced, M, lay.colmap)
 
     @property
     def P(self) -> int:
@@ -192,6 +156,99 @@ class _UnitGrid:
             grp = np.concatenate(grp)
         e = np.stack(out).reshape(lead + (-1, X.shape[-1]))
         return e, grp, dof
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What a unit's grid takes from its protocol alone (steps, tests, references, motion,
+    catalogue), not from the unit's outputs: the same for every unit measured with that
+    protocol. Arrays are read-only (shared by those units)."""
+
+    real: np.ndarray
+    step: np.ndarray
+    gcode: np.ndarray
+    groups: list[str]
+    y: np.ndarray
+    offset: dict[str, tuple[int, int]]
+    live: list[np.ndarray]
+    live_mask: np.ndarray
+    balanced: bool
+    M: np.ndarray  # (6, R, n, k): term and reference columns, raw columns 0 (copy, fill)
+    colmap: np.ndarray
+
+
+_LAYOUT_CACHE: dict[tuple, _Layout] = {}
+_LAYOUT_CACHE_MAX = 16
+
+
+def _layout(sessions: list[StepMeans], names: list[str]) -> _Layout:
+    """The grid's layout of these repetitions, remembered by the bytes of everything it is
+    built from (a protocol's units share one; a unit whose steps differ misses)."""
+    key = (tuple(names),) + tuple(
+        (len(sm), sm.step.astype(np.int64).tobytes(), _test_names(sm).tobytes(),
+         np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
+         np.asarray(sm.temp_c, float).tobytes(), np.asarray(sm.t_mid, float).tobytes(),
+         float(sm.g_local)) for sm in sessions)
+    lay = _LAYOUT_CACHE.get(key)
+    if lay is None:
+        lay = _build_layout(sessions, names)
+        for a in (lay.real, lay.step, lay.gcode, lay.y, lay.live_mask, lay.M, lay.colmap,
+                  *lay.live):
+            a.setflags(write=False)
+        if len(_LAYOUT_CACHE) >= _LAYOUT_CACHE_MAX:
+            _LAYOUT_CACHE.clear()
+        _LAYOUT_CACHE[key] = lay
+    return lay
+
+
+def _test_names(sm: StepMeans) -> np.ndarray:
+    return np.asarray(sm.test).astype(str)
+
+
+def _build_layout(sessions: list[StepMeans], names: list[str]) -> _Layout:
+    R = len(sessions)
+    lens = [len(sm) for sm in sessions]
+    n = max(lens)
+    terms = [get_effect(nm) for nm in names]
+    offset, off = {}, 0
+    for nm, t in zip(names, terms):
+        offset[nm] = (off, off + t.n_params)
+        off += t.n_params
+    P = off
+    real = np.zeros((R, n), bool)
+    step = np.full((R, n), -1, np.int64)
+    y = np.zeros((R, n, 6))
+    Zs, live_mask, tests = [], np.zeros((6, P), bool), []
+    for r, sm in enumerate(sessions):
+        m = len(sm)
+        real[r, :m] = True
+        step[r, :m] = sm.step.astype(np.int64)
+        y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
+        ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
+                                      g_local=sm.g_local)
+        Zr, live_r = _design_columns(terms, ctx)
+        Zs.append(Zr)
+        live_mask |= live_r
+        tests.append(np.unique(_test_names(sm), return_inverse=True))
+    # test groups: mapped per distinct test name, not per step
+    groups = sorted({test_group(t) for u, _ in tests for t in u})
+    gcode = np.full((R, n), -1, np.int64)
+    for r, (u, inv) in enumerate(tests):
+        gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
+    live = [np.flatnonzero(m) for m in live_mask]
+    balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
+                and all(np.array_equal(gcode[0], g) for g in gcode)
+                and len(np.unique(step[0])) == n)
+    k = 3 + max(len(L) for L in live) + 1
+    M = np.zeros((6, R, n, k))
+    colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
+    M[..., -1] = np.moveaxis(y, 2, 0)
+    for c in range(6):
+        L = live[c]
+        colmap[c, :len(L)] = L
+        for r, Zr in enumerate(Zs):
+            M[c, r, :lens[r], 3:3 + len(L)] = Zr[:, c, L]
+    return _Layout(real, step, gcode, groups, y, offset, live, live_mask, balanced, M, colmap)
 
 
 _DESIGN_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
