@@ -294,18 +294,49 @@ def _centre(M: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class _FitResult:
     names: list[str]
     theta: np.ndarray
-    cov: np.ndarray  # of theta, in units of the weighted residual variance (1 if sigma right)
     rank: int
     ss: float  # weighted residual sum of squares
     K: np.ndarray  # (6, 3)
     v: np.ndarray  # (6, k) per channel: [-K_c, -theta on its live term columns, 0..., 1]
     ss_channel: np.ndarray | None  # (6,) weighted residual sum of squares (fold of all reps)
     pure_channel: np.ndarray | None  # (6,) its pure-error part
+    solution: "_LstsqSolution | None" = field(default=None, repr=False)
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Of theta, in units of the weighted residual variance (1 if sigma is right); built
+        on first use: the term tests need only theta and the rank."""
+        if self.solution is None:
+            return np.zeros((0, 0))
+        return self.solution.cov
 
 
-def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """Least squares with column scaling; covariance from the SVD (pseudo-inverse on
-    directions the data do not determine, whose variance is reported as inf)."""
+@dataclass
+class _LstsqSolution:
+    """What :func:`_lstsq` keeps of its SVD for the covariance."""
+
+    Vt: np.ndarray
+    inv_s: np.ndarray
+    keep: np.ndarray
+    live: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def cov(self) -> np.ndarray:
+        if "_cov" not in self.__dict__:
+            Vt, inv_s, keep, live, scale = self.Vt, self.inv_s, self.keep, self.live, self.scale
+            cov = (Vt.T * inv_s ** 2) @ Vt / np.outer(scale, scale)
+            # a parameter with a component along an undetermined direction is undetermined
+            undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
+            cov[undetermined, :] = np.nan
+            cov[:, undetermined] = np.nan
+            self.__dict__["_cov"] = cov
+        return self.__dict__["_cov"]
+
+
+def _lstsq(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, _LstsqSolution]:
+    """Least squares with column scaling (pseudo-inverse on directions the data do not
+    determine): theta, rank, and the SVD's parts for the covariance."""
     norms = np.linalg.norm(Z, axis=0)
     live = norms > 1e-12 * max(norms.max(), 1e-300)
     scale = np.where(live, norms, 1.0)
@@ -315,13 +346,15 @@ def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, in
     rank = int(keep.sum())
     inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
     theta = (Vt.T * inv_s) @ (U.T @ y) / scale
-    cov = (Vt.T * inv_s ** 2) @ Vt / np.outer(scale, scale)
-    # a parameter with a component along an undetermined direction is undetermined
-    undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
-    cov[undetermined, :] = np.nan
-    cov[:, undetermined] = np.nan
-    theta[undetermined] = np.where(live[undetermined], theta[undetermined], 0.0)
-    return theta, cov, rank
+    theta[~live] = 0.0  # a column that is all zero has no estimate
+    return theta, rank, _LstsqSolution(Vt, inv_s, keep, live, scale)
+
+
+def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Least squares with column scaling; covariance from the SVD (pseudo-inverse on
+    directions the data do not determine, whose variance is reported as inf)."""
+    theta, rank, solution = _lstsq(Z, y)
+    return theta, solution.cov, rank
 
 
 def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -602,13 +635,14 @@ class _Discovery:
         c_all = Rg[:P, P]
         ss_perp = float(Rg[P, P] ** 2)
         cols = g.cols(names)
+        solution = None
         if cols.size:
             R_S = Rg[:P, cols]
-            theta, cov, rank = _lstsq_cov(R_S, c_all)
+            theta, rank, solution = _lstsq(R_S, c_all)
             d = c_all - R_S @ theta
             ss = float(d @ d) + ss_perp
         else:
-            theta, cov, rank = np.zeros(0), np.zeros((0, 0)), 0
+            theta, rank = np.zeros(0), 0
             ss = float(c_all @ c_all) + ss_perp
         theta_ext = np.zeros(P + 2)
         theta_ext[cols] = theta
@@ -621,8 +655,8 @@ class _Discovery:
         if fold is None:
             ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf[:, 0], v) ** 2, axis=1)
             pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
-        return _FitResult(names=list(names), theta=theta, cov=cov, rank=rank, ss=ss, K=K, v=v,
-                          ss_channel=ss_c, pure_channel=pure_c)
+        return _FitResult(names=list(names), theta=theta, rank=rank, ss=ss, K=K, v=v,
+                          ss_channel=ss_c, pure_channel=pure_c, solution=solution)
 
     def biases(self, f: _FitResult) -> np.ndarray:
         """Each repetition's biases (R, 6) under a fit of all repetitions: the weighted mean
