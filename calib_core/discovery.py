@@ -371,6 +371,42 @@ def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.where(live, theta, 0.0)
 
 
+# smallest eigenvalue of a fold's Gram matrix, relative to its trace, above which its rank
+# is certainly full by numpy's matrix_rank rule (which needs s_min > s_max max(M, N) eps,
+# i.e. a ratio of ~1e-28 on the Gram): rounding in forming the Gram (~n eps) is far below
+RANK_SURE_RATIO = 1e-8
+
+
+def _surely_full_rank(D: np.ndarray) -> bool:
+    """True when the weighted affine design of every channel and fold has full rank with a
+    wide margin: ``D`` (6, R, n, 4) each repetition's rows ``[w raw | w]``; the design of a
+    fold stacks its repetitions' rows with a bias column per repetition (fold 0: all, fold
+    1 + h: all but h). Its Gram matrix minus ``RANK_SURE_RATIO`` times its trace must be
+    positive definite (a Cholesky factorisation). False says nothing: the exact test runs."""
+    C, R = D.shape[:2]
+    G = D.swapaxes(-1, -2) @ D  # (6, R, 4, 4) per repetition
+    # which repetitions each fold sums (a sum of the included ones: no cancellation)
+    included = np.ones((R + 1, R))
+    included[np.arange(1, R + 1), np.arange(R)] = 0.0
+    full = np.zeros((C, R + 1, 3 + R, 3 + R))
+    full[:, :, :3, :3] = np.einsum("fr,crij->cfij", included, G[:, :, :3, :3])
+    for r in range(R):  # repetition r's bias column (dropped from fold 1 + r below)
+        full[:, :, :3, 3 + r] = full[:, :, 3 + r, :3] = G[:, None, r, :3, 3]
+        full[:, :, 3 + r, 3 + r] = G[:, None, r, 3, 3]
+    folds = [full[:, :1]] + [np.delete(np.delete(full[:, 1 + h:2 + h], 3 + h, axis=-1),
+                                       3 + h, axis=-2) for h in range(R)]
+    for A in (folds[0], np.concatenate(folds[1:], axis=1)):
+        tr = np.trace(A, axis1=-2, axis2=-1)
+        if not (np.isfinite(tr).all() and (tr > 0).all()):
+            return False
+        shifted = A - (RANK_SURE_RATIO * tr)[..., None, None] * np.eye(A.shape[-1])
+        try:
+            np.linalg.cholesky(shifted)
+        except np.linalg.LinAlgError:
+            return False
+    return True
+
+
 # -- results --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class FTest:
@@ -597,11 +633,16 @@ class _Discovery:
     def _check_rank(self, weight: np.ndarray) -> None:
         """The affine model (K row + a bias per repetition) must be determined on every
         channel and fold: numpy's matrix_rank test on the weighted design, whose singular
-        values are those of the repetitions' R factors placed block by block."""
+        values are those of the repetitions' R factors placed block by block. Skipped when
+        every fold's design is far from losing rank (:func:`_surely_full_rank`): the test
+        could not fail."""
         g, R = self.g, self.g.R
         eps = np.finfo(float).eps
         w = np.moveaxis(weight, -1, 0)[..., None]  # (6, R, n, 1)
-        R4 = _qr_r(np.concatenate([w * g.M[..., :3], w], axis=-1))  # (6, R, 4, 4)
+        D = np.concatenate([w * g.M[..., :3], w], axis=-1)  # (6, R, n, 4): [w raw | w]
+        if _surely_full_rank(D):
+            return
+        R4 = _qr_r(D)  # (6, R, 4, 4)
         Y = np.zeros((6, R + 1, R, 4, 3 + R))
         Y[..., :3] = R4[:, None, :, :, :3]
         for r in range(R):  # bias column of repetition r
