@@ -102,7 +102,7 @@ class _UnitGrid:
             raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
             std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
             count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
-        M = lay.M.copy()  # the layout's term and reference columns; the unit's outputs:
+        M = lay.M.copy()  # the layout's term and reference columns, then this unit's raw
         M[..., :3] = np.moveaxis(raw, 2, 0)
         return cls(R, n, lay.real, lay.step, lay.gcode, list(lay.groups), lay.y, raw, std,
                    count, list(names), dict(lay.offset), list(lay.live), lay.live_mask,
