@@ -183,8 +183,10 @@ _LAYOUT_CACHE_MAX = 16
 
 def _layout(sessions: list[StepMeans], names: list[str]) -> _Layout:
     """The grid's layout of these repetitions, remembered by the bytes of everything it is
-    built from (a protocol's units share one; a unit whose steps differ misses)."""
-    key = (tuple(names),) + tuple(
+    built from (a protocol's units share one; a unit whose steps differ misses) and the
+    catalogue's term classes (a name registered anew is another term)."""
+    terms = catalogue()
+    key = (tuple(names), tuple(terms[nm] for nm in names)) + tuple(
         (len(sm), sm.step.astype(np.int64).tobytes(), _test_names(sm).tobytes(),
          np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
          np.asarray(sm.temp_c, float).tobytes(), np.asarray(sm.t_mid, float).tobytes(),
