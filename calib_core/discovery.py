@@ -92,57 +92,21 @@ class _UnitGrid:
 
     @classmethod
     def build(cls, sessions: list[StepMeans], names: list[str]) -> "_UnitGrid":
-        R = len(sessions)
-        lens = [len(sm) for sm in sessions]
-        n = max(lens)
-        terms = [get_effect(nm) for nm in names]
-        offset, off = {}, 0
-        for nm, t in zip(names, terms):
-            offset[nm] = (off, off + t.n_params)
-            off += t.n_params
-        P = off
-        real = np.zeros((R, n), bool)
-        step = np.full((R, n), -1, np.int64)
-        y = np.zeros((R, n, 6))
+        lay = _layout(sessions, names)
+        R, n = lay.M.shape[1:3]
         raw = np.zeros((R, n, 6, 3))
         std = np.zeros((R, n, 6, 3))
         count = np.ones((R, n))
-        Zs, live_mask, tests = [], np.zeros((6, P), bool), []
         for r, sm in enumerate(sessions):
             m = len(sm)
-            real[r, :m] = True
-            step[r, :m] = sm.step.astype(np.int64)
-            y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
             raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
             std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
             count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
-            ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
-                                          g_local=sm.g_local)
-            Zr, live_r = _design_columns(terms, ctx)
-            Zs.append(Zr)
-            live_mask |= live_r
-            tests.append(np.unique(np.asarray(sm.test).astype(str), return_inverse=True))
-        # test groups: mapped per distinct test name, not per step
-        groups = sorted({test_group(t) for u, _ in tests for t in u})
-        gcode = np.full((R, n), -1, np.int64)
-        for r, (u, inv) in enumerate(tests):
-            gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
-        live = [np.flatnonzero(m) for m in live_mask]
-        balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
-                    and all(np.array_equal(gcode[0], g) for g in gcode)
-                    and len(np.unique(step[0])) == n)
-        k = 3 + max(len(L) for L in live) + 1
-        M = np.zeros((6, R, n, k))
-        colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
+        M = lay.M.copy()  # the layout's term and reference columns, then this unit's raw
         M[..., :3] = np.moveaxis(raw, 2, 0)
-        M[..., -1] = np.moveaxis(y, 2, 0)
-        for c in range(6):
-            L = live[c]
-            colmap[c, :len(L)] = L
-            for r, Zr in enumerate(Zs):
-                M[c, r, :lens[r], 3:3 + len(L)] = Zr[:, c, L]
-        return cls(R, n, real, step, gcode, groups, y, raw, std, count, list(names), offset,
-                   live, live_mask, balanced, M, colmap)
+        return cls(R, n, lay.real, lay.step, lay.gcode, list(lay.groups), lay.y, raw, std,
+                   count, list(names), dict(lay.offset), list(lay.live), lay.live_mask,
+                   lay.balanced, M, lay.colmap)
 
     @property
     def P(self) -> int:
@@ -194,6 +158,101 @@ class _UnitGrid:
         return e, grp, dof
 
 
+@dataclass(frozen=True)
+class _Layout:
+    """What a unit's grid takes from its protocol alone (steps, tests, references, motion,
+    catalogue), not from the unit's outputs: the same for every unit measured with that
+    protocol. Arrays are read-only (shared by those units)."""
+
+    real: np.ndarray
+    step: np.ndarray
+    gcode: np.ndarray
+    groups: list[str]
+    y: np.ndarray
+    offset: dict[str, tuple[int, int]]
+    live: list[np.ndarray]
+    live_mask: np.ndarray
+    balanced: bool
+    M: np.ndarray  # (6, R, n, k): term and reference columns, raw columns 0 (copy, fill)
+    colmap: np.ndarray
+
+
+_LAYOUT_CACHE: dict[tuple, _Layout] = {}
+_LAYOUT_CACHE_MAX = 16
+
+
+def _layout(sessions: list[StepMeans], names: list[str]) -> _Layout:
+    """The grid's layout of these repetitions, remembered by the bytes of everything it is
+    built from (a protocol's units share one; a unit whose steps differ misses) and the
+    catalogue's term classes (a name registered anew is another term)."""
+    terms = catalogue()
+    key = (tuple(names), tuple(terms[nm] for nm in names)) + tuple(
+        (len(sm), sm.step.astype(np.int64).tobytes(), _test_names(sm).tobytes(),
+         np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
+         np.asarray(sm.temp_c, float).tobytes(), np.asarray(sm.t_mid, float).tobytes(),
+         float(sm.g_local)) for sm in sessions)
+    lay = _LAYOUT_CACHE.get(key)
+    if lay is None:
+        lay = _build_layout(sessions, names)
+        for a in (lay.real, lay.step, lay.gcode, lay.y, lay.live_mask, lay.M, lay.colmap,
+                  *lay.live):
+            a.setflags(write=False)
+        if len(_LAYOUT_CACHE) >= _LAYOUT_CACHE_MAX:
+            _LAYOUT_CACHE.clear()
+        _LAYOUT_CACHE[key] = lay
+    return lay
+
+
+def _test_names(sm: StepMeans) -> np.ndarray:
+    return np.asarray(sm.test).astype(str)
+
+
+def _build_layout(sessions: list[StepMeans], names: list[str]) -> _Layout:
+    R = len(sessions)
+    lens = [len(sm) for sm in sessions]
+    n = max(lens)
+    terms = [get_effect(nm) for nm in names]
+    offset, off = {}, 0
+    for nm, t in zip(names, terms):
+        offset[nm] = (off, off + t.n_params)
+        off += t.n_params
+    P = off
+    real = np.zeros((R, n), bool)
+    step = np.full((R, n), -1, np.int64)
+    y = np.zeros((R, n, 6))
+    Zs, live_mask, tests = [], np.zeros((6, P), bool), []
+    for r, sm in enumerate(sessions):
+        m = len(sm)
+        real[r, :m] = True
+        step[r, :m] = sm.step.astype(np.int64)
+        y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
+        ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
+                                      g_local=sm.g_local)
+        Zr, live_r = _design_columns(terms, ctx)
+        Zs.append(Zr)
+        live_mask |= live_r
+        tests.append(np.unique(_test_names(sm), return_inverse=True))
+    # test groups: mapped per distinct test name, not per step
+    groups = sorted({test_group(t) for u, _ in tests for t in u})
+    gcode = np.full((R, n), -1, np.int64)
+    for r, (u, inv) in enumerate(tests):
+        gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
+    live = [np.flatnonzero(m) for m in live_mask]
+    balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
+                and all(np.array_equal(gcode[0], g) for g in gcode)
+                and len(np.unique(step[0])) == n)
+    k = 3 + max(len(L) for L in live) + 1
+    M = np.zeros((6, R, n, k))
+    colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
+    M[..., -1] = np.moveaxis(y, 2, 0)
+    for c in range(6):
+        L = live[c]
+        colmap[c, :len(L)] = L
+        for r, Zr in enumerate(Zs):
+            M[c, r, :lens[r], 3:3 + len(L)] = Zr[:, c, L]
+    return _Layout(real, step, gcode, groups, y, offset, live, live_mask, balanced, M, colmap)
+
+
 _DESIGN_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 _DESIGN_CACHE_MAX = 64
 
@@ -237,18 +296,49 @@ def _centre(M: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class _FitResult:
     names: list[str]
     theta: np.ndarray
-    cov: np.ndarray  # of theta, in units of the weighted residual variance (1 if sigma right)
     rank: int
     ss: float  # weighted residual sum of squares
     K: np.ndarray  # (6, 3)
     v: np.ndarray  # (6, k) per channel: [-K_c, -theta on its live term columns, 0..., 1]
     ss_channel: np.ndarray | None  # (6,) weighted residual sum of squares (fold of all reps)
     pure_channel: np.ndarray | None  # (6,) its pure-error part
+    solution: "_LstsqSolution | None" = field(default=None, repr=False)
+
+    @property
+    def cov(self) -> np.ndarray:
+        """Of theta, in units of the weighted residual variance (1 if sigma is right); built
+        on first use: the term tests need only theta and the rank."""
+        if self.solution is None:
+            return np.zeros((0, 0))
+        return self.solution.cov
 
 
-def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-    """Least squares with column scaling; covariance from the SVD (pseudo-inverse on
-    directions the data do not determine, whose variance is reported as inf)."""
+@dataclass
+class _LstsqSolution:
+    """What :func:`_lstsq` keeps of its SVD for the covariance."""
+
+    Vt: np.ndarray
+    inv_s: np.ndarray
+    keep: np.ndarray
+    live: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def cov(self) -> np.ndarray:
+        if "_cov" not in self.__dict__:
+            Vt, inv_s, keep, live, scale = self.Vt, self.inv_s, self.keep, self.live, self.scale
+            cov = (Vt.T * inv_s ** 2) @ Vt / np.outer(scale, scale)
+            # a parameter with a component along an undetermined direction is undetermined
+            undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
+            cov[undetermined, :] = np.nan
+            cov[:, undetermined] = np.nan
+            self.__dict__["_cov"] = cov
+        return self.__dict__["_cov"]
+
+
+def _lstsq(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, _LstsqSolution]:
+    """Least squares with column scaling (pseudo-inverse on directions the data do not
+    determine): theta, rank, and the SVD's parts for the covariance."""
     norms = np.linalg.norm(Z, axis=0)
     live = norms > 1e-12 * max(norms.max(), 1e-300)
     scale = np.where(live, norms, 1.0)
@@ -258,13 +348,15 @@ def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, in
     rank = int(keep.sum())
     inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
     theta = (Vt.T * inv_s) @ (U.T @ y) / scale
-    cov = (Vt.T * inv_s ** 2) @ Vt / np.outer(scale, scale)
-    # a parameter with a component along an undetermined direction is undetermined
-    undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
-    cov[undetermined, :] = np.nan
-    cov[:, undetermined] = np.nan
-    theta[undetermined] = np.where(live[undetermined], theta[undetermined], 0.0)
-    return theta, cov, rank
+    theta[~live] = 0.0  # a column that is all zero has no estimate
+    return theta, rank, _LstsqSolution(Vt, inv_s, keep, live, scale)
+
+
+def _lstsq_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Least squares with column scaling; covariance from the SVD (pseudo-inverse on
+    directions the data do not determine, whose variance is reported as inf)."""
+    theta, rank, solution = _lstsq(Z, y)
+    return theta, solution.cov, rank
 
 
 def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -279,6 +371,42 @@ def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
     uy = np.einsum("bmk,bm->bk", U, y)
     theta = np.einsum("bkp,bk->bp", Vt, inv_s * uy) / scale
     return np.where(live, theta, 0.0)
+
+
+# smallest eigenvalue of a fold's Gram matrix, relative to its trace, above which its rank
+# is certainly full by numpy's matrix_rank rule (which needs s_min > s_max max(M, N) eps,
+# i.e. a ratio of ~1e-28 on the Gram): rounding in forming the Gram (~n eps) is far below
+RANK_SURE_RATIO = 1e-8
+
+
+def _surely_full_rank(D: np.ndarray) -> bool:
+    """True when the weighted affine design of every channel and fold has full rank with a
+    wide margin: ``D`` (6, R, n, 4) each repetition's rows ``[w raw | w]``; the design of a
+    fold stacks its repetitions' rows with a bias column per repetition (fold 0: all, fold
+    1 + h: all but h). Its Gram matrix minus ``RANK_SURE_RATIO`` times its trace must be
+    positive definite (a Cholesky factorisation). False says nothing: the exact test runs."""
+    C, R = D.shape[:2]
+    G = D.swapaxes(-1, -2) @ D  # (6, R, 4, 4) per repetition
+    # which repetitions each fold sums (a sum of the included ones: no cancellation)
+    included = np.ones((R + 1, R))
+    included[np.arange(1, R + 1), np.arange(R)] = 0.0
+    full = np.zeros((C, R + 1, 3 + R, 3 + R))
+    full[:, :, :3, :3] = np.einsum("fr,crij->cfij", included, G[:, :, :3, :3])
+    for r in range(R):  # repetition r's bias column (dropped from fold 1 + r below)
+        full[:, :, :3, 3 + r] = full[:, :, 3 + r, :3] = G[:, None, r, :3, 3]
+        full[:, :, 3 + r, 3 + r] = G[:, None, r, 3, 3]
+    folds = [full[:, :1]] + [np.delete(np.delete(full[:, 1 + h:2 + h], 3 + h, axis=-1),
+                                       3 + h, axis=-2) for h in range(R)]
+    for A in (folds[0], np.concatenate(folds[1:], axis=1)):
+        tr = np.trace(A, axis1=-2, axis2=-1)
+        if not (np.isfinite(tr).all() and (tr > 0).all()):
+            return False
+        shifted = A - (RANK_SURE_RATIO * tr)[..., None, None] * np.eye(A.shape[-1])
+        try:
+            np.linalg.cholesky(shifted)
+        except np.linalg.LinAlgError:
+            return False
+    return True
 
 
 # -- results --------------------------------------------------------------------------
@@ -507,11 +635,16 @@ class _Discovery:
     def _check_rank(self, weight: np.ndarray) -> None:
         """The affine model (K row + a bias per repetition) must be determined on every
         channel and fold: numpy's matrix_rank test on the weighted design, whose singular
-        values are those of the repetitions' R factors placed block by block."""
+        values are those of the repetitions' R factors placed block by block. Skipped when
+        every fold's design is far from losing rank (:func:`_surely_full_rank`): the test
+        could not fail."""
         g, R = self.g, self.g.R
         eps = np.finfo(float).eps
         w = np.moveaxis(weight, -1, 0)[..., None]  # (6, R, n, 1)
-        R4 = _qr_r(np.concatenate([w * g.M[..., :3], w], axis=-1))  # (6, R, 4, 4)
+        D = np.concatenate([w * g.M[..., :3], w], axis=-1)  # (6, R, n, 4): [w raw | w]
+        if _surely_full_rank(D):
+            return
+        R4 = _qr_r(D)  # (6, R, 4, 4)
         Y = np.zeros((6, R + 1, R, 4, 3 + R))
         Y[..., :3] = R4[:, None, :, :, :3]
         for r in range(R):  # bias column of repetition r
@@ -545,13 +678,14 @@ class _Discovery:
         c_all = Rg[:P, P]
         ss_perp = float(Rg[P, P] ** 2)
         cols = g.cols(names)
+        solution = None
         if cols.size:
             R_S = Rg[:P, cols]
-            theta, cov, rank = _lstsq_cov(R_S, c_all)
+            theta, rank, solution = _lstsq(R_S, c_all)
             d = c_all - R_S @ theta
             ss = float(d @ d) + ss_perp
         else:
-            theta, cov, rank = np.zeros(0), np.zeros((0, 0)), 0
+            theta, rank = np.zeros(0), 0
             ss = float(c_all @ c_all) + ss_perp
         theta_ext = np.zeros(P + 2)
         theta_ext[cols] = theta
@@ -564,8 +698,8 @@ class _Discovery:
         if fold is None:
             ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf[:, 0], v) ** 2, axis=1)
             pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
-        return _FitResult(names=list(names), theta=theta, cov=cov, rank=rank, ss=ss, K=K, v=v,
-                          ss_channel=ss_c, pure_channel=pure_c)
+        return _FitResult(names=list(names), theta=theta, rank=rank, ss=ss, K=K, v=v,
+                          ss_channel=ss_c, pure_channel=pure_c, solution=solution)
 
     def biases(self, f: _FitResult) -> np.ndarray:
         """Each repetition's biases (R, 6) under a fit of all repetitions: the weighted mean

@@ -2,6 +2,7 @@
 per-repetition calibrations and their aggregate over repetitions (xu2016 Tables 1 and 2)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Protocol, runtime_checkable
 
@@ -13,6 +14,13 @@ FORMAT_VERSION = "1.0"
 def to_jsonable(v: Any, default=lambda x: x) -> Any:
     """JSON-safe copy: numpy scalars and arrays to Python, non-finite floats to None;
     ``default`` converts anything else (e.g. datetimes, paths)."""
+    kind = type(v)  # the common leaves first, by exact type (subclasses take the checks below)
+    if kind is float:
+        return v if math.isfinite(v) else None
+    if kind is str:
+        return default(v)
+    if kind is int or kind is bool:
+        return v
     if isinstance(v, dict):
         return {str(k): to_jsonable(x, default) for k, x in v.items()}
     if isinstance(v, (list, tuple)):

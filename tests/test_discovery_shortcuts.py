@@ -1,0 +1,196 @@
+"""Shortcuts of the discovery set-up (issue 7, fourth round) against the work they skip.
+
+- the grid's protocol part is built once per layout (:func:`calib_core.discovery._layout`):
+  a grid from the cache equals one built from scratch, its shared arrays are read-only, and
+  a unit whose steps differ gets its own layout;
+- the rank test is skipped when every fold is far from losing rank
+  (:func:`calib_core.discovery._surely_full_rank`): it never skips a design that the exact
+  test (numpy's matrix_rank rule) finds deficient;
+- the covariance of a fit is built on first use, with the formula it had.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from calib_core import discovery as disc
+from calib_core import protocols
+from calib_core import simulator as sim
+from calib_core.discovery import REALISTIC_NOISE, diagnose_unit, get_effect, simulate_unit
+
+STEPS = protocols.default_session()
+
+
+def _unit(seed: int, n_reps: int = 3, unit: str = "U000"):
+    rng = np.random.default_rng(seed)
+    truth = sim.typical_truth(rng, **REALISTIC_NOISE)
+    sessions, _ = simulate_unit(truth, STEPS, rng, n_reps, unit=unit)
+    return sessions
+
+
+def _grid_fields(g: disc._UnitGrid) -> dict:
+    return {f.name: getattr(g, f.name) for f in dataclasses.fields(g)}
+
+
+def _assert_same(a, b):
+    if isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            _assert_same(x, y)
+    else:
+        assert a == b
+
+
+def test_cached_layout_gives_the_grid_built_from_scratch():
+    names = sorted(disc.catalogue())
+    first, second = _unit(1, unit="U001"), _unit(2, unit="U002")
+    disc._LAYOUT_CACHE.clear()
+    disc._UnitGrid.build(first, names)  # fills the cache with the protocol's layout
+    assert len(disc._LAYOUT_CACHE) == 1
+    cached = disc._UnitGrid.build(second, names)
+    assert len(disc._LAYOUT_CACHE) == 1  # same protocol: a hit
+    disc._LAYOUT_CACHE.clear()
+    fresh = disc._UnitGrid.build(second, names)
+    for name, value in _grid_fields(fresh).items():
+        _assert_same(value, _grid_fields(cached)[name])
+    # the shared arrays cannot be written by one unit for the next
+    assert not cached.real.flags.writeable and not cached.y.flags.writeable
+    with pytest.raises(ValueError):
+        cached.gcode[0, 0] = 1
+    assert cached.M.flags.writeable  # the unit's own copy (raw columns filled in)
+
+
+def test_a_unit_whose_steps_differ_gets_its_own_layout():
+    names = sorted(disc.catalogue())
+    sessions = _unit(3)
+    keep = np.ones(len(sessions[1]), bool)
+    keep[[5, 50]] = False
+    dropped = list(sessions)
+    dropped[1] = sessions[1].select(keep)
+    disc._LAYOUT_CACHE.clear()
+    a = disc._UnitGrid.build(sessions, names)
+    b = disc._UnitGrid.build(dropped, names)
+    assert len(disc._LAYOUT_CACHE) == 2
+    assert a.balanced and not b.balanced
+    assert b.real[1].sum() == len(sessions[1]) - 2
+
+
+def test_diagnosis_is_the_same_with_a_cold_and_a_warm_layout_cache():
+    rng = np.random.default_rng(4)
+    theta = np.zeros(get_effect("gyro_scale_asymmetry").n_params)
+    theta[2] = 800.0  # found: two selection passes over the same grid
+    truth = sim.typical_truth(rng, **REALISTIC_NOISE).with_effects(
+        (get_effect("gyro_scale_asymmetry"), theta))
+    sessions, _ = simulate_unit(truth, STEPS, rng, 3)
+    disc._LAYOUT_CACHE.clear()
+    cold = diagnose_unit(sessions, tables=False).to_dict()
+    warm = diagnose_unit(sessions, tables=False).to_dict()
+    assert cold == warm
+    assert [e["name"] for e in cold["effects"]] == ["gyro_scale_asymmetry"]
+
+
+def _exact_full_rank(D: np.ndarray) -> bool:
+    """_check_rank's exact test: numpy's matrix_rank rule on every channel and fold."""
+    C, R = D.shape[:2]
+    R4 = disc._qr_r(D)
+    Y = np.zeros((C, R + 1, R, 4, 3 + R))
+    Y[..., :3] = R4[:, None, :, :, :3]
+    for r in range(R):
+        Y[:, :, r, :, 3 + r] = R4[:, None, r, :, 3]
+    Y[:, np.arange(1, R + 1), np.arange(R)] = 0.0
+    s = np.linalg.svd(Y.reshape(C, R + 1, 4 * R, 3 + R), compute_uv=False)
+    rows = (D[0, :, :, 3] != 0).sum(axis=1)
+    n_rows = np.array([rows.sum()] + [rows.sum() - rows[h] for h in range(R)])
+    n_cols = np.array([3 + R] + [3 + R - 1] * R)
+    tol = s.max(axis=-1) * np.maximum(n_rows, n_cols) * np.finfo(float).eps
+    return bool(((s > tol[..., None]).sum(axis=-1) >= n_cols).all())
+
+
+def test_rank_shortcut_never_skips_a_deficient_design():
+    rng = np.random.default_rng(20261122)
+    certified = deficient = 0
+    for trial in range(1200):
+        R, n = int(rng.integers(2, 6)), int(rng.integers(3, 40))
+        raw = rng.normal(size=(6, R, n, 3)) * 10.0 ** rng.uniform(-1, 1, size=(6, 1, 1, 3))
+        kind = trial % 4
+        if kind == 1:  # a raw column constant within each repetition: a copy of the biases
+            raw[:, :, :, 1] = rng.normal(size=(6, R, 1))
+        elif kind == 2:  # nearly so
+            raw[:, :, :, 1] = (rng.normal(size=(6, R, 1))
+                               + 10.0 ** rng.uniform(-13, -3) * rng.normal(size=(6, R, n)))
+        elif kind == 3:  # two raw columns nearly collinear
+            raw[:, :, :, 2] = (3.0 * raw[:, :, :, 0]
+                               + 10.0 ** rng.uniform(-14, -1) * rng.normal(size=(6, R, n)))
+        w = 10.0 ** rng.uniform(-1, 1, size=(6, R, n, 1))
+        if trial % 3 == 0:
+            w[:, :, rng.integers(1, n):] = 0.0  # padding rows (weight 0)
+        D = np.concatenate([w * raw, w], axis=-1)
+        sure, exact = disc._surely_full_rank(D), _exact_full_rank(D)
+        assert not (sure and not exact), trial
+        certified += sure
+        deficient += not exact
+    # both cases occur (the test can tell a shortcut that never or always fires)
+    assert certified > 100 and deficient > 100
+
+
+def test_rank_shortcut_takes_a_real_unit_and_the_exact_error_stays():
+    sessions = _unit(5)
+    d = disc._Discovery(sessions, 0.01)
+    w = np.moveaxis(d.weight, -1, 0)[..., None]
+    assert disc._surely_full_rank(np.concatenate([w * d.g.M[..., :3], w], axis=-1))
+    for sm in sessions:  # gy constant within each repetition: the exact test's error
+        sm.gyro[:, 1] = 1.0 + sm.key.rep
+    with pytest.raises(disc.DesignError) as err:
+        diagnose_unit(sessions, tables=False)
+    assert err.value.code == "E_DISCOVERY_RANK" and "rank 5 < 6" in str(err.value)
+
+
+def test_lazy_covariance_is_the_svd_formula():
+    rng = np.random.default_rng(6)
+    for p, deficient in ((4, False), (5, True)):
+        Z = rng.normal(size=(20, p)) * np.array([1.0, 1e3, 1e-2, 5.0, 1.0][:p])
+        if deficient:
+            Z[:, 4] = 2.0 * Z[:, 0]
+            Z[:, 3] = 0.0
+        y = rng.normal(size=20)
+        theta, cov, rank = disc._lstsq_cov(Z, y)
+        # the formula, spelled out
+        norms = np.linalg.norm(Z, axis=0)
+        live = norms > 1e-12 * norms.max()
+        scale = np.where(live, norms, 1.0)
+        U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)
+        keep = (s > disc._RCOND ** 0.5 * s[0]) & (s > 0)
+        inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+        ref = (Vt.T * inv_s ** 2) @ Vt / np.outer(scale, scale)
+        undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
+        ref[undetermined, :] = np.nan
+        ref[:, undetermined] = np.nan
+        np.testing.assert_array_equal(cov, ref)
+        assert rank == int(keep.sum()) == (p - 2 if deficient else p)
+        assert (theta[~live] == 0).all()
+
+
+def test_a_term_registered_anew_under_a_name_gets_its_own_layout(monkeypatch):
+    from calib_core import effects as effects_mod
+    names = sorted(disc.catalogue())
+    old = effects_mod._CATALOGUE["gyro_scale_asymmetry"]
+
+    class Doubled(old):
+        def regressors(self, ctx):
+            return 2.0 * super().regressors(ctx)
+
+    sessions = _unit(7)
+    disc._LAYOUT_CACHE.clear()
+    a = disc._UnitGrid.build(sessions, names)
+    monkeypatch.setitem(effects_mod._CATALOGUE, "gyro_scale_asymmetry", Doubled)
+    b = disc._UnitGrid.build(sessions, names)
+    assert len(disc._LAYOUT_CACHE) == 2
+    lo, hi = a.offset["gyro_scale_asymmetry"]
+    col = np.flatnonzero(a.colmap[0] == lo)  # gx's column of the first asymmetry parameter
+    assert col.size == 1
+    np.testing.assert_array_equal(b.M[0, ..., 3 + col[0]], 2.0 * a.M[0, ..., 3 + col[0]])
