@@ -506,6 +506,8 @@ def _reflag_changed_lots(store: ResultsStore, touched: list[str], config: Outlie
     dirty = sorted({lot for lot, f in files.items() if known.get(lot) != f}
                    | set(map(str, touched)))
     clean = set(files) - set(dirty)
+    if not clean:  # every lot changed (a nightly run of the whole fleet): the full re-flag
+        return None
     summary = store.read("summary", lots=dirty)
     kept = rows[rows["lot"].isin(clean).to_numpy()]
     pool = pd.concat([pooling_rows(summary, config).astype({"lot": str, "unit": str}), kept],

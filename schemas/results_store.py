@@ -10,6 +10,8 @@ then ``os.replace``d)::
     calibrations/<unit>/<YYYYmmddTHHMMSS.ffffffZ>.json   every calibration ever produced
     runs/<run_id>.json     run log (start, end, counts, progress, errors)
     reports/               written by ``reports.*``
+    cache/                 derived values kept between runs (outlier thresholds, flag state,
+                           report caches), each rebuilt when missing or stale (docs/flows.md)
     .lock                  held (flock) by the run writing the store
 
 Tables: ``sessions`` (one row per session ever seen: status, error, fingerprint, run id),
