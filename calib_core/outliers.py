@@ -554,3 +554,30 @@ def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFram
             out.loc[hit, "flagged"] = True
             out.loc[hit, "flag_reason"] = ["; ".join(reasons[k]) for k, h in zip(ks, hit) if h]
     return out
+
+
+# --- what ties one lot's flags to the other lots --------------------------------------------------
+def pooling_rows(summary: pd.DataFrame, config: OutlierConfig | None = None) -> pd.DataFrame:
+    """The rows and columns of ``summary`` that the pooled scales of :func:`flag_lots` are
+    computed from (lot, unit, model, parameter, mean of the robust models), in their order.
+    With ``scale_pool="lot"`` no row is pooled."""
+    cfg = config or OutlierConfig()
+    cols = ["lot", "unit", "model", "parameter", "mean"]
+    if cfg.scale_pool != "fleet":
+        return summary.loc[[], cols].reset_index(drop=True)
+    rows = summary["model"].isin(cfg.robust_models).to_numpy(bool) if cfg.robust_models \
+        else np.ones(len(summary), bool)
+    return summary.loc[rows, cols].reset_index(drop=True)
+
+
+def pooled_scales(summary: pd.DataFrame, config: OutlierConfig | None = None
+                  ) -> dict[tuple[str, str], tuple[float, tuple[int, ...]]]:
+    """(model, parameter) -> (pooled robust scale, sorted sizes of the lots pooled), the
+    values :func:`flag_lots` uses for ``summary`` (empty with ``scale_pool="lot"``). A lot's
+    flags and scores depend on the other lots only through these: a lot whose own rows are
+    unchanged keeps its flags exactly as long as they are unchanged. ``summary`` may be
+    :func:`pooling_rows` of the summary."""
+    cfg = config or OutlierConfig()
+    rows = pooling_rows(summary, cfg)
+    rows["lot"] = rows["lot"].astype(str)  # as flag_lots compares lots
+    return _lot_centred_scales(rows, cfg.min_units) if len(rows) else {}

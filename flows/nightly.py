@@ -39,7 +39,7 @@ from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
 from calib_core.tables import ColumnTable  # noqa: E402
 from calib_core.outliers import (  # noqa: E402
     LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots, known_thresholds,
-    remember_thresholds,
+    pooled_scales, pooling_rows, remember_thresholds,
 )
 from flows.compute_pool import run_in_pool  # noqa: E402
 from flows.memory import release_memory  # noqa: E402
@@ -306,13 +306,15 @@ def _flagged_units(units: pd.DataFrame) -> dict[str, set[str]]:
 
 def reflag_after_update(store: ResultsStore, touched: list[str], config: OutlierConfig
                         ) -> tuple[list[LotFlags], list[str]]:
-    """Re-flag every lot (the robust scale is pooled over all lots, so one lot's new values
-    move every lot's scores a little); return the flags of the touched lots and the lots
-    whose reports must be rebuilt: the touched ones and any whose flagged units changed."""
+    """Leave every lot's flags as a re-flag of every lot would (the robust scale is pooled
+    over all lots, so one lot's new values can move every lot's scores); return the flags of
+    the touched lots and the lots whose reports must be rebuilt: the touched ones and any
+    whose flagged units changed. Only the lots that can have changed are re-flagged
+    (:func:`_reflag_fleet`)."""
     if not touched:
         return [], []
     all_lots = sorted(set(store.table_lots("summary")) | set(touched))
-    lf, before, after = _reflag(store, all_lots, config)
+    lf, before, after = _reflag_fleet(store, touched, config)
     changed = {lot for lot in all_lots if before.get(lot, set()) != after.get(lot, set())}
     return [x for x in lf if x.lot in set(touched)], sorted(set(touched) | changed)
 
@@ -356,10 +358,12 @@ def _lots_with_new_flags(before: pd.DataFrame, after: pd.DataFrame) -> list[str]
     return sorted({str(x) for x in lots})
 
 
-def _reflag(store: ResultsStore, lots: set[str] | list[str], config: OutlierConfig
+def _reflag(store: ResultsStore, lots: set[str] | list[str], config: OutlierConfig,
+            keep_state: bool = False
             ) -> tuple[list[LotFlags], dict[str, set[str]], dict[str, set[str]]]:
     """reflag_lots, plus each lot's flagged units before and after (from the units table it
-    reads and writes anyway)."""
+    reads and writes anyway). ``keep_state``: ``lots`` are all the lots, and the flag state
+    (:func:`_reflag_fleet`) is written for the next run."""
     summary = store.read("summary")
     if not len(summary) or not lots:
         return [], {}, {}
@@ -367,21 +371,45 @@ def _reflag(store: ResultsStore, lots: set[str] | list[str], config: OutlierConf
     todo = sorted(set(map(str, lots)) & present)
     if not todo:
         return [], {}, {}
+    lf = _flag(store, summary, config, todo)
+    before, after = _write_flags(store, summary, lf, todo, lots=None)
+    if keep_state:
+        _write_flag_state(store, config, pooling_rows(summary, config),
+                          pooled_scales(summary, config))
+    return lf, before, after
+
+
+def _flag(store: ResultsStore, summary: pd.DataFrame, config: OutlierConfig,
+          todo: list[str]) -> list[LotFlags]:
+    """flag_lots of ``todo``, with the thresholds simulated by earlier runs (kept in the
+    store; new lot layouts are added to it)."""
     cached = store.read_outlier_thresholds()
     remember_thresholds(cached)
     lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
     now = known_thresholds()
     if now != cached:  # new lot layouts simulated: keep them for the next process
         store.write_outlier_thresholds(now)
+    return lf
+
+
+def _write_flags(store: ResultsStore, summary: pd.DataFrame, lf: list[LotFlags],
+                 todo: list[str], lots: list[str] | None
+                 ) -> tuple[dict[str, set[str]], dict[str, set[str]]]:
+    """Write the flags ``lf`` of the lots ``todo`` to the summary and units tables:
+    ``summary`` holds the stored rows of ``lots`` (None: every lot), and the units rows of
+    those lots are read, the flags of those not in ``todo`` normalised (missing: not
+    flagged). Only lots whose rows changed are rewritten. Returns each lot's flagged units
+    before and after."""
     flagged_summary = apply_flags(summary, lf)
     # rows of lots whose flags changed are rewritten, the other lots' files left alone
     changed = _lots_with_new_flags(summary, flagged_summary)
     if changed is None:
-        store.write("summary", flagged_summary, skip_unchanged=True, previous=summary)
+        store.write("summary", flagged_summary, lots=lots, skip_unchanged=True,
+                    previous=summary)
     elif changed:
         in_changed = flagged_summary["lot"].astype(object).isin(changed).to_numpy()
         store.write("summary", flagged_summary[in_changed], lots=changed)
-    units = store.read("units")
+    units = store.read("units", lots=lots)
     units_before = units.copy()
     if len(units):
         flagged = {}
@@ -394,8 +422,110 @@ def _reflag(store: ResultsStore, lots: set[str] | list[str], config: OutlierConf
                             for k, m, v in zip(keys, in_lots, units.get("flagged", [False] * len(units)))]
         units["flag_reason"] = ["; ".join(flagged.get(k, [])) if m else (v if isinstance(v, str) else "")
                                 for k, m, v in zip(keys, in_lots, units.get("flag_reason", [""] * len(units)))]
-        store.write("units", units, skip_unchanged=True, previous=units_before)
-    return lf, _flagged_units(units_before), _flagged_units(units)
+        store.write("units", units, lots=lots, skip_unchanged=True, previous=units_before)
+    return _flagged_units(units_before), _flagged_units(units)
+
+
+# --- the flag state kept between runs --------------------------------------------------------------
+# A lot's flags and scores depend on its own summary rows, the configuration, the flagging code
+# and, through the pooled robust scales, on the other lots' means (calib_core.outliers.
+# pooled_scales). cache/flag_state.parquet keeps, as the last re-flag left them: the pooled rows
+# of every lot (pooling_rows: ~24 per unit), the pooled scales, the configuration and code they
+# were computed with, and the (size, mtime, inode) of each lot's summary and units file. A lot
+# whose files are unchanged since then still holds exactly the flags a re-flag would give it,
+# as long as the pooled scales are the same: a re-flag after an update then re-flags only the
+# touched lots and those whose files changed (reading only their files), and every lot when the
+# pooled scales moved (any change of a scale changes every lot's scores). Exact, no tolerance:
+# the stored scores are those of a re-flag of every lot.
+FLAG_STATE_VERSION = 1
+
+
+def _flag_state_key(config: OutlierConfig) -> str:
+    """The configuration and flagging code the state was computed with (the source of
+    calib_core.outliers: a new version of the rules makes the state stale)."""
+    import dataclasses
+    import hashlib
+    import calib_core.outliers as outliers
+    code = hashlib.sha256(Path(outliers.__file__).read_bytes()).hexdigest()[:16]
+    return json.dumps({"config": dataclasses.asdict(config), "outliers_source": code},
+                      sort_keys=True, default=str)
+
+
+def _pooled_doc(pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]]) -> list:
+    """The pooled scales as JSON values (floats round-trip exactly through JSON)."""
+    return [[m, p, scale, list(sizes)] for (m, p), (scale, sizes) in sorted(pooled.items())]
+
+
+def _lot_files(store: ResultsStore) -> dict[str, dict[str, list[int] | None]] | None:
+    """(size, mtime_ns, inode) of each lot's summary and units files; None when a table is
+    a format-1.0 flat file or has rows without a lot (the state is then not used)."""
+    stats = {name: store.partition_stats(name) for name in ("summary", "units")}
+    if any(st is None or None in st for st in stats.values()):
+        return None
+    lots = set(stats["summary"]) | set(stats["units"])
+    return {lot: {name: (list(st[lot]) if lot in st else None) for name, st in stats.items()}
+            for lot in sorted(lots)}
+
+
+def _write_flag_state(store: ResultsStore, config: OutlierConfig, rows: pd.DataFrame,
+                      pooled: dict) -> None:
+    """Record the state after a re-flag that left every lot as a re-flag of all would."""
+    files = _lot_files(store)
+    if files is None:
+        return
+    rows = rows.astype({"lot": str, "unit": str, "model": str, "parameter": str})
+    store.write_flag_state(rows.sort_values("lot", kind="stable").reset_index(drop=True),
+                           {"version": FLAG_STATE_VERSION, "key": _flag_state_key(config),
+                            "pooled": _pooled_doc(pooled), "files": files})
+
+
+def _reflag_fleet(store: ResultsStore, touched: list[str], config: OutlierConfig
+                  ) -> tuple[list[LotFlags], dict[str, set[str]], dict[str, set[str]]]:
+    """:func:`_reflag` of every lot, re-flagging only the touched lots and those whose files
+    changed since the flag state was written, while the pooled scales are unchanged; every
+    lot (and a new state) when there is no usable state or the scales moved. Returns the
+    flags of the lots re-flagged (the touched ones among them) and the flagged units before
+    and after of the lots whose units rows were read."""
+    state = store.read_flag_state()
+    files = _lot_files(store)
+    if state is not None and files is not None:
+        rows, doc = state
+        if doc.get("version") == FLAG_STATE_VERSION and doc.get("key") == _flag_state_key(config):
+            done = _reflag_changed_lots(store, touched, config, rows, doc, files)
+            if done is not None:
+                return done
+    all_lots = sorted(set(store.table_lots("summary")) | set(map(str, touched)))
+    return _reflag(store, all_lots, config, keep_state=True)
+
+
+def _reflag_changed_lots(store: ResultsStore, touched: list[str], config: OutlierConfig,
+                         rows: pd.DataFrame, doc: dict, files: dict
+                         ) -> tuple[list[LotFlags], dict[str, set[str]], dict[str, set[str]]] | None:
+    """The partial re-flag of :func:`_reflag_fleet`; None when the pooled scales moved."""
+    known = doc.get("files") or {}
+    dirty = sorted({lot for lot, f in files.items() if known.get(lot) != f}
+                   | set(map(str, touched)))
+    clean = set(files) - set(dirty)
+    if not clean:  # every lot changed (a nightly run of the whole fleet): the full re-flag
+        return None
+    summary = store.read("summary", lots=dirty)
+    kept = rows[rows["lot"].isin(clean).to_numpy()]
+    pool = pd.concat([pooling_rows(summary, config).astype({"lot": str, "unit": str}), kept],
+                     ignore_index=True)
+    pooled = pooled_scales(pool, config)
+    if _pooled_doc(pooled) != doc.get("pooled"):
+        return None
+    present = set(summary["lot"].dropna().astype(str))
+    todo = sorted(set(dirty) & present)
+    lf = []
+    if todo:
+        # the clean lots' pooled rows stand in for their summary: flag_lots takes the pooled
+        # scales from them and flags only the lots in todo
+        lf = _flag(store, pd.concat([summary, kept.assign(std=np.nan, n_reps=np.nan)],
+                                    ignore_index=True), config, todo)
+    before, after = _write_flags(store, summary, lf, todo, lots=dirty)
+    _write_flag_state(store, config, pool, pooled)
+    return lf, before, after
 
 
 def unit_navigation(ur: UnitResult) -> pd.DataFrame | None:

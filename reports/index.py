@@ -5,6 +5,7 @@ run log, and the trend of each key parameter's lot median and spread over the ru
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +31,9 @@ def lot_trends(h: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for (lot, run), g in h.groupby(["lot", "run"], sort=False, dropna=False):
         row = {"lot": lot, "run": run, "time": g["time"].max(), "n_units": g["unit"].nunique()}
-        for n in names:
-            v = g[n].to_numpy(float)
+        values = g[names].to_numpy(float)  # one block per group, not a column at a time
+        for k, n in enumerate(names):
+            v = values[:, k]
             v = v[np.isfinite(v)]
             med = float(np.median(v)) if len(v) else np.nan
             row[n] = med
@@ -76,42 +78,94 @@ def trend_figure(tr: pd.DataFrame, group: str) -> dict:
     return {"data": data, "layout": layout}
 
 
+def _lot_row(sessions: pd.DataFrame | None, summary: pd.DataFrame | None) -> dict:
+    """What the index's lots table shows of one lot, from its rows of the sessions and
+    summary tables (None: the table was never written): session counts by status, number of
+    units, flagged units, last calibration time."""
+    c = sessions["status"].astype(str).value_counts() if sessions is not None else pd.Series(dtype=int)
+    flagged: list[str] = []
+    units = set()
+    if summary is not None:
+        units |= set(summary["unit"].astype(str))
+        if "flagged" in summary:
+            flagged = sorted(set(summary.loc[summary["flagged"].fillna(False).astype(bool), "unit"].astype(str)))
+    if sessions is not None:
+        units |= set(sessions["unit"].astype(str))
+    last = sessions["calibrated_at"].dropna().astype(str).max() \
+        if sessions is not None and "calibrated_at" in sessions and len(sessions) else None
+    return {"sessions": {k: int(c.get(k, 0)) for k in ("ok", "warned", "failed")},
+            "n_units": len(units), "flagged": flagged,
+            "last": None if last is None or (isinstance(last, float) and np.isnan(last)) else str(last)}
+
+
+# The lots table's rows, kept in cache/fleet_index.json: a lot's row is valid while its
+# sessions and summary files are the same files (size, mtime, inode; every write replaces a
+# file), so the index reads only the lots written since (a rerun: its own lot) instead of both
+# tables whole. A missing, broken or foreign cache is rebuilt; a format-1.0 store (one flat
+# file per table) is read whole, without cache.
+FLEET_INDEX_CACHE_VERSION = 1
+_LOT_ROW_TABLES = ("sessions", "summary")
+
+
+def fleet_index_cache_path(view: StoreView) -> Path:
+    return view.root / "cache" / "fleet_index.json"
+
+
+def lot_rows(view: StoreView, lots: list[str]) -> dict[str, dict]:
+    """:func:`_lot_row` of each lot, from the cache where its files are unchanged."""
+    stats = {name: view.store.partition_stats(name) if view.store.has_table(name) else {}
+             for name in _LOT_ROW_TABLES}
+    if any(st is None for st in stats.values()):  # format 1.0: the whole tables, as read
+        tables = {name: view.table(name) for name in _LOT_ROW_TABLES}
+        return {lot: _lot_row(*(None if t is None else t[t["lot"] == lot]
+                                for t in tables.values())) for lot in lots}
+    try:
+        doc = json.loads(fleet_index_cache_path(view).read_text())
+        cached = doc["lots"] if doc.get("version") == FLEET_INDEX_CACHE_VERSION else {}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        cached = {}
+    out, entries = {}, {}
+    for lot in lots:
+        files = {name: list(st[lot]) if lot in st else None for name, st in stats.items()}
+        entry = cached.get(lot) if isinstance(cached, dict) else None
+        if isinstance(entry, dict) and entry.get("files") == files:
+            row = entry["row"]
+        else:
+            row = _lot_row(*(view.of(name, lot=lot) for name in _LOT_ROW_TABLES))
+        out[lot] = row
+        entries[lot] = {"files": files, "row": row}
+    if entries != cached:
+        try:  # a cache: a store we may not write to only costs the reading
+            write_atomic(fleet_index_cache_path(view),
+                         json.dumps({"version": FLEET_INDEX_CACHE_VERSION, "lots": entries}))
+        except OSError:
+            pass
+    return out
+
+
 def render_fleet_index(results_root: str | Path, view: StoreView | None = None) -> str:
     """``view``: a StoreView of ``results_root`` to share its cached reads with other reports
     written in the same pass."""
     view = view if view is not None else StoreView(results_root)
     page = Page("mimucal fleet index")
     lots = view.lots()
-    sessions, summary = view.table("sessions"), view.table("summary")
     body = []
 
     # lots table
     rows = []
     tot = {"ok": 0, "warned": 0, "failed": 0}
     flagged_total = 0
-    for lot in lots:
-        s = sessions[sessions["lot"] == lot] if sessions is not None else None
-        c = s["status"].astype(str).value_counts() if s is not None else pd.Series(dtype=int)
+    for lot, r in lot_rows(view, lots).items():
         for k in tot:
-            tot[k] += int(c.get(k, 0))
-        flagged: list[str] = []
-        units = set()
-        if summary is not None:
-            sl = summary[summary["lot"] == lot]
-            units |= set(sl["unit"].astype(str))
-            if "flagged" in sl:
-                flagged = sorted(set(sl.loc[sl["flagged"].fillna(False).astype(bool), "unit"].astype(str)))
-        if s is not None:
-            units |= set(s["unit"].astype(str))
-        flagged_total += len(flagged)
-        last = s["calibrated_at"].dropna().astype(str).max() if s is not None and "calibrated_at" in s and len(s) else None
+            tot[k] += r["sessions"][k]
+        flagged_total += len(r["flagged"])
         path = lot_report_path(view.root, lot)
         link = (f'<a href="{esc(path.name)}">{esc(lot)}</a>' if path.exists()
                 else f'{esc(lot)} <span class="note">(report not written)</span>')
         flag_html = (" ".join(f'<a href="{esc(path.name)}#unit-{esc(u)}"><span class="badge flag">⚑ {esc(u)}</span></a>'
-                              for u in flagged) or "none")
-        rows.append(({"data-lot": lot}, [link, str(len(units)), str(int(c.get("ok", 0))), str(int(c.get("warned", 0))),
-                                         str(int(c.get("failed", 0))), flag_html, esc(fmt_time(last) or DASH)]))
+                              for u in r["flagged"]) or "none")
+        rows.append(({"data-lot": lot}, [link, str(r["n_units"]), str(r["sessions"]["ok"]), str(r["sessions"]["warned"]),
+                                         str(r["sessions"]["failed"]), flag_html, esc(fmt_time(r["last"]) or DASH)]))
     kpis = [kpi("Lots", str(len(lots))), kpi("Sessions ok", str(tot["ok"]), "good"),
             kpi("Warned", str(tot["warned"]), "warn" if tot["warned"] else ""),
             kpi("Failed", str(tot["failed"]), "bad" if tot["failed"] else ""),

@@ -10,6 +10,8 @@ then ``os.replace``d)::
     calibrations/<unit>/<YYYYmmddTHHMMSS.ffffffZ>.json   every calibration ever produced
     runs/<run_id>.json     run log (start, end, counts, progress, errors)
     reports/               written by ``reports.*``
+    cache/                 derived values kept between runs (outlier thresholds, flag state,
+                           report caches), each rebuilt when missing or stale (docs/flows.md)
     .lock                  held (flock) by the run writing the store
 
 Tables: ``sessions`` (one row per session ever seen: status, error, fingerprint, run id),
@@ -124,6 +126,10 @@ _UMASK = _current_umask()
 # unit (the unit report's navigation curves: 60,000 rows per case) skip the rest; pyarrow's
 # default (1M rows) made it decode a whole lot (255 ms vs 73 ms CPU, docs/perf-reports.md)
 ROW_GROUP_ROWS = 65_536
+
+
+# schema metadata key of cache/flag_state.parquet holding its JSON document
+FLAG_STATE_METADATA_KEY = b"mimucal.flag_state"
 
 
 # --- atomic writes ------------------------------------------------------------------------------
@@ -402,6 +408,21 @@ class ResultsStore:
                 if ok:
                     found[lot] = p
         return {k: found[k] for k in sorted(found, key=_lot_order)}
+
+    def partition_stats(self, name: str) -> dict[str | None, tuple[int, int, int]] | None:
+        """(size, mtime_ns, inode) of each lot file of a table: what a cache derived from a
+        lot's rows is checked against (every write replaces the file, so a rewritten lot has
+        a new inode). None while the table is a format-1.0 flat file (no per-lot files)."""
+        if self.legacy_path(name).exists():
+            return None
+        out = {}
+        for lot, path in self.partitions(name).items():
+            try:
+                st = path.stat()
+            except FileNotFoundError:
+                continue
+            out[lot] = (st.st_size, st.st_mtime_ns, st.st_ino)
+        return out
 
     def table_lots(self, name: str) -> list[str]:
         """Lots that have rows in the table (from the file names; no data read)."""
@@ -707,6 +728,28 @@ class ResultsStore:
 
     def write_outlier_thresholds(self, doc: dict) -> None:
         write_json_atomic(self.outlier_thresholds_path, _jsonable(doc))
+
+    @property
+    def flag_state_path(self) -> Path:
+        return self.root / "cache" / "flag_state.parquet"
+
+    def read_flag_state(self) -> tuple[pd.DataFrame, dict] | None:
+        """The outlier flags' state kept by the last re-flag (flows.nightly): the rows the
+        pooled scales come from, and a document (which lot files it describes, the pooled
+        scales, the configuration). None when absent or unreadable: a cache, rebuilt by a
+        full re-flag."""
+        try:
+            table = pq.read_table(self.flag_state_path)
+            doc = json.loads((table.schema.metadata or {})[FLAG_STATE_METADATA_KEY])
+        except (OSError, ValueError, KeyError, pa.ArrowException):
+            return None
+        return table.to_pandas(), doc
+
+    def write_flag_state(self, rows: pd.DataFrame, doc: dict) -> None:
+        table = pa.Table.from_pandas(rows, preserve_index=False)
+        meta = {**(table.schema.metadata or {}),
+                FLAG_STATE_METADATA_KEY: json.dumps(doc).encode()}
+        write_table_atomic(table.replace_schema_metadata(meta), self.flag_state_path)
 
     # run logs
     def write_run(self, run_id: str, doc: dict[str, Any]) -> Path:
