@@ -19,8 +19,9 @@ Kinds:
   then flag every lot (:func:`calib_core.outliers.flag_lots`); the floor is measured in the
   same process just before and just after (``floor_before``, ``floor_after``), so the ratio
   holds on a noisy machine. ``--no-discovery`` leaves discovery out.
-- ``stages``: the same per session, split into read+validate, average, fit and aggregate, on
-  the first ``--units`` units (where the fit phase time goes).
+- ``stages``: the same split into read+validate and average (per session), fit (a unit's
+  repetitions together, as the nightly fits them) and aggregate, on the first ``--units``
+  units (where the fit phase time goes); all in ms per session.
 - ``nightly``: :func:`flows.nightly.nightly_fleet_calibration` end to end (``force=True``),
   with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or the
   ``dask`` runner with a ``LocalCluster`` of N single-threaded worker processes (started and
@@ -327,8 +328,8 @@ def do_fit(a) -> dict:
 
 
 def do_stages(a) -> dict:
-    from calib_core.pipeline import calibrate_repetition
-    from flows.unit_pipeline import aggregate_unit, calibrate_session  # noqa: F401
+    from calib_core.pipeline import calibrate_repetitions
+    from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     from schemas.averaging import average_session
     from schemas.reader import read_session
     units, _ = _units(a.dataset)
@@ -338,7 +339,7 @@ def do_stages(a) -> dict:
     import pyarrow.dataset as ds
     aggs = [(c, "mean") for c in SENSOR_COLUMNS]
     for refs in units:
-        outcomes = []
+        sms = []
         for ref in refs:
             t0 = time.perf_counter()
             ds.dataset(str(ref.samples_path), format="parquet").to_table(
@@ -348,21 +349,21 @@ def do_stages(a) -> dict:
             t2 = time.perf_counter()
             sm, _ = average_session(data)
             t3 = time.perf_counter()
-            calibrate_repetition(sm)
-            t4 = time.perf_counter()
+            sms.append(sm)
             t["floor"] += t1 - t0
             t["read_validate"] += t2 - t1
             t["average"] += t3 - t2
-            t["fit"] += t4 - t3
             n += 1
+        # The repetitions of a unit are fitted together, as the nightly fits them.
         t0 = time.perf_counter()
-        outcomes = [calibrate_session(r, keep_step_means=False) for r in refs]
+        calibrate_repetitions(sms)
+        t["fit"] += time.perf_counter() - t0
+        outcomes = calibrate_sessions(refs, keep_step_means=False)
         t1 = time.perf_counter()
         aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
         t["aggregate"] += time.perf_counter() - t1
-        del t0
+    # per session: the unit-level fit and aggregate are spread over its sessions
     per_session_ms = {k: 1e3 * v / max(1, n) for k, v in t.items()}
-    per_session_ms["aggregate"] = 1e3 * t["aggregate"] / max(1, n)  # spread over sessions
     return {"sessions": n, "per_session_ms": per_session_ms}
 
 

@@ -667,6 +667,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
     report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
     worker processes; ``dask`` means the task runner already sends it elsewhere."""
+    global _pending_preload
     logger = get_run_logger()
     run_id = new_run_id()
     store = ResultsStore(Path(results))
@@ -683,6 +684,9 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         interrupted = interrupted_runs(store)
         if interrupted:
             log["recovering_runs"] = interrupted
+        preload, _pending_preload = _pending_preload, None
+        if preload is not None:
+            log["preload"] = preload.wait()
         refs, path_errors = find_sessions(dataset)
         jobs, skipped = plan_units(refs, store.fingerprints(), force)
         if run_discovery and not _discovery_available():
@@ -804,11 +808,12 @@ def lot_report_flow(results: str, lot: str, config: str | None = None,
             "flags": [f.to_dict() for f in lf]}
 
 
-# Modules a rerun needs once its flow runs (the numerics' first import pulls in scipy.stats and
-# scipy.linalg, ~1.5-2 s CPU; the report builders plotly). rerun_unit imports them in a thread
-# while Prefect starts (which mostly waits for its API server, a subprocess), so that the flow
-# does not pay them; the flow waits for that thread first and logs what it cost.
-RERUN_PRELOAD = ("calib_core.discovery", "calib_core.zhang2017", "calib_core.navigation",
+# Modules a flow needs once it runs (the numerics' first import pulls in scipy.stats and
+# scipy.linalg, ~1.5-2 s CPU; the report builders plotly). rerun_unit and
+# nightly_fleet_calibration import them in a thread while Prefect starts (which mostly waits
+# for its API server, a subprocess), so that the flow does not pay them; the flow waits for
+# that thread first and logs what it cost (run log: ``preload``).
+FLOW_PRELOAD = ("calib_core.discovery", "calib_core.zhang2017", "calib_core.navigation",
                  "calib_core.pipeline", "schemas.unit_document", "reports.unit", "reports.lot",
                  "reports.index")
 
@@ -844,7 +849,7 @@ class _Preload:
                 **({"failed": self.failed} if self.failed else {})}
 
 
-_rerun_preload: _Preload | None = None
+_pending_preload: _Preload | None = None
 
 
 @flow(name="rerun-unit", persist_result=False, log_prints=False)
@@ -856,7 +861,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
     The unit is calibrated in the flow's own thread, not in a Prefect task: a rerun is one
     unit, and the first task run of a process costs more Prefect bookkeeping than the batching
     of tasks saves (the flow run, its state and the run log record the rerun)."""
-    global _rerun_preload
+    global _pending_preload
     run_id = new_run_id()
     store = ResultsStore(Path(results))
     cfg = load_config(config)
@@ -872,7 +877,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             phases[name], cpu[name] = time.monotonic() - t, time.process_time() - c
             t, c = time.monotonic(), time.process_time()
 
-        preload, _rerun_preload = _rerun_preload, None
+        preload, _pending_preload = _pending_preload, None
         preloaded = preload.wait() if preload is not None else None
         refs, path_errors = find_sessions(dataset, unit=unit)
         if not refs:
@@ -930,18 +935,24 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
     """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
     (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
     see flows.task_runners)."""
+    global _pending_preload
     if not wait:  # a clear refusal, not a failed flow run in Prefect's database
         ResultsStore(Path(results)).ensure_unlocked()
     kind = "dask" if dask_address else resolve_kind(runner)
     task_runner = make_task_runner(dask_address, kind=None if dask_address else kind)
     # Dask may have many workers: keep them all fed (memory: this many batches in flight)
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
-    with runtime.run_settings():
-        return nightly_flow.with_options(task_runner=task_runner)(
-            str(dataset), str(results), force=force, batch_size=batch_size,
-            config=None if config is None else str(config), wait=wait,
-            run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
-            runner=kind)
+    preload = _pending_preload = _Preload(FLOW_PRELOAD)  # overlaps Prefect's start-up
+    try:
+        with runtime.run_settings():
+            return nightly_flow.with_options(task_runner=task_runner)(
+                str(dataset), str(results), force=force, batch_size=batch_size,
+                config=None if config is None else str(config), wait=wait,
+                run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
+                runner=kind)
+    finally:
+        _pending_preload = None
+        preload.wait()  # a flow that never started leaves no import running behind it
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
@@ -955,14 +966,14 @@ def lot_quality_report(results: str | Path, lot: str, config: str | Path | None 
 def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
                config: str | Path | None = None, wait: bool = False,
                run_discovery: bool = True) -> dict:
-    global _rerun_preload
+    global _pending_preload
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
-    preload = _rerun_preload = _Preload(RERUN_PRELOAD)  # overlaps Prefect's start-up
+    preload = _pending_preload = _Preload(FLOW_PRELOAD)  # overlaps Prefect's start-up
     try:
         with runtime.run_settings():
             return rerun_flow(str(dataset), str(results), unit,
                               None if config is None else str(config), wait, run_discovery)
     finally:
-        _rerun_preload = None
+        _pending_preload = None
         preload.wait()  # a flow that never started leaves no import running behind it

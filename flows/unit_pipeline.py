@@ -178,10 +178,10 @@ def aggregate_unit(lot: str, unit: str, outcomes: list[SessionOutcome],
 
 
 def calibrate_unit(refs: list[SessionRef], keep_step_means: bool = True) -> UnitOutcome:
-    """All sessions of one unit, then their aggregate."""
+    """All sessions of one unit, fitted together (as the nightly does), then their aggregate."""
     if not refs:
         raise ValueError("no sessions given")
-    outcomes = [calibrate_session(r, keep_step_means) for r in refs]
+    outcomes = calibrate_sessions(sorted(refs, key=lambda r: r.key.rep), keep_step_means)
     return aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
 
 

@@ -20,7 +20,7 @@ runtime.ensure_environment()
 from flows import fleet_sim  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
 from flows.fleet_sim import load_manifest, simulate_fleet  # noqa: E402
-from flows.nightly import nightly_fleet_calibration, rerun_unit  # noqa: E402
+from flows.nightly import FLOW_PRELOAD, nightly_fleet_calibration, rerun_unit  # noqa: E402
 from schemas.results_store import ResultsStore, StoreLockedError, find_calibration  # noqa: E402
 
 RATE_HZ = 20.0
@@ -107,6 +107,8 @@ def test_fleet_run_flags_outliers_lists_bad_sessions_calibrates_the_rest(fleet):
     assert temp_files(results) == []
     # the lot reports were written
     assert log["reports"] and all(Path(p).exists() for p in log["reports"])
+    # the numerics and report modules were imported while Prefect started, all of them
+    assert log["preload"]["modules"] == len(FLOW_PRELOAD) and "failed" not in log["preload"]
 
 
 @pytest.mark.slow

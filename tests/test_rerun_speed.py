@@ -94,7 +94,7 @@ def test_preload_imports_in_a_thread_and_reports_failures():
     assert len(info["failed"]) == 1 and info["failed"][0].startswith("no_such_module_mimucal")
 
 
-@pytest.mark.parametrize("name", nightly.RERUN_PRELOAD)
+@pytest.mark.parametrize("name", nightly.FLOW_PRELOAD)
 def test_preloaded_modules_exist(name):
     import importlib
     importlib.import_module(name)
