@@ -21,7 +21,8 @@ Kinds:
   holds on a noisy machine. ``--no-discovery`` leaves discovery out.
 - ``stages``: the same split into read+validate and average (per session), fit (a unit's
   repetitions together, as the nightly fits them) and aggregate, on the first ``--units``
-  units (where the fit phase time goes); all in ms per session.
+  units (where the fit phase time goes), after one untimed pass over the first unit (first-call
+  imports); all in ms per session.
 - ``nightly``: :func:`flows.nightly.nightly_fleet_calibration` end to end (``force=True``),
   with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or the
   ``dask`` runner with a ``LocalCluster`` of N single-threaded worker processes (started and
@@ -338,6 +339,8 @@ def do_stages(a) -> dict:
     n = 0
     import pyarrow.dataset as ds
     aggs = [(c, "mean") for c in SENSOR_COLUMNS]
+    if units:  # one untimed pass first: the numerics' first-call imports are not a stage's
+        calibrate_sessions(units[0], keep_step_means=False)
     for refs in units:
         sms = []
         for ref in refs:

@@ -547,13 +547,17 @@ def markdown(doc: dict) -> str:
                 "| units | floor: scan + group-by of one file [ms] | read + validate [ms] "
                 "| average [ms] | fit, calib_core [ms] | aggregate [ms] |",
                 "|---|---|---|---|---|---|"]
+        tail = ["", "After one untimed pass over the first unit (first-call imports). Fit = a "
+                "unit's repetitions fitted together (`calibrate_repetitions`, as the nightly), "
+                "with the compensation-error and residual tables; fit and aggregate are per "
+                "unit, spread over its sessions. Model discovery is not in this split."]
         for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
             st = _g(r, "stages", "per_session_ms") or {}
             out.append(f"| {n} | {_f(st.get('floor'), '{:.1f}')} "
                        f"| {_f(st.get('read_validate'), '{:.1f}')} "
                        f"| {_f(st.get('average'), '{:.1f}')} | {_f(st.get('fit'), '{:.1f}')} "
                        f"| {_f(st.get('aggregate'), '{:.1f}')} |")
-        out.append("")
+        out += tail + [""]
     # rerun, prefect, dask
     rows = []
     for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
