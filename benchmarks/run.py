@@ -244,6 +244,44 @@ def _rss(res: dict) -> float | None:
     return None if not res or "error" in res else res.get("self_peak_rss_mb")
 
 
+def _fit_vs_floor_row(r: dict, n: int) -> tuple[str, str, str] | None:
+    """(target, measured, verdict) of the fit phase vs the floor at one fleet size."""
+    fit = _g(r, "fit_1proc") or {}
+    fit2 = _g(r, "fit_2proc") or {}
+    if not (fit.get("cpu_s") and fit.get("floor_cpu_s")):
+        return None
+    # CPU seconds in one process (floor just before and after the fit phase): the work done,
+    # robust on a shared machine; wall beside it
+    ratios = {"CPU, 1 process": fit["cpu_s"] / fit["floor_cpu_s"]}
+    meas = (f"CPU, same process: {ratios['CPU, 1 process']:.2f}x ({fit['cpu_s']:.1f} s vs "
+            f"floor {fit['floor_cpu_s']:.1f} s); wall {fit['elapsed_s'] / fit['floor_s']:.2f}x "
+            f"({fit['elapsed_s']:.1f} s vs {fit['floor_s']:.1f} s)")
+    if fit2.get("elapsed_s") and fit2.get("floor_s"):
+        # both use the 2 cores: the floor's Arrow scan is multithreaded, the fit phase runs in 2
+        # worker processes
+        ratios["wall, 2 processes"] = fit2["elapsed_s"] / fit2["floor_s"]
+        meas += (f"; 2 processes, wall {ratios['wall, 2 processes']:.2f}x "
+                 f"({fit2['elapsed_s']:.1f} s vs floor {fit2['floor_s']:.1f} s)")
+    npr = r.get("nightly_processes") or {}
+    fl_wall = min((x for x in (fit.get("floor_s"), _g(r, "floor", "elapsed_s")) if x),
+                  default=None)
+    if npr.get("fit_phase_s") and fl_wall:
+        ratios["Prefect nightly, worker processes, wall"] = npr["fit_phase_s"] / fl_wall
+        meas += (f"; nightly flow with worker processes, fit phase wall "
+                 f"{ratios['Prefect nightly, worker processes, wall']:.2f}x "
+                 f"({npr['fit_phase_s']:.1f} s, Prefect and the store writer included)")
+    lim = TARGETS["fit_vs_floor"]
+    met = [k for k, v in ratios.items() if v <= lim]
+    missed = [f"{k} by {v / lim:.2f}x" for k, v in ratios.items() if v > lim]
+    if not missed:
+        verdict = "met"
+    elif met:
+        verdict = f"met by {', '.join(met)}; missed: {'; '.join(missed)}"
+    else:
+        verdict = f"missed: {'; '.join(missed)}"
+    return (f"fit phase (read ... flag, discovery) <= 1.5x floor at {n} units", meas, verdict)
+
+
 def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
     """(target, measured, verdict, why) rows."""
     sizes = [int(s) for s in doc["sizes"]]
@@ -252,46 +290,35 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
     big, small = max(sizes), min(sizes)
     R = lambda n: doc["sizes"][str(n)]  # noqa: E731
     rows = []
-    fit = _g(R(big), "fit_1proc") or {}
-    fit2 = _g(R(big), "fit_2proc") or {}
     # the least disturbed stages measurement (smallest total) explains where the time goes
     st_all = [(sum(v.values()), n, v) for n in sizes
               if (v := _g(R(n), "stages", "per_session_ms"))]
     st = min(st_all)[2] if st_all else {}
-    why_fit = []
-    if fit.get("calibrate_cpu_s") is not None:
-        why_fit.append(f"CPU of the fit phase: calibrate (read ... discovery, aggregate) "
-                       f"{fit['calibrate_cpu_s']:.1f} s, flag {fit['flag_cpu_s']:.2f} s")
+    why_st = ""
     if st:
-        why_fit.append(f"wall per session ({min(st_all)[1]}-unit fleet, the least disturbed "
-                       f"stages run): read+validate {st.get('read_validate', 0):.1f} ms, average "
-                       f"{st.get('average', 0):.1f} ms, fit (calib_core) {st.get('fit', 0):.1f} ms, "
-                       f"aggregate {st.get('aggregate', 0):.1f} ms, vs floor "
-                       f"{st.get('floor', 0):.1f} ms per file")
-    if fit.get("cpu_s") and fit.get("floor_cpu_s"):
-        # CPU seconds in one process (floor just before and after the fit phase): the robust
-        # figure on a shared machine; wall is shown beside it
-        r_cpu = fit["cpu_s"] / fit["floor_cpu_s"]
-        r_wall = fit["elapsed_s"] / fit["floor_s"]
-        meas = (f"CPU, same process: {r_cpu:.2f}x ({fit['cpu_s']:.1f} s vs floor "
-                f"{fit['floor_cpu_s']:.1f} s); wall {r_wall:.2f}x ({fit['elapsed_s']:.1f} s vs "
-                f"{fit['floor_s']:.1f} s)")
-        best = r_cpu
-        if fit2.get("elapsed_s") and fit2.get("floor_s"):
-            r2 = fit2["elapsed_s"] / fit2["floor_s"]
-            meas += f"; 2 processes, wall {r2:.2f}x ({fit2['elapsed_s']:.1f} s)"
-            best = min(best, r2)
-        npr = R(big).get("nightly_processes") or {}
-        fl_wall = min(x for x in (fit.get("floor_s"), _g(R(big), "floor", "elapsed_s")) if x)
-        if npr.get("fit_phase_s") and fl_wall:
-            r3 = npr["fit_phase_s"] / fl_wall
-            meas += (f"; nightly flow with worker processes, fit phase wall {r3:.2f}x "
-                     f"({npr['fit_phase_s']:.1f} s, Prefect included)")
-            best = min(best, r3)
-        rows.append((f"fit phase (read ... flag, discovery) <= 1.5x floor at {big} units", meas,
-                     "met" if best <= TARGETS["fit_vs_floor"] else
-                     f"missed by {best / TARGETS['fit_vs_floor']:.1f}x (best ratio {best:.1f}x)",
-                     "; ".join(why_fit)))
+        why_st = (f"wall per session ({min(st_all)[1]}-unit fleet, the least disturbed "
+                  f"stages run): read+validate {st.get('read_validate', 0):.1f} ms, average "
+                  f"{st.get('average', 0):.1f} ms, fit (calib_core) {st.get('fit', 0):.1f} ms, "
+                  f"aggregate {st.get('aggregate', 0):.1f} ms, vs floor "
+                  f"{st.get('floor', 0):.1f} ms per file")
+    # The issue's size (200 units) and the largest measured: each with every way of measuring
+    # the ratio, and a verdict naming which of them meet the target and which do not (the
+    # best one alone would hide that the Prefect flow is further from the floor).
+    for n in sorted({x for x in (200, big) if x in sizes}):
+        row = _fit_vs_floor_row(R(n), n)
+        if not row:
+            continue
+        fit = _g(R(n), "fit_1proc") or {}
+        why = []
+        if fit.get("calibrate_cpu_s") is not None:
+            why.append(f"CPU of the fit phase: calibrate (read ... discovery, aggregate) "
+                       f"{fit['calibrate_cpu_s']:.1f} s, flag {fit['flag_cpu_s']:.2f} s")
+        why += [why_st] if why_st else []
+        roles = _g(R(n), "nightly_processes", "fit_phase_cpu_s") or {}
+        if roles:
+            why.append("Prefect nightly's fit phase, CPU on the 2 cores by role: " + ", ".join(
+                f"{k} {v:.1f} s" for k, v in roles.items()))
+        rows.append((row[0], row[1], row[2], "; ".join(why)))
     tot, basis = {}, ""
     for key, field, b in (("fit_1proc_pass2", "cpu_s", "CPU, pass 2"),
                           ("fit_1proc", "cpu_s", "CPU"), ("fit_1proc", "elapsed_s", "wall")):

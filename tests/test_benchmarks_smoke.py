@@ -38,3 +38,21 @@ def test_benchmark_harness_runs_on_a_tiny_fleet(tmp_path):
     assert any(line.startswith("| 2 | 4 |") for line in text.splitlines())
     # the fleet is deleted after the run
     assert not (work / "fleet-2").exists()
+
+
+def test_fit_vs_floor_verdict_names_every_ratio_that_misses():
+    """The verdict may not hide a missed ratio behind the best one (made-up measurements)."""
+    sys.path.insert(0, str(REPO))
+    from benchmarks.run import _fit_vs_floor_row
+    r = {"fit_1proc": {"cpu_s": 20.0, "floor_cpu_s": 10.0, "elapsed_s": 18.0, "floor_s": 8.0},
+         "fit_2proc": {"elapsed_s": 11.0, "floor_s": 8.0},
+         "nightly_processes": {"fit_phase_s": 24.0}}
+    target, measured, verdict = _fit_vs_floor_row(r, 200)
+    assert "200 units" in target and "2.00x" in measured and "1.38x" in measured
+    assert verdict.startswith("met by wall, 2 processes; missed:")
+    assert "CPU, 1 process by 1.33x" in verdict and "wall by 2.00x" in verdict
+    r["fit_2proc"]["elapsed_s"] = 16.0
+    assert _fit_vs_floor_row(r, 200)[2].startswith("missed: ")
+    r = {"fit_1proc": {"cpu_s": 14.0, "floor_cpu_s": 10.0, "elapsed_s": 9.0, "floor_s": 8.0}}
+    assert _fit_vs_floor_row(r, 50)[2] == "met"
+    assert _fit_vs_floor_row({}, 50) is None
