@@ -112,13 +112,23 @@ def machine() -> dict:
                 "%Y-%m-%d %H:%M UTC"), "load_start": os.getloadavg(), "versions": versions}
 
 
+def parallel_batch(args: argparse.Namespace, n_units: int) -> int:
+    """Units per task of the process-pool and Dask nightly runs: ``--parallel-batch`` if
+    given; else 4 below 200 units (50 units in 8-unit tasks are 7 tasks, and a worker that
+    starts late cannot catch up) and the flow's default from 200 (4-unit tasks cost the
+    1,000-unit run 14 s of API CPU against 6 s, and 14 s of fit phase: docs/benchmarks.md)."""
+    if args.parallel_batch is not None:
+        return int(args.parallel_batch)
+    return 4 if n_units < 200 else int(args.batch)
+
+
 # --- the run ----------------------------------------------------------------------------------------
 def run(args: argparse.Namespace) -> dict:
     if args.quick:  # a development run: two small fleets, the comparisons at the smaller
         args.sizes = args.sizes or "10,50"
         args.dask_sizes = args.dask_sizes or "10"
-    if args.parallel_batch is None:
-        args.parallel_batch = 2 if args.quick else 4
+    if args.parallel_batch is None and args.quick:
+        args.parallel_batch = 2
     sizes = sorted({int(s) for s in (args.sizes or "10,50,200").split(",") if s.strip()})
     if args.with_1000:
         sizes = sorted(set(sizes) | {1000})
@@ -175,14 +185,14 @@ def run(args: argparse.Namespace) -> dict:
                 # a batch size that gives each of 2 workers several tasks
                 rd = work / f"results-{n}-processes"
                 step("nightly_processes", "nightly", "--dataset", ds, "--results", rd,
-                     "--runner", "processes", "--batch", args.parallel_batch,
+                     "--runner", "processes", "--batch", parallel_batch(args, n),
                      timeout_s=args.timeout)
                 shutil.rmtree(rd, ignore_errors=True)
                 if n in dask_sizes:
                     for k in (1, 2):
                         rd = work / f"results-{n}-dask{k}"
                         step(f"nightly_dask{k}", "nightly", "--dataset", ds, "--results", rd,
-                             "--dask-workers", k, "--batch", args.parallel_batch,
+                             "--dask-workers", k, "--batch", parallel_batch(args, n),
                              timeout_s=args.timeout)
                         shutil.rmtree(rd, ignore_errors=True)
             if not args.keep:
@@ -648,8 +658,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reps", type=int, default=5, help="repetitions per unit (default 5)")
     ap.add_argument("--batch", type=int, default=8, help="units per task / pool batch")
     ap.add_argument("--parallel-batch", type=int, default=None,
-                    help="units per task for the process-pool and Dask nightly runs (default 4: "
-                         "several tasks per worker; --quick: 2)")
+                    help="units per task for the process-pool and Dask nightly runs (default: 4 "
+                         "below 200 units, several tasks per worker; --batch from 200; "
+                         "--quick: 2)")
     ap.add_argument("--dask-sizes", default=None,
                     help="sizes at which to compare Dask 1 vs 2 workers (default: 50 when "
                          "measured, else the largest)")
