@@ -21,6 +21,7 @@ import sys
 import time
 import uuid
 from collections import Counter, deque
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -667,7 +668,6 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
     report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
     worker processes; ``dask`` means the task runner already sends it elsewhere."""
-    global _pending_preload
     logger = get_run_logger()
     run_id = new_run_id()
     store = ResultsStore(Path(results))
@@ -684,9 +684,9 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         interrupted = interrupted_runs(store)
         if interrupted:
             log["recovering_runs"] = interrupted
-        preload, _pending_preload = _pending_preload, None
-        if preload is not None:
-            log["preload"] = preload.wait()
+        preloaded = _await_preload()
+        if preloaded is not None:
+            log["preload"] = preloaded
         refs, path_errors = find_sessions(dataset)
         jobs, skipped = plan_units(refs, store.fingerprints(), force)
         if run_discovery and not _discovery_available():
@@ -852,6 +852,25 @@ class _Preload:
 _pending_preload: _Preload | None = None
 
 
+@contextmanager
+def _preloading():
+    """Around a flow call: import FLOW_PRELOAD in a thread meanwhile (Prefect's start-up)."""
+    global _pending_preload
+    preload = _pending_preload = _Preload(FLOW_PRELOAD)
+    try:
+        yield
+    finally:
+        _pending_preload = None
+        preload.wait()  # a flow that never started leaves no import running behind it
+
+
+def _await_preload() -> dict[str, Any] | None:
+    """In a flow: wait for the launcher's preload (if any) and say what it cost."""
+    global _pending_preload
+    preload, _pending_preload = _pending_preload, None
+    return preload.wait() if preload is not None else None
+
+
 @flow(name="rerun-unit", persist_result=False, log_prints=False)
 def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
                wait: bool = False, run_discovery: bool = True) -> dict:
@@ -861,7 +880,6 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
     The unit is calibrated in the flow's own thread, not in a Prefect task: a rerun is one
     unit, and the first task run of a process costs more Prefect bookkeeping than the batching
     of tasks saves (the flow run, its state and the run log record the rerun)."""
-    global _pending_preload
     run_id = new_run_id()
     store = ResultsStore(Path(results))
     cfg = load_config(config)
@@ -877,8 +895,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             phases[name], cpu[name] = time.monotonic() - t, time.process_time() - c
             t, c = time.monotonic(), time.process_time()
 
-        preload, _pending_preload = _pending_preload, None
-        preloaded = preload.wait() if preload is not None else None
+        preloaded = _await_preload()
         refs, path_errors = find_sessions(dataset, unit=unit)
         if not refs:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
@@ -935,24 +952,18 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
     """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
     (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
     see flows.task_runners)."""
-    global _pending_preload
     if not wait:  # a clear refusal, not a failed flow run in Prefect's database
         ResultsStore(Path(results)).ensure_unlocked()
     kind = "dask" if dask_address else resolve_kind(runner)
     task_runner = make_task_runner(dask_address, kind=None if dask_address else kind)
     # Dask may have many workers: keep them all fed (memory: this many batches in flight)
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
-    preload = _pending_preload = _Preload(FLOW_PRELOAD)  # overlaps Prefect's start-up
-    try:
-        with runtime.run_settings():
-            return nightly_flow.with_options(task_runner=task_runner)(
-                str(dataset), str(results), force=force, batch_size=batch_size,
-                config=None if config is None else str(config), wait=wait,
-                run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
-                runner=kind)
-    finally:
-        _pending_preload = None
-        preload.wait()  # a flow that never started leaves no import running behind it
+    with _preloading(), runtime.run_settings():
+        return nightly_flow.with_options(task_runner=task_runner)(
+            str(dataset), str(results), force=force, batch_size=batch_size,
+            config=None if config is None else str(config), wait=wait,
+            run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
+            runner=kind)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
@@ -966,14 +977,8 @@ def lot_quality_report(results: str | Path, lot: str, config: str | Path | None 
 def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
                config: str | Path | None = None, wait: bool = False,
                run_discovery: bool = True) -> dict:
-    global _pending_preload
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
-    preload = _pending_preload = _Preload(FLOW_PRELOAD)  # overlaps Prefect's start-up
-    try:
-        with runtime.run_settings():
-            return rerun_flow(str(dataset), str(results), unit,
-                              None if config is None else str(config), wait, run_discovery)
-    finally:
-        _pending_preload = None
-        preload.wait()  # a flow that never started leaves no import running behind it
+    with _preloading(), runtime.run_settings():
+        return rerun_flow(str(dataset), str(results), unit,
+                          None if config is None else str(config), wait, run_discovery)
