@@ -58,6 +58,9 @@ def _init_worker() -> None:
         threadpool_limits(1)
     except Exception:  # pragma: no cover - threadpoolctl is a dependency
         pass
+    # nor Arrow's decoding threads (the forkserver imported the reader already)
+    from schemas.reader import use_arrow_threads
+    use_arrow_threads(False)
 
 
 @contextmanager
@@ -74,12 +77,27 @@ def _active(pool: "ProcessPoolExecutor | DaskPool") -> Iterator[None]:
             _pool = previous
 
 
+def _forkserver_context() -> mp.context.ForkServerContext:
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(list(PRELOAD))
+    return ctx
+
+
+def start_forkserver() -> None:
+    """Start the forkserver the workers are forked from, if it is not running (one per
+    process, shared by every pool). It imports :data:`PRELOAD` in its own process (~1 s of
+    CPU) and the first worker waits for that: a flow's launcher calls this before Prefect
+    starts, so that the imports run while Prefect starts its API server, not in the fit
+    phase before the first batch (flows.task_runners.prestart_unit_work_pool)."""
+    from multiprocessing import forkserver
+    _forkserver_context()
+    forkserver.ensure_running()
+
+
 @contextmanager
 def compute_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
     """A pool of ``workers`` processes that :func:`run_in_pool` uses while the block runs."""
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(list(PRELOAD))
-    pool = ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=ctx,
+    pool = ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=_forkserver_context(),
                                initializer=_init_worker)
     try:
         with _active(pool):

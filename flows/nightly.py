@@ -46,7 +46,7 @@ from flows.compute_pool import run_in_pool  # noqa: E402
 from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
     DASK_ENV, DASK_TASK_THREADS, LOCAL_WORKERS, default_task_runner, make_task_runner,
-    resolve_kind, unit_work_pool, uses_unit_work_pool,
+    prestart_unit_work_pool, resolve_kind, unit_work_pool, uses_unit_work_pool,
 )
 from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and tools import them here)
     UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
@@ -958,6 +958,8 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
     task_runner = make_task_runner(dask_address, kind=None if dask_address else kind)
     # Dask may have many workers: keep them all fed (memory: this many batches in flight)
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
+    if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
+        prestart_unit_work_pool(kind, dataset)
     with _preloading(), runtime.run_settings():
         return nightly_flow.with_options(task_runner=task_runner)(
             str(dataset), str(results), force=force, batch_size=batch_size,

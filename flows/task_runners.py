@@ -38,6 +38,7 @@ import ipaddress
 import os
 import socket
 from contextlib import nullcontext
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
@@ -216,10 +217,23 @@ def uses_unit_work_pool(kind: str | None, n_units: int) -> bool:
 def unit_work_pool(kind: str | None, n_units: int, workers: int = LOCAL_WORKERS):
     """The context in which a flow runs its batches: a :func:`flows.compute_pool.compute_pool`
     of ``workers`` processes when :func:`uses_unit_work_pool`, else nothing."""
-    if uses_unit_work_pool(kind, n_units) and workers > 1:
+    if workers > 1 and uses_unit_work_pool(kind, n_units):
         from flows.compute_pool import compute_pool
         return compute_pool(workers)
     return nullcontext()
+
+
+def prestart_unit_work_pool(kind: str | None, dataset: str | Path) -> bool:
+    """Before a flow run: when a run over the fleet at ``dataset`` may hand its batches to
+    worker processes (:func:`unit_work_pool`, judged by the unit directories there, an upper
+    bound of the units to calibrate), start their forkserver now, so that its imports overlap
+    Prefect's start-up. Returns whether it was started."""
+    from schemas.dataset import count_unit_dirs
+    if LOCAL_WORKERS < 2 or not uses_unit_work_pool(kind, count_unit_dirs(dataset)):
+        return False
+    from flows.compute_pool import start_forkserver
+    start_forkserver()
+    return True
 
 
 def default_task_runner():

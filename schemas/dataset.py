@@ -132,6 +132,14 @@ def find_sessions(root: Path | str, lot: str | None = None,
     return kept, errors
 
 
+def count_unit_dirs(root: Path | str) -> int:
+    """How many ``lot=*/unit=*`` directories are under ``root`` (no session is looked at, no
+    name checked): a quick upper bound on the units a run may calibrate, for deciding before
+    the run whether to prepare worker processes."""
+    return sum(len(_visible_dirs(lot_dir)) for lot_dir in _visible_dirs(Path(root))
+               if lot_dir.name.startswith("lot="))
+
+
 def fingerprint(path: Path | str) -> str:
     """Cheap identity of a session's content: name, size and mtime_ns of both files (no
     reading). Modifying, replacing or touching a file changes it; reading does not.
