@@ -529,8 +529,9 @@ def markdown(doc: dict) -> str:
             "### Fit phase vs floor (one process per row: floor, fit phase, floor again)", "",
             "| units | sessions | disk [MB] | floor CPU [s] | fit phase CPU [s] | fit / floor, CPU "
             "| per unit CPU [ms] | floor wall [s] | fit phase wall [s] | fit / floor, wall "
-            "| fit phase, 2 processes, wall [s] | fit RSS [MB] | one unit, no Prefect [s] |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+            "| fit phase, 2 processes, wall [s] | fit phase peak RSS, alone [MB] "
+            "| peak RSS with the floor's scans [MB] | one unit, no Prefect [s] |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
         fit = r.get("fit_1proc") or {}
         fit2 = r.get("fit_2proc") or {}
@@ -541,13 +542,17 @@ def markdown(doc: dict) -> str:
             f"| {_f(fc / flc if fc and flc else None)}x "
             f"| {_f(fit.get('per_unit_cpu_ms'), '{:.0f}')} | {_f(flw)} | {_f(fw)} "
             f"| {_f(fw / flw if fw and flw else None)}x | {_f(fit2.get('elapsed_s'))} "
-            f"| {_f(_rss(fit), '{:.0f}')} | {_f(_g(r, 'unit', 'elapsed_s'))} |")
+            f"| {_f(_rss(r.get('fit_rss')), '{:.0f}')} | {_f(_rss(fit), '{:.0f}')} "
+            f"| {_f(_g(r, 'unit', 'elapsed_s'))} |")
     out += ["", "Fit phase = the nightly fit phase without Prefect: read, validate, average, fit, "
             "model discovery, aggregate (`flows.unit_pipeline.calibrate_batch`, what a nightly "
             "task runs) for every unit, then flag every lot. Floor = `pyarrow.dataset` scan + "
             "group-by-step mean of the same files, measured in the same process just before and "
             "just after the fit phase (the smaller used). CPU = user + system seconds of the "
-            "process and its pool workers.", "",
+            "process and its pool workers. Peak RSS alone = the fit phase run in a process of "
+            "its own without the floor (`fit_rss`, the figure the memory target judges); with "
+            "the floor's scans = the process above, whose peak is mostly `pyarrow.dataset`'s "
+            "read-ahead and memory pool over the whole fleet, not the pipeline's.", "",
             "### Nightly flow (Prefect)", "",
             "| units | runner | tasks of [units] | fit phase [s] | report phase [s] | outside the "
             "flow [s] | wall [s] | peak RSS self / tree [MB] | tree CPU [s] |",

@@ -295,26 +295,26 @@ def _simulated_zmax(rng: np.random.Generator, m: int, sizes: tuple[int, ...]) ->
     """``m`` draws of the largest lot-centred |z| of clean Gaussian lots of ``sizes`` units
     (sorted), the draws taken from ``rng`` in the order lot by lot, (m, n) each.
 
-    The lots of one size are drawn in one (k, m, n) call: the same numbers in the same order
-    as k calls of (m, n) (``standard_normal`` is ``normal(0, 1)`` without its affine pass).
-    Medians and maxima do not depend on the order of a row, so each row is sorted in place
-    and read at its middle and end: numpy's vectorised sort of short rows costs ~1/5 of
-    ``np.median``'s selection, and the middle of a sorted row is the same number (for an
-    even count the mean of the two middle values, as ``np.median`` takes it)."""
-    parts = []
-    i = 0
-    while i < len(sizes):
-        n = sizes[i]
-        k = 1
-        while i + k < len(sizes) and sizes[i + k] == n:
-            k += 1
-        x = rng.standard_normal(size=(k, m, n))
-        x.sort(axis=-1)
-        np.subtract(x, _sorted_median(x)[..., None], out=x)
-        np.abs(x, out=x)
-        parts.append(x.transpose(1, 0, 2).reshape(m, k * n))
-        i += k
-    dev = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1)
+    Each lot's (m, n) block is drawn into its columns of the (m, total) array of deviations
+    (the same numbers in the same order as one (k, m, n) call for k lots of one size), so the
+    memory is that array plus one lot's block, whatever the number of lots (a (k, m, n) draw
+    transposed to unit rows was a second copy of the whole chunk). Medians and maxima do not
+    depend on the order of a row, so each row is sorted in place and read at its middle and
+    end: numpy's vectorised sort of short rows costs ~1/5 of ``np.median``'s selection, and
+    the middle of a sorted row is the same number (for an even count the mean of the two
+    middle values, as ``np.median`` takes it)."""
+    total = sum(sizes)
+    dev = np.empty((m, total))
+    col = 0
+    for n in sizes:
+        # one lot is drawn in place (``out`` takes only a whole contiguous array)
+        block = rng.standard_normal(out=dev) if n == total else rng.standard_normal((m, n))
+        block.sort(axis=-1)
+        np.subtract(block, _sorted_median(block)[..., None], out=block)
+        np.abs(block, out=block)
+        if block is not dev:
+            dev[:, col:col + n] = block
+        col += n
     dev.sort(axis=1)
     scale = MAD_TO_SIGMA * _sorted_median(dev)
     return dev[:, -1] / np.where(scale > 0, scale, np.inf)

@@ -1,4 +1,4 @@
-"""The threshold simulation's draws, batched by lot size and with in-place medians, give the
+"""The threshold simulation's draws, each lot's block written into one array with in-place medians,
 same statistic to the bit as the plain loop (one (m, n) normal draw per lot, copying
 medians) it replaced: the thresholds, and so the flags, do not change."""
 from __future__ import annotations
