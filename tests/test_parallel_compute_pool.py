@@ -124,3 +124,78 @@ def test_a_dead_dask_worker_costs_time_not_the_batch(cluster, tmp_path):
         # again there (not in this process)
         assert os.path.exists(marker) and pid != os.getpid()
         assert cp.run_in_pool(_where_and_what, 5)["square"] == 25
+
+
+# --- the forkserver started before the flow, and the workers' reads -----------------------------
+def _arrow_threads_here() -> bool:
+    from schemas import reader
+    return reader._arrow_threads
+
+
+def test_workers_read_on_their_own_thread_and_this_process_keeps_arrows_threads():
+    from schemas import reader
+    with cp.compute_pool(2):
+        assert cp.run_in_pool(_arrow_threads_here) is False
+    assert reader._arrow_threads is True
+
+
+def test_a_pool_forks_its_workers_from_the_forkserver_started_before_it():
+    from multiprocessing import forkserver
+    cp.start_forkserver()
+    server = forkserver._forkserver._forkserver_pid  # the stdlib keeps it private
+    assert server is not None and server != os.getpid()
+    cp.start_forkserver()  # a second call starts nothing new
+    assert forkserver._forkserver._forkserver_pid == server
+    with cp.compute_pool(2):
+        parents = {cp.run_in_pool(os.getppid) for _ in range(4)}
+    assert parents == {server}
+
+
+def _fleet_dirs(root, units_per_lot: dict[str, int]):
+    for lot, n in units_per_lot.items():
+        for i in range(n):
+            (root / f"lot={lot}" / f"unit=U{i:03d}" / "rep=1").mkdir(parents=True)
+    (root / "notes").mkdir()  # not a lot: not counted
+    (root / "lot=L1" / ".hidden").mkdir()  # hidden: not counted
+    return root
+
+
+def test_count_unit_dirs(tmp_path):
+    from schemas.dataset import count_unit_dirs
+    assert count_unit_dirs(_fleet_dirs(tmp_path, {"L1": 3, "L2": 4})) == 7
+    assert count_unit_dirs(tmp_path / "missing") == 0
+
+
+def test_the_forkserver_is_started_early_only_when_the_run_may_use_worker_processes(
+        tmp_path, monkeypatch):
+    from flows.task_runners import AUTO_PROCESSES_MIN_UNITS, prestart_unit_work_pool
+    started: list[int] = []
+    monkeypatch.setattr(cp, "start_forkserver", lambda: started.append(1))
+    few = _fleet_dirs(tmp_path / "few", {"L1": AUTO_PROCESSES_MIN_UNITS - 1})
+    many = _fleet_dirs(tmp_path / "many", {"L1": AUTO_PROCESSES_MIN_UNITS - 1, "L2": 1})
+    assert not prestart_unit_work_pool("threads", many)
+    assert not prestart_unit_work_pool("auto", few)  # auto stays on threads below the minimum
+    assert not started
+    assert prestart_unit_work_pool("auto", many)
+    assert prestart_unit_work_pool("processes", few)
+    assert len(started) == 2
+
+
+def test_the_nightly_launcher_starts_the_forkserver_before_prefect(tmp_path, monkeypatch):
+    from flows import nightly
+    order: list[str] = []
+    monkeypatch.setattr(nightly, "prestart_unit_work_pool",
+                        lambda kind, dataset: order.append(f"prestart {kind}"))
+
+    class _Flow:  # stands for the Prefect flow: records that it ran, and after what
+        def with_options(self, **_):
+            return lambda *a, **k: order.append(f"flow {k['runner']}") or {}
+
+    monkeypatch.setattr(nightly, "nightly_flow", _Flow())
+    nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r", runner="processes")
+    nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r", runner="threads")
+    # a Dask cluster's workers are warmed by its task runner: no forkserver for them
+    nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r",
+                                      dask_address="tcp://127.0.0.1:1")
+    assert order == ["prestart processes", "flow processes", "prestart threads", "flow threads",
+                     "flow dask"]
