@@ -679,6 +679,11 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                                "dataset": str(dataset), "results": str(results),
                                "force": force, "code_version": version,
                                "config": config, "batch_size": batch_size}
+        if runner != "dask":
+            # a served run has no launcher that started the workers' forkserver while Prefect
+            # started (nightly_fleet_calibration): start it now, so that its imports overlap
+            # this process's own (the numerics, on first use); a no-op when it runs already
+            prestart_unit_work_pool(runner, dataset)
         # runs that died before their end (SIGKILL, power loss): what they stored is complete
         # (atomic writes, fingerprints last), but their flags and reports may not be
         interrupted = interrupted_runs(store)

@@ -240,6 +240,21 @@ def test_worker_processes_give_the_same_results_as_threads(small):
         pd.testing.assert_frame_equal(a, b)
 
 
+def test_a_served_run_starts_the_workers_forkserver_itself(small, monkeypatch):
+    """A served deployment calls the flow without nightly_fleet_calibration, which would have
+    started the forkserver while Prefect started: the flow's body asks for it, before its
+    first batch."""
+    from flows import nightly
+    data, base, _ = small
+    calls: list[tuple] = []
+    monkeypatch.setattr(nightly, "prestart_unit_work_pool",
+                        lambda kind, dataset: calls.append((kind, str(dataset))))
+    with runtime.run_settings():
+        log = nightly.nightly_flow(str(data), str(base / "r_served"), progress=False,
+                                   runner="threads", run_discovery=False)
+    assert calls == [("threads", str(data))] and log["units_calibrated"] == 5
+
+
 def test_second_concurrent_run_is_refused(small, capsys):
     data, base, _ = small
     results = base / "r_lock"
