@@ -11,7 +11,10 @@ thread pool, with its state and logs as with ``threads``); each task hands its b
 of processes forked from a *forkserver* that has imported the numerics once (numpy, pandas,
 pyarrow, scipy, calib_core, schemas; not Prefect). A worker is a fork of that clean,
 thread-free server: it starts in ~0.1 s, never talks to Prefect, and sends back the batch's
-results (pickled: ~0.1 MB per unit).
+results (pickled: ~0.1 MB per unit). The forkserver itself takes ~1 s to import the numerics,
+and the first worker waits for it: :func:`start_forkserver` starts it early (the nightly
+launcher before Prefect starts, a served run at the top of its body). Workers read their
+sessions without Arrow's decoding threads: the two of them already keep both cores busy.
 
 A worker that dies (killed, out of memory) breaks the pool; the batch is then run again in the
 flow's process, so a crash costs time, never a unit (``run_in_pool``).

@@ -7,13 +7,13 @@ Runners (``MIMUCAL_TASK_RUNNER``, ``mimucal nightly --runner``, or the ``kind`` 
 at an address always wins):
 
 - ``auto`` (default): ``processes`` when the run has at least :data:`AUTO_PROCESSES_MIN_UNITS`
-  units to calibrate, else ``threads`` (the pool's ~3 s start-up does not pay on a few units).
+  units to calibrate, else ``threads`` (the pool's start-up does not pay on a few units).
 - ``threads``: a thread pool of :data:`LOCAL_WORKERS`. Cheapest per task (~4 ms), no
   start-up, but the unit work is Python and holds the GIL: the fit phase uses one core.
 - ``processes``: the same thread pool of Prefect tasks, each handing its batch to a pool of
   :data:`LOCAL_WORKERS` worker processes forked from a forkserver that imported the numerics
-  once (:mod:`flows.compute_pool`): both cores, ~3 s of start-up per run, no Prefect in the
-  workers.
+  once (:mod:`flows.compute_pool`): both cores, no Prefect in the workers. The forkserver's
+  imports (~1 s) run while Prefect starts (:func:`prestart_unit_work_pool`).
 - ``prefect-processes``: Prefect's ``ProcessPoolTaskRunner`` (every task run in a spawned
   worker with its own Prefect client): both cores, but each worker pays its imports and
   Prefect's task context once (8-10 s CPU, docs/perf-parallel.md).
