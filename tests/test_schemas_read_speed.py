@@ -309,3 +309,19 @@ def test_settling_fallback_gives_the_same_step_means(monkeypatch):
     for f in ("step", "gyro", "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c"):
         np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
 
+
+def test_one_stat_answers_missing_not_regular_and_empty(tmp_path):
+    from schemas import reader
+    from schemas.errors import E_MISSING_FILE, E_UNREADABLE_FILE
+    (tmp_path / "dir.parquet").mkdir()
+    (tmp_path / "empty.parquet").write_bytes(b"")
+    (tmp_path / "file").write_bytes(b"x")
+    cases = {"nothing.parquet": E_MISSING_FILE, "dir.parquet": E_UNREADABLE_FILE,
+             "empty.parquet": E_UNREADABLE_FILE, "file/below.parquet": E_MISSING_FILE}
+    for name, code in cases.items():
+        path = tmp_path / name
+        assert (reader._stat(path) is None) == (not path.exists())
+        with pytest.raises(SessionError) as info:
+            reader._open(path, "s")
+        assert info.value.code == code
+    assert reader._stat(tmp_path / "a\0b") is None  # as Path.exists: False, no error
