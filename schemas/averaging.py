@@ -35,15 +35,20 @@ step index too (``SessionData.step_row``), and the six channels as one ``(6, n)`
 quantity is computed per *segment* (a maximal run of kept samples of one step; one segment per
 step in the usual file) with ``np.add.reduceat`` over the segment boundaries, one call for all
 six channels, and segments are added up per step only when a step has several. The settling
-rule is evaluated per sample (exactly as before: ``t - t0 >= settle_s - tolerance``) and the
-segments are the runs of the result, so no assumption is made about where kept samples lie.
+rule is the same comparison as ever (``t - t0 >= settle_s - tolerance``, per sample); as ``t``
+is strictly increasing its kept samples are a suffix of each run of a step, found per run
+(``searchsorted`` and the exact rule at the boundary, :func:`_settled_from`; docs/perf5-sample.md)
+instead of over all samples, and the segments are those suffixes.
 Means and standard deviations are two-pass as before; the sums are ``reduceat``'s (pairwise)
 instead of ``bincount``'s (sequential), which changes results by rounding only (a few ulp).
+The deviations are formed one channel at a time (n floats stay in the core's cache through
+subtract, square and sum; the same operations on the same values, so the same bits).
 The saturation rules need per-sample work only when a channel's kept extreme reaches the
 declared full scale, or is repeated at least ``CLIP_MIN_REPEATS`` times in the whole session,
 or the session has no sample left: otherwise no step can be saturated, which the session's
 extremes per channel (reduced over the kept segments when that sample was left out) and one
-comparison per channel show (:func:`_may_saturate`).
+comparison per channel show (:func:`_may_saturate`). The boolean mask of kept samples is built
+only when the exact rules run.
 """
 from __future__ import annotations
 
@@ -62,6 +67,7 @@ from schemas.errors import (
 from schemas.reader import SessionData, StepColumns, read_session, session_from_tables
 
 SETTLE_TOLERANCE_S = 1e-6  # t - t0 of a sample exactly at settle_s may round to 0.4999999
+SETTLE_SEARCH_STEPS = 8  # moves of the settling estimate before every sample is evaluated
 CLIP_MIN_REPEATS = 3
 CLIP_MIN_FRACTION = 0.01
 CLIP_MIN_OF_FULL_SCALE = 0.5
@@ -189,6 +195,59 @@ def _saturation(columns: list[np.ndarray], idx: np.ndarray, count: np.ndarray, n
     return saturated, why
 
 
+def _settled_from(t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray,
+                  threshold: np.ndarray) -> np.ndarray:
+    """First sample of each run ``[start, end)`` that the settling rule keeps (``end`` when
+    none): the first ``i`` with ``t[i] - t0 >= threshold``, evaluated exactly as per sample.
+
+    ``t`` is strictly increasing, so ``t[i] - t0`` (rounded) never decreases along a run and
+    the kept samples of a run are a suffix of it. ``searchsorted(t, t0 + threshold)`` finds
+    where that suffix starts up to the rounding of ``t0 + threshold``; the exact rule then
+    moves each estimate back while the sample before it is kept and on while it is not
+    (usually no step at all). Returns None when that takes more than a few steps (samples
+    closer than the rounding; never in recorded data): the caller evaluates every sample."""
+    pos = np.searchsorted(t, t0 + threshold)
+    np.clip(pos, start, end, out=pos)
+    for _ in range(SETTLE_SEARCH_STEPS):
+        back = pos > start
+        back[back] = t[pos[back] - 1] - t0[back] >= threshold[back]
+        if not back.any():
+            break
+        pos -= back
+    else:
+        return None
+    for _ in range(SETTLE_SEARCH_STEPS):
+        on = pos < end
+        on[on] = ~(t[pos[on]] - t0[on] >= threshold[on])
+        if not on.any():
+            return pos
+        pos += on
+    return None
+
+
+def _settled_per_sample(t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray,
+                        threshold: np.ndarray) -> np.ndarray:
+    """:func:`_settled_from` by evaluating the rule on every sample of every run."""
+    n_runs = len(start)
+    lengths = end - start
+    run_of = np.repeat(np.arange(n_runs), lengths)
+    sample = np.concatenate([np.arange(a, b) for a, b in zip(start, end)]) if n_runs else start
+    keep = t[sample] - t0[run_of] >= threshold[run_of]
+    # the kept samples of a run are a suffix: its start is the end minus their number
+    return end - np.bincount(run_of, keep, minlength=n_runs).astype(np.intp)
+
+
+def _kept_mask(n: int, s_start: np.ndarray, s_end: np.ndarray) -> np.ndarray:
+    """(n,) bool, True on the samples of the segments ``[s_start, s_end)``."""
+    edges = np.empty(2 * len(s_start) + 1, np.intp)
+    edges[0] = 0
+    edges[1::2] = s_start
+    edges[2::2] = s_end
+    on = np.zeros(len(edges), bool)
+    on[1::2] = True
+    return np.repeat(on, np.diff(edges, append=n))
+
+
 def average_session(data: SessionData, min_samples: int = 10
                     ) -> tuple[StepMeans, list[SessionWarning]]:
     """Average a validated session (see module docstring). Raises E_EMPTY_SESSION when no
@@ -201,30 +260,31 @@ def average_session(data: SessionData, min_samples: int = 10
     n = len(t)
     x = _channels(data)
 
-    # runs of equal step row: samples per step and each step's first sample time (t is
+    # runs of samples of one step: samples per step and each step's first sample time (t is
     # strictly increasing, so a step's first sample starts one of its runs)
     r_start, r_end, r_row = _runs(idx_all)
-    r_len = r_end - r_start
     in_step = r_row >= 0
-    n_any = np.zeros(n_steps, np.int64)
-    np.add.at(n_any, r_row[in_step], r_len[in_step])
+    r_start, r_end, r_row = r_start[in_step], r_end[in_step], r_row[in_step]
+    runs_unique = len(r_row) == 0 or np.bincount(r_row).max() == 1  # one run per step
+    n_any = _per_step(r_end - r_start, r_row, n_steps, runs_unique)
     t0 = np.full(n_steps, np.inf)
-    np.minimum.at(t0, r_row[in_step], t[r_start[in_step]])
-    # settling, per sample as before: kept where t - t0 >= settle_s - tolerance (t0 and the
-    # threshold spread over the runs; between steps the threshold is +inf: never kept)
+    if runs_unique:
+        t0[r_row] = t[r_start]
+    else:
+        np.minimum.at(t0, r_row, t[r_start])
+    # settling: kept where t - t0 >= settle_s - tolerance, a suffix of each run
     settle = cols.settle_s
-    r_t0 = np.where(in_step, t0[r_row], 0.0)
-    r_thr = np.where(in_step, (settle - SETTLE_TOLERANCE_S)[r_row], np.inf)
-    keep = t - np.repeat(r_t0, r_len) >= np.repeat(r_thr, r_len)
-    kept_row = np.where(keep, idx_all, -1)
-    # segments: runs of kept samples of one step
-    s_start, s_end, s_row = _runs(kept_row)
-    is_seg = s_row >= 0
-    s_start, s_end, s_row = s_start[is_seg], s_end[is_seg], s_row[is_seg]
+    r_t0 = t0[r_row]
+    r_thr = (settle - SETTLE_TOLERANCE_S)[r_row]
+    kept_from = _settled_from(t, r_start, r_end, r_t0, r_thr)
+    if kept_from is None:
+        kept_from = _settled_per_sample(t, r_start, r_end, r_t0, r_thr)
+    # segments: the kept part of each run (runs are maximal: adjacent ones are other steps)
+    is_seg = kept_from < r_end
+    s_start, s_end, s_row = kept_from[is_seg], r_end[is_seg], r_row[is_seg]
     n_seg = len(s_row)
-    count = np.zeros(n_steps, np.int64)
-    np.add.at(count, s_row, s_end - s_start)
-    unique = n_seg == np.count_nonzero(count)
+    count = _per_step((s_end - s_start).astype(np.int64), s_row, n_steps, runs_unique)
+    unique = runs_unique or n_seg == np.count_nonzero(count)
     safe = np.maximum(count, 1)
     ok = count > 1
 
@@ -247,10 +307,16 @@ def average_session(data: SessionData, min_samples: int = 10
         # mean is spread over the pieces [0, b0), [b0, b1), ... that reduceat sums
         piece_mean = np.zeros((6, len(bounds) + 1))
         piece_mean[:, 1::2] = mean[:, s_row]
-        dev = np.repeat(piece_mean, np.diff(bounds, prepend=0, append=n), axis=1)
-        np.subtract(x, dev, out=dev)
-        np.multiply(dev, dev, out=dev)
-        ss = _per_step(np.add.reduceat(dev, bounds, axis=1)[:, 0::2], s_row, n_steps, unique)
+        piece_len = np.diff(bounds, prepend=0, append=n)
+        # one channel at a time: its deviations (n floats) stay in the core's cache between
+        # the subtract, the square and the sums (all six, 6n floats, do not)
+        seg_ss = np.empty((6, n_seg))
+        for j in range(6):
+            dev = np.repeat(piece_mean[j], piece_len)
+            np.subtract(x[j], dev, out=dev)
+            np.multiply(dev, dev, out=dev)
+            seg_ss[j] = np.add.reduceat(dev, bounds)[0::2]
+        ss = _per_step(seg_ss, s_row, n_steps, unique)
         std[:, ok] = np.sqrt(ss[:, ok] / (count[ok] - 1))
         t_lo = np.full(n_steps, np.inf)
         t_hi = np.full(n_steps, -np.inf)
@@ -270,12 +336,13 @@ def average_session(data: SessionData, min_samples: int = 10
     a_fs = np.asarray(meta.accel_range_g, float) if meta.accel_is_physical else (
         None if meta.accel_full_scale_raw is None else np.asarray(meta.accel_full_scale_raw, float))
     sat = {}
-    kept_idx = None
+    keep = kept_idx = None
     for rows, fs, names, unit in ((slice(0, 3), g_fs, GYRO_COLUMNS, meta.gyro_unit),
                                   (slice(3, 6), a_fs, ACCEL_COLUMNS, meta.accel_unit)):
-        if n_seg and _may_saturate(x[rows], keep, bounds, fs):
+        if n_seg and _may_saturate(x[rows], bounds, fs):
             # the exact rules on the kept samples (rare: clipping or full scale in sight)
             if kept_idx is None:
+                keep = _kept_mask(n, s_start, s_end)
                 kept_idx = idx_all[keep]
             kept = [np.ascontiguousarray(x[j])[keep] for j in range(6)[rows]]
             sat[rows.start] = _saturation(kept, kept_idx, count, n_steps, fs, names, unit)
@@ -322,16 +389,17 @@ def average_session(data: SessionData, min_samples: int = 10
     return sm.select(usable), warnings
 
 
-def _may_saturate(x: np.ndarray, keep: np.ndarray, bounds: np.ndarray,
-                  full_scale: np.ndarray | None) -> bool:
+def _may_saturate(x: np.ndarray, bounds: np.ndarray, full_scale: np.ndarray | None) -> bool:
     """False when :func:`_saturation`'s rules cannot find a saturated step in these channels
-    (``x`` (k, n) all samples, ``keep`` (n,) the kept ones, ``bounds`` their segments as given
-    to reduceat): no kept sample reaches the full scale, and every kept extreme that the clip
-    rule looks at occurs fewer than ``CLIP_MIN_REPEATS`` times in the whole session (an upper
-    bound of its repeats in any one step, which must reach ``max(CLIP_MIN_REPEATS, ...)``).
+    (``x`` (k, n) all samples, ``bounds`` the kept segments as given to reduceat:
+    ``[s0, e0, s1, e1, ...]``): no kept sample reaches the full scale, and every kept extreme
+    that the clip rule looks at occurs fewer than ``CLIP_MIN_REPEATS`` times in the whole
+    session (an upper bound of its repeats in any one step, which must reach
+    ``max(CLIP_MIN_REPEATS, ...)``).
 
     A channel's kept extreme is its session extreme when that sample is kept (the usual
-    case), else it is reduced over the kept segments."""
+    case: it lies inside a segment, i.e. an odd number of bounds lie at or before it), else
+    it is reduced over the kept segments."""
     for j in range(len(x)):
         fs = np.inf if full_scale is None else float(full_scale[j])
         min_look = 0.0 if full_scale is None else CLIP_MIN_OF_FULL_SCALE * fs
@@ -340,7 +408,7 @@ def _may_saturate(x: np.ndarray, keep: np.ndarray, bounds: np.ndarray,
             extreme = sign * x[j, at]  # the session's: bounds the kept samples' from above
             if extreme < fs and (extreme < min_look or extreme <= 0):
                 continue  # neither full scale nor the clip rule can concern this side
-            if not keep[at]:  # the session's extreme is in a left-out sample
+            if np.searchsorted(bounds, at, side="right") % 2 == 0:  # a left-out sample
                 seg = red.reduceat(x[j], bounds)[0::2]
                 extreme = sign * (seg.max() if sign > 0 else seg.min())
             if extreme >= fs:

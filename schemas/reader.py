@@ -22,7 +22,9 @@ computed for the unknown-step check is handed to the averaging (``SessionData.st
 """
 from __future__ import annotations
 
+import errno
 import hashlib
+import os
 import re
 import stat
 import threading
@@ -123,13 +125,34 @@ class SessionData:
 
 
 # --- files --------------------------------------------------------------------------------
-def _open(path: Path, label: str) -> pq.ParquetFile:
+def _stat(path: Path) -> os.stat_result | None:
+    """``path``'s stat, None where :meth:`Path.exists` says False (the errors it ignores: no
+    such file, not a directory, a symlink loop, a bad path), other OS errors raised as it
+    raises them: one system call answers exists, is_file and the size."""
+    try:
+        return path.stat()
+    except OSError as exc:
+        if exc.errno in _STAT_MISSING_ERRNOS:
+            return None
+        raise
+    except ValueError:  # an embedded NUL
+        return None
+
+
+_STAT_MISSING_ERRNOS = (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP)
+
+
+def _open(path: Path, label: str, st: os.stat_result | None = None) -> pq.ParquetFile:
+    """Checks of existence, type and size, each with its own error, then the Parquet footer.
+    ``st``: ``path``'s :func:`_stat` when the caller has it (else taken here)."""
     file = path.name
-    if not path.exists():
+    if st is None:
+        st = _stat(path)
+    if st is None:
         raise SessionError(E_MISSING_FILE, label, file, f"file is missing ({path})")
-    if not path.is_file():
+    if not stat.S_ISREG(st.st_mode):
         raise SessionError(E_UNREADABLE_FILE, label, file, f"{path} is not a regular file")
-    if path.stat().st_size == 0:
+    if st.st_size == 0:
         raise SessionError(E_UNREADABLE_FILE, label, file, "file is empty (0 bytes)")
     try:
         return pq.ParquetFile(path)
@@ -331,8 +354,18 @@ def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: 
                      step_columns: StepColumns | None = None) -> SessionData:
     """Types and content of samples.parquet, unit conversion -> :class:`SessionData`.
     ``step_columns``: ``steps`` as numpy arrays when the caller has them (else derived)."""
+    return _validate_samples(table, steps, meta, label, file, key, step_columns)
+
+
+def _validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: SessionMeta,
+                      label: str, file: str, key: SessionKey | None,
+                      step_columns: StepColumns | None,
+                      columns_checked: bool = False) -> SessionData:
+    """:func:`validate_samples`; ``columns_checked``: the table was read with the projection
+    that :func:`check_columns` returned for its file's schema (same columns, same types)."""
     table = _as_table(table, file, label)
-    check_columns(table.schema, SAMPLES_RULES, label, file)
+    if not columns_checked:
+        check_columns(table.schema, SAMPLES_RULES, label, file)
     n = table.num_rows
     if n == 0:
         raise SessionError(E_EMPTY_SESSION, label, file, "samples table has no rows")
@@ -467,22 +500,27 @@ def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
 def read_session(ref: SessionRef) -> SessionData:
     """Read and validate one session directory. Raises :class:`SessionError`."""
     label = str(ref.key)
-    missing = [p for p in (ref.steps_path, ref.samples_path) if not p.exists()]
+    samples_path = ref.samples_path
+    steps_there = ref.steps_path.exists()
+    samples_stat = _stat(samples_path)  # samples_path.exists(), and _open's checks
+    missing = [p for p, there in ((ref.steps_path, steps_there),
+                                  (samples_path, samples_stat is not None)) if not there]
     if missing:
         names = " and ".join(p.name for p in missing)
         raise SessionError(E_MISSING_FILE, label, missing[0].name,
                            f"{names} missing in {ref.path}")
     steps, step_columns = _read_steps_cached(ref.steps_path, label)
-    pf = _open(ref.samples_path, label)
-    file = ref.samples_path.name
+    pf = _open(samples_path, label, samples_stat)
+    file = samples_path.name
     schema = pf.schema_arrow  # built anew by every access (~0.25 ms): once
     meta = parse_metadata(schema.metadata, label, file)
     names = check_columns(schema, SAMPLES_RULES, label, file)
     table = _read(pf, names, label, file)
     # the frame is shared with the cache: a shallow copy is the caller's own under pandas'
-    # copy-on-write (writing to it copies), at no cost
-    return validate_samples(table, steps.copy(deep=False), meta, label, file, key=ref.key,
-                            step_columns=step_columns)
+    # copy-on-write (writing to it copies), at no cost; the table's columns are the
+    # projection of the schema just checked (not checked again)
+    return _validate_samples(table, steps.copy(deep=False), meta, label, file, ref.key,
+                             step_columns, columns_checked=True)
 
 
 def session_from_tables(key: SessionKey | str, steps: pa.Table | pd.DataFrame,

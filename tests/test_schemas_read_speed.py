@@ -207,8 +207,8 @@ def test_saturation_precheck_on_quantised_raw_data(monkeypatch, seed):
     md = sim.session_metadata(truth, RATE)
     data = session_from_tables(KEY, steps, samples, md)
     x = data.channels
-    assert averaging._may_saturate(x[:3], np.ones(x.shape[1], bool),
-                                   np.array([0]), None)  # repeated extremes: exact rules
+    assert averaging._may_saturate(x[:3], np.array([0]),  # one segment: every sample
+                                   None)  # repeated extremes: exact rules
     fast, w_fast = average_session(data)
     _force_exact_saturation_rules(monkeypatch)
     exact, w_exact = average_session(data)
@@ -267,3 +267,61 @@ def test_int64_step_ids_take_the_range_checked_path():
     b, _ = average_session(session_from_tables(KEY, steps, samples, md))
     np.testing.assert_array_equal(a.gyro, b.gyro)
     np.testing.assert_array_equal(a.count, b.count)
+
+
+@pytest.mark.parametrize("seed", [40, 41, 42])
+def test_settling_search_equals_the_rule_on_every_sample(seed):
+    """The kept suffix of each run found by searchsorted and the exact rule's corrections
+    equals the rule evaluated on every sample, also where t0 + settle_s rounds across a
+    sample (times that are not multiples of the sample period, settle_s at sample times,
+    samples a few ulp apart)."""
+    rng = np.random.default_rng(seed)
+    n_runs = 200
+    lengths = rng.integers(1, 40, n_runs)
+    dt = rng.choice([1e-2, 1 / 3, 1e-9, 5e-16], n_runs)  # the last: a few ulp at t ~ 1
+    steps_t = [1.0 + np.cumsum(np.full(k, d)) for k, d in zip(lengths, dt)]
+    t = np.concatenate(steps_t)
+    t += np.arange(len(t)) * 1e-12  # strictly increasing across the runs
+    end = np.cumsum(lengths)
+    start = end - lengths
+    t0 = t[start]
+    # thresholds at, just below and just above sample offsets, zero and beyond the run
+    pick = np.minimum(rng.integers(0, 45, n_runs), lengths - 1)
+    offset = t[start + pick] - t0
+    threshold = offset * rng.choice([1.0, 1 - 1e-16, 1 + 1e-16, 0.0, 10.0], n_runs) - 1e-6
+    exact = averaging._settled_per_sample(t, start, end, t0, threshold)
+    found = averaging._settled_from(t, start, end, t0, threshold)
+    if found is not None:
+        np.testing.assert_array_equal(found, exact)
+    for r in range(n_runs):  # the exact answer is the rule's suffix
+        kept = t[start[r]:end[r]] - t0[r] >= threshold[r]
+        assert kept.sum() == end[r] - exact[r] and kept[exact[r] - start[r]:].all()
+
+
+def test_settling_fallback_gives_the_same_step_means(monkeypatch):
+    """With the search given no moves (every sample evaluated) the results are identical."""
+    steps, samples, md = _simulate(43, temperature=True)
+    data = session_from_tables(KEY, steps, samples, md)
+    fast, w_fast = average_session(data, min_samples=2)
+    monkeypatch.setattr(averaging, "SETTLE_SEARCH_STEPS", 0)
+    slow, w_slow = average_session(data, min_samples=2)
+    assert [str(w) for w in w_fast] == [str(w) for w in w_slow]
+    for f in ("step", "gyro", "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c"):
+        np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
+
+
+def test_one_stat_answers_missing_not_regular_and_empty(tmp_path):
+    from schemas import reader
+    from schemas.errors import E_MISSING_FILE, E_UNREADABLE_FILE
+    (tmp_path / "dir.parquet").mkdir()
+    (tmp_path / "empty.parquet").write_bytes(b"")
+    (tmp_path / "file").write_bytes(b"x")
+    cases = {"nothing.parquet": E_MISSING_FILE, "dir.parquet": E_UNREADABLE_FILE,
+             "empty.parquet": E_UNREADABLE_FILE, "file/below.parquet": E_MISSING_FILE}
+    for name, code in cases.items():
+        path = tmp_path / name
+        assert (reader._stat(path) is None) == (not path.exists())
+        with pytest.raises(SessionError) as info:
+            reader._open(path, "s")
+        assert info.value.code == code
+    assert reader._stat(tmp_path / "a\0b") is None  # as Path.exists: False, no error
