@@ -33,7 +33,7 @@ from scipy.linalg.lapack import dgeqp3 as _geqp3
 from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
 from calib_core.errors import DesignError
-from calib_core.results import Param, param_list
+from calib_core.results import Param, ParamBlock, params_of_blocks
 from calib_core.steps import StepMeans, stack_field
 
 AXES = "xyz"
@@ -140,12 +140,12 @@ class AccelStaticFit:
         return np.linalg.solve(self.C.T, self.sensed_along_axes(A_raw).T).T
 
     def parameters(self) -> list[Param]:
-        return (param_list(self.model, SCALE_NAMES, self.scale.tolist(),
-                           self.scale_stderr.tolist(), f"{self.unit}/g")
-                + param_list(self.model, BIAS_NAMES, self.bias.tolist(),
-                             self.bias_stderr.tolist(), self.unit)
-                + param_list(self.model, ANGLE_NAMES, self.angles_deg.ravel().tolist(),
-                             self.angles_stderr.ravel().tolist(), "deg"))
+        return params_of_blocks(self.param_blocks())
+
+    def param_blocks(self) -> list[ParamBlock]:
+        return [(self.model, SCALE_NAMES, self.scale, self.scale_stderr, f"{self.unit}/g"),
+                (self.model, BIAS_NAMES, self.bias, self.bias_stderr, self.unit),
+                (self.model, ANGLE_NAMES, self.angles_deg, self.angles_stderr, "deg")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -292,8 +292,10 @@ class LeverArmFit:
         return np.nan_to_num(self.lever_arm_mm, nan=0.0)
 
     def parameters(self) -> list[Param]:
-        return param_list(self.model, LEVER_NAMES, self.lever_arm_mm.ravel().tolist(),
-                          self.stderr.ravel().tolist(), "mm")
+        return params_of_blocks(self.param_blocks())
+
+    def param_blocks(self) -> list[ParamBlock]:
+        return [(self.model, LEVER_NAMES, self.lever_arm_mm, self.stderr, "mm")]
 
     def to_dict(self) -> dict[str, Any]:
         def lst(a):
