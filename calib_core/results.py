@@ -22,6 +22,8 @@ def to_jsonable(v: Any, default=lambda x: x) -> Any:
         return default(v)
     if kind is int or kind is bool:
         return v
+    if kind is np.float64:  # as the np.floating branch below, without the checks before it
+        return float(v) if math.isfinite(v) else None
     if isinstance(v, dict):
         return {str(k): to_jsonable(x, default) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
