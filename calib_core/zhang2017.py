@@ -451,10 +451,7 @@ def _certify_determined(designs: Sequence[tuple[np.ndarray, np.ndarray]], rcond:
     sigma_min >= CERTIFY_MARGIN * rcond * sigma_max, rounding in the QR and the SVD (relative
     ~1e-15) cannot bring a diagonal entry below the cut. The SVD is the one the all-determined
     fit takes of the same stacked blocks anyway, so the fit reuses it."""
-    # stacked block by block as _fit_all_determined stacks _LeverBlocks: the same array, and
-    # the same memory layout (np.stack follows its inputs' layout; the einsums that use the
-    # stack round by that layout)
-    Xb = np.stack([np.stack([X[i] for i in range(3)]) for X, _ in designs])
+    Xb = _stack_blocks([X for X, _ in designs])
     if Xb.shape[-2] < 3:  # fewer steps than components: never all determined
         return None
     try:
@@ -467,7 +464,21 @@ def _certify_determined(designs: Sequence[tuple[np.ndarray, np.ndarray]], rcond:
             ((s[..., 0] > 0) & (s[..., -1] >= CERTIFY_MARGIN * rcond * s[..., 0])).all())
     if not sure:
         return None
-    return Xb, np.stack([np.stack([y[i] for i in range(3)]) for _, y in designs]), svd
+    return Xb, _stack_blocks([y for _, y in designs]), svd
+
+
+def _stack_blocks(per_session: list[np.ndarray]) -> np.ndarray:
+    """The sessions' blocks stacked as _fit_all_determined stacks _LeverBlocks (each
+    session's blocks stacked, then the sessions): the same array in the same memory layout
+    (np.stack follows its inputs' layout, and the einsums that use the stack round by it).
+    C-contiguous inputs stack to the same C-contiguous array in one call; a session's y
+    (a transposed view in the body-axis projection) is made contiguous first, as stacking
+    its 1-D rows did."""
+    if per_session[0].ndim == 2:  # y (3, n): rows stacked -> C-contiguous
+        return np.stack([np.ascontiguousarray(y) for y in per_session])
+    if all(X.flags.c_contiguous for X in per_session):
+        return np.stack(per_session)
+    return np.stack([np.stack([X[i] for i in range(3)]) for X in per_session])
 
 
 def _all_kept(Xb: np.ndarray, yb: np.ndarray) -> "_LeverBlocks":

@@ -107,3 +107,19 @@ def test_certificate_never_vouches_for_a_block_the_qr_cuts():
         certified += sure
         cut += not keeps
     assert certified > 300 and cut > 300  # both outcomes occur
+
+
+def test_stacked_blocks_have_the_former_values_and_layout():
+    rng = np.random.default_rng(2)
+    base = rng.normal(size=(4, 3, 9, 3))
+    cases = {
+        "C": [b.copy() for b in base],
+        "transposed": [np.ascontiguousarray(b.transpose(2, 1, 0)).transpose(2, 1, 0)
+                       for b in base],  # (3, 9, 3) F-ordered
+        "y": [rng.normal(size=(9, 3)).T for _ in range(4)],  # (3, 9) transposed views
+    }
+    for name, per_session in cases.items():
+        former = np.stack([np.stack([X[i] for i in range(3)]) for X in per_session])
+        got = zhang2017._stack_blocks(per_session)
+        assert got.strides == former.strides, name
+        assert got.tobytes() == former.tobytes(), name
