@@ -41,7 +41,9 @@ the channels the term acts on.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -113,15 +115,38 @@ class _UnitGrid:
         return self.live_mask.shape[1]
 
     def cols(self, names: tuple[str, ...]) -> np.ndarray:
-        if not names:
-            return np.zeros(0, np.int64)
-        return np.concatenate([np.arange(*self.offset[n]) for n in names])
+        """Global term columns of the terms ``names``, in that order (read-only: kept per
+        grid, asked for by every fit and test of the same term set)."""
+        cache = self.__dict__.setdefault("_cols", {})
+        out = cache.get(names)
+        if out is None:
+            out = (np.concatenate([np.arange(*self.offset[n]) for n in names]) if names
+                   else np.zeros(0, np.int64))
+            out.setflags(write=False)
+            cache[names] = out
+        return out
 
     def white_sigma(self, K: np.ndarray) -> np.ndarray:
         """Within-step scatter of the step mean through the 6x3 gain rows K, (R, n, 6)
         (:func:`calib_core.replay.white_sigma` for every repetition at once)."""
         return np.sqrt(np.einsum("rnck,ck->rnc", self.std ** 2, K ** 2)) \
             / np.sqrt(self.count)[..., None]
+
+    def _balanced_groups(self) -> tuple[np.ndarray, ...]:
+        """For :meth:`two_way` on a balanced grid (what depends on the steps alone, kept on
+        the grid): each step's group g (n,), its one-hot matrix G (n, ng), the steps per
+        group, every row's group (R n,) and the degrees of freedom per group."""
+        out = self.__dict__.get("_balanced")
+        if out is None:
+            g = self.gcode[0]
+            G = np.zeros((self.n, len(self.groups)))
+            G[np.arange(self.n), g] = 1.0
+            cnt = G.sum(axis=0)
+            out = (g, G, cnt, np.tile(g, self.R), ((cnt - 1) * (self.R - 1)).astype(np.int64))
+            for a in out:
+                a.setflags(write=False)
+            self.__dict__["_balanced"] = out
+        return out
 
     # -- pure error: the two-way (step x repetition) residual within each test group ------
     def two_way(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -130,16 +155,12 @@ class _UnitGrid:
         the group of each row (m,) and the degrees of freedom per group."""
         ng = len(self.groups)
         if self.balanced:  # double centring of every group's (step x repetition) table
-            g = self.gcode[0]
-            G = np.zeros((self.n, ng))
-            G[np.arange(self.n), g] = 1.0
-            cnt = G.sum(axis=0)
+            g, G, cnt, grp, dof = self._balanced_groups()
             rep_mean = (X.swapaxes(-1, -2) @ G) / cnt  # (..., R, k, ng)
             grand = rep_mean.mean(axis=-3, keepdims=True)
             e = (X - X.mean(axis=-3, keepdims=True)
                  - (rep_mean - grand)[..., g].swapaxes(-1, -2))
-            dof = ((cnt - 1) * (self.R - 1)).astype(np.int64)
-            return (e.reshape(X.shape[:-3] + (-1, X.shape[-1])), np.tile(g, self.R), dof)
+            return (e.reshape(X.shape[:-3] + (-1, X.shape[-1])), grp, dof.copy())
         lead = X.shape[:-3]
         Xf = X.reshape((-1,) + X.shape[-3:])
         out, grp, dof = [], None, np.zeros(ng, np.int64)
@@ -339,7 +360,7 @@ class _LstsqSolution:
 def _lstsq(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, _LstsqSolution]:
     """Least squares with column scaling (pseudo-inverse on directions the data do not
     determine): theta, rank, and the SVD's parts for the covariance."""
-    norms = np.linalg.norm(Z, axis=0)
+    norms = np.sqrt(np.add.reduce(Z * Z, axis=0))  # np.linalg.norm(Z, axis=0), its arithmetic
     live = norms > 1e-12 * max(norms.max(), 1e-300)
     scale = np.where(live, norms, 1.0)
     U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)  # Z is small (R factor) here
@@ -379,6 +400,16 @@ def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
 RANK_SURE_RATIO = 1e-8
 
 
+@lru_cache(maxsize=16)
+def _fold_columns(R: int) -> np.ndarray:
+    """Per fold 1 + h (h < R), the columns of the full affine Gram it keeps: the three raw
+    columns and every repetition's bias column but h's."""
+    out = np.array([[0, 1, 2] + [3 + r for r in range(R) if r != h] for h in range(R)],
+                   dtype=np.intp).reshape(R, 2 + R)
+    out.setflags(write=False)
+    return out
+
+
 def _surely_full_rank(D: np.ndarray) -> bool:
     """True when the weighted affine design of every channel and fold has full rank with a
     wide margin: ``D`` (6, R, n, 4) each repetition's rows ``[w raw | w]``; the design of a
@@ -395,9 +426,11 @@ def _surely_full_rank(D: np.ndarray) -> bool:
     for r in range(R):  # repetition r's bias column (dropped from fold 1 + r below)
         full[:, :, :3, 3 + r] = full[:, :, 3 + r, :3] = G[:, None, r, :3, 3]
         full[:, :, 3 + r, 3 + r] = G[:, None, r, 3, 3]
-    folds = [full[:, :1]] + [np.delete(np.delete(full[:, 1 + h:2 + h], 3 + h, axis=-1),
-                                       3 + h, axis=-2) for h in range(R)]
-    for A in (folds[0], np.concatenate(folds[1:], axis=1)):
+    # fold 1 + h without repetition h's bias row and column: the same matrices as deleting
+    # them (np.delete), taken with one index array for all folds
+    keep = _fold_columns(R)  # (R, 2 + R)
+    held_out = full[:, 1 + np.arange(R)[:, None, None], keep[:, :, None], keep[:, None, :]]
+    for A in (full[:, :1], held_out):
         tr = np.trace(A, axis1=-2, axis2=-1)
         if not (np.isfinite(tr).all() and (tr > 0).all()):
             return False
@@ -544,6 +577,7 @@ class _Discovery:
         self._factorise()
         self._fits: dict[tuple, _FitResult] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
+        self._tests: dict[tuple, Any] = {}  # lack-of-fit tests by (kind, terms, threshold)
 
     # -- set-up ---------------------------------------------------------------------------
     def _affine_fit(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -574,19 +608,29 @@ class _Discovery:
         for gi in range(ng):  # per test group: a handful
             ss[:, gi] = np.sum(e[grp == gi] ** 2, axis=0)
             w2[:, gi] = np.mean(white[g.gcode == gi] ** 2, axis=0)
-        rows, inst = [], np.zeros((6, ng))
-        for c, ch in enumerate(CHANNELS):
-            pooled_ss, pooled_dof = 0.0, 0
-            for gi in range(ng):
-                pooled_ss += float(ss[c, gi])
-                pooled_dof += int(dof[gi])
+        # per channel and group, in Python floats (the same operations as replay's pooling:
+        # math.sqrt and np.sqrt are both the correctly rounded square root); the arrays are
+        # converted once, not indexed one numpy scalar at a time
+        rows, inst_c = [], []
+        dofs = dof.tolist()
+        pooled_dof = 0
+        for d in dofs:
+            pooled_dof += int(d)
+        for ch, ss_c, w2_c in zip(CHANNELS, ss.tolist(), w2.tolist()):
+            pooled_ss = 0.0
+            for v in ss_c:
+                pooled_ss += v
             pooled_var = pooled_ss / pooled_dof if pooled_dof else np.nan
-            for gi, gname in enumerate(g.groups):
-                wsd = float(np.sqrt(w2[c, gi]))
-                var = float(ss[c, gi]) / int(dof[gi]) if dof[gi] >= MIN_POOL_DOF else pooled_var
-                step_sd = float(np.sqrt(var)) if np.isfinite(var) else wsd
-                inst[c, gi] = float(np.sqrt(max(step_sd ** 2 - wsd ** 2, 0.0)))
-                rows.append((ch, gname, int(dof[gi]), step_sd, wsd, inst[c, gi]))
+            inst_g = []
+            for gname, v, w2v, d in zip(g.groups, ss_c, w2_c, dofs):
+                wsd = math.sqrt(w2v)
+                var = v / int(d) if d >= MIN_POOL_DOF else pooled_var
+                step_sd = math.sqrt(var) if math.isfinite(var) else wsd
+                inst_g.append(math.sqrt(max(step_sd ** 2 - wsd ** 2, 0.0)))
+                rows.append((ch, gname, int(d), step_sd, wsd))
+            inst_c.append(inst_g)
+        inst = np.array(inst_c, dtype=float).reshape(6, ng)
+        rows = [r + (x,) for r, x in zip(rows, inst.ravel())]  # np.float64, as before
         inst_row = np.where(g.real[..., None], inst.T[np.maximum(g.gcode, 0)], 0.0)
         sigma = np.sqrt(white ** 2 + np.nan_to_num(inst_row) ** 2)
         if not np.all(sigma[g.real] > 0):
@@ -745,6 +789,12 @@ class _Discovery:
 
     # tests
     def lack_of_fit(self, names: tuple[str, ...], threshold: float) -> FTest:
+        key = ("all", tuple(sorted(names)), threshold)
+        if key not in self._tests:  # a function of the fit: selection and report ask again
+            self._tests[key] = self._lack_of_fit(names, threshold)
+        return self._tests[key]
+
+    def _lack_of_fit(self, names: tuple[str, ...], threshold: float) -> FTest:
         f = self.fit(names)
         dof_res = 6 * self.rows_channel - sum(self.base_rank) - f.rank
         ps, pd_ = self.pure(names)
@@ -752,6 +802,13 @@ class _Discovery:
         return _f_test(f.ss - pss, dof_res - pdof, pss, pdof, threshold)
 
     def channel_lack_of_fit(self, names: tuple[str, ...], threshold: float) -> dict[str, FTest]:
+        key = ("channel", tuple(sorted(names)), threshold)
+        if key not in self._tests:
+            self._tests[key] = self._channel_lack_of_fit(names, threshold)
+        return dict(self._tests[key])  # the tests are frozen; the dict is the caller's
+
+    def _channel_lack_of_fit(self, names: tuple[str, ...], threshold: float
+                             ) -> dict[str, FTest]:
         f = self.fit(names)
         ps, pd_ = self.pure(names)
         cols = self.g.cols(tuple(sorted(names)))

@@ -3,6 +3,7 @@ per-repetition calibrations and their aggregate over repetitions (xu2016 Tables 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Protocol, runtime_checkable
 
@@ -21,6 +22,8 @@ def to_jsonable(v: Any, default=lambda x: x) -> Any:
         return default(v)
     if kind is int or kind is bool:
         return v
+    if kind is np.float64:  # as the np.floating branch below, without the checks before it
+        return float(v) if math.isfinite(v) else None
     if isinstance(v, dict):
         return {str(k): to_jsonable(x, default) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
@@ -75,10 +78,13 @@ _new = object.__new__
 
 def matrix_params(model: str, prefix: str, M: np.ndarray, S: np.ndarray, unit: str) -> list[Param]:
     """Params ``prefix11 .. prefix33`` of a 3x3 matrix (paper numbering, row-major)."""
-    # tolist() converts to Python floats in one call (float(M[i, j]) is one numpy scalar each)
-    return param_list(model, [f"{prefix}{suffix}" for suffix in _MATRIX_SUFFIXES],
-                      np.asarray(M, dtype=float).ravel().tolist(),
-                      np.asarray(S, dtype=float).ravel().tolist(), unit)
+    return params_of_blocks(((model, matrix_names(prefix), M, S, unit),))
+
+
+@lru_cache(maxsize=None)
+def matrix_names(prefix: str) -> tuple[str, ...]:
+    """``prefix11 .. prefix33``: the names of a 3x3 matrix's entries, row-major."""
+    return tuple(f"{prefix}{suffix}" for suffix in _MATRIX_SUFFIXES)
 
 
 _MATRIX_SUFFIXES = tuple(f"{i + 1}{j + 1}" for i in range(3) for j in range(3))
@@ -86,8 +92,36 @@ _MATRIX_SUFFIXES = tuple(f"{i + 1}{j + 1}" for i in range(3) for j in range(3))
 
 def vector_params(model: str, names: Iterable[str], v: np.ndarray, s: np.ndarray,
                   unit: str) -> list[Param]:
-    return param_list(model, names, np.asarray(v, dtype=float).ravel().tolist(),
-                      np.asarray(s, dtype=float).ravel().tolist(), unit)
+    return params_of_blocks(((model, tuple(names), v, s, unit),))
+
+
+# A fit's parameters as blocks (model, names, values, stderrs, unit): ``names`` a tuple,
+# ``values`` / ``stderrs`` arrays (raveled in row-major order) of one name each. A fit with
+# a ``param_blocks()`` method lists its parameters from them (``params_of_blocks``), and
+# ``summarise`` reads the repetitions' values from them as arrays, without a Param each.
+ParamBlock = tuple[str, tuple[str, ...], Any, Any, str]
+
+
+def params_of_blocks(blocks: Iterable[ParamBlock]) -> list[Param]:
+    """The Params of parameter blocks, in order (the fits' ``parameters()``)."""
+    out: list[Param] = []
+    for model, names, values, stderrs, unit in blocks:
+        # tolist() converts to Python floats in one call (float(M[i, j]) is one numpy scalar
+        # each)
+        out += param_list(model, names, np.asarray(values, dtype=float).ravel().tolist(),
+                          np.asarray(stderrs, dtype=float).ravel().tolist(), unit)
+    return out
+
+
+@lru_cache(maxsize=256)
+def _block_layout(heads: tuple[tuple[str, tuple[str, ...], str], ...]
+                  ) -> tuple[tuple[tuple[str, str], ...], tuple[str, ...], bool]:
+    """(model, name) of every parameter of blocks with these (model, names, unit) heads,
+    their units, and whether the (model, name) pairs are distinct. The same few heads come
+    back for every repetition of every unit: worked out once each."""
+    keys = tuple((model, name) for model, names, _ in heads for name in names)
+    units = tuple(unit for _, names, unit in heads for _ in names)
+    return keys, units, len(set(keys)) == len(keys)
 
 
 def _is_frozen(obj: Any) -> bool:
@@ -127,6 +161,17 @@ class RepetitionCalibration:
         state.pop("_parameters", None)
         return state
 
+    def param_blocks(self) -> list[ParamBlock] | None:
+        """Every fit's parameter blocks in ``parameters()`` order, or None when a fit has no
+        ``param_blocks`` method (then only ``parameters()`` lists them)."""
+        blocks: list[ParamBlock] = []
+        for fit in self.fits.values():
+            of_fit = getattr(fit, "param_blocks", None)
+            if of_fit is None:
+                return None
+            blocks += of_fit()
+        return blocks
+
 
 @dataclass(frozen=True)
 class ParamSummary:
@@ -146,18 +191,43 @@ class ParamSummary:
 
 def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     """Mean, sample std (ddof=1), min, max over repetitions of every parameter."""
-    params = [rep.parameters() for rep in sorted(reps, key=lambda r: r.rep)]
-    if not params:
+    reps = sorted(reps, key=lambda r: r.rep)
+    if not reps:
         return []
+    # the values as arrays straight from the fits' parameter blocks (a Param per parameter
+    # and repetition would cost more than the statistics); Params only for other fits
+    blocks = [rep.param_blocks() for rep in reps]
+    if any(b is None for b in blocks):
+        return _summarise_params([rep.parameters() for rep in reps])
+    layouts = [_block_layout(tuple((model, names, unit) for model, names, _, _, unit in b))
+               for b in blocks]
+    keys, units, distinct = layouts[0]
+    if not distinct or any(lay[0] != keys for lay in layouts[1:]):
+        return _summarise_by_key([rep.parameters() for rep in reps])
+    n = len(reps)
+    v = np.concatenate([np.asarray(x, dtype=float).ravel()
+                        for b in blocks for _, _, x, _, _ in b]).reshape(n, len(keys))
+    s = np.concatenate([np.asarray(x, dtype=float).ravel()
+                        for b in blocks for _, _, _, x, _ in b]).reshape(n, len(keys))
+    return _summary_rows(keys, units, v, s)
+
+
+def _summarise_params(params: list[list[Param]]) -> list[ParamSummary]:
+    """summarise() of the repetitions' parameter lists."""
     keys = [(p.model, p.name) for p in params[0]]
     if len(set(keys)) != len(keys) or any(
             [(p.model, p.name) for p in ps] != keys for ps in params[1:]):
         return _summarise_by_key(params)
-    # every repetition has the same parameters in the same order (the usual case): one
-    # (reps, parameters) matrix, every statistic a reduction over its first axis
     v = np.array([[p.value for p in ps] for ps in params], dtype=float)
     s = np.array([[p.stderr for p in ps] for ps in params], dtype=float)
-    n = len(params)
+    return _summary_rows(keys, [p.unit for p in params[0]], v, s)
+
+
+def _summary_rows(keys, units, v: np.ndarray, s: np.ndarray) -> list[ParamSummary]:
+    """The summaries when every repetition has the same parameters in the same order (the
+    usual case): v and s (reps, parameters) values and standard errors, every statistic a
+    reduction over the first axis."""
+    n = v.shape[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = v.mean(axis=0)
         std = v.std(axis=0, ddof=1) if n > 1 else np.full(v.shape[1], np.nan)
@@ -166,11 +236,11 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
         mean_se = np.where(has_se, s_sum / (~np.isnan(s)).sum(axis=0), np.nan)
     vmin, vmax = v.min(axis=0), v.max(axis=0)
     out = []
-    for (model, name), p, m, sd, lo, hi, col, se in zip(
-            keys, params[0], mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
+    for (model, name), unit, m, sd, lo, hi, col, se in zip(
+            keys, units, mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
             v.T.tolist(), mean_se.tolist()):
         summary = _new(ParamSummary)  # as ParamSummary(...), minus the frozen __setattr__s
-        summary.__dict__.update(model=model, name=name, unit=p.unit, mean=m, std=sd, min=lo,
+        summary.__dict__.update(model=model, name=name, unit=unit, mean=m, std=sd, min=lo,
                                 max=hi, n_reps=n, values=tuple(col), mean_stderr=se)
         out.append(summary)
     return out

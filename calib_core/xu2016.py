@@ -23,7 +23,7 @@ import pandas as pd
 
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq_stack
-from calib_core.results import Param, matrix_params, vector_params
+from calib_core.results import Param, ParamBlock, matrix_names, params_of_blocks
 from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans, stack_field
 
@@ -31,8 +31,9 @@ AXES = "xyz"
 MAX_CONDITION = 1e6  # beyond this the design cannot separate the parameters
 
 
-def _axis_names(prefix: str) -> list[str]:
-    return [f"{prefix}_{a}" for a in AXES]
+@lru_cache(maxsize=None)
+def _axis_names(prefix: str) -> tuple[str, ...]:
+    return tuple(f"{prefix}_{a}" for a in AXES)
 
 
 def _check_determined(sm: StepMeans, excitation: np.ndarray, what: str, needed: str) -> None:
@@ -114,8 +115,12 @@ class GyroMultirateFit:
         return np.atleast_2d(G) @ self.K.T + self.w0
 
     def parameters(self) -> list[Param]:
-        return (matrix_params(self.model, "k_g", self.K, self.K_stderr, f"deg/s per {self.raw_unit}")
-                + vector_params(self.model, _axis_names("w0"), self.w0, self.w0_stderr, "deg/s"))
+        return params_of_blocks(self.param_blocks())
+
+    def param_blocks(self) -> list[ParamBlock]:
+        return [(self.model, matrix_names("k_g"), self.K, self.K_stderr,
+                 f"deg/s per {self.raw_unit}"),
+                (self.model, _axis_names("w0"), self.w0, self.w0_stderr, "deg/s")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -198,8 +203,12 @@ class AccelMultipositionFit:
         return np.atleast_2d(A) @ self.K.T + self.f0
 
     def parameters(self) -> list[Param]:
-        return (matrix_params(self.model, "k_a", self.K, self.K_stderr, f"g per {self.raw_unit}")
-                + vector_params(self.model, _axis_names("f0"), self.f0, self.f0_stderr, "g"))
+        return params_of_blocks(self.param_blocks())
+
+    def param_blocks(self) -> list[ParamBlock]:
+        return [(self.model, matrix_names("k_a"), self.K, self.K_stderr,
+                 f"g per {self.raw_unit}"),
+                (self.model, _axis_names("f0"), self.f0, self.f0_stderr, "g")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -270,11 +279,14 @@ class TraditionalFit:
         return K, -K @ self.b
 
     def parameters(self) -> list[Param]:
+        return params_of_blocks(self.param_blocks())
+
+    def param_blocks(self) -> list[ParamBlock]:
         prefix = "s_g" if self.model.startswith("gyro") else "s_a"
         bname = "b_g" if self.model.startswith("gyro") else "b_a"
-        return (matrix_params(self.model, prefix, self.S, self.S_stderr,
-                              f"{self.raw_unit} per {self.physical_unit}")
-                + vector_params(self.model, _axis_names(bname), self.b, self.b_stderr, self.raw_unit))
+        return [(self.model, matrix_names(prefix), self.S, self.S_stderr,
+                 f"{self.raw_unit} per {self.physical_unit}"),
+                (self.model, _axis_names(bname), self.b, self.b_stderr, self.raw_unit)]
 
     def to_dict(self) -> dict[str, Any]:
         return {"S": self.S.tolist(), "b": self.b.tolist(),

@@ -33,7 +33,7 @@ from scipy.linalg.lapack import dgeqp3 as _geqp3
 from calib_core.effect_terms import DEG, skew
 from calib_core.effects import EffectTerm, MotionContext
 from calib_core.errors import DesignError
-from calib_core.results import Param, param_list
+from calib_core.results import Param, ParamBlock, params_of_blocks
 from calib_core.steps import StepMeans, stack_field
 
 AXES = "xyz"
@@ -140,12 +140,12 @@ class AccelStaticFit:
         return np.linalg.solve(self.C.T, self.sensed_along_axes(A_raw).T).T
 
     def parameters(self) -> list[Param]:
-        return (param_list(self.model, SCALE_NAMES, self.scale.tolist(),
-                           self.scale_stderr.tolist(), f"{self.unit}/g")
-                + param_list(self.model, BIAS_NAMES, self.bias.tolist(),
-                             self.bias_stderr.tolist(), self.unit)
-                + param_list(self.model, ANGLE_NAMES, self.angles_deg.ravel().tolist(),
-                             self.angles_stderr.ravel().tolist(), "deg"))
+        return params_of_blocks(self.param_blocks())
+
+    def param_blocks(self) -> list[ParamBlock]:
+        return [(self.model, SCALE_NAMES, self.scale, self.scale_stderr, f"{self.unit}/g"),
+                (self.model, BIAS_NAMES, self.bias, self.bias_stderr, self.unit),
+                (self.model, ANGLE_NAMES, self.angles_deg, self.angles_stderr, "deg")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -292,8 +292,10 @@ class LeverArmFit:
         return np.nan_to_num(self.lever_arm_mm, nan=0.0)
 
     def parameters(self) -> list[Param]:
-        return param_list(self.model, LEVER_NAMES, self.lever_arm_mm.ravel().tolist(),
-                          self.stderr.ravel().tolist(), "mm")
+        return params_of_blocks(self.param_blocks())
+
+    def param_blocks(self) -> list[ParamBlock]:
+        return [(self.model, LEVER_NAMES, self.lever_arm_mm, self.stderr, "mm")]
 
     def to_dict(self) -> dict[str, Any]:
         def lst(a):
@@ -412,16 +414,78 @@ def fit_lever_arm_from_stack(inputs: Sequence[LeverArmInputs],
     :func:`lever_arm_inputs_stack`): item r is bit for bit ``fit_lever_arm_from(inputs[r])``
     (with ``estimate_only``, its ``r_mm`` as :func:`lever_arm_estimate` gives it). The
     sessions' block-diagonal solves run together when every component of every session is
-    determined (the usual case), else each session alone."""
+    determined (the usual case), else each session alone. Whether a component is determined
+    is the pivoted QR's decision per block; it is taken from the blocks' singular values
+    instead when they leave no doubt (:func:`_certify_determined`), without the 3 R QRs."""
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
-    blocks = [_lever_blocks(x, rcond, projection) for x in inputs]
+    designs = [_lever_design(x, projection) for x in inputs]
+    if _BLOCK_PATH:
+        certified = _certify_determined(designs, rcond)
+        if certified is not None:
+            return _fit_all_determined(inputs, [_all_kept(Xb, yb) for Xb, yb in designs],
+                                       projection, estimate_only, certified)
+    blocks = [_lever_blocks(x, rcond, projection, design)
+              for x, design in zip(inputs, designs)]
     determined = [_BLOCK_PATH and len(b.cols) == 9 for b in blocks]
     if all(determined):
         return _fit_all_determined(inputs, blocks, projection, estimate_only)
     return [_fit_all_determined([x], [b], projection, estimate_only)[0] if all_determined
             else _fit_joint(x, b, projection, estimate_only)
             for x, b, all_determined in zip(inputs, blocks, determined)]
+
+
+# How far above ``rcond`` a block's sigma_min / sigma_max must be for the pivoted QR to keep
+# all of its columns without running it (:func:`_certify_determined`).
+CERTIFY_MARGIN = 2.0
+
+
+def _certify_determined(designs: Sequence[tuple[np.ndarray, np.ndarray]], rcond: float):
+    """The stacked blocks and their SVD, (Xb (R,3,n,3), yb (R,3,n), (U, s, Vt)), when every
+    block of every session certainly keeps its three columns in :func:`_lever_blocks`'
+    pivoted QR; else None (then the QR decides, as before).
+
+    Why it is certain: every diagonal entry of a pivoted QR's R of X is the distance of a
+    column from the span of other columns, hence >= sigma_min(X), and the first is a column
+    norm, <= sigma_max(X); the QR keeps column j when |R_jj| >= rcond |R_00|. With
+    sigma_min >= CERTIFY_MARGIN * rcond * sigma_max, rounding in the QR and the SVD (relative
+    ~1e-15) cannot bring a diagonal entry below the cut. The SVD is the one the all-determined
+    fit takes of the same stacked blocks anyway, so the fit reuses it."""
+    Xb = _stack_blocks([X for X, _ in designs])
+    if Xb.shape[-2] < 3:  # fewer steps than components: never all determined
+        return None
+    try:
+        svd = np.linalg.svd(Xb, full_matrices=False)
+    except np.linalg.LinAlgError:
+        return None
+    s = svd[1]  # (R, 3, 3) descending
+    with np.errstate(invalid="ignore"):
+        sure = np.isfinite(s).all() and bool(
+            ((s[..., 0] > 0) & (s[..., -1] >= CERTIFY_MARGIN * rcond * s[..., 0])).all())
+    if not sure:
+        return None
+    return Xb, _stack_blocks([y for _, y in designs]), svd
+
+
+def _stack_blocks(per_session: list[np.ndarray]) -> np.ndarray:
+    """The sessions' blocks stacked as _fit_all_determined stacks _LeverBlocks (each
+    session's blocks stacked, then the sessions): the same array in the same memory layout
+    (np.stack follows its inputs' layout, and the einsums that use the stack round by it).
+    C-contiguous inputs stack to the same C-contiguous array in one call; a session's y
+    (a transposed view in the body-axis projection) is made contiguous first, as stacking
+    its 1-D rows did."""
+    if per_session[0].ndim == 2:  # y (3, n): rows stacked -> C-contiguous
+        return np.stack([np.ascontiguousarray(y) for y in per_session])
+    if all(X.flags.c_contiguous for X in per_session):
+        return np.stack(per_session)
+    return np.stack([np.stack([X[i] for i in range(3)]) for X in per_session])
+
+
+def _all_kept(Xb: np.ndarray, yb: np.ndarray) -> "_LeverBlocks":
+    """The _LeverBlocks of a session whose every component is determined (certified)."""
+    keep = np.arange(3)
+    return _LeverBlocks([(i, Xb[i], yb[i], keep) for i in range(3)],
+                        [(i, j) for i in range(3) for j in range(3)], [], {})
 
 
 @dataclass(frozen=True)
@@ -435,14 +499,13 @@ class _LeverBlocks:
     reasons: dict
 
 
-def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str) -> _LeverBlocks:
+def _lever_design(inputs: LeverArmInputs, projection: str) -> tuple[np.ndarray, np.ndarray]:
+    """One session's lever-arm design, the three blocks (one per accelerometer) at once:
+    X (3, n, 3) and y (3, n), block i the rows of accelerometer i."""
     static, d, W, f_hat = inputs.static, inputs.d, inputs.W, inputs.f_hat
-    k, C, u0 = static.scale, static.C, static.bias
-    M = static.M
-    undetermined: list[str] = []
-    reasons: dict[str, str] = {}
-    # the three blocks (one per accelerometer) at once: X_i (n,3) and y_i (n,)
     if projection == "sensitive_axis":
+        k, C, u0 = static.scale, static.C, static.bias
+        M = static.M
         Xb = np.einsum("ji,njk->ink", C, W)  # row s of block i: c_i^T W_s
         # f_ref @ M[i] one row at a time, as before: the lever term is a small difference
         # of these, and d.f_ref @ M.T rounds differently (1e-10 of a near-zero lever arm)
@@ -450,6 +513,16 @@ def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str) -> _Lev
     else:
         Xb = np.ascontiguousarray(W.transpose(1, 0, 2))  # block i: rows i of W_s
         yb = (f_hat - d.f_ref).T
+    return Xb, yb
+
+
+def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str,
+                  design: tuple[np.ndarray, np.ndarray] | None = None) -> _LeverBlocks:
+    """The blocks of :func:`_lever_design` (given, or built here) and the components each
+    block's rank-revealing QR keeps."""
+    Xb, yb = design if design is not None else _lever_design(inputs, projection)
+    undetermined: list[str] = []
+    reasons: dict[str, str] = {}
     blocks = []
     for i in range(3):
         X, y = Xb[i], yb[i]
@@ -543,7 +616,7 @@ def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
 
 
 def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_LeverBlocks],
-                        projection: str, estimate_only: bool = False) -> list:
+                        projection: str, estimate_only: bool = False, stacked=None) -> list:
     """The joint fits of sessions whose every component is determined (the usual case,
     tilted steps), all sessions together.
 
@@ -554,9 +627,12 @@ def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_Leve
     d = inputs[0].d
     R, n = len(inputs), len(d)
     k = np.stack([x.static.scale for x in inputs])  # (R,3)
-    Xb = np.stack([np.stack([b[1] for b in lb.blocks]) for lb in blocks])  # (R,3,n,3)
-    yb = np.stack([np.stack([b[2] for b in lb.blocks]) for lb in blocks])  # (R,3,n)
-    U, sb, Vt = np.linalg.svd(Xb, full_matrices=False)  # (R,3,n,3), (R,3,3), (R,3,3,3)
+    if stacked is not None:  # the blocks stacked and their SVD (_certify_determined)
+        Xb, yb, (U, sb, Vt) = stacked
+    else:
+        Xb = np.stack([np.stack([b[1] for b in lb.blocks]) for lb in blocks])  # (R,3,n,3)
+        yb = np.stack([np.stack([b[2] for b in lb.blocks]) for lb in blocks])  # (R,3,n)
+        U, sb, Vt = np.linalg.svd(Xb, full_matrices=False)  # (R,3,n,3), (R,3,3), (R,3,3,3)
     V = np.swapaxes(Vt, -1, -2)
     pinv = V @ (np.swapaxes(U, -1, -2) / sb[..., :, None])  # block i = pinv(X_i)
     theta = np.einsum("rikn,rin->rik", pinv, yb)  # row i = r_i
