@@ -540,7 +540,10 @@ def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str,
         for j in sorted(set(range(3)) - set(keep)):
             name = LEVER_NAMES[3 * i + j]
             undetermined.append(name)
-            rel = diag[piv.index(j)] / diag[0] if diag[0] > 0 else 0.0
+            # with fewer dynamic steps than components, the QR has fewer pivots than
+            # columns: a component pivoted past them has no pivot (relative pivot 0)
+            pos = piv.index(j)
+            rel = diag[pos] / diag[0] if pos < len(diag) and diag[0] > 0 else 0.0
             reasons[name] = (f"not observable from these dynamic steps (relative pivot "
                              f"{rel:.2g} < {rcond:g}); add steps with the rate off the body "
                              "axes (protocols.dynamic_steps(tilted=True))")

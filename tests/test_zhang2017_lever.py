@@ -99,6 +99,21 @@ def test_axis_only_steps_report_off_diagonals_undetermined():
     assert np.isfinite(lv.condition_number) and lv.condition_number_full > 50
 
 
+@pytest.mark.parametrize("dynamic", [[7, 8], [7, 14]])
+def test_fewer_dynamic_steps_than_components_report_the_rest_undetermined(dynamic):
+    """Two dynamic steps give each block's QR two pivots for three components: the third is
+    undetermined with its reason (it used to be an IndexError, i.e. E_INTERNAL)."""
+    steps = protocols.zhang2017_session(tilted=False)
+    steps = steps[(steps.test != "dynamic") | steps.step.isin(dynamic)]
+    sm, st, lv = _fits(paper_unit(), steps, 3)
+    assert len(lv.undetermined) >= 3  # at least one component per block
+    assert all("not observable" in lv.reasons[n] for n in lv.undetermined)
+    names = [f"r{i + 1}{a}" for i in range(3) for a in "xyz"]
+    undetermined = np.array([n in lv.undetermined for n in names]).reshape(3, 3)
+    assert np.isnan(lv.lever_arm_mm[undetermined]).all()
+    assert np.isfinite(lv.lever_arm_mm[~undetermined]).all()
+
+
 def test_no_dynamic_steps_is_a_design_error():
     u = paper_unit()
     steps = protocols.to_frame(protocols.zhang2017_six_position())
