@@ -330,8 +330,14 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
         why += [why_st] if why_st else []
         roles = _g(R(n), "nightly_processes", "fit_phase_cpu_s") or {}
         if roles:
+            cores = doc["machine"].get("nproc") or 2
+            least = sum(roles.values()) / cores
+            fl = min((x for x in (fit.get("floor_s"), _g(R(n), "floor", "elapsed_s")) if x),
+                     default=None)
             why.append("Prefect nightly's fit phase, CPU on the 2 cores by role: " + ", ".join(
-                f"{k} {v:.1f} s" for k, v in roles.items()))
+                f"{k} {v:.1f} s" for k, v in roles.items())
+                + (f" (on {cores} cores at least {least:.1f} s: {least / fl:.2f}x the floor "
+                   f"whatever the scheduling)" if fl else ""))
         rows.append((row[0], row[1], row[2], "; ".join(why)))
     tot, basis = {}, ""
     for key, field, b in (("fit_1proc_pass2", "cpu_s", "CPU, pass 2"),
@@ -444,6 +450,12 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
                 other = sum(v for k, v in cpu2.items() if k != "workers")
                 why += (f"; fit-phase CPU, workers {cpu1['workers']:.1f} s -> "
                         f"{cpu2['workers']:.1f} s, flow + API {other:.1f} s with 2 workers")
+                # all of that on the machine's cores: the 2-worker fit phase cannot be shorter
+                # than its CPU spread over them, whatever the scheduling
+                cores = doc["machine"].get("nproc") or 2
+                floor_2 = (cpu2["workers"] + other) / cores
+                why += (f"; that CPU on {cores} cores takes at least {floor_2:.1f} s, so 2 "
+                        f"workers can at best reach {d1['fit_phase_s'] / floor_2:.2f}x here")
             if nt.get("fit_phase_s"):
                 why += (f"; thread pool fit phase {nt['fit_phase_s']:.1f} s "
                         f"(1 Dask worker {d1['fit_phase_s'] / nt['fit_phase_s']:.2f}x of it)")

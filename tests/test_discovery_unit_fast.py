@@ -17,25 +17,15 @@ import math
 import numpy as np
 
 from calib_core import discovery as disc
-from calib_core import protocols
-from calib_core import simulator as sim
-from calib_core.discovery import REALISTIC_NOISE, simulate_unit
 from calib_core.effects import CHANNELS
 from calib_core.replay import MIN_POOL_DOF
 from calib_core.results import to_jsonable
 
-STEPS = protocols.default_session()
-
-
-def _unit(seed: int, n_reps: int = 4, unit: str = "U000"):
-    rng = np.random.default_rng(seed)
-    truth = sim.typical_truth(rng, **REALISTIC_NOISE)
-    sessions, _ = simulate_unit(truth, STEPS, rng, n_reps, unit=unit)
-    return sessions
+from test_discovery_shortcuts import _unit  # a simulated unit's sessions
 
 
 def test_term_columns_are_kept_per_grid_and_read_only():
-    d = disc._Discovery(_unit(1), 0.01)
+    d = disc._Discovery(_unit(1, n_reps=4), 0.01)
     g = d.g
     names = tuple(sorted(g.offset))
     for key in ((), names[:1], names[1:3], names):
@@ -47,7 +37,7 @@ def test_term_columns_are_kept_per_grid_and_read_only():
 
 
 def test_balanced_group_matrices_equal_a_fresh_build():
-    d = disc._Discovery(_unit(2), 0.01)
+    d = disc._Discovery(_unit(2, n_reps=4), 0.01)
     g = d.g
     assert g.balanced
     gcode, G, cnt, grp, dof = g._balanced_groups()
@@ -68,7 +58,7 @@ def test_balanced_group_matrices_equal_a_fresh_build():
 
 
 def test_lack_of_fit_tests_are_kept_and_equal_fresh_ones():
-    d = disc._Discovery(_unit(3), 0.01)
+    d = disc._Discovery(_unit(3, n_reps=4), 0.01)
     name = sorted(d.g.offset)[0]
     for names in ((), (name,)):
         first = d.channel_lack_of_fit(names, 0.01 / 6)
@@ -100,7 +90,7 @@ def _former_pooling(ss, w2, dof, groups):
 
 
 def test_noise_pooling_equals_the_former_arithmetic(monkeypatch):
-    d = disc._Discovery(_unit(4), 0.01)
+    d = disc._Discovery(_unit(4, n_reps=4), 0.01)
     g = d.g
     rng = np.random.default_rng(5)
     K = np.tile(np.eye(3), (2, 1)) * (1 + 1e-3 * rng.normal(size=(6, 3)))

@@ -16,21 +16,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from calib_core import protocols, simulator
+from calib_core import protocols
 from calib_core.pipeline import calibrate_repetitions
 from calib_core.results import (Param, _block_layout, _summarise_by_key, _summarise_params,
                                 param_list, summarise)
-from calib_core.steps import SessionKey, StepMeans
 from calib_core.xu2016 import AXES
 
-STEPS = protocols.default_session(verification=True)
-
-
-def _unit(n: int = 5, seed: int = 7, steps=STEPS) -> list[StepMeans]:
-    rng = np.random.default_rng(seed)
-    truth = simulator.typical_truth(rng)
-    return [simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L1", "U1", r))
-            for r in range(1, n + 1)]
+from test_fit_stacked import STEPS, _unit  # a simulated unit's step means
 
 
 def _reps(n: int = 5, seed: int = 7, steps=STEPS):
