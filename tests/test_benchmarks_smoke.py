@@ -56,3 +56,25 @@ def test_fit_vs_floor_verdict_names_every_ratio_that_misses():
     r = {"fit_1proc": {"cpu_s": 14.0, "floor_cpu_s": 10.0, "elapsed_s": 9.0, "floor_s": 8.0}}
     assert _fit_vs_floor_row(r, 50)[2] == "met"
     assert _fit_vs_floor_row({}, 50) is None
+
+
+def test_verdicts_state_the_cpu_bound_of_the_machines_cores():
+    """Dask 2 vs 1 worker and the Prefect nightly's fit phase: the verdict's why gives the
+    least time their measured CPU allows on the machine's cores (made-up measurements)."""
+    sys.path.insert(0, str(REPO))
+    from benchmarks.run import verdicts
+    roles = {"api": 1.0, "flow": 1.0, "workers": 6.0, "writer": 2.0}  # 10 s of CPU
+    size = {"fit_1proc": {"cpu_s": 8.0, "floor_cpu_s": 4.0, "elapsed_s": 7.0, "floor_s": 2.5},
+            "nightly_processes": {"fit_phase_s": 5.5, "fit_phase_cpu_s": roles},
+            "nightly_dask1": {"fit_phase_s": 6.0, "batch_size": 8,
+                              "fit_phase_cpu_s": {"workers": 5.5, "flow": 2.0}},
+            "nightly_dask2": {"fit_phase_s": 5.5, "batch_size": 8, "dask_warmup_s": 1.0,
+                              "fit_phase_cpu_s": roles}}
+    doc = {"sizes": {"200": size}, "config": {"batch": 8},
+           "machine": {"nproc": 2, "load_start": (0.0, 0.0, 0.0)}}
+    rows = {target: why for target, _, _, why in verdicts(doc)}
+    # 10 s of CPU on 2 cores: at least 5.0 s, 2.00x a 2.5 s floor; 6.0 / 5.0 = 1.20x for Dask
+    fit_why = rows["fit phase (read ... flag, discovery) <= 1.5x floor at 200 units"]
+    assert "on 2 cores at least 5.0 s: 2.00x the floor" in fit_why
+    dask_why = rows["Dask 2 workers >= 1.6x 1 worker (200 units, fit phase)"]
+    assert "takes at least 5.0 s, so 2 workers can at best reach 1.20x" in dask_why
