@@ -3,7 +3,8 @@
     w = K_g G + w0 - e_gyro(w, f, ...)        f = K_a A + f0 - e_accel(w, f, ...)
 
 The affine part is xu2016 eq. 1-2 (no matrix inverse at run time); ``terms`` are optional
-catalogue effects (:mod:`calib_core.effect_terms`) whose estimated error is subtracted. Every
+catalogue effects (:mod:`calib_core.effects`) whose estimated error is subtracted, acting
+through the sensing geometry of the calibration's own gains. Every
 calibration type mimucal produces (turntable, Ferraris, reference-free field calibration) is
 expressed in this one form, so one ``apply`` serves them all. Serialisation lives in
 ``schemas.calibration_file``; this module is pure.
@@ -15,26 +16,37 @@ from typing import Any
 
 import numpy as np
 
-from calib_core.effects import MotionContext, get_effect
+from calib_core.effects import MotionContext, SensingGeometry, get_effect
 
 
 @dataclass(frozen=True)
 class TermValue:
-    """An extension term with its estimated parameters."""
+    """An extension term with its estimated parameters.
+
+    A parameter the steps could not determine (``undetermined``: name -> reason) is applied
+    as 0 and written as ``null`` with its reason, never as a number."""
 
     name: str  # catalogue name
     params: np.ndarray
     stderr: np.ndarray | None = None
+    undetermined: dict[str, str] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         term = get_effect(self.name)
-        return {
+
+        def number(n: str, v: float) -> float | None:
+            return None if n in self.undetermined or not np.isfinite(v) else float(v)
+
+        out = {
             "name": self.name,
-            "params": {n: float(v) for n, v in zip(term.param_names, self.params)},
+            "params": {n: number(n, v) for n, v in zip(term.param_names, self.params)},
             "stderr": None if self.stderr is None else
-            {n: float(v) for n, v in zip(term.param_names, self.stderr)},
+            {n: number(n, v) for n, v in zip(term.param_names, self.stderr)},
             "units": dict(zip(term.param_names, term.param_units)),
         }
+        if self.undetermined:
+            out["undetermined"] = dict(self.undetermined)
+        return out
 
 
 @dataclass(frozen=True)
@@ -52,6 +64,12 @@ class Calibration:
     kind: str = "turntable"  # turntable | ferraris | field
     metadata: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def geometry(self) -> SensingGeometry:
+        """Sensing directions of the six sensors implied by the gains: what the terms act
+        through."""
+        return SensingGeometry.from_gains(self.K_g, self.K_a)
+
     def apply_affine(self, G: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         G = np.atleast_2d(G)
         A = np.atleast_2d(A)
@@ -68,11 +86,12 @@ class Calibration:
         if not self.terms:
             return w, f
         w_aff, f_aff = w, f
+        geometry = self.geometry
         for _ in range(iterations):
             ctx = MotionContext.from_refs(w, f, temp_c=temp_c, t=t, dwdt=dwdt, g_local=self.g_local)
             err = np.zeros((len(w), 6))
             for tv in self.terms:
-                err += get_effect(tv.name).error(ctx, tv.params)
+                err += get_effect(tv.name).error(ctx, tv.params, geometry)
             w, f = w_aff - err[:, :3], f_aff - err[:, 3:]
         return w, f
 
@@ -85,7 +104,7 @@ class Calibration:
         if self.terms:
             ctx = MotionContext.from_refs(w, f, temp_c=temp_c, t=t, dwdt=dwdt, g_local=self.g_local)
             for tv in self.terms:
-                sensed = sensed + get_effect(tv.name).error(ctx, tv.params)
+                sensed = sensed + get_effect(tv.name).error(ctx, tv.params, self.geometry)
         G = np.linalg.solve(self.K_g, (sensed[:, :3] - self.w0).T).T
         A = np.linalg.solve(self.K_a, (sensed[:, 3:] - self.f0).T).T
         return G, A

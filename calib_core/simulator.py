@@ -4,7 +4,7 @@ directly to step means.
 The truth is written in the paper's calibration form (xu2016 eq. 1-2): the *physical*
 quantities follow from the raw outputs by ``w = K_g G + w0`` and ``f = K_a A + f0``. The unit
 therefore outputs ``G = K_g^-1 (w_sensed - w0)`` with ``w_sensed`` the true rate plus any
-physical effect (:mod:`calib_core.effect_terms`) plus noise. Raw units are the units K is
+physical effect (:mod:`calib_core.effects`) plus noise. Raw units are the units K is
 expressed in: ``deg/s`` / ``g`` (K near identity) or ``LSB`` / ``V``.
 
 Noise model, per channel, in physical units:
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 
-from calib_core.effects import EffectTerm, MotionContext, total_error
+from calib_core.effects import EffectTerm, MotionContext, SensingGeometry, total_error
 from calib_core.steps import SessionKey, StepMeans
 
 
@@ -74,7 +74,8 @@ class MimuTruth:
     # -- forward model ---------------------------------------------------------------
     def raw_outputs(self, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free raw gyro and accel outputs, (n, 3) each."""
-        sensed = np.hstack([ctx.w, ctx.f]) + total_error(ctx, list(self.effects))
+        sensed = np.hstack([ctx.w, ctx.f]) + total_error(
+            ctx, list(self.effects), SensingGeometry.from_gains(self.K_g, self.K_a))
         G = np.linalg.solve(self.K_g, (sensed[:, :3] - self.w0).T).T
         A = np.linalg.solve(self.K_a, (sensed[:, 3:] - self.f0).T).T
         return G, A
@@ -285,3 +286,22 @@ def simulate_repetition_step_means(truth: MimuTruth, steps: pd.DataFrame,
         return simulate_step_means(truth, steps, rng, sample_rate_hz, key=key)
     samples = simulate_session(truth, steps, rng, sample_rate_hz=sample_rate_hz)
     return averager(key, steps, samples, session_metadata(truth, sample_rate_hz))
+
+
+# Noise of a MEMS unit as the validation lots use it: white noise per sample, bias
+# instability between steps (3x the white noise of a 2.5 s step mean), turn-on repeatability.
+REALISTIC_NOISE = dict(
+    gyro_noise_dps=0.05, gyro_bias_instability_dps=0.01, gyro_bias_repeatability_dps=0.05,
+    accel_noise_g=1e-3, accel_bias_instability_g=1e-4, accel_bias_repeatability_g=1e-3)
+
+
+def simulate_unit(truth, steps: pd.DataFrame, rng: np.random.Generator, n_reps: int = 5,
+                  lot: str = "SIM", unit: str = "U000") -> tuple[list[StepMeans], list]:
+    """Step means of ``n_reps`` repetitions of one unit (each with its own turn-on biases),
+    and the per-repetition truths."""
+    sessions, truths = [], []
+    for r in range(1, n_reps + 1):
+        tr = draw_repetition_truth(truth, rng)
+        truths.append(tr)
+        sessions.append(simulate_step_means(tr, steps, rng, key=SessionKey(lot, unit, r)))
+    return sessions, truths

@@ -30,8 +30,7 @@ from typing import Any, ClassVar, Sequence
 import numpy as np
 from scipy.linalg.lapack import dgeqp3 as _geqp3
 
-from calib_core.effect_terms import DEG, skew
-from calib_core.effects import EffectTerm, MotionContext
+from calib_core.effects import DEG, MotionContext, SensingGeometry, get_effect, skew
 from calib_core.errors import DesignError
 from calib_core.results import Param, ParamBlock, params_of_blocks
 from calib_core.steps import StepMeans, stack_field
@@ -335,7 +334,7 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
     ``projection="sensitive_axis"`` (the paper, eq. 13): row (i, s) is
     y_is = (u_is - u0_i)/k_i - c_i . f_ref,s = c_i^T W_s r_i (1e-3/g: mm -> g).
     ``projection="body_axis"`` is the model of the catalogue's ``lever_arm`` term
-    (:class:`calib_core.effect_terms.LeverArmTerm`): the statically compensated body-frame
+    (:mod:`calib_core.effects.lever_arm`): the statically compensated body-frame
     specific force minus f_ref has component i = (W_s r_i)_i. The two differ by misalignment x
     lever term (~0.3 mm of r for 1 deg misalignment).
 
@@ -755,29 +754,26 @@ def compensate_specific_force(static: AccelStaticFit, lever: LeverArmFit | None,
 
 
 # -- truth for simulation ------------------------------------------------------------------------
-class SensitiveAxisLeverArm(EffectTerm):
+class SensitiveAxisLeverArm:
     """Lever arm projected on each accelerometer's own sensitive axis (paper eq. 13), as an
-    error on the body-frame specific force: e = (C^T)^-1 [c_i^T W r_i]_i.
-
-    Differs from :class:`calib_core.effect_terms.LeverArmTerm` (which projects on the body
-    axes) by misalignment x lever term. Not registered in the catalogue: it needs C."""
+    error on the body-frame specific force: e = (C^T)^-1 [c_i^T W r_i]_i: the catalogue's
+    lever arm (:mod:`calib_core.effects.lever_arm`) on the sensing geometry of C, whatever
+    geometry the caller passes (the truth carries its own)."""
 
     name = "lever_arm_sensitive_axis"
-    description = "accelerometer size effect projected on the sensitive axes"
     param_names = LEVER_NAMES
-    param_units = ("mm",) * 9
 
     def __init__(self, C: np.ndarray):
         self.C = np.asarray(C, float)
+        self._geometry = SensingGeometry(np.eye(3), (self.C / np.linalg.norm(self.C, axis=0)).T)
 
-    def regressors(self, ctx: MotionContext) -> np.ndarray:
-        W = lever_matrix(ctx.w, ctx.dwdt) * (1e-3 / ctx.g_local)
-        L = np.zeros((len(ctx), 3, 9))
-        for i in range(3):
-            L[:, i, 3 * i:3 * i + 3] = np.einsum("j,njk->nk", self.C[:, i], W)
-        out = np.zeros((len(ctx), 6, 9))
-        out[:, 3:6, :] = np.einsum("ab,nbp->nap", np.linalg.inv(self.C.T), L)
-        return out
+    def regressors(self, ctx: MotionContext, geometry: SensingGeometry | None = None
+                   ) -> np.ndarray:
+        return get_effect("lever_arm").regressors(ctx, self._geometry)
+
+    def error(self, ctx: MotionContext, theta: np.ndarray,
+              geometry: SensingGeometry | None = None) -> np.ndarray:
+        return self.regressors(ctx) @ np.asarray(theta, dtype=float)
 
 
 @dataclass(frozen=True)

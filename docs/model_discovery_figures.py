@@ -1,7 +1,8 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/model_discovery_figures.py power     # detection vs magnitude (~5 min)
-    .venv/bin/python docs/model_discovery_figures.py power 0.05,0.1   # other magnitudes
+    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS]]]
+        # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
+        # SECTIONS: comma-separated subset of effects,pairs,clean,ooc
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -14,50 +15,66 @@ import time
 import numpy as np
 
 
-def power(n_units: int = 20, scales=(0.25, 0.5, 1.0), n_clean: int = 200) -> None:
+def physics(n_units: int = 40, n_clean: int = 200, sections: str = "effects,pairs,clean,ooc",
+            scales=(0.25, 0.5, 1.0)) -> None:
+    """The Done-when figures of the discovery on the independent physics simulator."""
     from calib_core import protocols
-    from calib_core import simulator as sim
-    from calib_core.discovery import REALISTIC_NOISE, diagnose_unit, hidden_effect, simulate_unit
-    from calib_core.effects import catalogue, get_effect
+    from calib_core.discovery.evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
+    from calib_core.effects import catalogue
+    from schemas.physics_sessions import physics_unit_step_means
 
     steps = protocols.default_session()
 
-    def truth0(rng):
-        return sim.typical_truth(rng, **REALISTIC_NOISE, temperature=sim.TemperatureProfile())
+    def step_means_of(unit, steps, rng, unit_id):
+        return physics_unit_step_means(unit, steps, rng, n_reps=5, unit_id=unit_id)
 
-    rng = np.random.default_rng(2026)
-    t0 = time.perf_counter()
-    fx = mis = 0
-    for u in range(n_clean):
-        d = diagnose_unit(simulate_unit(truth0(rng), steps, rng)[0], tables=False)
-        fx += bool(d.effects)
-        mis += d.misfit
-    per_unit = (time.perf_counter() - t0) / max(n_clean, 1)
-    if n_clean:
-        print(f"clean units: {n_clean}; with an effect reported: {fx} "
-              f"({100 * fx / n_clean:.1f} %); misfit: {mis} ({100 * mis / n_clean:.1f} %); "
-              f"{per_unit:.2f} s per unit")
-    print()
-    print("| effect | " + " | ".join(f"{s:g}x: right name / misfit / gain" for s in scales) + " |")
-    print("|---|" + "---|" * len(scales))
-    for name in sorted(catalogue()):
-        cells = []
-        for scale in scales:
-            rng = np.random.default_rng(sum(map(ord, name)) + int(100 * scale))
-            right = mis = 0
-            gains = []
-            for u in range(n_units):
-                theta, _ = hidden_effect(name, rng, scale)
-                truth = truth0(rng).with_effects((get_effect(name), theta))
-                d = diagnose_unit(simulate_unit(truth, steps, rng)[0], tables=False)
-                ok = [e.name for e in d.effects] == [name]
-                right += ok
-                mis += d.misfit
-                if ok:
-                    gains.append(d.effects[0].gain)
-            g = f"{np.median(gains):.3g}" if gains else "-"
-            cells.append(f"{right}/{n_units} / {mis}/{n_units} / {g}")
-        print(f"| {name} | " + " | ".join(cells) + " |")
+    def seed(*parts) -> int:
+        return sum(ord(ch) for p in parts for ch in str(p)) * 7919 % 2**31
+
+    misses = []
+    if "effects" in sections:
+        print("| effect | " + " | ".join(f"{s:g}x: exactly right / extra term / median gain"
+                                         for s in scales) + " |")
+        print("|---|" + "---|" * len(scales))
+        for name in sorted(catalogue()):
+            cells = []
+            for scale in scales:
+                t = run_scenario(step_means_of, steps, n_units, seed(name, scale), (name,),
+                                 scale)
+                g = f"{np.median(t.gains):.3g}" if t.gains else "-"
+                cells.append(f"{t.pct(t.exact):.0f} % / {t.pct(t.extra):.0f} % / {g}")
+                misses += [f"{name} {scale:g}x {m}" for m in t.misses]
+            print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+        print()
+    if "pairs" in sections:
+        print("| effects hidden (1x) | both named, nothing else | extra term |")
+        print("|---|---|---|")
+        for pair in PAIRS:
+            t = run_scenario(step_means_of, steps, n_units, seed(*pair), pair)
+            print(f"| {' + '.join(pair)} | {t.pct(t.exact):.0f} % | {t.pct(t.extra):.0f} % |",
+                  flush=True)
+            misses += [f"{'+'.join(pair)} {m}" for m in t.misses]
+        print()
+    if "clean" in sections:
+        t = run_scenario(step_means_of, steps, n_clean, seed("clean"))
+        print(f"clean units: {t.n}; with a named effect: {t.any_named} "
+              f"({t.pct(t.any_named):.1f} %); misfit: {t.misfit} ({t.pct(t.misfit):.1f} %); "
+              f"discovery {1e3 * t.seconds / t.n:.0f} ms per unit", flush=True)
+        misses += [f"clean {m}" for m in t.misses]
+        print()
+    if "ooc" in sections:
+        print("| physical error not in the catalogue (1x) | named as a catalogue effect | "
+              "misfit | misfit and unexplained |")
+        print("|---|---|---|---|")
+        for name in OUT_OF_CATALOGUE:
+            t = run_scenario(step_means_of, steps, n_units, seed(name), out_of_catalogue=name)
+            print(f"| {name} | {t.pct(t.any_named):.0f} % | {t.pct(t.misfit):.0f} % | "
+                  f"{t.pct(t.unexplained):.0f} % |", flush=True)
+            misses += [f"{name} {m}" for m in t.misses]
+    if misses:
+        print("\nmisses:")
+        for m in misses:
+            print("  " + m)
 
 
 def xu2016() -> None:
@@ -88,7 +105,10 @@ def xu2016() -> None:
 
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "xu2016"
-    if what == "power" and len(sys.argv) > 2:
-        power(scales=tuple(float(x) for x in sys.argv[2].split(",")), n_clean=0)
+    if what == "physics":
+        args = sys.argv[2:]
+        physics(n_units=int(args[0]) if args else 40,
+                n_clean=int(args[1]) if len(args) > 1 else 200,
+                sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc")
     else:
-        {"power": power, "xu2016": xu2016}[what]()
+        {"xu2016": xu2016}[what]()

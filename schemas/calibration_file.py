@@ -61,11 +61,15 @@ def calibration_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Calibr
         terms = []
         for t in doc.get("terms", []):
             term = get_effect(t["name"])
-            params = np.array([t["params"][n] for n in term.param_names], dtype=float)
+            undetermined = dict(t.get("undetermined") or {})
+            # an undetermined parameter is written as null and applied as 0
+            params = np.array([0.0 if t["params"][n] is None else t["params"][n]
+                               for n in term.param_names], dtype=float)
             stderr = None
             if t.get("stderr"):
-                stderr = np.array([t["stderr"][n] for n in term.param_names], dtype=float)
-            terms.append(TermValue(t["name"], params, stderr))
+                stderr = np.array([np.nan if t["stderr"][n] is None else t["stderr"][n]
+                                   for n in term.param_names], dtype=float)
+            terms.append(TermValue(t["name"], params, stderr, undetermined))
         cal = Calibration(
             K_g=np.array(doc["K_g"], dtype=float), w0=np.array(doc["w0"], dtype=float),
             K_a=np.array(doc["K_a"], dtype=float), f0=np.array(doc["f0"], dtype=float),

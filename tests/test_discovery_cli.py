@@ -8,7 +8,7 @@ import pandas as pd
 
 from calib_core import protocols
 from calib_core import simulator as sim
-from calib_core.discovery import REALISTIC_NOISE
+from calib_core.simulator import REALISTIC_NOISE
 from calib_core.effects import get_effect
 from calib_core.steps import SessionKey
 from flows.cli import main

@@ -15,10 +15,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calib_core import discovery as disc
+from calib_core.discovery import turntable as disc
 from calib_core import protocols
 from calib_core import simulator as sim
-from calib_core.discovery import REALISTIC_NOISE, diagnose_unit, get_effect, simulate_unit
+from calib_core.discovery import diagnose_unit
+from calib_core.effects import get_effect
+from calib_core.simulator import REALISTIC_NOISE, simulate_unit
 
 STEPS = protocols.default_session()
 
@@ -173,24 +175,3 @@ def test_lazy_covariance_is_the_svd_formula():
         np.testing.assert_array_equal(cov, ref)
         assert rank == int(keep.sum()) == (p - 2 if deficient else p)
         assert (theta[~live] == 0).all()
-
-
-def test_a_term_registered_anew_under_a_name_gets_its_own_layout(monkeypatch):
-    from calib_core import effects as effects_mod
-    names = sorted(disc.catalogue())
-    old = effects_mod._CATALOGUE["gyro_scale_asymmetry"]
-
-    class Doubled(old):
-        def regressors(self, ctx):
-            return 2.0 * super().regressors(ctx)
-
-    sessions = _unit(7)
-    disc._LAYOUT_CACHE.clear()
-    a = disc._UnitGrid.build(sessions, names)
-    monkeypatch.setitem(effects_mod._CATALOGUE, "gyro_scale_asymmetry", Doubled)
-    b = disc._UnitGrid.build(sessions, names)
-    assert len(disc._LAYOUT_CACHE) == 2
-    lo, hi = a.offset["gyro_scale_asymmetry"]
-    col = np.flatnonzero(a.colmap[0] == lo)  # gx's column of the first asymmetry parameter
-    assert col.size == 1
-    np.testing.assert_array_equal(b.M[0, ..., 3 + col[0]], 2.0 * a.M[0, ..., 3 + col[0]])

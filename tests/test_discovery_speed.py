@@ -14,8 +14,9 @@ import pytest
 
 from calib_core import protocols
 from calib_core import simulator as sim
-from calib_core.discovery import (REALISTIC_NOISE, _Discovery, _lstsq_cov, _lstsq_theta_stack,
-                                  diagnose_unit, get_effect, simulate_unit)
+from calib_core.discovery.turntable import (_Discovery, _lstsq_cov, _lstsq_theta_stack,
+                                            diagnose_unit, get_effect)
+from calib_core.simulator import REALISTIC_NOISE, simulate_unit
 from calib_core.effects import CHANNELS, MotionContext
 from calib_core.errors import DesignError
 from calib_core import replay

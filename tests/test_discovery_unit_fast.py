@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from calib_core import discovery as disc
+from calib_core.discovery import turntable as disc
 from calib_core.effects import CHANNELS
 from calib_core.replay import MIN_POOL_DOF
 from calib_core.results import to_jsonable

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effect_terms import skew
+from calib_core.effects import skew
 
 
 def test_skew_is_the_cross_product():

@@ -169,13 +169,13 @@ def _catalogue_truth(noise: bool):
     from dataclasses import replace
 
     from calib_core import simulator
-    from calib_core.effect_terms import LeverArmTerm
+    from calib_core.effects import get_effect
 
     r = np.array([[8.0, 0.5, -0.3], [0.2, 8.0, 0.1], [-0.4, 0.3, 8.0]])
     t = simulator.xu2016_truth()
     if not noise:
         t = replace(t, accel_noise_g=0.0, accel_bias_instability_g=0.0)
-    return t.with_effects((LeverArmTerm(), r.ravel())), r
+    return t.with_effects((get_effect("lever_arm"), r.ravel())), r
 
 
 def test_body_axis_projection_matches_catalogue_lever_term():

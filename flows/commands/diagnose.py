@@ -26,6 +26,9 @@ def register(sub) -> None:
     p.add_argument("--residuals", type=Path, default=None, metavar="FILE.parquet",
                    help="also write the replay residuals before/after (one table, column "
                         "'model') as Parquet")
+    p.add_argument("--min-gain", type=float, default=1.05,
+                   help="held-out gain a term must reach on the channels it fixes to be "
+                        "named (default 1.05)")
     p.add_argument("--alpha", type=float, default=0.01,
                    help="false-alarm rate per unit (default 0.01)")
     p.set_defaults(func=run)
@@ -49,21 +52,33 @@ def summary_lines(diag) -> list[str]:
     lines.append("noise of a step mean (repetition scatter): " + ", ".join(parts))
     lb = diag.lack_of_fit_before
     bad = [c for c, t in diag.channel_misfit_before.items() if t.rejects]
+    if not diag.misfit:
+        verdict = " -> fits to noise"
+    elif bad:
+        verdict = f" -> MISFIT on {', '.join(bad)}"
+    else:
+        verdict = " -> MISFIT (overall lack of fit; no single channel rejects)"
     lines.append(f"affine model: lack of fit F={lb.statistic:.3g} ({lb.dof1}, {lb.dof2}), "
-                 f"{_fmt_p(lb.p_value)}"
-                 + (f" -> MISFIT on {', '.join(bad)}" if diag.misfit else " -> fits to noise"))
+                 f"{_fmt_p(lb.p_value)}" + verdict)
     if diag.effects:
         lines.append("effects found:")
-    for e in diag.effects + diag.partial:
-        tag = "" if e in diag.effects else " (partial: leaves its channels misfit; not applied)"
+    tags = {"partial": " (partial: leaves its channels misfit; not applied)",
+            "negligible": f" (negligible: significant, but the unit fits without it or its "
+                          f"held-out gain is below {diag.min_gain:g}; not applied)"}
+    listed = ([(e, "") for e in diag.effects] + [(e, tags["partial"]) for e in diag.partial]
+              + [(e, tags["negligible"]) for e in diag.negligible])
+    for e, tag in listed:
         lines.append(f"  {e.name} on {','.join(e.axes) or '-'}{tag}")
         for n, v in e.estimate.items():
             se = e.stderr[n]
-            if se and se == se and abs(v) > 3 * se:
+            if v is not None and se and se == se and abs(v) > 3 * se:
                 lines.append(f"      {n} = {v:.4g} +/- {se:.2g} {e.units[n]}")
+        for n, why in e.undetermined.items():
+            lines.append(f"      {n}: undetermined ({why})")
         ev = e.evidence
+        on = f" on {','.join(e.channels)}" if e.channels else ""
         lines.append(f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
-                     f"{_fmt_p(ev.p_value)} (threshold {ev.threshold:.2g}); held-out rms "
+                     f"{_fmt_p(ev.p_value)} (threshold {ev.threshold:.2g}); held-out rms{on} "
                      f"{e.heldout_rms_before:.3g} -> {e.heldout_rms_after:.3g} sigma "
                      f"(gain {e.gain:.3g})")
     la = diag.lack_of_fit_after
@@ -94,6 +109,8 @@ def run(args) -> int:
         raise CliError(f"dataset {args.dataset} is not a directory")
     if not 0 < args.alpha < 1:
         raise CliError(f"--alpha must be between 0 and 1, got {args.alpha}")
+    if not args.min_gain >= 1:
+        raise CliError(f"--min-gain must be at least 1, got {args.min_gain}")
     refs, errors = find_sessions(args.dataset, unit=args.unit)
     for e in errors:
         print(f"skipped: {e}", file=sys.stderr)
@@ -113,7 +130,8 @@ def run(args) -> int:
         raise CliError(f"unit {args.unit}: {len(sessions)} readable repetition(s); model "
                        f"discovery needs at least 2 (the noise is estimated from their scatter)")
     try:
-        diag = diagnose_unit(sessions, alpha=args.alpha, tables=args.residuals is not None)
+        diag = diagnose_unit(sessions, alpha=args.alpha, tables=args.residuals is not None,
+                             min_gain=args.min_gain)
     except DesignError as exc:
         raise CliError(f"unit {args.unit}: {exc.reason}") from None
     print("\n".join(summary_lines(diag)))

@@ -83,9 +83,9 @@ def summary_lines(diag) -> list[str]:
         lines.append("effects found:")
     for e in diag.effects:
         ev = e.evidence
-        lines.append(f"  {e.name} ({e.block}) on {','.join(e.axes)}: F={ev['statistic']:.3g} "
-                     f"({ev['dof1']}, {ev['dof2']}), p={ev['p_value']:.2g} (threshold "
-                     f"{ev['threshold']:.2g}); held-out rms {e.heldout_rms_before:.3g} -> "
+        lines.append(f"  {e.name} ({e.block}) on {','.join(e.axes)}: F={ev.statistic:.3g} "
+                     f"({ev.dof1}, {ev.dof2}), p={ev.p_value:.2g} (threshold "
+                     f"{ev.threshold:.2g}); held-out rms {e.heldout_rms_before:.3g} -> "
                      f"{e.heldout_rms_after:.3g} (gain {e.gain:.3g})")
         for n, v in e.estimate.items():
             lines.append(f"      {n} = {v:.4g} +/- {e.stderr[n]:.2g} {e.units[n]}")
@@ -93,8 +93,8 @@ def summary_lines(diag) -> list[str]:
     for c in diag.candidates:
         if (c.name, c.block) not in tested:
             ev = c.evidence
-            lines.append(f"  not significant: {c.name} ({c.block}) F={ev['statistic']:.3g} "
-                         f"({ev['dof1']}, {ev['dof2']}), p={ev['p_value']:.2g}; held-out gain "
+            lines.append(f"  not significant: {c.name} ({c.block}) F={ev.statistic:.3g} "
+                         f"({ev.dof1}, {ev.dof2}), p={ev.p_value:.2g}; held-out gain "
                          f"{c.gain:.3g}")
     for nt in diag.not_testable:
         lines.append(f"  not testable: {nt['name']}" + (f" ({nt['block']})" if "block" in nt else "")
@@ -102,7 +102,7 @@ def summary_lines(diag) -> list[str]:
     for c in diag.baseline_checks:
         ev = c.evidence
         lines.append(f"  baseline term {c.name} ({c.block}), tested against dropping it: "
-                     f"F={ev['statistic']:.3g} ({ev['dof1']}, {ev['dof2']}), p={ev['p_value']:.2g}; "
+                     f"F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), p={ev.p_value:.2g}; "
                      f"held-out rms {c.heldout_rms_before:.3g} -> {c.heldout_rms_after:.3g} "
                      f"(gain {c.gain:.3g})")
     if not diag.effects:
@@ -117,7 +117,7 @@ def summary_lines(diag) -> list[str]:
 def run(args) -> int:
     import pandas as pd
 
-    from calib_core.discovery_static import diagnose_static
+    from calib_core.discovery import diagnose_static
     from calib_core.errors import DesignError
     from schemas.calibration_file import load_calibration, write_json_atomic
     from schemas.errors import SessionError

@@ -51,14 +51,14 @@ import pandas as pd
 from scipy import special, stats
 
 from calib_core.calibration import Calibration, TermValue
-from calib_core.effects import CHANNELS, MotionContext, catalogue, get_effect
+from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
 from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, replay_unit,
                                test_group, two_way_residual)
+from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, EffectFinding, FTest,
+                                          f_test, jsonable)
+from calib_core.discovery.selection import stepwise
 from calib_core.steps import StepMeans
-from calib_core.results import to_jsonable
-
-DEFAULT_ALPHA = 0.01
 _RCOND = 1e-10
 
 
@@ -93,9 +93,13 @@ class _UnitGrid:
     colmap: np.ndarray  # (6, k - 4) global term column of M's term columns (P + 1: padding)
 
     @classmethod
-    def build(cls, sessions: list[StepMeans], names: list[str]) -> "_UnitGrid":
-        lay = _layout(sessions, names)
-        R, n = lay.M.shape[1:3]
+    def build(cls, sessions: list[StepMeans], names: list[str],
+              geometry: SensingGeometry | None = None,
+              dropped: frozenset[int] = frozenset()) -> "_UnitGrid":
+        """The unit's grid with the terms' columns through ``geometry`` (default: the
+        nominal one); ``dropped`` term columns (undetermined parameters) are left at 0."""
+        lay = _layout(sessions)
+        R, n = lay.real.shape
         raw = np.zeros((R, n, 6, 3))
         std = np.zeros((R, n, 6, 3))
         count = np.ones((R, n))
@@ -104,11 +108,10 @@ class _UnitGrid:
             raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
             std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
             count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
-        M = lay.M.copy()  # the layout's term and reference columns, then this unit's raw
+        offset, live, live_mask, M, colmap = _term_design(lay, names, geometry, dropped)
         M[..., :3] = np.moveaxis(raw, 2, 0)
         return cls(R, n, lay.real, lay.step, lay.gcode, list(lay.groups), lay.y, raw, std,
-                   count, list(names), dict(lay.offset), list(lay.live), lay.live_mask,
-                   lay.balanced, M, lay.colmap)
+                   count, list(names), offset, live, live_mask, lay.balanced, M, colmap)
 
     @property
     def P(self) -> int:
@@ -181,42 +184,35 @@ class _UnitGrid:
 
 @dataclass(frozen=True)
 class _Layout:
-    """What a unit's grid takes from its protocol alone (steps, tests, references, motion,
-    catalogue), not from the unit's outputs: the same for every unit measured with that
-    protocol. Arrays are read-only (shared by those units)."""
+    """What a unit's grid takes from its protocol alone (steps, tests, references, motion),
+    not from the unit's outputs: the same for every unit measured with that protocol. Arrays
+    are read-only (shared by those units)."""
 
-    real: np.ndarray
+    real: np.ndarray  # (R, n)
     step: np.ndarray
     gcode: np.ndarray
     groups: list[str]
-    y: np.ndarray
-    offset: dict[str, tuple[int, int]]
-    live: list[np.ndarray]
-    live_mask: np.ndarray
+    y: np.ndarray  # (R, n, 6)
     balanced: bool
-    M: np.ndarray  # (6, R, n, k): term and reference columns, raw columns 0 (copy, fill)
-    colmap: np.ndarray
+    ctx: list[MotionContext]  # per repetition
 
 
 _LAYOUT_CACHE: dict[tuple, _Layout] = {}
 _LAYOUT_CACHE_MAX = 16
 
 
-def _layout(sessions: list[StepMeans], names: list[str]) -> _Layout:
+def _layout(sessions: list[StepMeans]) -> _Layout:
     """The grid's layout of these repetitions, remembered by the bytes of everything it is
-    built from (a protocol's units share one; a unit whose steps differ misses) and the
-    catalogue's term classes (a name registered anew is another term)."""
-    terms = catalogue()
-    key = (tuple(names), tuple(terms[nm] for nm in names)) + tuple(
+    built from (a protocol's units share one; a unit whose steps differ misses)."""
+    key = tuple(
         (len(sm), sm.step.astype(np.int64).tobytes(), _test_names(sm).tobytes(),
          np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
          np.asarray(sm.temp_c, float).tobytes(), np.asarray(sm.t_mid, float).tobytes(),
          float(sm.g_local)) for sm in sessions)
     lay = _LAYOUT_CACHE.get(key)
     if lay is None:
-        lay = _build_layout(sessions, names)
-        for a in (lay.real, lay.step, lay.gcode, lay.y, lay.live_mask, lay.M, lay.colmap,
-                  *lay.live):
+        lay = _build_layout(sessions)
+        for a in (lay.real, lay.step, lay.gcode, lay.y):
             a.setflags(write=False)
         if len(_LAYOUT_CACHE) >= _LAYOUT_CACHE_MAX:
             _LAYOUT_CACHE.clear()
@@ -228,70 +224,64 @@ def _test_names(sm: StepMeans) -> np.ndarray:
     return np.asarray(sm.test).astype(str)
 
 
-def _build_layout(sessions: list[StepMeans], names: list[str]) -> _Layout:
+def _build_layout(sessions: list[StepMeans]) -> _Layout:
     R = len(sessions)
     lens = [len(sm) for sm in sessions]
     n = max(lens)
-    terms = [get_effect(nm) for nm in names]
-    offset, off = {}, 0
-    for nm, t in zip(names, terms):
-        offset[nm] = (off, off + t.n_params)
-        off += t.n_params
-    P = off
     real = np.zeros((R, n), bool)
     step = np.full((R, n), -1, np.int64)
     y = np.zeros((R, n, 6))
-    Zs, live_mask, tests = [], np.zeros((6, P), bool), []
+    tests, ctxs = [], []
     for r, sm in enumerate(sessions):
         m = len(sm)
         real[r, :m] = True
         step[r, :m] = sm.step.astype(np.int64)
         y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
-        ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
-                                      g_local=sm.g_local)
-        Zr, live_r = _design_columns(terms, ctx)
-        Zs.append(Zr)
-        live_mask |= live_r
+        ctxs.append(MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
+                                            g_local=sm.g_local))
         tests.append(np.unique(_test_names(sm), return_inverse=True))
     # test groups: mapped per distinct test name, not per step
     groups = sorted({test_group(t) for u, _ in tests for t in u})
     gcode = np.full((R, n), -1, np.int64)
     for r, (u, inv) in enumerate(tests):
         gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
-    live = [np.flatnonzero(m) for m in live_mask]
     balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
                 and all(np.array_equal(gcode[0], g) for g in gcode)
                 and len(np.unique(step[0])) == n)
+    return _Layout(real, step, gcode, groups, y, balanced, ctxs)
+
+
+def _term_design(lay: _Layout, names: list[str], geometry: SensingGeometry | None,
+                 dropped: frozenset[int]):
+    """The terms' columns of one unit: every term's regressors through the unit's sensing
+    geometry, per channel only the columns not identically 0 on it (``live``), laid out as
+    M (6, R, n, k) = [raw (filled by the caller) | live term columns | 0 | y]."""
+    terms = [get_effect(nm) for nm in names]
+    offset, off = {}, 0
+    for nm, t in zip(names, terms):
+        offset[nm] = (off, off + t.n_params)
+        off += t.n_params
+    P = off
+    R, n = lay.real.shape
+    Zs, live_mask = [], np.zeros((6, P), bool)
+    for ctx in lay.ctx:
+        # minus the regressors: ref = K raw + b - E theta
+        Z = -np.concatenate([t.regressors(ctx, geometry) for t in terms], axis=-1)
+        if dropped:
+            Z[..., sorted(dropped)] = 0.0
+        Zs.append(Z)
+        live_mask |= np.abs(Z).sum(axis=0) > 0
+    live = [np.flatnonzero(m) for m in live_mask]
     k = 3 + max(len(L) for L in live) + 1
     M = np.zeros((6, R, n, k))
     colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
-    M[..., -1] = np.moveaxis(y, 2, 0)
+    M[..., -1] = np.moveaxis(lay.y, 2, 0)
     for c in range(6):
         L = live[c]
         colmap[c, :len(L)] = L
-        for r, Zr in enumerate(Zs):
-            M[c, r, :lens[r], 3:3 + len(L)] = Zr[:, c, L]
-    return _Layout(real, step, gcode, groups, y, offset, live, live_mask, balanced, M, colmap)
-
-
-_DESIGN_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-_DESIGN_CACHE_MAX = 64
-
-
-def _design_columns(terms: list, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
-    """Design columns of every term, (n, 6, P) (minus the regressors: ref = ... - E theta),
-    and which are not identically 0 per channel, (6, P). Remembered by the bytes of the
-    motion: the units of one protocol share it (a miss where temperature or time differ)."""
-    key = (tuple(type(t) for t in terms), ctx.g_local, ctx.w.tobytes(), ctx.f.tobytes(),
-           ctx.dwdt.tobytes(), ctx.temp_c.tobytes(), ctx.t.tobytes())
-    out = _DESIGN_CACHE.get(key)
-    if out is None:
-        Z = -np.concatenate([np.asarray(t.regressors(ctx), float) for t in terms], axis=-1)
-        out = (Z, np.abs(Z).sum(axis=0) > 0)
-        if len(_DESIGN_CACHE) >= _DESIGN_CACHE_MAX:
-            _DESIGN_CACHE.clear()
-        _DESIGN_CACHE[key] = out
-    return out
+        for r, Z in enumerate(Zs):
+            M[c, r, :len(Z), 3:3 + len(L)] = Z[:, c, L]
+    return offset, live, live_mask, M, colmap
 
 
 def _qr_r(X: np.ndarray) -> np.ndarray:
@@ -443,56 +433,6 @@ def _surely_full_rank(D: np.ndarray) -> bool:
 
 
 # -- results --------------------------------------------------------------------------
-@dataclass(frozen=True)
-class FTest:
-    statistic: float
-    dof1: int
-    dof2: int
-    p_value: float
-    threshold: float
-
-    @property
-    def rejects(self) -> bool:
-        return bool(self.p_value < self.threshold)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"test": "F", "statistic": self.statistic, "dof1": self.dof1, "dof2": self.dof2,
-                "p_value": self.p_value, "threshold": self.threshold}
-
-
-def _f_test(ss_num: float, dof_num: int, ss_den: float, dof_den: int, threshold: float) -> FTest:
-    if dof_num <= 0 or dof_den <= 0 or ss_den <= 0:
-        return FTest(float("nan"), int(dof_num), int(dof_den), 1.0, threshold)
-    F = (max(ss_num, 0.0) / dof_num) / (ss_den / dof_den)
-    # special.fdtrc is what stats.f.sf evaluates, without its argument checking overhead
-    return FTest(float(F), int(dof_num), int(dof_den), float(special.fdtrc(dof_num, dof_den, F)),
-                 threshold)
-
-
-@dataclass(frozen=True)
-class EffectFinding:
-    """One chosen (or partial) catalogue term with its evidence and held-out gain."""
-
-    name: str
-    axes: tuple[str, ...]
-    estimate: dict[str, float]
-    stderr: dict[str, float]
-    units: dict[str, str]
-    evidence: FTest
-    heldout_rms_before: float
-    heldout_rms_after: float
-
-    @property
-    def gain(self) -> float:
-        return self.heldout_rms_before / self.heldout_rms_after
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "axes": list(self.axes), "estimate": self.estimate,
-                "stderr": self.stderr, "units": self.units, "evidence": self.evidence.to_dict(),
-                "heldout_rms_before": self.heldout_rms_before,
-                "heldout_rms_after": self.heldout_rms_after, "gain": self.gain}
-
-
 @dataclass
 class Diagnosis:
     """What :func:`diagnose_unit` found for one unit."""
@@ -505,6 +445,8 @@ class Diagnosis:
     unexplained: bool
     effects: list[EffectFinding]
     partial: list[EffectFinding]  # significant but leave their channels misfit: not chosen
+    negligible: list[EffectFinding]  # significant, but the unit fits without them or their
+    # held-out gain is below min_gain: not applied
     terms: tuple[TermValue, ...]
     lack_of_fit_before: FTest
     lack_of_fit_after: FTest
@@ -517,6 +459,9 @@ class Diagnosis:
     residuals_after: pd.DataFrame = field(repr=False)
     heldout_rms_baseline: float = float("nan")  # all channels, affine model
     heldout_rms_final: float = float("nan")  # all channels, chosen model
+    min_gain: float = DEFAULT_MIN_GAIN
+    # largest change of a sensing direction (rad) at each re-linearisation of the geometry
+    relinearisations: list[float] = field(default_factory=list)
 
     @property
     def calibration(self) -> Calibration:
@@ -527,11 +472,14 @@ class Diagnosis:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers become None)."""
-        return _jsonable({
+        return jsonable({
             "unit": self.unit, "lot": self.lot, "n_reps": self.n_reps, "alpha": self.alpha,
             "misfit": self.misfit, "unexplained": self.unexplained,
             "effects": [e.to_dict() for e in self.effects],
             "partial": [e.to_dict() for e in self.partial],
+            "negligible": [e.to_dict() for e in self.negligible],
+            "min_gain": self.min_gain,
+            "relinearisations": list(self.relinearisations),
             "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
             "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
             "misfit_channels_before": [c for c, t in self.channel_misfit_before.items()
@@ -544,17 +492,15 @@ class Diagnosis:
         })
 
 
-_jsonable = to_jsonable  # one JSON conversion for the whole project
-
-
 # -- the procedure ----------------------------------------------------------------------
 class _Discovery:
     def __init__(self, sessions: list[StepMeans], alpha: float,
+                 geometry: SensingGeometry | None = None,
                  noise_model: tuple[np.ndarray, np.ndarray] | None = None,
-                 grid: "_UnitGrid | None" = None):
-        """``noise_model`` = (K rows (6, 3), physical residual (R, n, 6) on the grid) of the
-        model whose residuals estimate the noise; default: the affine model. ``grid``: the
-        same sessions already laid out (a second pass over the unit reuses it)."""
+                 min_gain: float = DEFAULT_MIN_GAIN):
+        """``geometry``: the sensing geometry the terms act through (default: that of the
+        affine fit's K). ``noise_model`` = (K rows (6, 3), physical residual (R, n, 6) on the
+        grid) of the model whose residuals estimate the noise; default: the affine model."""
         if len(sessions) < 2:
             raise DesignError("E_DISCOVERY_REPS",
                               "model discovery needs at least 2 repetitions of the unit: the "
@@ -564,20 +510,61 @@ class _Discovery:
             raise ValueError(f"sessions of several units: {sorted(units)}")
         self.sessions = sorted(sessions, key=lambda s: s.key.rep)
         self.alpha = alpha
+        self.min_gain = float(min_gain)
         self.names = sorted(catalogue())
-        self.g = grid if grid is not None else _UnitGrid.build(self.sessions, self.names)
+        self.g = _UnitGrid.build(self.sessions, self.names, geometry)
         if noise_model is None:
             # affine fit weighted by within-step scatter only, to get K and residuals
             white = self.g.white_sigma(np.tile(np.eye(3), (2, 1)))
             w0 = np.where(self.g.real[..., None], 1.0 / np.maximum(white, 1e-300), 0.0)
             noise_model = self._affine_fit(w0)
+        if geometry is None:  # the terms act through the affine fit's sensing geometry
+            K = noise_model[0]
+            geometry = SensingGeometry.from_gains(K[:3], K[3:])
+            self.g = _UnitGrid.build(self.sessions, self.names, geometry)
+        self.geometry = geometry
         # noise from the data: within-step scatter through K + repetition scatter
         self._noise_rows, self.sigma = self._noise(*noise_model)
         self.weight = np.where(self.g.real[..., None], 1.0 / self.sigma, 0.0)
         self._factorise()
+        self.undetermined = self._undetermined()
+        if self.undetermined:  # fitted as 0: rebuild the terms' columns without them
+            dropped = frozenset(self.undetermined)
+            self.g = _UnitGrid.build(self.sessions, self.names, geometry, dropped)
+            self._factorise()
         self._fits: dict[tuple, _FitResult] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
         self._tests: dict[tuple, Any] = {}  # lack-of-fit tests by (kind, terms, threshold)
+
+    def _undetermined(self) -> dict[int, str]:
+        """Term columns (global) the steps cannot determine, with the reason: no step
+        excites the parameter, or its standard error with the term alone on the base model
+        exceeds the term's ``max_useful_stderr`` (the protocol cannot tell a realistic value
+        from 0)."""
+        g, P = self.g, self.g.P
+        out: dict[int, str] = {}
+        Rg = self.Rg[0][:P, :P]
+        for name in self.names:
+            a, b = g.offset[name]
+            term = get_effect(name)
+            live = g.live_mask[:, a:b].any(axis=0)
+            for k in np.flatnonzero(~live):
+                out[a + int(k)] = "no step excites it"
+            cols = a + np.flatnonzero(live)
+            if not cols.size:
+                continue
+            _, _, sol = _lstsq(Rg[:, cols], np.zeros(P))
+            se = np.sqrt(np.diag(sol.cov))
+            for k, v in zip(cols, se):
+                if not np.isfinite(v):
+                    out[int(k)] = ("not separable from the base model and the term's other "
+                                   "parameters on these steps")
+                elif v > term.max_useful_stderr:
+                    unit = term.param_units[int(k) - a]
+                    out[int(k)] = (f"standard error {v:.3g} {unit} on these steps exceeds "
+                                   f"{term.max_useful_stderr:g} {unit}: too weakly excited "
+                                   f"({term.excited_by})")
+        return out
 
     # -- set-up ---------------------------------------------------------------------------
     def _affine_fit(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -799,7 +786,7 @@ class _Discovery:
         dof_res = 6 * self.rows_channel - sum(self.base_rank) - f.rank
         ps, pd_ = self.pure(names)
         pss, pdof = ps.sum(), int(pd_.sum())
-        return _f_test(f.ss - pss, dof_res - pdof, pss, pdof, threshold)
+        return f_test(f.ss - pss, dof_res - pdof, pss, pdof, threshold)
 
     def channel_lack_of_fit(self, names: tuple[str, ...], threshold: float) -> dict[str, FTest]:
         key = ("channel", tuple(sorted(names)), threshold)
@@ -816,7 +803,7 @@ class _Discovery:
         for c in range(6):
             n_params = int(self.g.live_mask[c, cols].sum())
             dof_res = self.rows_channel - self.base_rank[c] - min(n_params, f.rank)
-            out[CHANNELS[c]] = _f_test(float(f.ss_channel[c]) - ps[c], dof_res - int(pd_[c]),
+            out[CHANNELS[c]] = f_test(float(f.ss_channel[c]) - ps[c], dof_res - int(pd_[c]),
                                        ps[c], int(pd_[c]), threshold)
         return out
 
@@ -824,7 +811,7 @@ class _Discovery:
         a, b = self.fit(current), self.fit(tuple(current) + (name,))
         ps, pd_ = self.pure(tuple(current) + (name,))
         pss, pdof = ps.sum(), int(pd_.sum())
-        return _f_test(a.ss - b.ss, b.rank - a.rank, pss, pdof, threshold)
+        return f_test(a.ss - b.ss, b.rank - a.rank, pss, pdof, threshold)
 
     def channels_of(self, name: str) -> tuple[int, ...]:
         a, b = self.g.offset[name]
@@ -833,62 +820,66 @@ class _Discovery:
     def column_channels(self, col: int) -> list[int]:
         return [int(c) for c in np.flatnonzero(self.g.live_mask[:, col])]
 
+    def sensor_channels(self, name: str) -> tuple[int, ...]:
+        """The channels of the sensors the term's parameters act on (a term reaches the
+        other channels of its triad only through misalignment)."""
+        a, b = self.g.offset[name]
+        live = self.g.live_mask[:, a:b].any(axis=0)
+        return tuple(sorted({int(c) for c in get_effect(name).param_sensor()[live]}))
+
     # selection
-    def select(self) -> tuple[list[str], list[str]]:
-        chosen: list[str] = []
-        while True:
-            cands = [n for n in self.names if n not in chosen]
-            if not cands:
-                break
-            thr = self.alpha / len(cands)
-            best, best_score = None, None
-            for n in cands:
-                t = self.term_test(tuple(chosen), n, thr)
-                if not t.rejects:
-                    continue
-                ch = self.channels_of(n)
-                before = self.heldout_rms(tuple(chosen), ch)
-                if self.heldout_rms(tuple(chosen) + (n,), ch) >= before:
-                    continue
-                # most significant first; p underflows for strong effects: then the larger
-                # explained sum of squares wins
-                score = (float(stats.f.logsf(t.statistic, t.dof1, t.dof2)),
-                         -t.statistic * t.dof1)
-                if best is None or score < best_score:
-                    best, best_score = n, score
-            if best is None:
-                break
-            chosen.append(best)
-        # backward pass: drop terms no longer significant given the others
-        changed = True
-        while changed and len(chosen) > 1:
-            changed = False
-            thr = self.alpha / len(self.names)
-            worst, worst_p = None, -1.0
-            for n in chosen:
-                rest = tuple(x for x in chosen if x != n)
-                t = self.term_test(rest, n, thr)
-                if not t.rejects and t.p_value > worst_p:
-                    worst, worst_p = n, t.p_value
-            if worst is not None:
-                chosen.remove(worst)
-                changed = True
-        # a chosen term must fix a channel it acts on that misfit at baseline
-        before = self.channel_lack_of_fit((), self.alpha / 6)
+    def select(self) -> tuple[list[str], list[str], list[str]]:
+        """(chosen, partial, negligible): stepwise selection (:func:`stepwise`), then each
+        chosen term must matter (:meth:`_verdict`); the worst that does not is set aside and
+        the rest judged again."""
+        def improves(current: tuple[str, ...], n: str) -> bool:
+            ch = self.channels_of(n)
+            return self.heldout_rms(current + (n,), ch) < self.heldout_rms(current, ch)
+
+        chosen = stepwise(self.names, self.term_test, improves, self.alpha)
         partial: list[str] = []
-        while True:
-            after = self.channel_lack_of_fit(tuple(chosen), self.alpha / 6)
-            drop = None
-            for n in chosen:
-                bad = [CHANNELS[c] for c in self.channels_of(n) if before[CHANNELS[c]].rejects]
-                if bad and all(after[c].rejects for c in bad):
-                    drop = n
-                    break
-            if drop is None:
+        negligible: list[str] = []
+        while chosen:
+            verdicts = {n: self._verdict(chosen, n) for n in chosen}
+            failing = [(kind != "partial", gain, n) for n, (kind, gain, _) in verdicts.items()
+                       if kind != "named"]
+            if not failing:
                 break
-            chosen.remove(drop)
-            partial.append(drop)
-        return chosen, partial
+            is_negligible, _, worst = min(failing)
+            chosen.remove(worst)
+            (negligible if is_negligible else partial).append(worst)
+        return chosen, partial, negligible
+
+    def misfit_channels(self) -> list[int]:
+        """Channels whose lack of fit rejects at baseline (alpha / 6 each)."""
+        before = self.channel_lack_of_fit((), self.alpha / 6)
+        return [c for c in range(6) if before[CHANNELS[c]].rejects]
+
+    def unit_misfits(self) -> bool:
+        return bool(self.lack_of_fit((), self.alpha).rejects or self.misfit_channels())
+
+    def _verdict(self, chosen: list[str], name: str) -> tuple[str, float, tuple[int, ...]]:
+        """("named" | "partial" | "negligible", held-out gain, channels it fixes). Named:
+        the unit misfits, the term fixes a channel of its sensors that misfit at baseline
+        (misfit without it, given the other chosen terms, and not with it) and its held-out
+        gain on the channels it fixes is at least ``min_gain``. Partial: it acts on misfit
+        channels and leaves them all misfit (it soaks up part of something else)."""
+        if not self.unit_misfits():
+            return "negligible", 1.0, ()
+        bad = [c for c in self.sensor_channels(name) if c in self.misfit_channels()]
+        if not bad:
+            return "negligible", 1.0, ()
+        others = tuple(x for x in chosen if x != name)
+        without = self.channel_lack_of_fit(others, self.alpha / 6)
+        with_ = self.channel_lack_of_fit(tuple(chosen), self.alpha / 6)
+        fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects
+                      and not with_[CHANNELS[c]].rejects)
+        if not fixed:
+            if all(with_[CHANNELS[c]].rejects for c in bad):
+                return "partial", 1.0, ()
+            return "negligible", 1.0, ()
+        gain = self.heldout_rms(others, fixed) / self.heldout_rms(tuple(chosen), fixed)
+        return ("named" if gain >= self.min_gain else "negligible"), gain, fixed
 
     def finding(self, chosen: list[str], name: str, threshold: float) -> EffectFinding:
         others = tuple(x for x in chosen if x != name)
@@ -900,24 +891,31 @@ class _Discovery:
         p = term.n_params
         theta = f.theta[off:off + p]
         se = np.sqrt(np.diag(f.cov)[off:off + p] * self._scale(full))
-        ch = self.channels_of(name)
+        a = self.g.offset[name][0]
+        undet = {term.param_names[k - a]: why for k, why in self.undetermined.items()
+                 if a <= k < a + p}
+        _, _, fixed = self._verdict(list(full), name)
+        ch = fixed or self.sensor_channels(name) or self.channels_of(name)
         t = np.abs(theta) / np.where(np.isfinite(se) & (se > 0), se, np.inf)
         crit = stats.norm.isf(self.alpha / (2 * p))
         sig = np.flatnonzero(t > crit)
-        if sig.size == 0 and np.isfinite(t).any():
+        if sig.size == 0 and np.isfinite(t).any() and np.nanmax(t) > 0:
             sig = np.array([int(np.nanargmax(t))])
-        axes = set()
-        for k in sig:
-            for c in self.column_channels(self.g.offset[name][0] + int(k)):
-                axes.add(CHANNELS[c][1])
+        sensor = term.param_sensor()
+        axes = {CHANNELS[int(sensor[k])][1] for k in sig}
+
+        def number(n: str, v: float) -> float | None:
+            return None if n in undet or not np.isfinite(v) else float(v)
+
         return EffectFinding(
             name=name, axes=tuple(sorted(axes)),
-            estimate={n: float(v) for n, v in zip(term.param_names, theta)},
-            stderr={n: float(v) for n, v in zip(term.param_names, se)},
+            estimate={n: number(n, v) for n, v in zip(term.param_names, theta)},
+            stderr={n: number(n, v) for n, v in zip(term.param_names, se)},
             units=dict(zip(term.param_names, term.param_units)),
             evidence=self.term_test(others, name, threshold),
             heldout_rms_before=self.heldout_rms(others, ch),
-            heldout_rms_after=self.heldout_rms(full, ch))
+            heldout_rms_after=self.heldout_rms(full, ch),
+            channels=tuple(CHANNELS[c] for c in ch), undetermined=undet)
 
     def _scale(self, names: tuple[str, ...]) -> float:
         """Variance factor of the weighted residual: the pure-error mean square."""
@@ -932,7 +930,13 @@ class _Discovery:
         for n in names_sorted:
             p = get_effect(n).n_params
             se = np.sqrt(np.diag(f.cov)[off:off + p] * scale)
-            terms.append(TermValue(n, f.theta[off:off + p].copy(), se))
+            a = self.g.offset[n][0]
+            names_p = get_effect(n).param_names
+            undet = {names_p[k - a]: why for k, why in self.undetermined.items()
+                     if a <= k < a + p}
+            theta = f.theta[off:off + p].copy()
+            theta[~np.isfinite(theta)] = 0.0
+            terms.append(TermValue(n, theta, se, undet))
             off += p
         b = self.biases(f)
         out = []
@@ -962,34 +966,52 @@ def _single_thread_blas():
     return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
 
 
+# re-linearisation of the bilinear model (K and the terms' geometry): stop when no sensing
+# direction moves by more than this (rad; 1e-6 x 4 g of lever-arm acceleration is 0.004 mg,
+# far below the 0.1 mg noise of a step mean), the chosen terms are the same and the noise
+# estimate moved by less than 3 %; at most MAX_RELINEARISATIONS passes after the first
+GEOMETRY_TOL = 1e-6
+MAX_RELINEARISATIONS = 4
+
+
 def diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float = DEFAULT_ALPHA,
-                  tables: bool = True) -> Diagnosis:
+                  tables: bool = True, min_gain: float = DEFAULT_MIN_GAIN) -> Diagnosis:
     """Diagnose one unit from its repetitions (see the module docstring for the tests).
 
-    ``alpha`` is the family-wise false-alarm rate per unit; ``tables=False`` skips the
+    ``alpha`` is the family-wise false-alarm rate per unit; ``min_gain`` the held-out gain a
+    term must reach on the channels it fixes to be named; ``tables=False`` skips the
     replayed residual tables (Monte Carlo speed)."""
     with _single_thread_blas():
-        return _diagnose_unit(step_means_by_rep, alpha, tables)
+        return _diagnose_unit(step_means_by_rep, alpha, tables, min_gain)
 
 
-def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: bool
-                   ) -> Diagnosis:
-    d = _Discovery(step_means_by_rep, alpha)
-    chosen, partial = d.select()
-    if chosen:
-        # the affine model's K is distorted by the effects it misses, and the noise reaches
-        # the residual through K: estimate the noise again with the chosen model and, if it
-        # moved (more than 3 % on some channel and test group), select again with it
-        d2 = _Discovery(step_means_by_rep, alpha, noise_model=d.noise_model(tuple(chosen)),
-                        grid=d.g)
-        if np.max(np.abs(np.log(d2.sigma / d.sigma))) > np.log(1.03):
-            d = d2
-            chosen, partial = d.select()
+def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: bool,
+                   min_gain: float) -> Diagnosis:
+    d = _Discovery(step_means_by_rep, alpha, min_gain=min_gain)
+    chosen, partial, negligible = d.select()
+    moves: list[float] = []
+    while chosen and len(moves) < MAX_RELINEARISATIONS:
+        # the model is bilinear: the terms act through the geometry of K, and the affine
+        # model's K is distorted by the effects it misses (and the noise reaches the
+        # residual through K). Re-linearise around the chosen model and select again.
+        K = d.fit(tuple(chosen)).K
+        geometry = SensingGeometry.from_gains(K[:3], K[3:])
+        moves.append(geometry.distance(d.geometry))
+        d2 = _Discovery(step_means_by_rep, alpha, geometry=geometry,
+                        noise_model=d.noise_model(tuple(chosen)), min_gain=min_gain)
+        noise_moved = float(np.max(np.abs(np.log(d2.sigma / d.sigma))))
+        before = sorted(chosen)
+        d = d2
+        chosen, partial, negligible = d.select()
+        if moves[-1] < GEOMETRY_TOL and sorted(chosen) == before and noise_moved < np.log(1.03):
+            break
     lof_before = d.lack_of_fit((), alpha)
     chosen_t = tuple(chosen)
     lof_after = d.lack_of_fit(chosen_t, alpha)
-    effects = [d.finding(chosen, n, alpha / len(d.names)) for n in chosen]
-    partial_f = [d.finding(chosen + [n], n, alpha / len(d.names)) for n in partial]
+    thr = alpha / len(d.names)
+    effects = [d.finding(chosen, n, thr) for n in chosen]
+    partial_f = [d.finding(chosen + [n], n, thr) for n in partial]
+    negligible_f = [d.finding(chosen + [n], n, thr) for n in negligible]
     cal_before = d.calibrations(())
     cal_after = d.calibrations(chosen_t)
     if tables:
@@ -998,91 +1020,17 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     else:
         res_before = res_after = pd.DataFrame()
     sm0 = d.sessions[0]
+    ch_before = d.channel_lack_of_fit((), alpha / 6)
+    ch_after = d.channel_lack_of_fit(chosen_t, alpha / 6)
     return Diagnosis(
         lot=sm0.key.lot, unit=sm0.key.unit, n_reps=len(d.sessions), alpha=alpha,
-        misfit=bool(lof_before.rejects or chosen or partial),
-        unexplained=bool(lof_after.rejects or partial),
-        effects=effects, partial=partial_f, terms=cal_after[0].terms,
+        misfit=bool(d.unit_misfits() or chosen or partial),
+        unexplained=bool(lof_after.rejects or partial
+                         or any(t.rejects for t in ch_after.values())),
+        effects=effects, partial=partial_f, negligible=negligible_f, terms=cal_after[0].terms,
         lack_of_fit_before=lof_before, lack_of_fit_after=lof_after,
-        channel_misfit_before=d.channel_lack_of_fit((), alpha / 6),
-        channel_misfit_after=d.channel_lack_of_fit(chosen_t, alpha / 6),
+        channel_misfit_before=ch_before, channel_misfit_after=ch_after,
         noise=d.noise, calibrations_before=cal_before, calibrations_after=cal_after,
         residuals_before=res_before, residuals_after=res_after,
-        heldout_rms_baseline=d.heldout_rms(()), heldout_rms_final=d.heldout_rms(chosen_t))
-
-
-# -- simulated units for validation (tests, docs) ---------------------------------------
-# Noise of a MEMS unit as the validation lots use it: white noise per sample, bias
-# instability between steps (3x the white noise of a 2.5 s step mean), turn-on repeatability.
-REALISTIC_NOISE = dict(
-    gyro_noise_dps=0.05, gyro_bias_instability_dps=0.01, gyro_bias_repeatability_dps=0.05,
-    accel_noise_g=1e-3, accel_bias_instability_g=1e-4, accel_bias_repeatability_g=1e-3)
-
-# Realistic size of each built-in effect (nominal magnitude; scale multiplies it). Only the
-# simulator uses this table: selection never looks at effect names.
-_FULL_SCALE = np.array([300.0, 300.0, 3600.0])
-
-
-def hidden_effect(name: str, rng: np.random.Generator, scale: float = 1.0
-                  ) -> tuple[np.ndarray, str]:
-    """Parameters of a built-in effect at realistic magnitude on random axes, and a
-    description. Magnitudes (scale=1):
-
-    - lever_arm: one accelerometer, position 2-8 mm from the rotation centre, random direction;
-    - gyro_scale_nonlinearity: one gyro axis, quadratic and cubic parts each 0.02-0.06 %
-      of full scale at full scale (MEMS datasheets: 0.1 % FS), random signs;
-    - gyro_scale_asymmetry: one gyro axis, 300-1000 ppm;
-    - gyro_g_sensitivity: 1-3 random entries of G, 0.01-0.05 deg/s per g;
-    - accel_scale_nonlinearity: one axis, 0.3-1 mg/g^2;
-    - thermal_bias_drift: one channel, gyro 0.005-0.02 deg/s/degC or accel 0.05-0.2 mg/degC
-      (needs a temperature profile in the truth).
-    """
-    sign = lambda: rng.choice([-1.0, 1.0])  # noqa: E731
-    term = get_effect(name)
-    theta = np.zeros(term.n_params)
-    if name == "lever_arm":
-        i = rng.integers(3)
-        v = rng.normal(size=3)
-        theta[3 * i:3 * i + 3] = v / np.linalg.norm(v) * rng.uniform(2, 8)
-        what = f"accelerometer {'xyz'[i]}"
-    elif name == "gyro_scale_nonlinearity":
-        i = rng.integers(3)
-        fs = _FULL_SCALE[i]
-        u = fs / 1000.0
-        theta[i] = sign() * rng.uniform(2e-4, 6e-4) * fs / u ** 2
-        theta[3 + i] = sign() * rng.uniform(2e-4, 6e-4) * fs / u ** 3
-        what = f"gyro {'xyz'[i]}"
-    elif name == "gyro_scale_asymmetry":
-        i = rng.integers(3)
-        theta[i] = sign() * rng.uniform(300, 1000)
-        what = f"gyro {'xyz'[i]}"
-    elif name == "gyro_g_sensitivity":
-        k = rng.choice(9, size=rng.integers(1, 4), replace=False)
-        theta[k] = [sign() * rng.uniform(0.01, 0.05) for _ in k]
-        what = "G" + ",".join(term.param_names[j][1:] for j in k)
-    elif name == "accel_scale_nonlinearity":
-        i = rng.integers(3)
-        theta[i] = sign() * rng.uniform(0.3, 1.0)
-        what = f"accelerometer {'xyz'[i]}"
-    elif name == "thermal_bias_drift":
-        c = rng.integers(6)
-        theta[c] = sign() * (rng.uniform(0.005, 0.02) if c < 3 else rng.uniform(0.05, 0.2))
-        what = f"channel {CHANNELS[c]}"
-    else:
-        raise KeyError(f"no realistic magnitude known for {name!r}")
-    return theta * scale, what
-
-
-def simulate_unit(truth, steps: pd.DataFrame, rng: np.random.Generator, n_reps: int = 5,
-                  lot: str = "SIM", unit: str = "U000") -> tuple[list[StepMeans], list]:
-    """Step means of ``n_reps`` repetitions of one unit (each with its own turn-on biases),
-    and the per-repetition truths."""
-    from calib_core.simulator import draw_repetition_truth, simulate_step_means
-    from calib_core.steps import SessionKey
-
-    sessions, truths = [], []
-    for r in range(1, n_reps + 1):
-        tr = draw_repetition_truth(truth, rng)
-        truths.append(tr)
-        sessions.append(simulate_step_means(tr, steps, rng, key=SessionKey(lot, unit, r)))
-    return sessions, truths
+        heldout_rms_baseline=d.heldout_rms(()), heldout_rms_final=d.heldout_rms(chosen_t),
+        min_gain=min_gain, relinearisations=moves)

@@ -1,6 +1,6 @@
 """Model discovery on recordings without turntable references (static poses moved by hand).
 
-The turntable discovery (:mod:`calib_core.discovery`) compares every step with a known
+The turntable discovery (:mod:`calib_core.discovery.turntable`) compares every step with a known
 reference. A hand-made session (Ferraris, IMU-TK field calibration) has no reference except
 what physics fixes at rest, so the *measured* quantities are the static poses' mean raw
 outputs (:func:`calib_core.static_detection.static_pose_means`,
@@ -37,6 +37,10 @@ asymmetry) or lie in the span of the base model (e.g. the accelerometer nonlinea
 six axis-aligned poses, where ``u_i^3 = u_i``) is *not testable on this recording*, never
 "absent".
 
+The F test, the stepwise selection and the finding type are the turntable discovery's
+(:mod:`calib_core.discovery.results`, :mod:`calib_core.discovery.selection`); terms act
+through the sensing geometry of the calibration's own gains.
+
 Test: nested-model F test within the block, ``F = (dRSS / p) / (RSS_1 / (N - r_1))``, rows
 weighted by ``1 / sqrt(white^2 + tau_c^2)``: the white noise of a pose mean (within-pose
 sample std through K over sqrt(count)) plus the pose-to-pose noise ``tau_c`` of each channel
@@ -61,11 +65,10 @@ import pandas as pd
 from scipy import stats
 
 from calib_core.calibration import Calibration
-from calib_core.effects import CHANNELS, MotionContext, catalogue, get_effect
+from calib_core.discovery.results import DEFAULT_ALPHA, EffectFinding, FTest, f_test, jsonable
+from calib_core.discovery.selection import stepwise
+from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.results import to_jsonable
-
-DEFAULT_ALPHA = 0.01
 EARTH_RATE_DPS = 360.0 / 86164.1  # 0.00418 deg/s, ignored (see the module docstring)
 BASE_RCOND = 3e-2  # base columns are O(1) unit-vector products: directions below this are noise
 GAIN_RTOL = 1e-3  # a term column must keep this fraction of its norm off the base span
@@ -120,33 +123,6 @@ class _Block:
     base: np.ndarray  # (N, q) base design
 
 
-@dataclass(frozen=True)
-class StaticFinding:
-    """One term found in one block, with evidence and held-out gain."""
-
-    name: str
-    block: str
-    axes: tuple[str, ...]
-    estimate: dict[str, float]
-    stderr: dict[str, float]
-    units: dict[str, str]
-    evidence: dict[str, Any]  # test, statistic, dof1, dof2, p_value, threshold
-    heldout_rms_before: float  # block unit (deg/s or mg)
-    heldout_rms_after: float
-
-    @property
-    def gain(self) -> float:
-        return self.heldout_rms_before / self.heldout_rms_after if self.heldout_rms_after > 0 \
-            else float("inf")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "block": self.block, "axes": list(self.axes),
-                "estimate": self.estimate, "stderr": self.stderr, "units": self.units,
-                "evidence": self.evidence, "heldout_unit": BLOCK_UNITS[self.block],
-                "heldout_rms_before": self.heldout_rms_before,
-                "heldout_rms_after": self.heldout_rms_after, "gain": self.gain}
-
-
 @dataclass
 class StaticDiagnosis:
     recording: str
@@ -155,17 +131,17 @@ class StaticDiagnosis:
     block_size: int
     misfit: bool
     unexplained: bool
-    effects: list[StaticFinding]
-    candidates: list[StaticFinding]  # every testable term-block, tested alone on the baseline
+    effects: list[EffectFinding]
+    candidates: list[EffectFinding]  # every testable term-block, tested alone on the baseline
     not_testable: list[dict[str, str]]
     blocks: dict[str, dict[str, Any]]  # per block: rms before/after, white noise, chi2 tests
     baseline_terms: tuple[str, ...]
     # each term the baseline calibration carries, tested as if it were a candidate: does the
     # recording support it? (F test and held-out gain of keeping it vs dropping it)
-    baseline_checks: list[StaticFinding] = field(default_factory=list)
+    baseline_checks: list[EffectFinding] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return _jsonable({
+        return jsonable({
             "recording": self.recording, "n_poses": self.n_poses, "alpha": self.alpha,
             "block_size": self.block_size, "misfit": self.misfit,
             "unexplained": self.unexplained, "effects": [e.to_dict() for e in self.effects],
@@ -174,9 +150,6 @@ class StaticDiagnosis:
             "baseline_terms": list(self.baseline_terms),
             "baseline_checks": [e.to_dict() for e in self.baseline_checks],
             "earth_rate_ignored_dps": EARTH_RATE_DPS})
-
-
-_jsonable = to_jsonable  # one JSON conversion for the whole project
 
 
 # -- measured quantities and contexts ----------------------------------------------------
@@ -201,10 +174,11 @@ def _white_sigma(cal: Calibration, poses: StaticPoses, u: np.ndarray) -> tuple[n
     return sg, s_mag
 
 
-def _term_columns(name: str, ctx: MotionContext, u: np.ndarray) -> dict[str, np.ndarray]:
+def _term_columns(name: str, ctx: MotionContext, u: np.ndarray, geometry: SensingGeometry
+                  ) -> dict[str, np.ndarray]:
     """Design columns of a catalogue term per block: gyro (3n, p) rows pose-major, channel
     minor; accel (n, p) magnitude rows. Sign: the residual is +E theta (sensed = true + E)."""
-    E = get_effect(name).regressors(ctx)  # (n, 6, p)
+    E = get_effect(name).regressors(ctx, geometry)  # (n, 6, p)
     n, _, p = E.shape
     return {"gyro": E[:, :3, :].reshape(3 * n, p),
             "accel": np.einsum("ni,nip->np", u, E[:, 3:, :])}
@@ -223,7 +197,7 @@ class _StaticDiscovery:
         self.baseline_terms = tuple(tv.name for tv in cal.terms)
         base_extra = {b: [] for b in BLOCKS}
         for name in self.baseline_terms:
-            cols = _term_columns(name, ctx, self.u)
+            cols = _term_columns(name, ctx, self.u, cal.geometry)
             for b in BLOCKS:
                 live = np.abs(cols[b]).sum(axis=0) > 0
                 if live.any():
@@ -243,7 +217,7 @@ class _StaticDiscovery:
         self.fold_of = np.empty(n, int)
         self.fold_of[order] = np.arange(n) // max(int(block_size), 1)
         self.names = sorted(catalogue()) if candidates is None else list(candidates)
-        self.cols = {nm: _term_columns(nm, ctx, self.u) for nm in self.names}
+        self.cols = {nm: _term_columns(nm, ctx, self.u, cal.geometry) for nm in self.names}
         self.sigma_white = {"gyro": sg, "accel": s_mag}
         self._cache: dict = {}
         self.tau = {b: self._set_noise(b, tuple(noise_terms.get(b, ())) if noise_terms else ())
@@ -330,17 +304,12 @@ class _StaticDiscovery:
         self._cache[key] = out
         return out
 
-    def f_test(self, block: str, current: tuple[str, ...], name: str, threshold: float) -> dict:
+    def f_test(self, block: str, current: tuple[str, ...], name: str, threshold: float
+               ) -> FTest:
         blk = self.blocks[block]
         _, _, rss0, r0, _, _ = self.fit(block, current)
         _, _, rss1, r1, _, _ = self.fit(block, current + (name,))
-        dof1, dof2 = r1 - r0, len(blk.y) - r1
-        if dof1 <= 0 or dof2 <= 0 or rss1 <= 0:
-            return {"test": "F", "statistic": float("nan"), "dof1": dof1, "dof2": dof2,
-                    "p_value": 1.0, "threshold": threshold}
-        F = ((rss0 - rss1) / dof1) / (rss1 / dof2)
-        return {"test": "F", "statistic": float(F), "dof1": int(dof1), "dof2": int(dof2),
-                "p_value": float(stats.f.sf(F, dof1, dof2)), "threshold": float(threshold)}
+        return f_test(rss0 - rss1, r1 - r0, rss1, len(blk.y) - r1, threshold)
 
     def channels_of(self, block: str, names: tuple[str, ...]) -> np.ndarray:
         """Rows the terms act on (gyro: their channels; accel: all magnitude rows)."""
@@ -374,7 +343,7 @@ class _StaticDiscovery:
         return float(BLOCK_SCALE[block] * np.sqrt(np.nanmean(z ** 2)))
 
     def finding(self, block: str, chosen: tuple[str, ...], name: str, threshold: float
-                ) -> StaticFinding:
+                ) -> EffectFinding:
         others = tuple(n for n in chosen if n != name)
         full = others + (name,)
         coef, cov, rss, rank, _, q = self.fit(block, full)
@@ -389,43 +358,37 @@ class _StaticDiscovery:
         axes = set()
         for k, j in enumerate(live):
             if se[k] > 0 and abs(theta[k]) > crit * se[k]:
-                touched = np.abs(get_effect(name).regressors(self.ctx)[:, :, j]).sum(axis=0) > 0
-                axes.update(CHANNELS[c][1] for c in np.flatnonzero(touched))
+                axes.add(CHANNELS[int(term.param_sensor()[j])][1])
         if not axes:
             axes = {CHANNELS[c][1] for c in np.unique(self.blocks[block].channel[mask]) if c >= 0}
-        return StaticFinding(
+        return EffectFinding(
             name=name, block=block, axes=tuple(sorted(axes)),
             estimate={term.param_names[j]: float(v) for j, v in zip(live, theta)},
             stderr={term.param_names[j]: float(v) for j, v in zip(live, se)},
             units={term.param_names[j]: term.param_units[j] for j in live},
             evidence=self.f_test(block, others, name, threshold),
             heldout_rms_before=self.heldout_rms(block, others, mask),
-            heldout_rms_after=self.heldout_rms(block, full, mask))
+            heldout_rms_after=self.heldout_rms(block, full, mask),
+            heldout_unit=BLOCK_UNITS[block])
 
 
 def _select(d: "_StaticDiscovery", testable: list[tuple[str, str]], threshold: float
             ) -> dict[str, list[str]]:
-    """Forward selection per block: the most significant term below the threshold that also
-    lowers the held-out RMS on its channels, until none is left."""
-    chosen: dict[str, list[str]] = {b: [] for b in BLOCKS}
+    """Forward selection per block (:func:`calib_core.discovery.selection.stepwise`, the
+    threshold fixed at ``threshold``): the most significant term that also lowers the
+    held-out RMS on its channels, until none is left."""
+    chosen: dict[str, list[str]] = {}
+    n_tests = max(len(testable), 1)
     for b in BLOCKS:
-        while True:
-            best, best_p = None, None
-            for bb, n in testable:
-                if bb != b or n in chosen[b]:
-                    continue
-                t = d.f_test(b, tuple(chosen[b]), n, threshold)
-                if not t["p_value"] < threshold:
-                    continue
-                mask = d.channels_of(b, (n,))
-                if d.heldout_rms(b, tuple(chosen[b]) + (n,), mask) >= \
-                        d.heldout_rms(b, tuple(chosen[b]), mask):
-                    continue
-                if best is None or t["p_value"] < best_p:
-                    best, best_p = n, t["p_value"]
-            if best is None:
-                break
-            chosen[b].append(best)
+        def improves(current: tuple[str, ...], n: str, b: str = b) -> bool:
+            mask = d.channels_of(b, (n,))
+            return d.heldout_rms(b, current + (n,), mask) < d.heldout_rms(b, current, mask)
+
+        def test(current: tuple[str, ...], n: str, _thr: float, b: str = b) -> FTest:
+            return d.f_test(b, current, n, threshold)
+
+        chosen[b] = stepwise([n for bb, n in testable if bb == b], test, improves,
+                             threshold * n_tests, backward=False, bonferroni_over=n_tests)
     return chosen
 
 

@@ -1,0 +1,82 @@
+"""What discovery reports, shared by the turntable and the static-pose discovery: the F test,
+one finding per term, and the JSON form (non-finite numbers become ``null``)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from scipy import special
+
+from calib_core.results import to_jsonable
+
+DEFAULT_ALPHA = 0.01
+DEFAULT_MIN_GAIN = 1.05  # a named term must cut the held-out rms of its channels by 5 %
+
+
+@dataclass(frozen=True)
+class FTest:
+    statistic: float
+    dof1: int
+    dof2: int
+    p_value: float
+    threshold: float
+
+    @property
+    def rejects(self) -> bool:
+        return bool(self.p_value < self.threshold)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"test": "F", "statistic": self.statistic, "dof1": self.dof1, "dof2": self.dof2,
+                "p_value": self.p_value, "threshold": self.threshold}
+
+
+def f_test(ss_num: float, dof_num: int, ss_den: float, dof_den: int, threshold: float) -> FTest:
+    """F = (ss_num / dof_num) / (ss_den / dof_den) against F(dof_num, dof_den)."""
+    if dof_num <= 0 or dof_den <= 0 or ss_den <= 0:
+        return FTest(float("nan"), int(dof_num), int(dof_den), 1.0, threshold)
+    F = (max(ss_num, 0.0) / dof_num) / (ss_den / dof_den)
+    # special.fdtrc is what stats.f.sf evaluates, without its argument checking overhead
+    return FTest(float(F), int(dof_num), int(dof_den), float(special.fdtrc(dof_num, dof_den, F)),
+                 threshold)
+
+
+@dataclass(frozen=True)
+class EffectFinding:
+    """One catalogue term tested on a unit or recording: its estimate, evidence and
+    held-out gain. ``estimate``/``stderr`` are None for an undetermined parameter, whose
+    reason is in ``undetermined``. ``channels``: where the held-out rms was measured.
+    ``block`` (static poses: "gyro" or "accel") and ``heldout_unit`` say what the held-out
+    rms is in (turntable: units of the noise, sigma)."""
+
+    name: str
+    axes: tuple[str, ...]
+    estimate: dict[str, float | None]
+    stderr: dict[str, float | None]
+    units: dict[str, str]
+    evidence: FTest
+    heldout_rms_before: float
+    heldout_rms_after: float
+    channels: tuple[str, ...] = ()
+    undetermined: dict[str, str] = field(default_factory=dict)
+    block: str | None = None
+    heldout_unit: str = "sigma"
+
+    @property
+    def gain(self) -> float:
+        return (self.heldout_rms_before / self.heldout_rms_after if self.heldout_rms_after > 0
+                else float("inf"))
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {"name": self.name, "axes": list(self.axes), "estimate": self.estimate,
+               "stderr": self.stderr, "units": self.units, "evidence": self.evidence.to_dict(),
+               "heldout_unit": self.heldout_unit, "heldout_channels": list(self.channels),
+               "heldout_rms_before": self.heldout_rms_before,
+               "heldout_rms_after": self.heldout_rms_after, "gain": self.gain,
+               "undetermined": dict(self.undetermined)}
+        if self.block is not None:
+            out["block"] = self.block
+        return out
+
+
+def jsonable(doc: Any) -> Any:
+    return to_jsonable(doc)
