@@ -284,6 +284,37 @@ def _term_design(lay: _Layout, names: list[str], geometry: SensingGeometry | Non
     return offset, live, live_mask, M, colmap
 
 
+def _serial_correlation(z: np.ndarray, real: np.ndarray) -> np.ndarray:
+    """Lag-1 correlation between consecutive steps of a repetition, per channel, of the
+    normalised residual z (R, n, 6) with every step's mean over the repetitions and every
+    repetition's mean removed (what no systematic error explains): the bias instability
+    of a MEMS sensor wanders with a time constant of tens of seconds, several steps long.
+    Clipped to [0, 0.95]."""
+    m = real[..., None].astype(float)
+    z = z * m
+    cnt_s = np.maximum(m.sum(axis=0), 1.0)
+    z = (z - z.sum(axis=0) / cnt_s) * m
+    z = (z - z.sum(axis=1, keepdims=True) / np.maximum(m.sum(axis=1, keepdims=True), 1.0)) * m
+    num = np.sum(z[:, 1:] * z[:, :-1], axis=(0, 1))
+    den = np.sum(z ** 2, axis=(0, 1))
+    rho = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    return np.clip(rho, 0.0, 0.95)
+
+
+def _prewhiten(A: np.ndarray, rho: np.ndarray, real: np.ndarray) -> np.ndarray:
+    """Rows (6, R, n, k) of each repetition (time order) whitened for first-order serial
+    correlation rho (6,) (Prais-Winsten, scaled so that white rows keep unit variance): the
+    tests, fits and held-out scores then treat the wander of the bias as the noise it is,
+    not as a lack of fit common to the repetitions."""
+    if not np.any(rho > 0):
+        return A
+    r = rho[:, None, None, None]
+    out = A.copy()
+    out[:, :, 1:] = (A[:, :, 1:] - r * A[:, :, :-1]) / np.sqrt(1.0 - r ** 2)
+    out[:, ~real] = 0.0
+    return out
+
+
 def _qr_r(X: np.ndarray) -> np.ndarray:
     """R factor of each matrix of a stack, padded with zero rows to square."""
     Rf = np.linalg.qr(X, mode="r")
@@ -526,6 +557,7 @@ class _Discovery:
         # noise from the data: within-step scatter through K + repetition scatter
         self._noise_rows, self.sigma = self._noise(*noise_model)
         self.weight = np.where(self.g.real[..., None], 1.0 / self.sigma, 0.0)
+        self.rho = _serial_correlation(noise_model[1] * self.weight, self.g.real)
         self._factorise()
         self.undetermined = self._undetermined()
         if self.undetermined:  # fitted as 0: rebuild the terms' columns without them
@@ -643,7 +675,7 @@ class _Discovery:
         Mc, self.mu = _centre(g.M, w)  # (6, R, n, k), (6, R, k)
         Mc[:, ~g.real] = 0.0
         self.Mc = Mc
-        A = w[..., None] * Mc
+        A = _prewhiten(w[..., None] * Mc, self.rho, g.real)
         k = A.shape[-1]
         self.Rrep = _qr_r(A)  # (6, R, k, k)
         folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
