@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from calib_core.calibration import TermValue
-from calib_core.discovery_static import StaticPoses, diagnose_static, pose_residuals
+from calib_core.discovery.static import StaticPoses, diagnose_static, pose_residuals
 from calib_core.effects import get_effect
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
