@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy import special, stats
+from scipy import linalg, stats
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
@@ -89,6 +89,7 @@ class _UnitGrid:
     live: list[np.ndarray]  # per channel: term columns not identically 0 on it
     live_mask: np.ndarray  # (6, P) bool, the same
     balanced: bool  # every repetition has the same steps in the same order
+    t: np.ndarray  # (R, n) step mid times, s (0 on padding)
     M: np.ndarray  # (6, R, n, k) per channel: [raw_c | live term columns | 0 | y_c]
     colmap: np.ndarray  # (6, k - 4) global term column of M's term columns (P + 1: padding)
 
@@ -111,7 +112,8 @@ class _UnitGrid:
         offset, live, live_mask, M, colmap = _term_design(lay, names, geometry, dropped)
         M[..., :3] = np.moveaxis(raw, 2, 0)
         return cls(R, n, lay.real, lay.step, lay.gcode, list(lay.groups), lay.y, raw, std,
-                   count, list(names), offset, live, live_mask, lay.balanced, M, colmap)
+                   count, list(names), offset, live, live_mask, lay.balanced, lay.t, M,
+                   colmap)
 
     @property
     def P(self) -> int:
@@ -194,6 +196,7 @@ class _Layout:
     groups: list[str]
     y: np.ndarray  # (R, n, 6)
     balanced: bool
+    t: np.ndarray  # (R, n) step mid times
     ctx: list[MotionContext]  # per repetition
 
 
@@ -212,7 +215,7 @@ def _layout(sessions: list[StepMeans]) -> _Layout:
     lay = _LAYOUT_CACHE.get(key)
     if lay is None:
         lay = _build_layout(sessions)
-        for a in (lay.real, lay.step, lay.gcode, lay.y):
+        for a in (lay.real, lay.step, lay.gcode, lay.y, lay.t):
             a.setflags(write=False)
         if len(_LAYOUT_CACHE) >= _LAYOUT_CACHE_MAX:
             _LAYOUT_CACHE.clear()
@@ -231,12 +234,14 @@ def _build_layout(sessions: list[StepMeans]) -> _Layout:
     real = np.zeros((R, n), bool)
     step = np.full((R, n), -1, np.int64)
     y = np.zeros((R, n, 6))
+    t = np.zeros((R, n))
     tests, ctxs = [], []
     for r, sm in enumerate(sessions):
         m = len(sm)
         real[r, :m] = True
         step[r, :m] = sm.step.astype(np.int64)
         y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
+        t[r, :m] = np.asarray(sm.t_mid, float)
         ctxs.append(MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
                                             g_local=sm.g_local))
         tests.append(np.unique(_test_names(sm), return_inverse=True))
@@ -248,7 +253,7 @@ def _build_layout(sessions: list[StepMeans]) -> _Layout:
     balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
                 and all(np.array_equal(gcode[0], g) for g in gcode)
                 and len(np.unique(step[0])) == n)
-    return _Layout(real, step, gcode, groups, y, balanced, ctxs)
+    return _Layout(real, step, gcode, groups, y, balanced, t, ctxs)
 
 
 def _term_design(lay: _Layout, names: list[str], geometry: SensingGeometry | None,
@@ -284,34 +289,70 @@ def _term_design(lay: _Layout, names: list[str], geometry: SensingGeometry | Non
     return offset, live, live_mask, M, colmap
 
 
-def _serial_correlation(z: np.ndarray, real: np.ndarray) -> np.ndarray:
-    """Lag-1 correlation between consecutive steps of a repetition, per channel, of the
-    normalised residual z (R, n, 6) with every step's mean over the repetitions and every
-    repetition's mean removed (what no systematic error explains): the bias instability
-    of a MEMS sensor wanders with a time constant of tens of seconds, several steps long.
-    Clipped to [0, 0.95]."""
+@dataclass(frozen=True)
+class _SerialNoise:
+    """Noise of the step means of one repetition, per channel, as white noise plus a bias
+    that wanders as a first-order Gauss-Markov process (the bias instability of a MEMS
+    sensor, time constant tens of seconds, several steps long): correlation between two
+    steps ``lam * exp(-|dt| / tau)``. ``lam`` 0: independent steps."""
+
+    lam: np.ndarray  # (6,) share of the step-mean variance that wanders
+    tau_s: np.ndarray  # (6,) its time constant
+
+    @property
+    def correlated(self) -> bool:
+        return bool(np.any(self.lam > 0))
+
+
+def _serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> _SerialNoise:
+    """Estimate :class:`_SerialNoise` from the normalised residual z (R, n, 6) of a model,
+    with every step's mean over the repetitions (any systematic error) and every
+    repetition's mean (its turn-on bias) removed. Lag-1 and lag-2 correlations between
+    consecutive steps give the decay per step (r2 / r1, pooled over a sensor triad) and the
+    wandering share (r1 / decay); ``t`` (R, n) step times give the time constant."""
     m = real[..., None].astype(float)
     z = z * m
-    cnt_s = np.maximum(m.sum(axis=0), 1.0)
-    z = (z - z.sum(axis=0) / cnt_s) * m
+    z = (z - z.sum(axis=0) / np.maximum(m.sum(axis=0), 1.0)) * m
     z = (z - z.sum(axis=1, keepdims=True) / np.maximum(m.sum(axis=1, keepdims=True), 1.0)) * m
-    num = np.sum(z[:, 1:] * z[:, :-1], axis=(0, 1))
     den = np.sum(z ** 2, axis=(0, 1))
-    rho = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-    return np.clip(rho, 0.0, 0.95)
+    safe = np.where(den > 0, den, 1.0)
+    r1 = np.where(den > 0, np.sum(z[:, 1:] * z[:, :-1], axis=(0, 1)) / safe, 0.0)
+    r2 = np.where(den > 0, np.sum(z[:, 2:] * z[:, :-2], axis=(0, 1)) / safe, 0.0)
+    dt = np.diff(t, axis=1)[real[:, 1:] & real[:, :-1]]
+    step_s = float(np.median(dt)) if dt.size and np.median(dt) > 0 else 1.0
+    lam, tau = np.zeros(6), np.ones(6)
+    for tri in (slice(0, 3), slice(3, 6)):
+        s1, s2 = r1[tri].sum(), r2[tri].sum()
+        if s1 <= 0 or s2 <= 0:
+            continue
+        decay = float(np.clip(s2 / s1, 0.05, 0.98))
+        lam[tri] = np.clip(r1[tri] / decay, 0.0, 0.98)
+        tau[tri] = -step_s / np.log(decay)
+    return _SerialNoise(lam, tau)
 
 
-def _prewhiten(A: np.ndarray, rho: np.ndarray, real: np.ndarray) -> np.ndarray:
-    """Rows (6, R, n, k) of each repetition (time order) whitened for first-order serial
-    correlation rho (6,) (Prais-Winsten, scaled so that white rows keep unit variance): the
-    tests, fits and held-out scores then treat the wander of the bias as the noise it is,
-    not as a lack of fit common to the repetitions."""
-    if not np.any(rho > 0):
+def _prewhiten(A: np.ndarray, noise: _SerialNoise, real: np.ndarray, t: np.ndarray
+               ) -> np.ndarray:
+    """Rows (6, R, n, k) of each repetition whitened for the serial correlation of
+    :class:`_SerialNoise` (generalised least squares: L^-1 with L L^T the correlation of the
+    repetition's steps): the tests, fits and held-out scores then treat the wander of the
+    bias as the noise it is, not as a lack of fit common to the repetitions. White rows keep
+    unit variance."""
+    if not noise.correlated:
         return A
-    r = rho[:, None, None, None]
-    out = A.copy()
-    out[:, :, 1:] = (A[:, :, 1:] - r * A[:, :, :-1]) / np.sqrt(1.0 - r ** 2)
-    out[:, ~real] = 0.0
+    out = np.zeros_like(A)
+    for r in range(A.shape[1]):
+        rows = np.flatnonzero(real[r])
+        lag = np.abs(t[r, rows][:, None] - t[r, rows][None, :])
+        for c in range(6):
+            lam = noise.lam[c]
+            if lam <= 0:
+                out[c, r, rows] = A[c, r, rows]
+                continue
+            C = lam * np.exp(-lag / noise.tau_s[c])
+            C[np.diag_indices_from(C)] = 1.0
+            L = np.linalg.cholesky(C)
+            out[c, r, rows] = linalg.solve_triangular(L, A[c, r, rows], lower=True)
     return out
 
 
@@ -557,7 +598,7 @@ class _Discovery:
         # noise from the data: within-step scatter through K + repetition scatter
         self._noise_rows, self.sigma = self._noise(*noise_model)
         self.weight = np.where(self.g.real[..., None], 1.0 / self.sigma, 0.0)
-        self.rho = _serial_correlation(noise_model[1] * self.weight, self.g.real)
+        self.serial = _serial_noise(noise_model[1] * self.weight, self.g.real, self.g.t)
         self._factorise()
         self.undetermined = self._undetermined()
         if self.undetermined:  # fitted as 0: rebuild the terms' columns without them
@@ -675,7 +716,7 @@ class _Discovery:
         Mc, self.mu = _centre(g.M, w)  # (6, R, n, k), (6, R, k)
         Mc[:, ~g.real] = 0.0
         self.Mc = Mc
-        A = _prewhiten(w[..., None] * Mc, self.rho, g.real)
+        A = _prewhiten(w[..., None] * Mc, self.serial, g.real, g.t)
         k = A.shape[-1]
         self.Rrep = _qr_r(A)  # (6, R, k, k)
         folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
@@ -1022,20 +1063,23 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     d = _Discovery(step_means_by_rep, alpha, min_gain=min_gain)
     chosen, partial, negligible = d.select()
     moves: list[float] = []
-    while chosen and len(moves) < MAX_RELINEARISATIONS:
+    while (chosen or partial) and len(moves) < MAX_RELINEARISATIONS:
         # the model is bilinear: the terms act through the geometry of K, and the affine
         # model's K is distorted by the effects it misses (and the noise reaches the
-        # residual through K). Re-linearise around the chosen model and select again.
-        K = d.fit(tuple(chosen)).K
+        # residual through K). Re-linearise around the model of every term that matters
+        # (a term left partial on a poor geometry included) and select again.
+        model = tuple(chosen + partial)
+        K = d.fit(model).K
         geometry = SensingGeometry.from_gains(K[:3], K[3:])
         moves.append(geometry.distance(d.geometry))
         d2 = _Discovery(step_means_by_rep, alpha, geometry=geometry,
-                        noise_model=d.noise_model(tuple(chosen)), min_gain=min_gain)
+                        noise_model=d.noise_model(model), min_gain=min_gain)
         noise_moved = float(np.max(np.abs(np.log(d2.sigma / d.sigma))))
-        before = sorted(chosen)
+        before = (sorted(chosen), sorted(partial))
         d = d2
         chosen, partial, negligible = d.select()
-        if moves[-1] < GEOMETRY_TOL and sorted(chosen) == before and noise_moved < np.log(1.03):
+        if (moves[-1] < GEOMETRY_TOL and (sorted(chosen), sorted(partial)) == before
+                and noise_moved < np.log(1.03)):
             break
     lof_before = d.lack_of_fit((), alpha)
     chosen_t = tuple(chosen)
