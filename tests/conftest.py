@@ -1,10 +1,14 @@
-"""Shared helpers of the test suite: simulated units that several test modules fit.
+"""Shared helpers of the test suite: simulated units that several test modules fit, and the
+manifest of a simulated fleet.
 
 Test modules import these by name (``from conftest import paper_unit``) instead of from one
 another, so a test module can be moved, renamed or deleted without breaking the others.
 Everything here is seeded by the caller's generator or a seed argument.
 """
 from __future__ import annotations
+
+import json
+from pathlib import Path
 
 import numpy as np
 
@@ -48,3 +52,12 @@ def unit_step_means(n: int = 5, seed: int = 7, steps=STEPS_WITH_VERIFICATION,
     truth = simulator.typical_truth(rng, **truth_kw)
     return [simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L1", "U1", r))
             for r in range(1, n + 1)]
+
+
+def load_manifest(fleet_dir: Path | str) -> dict:
+    """The truth ``flows.fleet_sim.simulate_fleet`` wrote beside a simulated fleet."""
+    # imported here: pytest imports this file before the test modules that set up the flows'
+    # environment (flows.runtime) before importing flows
+    from flows.fleet_sim import MANIFEST
+
+    return json.loads((Path(fleet_dir) / MANIFEST).read_text())

@@ -19,7 +19,7 @@ runtime.ensure_environment()
 
 from flows import fleet_sim  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
-from flows.fleet_sim import load_manifest, simulate_fleet  # noqa: E402
+from flows.fleet_sim import simulate_fleet  # noqa: E402
 from flows.nightly import FLOW_PRELOAD, nightly_fleet_calibration, rerun_unit  # noqa: E402
 from schemas.results_store import ResultsStore, StoreLockedError, find_calibration  # noqa: E402
 
