@@ -8,6 +8,7 @@ the repository when they contain a ``/`` before their end (``flows/cli.py``); ea
 Packages are the directories with an ``__init__.py`` under the packages the wheel ships
 (``[tool.setuptools.packages.find] include`` in pyproject.toml).
 """
+
 from __future__ import annotations
 
 import re
@@ -67,8 +68,9 @@ def layout_problems(repo: Path) -> list[str]:
     problems = []
     for pkg in shipped_packages(repo):
         if pkg not in rows:
-            problems.append(f"package {pkg} has no row in README.md's layout table "
-                            f"(add '| `{pkg}` | what lives there |')")
+            problems.append(
+                f"package {pkg} has no row in README.md's layout table (add '| `{pkg}` | what lives there |')"
+            )
     for path, text in rows.items():
         if not (repo / path).exists():
             problems.append(f"README.md's layout table has a row for {path}, which does not exist")
@@ -76,8 +78,7 @@ def layout_problems(repo: Path) -> list[str]:
             problems.append(f"README.md's layout row for {path} says nothing")
         for named in named_paths(path, text):
             if not (repo / named).exists():
-                problems.append(f"README.md's layout row for {path} names {named}, "
-                                f"which does not exist")
+                problems.append(f"README.md's layout row for {path} names {named}, which does not exist")
     return problems
 
 
@@ -89,33 +90,41 @@ def test_readme_layout_table_matches_the_tree():
 # --- the check itself, on a made-up repository -------------------------------------------------
 def _tree(tmp_path: Path, layout: str) -> Path:
     (tmp_path / "pyproject.toml").write_text(
-        '[tool.setuptools.packages.find]\ninclude = ["core*", "flows*"]\n')
+        '[tool.setuptools.packages.find]\ninclude = ["core*", "flows*"]\n'
+    )
     for pkg in ("core", "core/sim", "flows"):
         (tmp_path / pkg).mkdir(parents=True)
         (tmp_path / pkg / "__init__.py").write_text("")
     (tmp_path / "core" / "steps.py").write_text("")
     (tmp_path / "flows" / "cli.py").write_text("")
-    (tmp_path / "README.md").write_text(f"# x\n\n## Layout\n\n| path | what |\n|---|---|\n{layout}\n"
-                                        "\n## Next\n\n| `other/` | not the layout table |\n")
+    (tmp_path / "README.md").write_text(
+        f"# x\n\n## Layout\n\n| path | what |\n|---|---|\n{layout}\n"
+        "\n## Next\n\n| `other/` | not the layout table |\n"
+    )
     return tmp_path
 
 
-GOOD = ("| `core/` | numerics: `steps.py`, simulation in `sim/` |\n"
-        "| `core/sim/` | simulators |\n"
-        "| `flows/` | flows, the CLI (`flows/cli.py`) |")
+GOOD = (
+    "| `core/` | numerics: `steps.py`, simulation in `sim/` |\n"
+    "| `core/sim/` | simulators |\n"
+    "| `flows/` | flows, the CLI (`flows/cli.py`) |"
+)
 
 
 def test_a_complete_table_passes(tmp_path):
     assert layout_problems(_tree(tmp_path, GOOD)) == []
 
 
-@pytest.mark.parametrize("layout, expected", [
-    (GOOD.replace("| `core/sim/` | simulators |\n", ""), "package core/sim/ has no row"),
-    (GOOD + "\n| `core/old/` | gone |", "row for core/old/, which does not exist"),
-    (GOOD.replace("`steps.py`", "`stepz.py`"), "names core/stepz.py, which does not exist"),
-    (GOOD.replace("`flows/cli.py`", "`flows/main.py`"), "names flows/main.py, which does not exist"),
-    (GOOD.replace("| simulators |", "|  |"), "row for core/sim/ says nothing"),
-])
+@pytest.mark.parametrize(
+    "layout, expected",
+    [
+        (GOOD.replace("| `core/sim/` | simulators |\n", ""), "package core/sim/ has no row"),
+        (GOOD + "\n| `core/old/` | gone |", "row for core/old/, which does not exist"),
+        (GOOD.replace("`steps.py`", "`stepz.py`"), "names core/stepz.py, which does not exist"),
+        (GOOD.replace("`flows/cli.py`", "`flows/main.py`"), "names flows/main.py, which does not exist"),
+        (GOOD.replace("| simulators |", "|  |"), "row for core/sim/ says nothing"),
+    ],
+)
 def test_a_stale_table_is_named(tmp_path, layout, expected):
     problems = layout_problems(_tree(tmp_path, layout))
     assert len(problems) == 1 and expected in problems[0], problems
