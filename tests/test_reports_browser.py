@@ -111,11 +111,11 @@ def test_outliers_marked_and_labelled_in_strip_plots(lot_page, browser, store):
         return out;
     })()""")
     injected = {(f"strip {m}", u) for u, pairs in store.outliers.items() for m, _ in pairs}
-    got = {(l["fig"], l["text"]) for l in labels}
+    got = {(label["fig"], label["text"]) for label in labels}
     assert got == injected
     # one labelled red marker per flagged (unit, parameter)
     assert len(labels) == sum(len(p) for p in store.outliers.values())
-    assert all(l["fill"] == FLAGGED_RGB for l in labels)
+    assert all(label["fill"] == FLAGGED_RGB for label in labels)
 
 
 def test_sorting_by_a_parameter(lot_page, browser, store):
