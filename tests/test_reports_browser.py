@@ -64,7 +64,8 @@ def test_every_figure_rendered(lot_page, browser):
                 withSvg: figs.filter(function(f){
                     return f.querySelector('.plot-container .main-svg') !== null;}).length,
                 withTraces: figs.filter(function(f){
-                    return f.querySelectorAll('.scatterlayer .trace, .boxlayer .trace, .barlayer .trace').length > 0;}).length,
+                    return f.querySelectorAll(
+                        '.scatterlayer .trace, .boxlayer .trace, .barlayer .trace').length > 0;}).length,
                 attr: document.body.getAttribute('data-figures-rendered')};
     })()""")
     assert facts["total"] == 4 + 1 + 1 + 2 * 12
