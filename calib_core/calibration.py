@@ -91,7 +91,9 @@ class Calibration:
             ctx = MotionContext.from_refs(w, f, temp_c=temp_c, t=t, dwdt=dwdt, g_local=self.g_local)
             err = np.zeros((len(w), 6))
             for tv in self.terms:
-                err += get_effect(tv.name).error(ctx, tv.params, geometry)
+                term = get_effect(tv.name)
+                if term.sensor_effect:  # the Earth's rotation is signal once off the table
+                    err += term.error(ctx, tv.params, geometry)
             w, f = w_aff - err[:, :3], f_aff - err[:, 3:]
         return w, f
 

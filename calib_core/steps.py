@@ -77,12 +77,19 @@ class StepMeans:
     gyro_range_dps: tuple[float, float, float] = (300.0, 300.0, 3600.0)
     accel_range_g: tuple[float, float, float] = (50.0, 50.0, 50.0)
     metadata: dict[str, Any] = field(default_factory=dict)  # provenance (session_start, ...)
+    # the step's heading (optional steps column heading_deg, degrees; None: all 0) and where
+    # the table stands (optional metadata): what the Earth rate's body direction depends on
+    heading_deg: np.ndarray | None = None
+    latitude_deg: float | None = None
+    table_heading_deg: float | None = None
 
     def __post_init__(self) -> None:
         n = len(self.step)
         for name in ("test", "up_axis", "rate_dps", "angle_deg", "count", "t_mid", "temp_c"):
             if len(getattr(self, name)) != n:
                 raise ValueError(f"StepMeans.{name} has {len(getattr(self, name))} rows, expected {n}")
+        if self.heading_deg is not None and len(self.heading_deg) != n:
+            raise ValueError(f"StepMeans.heading_deg has {len(self.heading_deg)} rows, expected {n}")
         for name in ("w_ref", "f_ref", "gyro", "accel", "gyro_std", "accel_std"):
             if getattr(self, name).shape != (n, 3):
                 raise ValueError(f"StepMeans.{name} has shape {getattr(self, name).shape}, expected ({n}, 3)")
@@ -93,10 +100,11 @@ class StepMeans:
     def select(self, mask: np.ndarray) -> "StepMeans":
         """Rows where ``mask`` is true (boolean array or index array)."""
         idx = np.asarray(mask)
+        rows = _ROW_FIELDS + (("heading_deg",) if self.heading_deg is not None else ())
         if idx.ndim != 1:  # not a row mask or index list: let __init__ check the result
-            return replace(self, **{name: getattr(self, name)[idx] for name in _ROW_FIELDS})
+            return replace(self, **{name: getattr(self, name)[idx] for name in rows})
         state = {name: v for name, v in self.__dict__.items() if name != "_subsets"}
-        for name in _ROW_FIELDS:
+        for name in rows:
             state[name] = state[name][idx]
         # rows of a valid StepMeans are a valid StepMeans: no need to run the shape checks
         # of __init__ again (this is called a few times for every session)
@@ -129,6 +137,12 @@ class StepMeans:
         state = dict(self.__dict__)
         state.pop("_subsets", None)
         return state
+
+    @property
+    def headings(self) -> np.ndarray:
+        """Each step's heading, degrees (0 where the steps table has no heading_deg)."""
+        return (np.zeros(len(self)) if self.heading_deg is None
+                else np.asarray(self.heading_deg, float))
 
     @property
     def has_temperature(self) -> bool:

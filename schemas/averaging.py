@@ -383,7 +383,8 @@ def average_session(data: SessionData, min_samples: int = 10
         count=count, t_mid=t_mid, temp_c=temp, gyro_unit=meta.gyro_unit,
         accel_unit=meta.accel_unit, g_local=meta.g_local, sample_rate_hz=data.sample_rate_hz,
         gyro_range_dps=tuple(meta.gyro_range_dps), accel_range_g=tuple(meta.accel_range_g),
-        metadata=dict(meta.provenance),
+        metadata=dict(meta.provenance), heading_deg=cols.heading_deg,
+        latitude_deg=meta.latitude_deg, table_heading_deg=meta.table_heading_deg,
     )
     # select copies every array: the result shares nothing with the reader's cache
     return sm.select(usable), warnings

@@ -37,7 +37,9 @@ STEPS_SCHEMA = pa.schema([
     ("f_ref_x", pa.float64()), ("f_ref_y", pa.float64()), ("f_ref_z", pa.float64()),
     ("settle_s", pa.float64()),
 ])
-STEPS_OPTIONAL = {"duration_s": pa.float64()}  # written by mimucal, never required
+# optional steps columns, never required: duration_s (written by mimucal), heading_deg (the
+# step's heading, degrees, added to table_heading_deg: docs/data-contract.md)
+STEPS_OPTIONAL = {"duration_s": pa.float64(), "heading_deg": pa.float64()}
 
 GYRO_COLUMNS = ("gx", "gy", "gz")
 ACCEL_COLUMNS = ("ax", "ay", "az")
@@ -150,6 +152,8 @@ class SessionMeta:
     gyro_full_scale_raw: tuple[float, float, float] | None = None
     accel_full_scale_raw: tuple[float, float, float] | None = None
     provenance: dict[str, str] = field(default_factory=dict)
+    latitude_deg: float | None = None  # of the turntable, degrees north (Earth rate)
+    table_heading_deg: float | None = None  # of the table's zero-heading reference, deg E of N
 
     @property
     def gyro_unit(self) -> str:
@@ -254,10 +258,23 @@ def parse_metadata(raw: Mapping | None, session: str, file: str = SAMPLES_FILE) 
         fs_g = parse_triple(md["gyro_full_scale_raw"], "gyro_full_scale_raw", session, file)
     if md.get("accel_full_scale_raw", "").strip():
         fs_a = parse_triple(md["accel_full_scale_raw"], "accel_full_scale_raw", session, file)
+    location = {}
+    for key, bound in (("latitude_deg", 90.0), ("table_heading_deg", 360.0)):
+        if md.get(key, "").strip():
+            try:
+                value = float(md[key])
+            except ValueError:
+                raise SessionError(E_BAD_METADATA, session, file,
+                                   f"metadata '{key}' = {md[key]!r} is not a number") from None
+            if not (math.isfinite(value) and abs(value) <= bound):
+                raise SessionError(E_BAD_METADATA, session, file,
+                                   f"metadata '{key}' = {md[key]!r} must be within "
+                                   f"+/-{bound:g} degrees")
+            location[key] = value
     return SessionMeta(
         gyro_unit_raw=gyro_unit, accel_unit_raw=accel_unit,
         gyro_range_dps=parse_triple(md["gyro_range_dps"], "gyro_range_dps", session, file),
         accel_range_g=parse_triple(md["accel_range_g"], "accel_range_g", session, file),
         g_local=g_local, sample_rate_hz=rate, session_start=md.get("session_start"),
-        gyro_full_scale_raw=fs_g, accel_full_scale_raw=fs_a, provenance=md,
+        gyro_full_scale_raw=fs_g, accel_full_scale_raw=fs_a, provenance=md, **location,
     )

@@ -71,6 +71,7 @@ class StepColumns:
     settle_s: np.ndarray  # (k,) float64
     w_ref: np.ndarray  # (k, 3) float64
     f_ref: np.ndarray  # (k, 3) float64
+    heading_deg: np.ndarray | None = None  # (k,) float64, the optional column (None: absent)
 
     @classmethod
     def from_frame(cls, steps: pd.DataFrame) -> "StepColumns":
@@ -88,6 +89,8 @@ class StepColumns:
             settle_s=read_only(floats["settle_s"]),
             w_ref=read_only(np.column_stack([floats[c] for c in W_REF_COLUMNS])),
             f_ref=read_only(np.column_stack([floats[c] for c in F_REF_COLUMNS])),
+            heading_deg=(read_only(steps["heading_deg"].to_numpy(float))
+                         if "heading_deg" in steps.columns else None),
         )
 
 
@@ -286,6 +289,21 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
         col = table.column("duration_s")
         if pa.types.is_floating(col.type) or pa.types.is_integer(col.type):
             out["duration_s"] = _floats(col)
+    if "heading_deg" in table.schema.names and "heading_deg" not in names:
+        col = table.column("heading_deg")
+        if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
+            raise SessionError(E_BAD_STEP_DEFINITION, label, file,
+                               f"heading_deg has type {col.type} (must be a number of degrees)",
+                               column="heading_deg")
+        values = _floats(col)
+        bad = ~np.isfinite(values)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise SessionError(E_BAD_STEP_DEFINITION, label, file,
+                               f"heading_deg is {values[i]} (must be a finite number; "
+                               f"{int(bad.sum())} step(s))", column="heading_deg",
+                               step=int(ids[i]))
+        out["heading_deg"] = values
     return pd.DataFrame(out)
 
 
@@ -332,8 +350,7 @@ def _read_steps_cached(path: Path, label: str) -> tuple[pd.DataFrame, StepColumn
                            f"not a readable Parquet file (truncated or corrupt?): {exc}") from exc
     schema = pf.schema_arrow
     names = check_columns(schema, STEPS_RULES, label, file)
-    if "duration_s" in schema.names:
-        names = names + ["duration_s"]
+    names = names + [c for c in ("duration_s", "heading_deg") if c in schema.names]
     entry = _validated_steps(_read(pf, names, label, file), label, file)
     with _steps_lock:
         _steps_cache[digest] = entry

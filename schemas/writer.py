@@ -40,10 +40,9 @@ def _atomic_write(table: pa.Table, path: Path, **kwargs) -> None:
 
 
 def steps_table(steps_df: pd.DataFrame) -> pa.Table:
-    """The contract's steps table (+ ``duration_s`` when the frame has it)."""
+    """The contract's steps table (+ the optional columns the frame has)."""
     fields = list(STEPS_SCHEMA)
-    if "duration_s" in steps_df.columns:
-        fields.append(pa.field("duration_s", STEPS_OPTIONAL["duration_s"]))
+    fields += [pa.field(c, t) for c, t in STEPS_OPTIONAL.items() if c in steps_df.columns]
     schema = pa.schema(fields)
     arrays = []
     for f in schema:

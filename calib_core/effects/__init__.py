@@ -11,9 +11,10 @@ from calib_core.effects.base import (ACCEL, CHANNELS, DEG, GYRO, THERMAL_REF_C, 
                                      total_error, unregister_effect)
 
 # the built-in catalogue: importing a module registers its effect
-from calib_core.effects import (accel_scale_nonlinearity, gyro_g_sensitivity,  # noqa: F401
-                                gyro_scale_asymmetry, gyro_scale_nonlinearity, lever_arm,
-                                thermal_bias_drift)
+from calib_core.effects import (accel_scale_nonlinearity, bias_time_drift,  # noqa: F401
+                                earth_rate, gyro_g_sensitivity, gyro_scale_asymmetry,
+                                gyro_scale_nonlinearity, lever_arm, thermal_bias_drift,
+                                thermal_scale_drift)
 
 __all__ = ["ACCEL", "CHANNELS", "DEG", "GYRO", "THERMAL_REF_C", "EffectTerm", "FigureVariable",
            "MotionContext", "SensingGeometry", "catalogue", "get_effect", "register_effect",

@@ -51,7 +51,10 @@ class MotionContext:
 
     ``w`` deg/s and ``f`` g are body-frame rate and specific force at the rotation centre;
     ``dwdt`` deg/s^2 is the angular acceleration (zero on constant-rate steps); ``temp_c`` is
-    NaN where not recorded; ``t`` is seconds since session start.
+    NaN where not recorded; ``t`` is seconds since session start. ``heading_deg`` is each
+    step's heading (the steps' optional column, 0 without it); ``latitude_deg`` and
+    ``table_heading_deg`` where the table stands (optional metadata, None when not given):
+    docs/data-contract.md, "Orientation convention".
     """
 
     w: np.ndarray  # (n, 3) deg/s
@@ -60,9 +63,14 @@ class MotionContext:
     temp_c: np.ndarray  # (n,)
     t: np.ndarray  # (n,)
     g_local: float = 9.80665
+    heading_deg: np.ndarray | None = None  # (n,); None: 0 everywhere
+    latitude_deg: float | None = None
+    table_heading_deg: float | None = None
 
     @classmethod
-    def from_refs(cls, w, f, temp_c=None, t=None, dwdt=None, g_local=9.80665) -> "MotionContext":
+    def from_refs(cls, w, f, temp_c=None, t=None, dwdt=None, g_local=9.80665,
+                  heading_deg=None, latitude_deg=None, table_heading_deg=None
+                  ) -> "MotionContext":
         w = np.atleast_2d(np.asarray(w, dtype=float))
         n = len(w)
         return cls(
@@ -72,6 +80,9 @@ class MotionContext:
             temp_c=np.full(n, np.nan) if temp_c is None else np.asarray(temp_c, float),
             t=np.zeros(n) if t is None else np.asarray(t, float),
             g_local=float(g_local),
+            heading_deg=np.zeros(n) if heading_deg is None else np.asarray(heading_deg, float),
+            latitude_deg=None if latitude_deg is None else float(latitude_deg),
+            table_heading_deg=None if table_heading_deg is None else float(table_heading_deg),
         )
 
     def __len__(self) -> int:
@@ -147,6 +158,9 @@ class EffectTerm(ABC):
     # a parameter whose standard error on the unit's steps exceeds this (parameter units) is
     # "undetermined": the protocol cannot tell a realistic value from zero
     max_useful_stderr: ClassVar[float]
+    # False for an effect of where the unit is measured (the Earth's rotation), not of its
+    # sensors: discovery fits it, a calibration applied to the unit's outputs never removes it
+    sensor_effect: ClassVar[bool] = True
 
     @property
     def n_params(self) -> int:
@@ -199,6 +213,11 @@ class EffectTerm(ABC):
         """The physical sensor settings of :mod:`calib_core.sim.physics` that produce this
         effect with parameters ``theta``: {("gyro" | "accel", sensor index): {field: value}}."""
 
+    def table_knobs(self, theta: np.ndarray) -> dict[str, object]:
+        """Settings of :class:`calib_core.sim.physics.Turntable` that produce this effect (an
+        effect of where the table stands); {} for an effect of the sensors."""
+        return {}
+
     def hide(self, unit, rng: np.random.Generator, scale: float = 1.0):
         """A :class:`calib_core.sim.physics.PhysicsUnit` with this effect hidden in its
         sensors at ``scale`` times a realistic size; returns (unit, theta, description)."""
@@ -247,6 +266,32 @@ def total_error(ctx: MotionContext, effects: list[tuple[EffectTerm, np.ndarray]]
     for term, theta in effects:
         out += term.error(ctx, theta, geometry)
     return out
+
+
+def up_direction(ctx: MotionContext) -> np.ndarray:
+    """Body direction of the world vertical per row: the specific force at rest is 1 g up
+    (the rotation axis where no specific force is given)."""
+    f = ctx.f
+    n = np.linalg.norm(f, axis=1, keepdims=True)
+    wn = np.linalg.norm(ctx.w, axis=1, keepdims=True)
+    up = np.where(n > 1e-9, f / np.where(n > 1e-9, n, 1.0),
+                  np.where(wn > 0, ctx.w / np.where(wn > 0, wn, 1.0), [0.0, 0.0, 1.0]))
+    return up
+
+
+def heading_reference(up: np.ndarray) -> np.ndarray:
+    """Per row, the body axis least aligned with ``up`` projected on the horizontal plane:
+    the direction a step's heading is measured from (docs/data-contract.md)."""
+    e = np.eye(3)[np.argmin(np.abs(up), axis=1)]
+    h = e - np.sum(e * up, axis=1, keepdims=True) * up
+    return h / np.linalg.norm(h, axis=1, keepdims=True)
+
+
+def turn_about(v: np.ndarray, axis: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
+    """Rows of v turned right-handedly about unit rows ``axis`` by ``angle_rad`` (Rodrigues)."""
+    c, s = np.cos(angle_rad)[:, None], np.sin(angle_rad)[:, None]
+    return (v * c + np.cross(axis, v) * s
+            + axis * np.sum(axis * v, axis=1, keepdims=True) * (1.0 - c))
 
 
 def random_sign(rng: np.random.Generator) -> float:

@@ -1,5 +1,6 @@
-"""Bias linear in temperature (per degC from 25 degC) on each of the six sensors; where no
-temperature is recorded, linear in time since session start (per hour) instead."""
+"""Bias linear in temperature (per degC from 25 degC) on each of the six sensors. Needs the
+temperature column: without it no step excites the term (a drift in time is
+:mod:`calib_core.effects.bias_time_drift`)."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,24 +10,17 @@ from calib_core.effects.base import (CHANNELS, THERMAL_REF_C, EffectTerm, Figure
                                      register_effect)
 
 
-def drift_variable(ctx: MotionContext) -> np.ndarray:
-    """Temperature above 25 degC where recorded, else hours since session start."""
-    return np.where(np.isfinite(ctx.temp_c), ctx.temp_c - THERMAL_REF_C, ctx.t / 3600.0)
-
-
 @register_effect
 class ThermalBiasDrift(EffectTerm):
     name = "thermal_bias_drift"
-    description = "bias drift with temperature (or with time when no temperature is recorded)"
+    description = "bias drift with temperature"
     param_names = ("d_gx", "d_gy", "d_gz", "d_ax", "d_ay", "d_az")
-    # the regressor is temperature when recorded, else time: the unit says both
-    param_units = ("deg/s per degC (per hour without temp_c)",) * 3 + (
-        "mg per degC (per hour without temp_c)",) * 3
-    excited_by = "a temperature change during the session (warm-up), or time without one"
+    param_units = ("deg/s per degC",) * 3 + ("mg per degC",) * 3
+    excited_by = "a temperature change during the session (warm-up), recorded in temp_c"
     max_useful_stderr = 0.05
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
-        x = drift_variable(ctx)
+        x = np.where(np.isfinite(ctx.temp_c), ctx.temp_c - THERMAL_REF_C, 0.0)
         out = np.zeros((len(ctx), 6, 6))
         for ch in range(6):
             out[:, ch, ch] = x * (1e-3 if ch >= 3 else 1.0)
@@ -48,6 +42,4 @@ class ThermalBiasDrift(EffectTerm):
         return out
 
     def figure_variable(self, ctx, channel):
-        if np.isfinite(ctx.temp_c).any():
-            return FigureVariable("temperature", "degC", ctx.temp_c)
-        return FigureVariable("time since session start", "s", ctx.t)
+        return FigureVariable("temperature", "degC", ctx.temp_c)

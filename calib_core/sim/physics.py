@@ -13,7 +13,8 @@ The unit is six sensors, each with
 - a polynomial in *its own* input ``u = axis . q`` (q the rate, or the specific force at the
   sensor's position): ``u + k2 u^2 + k3 u^3 + asym/2 |u|`` (asymmetry = scale(+) - scale(-));
 - a scale factor that drifts with temperature (``scale_tc_ppm`` per degC from 25 degC);
-- a bias, a bias temperature coefficient (``bias_tc`` per degC from 25 degC), a turn-on bias
+- a bias, a bias temperature coefficient (``bias_tc`` per degC from 25 degC), a bias trend in
+  time (``bias_per_h``, per hour since power-on), a turn-on bias
   drawn per repetition, a bias instability (first-order Gauss-Markov) and an in-run random walk;
 - white noise given as a density (per sqrt(Hz)), so the per-sample noise follows the rate;
 - gyros only: g-sensitivity (``g_sens``, deg/s per g of body specific force), and two errors
@@ -92,6 +93,7 @@ class _Sensor:
     instability_tau_s: float = 20.0
     turn_on: float = 0.0  # sd of the bias drawn at each power-on (repetition)
     random_walk: float = 0.0  # per sqrt(s)
+    bias_per_h: float = 0.0  # bias trend, per hour since power-on
 
     def transfer(self, u: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
         """Deterministic response to the input along the sensor's own axis."""
@@ -331,7 +333,7 @@ def simulate_physics_session(unit: PhysicsUnit, steps: pd.DataFrame, rng: np.ran
     raw = {}
     for i, (name, g) in enumerate(zip(("gx", "gy", "gz"), unit.gyros)):
         u = w @ np.asarray(g.axis)
-        out = g.transfer(u, temp) + f_centre @ np.asarray(g.g_sens)
+        out = g.transfer(u, temp) + f_centre @ np.asarray(g.g_sens) + g.bias_per_h * t / 3600.0
         if g.periodic_amp:
             out += g.periodic_amp * np.sin(2.0 * np.pi * u / g.periodic_period_dps)
         out += (w**2) @ np.asarray(g.cross_quad)
@@ -343,7 +345,8 @@ def simulate_physics_session(unit: PhysicsUnit, steps: pd.DataFrame, rng: np.ran
         centripetal = np.cross(w_rad, np.cross(w_rad, np.broadcast_to(r, w.shape)))
         tangential = np.cross(a_rad, np.broadcast_to(r, w.shape))
         f = f_centre + (centripetal + tangential) / unit.g_local
-        out = a.transfer(f @ np.asarray(a.axis), temp) + a.noise(t, rate_hz, rng)
+        out = (a.transfer(f @ np.asarray(a.axis), temp) + a.bias_per_h * t / 3600.0
+               + a.noise(t, rate_hz, rng))
         lim = unit.accel_range_g[i]
         raw[name] = a.scale * np.clip(out, -lim, lim)
     for names, quant in ((("gx", "gy", "gz"), unit.gyro_unit == "LSB"),
