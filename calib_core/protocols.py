@@ -153,3 +153,51 @@ def zhang2017_session(duration_s: float = 60.0, settle_s: float = 1.0,
     rows += dynamic_steps(duration_s=duration_s, settle_s=settle_s, tilted=tilted,
                           stationary=True)
     return to_frame(rows)
+
+
+def _with_heading(rows: list[dict], heading_deg: float) -> list[dict]:
+    return [{**r, "heading_deg": float(heading_deg)} for r in rows]
+
+
+def two_heading_stationary(duration_s: float = 3.0, settle_s: float = 0.5) -> list[dict]:
+    """The six-position static steps at headings 0 and 90 deg: the horizontal Earth rate
+    changes direction in the body between the two, a bias does not."""
+    six = zhang2017_six_position(duration_s, settle_s)
+    for r in six:
+        r["test"] = "stationary"
+    return _with_heading(six, 0.0) + _with_heading(six, 90.0)
+
+
+def diagonal_dynamic(duration_s: float = 3.0, settle_s: float = 0.5) -> list[dict]:
+    """Constant-rate rotation about the vertical with the unit's up on the 45-degree
+    diagonals: the lever arm's components off the rotation axis."""
+    return dynamic_steps(rates=(), duration_s=duration_s, settle_s=settle_s, tilted=True,
+                         tilted_rates=(200, 400))
+
+
+def rotation_only_session(duration_s: float = 3.0, settle_s: float = 0.5) -> pd.DataFrame:
+    """Every step turns about the vertical (xu2016 multirate rates and the zhang2017 dynamic
+    steps, diagonals included): no stationary step, so the horizontal Earth rate averages out
+    and its vertical part is an isotropic gyro g-sensitivity."""
+    rows = [r for r in xu2016_multirate(duration_s, settle_s) if r["rate_dps"] != 0.0]
+    rows += dynamic_steps(duration_s=duration_s, settle_s=settle_s)
+    return to_frame(rows)
+
+
+# step sets the protocol advisor may add (calib_core.plan.advise): label -> rows
+STEP_SETS = {
+    "stationary steps at two headings": two_heading_stationary,
+    "dynamic steps on the 45-degree diagonals": diagonal_dynamic,
+    "multiposition steps (33 static orientations)": xu2016_multiposition,
+    "multirate steps about each axis": xu2016_multirate,
+}
+
+
+def extended(steps: pd.DataFrame, rows: list[dict]) -> pd.DataFrame:
+    """``steps`` with ``rows`` appended (numbered after its last step)."""
+    add = pd.DataFrame(rows)
+    add.insert(0, "step", np.arange(len(add), dtype=np.int64) + int(steps["step"].max()) + 1)
+    out = pd.concat([steps, add], ignore_index=True)
+    if "heading_deg" in out:
+        out["heading_deg"] = out["heading_deg"].fillna(0.0)
+    return out

@@ -80,3 +80,46 @@ class EffectFinding:
 
 def jsonable(doc: Any) -> Any:
     return to_jsonable(doc)
+
+
+@dataclass(frozen=True)
+class ConfoundedFinding:
+    """Terms the unit's steps cannot tell apart, significant together: the combined fit is
+    applied and no one of them is named. ``members`` carry each term's part of the combined
+    fit (a parameter along the shared direction has no standard error: ``None``);
+    ``separated_by`` the step sets that would tell them apart
+    (:func:`calib_core.identifiability.separating_additions`)."""
+
+    terms: tuple[str, ...]
+    members: tuple[EffectFinding, ...]
+    evidence: FTest
+    heldout_rms_before: float
+    heldout_rms_after: float
+    channels: tuple[str, ...] = ()
+    sin_angle: float = 0.0
+    separated_by: tuple[str, ...] = ()
+    heldout_unit: str = "sigma"
+
+    @property
+    def name(self) -> str:
+        return "confounded: " + ", ".join(self.terms)
+
+    @property
+    def gain(self) -> float:
+        return (self.heldout_rms_before / self.heldout_rms_after if self.heldout_rms_after > 0
+                else float("inf"))
+
+    def advice(self) -> str:
+        what = f"{', '.join(self.terms)} cannot be told apart on these steps"
+        if not self.separated_by:
+            return f"{what}; no step set of the library separates them"
+        return f"{what}; add {' or '.join(self.separated_by)}"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"terms": list(self.terms), "members": [m.to_dict() for m in self.members],
+                "evidence": self.evidence.to_dict(), "heldout_unit": self.heldout_unit,
+                "heldout_channels": list(self.channels),
+                "heldout_rms_before": self.heldout_rms_before,
+                "heldout_rms_after": self.heldout_rms_after, "gain": self.gain,
+                "sin_angle": self.sin_angle, "separated_by": list(self.separated_by),
+                "advice": self.advice()}

@@ -53,6 +53,7 @@ from scipy import linalg, stats
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
+from calib_core.identifiability import Identifiability, analyse
 from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, replay_unit,
                                test_group, two_way_residual)
 from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, EffectFinding, FTest,
@@ -60,6 +61,9 @@ from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, Effec
 from calib_core.discovery.selection import stepwise
 from calib_core.steps import StepMeans
 _RCOND = 1e-10
+# terms whose columns share a direction up to this sine of angle (the part of a column the
+# others do not explain is below 5 % of it) are tested together: calib_core.identifiability
+CONFOUNDING_TOL = 0.05
 
 
 # -- one unit on a (repetition, step) grid ----------------------------------------------
@@ -884,10 +888,43 @@ class _Discovery:
         return out
 
     def term_test(self, current: tuple[str, ...], name: str, threshold: float) -> FTest:
-        a, b = self.fit(current), self.fit(tuple(current) + (name,))
-        ps, pd_ = self.pure(tuple(current) + (name,))
+        return self.group_test(current, (name,), threshold)
+
+    def group_test(self, current: tuple[str, ...], names: tuple[str, ...], threshold: float
+                   ) -> FTest:
+        """F test of the terms ``names`` together, added to ``current``."""
+        full = tuple(current) + tuple(n for n in names if n not in current)
+        a, b = self.fit(current), self.fit(full)
+        ps, pd_ = self.pure(full)
         pss, pdof = ps.sum(), int(pd_.sum())
         return f_test(a.ss - b.ss, b.rank - a.rank, pss, pdof, threshold)
+
+    # -- identifiability ------------------------------------------------------------------
+    @property
+    def identifiability(self) -> Identifiability:
+        """Which terms the unit's steps cannot tell apart (:func:`identifiability.analyse`
+        on the terms' columns with the affine model projected out, weighted and whitened as
+        every fit here: the R factor of the full fold), undetermined columns left out."""
+        if "_ident" not in self.__dict__:
+            P = self.g.P
+            Rg = self.Rg[0][:P, :P]
+            terms, pnames = {}, {}
+            for n in self.names:
+                a, b = self.g.offset[n]
+                keep = [k for k in range(a, b) if k not in self.undetermined
+                        and self.g.live_mask[:, k].any()]
+                if keep:
+                    terms[n] = Rg[:, keep]
+                    pnames[n] = tuple(get_effect(n).param_names[k - a] for k in keep)
+            self.__dict__["_ident"] = analyse(np.zeros((P, 0)), terms, pnames,
+                                              CONFOUNDING_TOL)
+        return self.__dict__["_ident"]
+
+    def test_groups(self) -> list[tuple[str, ...]]:
+        """Candidates as tested: confounded terms together, the others alone."""
+        ident = self.identifiability
+        grouped = {n for g in ident.groups() for n in g}
+        return sorted(ident.groups() + [(n,) for n in self.names if n not in grouped])
 
     def channels_of(self, name: str) -> tuple[int, ...]:
         a, b = self.g.offset[name]
@@ -905,26 +942,62 @@ class _Discovery:
 
     # selection
     def select(self) -> tuple[list[str], list[str], list[str]]:
-        """(chosen, partial, negligible): stepwise selection (:func:`stepwise`), then each
-        chosen term must matter (:meth:`_verdict`); the worst that does not is set aside and
-        the rest judged again."""
-        def improves(current: tuple[str, ...], n: str) -> bool:
-            ch = self.channels_of(n)
-            return self.heldout_rms(current + (n,), ch) < self.heldout_rms(current, ch)
+        """(chosen, partial, negligible) terms: stepwise selection (:func:`stepwise`) over
+        the test groups (:meth:`test_groups`: terms the steps cannot tell apart enter
+        together), each chosen group resolved (:meth:`_resolve`), then each chosen item must
+        matter (:meth:`_verdict`); the worst that does not is set aside and the rest judged
+        again. The items (a term, or a confounded group) are kept in ``self.items``."""
+        groups = {"+".join(g): g for g in self.test_groups()}
 
-        chosen = stepwise(self.names, self.term_test, improves, self.alpha)
-        partial: list[str] = []
-        negligible: list[str] = []
+        def flat(labels: tuple[str, ...]) -> tuple[str, ...]:
+            return tuple(n for lab in labels for n in groups[lab])
+
+        def test(current: tuple[str, ...], lab: str, threshold: float) -> FTest:
+            return self.group_test(flat(current), groups[lab], threshold)
+
+        def improves(current: tuple[str, ...], lab: str) -> bool:
+            ch = tuple(sorted({c for n in groups[lab] for c in self.channels_of(n)}))
+            cur = flat(current)
+            return self.heldout_rms(cur + groups[lab], ch) < self.heldout_rms(cur, ch)
+
+        labels = stepwise(list(groups), test, improves, self.alpha)
+        chosen = self._resolve([groups[lab] for lab in labels])
+        partial: list[tuple[str, ...]] = []
+        negligible: list[tuple[str, ...]] = []
         while chosen:
-            verdicts = {n: self._verdict(chosen, n) for n in chosen}
-            failing = [(kind != "partial", gain, n) for n, (kind, gain, _) in verdicts.items()
-                       if kind != "named"]
+            names = [n for item in chosen for n in item]
+            verdicts = {item: self._verdict(names, item) for item in chosen}
+            failing = [(kind != "partial", gain, item)
+                       for item, (kind, gain, _) in verdicts.items() if kind != "named"]
             if not failing:
                 break
             is_negligible, _, worst = min(failing)
             chosen.remove(worst)
             (negligible if is_negligible else partial).append(worst)
-        return chosen, partial, negligible
+        self.items = {"chosen": chosen, "partial": partial, "negligible": negligible}
+        return ([n for i in chosen for n in i], [n for i in partial for n in i],
+                [n for i in negligible for n in i])
+
+    def _resolve(self, items: list[tuple[str, ...]]) -> list[tuple[str, ...]]:
+        """A chosen group of confounded terms keeps the members the data single out: each
+        member tested given everything else chosen (its group included), at alpha over the
+        catalogue. Members that pass are named alone; when none does, the group stays one
+        item (reported confounded, its combined fit applied)."""
+        out: list[tuple[str, ...]] = []
+        thr = self.alpha / len(self.names)
+        names = [n for i in items for n in i]
+        for item in items:
+            if len(item) == 1:
+                out.append(item)
+                continue
+            alone = [m for m in item
+                     if self.term_test(tuple(n for n in names if n != m), m, thr).rejects]
+            if alone:
+                names = [n for n in names if n not in item or n in alone]
+                out += [(m,) for m in alone]
+            else:
+                out.append(item)
+        return out
 
     def misfit_channels(self) -> list[int]:
         """Channels whose lack of fit rejects at baseline (alpha / 6 each)."""
@@ -934,18 +1007,28 @@ class _Discovery:
     def unit_misfits(self) -> bool:
         return bool(self.lack_of_fit((), self.alpha).rejects or self.misfit_channels())
 
-    def _verdict(self, chosen: list[str], name: str) -> tuple[str, float, tuple[int, ...]]:
-        """("named" | "partial" | "negligible", held-out gain, channels it fixes). Named:
-        the unit misfits, the term fixes a channel of its sensors that misfit at baseline
-        (misfit without it, given the other chosen terms, and not with it) and its held-out
-        gain on the channels it fixes is at least ``min_gain``. Partial: it acts on misfit
-        channels and leaves them all misfit (it soaks up part of something else)."""
+    def _verdict(self, chosen: list[str], name: str | tuple[str, ...]
+                 ) -> tuple[str, float, tuple[int, ...]]:
+        """("named" | "partial" | "negligible", held-out gain, channels it fixes) of a term
+        or a confounded group. Named: the unit misfits, the term fixes a channel of its
+        sensors that misfit at baseline (misfit without it, given the other chosen terms,
+        and not with it) and its held-out gain on the channels it fixes is at least
+        ``min_gain``. Partial: it acts on misfit channels and leaves them all misfit (it
+        soaks up part of something else). A term whose presence is physics, not a defect
+        (``named_when_significant``, the Earth rate), and any group holding one, is named
+        once chosen when it improves the held-out score of its channels."""
+        item = (name,) if isinstance(name, str) else tuple(name)
+        others = tuple(x for x in chosen if x not in item)
+        if any(get_effect(n).named_when_significant for n in item):
+            ch = tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
+            gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
+            return ("named" if gain > 1.0 else "negligible"), gain, ch
+        sensors = sorted({c for n in item for c in self.sensor_channels(n)})
         if not self.unit_misfits():
             return "negligible", 1.0, ()
-        bad = [c for c in self.sensor_channels(name) if c in self.misfit_channels()]
+        bad = [c for c in sensors if c in self.misfit_channels()]
         if not bad:
             return "negligible", 1.0, ()
-        others = tuple(x for x in chosen if x != name)
         without = self.channel_lack_of_fit(others, self.alpha / 6)
         with_ = self.channel_lack_of_fit(tuple(chosen), self.alpha / 6)
         fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects

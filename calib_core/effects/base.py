@@ -161,6 +161,11 @@ class EffectTerm(ABC):
     # False for an effect of where the unit is measured (the Earth's rotation), not of its
     # sensors: discovery fits it, a calibration applied to the unit's outputs never removes it
     sensor_effect: ClassVar[bool] = True
+    # True for an effect known to be present whatever its size (the Earth's rotation): named
+    # once significant and improving the held-out score, without the rule that it must fix a
+    # channel that misfit by a practically meaningful gain (that rule keeps small sensor
+    # defects out; here the question is only which explanation the data support)
+    named_when_significant: ClassVar[bool] = False
 
     @property
     def n_params(self) -> int:

@@ -72,6 +72,7 @@ class EarthRate(EffectTerm):
                   "horizontal part); the vertical part alone is a gyro g-sensitivity")
     max_useful_stderr = 5.0  # deg/h: a third of the Earth rate
     sensor_effect = False
+    named_when_significant = True
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         cols = body_columns(ctx)  # (n, 3, p) body frame

@@ -1,0 +1,233 @@
+"""What a protocol can identify, before anyone runs the turntable: every catalogue term's
+columns on the protocol's steps (nominal unit, nominal noise) analysed by
+:mod:`calib_core.identifiability`, and the step sets of the library
+(:data:`calib_core.protocols.STEP_SETS`) that would resolve each confounded or undetermined
+set. ``mimucal plan`` prints it; model discovery asks it for a unit's own steps.
+
+Assumptions, stated because the steps table alone does not say them:
+
+- noise of a step mean: 0.01 deg/s per gyro channel, 0.1 mg per accelerometer channel (a
+  MEMS unit averaged over a few seconds, bias instability included); only the ratio of the
+  two matters (the terms are compared within a channel);
+- time: steps follow each other, each lasting its ``duration_s`` (3 s without it) plus its
+  settling time; the temperature follows a 10 degC warm-up with a 600 s time constant from
+  power-on (the physics simulator's default), unless the frame carries ``t_mid``/``temp_c``;
+- the base model is each channel's affine calibration (three gains and a bias).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+from calib_core.effects import MotionContext, catalogue, get_effect
+from calib_core.identifiability import DEFAULT_TOL, Advice, Identifiability, analyse
+
+NOMINAL_SIGMA = np.array([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])  # deg/s, g per step mean
+WARM_UP_C = (25.0, 10.0, 600.0)  # start, rise, time constant (s)
+DEFAULT_DURATION_S = 3.0
+
+
+def step_context(steps: pd.DataFrame, latitude_deg: float | None = None,
+                 table_heading_deg: float | None = None) -> MotionContext:
+    """The motion of each step of a steps table (contract columns; optional ``duration_s``,
+    ``heading_deg``, ``t_mid``, ``temp_c``), times and temperatures filled as the module
+    docstring says."""
+    n = len(steps)
+    w = steps[["w_ref_x", "w_ref_y", "w_ref_z"]].to_numpy(float)
+    f = steps[["f_ref_x", "f_ref_y", "f_ref_z"]].to_numpy(float)
+    dur = (steps["duration_s"].to_numpy(float) if "duration_s" in steps
+           else np.full(n, DEFAULT_DURATION_S))
+    dur = np.where(np.isfinite(dur), dur, DEFAULT_DURATION_S)
+    settle = steps["settle_s"].to_numpy(float) if "settle_s" in steps else np.zeros(n)
+    t_nominal = np.cumsum(dur + settle) - dur / 2.0
+    t = steps["t_mid"].to_numpy(float) if "t_mid" in steps else np.full(n, np.nan)
+    known = np.isfinite(t)
+    if known.any() and not known.all():  # steps appended to a unit's: after its last step
+        last = np.flatnonzero(known)[-1]
+        t = np.where(known, t, t[last] + t_nominal - t_nominal[last])
+    elif not known.any():
+        t = t_nominal
+    start, rise, tau = WARM_UP_C
+    temp = steps["temp_c"].to_numpy(float) if "temp_c" in steps else np.full(n, np.nan)
+    temp = np.where(np.isfinite(temp), temp, start + rise * (1.0 - np.exp(-t / tau)))
+    heading = steps["heading_deg"].to_numpy(float) if "heading_deg" in steps else None
+    return MotionContext.from_refs(w, f, temp_c=temp, t=t, heading_deg=heading,
+                                   latitude_deg=latitude_deg,
+                                   table_heading_deg=table_heading_deg)
+
+
+def design(steps: pd.DataFrame, names: list[str] | None = None,
+           latitude_deg: float | None = None, table_heading_deg: float | None = None
+           ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, tuple[str, ...]]]:
+    """Weighted base columns (6 n, 24) and each term's columns (6 n, p): rows are the six
+    channels of every step, each channel with its own affine base block."""
+    ctx = step_context(steps, latitude_deg, table_heading_deg)
+    n = len(ctx)
+    names = sorted(catalogue()) if names is None else names
+    base = np.zeros((6 * n, 24))
+    for c in range(6):
+        ref = ctx.w if c < 3 else ctx.f
+        rows = slice(c * n, (c + 1) * n)
+        base[rows, 4 * c:4 * c + 3] = ref / NOMINAL_SIGMA[c]
+        base[rows, 4 * c + 3] = 1.0 / NOMINAL_SIGMA[c]
+    terms, pnames = {}, {}
+    for nm in names:
+        term = get_effect(nm)
+        E = term.regressors(ctx)  # (n, 6, p)
+        Z = (E / NOMINAL_SIGMA[None, :, None]).transpose(1, 0, 2).reshape(6 * n, -1)
+        live = np.abs(Z).sum(axis=0) > 0
+        if live.any():  # a parameter no step excites is not a question of the design
+            terms[nm] = Z[:, live]
+            pnames[nm] = tuple(p for p, ok in zip(term.param_names, live) if ok)
+    # every question here is about angles and lengths of columns: the R factor of all the
+    # columns together answers them with (24 + P) rows instead of 6 n
+    names_live = list(terms)
+    widths = [terms[nm].shape[1] for nm in names_live]
+    Rf = np.linalg.qr(np.hstack([base] + [terms[nm] for nm in names_live]), mode="r")
+    base_r = Rf[:, :24]
+    out, at = {}, 24
+    for nm, k in zip(names_live, widths):
+        out[nm] = Rf[:, at:at + k]
+        at += k
+    return base_r, out, pnames
+
+
+def not_excited(steps: pd.DataFrame, latitude_deg: float | None = None,
+                table_heading_deg: float | None = None) -> dict[str, tuple[str, ...]]:
+    """Parameters no step excites at all, per term (e.g. temperature terms without a
+    temperature change)."""
+    ctx = step_context(steps, latitude_deg, table_heading_deg)
+    out = {}
+    for nm in sorted(catalogue()):
+        term = get_effect(nm)
+        dead = np.abs(term.regressors(ctx)).sum(axis=(0, 1)) == 0
+        if dead.any():
+            out[nm] = tuple(p for p, d in zip(term.param_names, dead) if d)
+    return out
+
+
+def analyse_steps(steps: pd.DataFrame, tol: float = DEFAULT_TOL,
+                  latitude_deg: float | None = None,
+                  table_heading_deg: float | None = None) -> Identifiability:
+    base, terms, pnames = design(steps, latitude_deg=latitude_deg,
+                                 table_heading_deg=table_heading_deg)
+    return analyse(base, terms, pnames, tol)
+
+
+def own_directions(base: np.ndarray, terms: Mapping[str, np.ndarray], term: str,
+                   others: tuple[str, ...], tol: float = DEFAULT_TOL) -> int:
+    """Directions of ``term``'s columns that neither the base model nor ``others`` explain
+    (the part left above ``tol``): what a test of ``term`` given the others can see."""
+    Q = _orth(np.hstack([base] + [terms[o] for o in others if o in terms]))
+    if term not in terms:
+        return 0
+    Z = terms[term]
+    Zn = Z / np.where(np.linalg.norm(Z, axis=0) > 0, np.linalg.norm(Z, axis=0), 1.0)
+    s = np.linalg.svd(Zn - Q @ (Q.T @ Zn), compute_uv=False)
+    s_all = np.linalg.svd(Zn, compute_uv=False)
+    return int(np.sum(s > tol * max(s_all.max(initial=0.0), 1e-300)))
+
+
+def separable(base: np.ndarray, terms: Mapping[str, np.ndarray], members: tuple[str, ...],
+              tol: float = DEFAULT_TOL) -> bool:
+    """Every member of a confounded set has a direction of its own given the others."""
+    return all(own_directions(base, terms, m, tuple(x for x in members if x != m), tol) > 0
+               for m in members)
+
+
+def _orth(A: np.ndarray) -> np.ndarray:
+    u, s, _ = np.linalg.svd(A, full_matrices=False)
+    return u[:, s > 1e-10 * max(s.max(initial=0.0), 1e-300)]
+
+
+def advise(steps: pd.DataFrame, library: Mapping | None = None, tol: float = DEFAULT_TOL,
+           latitude_deg: float | None = None, table_heading_deg: float | None = None,
+           ident: Identifiability | None = None) -> list[Advice]:
+    """For each confounded set and each term with undetermined parameters, the step sets of
+    ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it. A
+    confounded set is resolved when every member has a direction of its own given the
+    others (discovery can then test each member given the rest; a shared direction, such as
+    the vertical Earth rate and an isotropic g-sensitivity, may remain); an undetermined
+    term when all its excited parameters are determined."""
+    from calib_core.protocols import STEP_SETS, extended
+
+    lib = STEP_SETS if library is None else library
+    kw = {"latitude_deg": latitude_deg, "table_heading_deg": table_heading_deg}
+    ident = analyse_steps(steps, tol, **kw) if ident is None else ident
+    base0, terms0, _ = design(steps, **kw)
+    issues = [(c.describe(), c.terms, "confounded") for c in ident.confounded
+              if not separable(base0, terms0, c.terms, tol)]
+    for term in sorted({u.term for u in ident.undetermined}):
+        params = sorted({p for u in ident.undetermined if u.term == term for p in u.params})
+        issues.append((f"undetermined: {term} ({', '.join(params)})", (term,), "undetermined"))
+    if not issues:
+        return []
+    resolved: dict[str, list[str]] = {text: [] for text, _, _ in issues}
+    for label, rows in lib.items():
+        base, terms, _ = design(extended(steps, rows()), **kw)
+        ext = None
+        for text, members, kind in issues:
+            if kind == "confounded":
+                ok = separable(base, terms, members, tol)
+            else:
+                if ext is None:
+                    ext = analyse(base, terms, {n: tuple(map(str, range(z.shape[1])))
+                                                for n, z in terms.items()}, tol)
+                ok = members[0] in ext.rank and ext.rank[members[0]] == ext.n_params[members[0]]
+            if ok:
+                resolved[text].append(label)
+    return [Advice(text, members, tuple(resolved[text])) for text, members, _ in issues]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a steps table can and cannot identify. ``separable``: confounded sets whose
+    members each keep a direction of their own (discovery tests each given the others)."""
+
+    n_steps: int
+    identifiability: Identifiability
+    not_excited: dict[str, tuple[str, ...]]
+    advice: tuple[Advice, ...]
+    separable: tuple[tuple[str, ...], ...] = ()
+
+    def identifiable(self) -> list[str]:
+        ident = self.identifiability
+        return [t for t in ident.terms if ident.identifiable(t) and t not in self.not_excited]
+
+    def lines(self) -> list[str]:
+        ident = self.identifiability
+        out = [f"{self.n_steps} steps; base model: an affine calibration per channel; "
+               f"confounded / undetermined below {ident.tol:g} (sine of angle, part left)"]
+        for t in sorted(set(ident.terms) | set(self.not_excited)):
+            if t in self.not_excited and t not in ident.terms:
+                out.append(f"  {t}: not excited ({', '.join(self.not_excited[t])})")
+                continue
+            rank, p = ident.rank[t], ident.n_params[t]
+            state = "identifiable" if ident.identifiable(t) else "NOT identifiable"
+            extra = (f"; not excited: {', '.join(self.not_excited[t])}"
+                     if t in self.not_excited else "")
+            out.append(f"  {t}: {state}, {rank} of {p} parameter directions determined{extra}")
+        for c in ident.confounded:
+            if c.terms in self.separable:
+                out.append(f"  {c.describe()}: they share a direction, but each has one of "
+                           f"its own (discovery tests each given the others)")
+            else:
+                out.append(f"  {c.describe()}: cannot be told apart")
+        for u in ident.undetermined:
+            out.append(f"  undetermined: {u.describe()} ({100 * u.left:.1f} % left)")
+        for a in self.advice:
+            out.append(f"  to resolve {a.describe()}")
+        return out
+
+
+def plan(steps: pd.DataFrame, tol: float = DEFAULT_TOL, latitude_deg: float | None = None,
+         table_heading_deg: float | None = None) -> Plan:
+    ident = analyse_steps(steps, tol, latitude_deg, table_heading_deg)
+    base, terms, _ = design(steps, latitude_deg=latitude_deg,
+                            table_heading_deg=table_heading_deg)
+    return Plan(len(steps), ident, not_excited(steps, latitude_deg, table_heading_deg),
+                tuple(advise(steps, None, tol, latitude_deg, table_heading_deg, ident)),
+                tuple(c.terms for c in ident.confounded if separable(base, terms, c.terms, tol)))
