@@ -76,6 +76,8 @@ class Tally:
     misfit: int = 0
     unexplained: int = 0
     any_named: int = 0
+    confounded: int = 0  # reported a confounded group
+    confounded_hidden: int = 0  # ... holding every hidden effect, and nothing named alone
     gains: list[float] = field(default_factory=list)
     seconds: float = 0.0
     misses: list[str] = field(default_factory=list)  # what was named instead, per miss
@@ -89,9 +91,13 @@ class Tally:
         self.misfit += bool(d.misfit)
         self.unexplained += bool(d.unexplained)
         self.any_named += bool(named)
+        groups = [set(c.terms) for c in getattr(d, "confounded", [])]
+        self.confounded += bool(groups)
+        self.confounded_hidden += bool(not named and any(set(self.hidden) <= g for g in groups))
         self.gains += [e.gain for e in d.effects if e.name in self.hidden]
         if not ok:
-            self.misses.append(f"{what}: named {named or '-'}, partial "
+            self.misses.append(f"{what}: named {named or '-'}, confounded "
+                               f"{[sorted(g) for g in groups] or '-'}, partial "
                                f"{[e.name for e in d.partial] or '-'}, negligible "
                                f"{[e.name for e in d.negligible] or '-'}")
 

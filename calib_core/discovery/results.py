@@ -98,6 +98,7 @@ class ConfoundedFinding:
     channels: tuple[str, ...] = ()
     sin_angle: float = 0.0
     separated_by: tuple[str, ...] = ()
+    separable: bool = False  # the protocol sees a part of each (calib_core.plan.separable)
     heldout_unit: str = "sigma"
 
     @property
@@ -111,6 +112,9 @@ class ConfoundedFinding:
 
     def advice(self) -> str:
         what = f"{', '.join(self.terms)} cannot be told apart on these steps"
+        if self.separable:
+            return (f"{', '.join(self.terms)}: these steps see a part of each of its own, too "
+                    f"weakly here to single one out (more repetitions or longer steps)")
         if not self.separated_by:
             return f"{what}; no step set of the library separates them"
         return f"{what}; add {' or '.join(self.separated_by)}"
@@ -122,4 +126,5 @@ class ConfoundedFinding:
                 "heldout_rms_before": self.heldout_rms_before,
                 "heldout_rms_after": self.heldout_rms_after, "gain": self.gain,
                 "sin_angle": self.sin_angle, "separated_by": list(self.separated_by),
+                "separable": self.separable,
                 "advice": self.advice()}

@@ -56,7 +56,8 @@ from calib_core.errors import DesignError
 from calib_core.identifiability import Identifiability, analyse
 from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, replay_unit,
                                test_group, two_way_residual)
-from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, EffectFinding, FTest,
+from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, ConfoundedFinding,
+                                          EffectFinding, FTest,
                                           f_test, jsonable)
 from calib_core.discovery.selection import stepwise
 from calib_core.steps import StepMeans
@@ -541,6 +542,10 @@ class Diagnosis:
     min_gain: float = DEFAULT_MIN_GAIN
     # largest change of a sensing direction (rad) at each re-linearisation of the geometry
     relinearisations: list[float] = field(default_factory=list)
+    # terms the steps cannot tell apart, significant together: applied, named by none
+    confounded: list[ConfoundedFinding] = field(default_factory=list)
+    confounded_set_aside: list[list[str]] = field(default_factory=list)  # partial/negligible
+    advice: list[str] = field(default_factory=list)  # which steps would separate them
 
     @property
     def calibration(self) -> Calibration:
@@ -559,6 +564,9 @@ class Diagnosis:
             "negligible": [e.to_dict() for e in self.negligible],
             "min_gain": self.min_gain,
             "relinearisations": list(self.relinearisations),
+            "confounded": [c.to_dict() for c in self.confounded],
+            "confounded_set_aside": [list(g) for g in self.confounded_set_aside],
+            "advice": list(self.advice),
             "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
             "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
             "misfit_channels_before": [c for c, t in self.channel_misfit_before.items()
@@ -1076,6 +1084,22 @@ class _Discovery:
             heldout_rms_after=self.heldout_rms(full, ch),
             channels=tuple(CHANNELS[c] for c in ch), undetermined=undet)
 
+    def confounded_finding(self, chosen: list[str], item: tuple[str, ...], threshold: float,
+                           separated_by: tuple[str, ...] | None = None) -> ConfoundedFinding:
+        """A group the steps cannot tell apart, fitted together with ``chosen``."""
+        full = list(chosen) + [n for n in item if n not in chosen]
+        others = tuple(n for n in full if n not in item)
+        ch = tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
+        sin = min((c.sin_angle for c in self.identifiability.confounded
+                   if set(c.terms) & set(item)), default=0.0)
+        return ConfoundedFinding(
+            terms=tuple(item), members=tuple(self.finding(full, n, threshold) for n in item),
+            evidence=self.group_test(others, item, threshold),
+            heldout_rms_before=self.heldout_rms(others, ch),
+            heldout_rms_after=self.heldout_rms(tuple(full), ch),
+            channels=tuple(CHANNELS[c] for c in ch), sin_angle=float(sin),
+            separated_by=tuple(separated_by or ()), separable=separated_by is None)
+
     def _scale(self, names: tuple[str, ...]) -> float:
         """Variance factor of the weighted residual: the pure-error mean square."""
         ps, pd_ = self.pure(names)
@@ -1171,9 +1195,15 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     chosen_t = tuple(chosen)
     lof_after = d.lack_of_fit(chosen_t, alpha)
     thr = alpha / len(d.names)
-    effects = [d.finding(chosen, n, thr) for n in chosen]
+    items = d.items
+    groups = [i for kind in ("chosen", "partial", "negligible") for i in items[kind] if len(i) > 1]
+    effects = [d.finding(chosen, i[0], thr) for i in items["chosen"] if len(i) == 1]
     partial_f = [d.finding(chosen + [n], n, thr) for n in partial]
     negligible_f = [d.finding(chosen + [n], n, thr) for n in negligible]
+    advice = _advice(d.sessions[0]) if groups or any(
+        e.undetermined for e in effects) else []
+    confounded = [d.confounded_finding(chosen, i, thr, _separated_by(advice, i))
+                  for i in items["chosen"] if len(i) > 1]
     cal_before = d.calibrations(())
     cal_after = d.calibrations(chosen_t)
     if tables:
@@ -1195,4 +1225,41 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
         noise=d.noise, calibrations_before=cal_before, calibrations_after=cal_after,
         residuals_before=res_before, residuals_after=res_after,
         heldout_rms_baseline=d.heldout_rms(()), heldout_rms_final=d.heldout_rms(chosen_t),
-        min_gain=min_gain, relinearisations=moves)
+        min_gain=min_gain, relinearisations=moves, confounded=confounded,
+        confounded_set_aside=[list(i) for k in ("partial", "negligible") for i in items[k]
+                              if len(i) > 1],
+        advice=[a.describe() for a in advice if a.terms and (
+            any(set(a.terms) == set(i) or set(a.terms) <= set(i) for i in groups)
+            or any(e.name in a.terms and e.undetermined for e in effects))])
+
+
+_ADVICE_CACHE: dict[bytes, list] = {}
+
+
+def _advice(sm: StepMeans) -> list:
+    """:func:`calib_core.plan.advise` for the unit's protocol (the steps' motion and
+    headings, nominal times and warm-up: the same for every unit of the protocol, kept)."""
+    from calib_core.plan import advise
+
+    key = b"".join([np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
+                    sm.headings.tobytes(), repr((sm.latitude_deg, sm.table_heading_deg)).encode()])
+    if key not in _ADVICE_CACHE:
+        steps = pd.DataFrame({
+            "step": np.asarray(sm.step, np.int64), "test": np.asarray(sm.test).astype(str),
+            **{f"w_ref_{a}": sm.w_ref[:, i] for i, a in enumerate("xyz")},
+            **{f"f_ref_{a}": sm.f_ref[:, i] for i, a in enumerate("xyz")},
+            "settle_s": np.zeros(len(sm)), "heading_deg": sm.headings})
+        if len(_ADVICE_CACHE) >= 8:
+            _ADVICE_CACHE.clear()
+        _ADVICE_CACHE[key] = advise(steps, latitude_deg=sm.latitude_deg,
+                                    table_heading_deg=sm.table_heading_deg)
+    return _ADVICE_CACHE[key]
+
+
+def _separated_by(advice: list, item: tuple[str, ...]) -> tuple[str, ...] | None:
+    """The step sets that separate ``item`` (None: the protocol already sees a part of each
+    member of its own, so no advice names it)."""
+    for a in advice:
+        if set(a.terms) & set(item) and len(a.terms) > 1:
+            return tuple(a.separated_by)
+    return None
