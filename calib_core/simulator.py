@@ -72,10 +72,17 @@ class MimuTruth:
             (t, np.asarray(p, float)) for t, p in effects))
 
     # -- forward model ---------------------------------------------------------------
+    def effect_error(self, ctx: MotionContext) -> np.ndarray:
+        """The effects' errors on the calibrated channels, through this unit's sensing
+        geometry (the rows of K^-1), (n, 6)."""
+        if not self.effects:
+            return np.zeros((len(ctx), 6))
+        return total_error(ctx, list(self.effects),
+                           SensingGeometry.from_gains(self.K_g, self.K_a))
+
     def raw_outputs(self, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free raw gyro and accel outputs, (n, 3) each."""
-        sensed = np.hstack([ctx.w, ctx.f]) + total_error(
-            ctx, list(self.effects), SensingGeometry.from_gains(self.K_g, self.K_a))
+        sensed = np.hstack([ctx.w, ctx.f]) + self.effect_error(ctx)
         G = np.linalg.solve(self.K_g, (sensed[:, :3] - self.w0).T).T
         A = np.linalg.solve(self.K_a, (sensed[:, 3:] - self.f0).T).T
         return G, A
@@ -197,7 +204,7 @@ def simulate_session(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Gener
         idx[s : s + m] = k
     t_mid = (starts + n / 2.0) / sample_rate_hz
     ctx = _step_context(truth, steps, t_mid)
-    phys = np.hstack([ctx.w, ctx.f]) + total_error(ctx, list(truth.effects))
+    phys = np.hstack([ctx.w, ctx.f]) + truth.effect_error(ctx)
     phys = phys + _step_offsets(truth, len(steps), rng)
     # transitions: interpolate the per-step physical outputs over the sample index
     in_step = idx >= 0
@@ -253,7 +260,7 @@ def simulate_step_means(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Ge
     count = np.maximum(n - settle, 1)
     t_mid = (starts + settle + count / 2.0) / sample_rate_hz
     ctx = _step_context(truth, steps, t_mid)
-    phys = np.hstack([ctx.w, ctx.f]) + total_error(ctx, list(truth.effects))
+    phys = np.hstack([ctx.w, ctx.f]) + truth.effect_error(ctx)
     G0, A0 = _to_raw(truth, phys)
     (g_lo, g_hi), (a_lo, a_hi) = truth.full_scale_raw()
     ok = (((G0 > g_lo) & (G0 < g_hi)).all(axis=1) & ((A0 > a_lo) & (A0 < a_hi)).all(axis=1))

@@ -322,20 +322,34 @@ def _serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> _SerialNois
     z = z * m
     z = (z - z.sum(axis=0) / np.maximum(m.sum(axis=0), 1.0)) * m
     z = (z - z.sum(axis=1, keepdims=True) / np.maximum(m.sum(axis=1, keepdims=True), 1.0)) * m
-    den = np.sum(z ** 2, axis=(0, 1))
-    safe = np.where(den > 0, den, 1.0)
-    r1 = np.where(den > 0, np.sum(z[:, 1:] * z[:, :-1], axis=(0, 1)) / safe, 0.0)
-    r2 = np.where(den > 0, np.sum(z[:, 2:] * z[:, :-2], axis=(0, 1)) / safe, 0.0)
+    cnt = [max(int(real.sum()), 1)] + [max(int((real[:, k:] & real[:, :-k]).sum()), 1)
+                                       for k in (1, 2)]
+    c0 = np.sum(z ** 2, axis=(0, 1)) / cnt[0]
+    c1 = np.sum(z[:, 1:] * z[:, :-1], axis=(0, 1)) / cnt[1]
+    c2 = np.sum(z[:, 2:] * z[:, :-2], axis=(0, 1)) / cnt[2]
     dt = np.diff(t, axis=1)[real[:, 1:] & real[:, :-1]]
     step_s = float(np.median(dt)) if dt.size and np.median(dt) > 0 else 1.0
+    n = max(float(real.sum(axis=1).mean()), 2.0)
     lam, tau = np.zeros(6), np.ones(6)
-    for tri in (slice(0, 3), slice(3, 6)):
-        s1, s2 = r1[tri].sum(), r2[tri].sum()
-        if s1 <= 0 or s2 <= 0:
-            continue
-        decay = float(np.clip(s2 / s1, 0.05, 0.98))
-        lam[tri] = np.clip(r1[tri] / decay, 0.0, 0.98)
-        tau[tri] = -step_s / np.log(decay)
+    lag = np.arange(1, int(n))
+    var_mean = np.zeros(6)
+    for _ in range(3):
+        # removing each repetition's mean lowers every autocovariance by the variance of
+        # that mean (about var / n (1 + 2 sum (1 - j/n) rho_j)): put it back
+        r1 = np.where(c0 > 0, (c1 + var_mean) / np.where(c0 > 0, c0 + var_mean, 1.0), 0.0)
+        r2 = np.where(c0 > 0, (c2 + var_mean) / np.where(c0 > 0, c0 + var_mean, 1.0), 0.0)
+        for tri in (slice(0, 3), slice(3, 6)):
+            s1, s2 = r1[tri].sum(), r2[tri].sum()
+            if s1 <= 0 or s2 <= 0:
+                lam[tri] = 0.0
+                continue
+            decay = float(np.clip(s2 / s1, 0.05, 0.98))
+            lam[tri] = np.clip(r1[tri] / decay, 0.0, 0.98)
+            tau[tri] = -step_s / np.log(decay)
+        phi = np.exp(-step_s / tau)
+        total = (c0 + var_mean)
+        var_mean = total / n * (1.0 + 2.0 * lam * np.array(
+            [np.sum((1.0 - lag / n) * p ** lag) for p in phi]))
     return _SerialNoise(lam, tau)
 
 
@@ -1034,6 +1048,16 @@ class _Discovery:
         sensors = sorted({c for n in item for c in self.sensor_channels(n)})
         if not self.unit_misfits():
             return "negligible", 1.0, ()
+        if not self.misfit_channels():
+            # only the overall test rejects: the term must fix that, and its gain counts on
+            # the sensors of its individually significant parameters
+            if not (self.lack_of_fit(others, self.alpha).rejects
+                    and not self.lack_of_fit(tuple(chosen), self.alpha).rejects):
+                return "negligible", 1.0, ()
+            ch = tuple(sorted({c for n in item
+                               for c in self.significant_channels(list(chosen), n)}))
+            gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
+            return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         bad = [c for c in sensors if c in self.misfit_channels()]
         if not bad:
             return "negligible", 1.0, ()
@@ -1048,28 +1072,40 @@ class _Discovery:
         gain = self.heldout_rms(others, fixed) / self.heldout_rms(tuple(chosen), fixed)
         return ("named" if gain >= self.min_gain else "negligible"), gain, fixed
 
-    def finding(self, chosen: list[str], name: str, threshold: float) -> EffectFinding:
-        others = tuple(x for x in chosen if x != name)
-        full = tuple(others) + (name,)
+    def _param_t(self, chosen: list[str], name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(theta, stderr, |t| > the Bonferroni-corrected normal quantile) of the term's
+        parameters in the fit of ``chosen`` (which holds ``name``)."""
+        full = tuple(chosen)
         f = self.fit(full)
         names_sorted = sorted(full)
         off = sum(get_effect(n).n_params for n in names_sorted[:names_sorted.index(name)])
-        term = get_effect(name)
-        p = term.n_params
+        p = get_effect(name).n_params
         theta = f.theta[off:off + p]
         se = np.sqrt(np.diag(f.cov)[off:off + p] * self._scale(full))
+        t = np.abs(theta) / np.where(np.isfinite(se) & (se > 0), se, np.inf)
+        sig = t > stats.norm.isf(self.alpha / (2 * p))
+        if not sig.any() and np.isfinite(t).any() and np.nanmax(t) > 0:
+            sig[int(np.nanargmax(t))] = True
+        return theta, se, sig
+
+    def significant_channels(self, chosen: list[str], name: str) -> tuple[int, ...]:
+        """Channels of the sensors the term's individually significant parameters act on."""
+        _, _, sig = self._param_t(chosen, name)
+        return tuple(sorted({int(c) for c in get_effect(name).param_sensor()[sig]}))
+
+    def finding(self, chosen: list[str], name: str, threshold: float) -> EffectFinding:
+        others = tuple(x for x in chosen if x != name)
+        full = tuple(others) + (name,)
+        term = get_effect(name)
+        p = term.n_params
+        theta, se, sig = self._param_t(list(full), name)
         a = self.g.offset[name][0]
         undet = {term.param_names[k - a]: why for k, why in self.undetermined.items()
                  if a <= k < a + p}
         _, _, fixed = self._verdict(list(full), name)
         ch = fixed or self.sensor_channels(name) or self.channels_of(name)
-        t = np.abs(theta) / np.where(np.isfinite(se) & (se > 0), se, np.inf)
-        crit = stats.norm.isf(self.alpha / (2 * p))
-        sig = np.flatnonzero(t > crit)
-        if sig.size == 0 and np.isfinite(t).any() and np.nanmax(t) > 0:
-            sig = np.array([int(np.nanargmax(t))])
         sensor = term.param_sensor()
-        axes = {CHANNELS[int(sensor[k])][1] for k in sig}
+        axes = {CHANNELS[int(sensor[k])][1] for k in np.flatnonzero(sig)}
 
         def number(n: str, v: float) -> float | None:
             return None if n in undet or not np.isfinite(v) else float(v)
@@ -1173,22 +1209,23 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     d = _Discovery(step_means_by_rep, alpha, min_gain=min_gain)
     chosen, partial, negligible = d.select()
     moves: list[float] = []
-    while (chosen or partial) and len(moves) < MAX_RELINEARISATIONS:
+    while (chosen or partial or negligible) and len(moves) < MAX_RELINEARISATIONS:
         # the model is bilinear: the terms act through the geometry of K, and the affine
         # model's K is distorted by the effects it misses (and the noise reaches the
-        # residual through K). Re-linearise around the model of every term that matters
-        # (a term left partial on a poor geometry included) and select again.
-        model = tuple(chosen + partial)
+        # residual through K). Re-linearise around the model of every significant term (one
+        # left partial or negligible on a poor geometry included) and select again.
+        model = tuple(chosen + partial + negligible)
         K = d.fit(model).K
         geometry = SensingGeometry.from_gains(K[:3], K[3:])
         moves.append(geometry.distance(d.geometry))
         d2 = _Discovery(step_means_by_rep, alpha, geometry=geometry,
                         noise_model=d.noise_model(model), min_gain=min_gain)
         noise_moved = float(np.max(np.abs(np.log(d2.sigma / d.sigma))))
-        before = (sorted(chosen), sorted(partial))
+        before = (sorted(chosen), sorted(partial), sorted(negligible))
         d = d2
         chosen, partial, negligible = d.select()
-        if (moves[-1] < GEOMETRY_TOL and (sorted(chosen), sorted(partial)) == before
+        if (moves[-1] < GEOMETRY_TOL
+                and (sorted(chosen), sorted(partial), sorted(negligible)) == before
                 and noise_moved < np.log(1.03)):
             break
     lof_before = d.lack_of_fit((), alpha)
