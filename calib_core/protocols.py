@@ -175,12 +175,23 @@ def diagonal_dynamic(duration_s: float = 3.0, settle_s: float = 0.5) -> list[dic
                          tilted_rates=(200, 400))
 
 
-def rotation_only_session(duration_s: float = 3.0, settle_s: float = 0.5) -> pd.DataFrame:
-    """Every step turns about the vertical (xu2016 multirate rates and the zhang2017 dynamic
-    steps, diagonals included): no stationary step, so the horizontal Earth rate averages out
-    and its vertical part is an isotropic gyro g-sensitivity."""
-    rows = [r for r in xu2016_multirate(duration_s, settle_s) if r["rate_dps"] != 0.0]
-    rows += dynamic_steps(duration_s=duration_s, settle_s=settle_s)
+WHOLE_TURN_RATES = (120, 180, 240, 360)  # deg/s
+
+
+def whole_turn_session(min_duration_s: float = 3.0, settle_s: float = 0.5,
+                       rates=WHOLE_TURN_RATES) -> pd.DataFrame:
+    """Every step turns about the vertical, +/- each rate with x, y, z and the three
+    45-degree diagonals up, and averages over whole turns (the step lasts its settling time
+    plus the fewest whole turns that fill ``min_duration_s``): the horizontal Earth rate
+    averages out exactly and its vertical part is an isotropic gyro g-sensitivity. The
+    protocol on which the two cannot be told apart."""
+    rows = []
+    for up in ((1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (0, 1, 1), (1, 0, 1)):
+        for r in rates:
+            turn_s = 360.0 / r
+            window = turn_s * np.ceil((min_duration_s - settle_s) / turn_s)
+            for sign in (1, -1):
+                rows.append(_row("dynamic", up, sign * r, None, settle_s + window, settle_s))
     return to_frame(rows)
 
 

@@ -82,6 +82,7 @@ class StepMeans:
     heading_deg: np.ndarray | None = None
     latitude_deg: float | None = None
     table_heading_deg: float | None = None
+    settle_s: np.ndarray | None = None  # (n,) the steps' settling time (None: not known)
 
     def __post_init__(self) -> None:
         n = len(self.step)
@@ -100,7 +101,8 @@ class StepMeans:
     def select(self, mask: np.ndarray) -> "StepMeans":
         """Rows where ``mask`` is true (boolean array or index array)."""
         idx = np.asarray(mask)
-        rows = _ROW_FIELDS + (("heading_deg",) if self.heading_deg is not None else ())
+        rows = _ROW_FIELDS + tuple(f for f in ("heading_deg", "settle_s")
+                                   if getattr(self, f) is not None)
         if idx.ndim != 1:  # not a row mask or index list: let __init__ check the result
             return replace(self, **{name: getattr(self, name)[idx] for name in rows})
         state = {name: v for name, v in self.__dict__.items() if name != "_subsets"}
@@ -143,6 +145,21 @@ class StepMeans:
         """Each step's heading, degrees (0 where the steps table has no heading_deg)."""
         return (np.zeros(len(self)) if self.heading_deg is None
                 else np.asarray(self.heading_deg, float))
+
+    def turned_deg(self) -> np.ndarray:
+        """(n, 2) angle the table has turned since the step started, at the start and the end
+        of the averaged window, degrees, by the orientation convention (docs/data-contract.md:
+        the commanded rate is reached by a linear ramp over the first half of the settling
+        time, averaging starts after it); zeros where the settling time is not known."""
+        out = np.zeros((len(self), 2))
+        if self.settle_s is None:
+            return out
+        rate = np.asarray(self.rate_dps, float)
+        settle = np.asarray(self.settle_s, float)
+        window = np.asarray(self.count, float) / float(self.sample_rate_hz)
+        out[:, 0] = 0.75 * settle * rate
+        out[:, 1] = out[:, 0] + window * rate
+        return out
 
     @property
     def has_temperature(self) -> bool:

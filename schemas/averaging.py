@@ -385,6 +385,7 @@ def average_session(data: SessionData, min_samples: int = 10
         gyro_range_dps=tuple(meta.gyro_range_dps), accel_range_g=tuple(meta.accel_range_g),
         metadata=dict(meta.provenance), heading_deg=cols.heading_deg,
         latitude_deg=meta.latitude_deg, table_heading_deg=meta.table_heading_deg,
+        settle_s=np.asarray(cols.settle_s, float),
     )
     # select copies every array: the result shares nothing with the reader's cache
     return sm.select(usable), warnings

@@ -216,7 +216,8 @@ def _layout(sessions: list[StepMeans]) -> _Layout:
         (len(sm), sm.step.astype(np.int64).tobytes(), _test_names(sm).tobytes(),
          np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
          np.asarray(sm.temp_c, float).tobytes(), np.asarray(sm.t_mid, float).tobytes(),
-         float(sm.g_local), sm.headings.tobytes(), sm.latitude_deg, sm.table_heading_deg)
+         float(sm.g_local), sm.headings.tobytes(), sm.latitude_deg, sm.table_heading_deg,
+         sm.turned_deg().tobytes())
         for sm in sessions)
     lay = _LAYOUT_CACHE.get(key)
     if lay is None:
@@ -251,7 +252,8 @@ def _build_layout(sessions: list[StepMeans]) -> _Layout:
         ctxs.append(MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
                                             g_local=sm.g_local, heading_deg=sm.headings,
                                             latitude_deg=sm.latitude_deg,
-                                            table_heading_deg=sm.table_heading_deg))
+                                            table_heading_deg=sm.table_heading_deg,
+                                            turned_deg=sm.turned_deg()))
         tests.append(np.unique(_test_names(sm), return_inverse=True))
     # test groups: mapped per distinct test name, not per step
     groups = sorted({test_group(t) for u, _ in tests for t in u})

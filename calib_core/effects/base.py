@@ -66,11 +66,14 @@ class MotionContext:
     heading_deg: np.ndarray | None = None  # (n,); None: 0 everywhere
     latitude_deg: float | None = None
     table_heading_deg: float | None = None
+    # (n, 2) angle turned since the step's start at the start and end of the averaged
+    # window, deg (StepMeans.turned_deg); None: not known
+    turned_deg: np.ndarray | None = None
 
     @classmethod
     def from_refs(cls, w, f, temp_c=None, t=None, dwdt=None, g_local=9.80665,
-                  heading_deg=None, latitude_deg=None, table_heading_deg=None
-                  ) -> "MotionContext":
+                  heading_deg=None, latitude_deg=None, table_heading_deg=None,
+                  turned_deg=None) -> "MotionContext":
         w = np.atleast_2d(np.asarray(w, dtype=float))
         n = len(w)
         return cls(
@@ -83,6 +86,7 @@ class MotionContext:
             heading_deg=np.zeros(n) if heading_deg is None else np.asarray(heading_deg, float),
             latitude_deg=None if latitude_deg is None else float(latitude_deg),
             table_heading_deg=None if table_heading_deg is None else float(table_heading_deg),
+            turned_deg=None if turned_deg is None else np.asarray(turned_deg, float),
         )
 
     def __len__(self) -> int:

@@ -13,9 +13,10 @@ cos(latitude) deg/h towards true north):
   by the step's ``heading_deg`` and the table's unknown heading. Without the table heading
   it is the two parameters ``omega_h1`` (along the reference turned by the step's heading)
   and ``omega_h2`` (90 deg counter-clockwise from it seen from above). On rotating steps the
-  horizontal part turns with the body; its mean over the averaged window depends on the
-  table angle at the window's start, which the contract does not record: it is left out
-  there (it averages out over whole turns; 10.6 deg/h at 45 deg latitude at most);
+  horizontal part turns with the body: its mean over the averaged window follows from the
+  angle turned at the window's start and end (the orientation convention: the rate is
+  reached by a linear ramp over the first half of the settling time), and is left out
+  where the settling time is not known;
 - with the metadata ``latitude_deg`` and ``table_heading_deg`` the direction of the whole
   vector is known: one parameter, ``omega_up``, carries the horizontal part with it
   (omega_up cot(latitude) towards north), and ``omega_h1``/``omega_h2`` are not fitted.
@@ -42,23 +43,51 @@ def pinned(ctx: MotionContext) -> bool:
             and abs(ctx.latitude_deg) >= MIN_PINNED_LATITUDE_DEG)
 
 
+def horizontal_mean(ctx: MotionContext, up: np.ndarray) -> np.ndarray:
+    """(n, 2): a horizontal vector fixed in the world, seen from the body, averaged over the
+    window: ``n0 c + (up x n0) s`` with n0 its direction at the step's start. (1, 0) on a
+    stationary step; on a rotating step the window's mean (StepMeans.turned_deg: the body
+    turns by +phi about ``w``, world vectors by -phi); (0, 0) where the window is not
+    known."""
+    n = len(ctx)
+    out = np.zeros((n, 2))
+    rate = np.linalg.norm(ctx.w, axis=1)
+    static = rate < 1e-9
+    out[static, 0] = 1.0
+    if ctx.turned_deg is None:
+        return out
+    # the body turns by phi >= 0 about w = s |w| up: a world vector is seen as
+    # cos(phi) n0 - s sin(phi) (up x n0); averaged over the window's phi0..phi1
+    s = np.sign(np.sum(ctx.w * up, axis=1))
+    p0, p1 = np.radians(np.abs(ctx.turned_deg[:, 0])), np.radians(np.abs(ctx.turned_deg[:, 1]))
+    span = p1 - p0
+    ok = ~static & (span > 1e-12)
+    out[ok, 0] = (np.sin(p1[ok]) - np.sin(p0[ok])) / span[ok]
+    out[ok, 1] = s[ok] * (np.cos(p1[ok]) - np.cos(p0[ok])) / span[ok]
+    return out
+
+
 def body_columns(ctx: MotionContext) -> np.ndarray:
     """The Earth rate in the body frame per unit parameter, (n, 3 axes, 3 params), deg/s
     per deg/h."""
     up = up_direction(ctx)
-    static = (np.linalg.norm(ctx.w, axis=1) < 1e-9)[:, None]
+    hm = horizontal_mean(ctx, up)
     heading = np.zeros(len(ctx)) if ctx.heading_deg is None else ctx.heading_deg
+
+    def seen(n0: np.ndarray) -> np.ndarray:
+        return hm[:, :1] * n0 + hm[:, 1:] * np.cross(up, n0)
+
     out = np.zeros((len(ctx), 3, 3))
     if pinned(ctx):
         north = turn_about(heading_reference(up), up,
                            (heading + ctx.table_heading_deg) * DEG)
         cot = 1.0 / np.tan(ctx.latitude_deg * DEG)
-        out[:, :, 0] = up + static * cot * north
+        out[:, :, 0] = up + cot * seen(north)
     else:
         h1 = turn_about(heading_reference(up), up, heading * DEG)
         out[:, :, 0] = up
-        out[:, :, 1] = static * h1
-        out[:, :, 2] = static * np.cross(up, h1)
+        out[:, :, 1] = seen(h1)
+        out[:, :, 2] = seen(np.cross(up, h1))
     return out / 3600.0
 
 
@@ -72,7 +101,7 @@ class EarthRate(EffectTerm):
                   "horizontal part); the vertical part alone is a gyro g-sensitivity")
     max_useful_stderr = 5.0  # deg/h: a third of the Earth rate
     sensor_effect = False
-    named_when_significant = True
+    named_when_significant = False
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         cols = body_columns(ctx)  # (n, 3, p) body frame
