@@ -1,0 +1,121 @@
+"""The Done-when figures of docs/model-discovery.md on confounding, the Earth rate and the
+thermal terms, on the independent physics simulator (:mod:`calib_core.sim.physics`).
+
+Each scenario diagnoses ``n_units`` simulated units and counts outcomes. Step means come
+from a caller-given function ``step_means_of(unit, steps, rng, unit_id, table)`` (the
+reader's averaging lives in ``schemas.physics_sessions``, which calib_core may not import).
+
+The Earth-rate scenarios use gyros whose bias instability (0.002 deg/s = 7 deg/h, white
+noise 0.002 deg/s/sqrt(Hz)) is below the Earth rate: with the typical MEMS unit of
+:func:`typical_physics_unit` (0.01 deg/s = 36 deg/h) the 10.6 deg/h vertical part at 45 deg
+latitude is below what five repetitions can tell from the noise (see
+:func:`earth_rate_scenario`'s ``quiet`` flag and the figures).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from calib_core.discovery.turntable import diagnose_unit
+from calib_core.effects import get_effect
+from calib_core.effects.earth_rate import EARTH_RATE_DEG_H
+from calib_core.sim.physics import PhysicsUnit, Turntable, typical_physics_unit
+
+StepMeansOf = Callable[..., list]
+DEG = np.pi / 180.0
+
+
+def quiet_gyros(unit: PhysicsUnit) -> PhysicsUnit:
+    """The unit with gyros of 7 deg/h bias instability (0.002 deg/s, white 0.002
+    deg/s/sqrt(Hz), turn-on 0.02 deg/s): a gyro that can see the Earth's rotation."""
+    for i in range(3):
+        unit = unit.replace_gyro(i, instability=0.002, white_density=0.002, turn_on=0.02)
+    return unit
+
+
+@dataclass
+class Outcome:
+    """Counts of one scenario."""
+
+    n: int = 0
+    named_alone: int = 0  # the hidden effect named, nothing else named or confounded
+    named: int = 0  # the hidden effect named (others beside it allowed)
+    confounded: int = 0  # the hidden effect in a confounded group, nothing named alone
+    other_named: int = 0  # some other catalogue effect named alone
+    within_2se: int = 0  # estimate within 2 standard errors of the truth (when named)
+    right_axis: int = 0
+    notes: list[str] = field(default_factory=list)
+
+    def pct(self, k: int) -> float:
+        return 100.0 * k / max(self.n, 1)
+
+
+def _tally(out: Outcome, d, hidden: str, check=None, what: str = "") -> None:
+    named = [e.name for e in d.effects]
+    groups = [set(c.terms) for c in d.confounded]
+    out.n += 1
+    out.named += hidden in named
+    out.named_alone += named == [hidden] and not groups
+    out.confounded += bool(not named and any(hidden in g for g in groups))
+    out.other_named += bool(set(named) - {hidden})
+    if hidden in named and check is not None:
+        ok_est, ok_axis = check(next(e for e in d.effects if e.name == hidden))
+        out.within_2se += ok_est
+        out.right_axis += ok_axis
+    if not (named == [hidden] and not groups):
+        out.notes.append(f"{what}: named {named or '-'}, confounded "
+                         f"{[sorted(g) for g in groups] or '-'}")
+
+
+def earth_rate_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, n_units: int,
+                        seed: int, latitude_deg: float = 45.0, declare: bool = False,
+                        quiet: bool = True) -> Outcome:
+    """Units with the Earth's rotation at ``latitude_deg`` (random table heading); with
+    ``declare`` the samples carry latitude_deg/table_heading_deg. The estimate is checked
+    against 15.041 sin(latitude) deg/h (omega_up)."""
+    rng = np.random.default_rng(seed)
+    truth = EARTH_RATE_DEG_H * np.sin(latitude_deg * DEG)
+    out = Outcome()
+
+    def check(e):
+        v, se = e.estimate["omega_up"], e.stderr["omega_up"]
+        return bool(v is not None and se and abs(v - truth) <= 2 * se), True
+
+    for u in range(n_units):
+        unit = typical_physics_unit(rng)
+        if quiet:
+            unit = quiet_gyros(unit)
+        table = Turntable(latitude_deg=latitude_deg, heading_deg=float(rng.uniform(0, 360)),
+                          declare_location=declare)
+        d = diagnose_unit(step_means_of(unit, steps, rng, f"E{u:03d}", table), tables=False)
+        _tally(out, d, "earth_rate", check, f"unit {u}")
+    return out
+
+
+def sensor_effect_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, name: str,
+                           n_units: int, seed: int, scale: float = 1.0) -> Outcome:
+    """Units with the catalogue effect ``name`` hidden by its module at ``scale``; the
+    "right axis" is the sensor of its largest hidden parameter being the sensor of the
+    estimate's largest |t|."""
+    rng = np.random.default_rng(seed)
+    term = get_effect(name)
+    out = Outcome()
+    for u in range(n_units):
+        unit = typical_physics_unit(rng)
+        unit, theta, what = term.hide(unit, rng, scale)
+        hidden_param = term.param_names[int(np.argmax(np.abs(theta)))]
+
+        def check(e, hidden_param=hidden_param):
+            t = {k: abs(v) / e.stderr[k] for k, v in e.estimate.items()
+                 if v is not None and e.stderr[k]}
+            best = max(t, key=t.get) if t else None
+            v, se = e.estimate.get(hidden_param), e.stderr.get(hidden_param)
+            true = float(theta[term.param_names.index(hidden_param)])
+            return bool(v is not None and se and abs(v - true) <= 2 * se), best == hidden_param
+
+        d = diagnose_unit(step_means_of(unit, steps, rng, f"T{u:03d}", None), tables=False)
+        _tally(out, d, name, check, f"unit {u} ({what})")
+    return out
