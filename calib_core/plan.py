@@ -9,8 +9,8 @@ Assumptions, stated because the steps table alone does not say them:
 - noise of a step mean: 0.01 deg/s per gyro channel, 0.1 mg per accelerometer channel (a
   MEMS unit averaged over a few seconds, bias instability included); only the ratio of the
   two matters (the terms are compared within a channel);
-- time: steps follow each other, each lasting its ``duration_s`` (3 s without it) plus its
-  settling time; the temperature follows a 10 degC warm-up with a 600 s time constant from
+- time: steps follow each other, each lasting its ``duration_s`` (3 s without it; the
+  settling time is part of it, averaging starts after it); the temperature follows a 10 degC warm-up with a 600 s time constant from
   power-on (the physics simulator's default), unless the frame carries ``t_mid``/``temp_c``;
 - the base model is each channel's affine calibration (three gains and a bias).
 """
@@ -42,7 +42,7 @@ def step_context(steps: pd.DataFrame, latitude_deg: float | None = None,
            else np.full(n, DEFAULT_DURATION_S))
     dur = np.where(np.isfinite(dur), dur, DEFAULT_DURATION_S)
     settle = steps["settle_s"].to_numpy(float) if "settle_s" in steps else np.zeros(n)
-    t_nominal = np.cumsum(dur + settle) - dur / 2.0
+    t_nominal = np.cumsum(dur) - (dur - settle) / 2.0
     t = steps["t_mid"].to_numpy(float) if "t_mid" in steps else np.full(n, np.nan)
     known = np.isfinite(t)
     if known.any() and not known.all():  # steps appended to a unit's: after its last step
@@ -54,9 +54,17 @@ def step_context(steps: pd.DataFrame, latitude_deg: float | None = None,
     temp = steps["temp_c"].to_numpy(float) if "temp_c" in steps else np.full(n, np.nan)
     temp = np.where(np.isfinite(temp), temp, start + rise * (1.0 - np.exp(-t / tau)))
     heading = steps["heading_deg"].to_numpy(float) if "heading_deg" in steps else None
+    # angle turned since the step's start at the averaged window's start and end (the
+    # orientation convention, as StepMeans.turned_deg): given, or from settle and duration
+    rate = np.linalg.norm(w, axis=1)
+    turned = np.column_stack([0.75 * settle * rate, (0.75 * settle + np.maximum(dur - settle, 0.0))
+                              * rate])
+    if {"turned0_deg", "turned1_deg"} <= set(steps.columns):
+        given = steps[["turned0_deg", "turned1_deg"]].to_numpy(float)
+        turned = np.where(np.isfinite(given), given, turned)
     return MotionContext.from_refs(w, f, temp_c=temp, t=t, heading_deg=heading,
                                    latitude_deg=latitude_deg,
-                                   table_heading_deg=table_heading_deg)
+                                   table_heading_deg=table_heading_deg, turned_deg=turned)
 
 
 def design(steps: pd.DataFrame, names: list[str] | None = None,
@@ -78,7 +86,7 @@ def design(steps: pd.DataFrame, names: list[str] | None = None,
         term = get_effect(nm)
         E = term.regressors(ctx)  # (n, 6, p)
         Z = (E / NOMINAL_SIGMA[None, :, None]).transpose(1, 0, 2).reshape(6 * n, -1)
-        live = np.abs(Z).sum(axis=0) > 0
+        live = _excited(Z)
         if live.any():  # a parameter no step excites is not a question of the design
             terms[nm] = Z[:, live]
             pnames[nm] = tuple(p for p, ok in zip(term.param_names, live) if ok)
@@ -95,6 +103,13 @@ def design(steps: pd.DataFrame, names: list[str] | None = None,
     return base_r, out, pnames
 
 
+def _excited(Z: np.ndarray) -> np.ndarray:
+    """Columns of a term that some step excites: above 1e-9 of the term's largest (a
+    horizontal Earth rate averaged over whole turns is zero up to rounding)."""
+    norms = np.linalg.norm(Z, axis=0)
+    return norms > 1e-9 * max(norms.max(initial=0.0), 1e-300)
+
+
 def not_excited(steps: pd.DataFrame, latitude_deg: float | None = None,
                 table_heading_deg: float | None = None) -> dict[str, tuple[str, ...]]:
     """Parameters no step excites at all, per term (e.g. temperature terms without a
@@ -103,7 +118,8 @@ def not_excited(steps: pd.DataFrame, latitude_deg: float | None = None,
     out = {}
     for nm in sorted(catalogue()):
         term = get_effect(nm)
-        dead = np.abs(term.regressors(ctx)).sum(axis=(0, 1)) == 0
+        E = term.regressors(ctx)
+        dead = ~_excited((E / NOMINAL_SIGMA[None, :, None]).reshape(-1, E.shape[-1]))
         if dead.any():
             out[nm] = tuple(p for p, d in zip(term.param_names, dead) if d)
     return out

@@ -1281,13 +1281,15 @@ def _advice(sm: StepMeans) -> list:
     from calib_core.plan import advise
 
     key = b"".join([np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
-                    sm.headings.tobytes(), repr((sm.latitude_deg, sm.table_heading_deg)).encode()])
+                    sm.headings.tobytes(), sm.turned_deg().tobytes(),
+                    repr((sm.latitude_deg, sm.table_heading_deg)).encode()])
     if key not in _ADVICE_CACHE:
         steps = pd.DataFrame({
             "step": np.asarray(sm.step, np.int64), "test": np.asarray(sm.test).astype(str),
             **{f"w_ref_{a}": sm.w_ref[:, i] for i, a in enumerate("xyz")},
             **{f"f_ref_{a}": sm.f_ref[:, i] for i, a in enumerate("xyz")},
-            "settle_s": np.zeros(len(sm)), "heading_deg": sm.headings})
+            "settle_s": np.zeros(len(sm)), "heading_deg": sm.headings,
+            "turned0_deg": sm.turned_deg()[:, 0], "turned1_deg": sm.turned_deg()[:, 1]})
         if len(_ADVICE_CACHE) >= 8:
             _ADVICE_CACHE.clear()
         _ADVICE_CACHE[key] = advise(steps, latitude_deg=sm.latitude_deg,

@@ -60,7 +60,7 @@ def summary_lines(diag) -> list[str]:
         verdict = " -> MISFIT (overall lack of fit; no single channel rejects)"
     lines.append(f"affine model: lack of fit F={lb.statistic:.3g} ({lb.dof1}, {lb.dof2}), "
                  f"{_fmt_p(lb.p_value)}" + verdict)
-    if diag.effects:
+    if diag.effects or getattr(diag, "confounded", []):
         lines.append("effects found:")
     tags = {"partial": " (partial: leaves its channels misfit; not applied)",
             "negligible": f" (negligible: significant, but the unit fits without it or its "
@@ -81,6 +81,20 @@ def summary_lines(diag) -> list[str]:
                      f"{_fmt_p(ev.p_value)} (threshold {ev.threshold:.2g}); held-out rms{on} "
                      f"{e.heldout_rms_before:.3g} -> {e.heldout_rms_after:.3g} sigma "
                      f"(gain {e.gain:.3g})")
+    for c in getattr(diag, "confounded", []):
+        ev = c.evidence
+        on = f" on {','.join(c.channels)}" if c.channels else ""
+        lines.append(f"  confounded: [{', '.join(c.terms)}] (combined fit applied; none named)")
+        lines.append(f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
+                     f"{_fmt_p(ev.p_value)}; held-out rms{on} {c.heldout_rms_before:.3g} -> "
+                     f"{c.heldout_rms_after:.3g} sigma (gain {c.gain:.3g})")
+        lines.append(f"      {c.advice()}")
+    for g in getattr(diag, "confounded_set_aside", []):
+        lines.append(f"  confounded, set aside (partial or negligible): [{', '.join(g)}]")
+    advice = getattr(diag, "advice", [])
+    if advice:
+        lines.append("protocol advisor:")
+        lines += [f"  {a}" for a in advice]
     la = diag.lack_of_fit_after
     if diag.effects:
         lines.append(f"extended model: lack of fit F={la.statistic:.3g} ({la.dof1}, {la.dof2}), "
