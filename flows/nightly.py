@@ -100,13 +100,6 @@ def _frame(rows: list[dict], name: str) -> pd.DataFrame:  # noqa: ARG001 (name: 
     return pd.DataFrame(rows) if rows else pd.DataFrame()
 
 
-def _flatten_effect(e: dict) -> dict:
-    out = {}
-    for k, v in e.items():
-        out[k] = v if isinstance(v, (int, float, str, bool)) or v is None else json.dumps(jsonable(v))
-    return out
-
-
 def _session_rows(results: list[UnitResult], attr: str) -> pd.DataFrame | None:
     """The per-session tables (``residual_table`` / ``compensation_table``) of the units'
     successful sessions as ONE DataFrame, lot, unit and rep inserted first: equal to
@@ -133,6 +126,7 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     stamp = iso(when)
     sess_rows, par_rows, sum_rows, unit_rows, disc_rows = [], [], [], [], []
     nav_frames = []
+    evidence_frames: list[pd.DataFrame] = []
     ok_units: set[tuple[str, str]] = set()
     stale_units: dict[tuple[str, str], str] = {}
     previous_units = store.read("units", lots={ur.lot for ur in results},
@@ -207,16 +201,12 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                 unit_rows.append({**base, "state": "failed", "reason": why,
                                   "calibration_file": None, "calibrated_at": None})
         if ur.diagnosis is not None:
-            effects = ur.diagnosis.get("effects") or []
-            common = {"lot": ur.lot, "unit": ur.unit, "misfit": ur.diagnosis.get("misfit"),
-                      "unexplained": ur.diagnosis.get("unexplained"), "run_id": run_id}
-            if effects:
-                for e in effects:
-                    d = _flatten_effect(e)
-                    d["effect"] = d.pop("name", None)
-                    disc_rows.append({**common, **d})
-            else:
-                disc_rows.append({**common, "effect": None})
+            # one row per finding, numbers as the report shows them
+            # (calib_core.discovery.presentation.finding_rows)
+            rows = ur.diagnosis.get("rows") or [{"effect": None}]
+            disc_rows += [{**r, "lot": ur.lot, "unit": ur.unit, "run_id": run_id} for r in rows]
+            if ur.discovery_evidence is not None:
+                evidence_frames.append(ur.discovery_evidence.assign(run_id=run_id))
     all_units = {(ur.lot, ur.unit) for ur in results}
     store.replace_units("units", _frame(unit_rows, "units"), all_units)
     store.replace_units("parameters", _frame(par_rows, "parameters"), ok_units)
@@ -234,6 +224,9 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
     if disc_units:
         store.replace_units("discovery", _frame(disc_rows, "discovery"), disc_units)
+        store.replace_units("discovery_evidence",
+                            pd.concat(evidence_frames, ignore_index=True)
+                            if evidence_frames else None, disc_units)
     # sessions.parquet last: its fingerprints tell the next run which units are done, so a
     # crash before this point leaves the units "changed" and the rerun redoes them whole
     store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)

@@ -206,6 +206,7 @@ class UnitResult:
     discovery_note: str | None = None
     elapsed_s: float = 0.0
     navigation: pd.DataFrame | None = None  # zhang2017 drift curves (reruns only)
+    discovery_evidence: pd.DataFrame | None = None  # the series behind discovery's figures
 
     @property
     def calibrated(self) -> bool:
@@ -231,13 +232,17 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     t0 = time.perf_counter()
     outcomes = calibrate_sessions(sorted(job.refs, key=lambda r: r.key.rep))
-    diag_doc, note, terms, extended = None, None, (), None
+    diag_doc, note, terms, extended, evidence = None, None, (), None, None
     good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
     if run_discovery and _discovery_available() and len(good_sm) >= 2:
         from calib_core.discovery import diagnose_unit
         try:
+            from calib_core.discovery.presentation import finding_rows
+
             diag = diagnose_unit(good_sm, tables=False)
             diag_doc = diag.to_dict()
+            diag_doc["rows"] = finding_rows(diag)  # the store's discovery rows
+            evidence = diag.evidence if len(diag.evidence) else None
             terms = tuple(diag.terms)
             extended = diag.calibration if terms else None
             if terms:  # residuals of the extended model, for the before/after plots
@@ -261,7 +266,8 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
         note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
     for o in unit_out.sessions:  # step means are not kept past this point
         o.step_means = None
-    return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0)
+    return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0,
+                      discovery_evidence=evidence)
 
 
 def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:

@@ -6,8 +6,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pandas as pd
+
 from reports.html import Page, esc, missing, write_atomic
-from reports.sections import (KEY_MODELS, LotContext, discovery_figure, discovery_table, flags_list,
+from reports.sections import (KEY_MODELS, LotContext, discovery_table, flags_list,
                               key_models, key_parameter_table, kpi_block, residual_overview_figure,
                               sessions_section, strip_figure, unit_section)
 from reports.store import StoreView
@@ -68,17 +70,15 @@ def render_lot_report(results_root: str | Path, lot: str, view: StoreView | None
         disc = '<p class="note">Model discovery ran and found no effect.</p>'
     else:
         d = ctx.discovery
-        found = d[d["effect"].notna()] if "effect" in d else d
-        notes = [f"Model discovery ran for {d['unit'].nunique()} unit(s); "
-                 f"{found['unit'].nunique()} with at least one named effect."]
-        for col, what in (("misfit", "baseline misfit"), ("unexplained", "residual structure left unexplained")):
-            if col in d:
-                us = sorted({str(u) for u in d.loc[d[col].fillna(False).astype(bool), "unit"]})
-                notes.append(f"{what.capitalize()}: {', '.join(us) if us else 'none'}.")
-        fig = discovery_figure(ctx)
+        kind = d["kind"] if "kind" in d else pd.Series("", index=d.index)
+        notes = [f"Model discovery ran for {d['unit'].nunique()} unit(s): "
+                 f"{d.loc[kind == 'named', 'unit'].nunique()} with a named effect, "
+                 f"{d.loc[kind == 'confounded', 'unit'].nunique()} with effects the steps cannot "
+                 f"tell apart, {d.loc[kind == 'unexplained', 'unit'].nunique()} with misfit left "
+                 f"unexplained. Held-out rms in units of the noise (σ); the evidence of each "
+                 f"finding (residual against what drives it) is in its unit's section."]
         disc = (f'<p class="note">{esc(" ".join(notes))}</p>'
-                + (page.figure(fig, height=330, name="discovery") if fig is not None else "")
-                + (discovery_table(found.sort_values(["unit"]), with_unit_col=True) if len(found) else ""))
+                + discovery_table(d, with_unit_col=True))
     body.append(f'<section id="discovery"><h2>Model discovery</h2>{disc}</section>')
     body.append(f'<section id="sessions"><h2>Sessions</h2>{sessions_section(ctx)}</section>')
 

@@ -801,70 +801,131 @@ def residual_overview_figure(ctx: LotContext) -> dict | None:
 
 
 # ----------------------------------------------------------------------------- discovery
+# The discovery table holds one row per finding, its numbers already formatted in physical
+# units (calib_core.discovery.presentation); the evidence table the series of each figure.
 
-_DISC_ORDER = ["effect", "name", "axes", "estimate", "stderr", "evidence", "heldout_rms_before",
-               "heldout_rms_after", "gain", "misfit", "unexplained"]
+_DISC_KIND_ORDER = {"named": 0, "confounded": 1, "unexplained": 2, "partial": 3, "negligible": 4}
+_DISC_KIND_TEXT = {
+    "named": "Named effects (applied)",
+    "confounded": "Confounded: the steps cannot tell these apart (combined fit applied, none named)",
+    "unexplained": "Unexplained misfit (no catalogue effect accounts for it)",
+    "partial": "Partial candidates (significant, leave their channels misfit; not applied)",
+}
+
+
+def _disc_rows(df: pd.DataFrame | None) -> pd.DataFrame:
+    if df is None or not len(df) or "kind" not in df.columns:
+        return pd.DataFrame()
+    d = df[df["kind"].isin(list(_DISC_KIND_ORDER))].copy()
+    d["_order"] = d["kind"].map(_DISC_KIND_ORDER)
+    return d.sort_values(["_order", "unit", "effect"])
+
+
+def _cell(v, sig: int | None = None) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return ""
+    if sig is not None and isinstance(v, (float, np.floating, int, np.integer)):
+        return f"{float(v):.{sig}g}"
+    return esc(str(v))
+
+
+def _kind_table(rows: pd.DataFrame, kind: str, with_unit_col: bool) -> str:
+    headers = (["Unit"] if with_unit_col else []) + [
+        "Effect", "Channels", "Estimate ± standard error", "Evidence",
+        "Held-out rms before (σ)", "after (σ)", "gain"]
+    if kind == "confounded":
+        headers.append("What would separate them")
+    body = []
+    for r in rows.itertuples():
+        cells = ([f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>'] if with_unit_col else [])
+        cells += [_cell(r.effect), _cell(r.channels), _cell(r.estimates), _cell(r.evidence),
+                  _cell(r.heldout_rms_before, 3), _cell(r.heldout_rms_after, 3), _cell(r.gain, 3)]
+        if kind == "confounded":
+            cells.append(_cell(r.separated_by))
+        body.append(cells)
+    return table(headers, body, cls=f"discovery {kind}", text_cols=len(headers) - 3
+                 if kind != "confounded" else len(headers))
+
+
+def discovery_tables(df: pd.DataFrame | None, with_unit_col: bool) -> str:
+    """Findings by kind (named, confounded, unexplained, partial), then the negligible
+    terms in a folded list. Text cells only: no JSON."""
+    d = _disc_rows(df)
+    if not len(d):
+        return ""
+    out = []
+    for kind, title in _DISC_KIND_TEXT.items():
+        rows = d[d["kind"] == kind]
+        if len(rows):
+            out.append(f"<h4>{esc(title)}</h4>" + _kind_table(rows, kind, with_unit_col))
+    neg = d[d["kind"] == "negligible"]
+    if len(neg):
+        items = "".join(
+            f"<li>{(esc(r.unit) + ': ') if with_unit_col else ''}{esc(r.effect)} "
+            f"({esc(r.estimates)}; held-out gain {_cell(r.gain, 3)})</li>"
+            for r in neg.itertuples())
+        out.append(f'<details class="negligible"><summary>Negligible terms ({len(neg)}): '
+                   f'significant, but the unit fits without them or their held-out gain is '
+                   f'too small; not applied</summary><ul>{items}</ul></details>')
+    advice = sorted({a for a in d.get("advice", pd.Series(dtype=object)).dropna() if a})
+    if advice:
+        out.append("<h4>Protocol advisor</h4><ul class=\"advice\">" + "".join(
+            f"<li>{esc(line)}</li>" for a in advice for line in a.split(" | ")) + "</ul>")
+    return "".join(out)
 
 
 def discovery_table(df: pd.DataFrame, with_unit_col: bool) -> str:
-    return _discovery_table(list(df.columns), df.to_dict("records"), with_unit_col)
+    return discovery_tables(df, with_unit_col)
 
 
 def unit_discovery_table(ctx: LotContext, unit: str) -> str:
-    """``discovery_table`` of one unit's rows ("" when it has none), from the lot's rows
-    converted to records once."""
-    cache = ctx.__dict__.get("_disc_records")
-    if cache is None:
-        cache = {}
-        d = ctx.discovery
-        if d is not None and len(d):
-            for r in d.to_dict("records"):
-                u = r.get("unit")
-                if u is not None and not (isinstance(u, float) and math.isnan(u)):
-                    cache.setdefault(str(u), []).append(r)
-        ctx.__dict__["_disc_records"] = cache
-    records = cache.get(unit)
-    if not records:
-        return ""
-    return _discovery_table(list(ctx.discovery.columns), records, with_unit_col=False)
-
-
-def _discovery_table(columns: list[str], records: list[dict], with_unit_col: bool) -> str:
-    cols = [c for c in _DISC_ORDER if c in columns]
-    cols += [c for c in columns if c not in cols and c not in ("lot", "unit", "run_id")]
-    headers = (["Unit"] if with_unit_col else []) + [esc(c.replace("_", " ")) for c in cols]
-    rows = []
-    for r in records:
-        cells = [f'<a href="#unit-{esc(r["unit"])}">{esc(r["unit"])}</a>'] if with_unit_col else []
-        for c in cols:
-            v = r.get(c)
-            if c in ("effect", "name") and (v is None or (isinstance(v, float) and math.isnan(v))):
-                cells.append('<span class="note">none found</span>')
-            elif isinstance(v, (bool, np.bool_)):
-                cells.append('<span class="badge warned">yes</span>' if v else "no")
-            elif isinstance(v, (float, np.floating, int, np.integer)) and not isinstance(v, bool):
-                cells.append(fmt(v, sig=3))
-            else:
-                cells.append(esc(v))
-        rows.append(cells)
-    return table(headers, rows, cls="sortable", text_cols=(2 if with_unit_col else 1) + ("axes" in cols))
-
-
-def discovery_figure(ctx: LotContext) -> dict | None:
+    """The findings of one unit ("" when it has none)."""
     d = ctx.discovery
-    if d is None or not len(d) or not {"heldout_rms_before", "heldout_rms_after"} <= set(d.columns):
-        return None
-    g = d.groupby("unit").agg(before=("heldout_rms_before", "max"), after=("heldout_rms_after", "min")).reindex(ctx.units)
-    data = [
-        {"type": "bar", "x": ctx.units, "y": arr(g["before"].to_numpy(float)),
-         "name": "held-out RMS, baseline model", "marker": {"color": "#f58518"}},
-        {"type": "bar", "x": ctx.units, "y": arr(g["after"].to_numpy(float)),
-         "name": "held-out RMS, with discovered effects", "marker": {"color": "#4c78a8"}},
-    ]
-    layout = {"barmode": "group", "legend": _legend_top(), "margin": {"t": 40, "b": 70, "l": 60, "r": 15},
-              "xaxis": {"type": "category", "tickvals": ctx.units, "ticktext": _unit_ticks(ctx), "tickangle": -60},
-              "yaxis": {"title": {"text": "held-out residual RMS"}, "rangemode": "tozero"}}
-    return {"data": data, "layout": layout}
+    if d is None or not len(d):
+        return ""
+    return discovery_tables(d[d["unit"] == unit], with_unit_col=False)
+
+
+def _evidence(ctx: LotContext) -> pd.DataFrame | None:
+    if "_evidence" not in ctx.__dict__:
+        ctx.__dict__["_evidence"] = ctx.view.of("discovery_evidence", ctx.lot)
+    return ctx.__dict__["_evidence"]
+
+
+def evidence_figures(ctx: LotContext, page: Page, unit: str) -> str:
+    """For each named, confounded or unexplained finding of the unit, per channel: the
+    baseline residual against the variable that drives it (every repetition), the fitted
+    effect over it, and the residual after."""
+    ev = _evidence(ctx)
+    if ev is None or not len(ev):
+        return ""
+    u = ev[ev["unit"] == unit]
+    out = []
+    for (effect, channel), g in u.groupby(["effect", "channel"], sort=False):
+        x = g["x"].to_numpy(float)
+        order = np.argsort(x, kind="stable")
+        first = g.iloc[0]
+        xt = f"{first['x_label']}" + (f" ({first['x_unit']})" if first["x_unit"] else "")
+        data = [
+            {"type": "scattergl", "mode": "markers", "x": arr(x), "y": arr(g["before"].to_numpy(float)),
+             "name": "residual, affine model", "marker": {"color": "#f58518", "size": 5, "opacity": 0.7}},
+            {"type": "scattergl", "mode": "markers", "x": arr(x), "y": arr(g["after"].to_numpy(float)),
+             "name": "residual after", "marker": {"color": "#4c78a8", "size": 5, "opacity": 0.7}},
+        ]
+        fitted = g["fitted"].to_numpy(float)
+        if np.isfinite(fitted).any():
+            data.insert(1, {"type": "scattergl", "mode": "lines", "x": arr(x[order]),
+                            "y": arr(fitted[order]), "name": "fitted effect",
+                            "line": {"color": "#222", "width": 2}})
+        layout = {"legend": _legend_top(), "margin": {"t": 40, "b": 50, "l": 70, "r": 15},
+                  "xaxis": {"title": {"text": xt}},
+                  "yaxis": {"title": {"text": f"{channel} residual ({first['y_unit']})"}}}
+        out.append(f"<h5>{esc(effect)} · {esc(channel)}</h5>"
+                   + page.figure({"data": data, "layout": layout}, height=300,
+                                 name=f"{unit} {effect} {channel} evidence"))
+    if not out:
+        return ""
+    return '<div class="evidence">' + "".join(out) + "</div>"
 
 
 # ----------------------------------------------------------------------------- sessions
@@ -950,7 +1011,7 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     if ctx.discovery is not None:
         dt = unit_discovery_table(ctx, unit)
         if dt:
-            parts.append("<h4>Model discovery</h4>" + dt)
+            parts.append("<h4>Model discovery</h4>" + dt + evidence_figures(ctx, page, unit))
     if c.get("failed") and ctx.sessions is not None:
         f = ctx.unit_rows("sessions", unit)
         f = f[f["status"] == "failed"]

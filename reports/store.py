@@ -20,7 +20,7 @@ from schemas.results_store import ResultsStore
 
 # Tables a report may use; missing ones are reported as missing, not an error.
 REPORT_TABLES = ("sessions", "parameters", "summary", "units", "residuals", "compensation",
-                 "discovery", "navigation")
+                 "discovery", "navigation", "discovery_evidence")
 
 
 def _keys_as_objects(df: pd.DataFrame) -> pd.DataFrame:

@@ -283,19 +283,24 @@ def _compensation_rows(rng, lot, unit, rep) -> list[dict]:
 
 
 def _discovery_rows(rng, lot, unit, bad: bool) -> list[dict]:
-    before = abs(rng.normal(0.030, 0.003)) * (2.5 if bad else 1)
+    """Rows in the shape of calib_core.discovery.presentation.finding_rows."""
+    before = abs(rng.normal(1.30, 0.05)) * (2.5 if bad else 1)
     rows = []
-    effects = [("gyro_scale_nonlinearity", "x,y,z", 2e-6, 3e-7, 41.0, 0.35)]
+    effects = [("gyro_scale_nonlinearity", "x", "gx",
+                "q_x = 2.1 ± 0.3 deg/s per (1000 deg/s)^2; 5 others within 2 SE of 0", 41.0, 0.2)]
     if bad:
-        effects.append(("gyro_g_sensitivity", "z", 0.004, 0.0006, 12.0, 0.2))
+        effects.append(("gyro_g_sensitivity", "z", "gz",
+                        "Gzx = 0.0040 ± 0.0006 deg/s per g; 8 others within 2 SE of 0", 12.0, 0.2))
     after = before
-    for name, axes, est, se, evid, frac in effects:
+    for name, axes, channels, est, f_stat, frac in effects:
         new_after = after * (1 - frac)
-        rows.append(dict(lot=lot, unit=unit, effect=name, axes=axes,
-                         estimate=float(est * (1 + rng.normal(0, 0.1))), stderr=se,
-                         evidence=float(evid * (1 + rng.normal(0, 0.1))),
-                         heldout_rms_before=float(after), heldout_rms_after=float(new_after),
-                         gain=float(after / new_after), misfit=False, unexplained=bad))
+        rows.append(dict(lot=lot, unit=unit, effect=name, kind="named", axes=axes,
+                         channels=channels, estimates=est,
+                         evidence=f"F = {f_stat * (1 + rng.normal(0, 0.1)):.3g} (3, 480), p = 1e-12",
+                         evidence_p=1e-12, heldout_rms_before=float(after),
+                         heldout_rms_after=float(new_after), gain=float(after / new_after),
+                         separated_by="", misfit=True, unexplained=bad, confounded_groups="",
+                         partial_terms="", negligible_terms="", advice=""))
         after = new_after
     return rows
 

@@ -79,7 +79,14 @@ TABLE_COLUMNS: dict[str, list[str]] = {
               "flag_reason"],
     "residuals": ["lot", "unit", "rep"],
     "compensation": ["lot", "unit", "rep"],
-    "discovery": ["lot", "unit", "effect"],
+    # one row per finding (calib_core.discovery.presentation.finding_rows)
+    "discovery": ["lot", "unit", "effect", "kind", "axes", "channels", "estimates", "evidence",
+                  "evidence_p", "heldout_rms_before", "heldout_rms_after", "gain",
+                  "separated_by", "misfit", "unexplained", "confounded_groups",
+                  "partial_terms", "negligible_terms", "advice"],
+    # the series behind each finding's figure: residual before, fitted effect, after
+    "discovery_evidence": ["lot", "unit", "effect", "kind", "channel", "rep", "step", "x",
+                           "x_label", "x_unit", "y_unit", "before", "fitted", "after"],
     # zhang2017 navigation drift of a unit's own fitted model (written by reruns)
     "navigation": ["lot", "unit", "case", "t", "vel_err", "pos_err"],
 }

@@ -66,8 +66,9 @@ def test_lot_report_is_self_contained_with_plotly_once(lot_store, lot_html):
     assert not re.search(r"""(src|href)\s*=\s*["']?(https?:|//)""", rest)
     n_specs = len(re.findall(r'<script type="application/json" id="fig\d+-spec">', text))
     n_divs = len(re.findall(r'<div class="figure" id="fig\d+"', text))
-    # 4 strip plots + residual overview + discovery + 2 residual plots per unit
-    assert n_specs == n_divs == 4 + 1 + 1 + 2 * 12
+    # 4 strip plots + residual overview + 2 residual plots per unit (the synthetic store has
+    # no discovery evidence series: no evidence figures)
+    assert n_specs == n_divs == 4 + 1 + 2 * 12
 
 
 def test_lot_report_marks_exactly_the_injected_outliers(lot_store, lot_html):
@@ -206,7 +207,8 @@ def test_fifty_unit_lot_report_stays_under_10_mb(tmp_path):
     size = path.stat().st_size
     assert size < 10e6, f"{size / 1e6:.2f} MB"
     assert text.count("plotly.js v") == 1
-    # 50 units x 2 residual figures + 4 strip plots + residual overview + discovery
-    assert len(re.findall(r'<div class="figure" id="fig\d+"', text)) == 106
+    # 50 units x 2 residual figures + 4 strip plots + residual overview (the synthetic store
+    # has no discovery evidence series)
+    assert len(re.findall(r'<div class="figure" id="fig\d+"', text)) == 105
     # what is not plotly.js is the data: ~2.4 MB for 50 units (about 48 kB per unit)
     assert size - len(get_plotlyjs()) < 3.0e6

@@ -59,6 +59,7 @@ from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, repla
 from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, ConfoundedFinding,
                                           EffectFinding, FTest,
                                           f_test, jsonable)
+from calib_core.discovery.presentation import evidence_frame
 from calib_core.discovery.selection import stepwise
 from calib_core.steps import StepMeans
 _RCOND = 1e-10
@@ -562,6 +563,8 @@ class Diagnosis:
     confounded: list[ConfoundedFinding] = field(default_factory=list)
     confounded_set_aside: list[list[str]] = field(default_factory=list)  # partial/negligible
     advice: list[str] = field(default_factory=list)  # which steps would separate them
+    # the series behind each finding's figure (calib_core.discovery.presentation)
+    evidence: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
 
     @property
     def calibration(self) -> Calibration:
@@ -1058,6 +1061,8 @@ class _Discovery:
                 return "negligible", 1.0, ()
             ch = tuple(sorted({c for n in item
                                for c in self.significant_channels(list(chosen), n)}))
+            if not ch:
+                return "negligible", 1.0, ()
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
             return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         bad = [c for c in sensors if c in self.misfit_channels()]
@@ -1253,7 +1258,7 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     sm0 = d.sessions[0]
     ch_before = d.channel_lack_of_fit((), alpha / 6)
     ch_after = d.channel_lack_of_fit(chosen_t, alpha / 6)
-    return Diagnosis(
+    diag = Diagnosis(
         lot=sm0.key.lot, unit=sm0.key.unit, n_reps=len(d.sessions), alpha=alpha,
         misfit=bool(d.unit_misfits() or chosen or partial),
         unexplained=bool(lof_after.rejects or partial
@@ -1270,6 +1275,11 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
         advice=[a.describe() for a in advice if a.terms and (
             any(set(a.terms) == set(i) or set(a.terms) <= set(i) for i in groups)
             or any(e.name in a.terms and e.undetermined for e in effects))])
+    try:
+        diag.evidence = evidence_frame(d, diag, chosen, items)
+    except Exception:  # pragma: no cover - figures never cost the unit its diagnosis
+        diag.evidence = pd.DataFrame()
+    return diag
 
 
 _ADVICE_CACHE: dict[bytes, list] = {}
