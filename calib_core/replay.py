@@ -49,11 +49,6 @@ def test_group(test: str) -> str:
     return TEST_GROUP.get(str(test), str(test))
 
 
-def step_context_arrays(sm: StepMeans) -> dict[str, np.ndarray]:
-    """Motion of each step as the effect terms want it (references, temperature, time)."""
-    return {"w": sm.w_ref, "f": sm.f_ref, "temp_c": sm.temp_c, "t": sm.t_mid}
-
-
 def physical_residuals(cal: Calibration, sm: StepMeans) -> tuple[np.ndarray, np.ndarray]:
     """Residual (n, 6) in physical units and predicted raw (n, 6) of one session."""
     G_pred, A_pred = cal.predict_raw(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid)

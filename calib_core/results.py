@@ -76,11 +76,6 @@ def param_list(model: str, names: Iterable[str], values: Iterable[float],
 _new = object.__new__
 
 
-def matrix_params(model: str, prefix: str, M: np.ndarray, S: np.ndarray, unit: str) -> list[Param]:
-    """Params ``prefix11 .. prefix33`` of a 3x3 matrix (paper numbering, row-major)."""
-    return params_of_blocks(((model, matrix_names(prefix), M, S, unit),))
-
-
 @lru_cache(maxsize=None)
 def matrix_names(prefix: str) -> tuple[str, ...]:
     """``prefix11 .. prefix33``: the names of a 3x3 matrix's entries, row-major."""
@@ -88,11 +83,6 @@ def matrix_names(prefix: str) -> tuple[str, ...]:
 
 
 _MATRIX_SUFFIXES = tuple(f"{i + 1}{j + 1}" for i in range(3) for j in range(3))
-
-
-def vector_params(model: str, names: Iterable[str], v: np.ndarray, s: np.ndarray,
-                  unit: str) -> list[Param]:
-    return params_of_blocks(((model, tuple(names), v, s, unit),))
 
 
 # A fit's parameters as blocks (model, names, values, stderrs, unit): ``names`` a tuple,
@@ -278,6 +268,3 @@ class UnitCalibration:
     def from_reps(cls, lot: str, unit: str, reps: list[RepetitionCalibration]) -> "UnitCalibration":
         reps = sorted(reps, key=lambda r: r.rep)
         return cls(lot=lot, unit=unit, reps=reps, summary=summarise(reps))
-
-    def summary_of(self, model: str) -> dict[str, ParamSummary]:
-        return {s.name: s for s in self.summary if s.model == model}

@@ -130,9 +130,6 @@ class StepMeans:
         state.pop("_subsets", None)
         return state
 
-    @property
-    def has_temperature(self) -> bool:
-        return bool(np.isfinite(self.temp_c).any())
 
 
 def stack_field(sms: Sequence[StepMeans], name: str) -> np.ndarray:

@@ -342,11 +342,6 @@ def fit_accel_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit
 
 
 # --------------------------------------------------------------------------- Table 3
-def input_axis_of(w_ref: np.ndarray) -> np.ndarray:
-    """Body axis a rotation step excites most ('x', 'y', 'z')."""
-    return np.array(list(AXES))[np.argmax(np.abs(w_ref), axis=1)]
-
-
 COMPENSATION_COLUMNS = ["input_axis", "output_axis", "method", "err_min", "err_max",
                         "unit_of_measure", "source", "n_steps"]
 
