@@ -15,7 +15,6 @@ possible from only three stationary steps.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import lru_cache
 from typing import Any, Sequence
 
 import numpy as np
@@ -31,9 +30,15 @@ AXES = "xyz"
 MAX_CONDITION = 1e6  # beyond this the design cannot separate the parameters
 
 
-@lru_cache(maxsize=None)
 def _axis_names(prefix: str) -> tuple[str, ...]:
     return tuple(f"{prefix}_{a}" for a in AXES)
+
+
+# parameter names (the paper's): K_g, w0 (eq. 1), K_a, f0 (eq. 2), the traditional S, b
+K_G_NAMES, W0_NAMES = matrix_names("k_g"), _axis_names("w0")
+K_A_NAMES, F0_NAMES = matrix_names("k_a"), _axis_names("f0")
+S_G_NAMES, B_G_NAMES = matrix_names("s_g"), _axis_names("b_g")
+S_A_NAMES, B_A_NAMES = matrix_names("s_a"), _axis_names("b_a")
 
 
 def _check_determined(sm: StepMeans, excitation: np.ndarray, what: str, needed: str) -> None:
@@ -56,41 +61,24 @@ def multirate_pairs(sm: StepMeans) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Returns (dG (n,3) raw, dW (n,3) deg/s, index pairs (n,2) into ``sm``). A step whose
     partner is missing (saturated, too short) is left out: the difference needs both.
     """
-    pairs_arr = _protocol_pairs(sm)
-    dG = sm.gyro[pairs_arr[:, 0]] - sm.gyro[pairs_arr[:, 1]]
-    dW = sm.w_ref[pairs_arr[:, 0]] - sm.w_ref[pairs_arr[:, 1]]
-    return dG, dW, pairs_arr.copy()
+    pairs = _pair_indices(sm)
+    dG = sm.gyro[pairs[:, 0]] - sm.gyro[pairs[:, 1]]
+    dW = sm.w_ref[pairs[:, 0]] - sm.w_ref[pairs[:, 1]]
+    return dG, dW, pairs
 
 
-def _protocol_pairs(sm: StepMeans) -> np.ndarray:
-    # the pairing depends on the protocol only (tests, rates, reference rates), the same for
-    # every session of a fleet: found once per protocol, not once per session
-    multirate = sm.test == "multirate"
-    return _pairs_of_protocol(multirate.tobytes(), sm.rate_dps.astype(float).tobytes(),
-                              np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
-
-
-@lru_cache(maxsize=64)
-def _pairs_of_protocol(multirate: bytes, rate_dps: bytes, w_ref: bytes) -> np.ndarray:
-    """(n,2) index pairs (+rate step, -rate step) of a protocol, read-only (it is shared)."""
-    rate = np.frombuffer(rate_dps, dtype=float)
-    w_ref_arr = np.frombuffer(w_ref, dtype=float).reshape(-1, 3)
-    idx = np.flatnonzero(np.frombuffer(multirate, dtype=bool))
-    groups: dict[tuple, dict[int, list[int]]] = {}
-    for i in idx:  # one pass over the protocol's steps, once per protocol
-        r = rate[i]
-        if r == 0:
-            continue
-        direction = np.round(w_ref_arr[i] / r, 6) + 0.0  # rotation axis, sign-free
-        key = (round(abs(r), 6), tuple(direction))
-        groups.setdefault(key, {1: [], -1: []})[int(np.sign(r))].append(i)
-    pairs = []
-    for sides in groups.values():
-        for p, m in zip(sides[1], sides[-1]):
-            pairs.append((p, m))
-    pairs_arr = np.array(sorted(pairs), dtype=int).reshape(-1, 2)
-    pairs_arr.setflags(write=False)
-    return pairs_arr
+def _pair_indices(sm: StepMeans) -> np.ndarray:
+    """(n,2) index pairs (+rate step, -rate step) of the multirate steps: same rotation axis,
+    same |rate|, opposite signs; matched in step order, sorted."""
+    idx = np.flatnonzero((sm.test == "multirate") & (sm.rate_dps != 0))
+    rate = sm.rate_dps[idx].astype(float)
+    # a step's key: |rate| and rotation axis (w_ref / rate: the same for + and -), rounded
+    key = np.round(np.column_stack([np.abs(rate), sm.w_ref[idx] / rate[:, None]]), 6) + 0.0
+    sides: dict[tuple, tuple[list[int], list[int]]] = {}
+    for i, k, minus in zip(idx.tolist(), map(tuple, key.tolist()), (rate < 0).tolist()):
+        sides.setdefault(k, ([], []))[minus].append(i)
+    pairs = sorted(p for plus, minus in sides.values() for p in zip(plus, minus))
+    return np.array(pairs, dtype=int).reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -118,9 +106,8 @@ class GyroMultirateFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        return [(self.model, matrix_names("k_g"), self.K, self.K_stderr,
-                 f"deg/s per {self.raw_unit}"),
-                (self.model, _axis_names("w0"), self.w0, self.w0_stderr, "deg/s")]
+        return [(self.model, K_G_NAMES, self.K, self.K_stderr, f"deg/s per {self.raw_unit}"),
+                (self.model, W0_NAMES, self.w0, self.w0_stderr, "deg/s")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -144,7 +131,7 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
     ``fit_gyro_multirate(sms[r])`` returns, bit for bit. Raises the DesignError of the first
     session that has one."""
     sm = sms[0]  # the layout every session shares
-    pairs = _protocol_pairs(sm)
+    pairs = _pair_indices(sm)
     dW = sm.w_ref[pairs[:, 0]] - sm.w_ref[pairs[:, 1]]
     if len(pairs) < 4:
         raise DesignError("E_UNDETERMINED",
@@ -206,9 +193,8 @@ class AccelMultipositionFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        return [(self.model, matrix_names("k_a"), self.K, self.K_stderr,
-                 f"g per {self.raw_unit}"),
-                (self.model, _axis_names("f0"), self.f0, self.f0_stderr, "g")]
+        return [(self.model, K_A_NAMES, self.K, self.K_stderr, f"g per {self.raw_unit}"),
+                (self.model, F0_NAMES, self.f0, self.f0_stderr, "g")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -282,11 +268,11 @@ class TraditionalFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        prefix = "s_g" if self.model.startswith("gyro") else "s_a"
-        bname = "b_g" if self.model.startswith("gyro") else "b_a"
-        return [(self.model, matrix_names(prefix), self.S, self.S_stderr,
+        s_names, b_names = ((S_G_NAMES, B_G_NAMES) if self.model.startswith("gyro")
+                            else (S_A_NAMES, B_A_NAMES))
+        return [(self.model, s_names, self.S, self.S_stderr,
                  f"{self.raw_unit} per {self.physical_unit}"),
-                (self.model, _axis_names(bname), self.b, self.b_stderr, self.raw_unit)]
+                (self.model, b_names, self.b, self.b_stderr, self.raw_unit)]
 
     def to_dict(self) -> dict[str, Any]:
         return {"S": self.S.tolist(), "b": self.b.tolist(),
@@ -298,8 +284,8 @@ class TraditionalFit:
 def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> list[TraditionalFit]:
     """raw (R, n, 3) of R sessions on the references ref (n, 3) they share."""
     X = np.hstack([ref, np.ones((len(ref), 1))])
-    ls = solve_lstsq_stack(X, raw, reuse_design=True)  # [references, 1]: the protocol's
-    rank, cond = int(ls.rank[0]), float(ls.condition_number[0])  # the design's: shared
+    ls = solve_lstsq_stack(X, raw)  # one design [references, 1], shared by the sessions
+    rank, cond = int(ls.rank[0]), float(ls.condition_number[0])
     if rank < 4 or cond > MAX_CONDITION:
         raise DesignError("E_UNDETERMINED", f"{model}: design is singular "
                           f"(condition number {cond:.3g})")
@@ -376,9 +362,7 @@ def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroM
         return [compensation_error_table(sm, p, t, tests)
                 for sm, p, t in zip(sms, proposed, traditional)]
     sm = sms[0]
-    rows = _rotation_groups(tests, np.isin(sm.test, tests).tobytes(),
-                            sm.rate_dps.astype(float).tobytes(),
-                            np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
+    rows = _rotation_groups(sm, tests)
     if rows is None:
         return [ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0) for _ in sms]
     idx, starts, present, n_steps = rows  # steps ordered by input axis, group starts
@@ -416,19 +400,14 @@ def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroM
     }, n_rows) for r in range(len(sms))]
 
 
-@lru_cache(maxsize=64)
-def _rotation_groups(tests: tuple[str, ...], in_tests: bytes, rate_dps: bytes, w_ref: bytes):
-    """Rotation steps of the given tests grouped by input axis, for a protocol (the same for
-    every session of a fleet): (step indices ordered by input axis, start of each group,
-    the input axes present, steps per group), or None when there is no such step."""
-    mask = np.frombuffer(in_tests, dtype=bool) & (np.frombuffer(rate_dps, dtype=float) != 0)
-    idx = np.flatnonzero(mask)
+def _rotation_groups(sm: StepMeans, tests: tuple[str, ...]):
+    """Rotation steps of the given tests grouped by input axis (the body axis the step
+    excites most): (step indices ordered by input axis, start of each group, the input axes
+    present, steps per group), or None when there is no such step."""
+    idx = np.flatnonzero(np.isin(sm.test, tests) & (sm.rate_dps != 0))
     if len(idx) == 0:
         return None
-    axis = np.argmax(np.abs(np.frombuffer(w_ref, dtype=float).reshape(-1, 3)[idx]), axis=1)
+    axis = np.argmax(np.abs(sm.w_ref[idx]), axis=1)
     order = np.argsort(axis, kind="stable")  # within a group, steps keep their order
     present, starts, n_steps = np.unique(axis[order], return_index=True, return_counts=True)
-    out = (idx[order], starts, np.array(list(AXES))[present], n_steps.astype(np.int64))
-    for a in out:
-        a.setflags(write=False)
-    return out
+    return idx[order], starts, np.array(list(AXES))[present], n_steps.astype(np.int64)

@@ -24,7 +24,6 @@ the direction cosines, which are near zero for the off-diagonal components: kept
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any, ClassVar, Sequence
 
 import numpy as np
@@ -45,9 +44,6 @@ BIAS_NAMES = tuple(f"u0_{a}" for a in AXES)
 # is reported as undetermined (with x/y/z-up steps only, the off-diagonal components are seen
 # through direction cosines of ~0.01: the paper's "distortion")
 UNDETERMINED_RCOND = 0.05
-# the lever-arm fit takes its block-diagonal shortcut when every component is determined
-# (tests switch it off to compare with the general joint solve)
-_BLOCK_PATH = True
 
 
 # -- conversions between the 15-parameter form and the paper's 12-parameter affine form --------
@@ -161,33 +157,6 @@ class AccelStaticFit:
         }
 
 
-def _ls_cov(X: np.ndarray) -> np.ndarray:
-    """(X^T X)^-1 = V S^-2 V^T from the SVD of X (never forming or inverting X^T X)."""
-    _, sv, Vt = np.linalg.svd(X, full_matrices=False)
-    return (Vt.T / sv ** 2) @ Vt
-
-
-@dataclass(frozen=True)
-class _StaticDesign:
-    """What the static fit needs of its design [f_ref, 1] alone (read-only, shared)."""
-
-    sv: np.ndarray  # singular values, largest first
-    unscaled: np.ndarray  # (4, 4) (X^T X)^-1
-
-
-@lru_cache(maxsize=32)
-def _static_design(shape: tuple[int, int], data: bytes) -> _StaticDesign:
-    # [f_ref, 1] comes from the protocol's references, the same for every session of a
-    # fleet: its singular values and (X^T X)^-1 once per protocol, not twice per session
-    X = np.frombuffer(data, dtype=float).reshape(shape)
-    sv = np.linalg.svd(X, compute_uv=False)
-    unscaled = (_ls_cov(X) if sv[-1] > 1e-9 * sv[0]
-                else np.full((shape[1], shape[1]), np.nan))  # never used: the fit refuses
-    for a in (sv, unscaled):
-        a.setflags(write=False)
-    return _StaticDesign(sv, unscaled)
-
-
 def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> AccelStaticFit:
     """15-parameter static model from the static steps with known specific force.
 
@@ -212,8 +181,7 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
                           f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
                           "at least 5 to estimate its noise", ("accel_static",))
     X = np.hstack([sm.f_ref[rows], np.ones((n, 1))])
-    design = _static_design(X.shape, X.tobytes())
-    sv = design.sv
+    _, sv, Vt = np.linalg.svd(X, full_matrices=False)
     if sv[-1] <= 1e-9 * sv[0]:
         raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
                           "directions and a constant: M and u0 are not determined",
@@ -229,7 +197,8 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
     resid = A - X @ beta
     dof_ch = n - 4
     var_g = ((resid / k[:, None, :]) ** 2).reshape(len(sms), -1).sum(axis=1) / (3 * dof_ch)
-    channel_cov = design.unscaled * (var_g[:, None] * k ** 2)[:, :, None, None]  # (R,3,4,4)
+    unscaled = (Vt.T / sv ** 2) @ Vt  # (X^T X)^-1 from the SVD, never inverting X^T X
+    channel_cov = unscaled * (var_g[:, None] * k ** 2)[:, :, None, None]  # (R,3,4,4)
     cov_m = channel_cov[:, :, :3, :3]
     u0_se = np.sqrt(channel_cov[:, :, 3, 3])
     k_se = np.sqrt(np.einsum("rji,rijk,rki->ri", C, cov_m, C))  # dk_i/dM_i = c_i
@@ -420,14 +389,13 @@ def fit_lever_arm_from_stack(inputs: Sequence[LeverArmInputs],
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
     designs = [_lever_design(x, projection) for x in inputs]
-    if _BLOCK_PATH:
-        certified = _certify_determined(designs, rcond)
-        if certified is not None:
-            return _fit_all_determined(inputs, [_all_kept(Xb, yb) for Xb, yb in designs],
-                                       projection, estimate_only, certified)
+    certified = _certify_determined(designs, rcond)
+    if certified is not None:
+        return _fit_all_determined(inputs, [_all_kept(Xb, yb) for Xb, yb in designs],
+                                   projection, estimate_only, certified)
     blocks = [_lever_blocks(x, rcond, projection, design)
               for x, design in zip(inputs, designs)]
-    determined = [_BLOCK_PATH and len(b.cols) == 9 for b in blocks]
+    determined = [len(b.cols) == 9 for b in blocks]
     if all(determined):
         return _fit_all_determined(inputs, blocks, projection, estimate_only)
     return [_fit_all_determined([x], [b], projection, estimate_only)[0] if all_determined
@@ -443,7 +411,7 @@ CERTIFY_MARGIN = 2.0
 def _certify_determined(designs: Sequence[tuple[np.ndarray, np.ndarray]], rcond: float):
     """The stacked blocks and their SVD, (Xb (R,3,n,3), yb (R,3,n), (U, s, Vt)), when every
     block of every session certainly keeps its three columns in :func:`_lever_blocks`'
-    pivoted QR; else None (then the QR decides, as before).
+    pivoted QR; else None (then the QR decides).
 
     Why it is certain: every diagonal entry of a pivoted QR's R of X is the distance of a
     column from the span of other columns, hence >= sigma_min(X), and the first is a column
@@ -507,7 +475,7 @@ def _lever_design(inputs: LeverArmInputs, projection: str) -> tuple[np.ndarray, 
         k, C, u0 = static.scale, static.C, static.bias
         M = static.M
         Xb = np.einsum("ji,njk->ink", C, W)  # row s of block i: c_i^T W_s
-        # f_ref @ M[i] one row at a time, as before: the lever term is a small difference
+        # f_ref @ M[i] one row at a time: the lever term is a small difference
         # of these, and d.f_ref @ M.T rounds differently (1e-10 of a near-zero lever arm)
         yb = (d.accel.T - u0[:, None] - np.stack([d.f_ref @ M[i] for i in range(3)])) / k[:, None]
     else:
@@ -558,8 +526,8 @@ def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str,
 
 def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
                estimate_only: bool = False):
-    """The joint least squares of one session over its determined components (the general
-    path: some component undetermined, or the block path switched off)."""
+    """The joint least squares of one session over its determined components (some
+    component is undetermined: the blocks no longer have three columns each)."""
     static, d, K_a, f_hat = inputs.static, inputs.d, inputs.K_a, inputs.f_hat
     n = len(d)
     k, M = static.scale, static.M
@@ -578,8 +546,7 @@ def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
     resid = Y - A @ theta
     dof = 3 * n - len(cols)
     var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
-    # one SVD of A gives (A^T A)^-1, the pseudo-inverse and the condition number (the same
-    # operations as _ls_cov and np.linalg.pinv, which each took their own SVD)
+    # one SVD of A gives (A^T A)^-1, the pseudo-inverse and the condition number
     U, sva, Vt = np.linalg.svd(A, full_matrices=False)
     cov = ((Vt.T / sva ** 2) @ Vt) * var_g
     s_inv = np.divide(1.0, sva, where=sva > 1e-15 * sva.max(), out=np.zeros_like(sva))
@@ -602,13 +569,10 @@ def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
     for c, (i, j) in enumerate(cols):
         r[i, j] = theta[c]
         se[i, j] = np.sqrt(cov[c, c])
-    if len(cols) == 9:  # every column kept: the full design is A itself
-        svf = sva
-    else:
-        full = np.zeros((3 * n, 9))
-        for i, X, _, _ in blocks:
-            full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
-        svf = np.linalg.svd(full, compute_uv=False)
+    full = np.zeros((3 * n, 9))  # the design with all nine components
+    for i, X, _, _ in blocks:
+        full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
+    svf = np.linalg.svd(full, compute_uv=False)
     return LeverArmFit(
         lever_arm_mm=r, stderr=se, condition_number=float(sva[0] / sva[-1]),
         condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
@@ -624,7 +588,7 @@ def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_Leve
     tilted steps), all sessions together.
 
     The design is then block diagonal with three (n,3) blocks, one per accelerometer, so one
-    batched SVD of the blocks (of every session) gives what the general path gets from
+    batched SVD of the blocks (of every session) gives what :func:`_fit_joint` gets from
     lstsq, two SVDs and a pseudo-inverse of the (3n,9) design: the same estimates and
     covariance, to rounding."""
     d = inputs[0].d

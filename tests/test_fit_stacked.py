@@ -136,8 +136,8 @@ def test_solve_lstsq_stack_equals_one_problem_at_a_time():
                                   condition_number=float(st.condition_number[r]),
                                   rank=int(st.rank[r])))
     assert st.rank.tolist() == [4, 4, 3, 4]
-    # a shared design (2-D X) with a stack of right-hand sides, through the design cache
-    shared = solve_lstsq_stack(X[0], Y, reuse_design=True)
+    # a shared design (2-D X) with a stack of right-hand sides, factorised once
+    shared = solve_lstsq_stack(X[0], Y)
     for r in range(4):
         np.testing.assert_array_equal(shared.coef[r], solve_lstsq(X[0], Y[r]).coef)
 
