@@ -1,11 +1,20 @@
 """The calibration method of Xu, Wang, Su, Zhu (2016), with standard errors.
 
-- Gyro, eq. 3-11: ``w = K_g G + w0``. The difference of a +rate and a -rate step about the
-  same axis removes the bias (eq. 5); K_g from all multirate pairs by least squares (eq. 6-8);
-  w0 = -K_g mean(G(0)) from the stationary steps (eq. 10-11).
-- Accelerometer, eq. 12-16: ``f = K_a A + f0`` from all multiposition steps.
+- Gyro, eq. 1 ``w = K_g G + w0`` (G raw output, w rate in deg/s), section 2.3.1:
+  eq. 3-4 the model at +rate and -rate about one axis; eq. 5 their difference
+  ``dw = K_g dG`` has no bias; eq. 6-8 K_g from all pairs by least squares; eq. 9-11
+  ``w0 = -K_g G(0)``, G(0) the mean output of the stationary steps.
+- Accelerometer, eq. 2 ``f = K_a A + f0``, section 2.3.2: eq. 12-13 the model of one
+  position as linear in the 12 parameters; eq. 14-16 all multiposition steps, least squares.
 - The "traditional" inverse model, ``G = S w + b`` so ``w = S^-1 (G - b)``, fitted on the
   same steps, for the comparison of the paper's Table 3.
+
+The paper writes each least squares as one stacked system (eq. 7, 15: a block-diagonal
+design with one block per row of K). The blocks share their design, so each fit below solves
+the three rows at once: ``dW = dG K_g^T`` (eq. 6) and ``F = [A 1] [K_a f0]^T`` (eq. 14), the
+same estimates. Every fit works on a leading repetition axis: ``fit_*`` of one session is the
+``fit_*_stack`` of a list of one, and the stack of a unit's repetitions (same step layout)
+runs each operation once for all of them.
 
 Standard errors come from the residuals and the design. The step-level noise that the +/-
 differences reveal (white noise averaged over the step plus step-to-step bias instability) is
@@ -121,26 +130,31 @@ class GyroMultirateFit:
 
 
 def fit_gyro_multirate(sm: StepMeans) -> GyroMultirateFit:
-    """xu2016 eq. 5-11 on one session's step means."""
+    """xu2016 eq. 3-11 on one session's step means (see :func:`fit_gyro_multirate_stack`)."""
     return fit_gyro_multirate_stack([sm])[0]
 
 
 def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]:
-    """:func:`fit_gyro_multirate` of sessions that share one step layout (the repetitions of
-    a unit: same steps, tests and references), solved together; session r's fit is the one
-    ``fit_gyro_multirate(sms[r])`` returns, bit for bit. Raises the DesignError of the first
-    session that has one."""
+    """K_g and w0 of each session of one step layout (the repetitions of a unit: same steps,
+    tests and references); item r is ``fit_gyro_multirate(sms[r])``, bit for bit. Raises the
+    DesignError of the first session that has one."""
     sm = sms[0]  # the layout every session shares
     pairs = _pair_indices(sm)
-    dW = sm.w_ref[pairs[:, 0]] - sm.w_ref[pairs[:, 1]]
     if len(pairs) < 4:
         raise DesignError("E_UNDETERMINED",
                           f"gyro: {len(pairs)} complete +/- multirate pairs, at least 4 needed "
                           "to determine the 9 elements of K_g with a residual")
+    plus, minus = pairs[:, 0], pairs[:, 1]
+    G = stack_field(sms, "gyro")  # (R, n, 3) raw outputs, one row per step
+
+    # eq. 3-5: w+(i) - w-(i) = K_g (G+(i) - G-(i)), the bias w0 cancels
+    dW = sm.w_ref[plus] - sm.w_ref[minus]  # (pairs, 3): the rows of dOmega
+    dG = G[:, plus] - G[:, minus]  # (R, pairs, 3): the rows of dG
     _check_determined(sm, dW, "gyro", "multirate rotation")
-    G = stack_field(sms, "gyro")  # (R, n, 3)
-    # eq. 6-8 for all three rows at once: dW (n,3) = dG (n,3) K^T
-    ls = solve_lstsq_stack(G[:, pairs[:, 0]] - G[:, pairs[:, 1]], dW)
+
+    # eq. 6-8: K_G = (dG^T dG)^-1 dG^T dOmega over all pairs, the three rows of K_g at once
+    # (dW = dG K_g^T); by SVD, never forming dG^T dG
+    ls = solve_lstsq_stack(dG, dW)
     singular = (ls.rank < 3) | (ls.condition_number > MAX_CONDITION)
     if singular.any():
         cond = float(ls.condition_number[np.argmax(singular)])
@@ -149,16 +163,18 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
                           f"{cond:.3g}): the rotation axes do not span 3-D")
     K = np.swapaxes(ls.coef, 1, 2)
     K_se = np.swapaxes(ls.stderr, 1, 2)
-    # A difference holds the noise of two steps: step-level variance is half the residual's.
+    # a difference holds the noise of two steps: the step-level variance is half the residual's
     step_sigma = np.sqrt(ls.sigma2 / 2.0)
+
+    # eq. 9-11: w0 = -K_g G(0), G(0) the mean output of the stationary steps
     stat = np.flatnonzero(sm.test == "stationary")
     if len(stat):
         G0 = G[:, stat].mean(axis=1)
         n0, source = len(stat), "stationary"
-    else:  # a linear sensor's +/- midpoint is its zero-rate output
-        G0 = 0.5 * (G[:, pairs[:, 0]] + G[:, pairs[:, 1]]).mean(axis=1)
+    else:  # without stationary steps: a linear sensor's +/- midpoint is its zero-rate output
+        G0 = 0.5 * (G[:, plus] + G[:, minus]).mean(axis=1)
         n0, source = 2 * len(pairs), "pair_midpoints"
-    w0 = (-K @ G0[:, :, None])[:, :, 0]  # eq. 10-11
+    w0 = (-K @ G0[:, :, None])[:, :, 0]
     # var(w0_i) = step noise / n0  +  G0^T cov(K_i) G0   (independent steps)
     var_k = np.array([[g0 @ (cov * s2[i]) @ g0 for i in range(3)]
                       for g0, cov, s2 in zip(G0, ls.cov_unscaled, ls.sigma2)])
@@ -206,13 +222,13 @@ class AccelMultipositionFit:
 
 
 def fit_accel_multiposition(sm: StepMeans) -> AccelMultipositionFit:
-    """xu2016 eq. 12-16: F = K_a A + f0 over all multiposition steps."""
+    """xu2016 eq. 12-16 on one session's step means (see
+    :func:`fit_accel_multiposition_stack`)."""
     return fit_accel_multiposition_stack([sm])[0]
 
 
 def fit_accel_multiposition_stack(sms: Sequence[StepMeans]) -> list[AccelMultipositionFit]:
-    """:func:`fit_accel_multiposition` of sessions that share one step layout, solved
-    together (as :func:`fit_gyro_multirate_stack`)."""
+    """K_a and f0 of each session of one step layout, as :func:`fit_gyro_multirate_stack`."""
     sm = sms[0]
     rows = sm.rows_of_test("multiposition")
     n = len(rows)
@@ -220,10 +236,14 @@ def fit_accel_multiposition_stack(sms: Sequence[StepMeans]) -> list[AccelMultipo
         raise DesignError("E_UNDETERMINED",
                           f"accel: {n} multiposition steps, at least 5 needed for the "
                           "12 parameters of K_a and f0 with a residual")
-    f_ref = sm.f_ref[rows]
-    _check_determined(sm, f_ref, "accel", "multiposition specific force")
-    X = np.concatenate([stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))], axis=2)
-    ls = solve_lstsq_stack(X, f_ref)
+    # eq. 12-13: at one position, f = K_a A + f0 is linear in (K_a, f0): f_i = [A 1] . row i
+    F = sm.f_ref[rows]  # (n, 3) the known specific force of each position
+    _check_determined(sm, F, "accel", "multiposition specific force")
+    A1 = np.concatenate([stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))],
+                        axis=2)  # (R, n, 4): [A 1]
+
+    # eq. 14-16: K_A = (A^T A)^-1 A^T F over all positions, the three rows at once
+    ls = solve_lstsq_stack(A1, F)
     singular = (ls.rank < 4) | (ls.condition_number > MAX_CONDITION)
     if singular.any():
         cond = float(ls.condition_number[np.argmax(singular)])

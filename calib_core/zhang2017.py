@@ -3,9 +3,9 @@ lever arms (size effect) of the three accelerometers.
 
 Static model (paper section 2.1, eq. 1-9). Accelerometer i has a scale factor k_i (raw unit
 per g), a zero bias u_i0 = k_i B_i (raw unit) and a sensitive axis c_i, the unit vector of
-direction cosines cos(theta_ij) against the body axes (column i of the paper's C_ab):
+direction cosines cos(theta_ij) against the body axes (column i of the paper's C_ab, eq. 9):
 
-    u_i = k_i (c_i . f + B_i)        i.e.   A = M f + u0,   M = diag(k) C^T
+    u_i = k_i (c_i . f + B_i)  (eq. 2, 4)   i.e.   A = M f + u0,   M = diag(k) C^T  (eq. 5, 7)
 
 M and u0 (12 numbers) are estimated by linear least squares; k_i = |M_i| and c_i = M_i / k_i
 recover the 15 parameters exactly (3 of the 15 are fixed by |c_i| = 1). The affine form of
@@ -14,10 +14,10 @@ xu2016 (f = K_a A + f0) is K_a = M^-1, f0 = -M^-1 u0.
 Dynamic model (sections 2.2-2.3). Accelerometer i sits at r_i (mm) from the rotation centre
 and senses its own axis' component of the specific force at r_i:
 
-    u_i = k_i (c_i . (f + W r_i) + B_i),    W = [w x]^2 + [dw/dt x]
+    u_i = k_i (c_i . (f + W r_i) + B_i),    W = [w x]^2 + [dw/dt x]      (eq. 11-13)
 
-With the static model known, y_i = (u_i - u0_i) / k_i - c_i . f = c_i^T W r_i is linear in
-r_i; :func:`fit_lever_arm` solves it for all nine components in one least squares over every
+With the static model known, y_i = (u_i - u0_i) / k_i - c_i . f = c_i^T W r_i (eq. 12, the
+lever term f_iL) is linear in r_i; :func:`fit_lever_arm` solves it for all nine components in one least squares over every
 dynamic step and rate. The paper's closed form (its eq. 24, :func:`paper_lever_arm`) divides by
 the direction cosines, which are near zero for the off-diagonal components: kept for contrast.
 """
@@ -180,6 +180,7 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
         raise DesignError("E_TOO_FEW_STATIC_STEPS",
                           f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
                           "at least 5 to estimate its noise", ("accel_static",))
+    # eq. 5: A = M f + u0, per channel i A_i = [f 1] . (M_i, u0_i): one design X = [f_ref 1]
     X = np.hstack([sm.f_ref[rows], np.ones((n, 1))])
     _, sv, Vt = np.linalg.svd(X, full_matrices=False)
     if sv[-1] <= 1e-9 * sv[0]:
@@ -193,7 +194,9 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
     beta = np.stack([np.linalg.lstsq(X, a, rcond=None)[0] for a in A])  # column i: (M_i, u0_i)
     M = np.swapaxes(beta[:, :3], 1, 2)
     u0 = beta[:, 3]
+    # eq. 7, 9: M = diag(k) C^T, so k_i = |M_i| and c_i = M_i / k_i (a unit vector)
     k, C = decompose_static(M)
+    # noise pooled over the three channels in g (one accelerometer type: equal noise in g)
     resid = A - X @ beta
     dof_ch = n - 4
     var_g = ((resid / k[:, None, :]) ** 2).reshape(len(sms), -1).sum(axis=1) / (3 * dof_ch)
@@ -201,7 +204,8 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
     channel_cov = unscaled * (var_g[:, None] * k ** 2)[:, :, None, None]  # (R,3,4,4)
     cov_m = channel_cov[:, :, :3, :3]
     u0_se = np.sqrt(channel_cov[:, :, 3, 3])
-    k_se = np.sqrt(np.einsum("rji,rijk,rki->ri", C, cov_m, C))  # dk_i/dM_i = c_i
+    # standard errors through the Jacobian of the decomposition: dk_i/dM_i = c_i
+    k_se = np.sqrt(np.einsum("rji,rijk,rki->ri", C, cov_m, C))
     # dc_i/dM_i = (I - c_i c_i^T) / k_i; d theta_ij / d M_i = -(row j of it) / sin theta_ij
     Ct = np.swapaxes(C, 1, 2)  # row i = c_i
     dc = (np.eye(3) - Ct[:, :, :, None] * Ct[:, :, None, :]) / k[:, :, None, None]
@@ -301,7 +305,7 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
                   projection: str = "sensitive_axis") -> LeverArmFit:
     """r_1, r_2, r_3 (mm) from the ``dynamic`` steps by one joint least squares.
 
-    ``projection="sensitive_axis"`` (the paper, eq. 13): row (i, s) is
+    ``projection="sensitive_axis"`` (the paper, eq. 12-13): row (i, s) is
     y_is = (u_is - u0_i)/k_i - c_i . f_ref,s = c_i^T W_s r_i (1e-3/g: mm -> g).
     ``projection="body_axis"`` is the model of the catalogue's ``lever_arm`` term
     (:class:`calib_core.effect_terms.LeverArmTerm`): the statically compensated body-frame
@@ -472,13 +476,14 @@ def _lever_design(inputs: LeverArmInputs, projection: str) -> tuple[np.ndarray, 
     X (3, n, 3) and y (3, n), block i the rows of accelerometer i."""
     static, d, W, f_hat = inputs.static, inputs.d, inputs.W, inputs.f_hat
     if projection == "sensitive_axis":
+        # eq. 12-13: (u_i - u0_i)/k_i - c_i . f = c_i^T W r_i, the lever term f_iL
         k, C, u0 = static.scale, static.C, static.bias
         M = static.M
         Xb = np.einsum("ji,njk->ink", C, W)  # row s of block i: c_i^T W_s
         # f_ref @ M[i] one row at a time: the lever term is a small difference
         # of these, and d.f_ref @ M.T rounds differently (1e-10 of a near-zero lever arm)
         yb = (d.accel.T - u0[:, None] - np.stack([d.f_ref @ M[i] for i in range(3)])) / k[:, None]
-    else:
+    else:  # eq. 11 on the body axes: (K_a (u - u0) - f)_i = (W r_i)_i
         Xb = np.ascontiguousarray(W.transpose(1, 0, 2))  # block i: rows i of W_s
         yb = (f_hat - d.f_ref).T
     return Xb, yb
