@@ -19,8 +19,8 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
 from calib_core.results import RepetitionCalibration, UnitCalibration
-from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans, stack_field
+from calib_core.tables import CodedStrings, ColumnTable
 
 
 @dataclass

@@ -24,7 +24,6 @@ would cry wolf on any unit with bias instability; :mod:`calib_core.discovery` re
 """
 from __future__ import annotations
 
-
 import numpy as np
 import pandas as pd
 

@@ -23,7 +23,7 @@ possible from only three stationary steps.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -32,8 +32,8 @@ import pandas as pd
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq_stack
 from calib_core.results import Param, ParamBlock, matrix_names, params_of_blocks
-from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans, stack_field
+from calib_core.tables import CodedStrings, ColumnTable
 
 AXES = "xyz"
 MAX_CONDITION = 1e6  # beyond this the design cannot separate the parameters

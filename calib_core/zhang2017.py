@@ -5,7 +5,8 @@ Static model (paper section 2.1, eq. 1-9). Accelerometer i has a scale factor k_
 per g), a zero bias u_i0 = k_i B_i (raw unit) and a sensitive axis c_i, the unit vector of
 direction cosines cos(theta_ij) against the body axes (column i of the paper's C_ab, eq. 9):
 
-    u_i = k_i (c_i . f + B_i)  (eq. 2, 4)   i.e.   A = M f + u0,   M = diag(k) C^T  (eq. 5, 7)
+    u_i = k_i (c_i . f + B_i)   (eq. 2, 4)
+    i.e.  A = M f + u0,   M = diag(k) C^T   (eq. 5, 7)
 
 M and u0 (12 numbers) are estimated by linear least squares; k_i = |M_i| and c_i = M_i / k_i
 recover the 15 parameters exactly (3 of the 15 are fixed by |c_i| = 1). The affine form of
