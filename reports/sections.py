@@ -907,14 +907,14 @@ def evidence_figures(ctx: LotContext, page: Page, unit: str) -> str:
         first = g.iloc[0]
         xt = f"{first['x_label']}" + (f" ({first['x_unit']})" if first["x_unit"] else "")
         data = [
-            {"type": "scattergl", "mode": "markers", "x": arr(x), "y": arr(g["before"].to_numpy(float)),
+            {"type": "scatter", "mode": "markers", "x": arr(x), "y": arr(g["before"].to_numpy(float)),
              "name": "residual, affine model", "marker": {"color": "#f58518", "size": 5, "opacity": 0.7}},
-            {"type": "scattergl", "mode": "markers", "x": arr(x), "y": arr(g["after"].to_numpy(float)),
+            {"type": "scatter", "mode": "markers", "x": arr(x), "y": arr(g["after"].to_numpy(float)),
              "name": "residual after", "marker": {"color": "#4c78a8", "size": 5, "opacity": 0.7}},
         ]
         fitted = g["fitted"].to_numpy(float)
         if np.isfinite(fitted).any():
-            data.insert(1, {"type": "scattergl", "mode": "lines", "x": arr(x[order]),
+            data.insert(1, {"type": "scatter", "mode": "lines", "x": arr(x[order]),
                             "y": arr(fitted[order]), "name": "fitted effect",
                             "line": {"color": "#222", "width": 2}})
         layout = {"legend": _legend_top(), "margin": {"t": 40, "b": 50, "l": 70, "r": 15},

@@ -68,12 +68,12 @@ def test_every_figure_rendered(lot_page, browser):
                         '.scatterlayer .trace, .boxlayer .trace, .barlayer .trace').length > 0;}).length,
                 attr: document.body.getAttribute('data-figures-rendered')};
     })()""")
-    assert facts["total"] == 4 + 1 + 1 + 2 * 12
+    assert facts["total"] == 4 + 1 + 2 * 12  # the synthetic store has no discovery evidence
     assert facts["states"] == ["rendered"] * facts["total"]
     assert facts["withSvg"] == facts["total"] == facts["withTraces"]
     assert int(facts["attr"]) == facts["total"]
     # lot-level figures are drawn at load; per-unit ones only when a unit is opened
-    assert lot_page["drawn_before_opening"] == 6
+    assert lot_page["drawn_before_opening"] == 5
 
 
 def test_outliers_marked_in_table(lot_page, browser, store):

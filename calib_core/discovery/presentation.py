@@ -86,7 +86,7 @@ def finding_rows(diag) -> list[dict[str, Any]]:
 
     rows += [effect_row(e, "named") for e in diag.effects]
     for c in diag.confounded:
-        est = " | ".join(f"{m.name}: {estimates_text(m)}" for m in c.members)
+        est = " | ".join(f"if {m.name}: {estimates_text(m)}" for m in c.members)
         rows.append(_row(diag, "confounded", "confounded: " + ", ".join(c.terms), axes="",
                          channels=",".join(c.channels), estimates=est,
                          evidence=evidence_text(c.evidence), evidence_p=float(c.evidence.p_value),

@@ -85,8 +85,8 @@ def jsonable(doc: Any) -> Any:
 @dataclass(frozen=True)
 class ConfoundedFinding:
     """Terms the unit's steps cannot tell apart, significant together: the combined fit is
-    applied and no one of them is named. ``members`` carry each term's part of the combined
-    fit (a parameter along the shared direction has no standard error: ``None``);
+    applied and no one of them is named. ``members``: each term fitted as if it were the whole
+    explanation (with the unit's other chosen terms), what either reading would estimate;
     ``separated_by`` the step sets that would tell them apart
     (:func:`calib_core.identifiability.separating_additions`)."""
 

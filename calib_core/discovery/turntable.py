@@ -1135,8 +1135,11 @@ class _Discovery:
         ch = tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
         sin = min((c.sin_angle for c in self.identifiability.confounded
                    if set(c.terms) & set(item)), default=0.0)
+        # each member as if it were the whole explanation (with the other chosen terms): the
+        # combined fit's split along the shared direction is arbitrary
         return ConfoundedFinding(
-            terms=tuple(item), members=tuple(self.finding(full, n, threshold) for n in item),
+            terms=tuple(item),
+            members=tuple(self.finding(list(others) + [n], n, threshold) for n in item),
             evidence=self.group_test(others, item, threshold),
             heldout_rms_before=self.heldout_rms(others, ch),
             heldout_rms_after=self.heldout_rms(tuple(full), ch),
