@@ -27,10 +27,11 @@ class BiasTimeDrift(EffectTerm):
         return out
 
     def realistic(self, rng, scale=1.0):
-        """One sensor: gyro 0.1-0.3 deg/s per hour or accelerometer 1-3 mg per hour."""
+        """One sensor: gyro 0.25-1 deg/s per hour or accelerometer 2.5-10 mg per hour (over a
+        six-minute protocol as much as thermal_bias_drift's realistic size over its warm-up)."""
         theta = np.zeros(6)
         c = int(rng.integers(6))
-        theta[c] = random_sign(rng) * (rng.uniform(0.1, 0.3) if c < 3 else rng.uniform(1.0, 3.0))
+        theta[c] = random_sign(rng) * (rng.uniform(0.25, 1.0) if c < 3 else rng.uniform(2.5, 10.0))
         return theta * scale, f"sensor {CHANNELS[c]}"
 
     def physics_knobs(self, theta):
