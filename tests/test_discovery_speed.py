@@ -85,7 +85,8 @@ def _dense_fit(L, train: np.ndarray, cols: np.ndarray, R: int):
 def test_fits_equal_the_dense_weighted_least_squares(effect, theta, drop, monkeypatch):
     # the algebra on white rows (prewhitening is a row transform applied before it)
     from calib_core.discovery import turntable
-    monkeypatch.setattr(turntable, "_serial_correlation", lambda z, real: np.zeros(6))
+    monkeypatch.setattr(turntable, "_serial_noise",
+                        lambda z, real, t: turntable._SerialNoise(np.zeros(6), np.ones(6)))
     sessions = _unit(11, effect, theta, drop=drop)
     d = _Discovery(sessions, 0.01)
     assert d.g.balanced is (not drop)

@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy import linalg, stats
+from scipy import stats
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
@@ -355,18 +355,20 @@ def _prewhiten(A: np.ndarray, noise: _SerialNoise, real: np.ndarray, t: np.ndarr
     if not noise.correlated:
         return A
     out = np.zeros_like(A)
+    lam = noise.lam[:, None, None]
+    tau = noise.tau_s[:, None, None]
+    done: dict[bytes, np.ndarray] = {}  # repetitions on the same step times share L^-1
     for r in range(A.shape[1]):
         rows = np.flatnonzero(real[r])
-        lag = np.abs(t[r, rows][:, None] - t[r, rows][None, :])
-        for c in range(6):
-            lam = noise.lam[c]
-            if lam <= 0:
-                out[c, r, rows] = A[c, r, rows]
-                continue
-            C = lam * np.exp(-lag / noise.tau_s[c])
-            C[np.diag_indices_from(C)] = 1.0
-            L = np.linalg.cholesky(C)
-            out[c, r, rows] = linalg.solve_triangular(L, A[c, r, rows], lower=True)
+        tr = t[r, rows]
+        key = tr.tobytes()
+        Linv = done.get(key)
+        if Linv is None:
+            C = lam * np.exp(-np.abs(tr[:, None] - tr[None, :]) / tau)  # (6, m, m)
+            C[:, np.arange(len(rows)), np.arange(len(rows))] = 1.0
+            Linv = np.linalg.inv(np.linalg.cholesky(C))
+            done[key] = Linv
+        out[:, r, rows] = Linv @ A[:, r, rows]
     return out
 
 
