@@ -95,9 +95,9 @@ def xu2016() -> None:
     print("| input | method | output | published | linear model | extended model | gap closed |")
     print("|---|---|---|---|---|---|---|")
     for row in r["table3"]:
-        p, l, e = row["published"], row["linear"], row["extended"]
-        print(f"| {row['input']} | {row['method']} | {row['output']} | {p[0]:.3f} ~ {p[1]:.3f} | "
-              f"{l[0]:.3f} ~ {l[1]:.3f} | {e[0]:.3f} ~ {e[1]:.3f} | {100 * row['closed']:.0f} % |")
+        pub, lin, ext = row["published"], row["linear"], row["extended"]
+        print(f"| {row['input']} | {row['method']} | {row['output']} | {pub[0]:.3f} ~ {pub[1]:.3f} | "
+              f"{lin[0]:.3f} ~ {lin[1]:.3f} | {ext[0]:.3f} ~ {ext[1]:.3f} | {100 * row['closed']:.0f} % |")
     print()
     for b in r["bias"]:
         print(b)
