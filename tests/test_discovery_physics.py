@@ -2,6 +2,7 @@
 sensors misaligned by about 0.5 deg, realistic noise with a wandering bias, warm-up ramp.
 Seeded small samples of the figures in docs/model-discovery.md
 (``docs/model_discovery_figures.py physics``)."""
+
 from __future__ import annotations
 
 import json
@@ -12,8 +13,14 @@ import pytest
 from calib_core import protocols
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation import run_scenario
-from calib_core.effects import (EffectTerm, FigureVariable, catalogue, get_effect,
-                                register_effect, unregister_effect)
+from calib_core.effects import (
+    EffectTerm,
+    FigureVariable,
+    catalogue,
+    get_effect,
+    register_effect,
+    unregister_effect,
+)
 from calib_core.sim.physics import typical_physics_unit
 from schemas.calibration_file import calibration_from_dict, calibration_to_dict
 from schemas.physics_sessions import physics_unit_step_means
@@ -32,8 +39,10 @@ def test_clean_units_get_no_named_effect():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["accel_scale_nonlinearity", "gyro_g_sensitivity",
-                                  "gyro_scale_asymmetry", "gyro_scale_nonlinearity"])
+@pytest.mark.parametrize(
+    "name",
+    ["accel_scale_nonlinearity", "gyro_g_sensitivity", "gyro_scale_asymmetry", "gyro_scale_nonlinearity"],
+)
 def test_hidden_effect_is_named_alone(name):
     t = run_scenario(step_means_of, STEPS, 6, seed=500 + len(name), hidden=(name,))
     assert t.extra == 0, t.misses
@@ -72,8 +81,11 @@ class _PeriodicRateError(EffectTerm):
         return theta, f"gyro {'xyz'[i]}"
 
     def physics_knobs(self, theta):
-        return {("gyro", i): {"periodic_amp": float(theta[i]), "periodic_period_dps": 130.0}
-                for i in range(3) if theta[i]}
+        return {
+            ("gyro", i): {"periodic_amp": float(theta[i]), "periodic_period_dps": 130.0}
+            for i in range(3)
+            if theta[i]
+        }
 
     def figure_variable(self, ctx, channel):
         return FigureVariable("rate on the gyro's own axis", "deg/s", ctx.w[:, channel % 3])
@@ -138,8 +150,9 @@ def test_serial_noise_is_recovered_and_whitened_away():
         taus.append(est.tau_s)
         e = np.einsum("ij,rjc->ric", L, rng.normal(size=(R, n, 6)))
         w = turntable._prewhiten(np.moveaxis(e, -1, 0)[..., None], est, real, t)[..., 0]
-        covs.append([np.mean(w[c] ** 2) for c in range(6)]
-                    + [np.mean(w[c][:, 1:] * w[c][:, :-1]) for c in range(6)])
+        covs.append(
+            [np.mean(w[c] ** 2) for c in range(6)] + [np.mean(w[c][:, 1:] * w[c][:, :-1]) for c in range(6)]
+        )
     assert abs(np.mean(lams) - lam) < 0.05, np.mean(lams)
     assert abs(np.mean(taus) - tau) < 3.0, np.mean(taus)
     covs = np.mean(covs, axis=0)
@@ -175,7 +188,8 @@ def test_misfit_without_a_channel_is_said_so():
 
     rng = np.random.default_rng(31)
     d = diagnose_unit(step_means_of(typical_physics_unit(rng), STEPS, rng, "C1"), tables=False)
-    fake = SimpleNamespace(**{**d.__dict__, "misfit": True,
-                              "lack_of_fit_before": FTest(1.3, 700, 2000, 1e-5, 0.01)})
+    fake = SimpleNamespace(
+        **{**d.__dict__, "misfit": True, "lack_of_fit_before": FTest(1.3, 700, 2000, 1e-5, 0.01)}
+    )
     text = "\n".join(summary_lines(fake))
     assert "MISFIT (overall lack of fit; no single channel rejects)" in text

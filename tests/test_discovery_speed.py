@@ -12,15 +12,19 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib_core import protocols
+from calib_core import protocols, replay
 from calib_core import simulator as sim
-from calib_core.discovery.turntable import (_Discovery, _lstsq_cov, _lstsq_theta_stack,
-                                            diagnose_unit, get_effect)
-from calib_core.simulator import REALISTIC_NOISE, simulate_unit
+from calib_core.discovery.turntable import (
+    _Discovery,
+    _lstsq_cov,
+    _lstsq_theta_stack,
+    diagnose_unit,
+    get_effect,
+)
 from calib_core.effects import CHANNELS, MotionContext
 from calib_core.errors import DesignError
-from calib_core import replay
 from calib_core.replay import NoiseEstimate, estimate_noise_arrays, two_way_residual
+from calib_core.simulator import REALISTIC_NOISE, simulate_unit
 
 STEPS = protocols.default_session()
 

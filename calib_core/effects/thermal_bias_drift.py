@@ -1,12 +1,20 @@
 """Bias linear in temperature (per degC from 25 degC) on each of the six sensors; where no
 temperature is recorded, linear in time since session start (per hour) instead."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (CHANNELS, THERMAL_REF_C, EffectTerm, FigureVariable,
-                                     MotionContext, SensingGeometry, random_sign,
-                                     register_effect)
+from calib_core.effects.base import (
+    CHANNELS,
+    THERMAL_REF_C,
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 
 def drift_variable(ctx: MotionContext) -> np.ndarray:
@@ -21,7 +29,8 @@ class ThermalBiasDrift(EffectTerm):
     param_names = ("d_gx", "d_gy", "d_gz", "d_ax", "d_ay", "d_az")
     # the regressor is temperature when recorded, else time: the unit says both
     param_units = ("deg/s per degC (per hour without temp_c)",) * 3 + (
-        "mg per degC (per hour without temp_c)",) * 3
+        "mg per degC (per hour without temp_c)",
+    ) * 3
     excited_by = "a temperature change during the session (warm-up), or time without one"
     max_useful_stderr = 0.05
 
@@ -36,15 +45,13 @@ class ThermalBiasDrift(EffectTerm):
         """One sensor: gyro 0.005-0.02 deg/s/degC or accelerometer 0.05-0.2 mg/degC."""
         theta = np.zeros(6)
         c = int(rng.integers(6))
-        theta[c] = random_sign(rng) * (rng.uniform(0.005, 0.02) if c < 3
-                                       else rng.uniform(0.05, 0.2))
+        theta[c] = random_sign(rng) * (rng.uniform(0.005, 0.02) if c < 3 else rng.uniform(0.05, 0.2))
         return theta * scale, f"sensor {CHANNELS[c]}"
 
     def physics_knobs(self, theta):
         t = np.asarray(theta, float)
         out = {("gyro", i): {"bias_tc": float(t[i])} for i in range(3) if t[i]}
-        out.update({("accel", i): {"bias_tc": float(t[3 + i]) * 1e-3}
-                    for i in range(3) if t[3 + i]})
+        out.update({("accel", i): {"bias_tc": float(t[3 + i]) * 1e-3} for i in range(3) if t[3 + i]})
         return out
 
     def figure_variable(self, ctx, channel):
