@@ -7,16 +7,17 @@
 
 Seeded: the same numbers every run.
 """
+
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 
 
-def physics(n_units: int = 40, n_clean: int = 200, sections: str = "effects,pairs,clean,ooc",
-            scales=(0.25, 0.5, 1.0)) -> None:
+def physics(
+    n_units: int = 40, n_clean: int = 200, sections: str = "effects,pairs,clean,ooc", scales=(0.25, 0.5, 1.0)
+) -> None:
     """The Done-when figures of the discovery on the independent physics simulator."""
     from calib_core import protocols
     from calib_core.discovery.evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
@@ -33,14 +34,16 @@ def physics(n_units: int = 40, n_clean: int = 200, sections: str = "effects,pair
 
     misses = []
     if "effects" in sections:
-        print("| effect | " + " | ".join(f"{s:g}x: exactly right / extra term / median gain"
-                                         for s in scales) + " |")
+        print(
+            "| effect | "
+            + " | ".join(f"{s:g}x: exactly right / extra term / median gain" for s in scales)
+            + " |"
+        )
         print("|---|" + "---|" * len(scales))
         for name in sorted(catalogue()):
             cells = []
             for scale in scales:
-                t = run_scenario(step_means_of, steps, n_units, seed(name, scale), (name,),
-                                 scale)
+                t = run_scenario(step_means_of, steps, n_units, seed(name, scale), (name,), scale)
                 g = f"{np.median(t.gains):.3g}" if t.gains else "-"
                 cells.append(f"{t.pct(t.exact):.0f} % / {t.pct(t.extra):.0f} % / {g}")
                 misses += [f"{name} {scale:g}x {m}" for m in t.misses]
@@ -51,25 +54,32 @@ def physics(n_units: int = 40, n_clean: int = 200, sections: str = "effects,pair
         print("|---|---|---|")
         for pair in PAIRS:
             t = run_scenario(step_means_of, steps, n_units, seed(*pair), pair)
-            print(f"| {' + '.join(pair)} | {t.pct(t.exact):.0f} % | {t.pct(t.extra):.0f} % |",
-                  flush=True)
+            print(f"| {' + '.join(pair)} | {t.pct(t.exact):.0f} % | {t.pct(t.extra):.0f} % |", flush=True)
             misses += [f"{'+'.join(pair)} {m}" for m in t.misses]
         print()
     if "clean" in sections:
         t = run_scenario(step_means_of, steps, n_clean, seed("clean"))
-        print(f"clean units: {t.n}; with a named effect: {t.any_named} "
-              f"({t.pct(t.any_named):.1f} %); misfit: {t.misfit} ({t.pct(t.misfit):.1f} %); "
-              f"discovery {1e3 * t.seconds / t.n:.0f} ms per unit", flush=True)
+        print(
+            f"clean units: {t.n}; with a named effect: {t.any_named} "
+            f"({t.pct(t.any_named):.1f} %); misfit: {t.misfit} ({t.pct(t.misfit):.1f} %); "
+            f"discovery {1e3 * t.seconds / t.n:.0f} ms per unit",
+            flush=True,
+        )
         misses += [f"clean {m}" for m in t.misses]
         print()
     if "ooc" in sections:
-        print("| physical error not in the catalogue (1x) | named as a catalogue effect | "
-              "misfit | misfit and unexplained |")
+        print(
+            "| physical error not in the catalogue (1x) | named as a catalogue effect | "
+            "misfit | misfit and unexplained |"
+        )
         print("|---|---|---|---|")
         for name in OUT_OF_CATALOGUE:
             t = run_scenario(step_means_of, steps, n_units, seed(name), out_of_catalogue=name)
-            print(f"| {name} | {t.pct(t.any_named):.0f} % | {t.pct(t.misfit):.0f} % | "
-                  f"{t.pct(t.unexplained):.0f} % |", flush=True)
+            print(
+                f"| {name} | {t.pct(t.any_named):.0f} % | {t.pct(t.misfit):.0f} % | "
+                f"{t.pct(t.unexplained):.0f} % |",
+                flush=True,
+            )
             misses += [f"{name} {m}" for m in t.misses]
     if misses:
         print("\nmisses:")
@@ -84,20 +94,24 @@ def xu2016() -> None:
     print("per-axis hypotheses (gyro_scale_nonlinearity fitted to the compensated range):")
     for a, hs in r["hypotheses"].items():
         for h in hs:
-            print(f"  {a}: q={h['q']:.4g} c={h['c']:.4g}  compensated "
-                  f"{h['compensated'][0]:.3f}~{h['compensated'][1]:.3f}  uncompensated predicted "
-                  f"{h['uncompensated'][0]:.3f}~{h['uncompensated'][1]:.3f} (linear "
-                  f"{h['uncompensated_linear'][0]:.3f}~{h['uncompensated_linear'][1]:.3f}, "
-                  f"published {h['uncompensated_published'][0]}~{h['uncompensated_published'][1]})"
-                  f"  gap closed {100 * h['gap_closed']:.0f} %")
+            print(
+                f"  {a}: q={h['q']:.4g} c={h['c']:.4g}  compensated "
+                f"{h['compensated'][0]:.3f}~{h['compensated'][1]:.3f}  uncompensated predicted "
+                f"{h['uncompensated'][0]:.3f}~{h['uncompensated'][1]:.3f} (linear "
+                f"{h['uncompensated_linear'][0]:.3f}~{h['uncompensated_linear'][1]:.3f}, "
+                f"published {h['uncompensated_published'][0]}~{h['uncompensated_published'][1]})"
+                f"  gap closed {100 * h['gap_closed']:.0f} %"
+            )
     print("chosen theta:", {k: round(v, 4) for k, v in r["theta"].items()})
     print()
     print("| input | method | output | published | linear model | extended model | gap closed |")
     print("|---|---|---|---|---|---|---|")
     for row in r["table3"]:
         pub, lin, ext = row["published"], row["linear"], row["extended"]
-        print(f"| {row['input']} | {row['method']} | {row['output']} | {pub[0]:.3f} ~ {pub[1]:.3f} | "
-              f"{lin[0]:.3f} ~ {lin[1]:.3f} | {ext[0]:.3f} ~ {ext[1]:.3f} | {100 * row['closed']:.0f} % |")
+        print(
+            f"| {row['input']} | {row['method']} | {row['output']} | {pub[0]:.3f} ~ {pub[1]:.3f} | "
+            f"{lin[0]:.3f} ~ {lin[1]:.3f} | {ext[0]:.3f} ~ {ext[1]:.3f} | {100 * row['closed']:.0f} % |"
+        )
     print()
     for b in r["bias"]:
         print(b)
@@ -107,8 +121,10 @@ if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else "xu2016"
     if what == "physics":
         args = sys.argv[2:]
-        physics(n_units=int(args[0]) if args else 40,
-                n_clean=int(args[1]) if len(args) > 1 else 200,
-                sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc")
+        physics(
+            n_units=int(args[0]) if args else 40,
+            n_clean=int(args[1]) if len(args) > 1 else 200,
+            sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc",
+        )
     else:
         {"xu2016": xu2016}[what]()

@@ -1,6 +1,7 @@
 """`mimucal nightly` on a lot where every unit has a lever arm and the protocol has no tilted
 dynamic steps: the flow succeeds, discovery names the lever arm, and the calibration files
 carry its determined components and ``null`` for the ones the steps cannot determine."""
+
 from __future__ import annotations
 
 import json
@@ -26,8 +27,7 @@ def test_nightly_with_lever_arms_and_no_tilted_steps(tmp_path, capsys):
     steps = protocols.default_session(dynamic=False)
     for u in range(2):
         unit, _, _ = get_effect("lever_arm").hide(typical_physics_unit(rng), rng)
-        write_physics_unit(data, unit, steps, rng, n_reps=3, rate_hz=20.0, lot="LV",
-                           unit_id=f"U{u}")
+        write_physics_unit(data, unit, steps, rng, n_reps=3, rate_hz=20.0, lot="LV", unit_id=f"U{u}")
     assert cli_main(["nightly", str(data), "--results", str(results)]) == 0
     files = sorted(results.rglob("*.json"))
     cals = [json.loads(p.read_text()) for p in files if '"terms"' in p.read_text()]

@@ -2,6 +2,7 @@
 sensors misaligned by about 0.5 deg, realistic noise with a wandering bias, warm-up ramp.
 Seeded small samples of the figures in docs/model-discovery.md
 (``docs/model_discovery_figures.py physics``)."""
+
 from __future__ import annotations
 
 import json
@@ -12,8 +13,14 @@ import pytest
 from calib_core import protocols
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation import run_scenario
-from calib_core.effects import (EffectTerm, FigureVariable, catalogue, get_effect,
-                                register_effect, unregister_effect)
+from calib_core.effects import (
+    EffectTerm,
+    FigureVariable,
+    catalogue,
+    get_effect,
+    register_effect,
+    unregister_effect,
+)
 from calib_core.sim.physics import typical_physics_unit
 from schemas.calibration_file import calibration_from_dict, calibration_to_dict
 from schemas.physics_sessions import physics_unit_step_means
@@ -32,8 +39,10 @@ def test_clean_units_get_no_named_effect():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["accel_scale_nonlinearity", "gyro_g_sensitivity",
-                                  "gyro_scale_asymmetry", "gyro_scale_nonlinearity"])
+@pytest.mark.parametrize(
+    "name",
+    ["accel_scale_nonlinearity", "gyro_g_sensitivity", "gyro_scale_asymmetry", "gyro_scale_nonlinearity"],
+)
 def test_hidden_effect_is_named_alone(name):
     t = run_scenario(step_means_of, STEPS, 6, seed=500 + len(name), hidden=(name,))
     assert t.extra == 0, t.misses
@@ -72,8 +81,11 @@ class _PeriodicRateError(EffectTerm):
         return theta, f"gyro {'xyz'[i]}"
 
     def physics_knobs(self, theta):
-        return {("gyro", i): {"periodic_amp": float(theta[i]), "periodic_period_dps": 130.0}
-                for i in range(3) if theta[i]}
+        return {
+            ("gyro", i): {"periodic_amp": float(theta[i]), "periodic_period_dps": 130.0}
+            for i in range(3)
+            if theta[i]
+        }
 
     def figure_variable(self, ctx, channel):
         return FigureVariable("rate on the gyro's own axis", "deg/s", ctx.w[:, channel % 3])
@@ -113,3 +125,71 @@ def test_undetermined_lever_arm_components_are_null_in_every_file():
     assert all(tv["params"][p] is None for p in tv["undetermined"])
     back = calibration_from_dict(cal_doc)
     assert np.isfinite(back.terms[0].params).all()
+
+
+def test_serial_noise_is_recovered_and_whitened_away():
+    """Step means of 5 repetitions with white noise plus a Gauss-Markov wander (share 0.7,
+    time constant 20 s, steps 3.7 s apart): the estimate finds the share and the time
+    constant, and the whitened rows are uncorrelated with unit variance."""
+    from calib_core.discovery import turntable
+
+    rng = np.random.default_rng(3)
+    R, n, lam, tau = 5, 120, 0.7, 20.0
+    t = np.tile(np.arange(n) * 3.7, (R, 1))
+    lag = np.abs(t[0][:, None] - t[0][None, :])
+    C = lam * np.exp(-lag / tau)
+    C[np.diag_indices_from(C)] = 1.0
+    L = np.linalg.cholesky(C)
+    lams, taus, covs = [], [], []
+    real = np.ones((R, n), bool)
+    for _ in range(20):
+        z = np.einsum("ij,rjc->ric", L, rng.normal(size=(R, n, 6)))
+        z += rng.normal(size=(1, n, 6)) * 3.0 + rng.normal(size=(R, 1, 6)) * 5.0  # step, rep
+        est = turntable._serial_noise(z, real, t)
+        lams.append(est.lam)
+        taus.append(est.tau_s)
+        e = np.einsum("ij,rjc->ric", L, rng.normal(size=(R, n, 6)))
+        w = turntable._prewhiten(np.moveaxis(e, -1, 0)[..., None], est, real, t)[..., 0]
+        covs.append(
+            [np.mean(w[c] ** 2) for c in range(6)] + [np.mean(w[c][:, 1:] * w[c][:, :-1]) for c in range(6)]
+        )
+    assert abs(np.mean(lams) - lam) < 0.05, np.mean(lams)
+    assert abs(np.mean(taus) - tau) < 3.0, np.mean(taus)
+    covs = np.mean(covs, axis=0)
+    # whitened with estimated parameters: within 8 % of unit variance, lag-1 within 0.05
+    assert np.all(np.abs(covs[:6] - 1.0) < 0.08) and np.all(np.abs(covs[6:]) < 0.05), covs
+
+
+def test_min_gain_decides_between_named_and_negligible_and_the_text_says_why():
+    """The same unit: named with the default min_gain, listed as negligible (not applied) when
+    min_gain is above its held-out gain; the printed account names the misfit channels."""
+    from flows.commands.diagnose import summary_lines
+
+    rng = np.random.default_rng(29)
+    unit, _, _ = get_effect("gyro_scale_asymmetry").hide(typical_physics_unit(rng), rng)
+    sessions = step_means_of(unit, STEPS, rng, "A1")
+    d = diagnose_unit(sessions, tables=False)
+    assert [e.name for e in d.effects] == ["gyro_scale_asymmetry"]
+    gain = d.effects[0].gain
+    assert gain >= 1.05 and not d.negligible
+    strict = diagnose_unit(sessions, tables=False, min_gain=gain * 1.5)
+    assert not strict.effects and not strict.terms
+    assert [e.name for e in strict.negligible] == ["gyro_scale_asymmetry"]
+    text = "\n".join(summary_lines(strict))
+    assert "-> MISFIT on g" in text and "(negligible: " in text
+    assert "MISFIT on \n" not in text + "\n"
+
+
+def test_misfit_without_a_channel_is_said_so():
+    from types import SimpleNamespace
+
+    from calib_core.discovery.results import FTest
+    from flows.commands.diagnose import summary_lines
+
+    rng = np.random.default_rng(31)
+    d = diagnose_unit(step_means_of(typical_physics_unit(rng), STEPS, rng, "C1"), tables=False)
+    fake = SimpleNamespace(
+        **{**d.__dict__, "misfit": True, "lack_of_fit_before": FTest(1.3, 700, 2000, 1e-5, 0.01)}
+    )
+    text = "\n".join(summary_lines(fake))
+    assert "MISFIT (overall lack of fit; no single channel rejects)" in text

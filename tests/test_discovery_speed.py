@@ -12,15 +12,19 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib_core import protocols
+from calib_core import protocols, replay
 from calib_core import simulator as sim
-from calib_core.discovery.turntable import (_Discovery, _lstsq_cov, _lstsq_theta_stack,
-                                            diagnose_unit, get_effect)
-from calib_core.simulator import REALISTIC_NOISE, simulate_unit
+from calib_core.discovery.turntable import (
+    _Discovery,
+    _lstsq_cov,
+    _lstsq_theta_stack,
+    diagnose_unit,
+    get_effect,
+)
 from calib_core.effects import CHANNELS, MotionContext
 from calib_core.errors import DesignError
-from calib_core import replay
 from calib_core.replay import NoiseEstimate, estimate_noise_arrays, two_way_residual
+from calib_core.simulator import REALISTIC_NOISE, simulate_unit
 
 STEPS = protocols.default_session()
 
@@ -85,7 +89,8 @@ def _dense_fit(L, train: np.ndarray, cols: np.ndarray, R: int):
 def test_fits_equal_the_dense_weighted_least_squares(effect, theta, drop, monkeypatch):
     # the algebra on white rows (prewhitening is a row transform applied before it)
     from calib_core.discovery import turntable
-    monkeypatch.setattr(turntable, "_serial_correlation", lambda z, real: np.zeros(6))
+    monkeypatch.setattr(turntable, "_serial_noise",
+                        lambda z, real, t: turntable._SerialNoise(np.zeros(6), np.ones(6)))
     sessions = _unit(11, effect, theta, drop=drop)
     d = _Discovery(sessions, 0.01)
     assert d.g.balanced is (not drop)

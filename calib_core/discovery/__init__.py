@@ -10,10 +10,20 @@ not fitted to. One engine, two kinds of data:
 sharing the F test and finding type (:mod:`calib_core.discovery.results`) and the stepwise
 selection (:mod:`calib_core.discovery.selection`).
 """
-from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, EffectFinding,
-                                          FTest, f_test)
+
+from calib_core.discovery.results import DEFAULT_ALPHA, DEFAULT_MIN_GAIN, EffectFinding, FTest, f_test
 from calib_core.discovery.static import StaticDiagnosis, StaticPoses, diagnose_static
 from calib_core.discovery.turntable import Diagnosis, diagnose_unit
 
-__all__ = ["DEFAULT_ALPHA", "DEFAULT_MIN_GAIN", "Diagnosis", "EffectFinding", "FTest",
-           "StaticDiagnosis", "StaticPoses", "diagnose_static", "diagnose_unit", "f_test"]
+__all__ = [
+    "DEFAULT_ALPHA",
+    "DEFAULT_MIN_GAIN",
+    "Diagnosis",
+    "EffectFinding",
+    "FTest",
+    "StaticDiagnosis",
+    "StaticPoses",
+    "diagnose_static",
+    "diagnose_unit",
+    "f_test",
+]

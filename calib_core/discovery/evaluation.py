@@ -8,10 +8,11 @@ with catalogue effects hidden in its sensors by each effect's own
 term models (:data:`OUT_OF_CATALOGUE`). Step means come from a caller-given function (the
 reader's averaging lives in ``schemas.physics_sessions``, which calib_core may not import).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -26,30 +27,30 @@ StepMeansOf = Callable[[PhysicsUnit, pd.DataFrame, np.random.Generator, str], li
 def _periodic(unit, rng, scale):
     i = int(rng.integers(3))
     amp = rng.choice([-1.0, 1.0]) * rng.uniform(0.03, 0.08) * scale
-    return unit.replace_gyro(i, periodic_amp=float(amp), periodic_period_dps=130.0), \
-        f"gyro {'xyz'[i]} periodic {amp:.3g} deg/s, period 130 deg/s"
+    return unit.replace_gyro(
+        i, periodic_amp=float(amp), periodic_period_dps=130.0
+    ), f"gyro {'xyz'[i]} periodic {amp:.3g} deg/s, period 130 deg/s"
 
 
 def _cross_quad(unit, rng, scale):
     # gyro x or y picks up the square of the z rate (the axis turned to 3600 deg/s)
     i = int(rng.integers(2))
     k = rng.choice([-1.0, 1.0]) * rng.uniform(1e-8, 3e-8) * scale
-    return unit.replace_gyro(i, cross_quad=(0.0, 0.0, float(k))), \
-        f"gyro {'xyz'[i]} += {k:.2g} w_z^2"
+    return unit.replace_gyro(i, cross_quad=(0.0, 0.0, float(k))), f"gyro {'xyz'[i]} += {k:.2g} w_z^2"
 
 
 def _random_walk(unit, rng, scale):
     i = int(rng.integers(3))
     rw = rng.uniform(5e-4, 1e-3) * scale
-    return unit.replace_gyro(i, random_walk=float(rw)), \
-        f"gyro {'xyz'[i]} bias random walk {rw:.2g} deg/s/sqrt(s)"
+    return unit.replace_gyro(
+        i, random_walk=float(rw)
+    ), f"gyro {'xyz'[i]} bias random walk {rw:.2g} deg/s/sqrt(s)"
 
 
 def _scale_tc(unit, rng, scale):
     i = int(rng.integers(3))
     ppm = rng.choice([-1.0, 1.0]) * rng.uniform(30.0, 100.0) * scale
-    return unit.replace_gyro(i, scale_tc_ppm=float(ppm)), \
-        f"gyro {'xyz'[i]} scale factor {ppm:.3g} ppm/degC"
+    return unit.replace_gyro(i, scale_tc_ppm=float(ppm)), f"gyro {'xyz'[i]} scale factor {ppm:.3g} ppm/degC"
 
 
 # physical errors no catalogue term models: name -> (unit, rng, scale) -> (unit, description)
@@ -60,9 +61,11 @@ OUT_OF_CATALOGUE = {
     "thermal_scale_drift": _scale_tc,
 }
 
-PAIRS = (("lever_arm", "gyro_g_sensitivity"),
-         ("gyro_scale_asymmetry", "accel_scale_nonlinearity"),
-         ("gyro_scale_nonlinearity", "thermal_bias_drift"))
+PAIRS = (
+    ("lever_arm", "gyro_g_sensitivity"),
+    ("gyro_scale_asymmetry", "accel_scale_nonlinearity"),
+    ("gyro_scale_nonlinearity", "thermal_bias_drift"),
+)
 
 
 @dataclass
@@ -96,18 +99,27 @@ class Tally:
         self.confounded_hidden += bool(not named and any(set(self.hidden) <= g for g in groups))
         self.gains += [e.gain for e in d.effects if e.name in self.hidden]
         if not ok:
-            self.misses.append(f"{what}: named {named or '-'}, confounded "
-                               f"{[sorted(g) for g in groups] or '-'}, partial "
-                               f"{[e.name for e in d.partial] or '-'}, negligible "
-                               f"{[e.name for e in d.negligible] or '-'}")
+            self.misses.append(
+                f"{what}: named {named or '-'}, confounded "
+                f"{[sorted(g) for g in groups] or '-'}, partial "
+                f"{[e.name for e in d.partial] or '-'}, negligible "
+                f"{[e.name for e in d.negligible] or '-'}"
+            )
 
     def pct(self, k: int) -> float:
         return 100.0 * k / max(self.n, 1)
 
 
-def run_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, n_units: int, seed: int,
-                 hidden: tuple[str, ...] = (), scale: float = 1.0,
-                 out_of_catalogue: str | None = None, alpha: float = 0.01) -> Tally:
+def run_scenario(
+    step_means_of: StepMeansOf,
+    steps: pd.DataFrame,
+    n_units: int,
+    seed: int,
+    hidden: tuple[str, ...] = (),
+    scale: float = 1.0,
+    out_of_catalogue: str | None = None,
+    alpha: float = 0.01,
+) -> Tally:
     """Diagnose ``n_units`` physics-simulated units with the catalogue effects ``hidden``
     (or the physical error ``out_of_catalogue``) at ``scale`` times a realistic size."""
     import time

@@ -1,5 +1,6 @@
 """What discovery reports, shared by the turntable and the static-pose discovery: the F test,
 one finding per term, and the JSON form (non-finite numbers become ``null``)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -26,8 +27,14 @@ class FTest:
         return bool(self.p_value < self.threshold)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"test": "F", "statistic": self.statistic, "dof1": self.dof1, "dof2": self.dof2,
-                "p_value": self.p_value, "threshold": self.threshold}
+        return {
+            "test": "F",
+            "statistic": self.statistic,
+            "dof1": self.dof1,
+            "dof2": self.dof2,
+            "p_value": self.p_value,
+            "threshold": self.threshold,
+        }
 
 
 def f_test(ss_num: float, dof_num: int, ss_den: float, dof_den: int, threshold: float) -> FTest:
@@ -36,8 +43,7 @@ def f_test(ss_num: float, dof_num: int, ss_den: float, dof_den: int, threshold: 
         return FTest(float("nan"), int(dof_num), int(dof_den), 1.0, threshold)
     F = (max(ss_num, 0.0) / dof_num) / (ss_den / dof_den)
     # special.fdtrc is what stats.f.sf evaluates, without its argument checking overhead
-    return FTest(float(F), int(dof_num), int(dof_den), float(special.fdtrc(dof_num, dof_den, F)),
-                 threshold)
+    return FTest(float(F), int(dof_num), int(dof_den), float(special.fdtrc(dof_num, dof_den, F)), threshold)
 
 
 @dataclass(frozen=True)
@@ -63,16 +69,25 @@ class EffectFinding:
 
     @property
     def gain(self) -> float:
-        return (self.heldout_rms_before / self.heldout_rms_after if self.heldout_rms_after > 0
-                else float("inf"))
+        return (
+            self.heldout_rms_before / self.heldout_rms_after if self.heldout_rms_after > 0 else float("inf")
+        )
 
     def to_dict(self) -> dict[str, Any]:
-        out = {"name": self.name, "axes": list(self.axes), "estimate": self.estimate,
-               "stderr": self.stderr, "units": self.units, "evidence": self.evidence.to_dict(),
-               "heldout_unit": self.heldout_unit, "heldout_channels": list(self.channels),
-               "heldout_rms_before": self.heldout_rms_before,
-               "heldout_rms_after": self.heldout_rms_after, "gain": self.gain,
-               "undetermined": dict(self.undetermined)}
+        out = {
+            "name": self.name,
+            "axes": list(self.axes),
+            "estimate": self.estimate,
+            "stderr": self.stderr,
+            "units": self.units,
+            "evidence": self.evidence.to_dict(),
+            "heldout_unit": self.heldout_unit,
+            "heldout_channels": list(self.channels),
+            "heldout_rms_before": self.heldout_rms_before,
+            "heldout_rms_after": self.heldout_rms_after,
+            "gain": self.gain,
+            "undetermined": dict(self.undetermined),
+        }
         if self.block is not None:
             out["block"] = self.block
         return out

@@ -5,9 +5,10 @@ candidates``, Bonferroni) and that improve the held-out score, add the most sign
 p underflows, the larger explained sum of squares); repeat. Backward (optional): drop a
 chosen term no longer significant given the others (threshold ``alpha / all candidates``).
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from scipy import stats
 
@@ -17,8 +18,14 @@ TermTest = Callable[[tuple[str, ...], str, float], FTest]
 Improves = Callable[[tuple[str, ...], str], bool]
 
 
-def stepwise(candidates: list[str], test: TermTest, improves: Improves, alpha: float,
-             backward: bool = True, bonferroni_over: int | None = None) -> list[str]:
+def stepwise(
+    candidates: list[str],
+    test: TermTest,
+    improves: Improves,
+    alpha: float,
+    backward: bool = True,
+    bonferroni_over: int | None = None,
+) -> list[str]:
     """The chosen terms, in the order they entered. ``bonferroni_over`` fixes the number of
     comparisons of the forward threshold (default: the candidates left at each round)."""
     chosen: list[str] = []

@@ -55,6 +55,7 @@ blocks of ``block_size`` consecutive poses are left out in turn; the model is fi
 rest and predicts the held-out poses' residuals (physical units: deg/s, mg). ``gain`` =
 held-out RMS without the term / with it, on the channels the term acts on.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -69,6 +70,7 @@ from calib_core.discovery.results import DEFAULT_ALPHA, EffectFinding, FTest, f_
 from calib_core.discovery.selection import stepwise
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
+
 EARTH_RATE_DPS = 360.0 / 86164.1  # 0.00418 deg/s, ignored (see the module docstring)
 BASE_RCOND = 3e-2  # base columns are O(1) unit-vector products: directions below this are noise
 GAIN_RTOL = 1e-3  # a term column must keep this fraction of its norm off the base span
@@ -90,7 +92,7 @@ class StaticPoses:
     count: np.ndarray  # (n,) samples per pose
 
     @classmethod
-    def from_pose_means(cls, df: pd.DataFrame) -> "StaticPoses":
+    def from_pose_means(cls, df: pd.DataFrame) -> StaticPoses:
         need = ["t_mid", "count"] + [c for ch in CHANNELS for c in (ch, f"{ch}_std")]
         missing = [c for c in need if c not in df.columns]
         if missing:
@@ -98,17 +100,30 @@ class StaticPoses:
         df = df.sort_values("t_mid", kind="stable")
         col = lambda names: df[list(names)].to_numpy(float)  # noqa: E731
         names = df["pose"].astype(str) if "pose" in df.columns else pd.Series(range(len(df))).astype(str)
-        return cls(tuple(names), df["t_mid"].to_numpy(float), col(CHANNELS[:3]),
-                   col(CHANNELS[3:]), col([f"{c}_std" for c in CHANNELS[:3]]),
-                   col([f"{c}_std" for c in CHANNELS[3:]]), df["count"].to_numpy(float))
+        return cls(
+            tuple(names),
+            df["t_mid"].to_numpy(float),
+            col(CHANNELS[:3]),
+            col(CHANNELS[3:]),
+            col([f"{c}_std" for c in CHANNELS[:3]]),
+            col([f"{c}_std" for c in CHANNELS[3:]]),
+            df["count"].to_numpy(float),
+        )
 
     def __len__(self) -> int:
         return len(self.t_mid)
 
-    def take(self, order: np.ndarray) -> "StaticPoses":
+    def take(self, order: np.ndarray) -> StaticPoses:
         """The same poses with rows reordered (for permutation controls)."""
-        return StaticPoses(tuple(np.asarray(self.names)[order]), self.t_mid[order], self.G[order],
-                           self.A[order], self.G_std[order], self.A_std[order], self.count[order])
+        return StaticPoses(
+            tuple(np.asarray(self.names)[order]),
+            self.t_mid[order],
+            self.G[order],
+            self.A[order],
+            self.G_std[order],
+            self.A_std[order],
+            self.count[order],
+        )
 
 
 @dataclass
@@ -141,15 +156,23 @@ class StaticDiagnosis:
     baseline_checks: list[EffectFinding] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return jsonable({
-            "recording": self.recording, "n_poses": self.n_poses, "alpha": self.alpha,
-            "block_size": self.block_size, "misfit": self.misfit,
-            "unexplained": self.unexplained, "effects": [e.to_dict() for e in self.effects],
-            "candidates": [e.to_dict() for e in self.candidates],
-            "not_testable": self.not_testable, "blocks": self.blocks,
-            "baseline_terms": list(self.baseline_terms),
-            "baseline_checks": [e.to_dict() for e in self.baseline_checks],
-            "earth_rate_ignored_dps": EARTH_RATE_DPS})
+        return jsonable(
+            {
+                "recording": self.recording,
+                "n_poses": self.n_poses,
+                "alpha": self.alpha,
+                "block_size": self.block_size,
+                "misfit": self.misfit,
+                "unexplained": self.unexplained,
+                "effects": [e.to_dict() for e in self.effects],
+                "candidates": [e.to_dict() for e in self.candidates],
+                "not_testable": self.not_testable,
+                "blocks": self.blocks,
+                "baseline_terms": list(self.baseline_terms),
+                "baseline_checks": [e.to_dict() for e in self.baseline_checks],
+                "earth_rate_ignored_dps": EARTH_RATE_DPS,
+            }
+        )
 
 
 # -- measured quantities and contexts ----------------------------------------------------
@@ -159,8 +182,11 @@ def pose_residuals(cal: Calibration, poses: StaticPoses) -> tuple[np.ndarray, np
     w, f = cal.apply(poses.G, poses.A, t=poses.t_mid)
     mag = np.linalg.norm(f, axis=1)
     if not np.all(mag > 0.5) or not np.all(mag < 1.5):
-        raise DesignError("E_STATIC_POSES", f"calibrated |f| at the poses spans {mag.min():.3g}.."
-                          f"{mag.max():.3g} g: not static poses under this calibration")
+        raise DesignError(
+            "E_STATIC_POSES",
+            f"calibrated |f| at the poses spans {mag.min():.3g}.."
+            f"{mag.max():.3g} g: not static poses under this calibration",
+        )
     u = f / mag[:, None]
     ctx = MotionContext.from_refs(np.zeros_like(u), u, t=poses.t_mid, g_local=cal.g_local)
     return w, mag - 1.0, ctx
@@ -168,25 +194,32 @@ def pose_residuals(cal: Calibration, poses: StaticPoses) -> tuple[np.ndarray, np
 
 def _white_sigma(cal: Calibration, poses: StaticPoses, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = np.maximum(poses.count, 1.0)[:, None]
-    sg = np.sqrt((poses.G_std ** 2) @ (cal.K_g.T ** 2)) / np.sqrt(n)
-    sa = np.sqrt((poses.A_std ** 2) @ (cal.K_a.T ** 2)) / np.sqrt(n)
+    sg = np.sqrt((poses.G_std**2) @ (cal.K_g.T**2)) / np.sqrt(n)
+    sa = np.sqrt((poses.A_std**2) @ (cal.K_a.T**2)) / np.sqrt(n)
     s_mag = np.sqrt(np.sum((u * sa) ** 2, axis=1))  # |f| = u . f to first order
     return sg, s_mag
 
 
-def _term_columns(name: str, ctx: MotionContext, u: np.ndarray, geometry: SensingGeometry
-                  ) -> dict[str, np.ndarray]:
+def _term_columns(
+    name: str, ctx: MotionContext, u: np.ndarray, geometry: SensingGeometry
+) -> dict[str, np.ndarray]:
     """Design columns of a catalogue term per block: gyro (3n, p) rows pose-major, channel
     minor; accel (n, p) magnitude rows. Sign: the residual is +E theta (sensed = true + E)."""
     E = get_effect(name).regressors(ctx, geometry)  # (n, 6, p)
     n, _, p = E.shape
-    return {"gyro": E[:, :3, :].reshape(3 * n, p),
-            "accel": np.einsum("ni,nip->np", u, E[:, 3:, :])}
+    return {"gyro": E[:, :3, :].reshape(3 * n, p), "accel": np.einsum("ni,nip->np", u, E[:, 3:, :])}
 
 
 class _StaticDiscovery:
-    def __init__(self, cal: Calibration, poses: StaticPoses, alpha: float, block_size: int,
-                 candidates: list[str] | None, noise_terms: dict[str, tuple[str, ...]] | None = None):
+    def __init__(
+        self,
+        cal: Calibration,
+        poses: StaticPoses,
+        alpha: float,
+        block_size: int,
+        candidates: list[str] | None,
+        noise_terms: dict[str, tuple[str, ...]] | None = None,
+    ):
         if len(poses) < 5:
             raise DesignError("E_STATIC_POSES", f"{len(poses)} static poses: need at least 5")
         self.cal, self.poses, self.alpha = cal, poses, alpha
@@ -206,11 +239,22 @@ class _StaticDiscovery:
         uu = np.column_stack([self.u[:, i] * self.u[:, j] for i in range(3) for j in range(i, 3)])
         accel_base = np.hstack([uu, self.u])
         self.blocks = {
-            "gyro": _Block("gyro", w.reshape(-1), 1.0 / np.maximum(sg.reshape(-1), 1e-300),
-                           np.repeat(np.arange(n), 3), np.tile(np.arange(3), n),
-                           np.hstack([gyro_base] + base_extra["gyro"])),
-            "accel": _Block("accel", dmag, 1.0 / np.maximum(s_mag, 1e-300), np.arange(n),
-                            np.full(n, -1), np.hstack([accel_base] + base_extra["accel"])),
+            "gyro": _Block(
+                "gyro",
+                w.reshape(-1),
+                1.0 / np.maximum(sg.reshape(-1), 1e-300),
+                np.repeat(np.arange(n), 3),
+                np.tile(np.arange(3), n),
+                np.hstack([gyro_base] + base_extra["gyro"]),
+            ),
+            "accel": _Block(
+                "accel",
+                dmag,
+                1.0 / np.maximum(s_mag, 1e-300),
+                np.arange(n),
+                np.full(n, -1),
+                np.hstack([accel_base] + base_extra["accel"]),
+            ),
         }
         # held-out folds: blocks of consecutive poses (time order)
         order = np.argsort(poses.t_mid, kind="stable")
@@ -224,8 +268,9 @@ class _StaticDiscovery:
         self.cols = {nm: _term_columns(nm, ctx, self.u, cal.geometry) for nm in self.names}
         self.sigma_white = {"gyro": sg, "accel": s_mag}
         self._cache: dict = {}
-        self.tau = {b: self._set_noise(b, tuple(noise_terms.get(b, ())) if noise_terms else ())
-                    for b in BLOCKS}
+        self.tau = {
+            b: self._set_noise(b, tuple(noise_terms.get(b, ())) if noise_terms else ()) for b in BLOCKS
+        }
 
     def _set_noise(self, block: str, names: tuple[str, ...]) -> np.ndarray:
         """Row weights 1/sqrt(white^2 + tau_c^2): tau_c, the pose-to-pose noise of channel c
@@ -244,7 +289,7 @@ class _StaticDiscovery:
         for c in np.unique(blk.channel):
             m = blk.channel == c
             tau[c] = float(np.sqrt(max(np.mean(res[m] ** 2) / dof_frac - np.mean(white[m] ** 2), 0.0)))
-        sigma = np.sqrt(white ** 2 + np.array([tau[c] for c in blk.channel]) ** 2)
+        sigma = np.sqrt(white**2 + np.array([tau[c] for c in blk.channel]) ** 2)
         blk.weight = 1.0 / np.maximum(sigma, 1e-300)
         self._cache.clear()
         return np.array([tau[c] for c in sorted(tau)])
@@ -302,14 +347,13 @@ class _StaticDiscovery:
         keep = sv > 1e-8 * sv[0]
         inv = np.where(keep, 1.0 / np.where(keep, sv, 1.0), 0.0)
         coef = (Wt.T * inv) @ (U.T @ yw) / scale
-        cov = (Wt.T * inv ** 2) @ Wt / np.outer(scale, scale)
+        cov = (Wt.T * inv**2) @ Wt / np.outer(scale, scale)
         r = yw - Xw @ coef
         out = (coef, cov, float(r @ r), int(keep.sum()), X, V.shape[1])
         self._cache[key] = out
         return out
 
-    def f_test(self, block: str, current: tuple[str, ...], name: str, threshold: float
-               ) -> FTest:
+    def f_test(self, block: str, current: tuple[str, ...], name: str, threshold: float) -> FTest:
         blk = self.blocks[block]
         _, _, rss0, r0, _, _ = self.fit(block, current)
         _, _, rss1, r1, _, _ = self.fit(block, current + (name,))
@@ -344,10 +388,9 @@ class _StaticDiscovery:
 
     def heldout_rms(self, block: str, names: tuple[str, ...], mask: np.ndarray) -> float:
         z = self.heldout(block, names)[mask]
-        return float(BLOCK_SCALE[block] * np.sqrt(np.nanmean(z ** 2)))
+        return float(BLOCK_SCALE[block] * np.sqrt(np.nanmean(z**2)))
 
-    def finding(self, block: str, chosen: tuple[str, ...], name: str, threshold: float
-                ) -> EffectFinding:
+    def finding(self, block: str, chosen: tuple[str, ...], name: str, threshold: float) -> EffectFinding:
         others = tuple(n for n in chosen if n != name)
         full = others + (name,)
         coef, cov, rss, rank, _, q = self.fit(block, full)
@@ -355,8 +398,8 @@ class _StaticDiscovery:
         off = q + sum(self.live_params(n, block).size for n in sorted(full) if n < name)
         live = self.live_params(name, block)
         term = get_effect(name)
-        theta = coef[off:off + live.size]
-        se = np.sqrt(np.maximum(np.diag(cov)[off:off + live.size], 0.0) * s2)
+        theta = coef[off : off + live.size]
+        se = np.sqrt(np.maximum(np.diag(cov)[off : off + live.size], 0.0) * s2)
         mask = self.channels_of(block, (name,))
         crit = stats.norm.isf(self.alpha / (2 * max(live.size, 1)))
         axes = set()
@@ -366,24 +409,27 @@ class _StaticDiscovery:
         if not axes:
             axes = {CHANNELS[c][1] for c in np.unique(self.blocks[block].channel[mask]) if c >= 0}
         return EffectFinding(
-            name=name, block=block, axes=tuple(sorted(axes)),
+            name=name,
+            block=block,
+            axes=tuple(sorted(axes)),
             estimate={term.param_names[j]: float(v) for j, v in zip(live, theta)},
             stderr={term.param_names[j]: float(v) for j, v in zip(live, se)},
             units={term.param_names[j]: term.param_units[j] for j in live},
             evidence=self.f_test(block, others, name, threshold),
             heldout_rms_before=self.heldout_rms(block, others, mask),
             heldout_rms_after=self.heldout_rms(block, full, mask),
-            heldout_unit=BLOCK_UNITS[block])
+            heldout_unit=BLOCK_UNITS[block],
+        )
 
 
-def _select(d: "_StaticDiscovery", testable: list[tuple[str, str]], threshold: float
-            ) -> dict[str, list[str]]:
+def _select(d: _StaticDiscovery, testable: list[tuple[str, str]], threshold: float) -> dict[str, list[str]]:
     """Forward selection per block (:func:`calib_core.discovery.selection.stepwise`, the
     threshold fixed at ``threshold``): the most significant term that also lowers the
     held-out RMS on its channels, until none is left."""
     chosen: dict[str, list[str]] = {}
     n_tests = max(len(testable), 1)
     for b in BLOCKS:
+
         def improves(current: tuple[str, ...], n: str, b: str = b) -> bool:
             mask = d.channels_of(b, (n,))
             return d.heldout_rms(b, current + (n,), mask) < d.heldout_rms(b, current, mask)
@@ -391,8 +437,14 @@ def _select(d: "_StaticDiscovery", testable: list[tuple[str, str]], threshold: f
         def test(current: tuple[str, ...], n: str, _thr: float, b: str = b) -> FTest:
             return d.f_test(b, current, n, threshold)
 
-        chosen[b] = stepwise([n for bb, n in testable if bb == b], test, improves,
-                             threshold * n_tests, backward=False, bonferroni_over=n_tests)
+        chosen[b] = stepwise(
+            [n for bb, n in testable if bb == b],
+            test,
+            improves,
+            threshold * n_tests,
+            backward=False,
+            bonferroni_over=n_tests,
+        )
     return chosen
 
 
@@ -408,9 +460,14 @@ def _lag1(res: np.ndarray, blk: _Block, t_mid: np.ndarray) -> float:
     return num / den if den > 0 else float("nan")
 
 
-def diagnose_static(cal: Calibration, pose_means: pd.DataFrame | StaticPoses, recording: str,
-                    alpha: float = DEFAULT_ALPHA, block_size: int = 4,
-                    candidates: list[str] | None = None) -> StaticDiagnosis:
+def diagnose_static(
+    cal: Calibration,
+    pose_means: pd.DataFrame | StaticPoses,
+    recording: str,
+    alpha: float = DEFAULT_ALPHA,
+    block_size: int = 4,
+    candidates: list[str] | None = None,
+) -> StaticDiagnosis:
     """Model discovery on the static poses of a recording without references.
 
     ``cal`` is the calibration the recording's method produced (its terms are part of the
@@ -423,19 +480,35 @@ def diagnose_static(cal: Calibration, pose_means: pd.DataFrame | StaticPoses, re
     not_testable, testable = [], []
     for name in d.names:
         if name in d.baseline_terms:
-            not_testable.append({"name": name, "reason": "already in the baseline calibration "
-                                 "(its parameters are refitted as part of the base model)"})
+            not_testable.append(
+                {
+                    "name": name,
+                    "reason": "already in the baseline calibration "
+                    "(its parameters are refitted as part of the base model)",
+                }
+            )
             continue
         live = {b: d.live_params(name, b).size for b in BLOCKS}
         if not any(live.values()):
-            not_testable.append({"name": name, "reason": "zero regressors on static poses (w = 0, "
-                                 "dw/dt = 0): the recording cannot show it"})
+            not_testable.append(
+                {
+                    "name": name,
+                    "reason": "zero regressors on static poses (w = 0, "
+                    "dw/dt = 0): the recording cannot show it",
+                }
+            )
             continue
         gained = {b: d.rank_gained(b, name) for b in BLOCKS if live[b]}
         for b in BLOCKS:
             if live[b] and gained[b] == 0:
-                not_testable.append({"name": name, "block": b, "reason": "its columns lie in the "
-                                     "span of the calibration's own parameters on these poses"})
+                not_testable.append(
+                    {
+                        "name": name,
+                        "block": b,
+                        "reason": "its columns lie in the "
+                        "span of the calibration's own parameters on these poses",
+                    }
+                )
             elif live[b]:
                 testable.append((b, name))
     threshold = alpha / max(len(testable), 1)
@@ -443,8 +516,9 @@ def diagnose_static(cal: Calibration, pose_means: pd.DataFrame | StaticPoses, re
     if any(chosen.values()):
         # the baseline's misfit was counted as noise (conservative); with the chosen model
         # the pose-to-pose noise is smaller: weigh again with it and select once more
-        d = _StaticDiscovery(cal, poses, alpha, block_size, candidates,
-                             noise_terms={b: tuple(v) for b, v in chosen.items()})
+        d = _StaticDiscovery(
+            cal, poses, alpha, block_size, candidates, noise_terms={b: tuple(v) for b, v in chosen.items()}
+        )
         chosen = _select(d, testable, threshold)
     candidates_f = [d.finding(b, (), n, threshold) for b, n in testable]
     effects = [d.finding(b, tuple(chosen[b]), n, threshold) for b in BLOCKS for n in chosen[b]]
@@ -455,17 +529,21 @@ def diagnose_static(cal: Calibration, pose_means: pd.DataFrame | StaticPoses, re
         white = d.sigma_white[b].reshape(-1)
         n_rows = len(blk.y)
         sc = BLOCK_SCALE[b]
-        out = {"unit": BLOCK_UNITS[b], "rows": n_rows, "chosen": list(chosen[b]),
-               "baseline_rms": float(sc * np.sqrt(np.mean(blk.y ** 2))),
-               "white_noise_rms": float(sc * np.sqrt(np.mean(white ** 2))),
-               "pose_noise_tau": [float(sc * v) for v in d.tau[b]]}
+        out = {
+            "unit": BLOCK_UNITS[b],
+            "rows": n_rows,
+            "chosen": list(chosen[b]),
+            "baseline_rms": float(sc * np.sqrt(np.mean(blk.y**2))),
+            "white_noise_rms": float(sc * np.sqrt(np.mean(white**2))),
+            "pose_noise_tau": [float(sc * v) for v in d.tau[b]],
+        }
         for tag, names in (("before", ()), ("after", tuple(chosen[b]))):
             coef, _, _, rank, X, _ = d.fit(b, names)
             res = blk.y - X @ coef
             dof = n_rows - rank
             chi2 = float(np.sum((res / white) ** 2))
             out[f"dof_{tag}"] = dof
-            out[f"refit_rms_{tag}"] = float(sc * np.sqrt(np.mean(res ** 2)))
+            out[f"refit_rms_{tag}"] = float(sc * np.sqrt(np.mean(res**2)))
             out[f"heldout_rms_{tag}"] = d.heldout_rms(b, names, np.ones(n_rows, bool))
             # residual vs the white noise of a pose mean alone (no pose-to-pose noise)
             out[f"rms_over_white_{tag}"] = float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
@@ -482,7 +560,16 @@ def diagnose_static(cal: Calibration, pose_means: pd.DataFrame | StaticPoses, re
             if d0.live_params(name, b).size and d0.rank_gained(b, name):
                 checks.append(d0.finding(b, (), name, alpha))
     return StaticDiagnosis(
-        recording=recording, n_poses=len(poses), alpha=alpha, block_size=block_size,
-        misfit=bool(effects) or unexplained, unexplained=unexplained, effects=effects,
-        candidates=candidates_f, not_testable=not_testable, blocks=blocks,
-        baseline_terms=d.baseline_terms, baseline_checks=checks)
+        recording=recording,
+        n_poses=len(poses),
+        alpha=alpha,
+        block_size=block_size,
+        misfit=bool(effects) or unexplained,
+        unexplained=unexplained,
+        effects=effects,
+        candidates=candidates_f,
+        not_testable=not_testable,
+        blocks=blocks,
+        baseline_terms=d.baseline_terms,
+        baseline_checks=checks,
+    )

@@ -39,6 +39,7 @@ the held-out repetition is predicted (its own biases fitted, as at turn-on) and 
 normalised by sigma; rms over all folds. ``gain`` = rms without the term / rms with it, over
 the channels the term acts on.
 """
+
 from __future__ import annotations
 
 import math
@@ -48,20 +49,33 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy import linalg, stats
+from scipy import stats
 
 from calib_core.calibration import Calibration, TermValue
+from calib_core.discovery.presentation import evidence_frame
+from calib_core.discovery.results import (
+    DEFAULT_ALPHA,
+    DEFAULT_MIN_GAIN,
+    ConfoundedFinding,
+    EffectFinding,
+    FTest,
+    f_test,
+    jsonable,
+)
+from calib_core.discovery.selection import stepwise
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
 from calib_core.identifiability import Identifiability, analyse
-from calib_core.replay import (MIN_POOL_DOF, NOISE_COLUMNS, NoiseEstimate, replay_unit,
-                               test_group, two_way_residual)
-from calib_core.discovery.results import (DEFAULT_ALPHA, DEFAULT_MIN_GAIN, ConfoundedFinding,
-                                          EffectFinding, FTest,
-                                          f_test, jsonable)
-from calib_core.discovery.presentation import evidence_frame
-from calib_core.discovery.selection import stepwise
+from calib_core.replay import (
+    MIN_POOL_DOF,
+    NOISE_COLUMNS,
+    NoiseEstimate,
+    replay_unit,
+    test_group,
+    two_way_residual,
+)
 from calib_core.steps import StepMeans
+
 _RCOND = 1e-10
 # terms whose columns share a direction up to this sine of angle (the part of a column the
 # others do not explain is below 5 % of it) are tested together: calib_core.identifiability
@@ -100,9 +114,13 @@ class _UnitGrid:
     colmap: np.ndarray  # (6, k - 4) global term column of M's term columns (P + 1: padding)
 
     @classmethod
-    def build(cls, sessions: list[StepMeans], names: list[str],
-              geometry: SensingGeometry | None = None,
-              dropped: frozenset[int] = frozenset()) -> "_UnitGrid":
+    def build(
+        cls,
+        sessions: list[StepMeans],
+        names: list[str],
+        geometry: SensingGeometry | None = None,
+        dropped: frozenset[int] = frozenset(),
+    ) -> _UnitGrid:
         """The unit's grid with the terms' columns through ``geometry`` (default: the
         nominal one); ``dropped`` term columns (undetermined parameters) are left at 0."""
         lay = _layout(sessions)
@@ -117,9 +135,26 @@ class _UnitGrid:
             count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
         offset, live, live_mask, M, colmap = _term_design(lay, names, geometry, dropped)
         M[..., :3] = np.moveaxis(raw, 2, 0)
-        return cls(R, n, lay.real, lay.step, lay.gcode, list(lay.groups), lay.y, raw, std,
-                   count, list(names), offset, live, live_mask, lay.balanced, lay.t, M,
-                   colmap)
+        return cls(
+            R,
+            n,
+            lay.real,
+            lay.step,
+            lay.gcode,
+            list(lay.groups),
+            lay.y,
+            raw,
+            std,
+            count,
+            list(names),
+            offset,
+            live,
+            live_mask,
+            lay.balanced,
+            lay.t,
+            M,
+            colmap,
+        )
 
     @property
     def P(self) -> int:
@@ -131,8 +166,11 @@ class _UnitGrid:
         cache = self.__dict__.setdefault("_cols", {})
         out = cache.get(names)
         if out is None:
-            out = (np.concatenate([np.arange(*self.offset[n]) for n in names]) if names
-                   else np.zeros(0, np.int64))
+            out = (
+                np.concatenate([np.arange(*self.offset[n]) for n in names])
+                if names
+                else np.zeros(0, np.int64)
+            )
             out.setflags(write=False)
             cache[names] = out
         return out
@@ -140,8 +178,7 @@ class _UnitGrid:
     def white_sigma(self, K: np.ndarray) -> np.ndarray:
         """Within-step scatter of the step mean through the 6x3 gain rows K, (R, n, 6)
         (:func:`calib_core.replay.white_sigma` for every repetition at once)."""
-        return np.sqrt(np.einsum("rnck,ck->rnc", self.std ** 2, K ** 2)) \
-            / np.sqrt(self.count)[..., None]
+        return np.sqrt(np.einsum("rnck,ck->rnc", self.std**2, K**2)) / np.sqrt(self.count)[..., None]
 
     def _balanced_groups(self) -> tuple[np.ndarray, ...]:
         """For :meth:`two_way` on a balanced grid (what depends on the steps alone, kept on
@@ -169,8 +206,7 @@ class _UnitGrid:
             g, G, cnt, grp, dof = self._balanced_groups()
             rep_mean = (X.swapaxes(-1, -2) @ G) / cnt  # (..., R, k, ng)
             grand = rep_mean.mean(axis=-3, keepdims=True)
-            e = (X - X.mean(axis=-3, keepdims=True)
-                 - (rep_mean - grand)[..., g].swapaxes(-1, -2))
+            e = X - X.mean(axis=-3, keepdims=True) - (rep_mean - grand)[..., g].swapaxes(-1, -2)
             return (e.reshape(X.shape[:-3] + (-1, X.shape[-1])), grp, dof.copy())
         lead = X.shape[:-3]
         Xf = X.reshape((-1,) + X.shape[-3:])
@@ -214,12 +250,22 @@ def _layout(sessions: list[StepMeans]) -> _Layout:
     """The grid's layout of these repetitions, remembered by the bytes of everything it is
     built from (a protocol's units share one; a unit whose steps differ misses)."""
     key = tuple(
-        (len(sm), sm.step.astype(np.int64).tobytes(), _test_names(sm).tobytes(),
-         np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
-         np.asarray(sm.temp_c, float).tobytes(), np.asarray(sm.t_mid, float).tobytes(),
-         float(sm.g_local), sm.headings.tobytes(), sm.latitude_deg, sm.table_heading_deg,
-         sm.turned_deg().tobytes())
-        for sm in sessions)
+        (
+            len(sm),
+            sm.step.astype(np.int64).tobytes(),
+            _test_names(sm).tobytes(),
+            np.asarray(sm.w_ref, float).tobytes(),
+            np.asarray(sm.f_ref, float).tobytes(),
+            np.asarray(sm.temp_c, float).tobytes(),
+            np.asarray(sm.t_mid, float).tobytes(),
+            float(sm.g_local),
+            sm.headings.tobytes(),
+            sm.latitude_deg,
+            sm.table_heading_deg,
+            sm.turned_deg().tobytes(),
+        )
+        for sm in sessions
+    )
     lay = _LAYOUT_CACHE.get(key)
     if lay is None:
         lay = _build_layout(sessions)
@@ -250,25 +296,35 @@ def _build_layout(sessions: list[StepMeans]) -> _Layout:
         step[r, :m] = sm.step.astype(np.int64)
         y[r, :m, :3], y[r, :m, 3:] = sm.w_ref, sm.f_ref
         t[r, :m] = np.asarray(sm.t_mid, float)
-        ctxs.append(MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
-                                            g_local=sm.g_local, heading_deg=sm.headings,
-                                            latitude_deg=sm.latitude_deg,
-                                            table_heading_deg=sm.table_heading_deg,
-                                            turned_deg=sm.turned_deg()))
+        ctxs.append(
+            MotionContext.from_refs(
+                sm.w_ref,
+                sm.f_ref,
+                temp_c=sm.temp_c,
+                t=sm.t_mid,
+                g_local=sm.g_local,
+                heading_deg=sm.headings,
+                latitude_deg=sm.latitude_deg,
+                table_heading_deg=sm.table_heading_deg,
+                turned_deg=sm.turned_deg(),
+            )
+        )
         tests.append(np.unique(_test_names(sm), return_inverse=True))
     # test groups: mapped per distinct test name, not per step
     groups = sorted({test_group(t) for u, _ in tests for t in u})
     gcode = np.full((R, n), -1, np.int64)
     for r, (u, inv) in enumerate(tests):
-        gcode[r, :lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
-    balanced = (len(set(lens)) == 1 and all(np.array_equal(step[0], s) for s in step)
-                and all(np.array_equal(gcode[0], g) for g in gcode)
-                and len(np.unique(step[0])) == n)
+        gcode[r, : lens[r]] = np.array([groups.index(test_group(t)) for t in u])[inv]
+    balanced = (
+        len(set(lens)) == 1
+        and all(np.array_equal(step[0], s) for s in step)
+        and all(np.array_equal(gcode[0], g) for g in gcode)
+        and len(np.unique(step[0])) == n
+    )
     return _Layout(real, step, gcode, groups, y, balanced, t, ctxs)
 
 
-def _term_design(lay: _Layout, names: list[str], geometry: SensingGeometry | None,
-                 dropped: frozenset[int]):
+def _term_design(lay: _Layout, names: list[str], geometry: SensingGeometry | None, dropped: frozenset[int]):
     """The terms' columns of one unit: every term's regressors through the unit's sensing
     geometry, per channel only the columns not identically 0 on it (``live``), laid out as
     M (6, R, n, k) = [raw (filled by the caller) | live term columns | 0 | y]."""
@@ -294,9 +350,9 @@ def _term_design(lay: _Layout, names: list[str], geometry: SensingGeometry | Non
     M[..., -1] = np.moveaxis(lay.y, 2, 0)
     for c in range(6):
         L = live[c]
-        colmap[c, :len(L)] = L
+        colmap[c, : len(L)] = L
         for r, Z in enumerate(Zs):
-            M[c, r, :len(Z), 3:3 + len(L)] = Z[:, c, L]
+            M[c, r, : len(Z), 3 : 3 + len(L)] = Z[:, c, L]
     return offset, live, live_mask, M, colmap
 
 
@@ -325,9 +381,8 @@ def _serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> _SerialNois
     z = z * m
     z = (z - z.sum(axis=0) / np.maximum(m.sum(axis=0), 1.0)) * m
     z = (z - z.sum(axis=1, keepdims=True) / np.maximum(m.sum(axis=1, keepdims=True), 1.0)) * m
-    cnt = [max(int(real.sum()), 1)] + [max(int((real[:, k:] & real[:, :-k]).sum()), 1)
-                                       for k in (1, 2)]
-    c0 = np.sum(z ** 2, axis=(0, 1)) / cnt[0]
+    cnt = [max(int(real.sum()), 1)] + [max(int((real[:, k:] & real[:, :-k]).sum()), 1) for k in (1, 2)]
+    c0 = np.sum(z**2, axis=(0, 1)) / cnt[0]
     c1 = np.sum(z[:, 1:] * z[:, :-1], axis=(0, 1)) / cnt[1]
     c2 = np.sum(z[:, 2:] * z[:, :-2], axis=(0, 1)) / cnt[2]
     dt = np.diff(t, axis=1)[real[:, 1:] & real[:, :-1]]
@@ -350,14 +405,12 @@ def _serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> _SerialNois
             lam[tri] = np.clip(r1[tri] / decay, 0.0, 0.98)
             tau[tri] = -step_s / np.log(decay)
         phi = np.exp(-step_s / tau)
-        total = (c0 + var_mean)
-        var_mean = total / n * (1.0 + 2.0 * lam * np.array(
-            [np.sum((1.0 - lag / n) * p ** lag) for p in phi]))
+        total = c0 + var_mean
+        var_mean = total / n * (1.0 + 2.0 * lam * np.array([np.sum((1.0 - lag / n) * p**lag) for p in phi]))
     return _SerialNoise(lam, tau)
 
 
-def _prewhiten(A: np.ndarray, noise: _SerialNoise, real: np.ndarray, t: np.ndarray
-               ) -> np.ndarray:
+def _prewhiten(A: np.ndarray, noise: _SerialNoise, real: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Rows (6, R, n, k) of each repetition whitened for the serial correlation of
     :class:`_SerialNoise` (generalised least squares: L^-1 with L L^T the correlation of the
     repetition's steps): the tests, fits and held-out scores then treat the wander of the
@@ -366,18 +419,20 @@ def _prewhiten(A: np.ndarray, noise: _SerialNoise, real: np.ndarray, t: np.ndarr
     if not noise.correlated:
         return A
     out = np.zeros_like(A)
+    lam = noise.lam[:, None, None]
+    tau = noise.tau_s[:, None, None]
+    done: dict[bytes, np.ndarray] = {}  # repetitions on the same step times share L^-1
     for r in range(A.shape[1]):
         rows = np.flatnonzero(real[r])
-        lag = np.abs(t[r, rows][:, None] - t[r, rows][None, :])
-        for c in range(6):
-            lam = noise.lam[c]
-            if lam <= 0:
-                out[c, r, rows] = A[c, r, rows]
-                continue
-            C = lam * np.exp(-lag / noise.tau_s[c])
-            C[np.diag_indices_from(C)] = 1.0
-            L = np.linalg.cholesky(C)
-            out[c, r, rows] = linalg.solve_triangular(L, A[c, r, rows], lower=True)
+        tr = t[r, rows]
+        key = tr.tobytes()
+        Linv = done.get(key)
+        if Linv is None:
+            C = lam * np.exp(-np.abs(tr[:, None] - tr[None, :]) / tau)  # (6, m, m)
+            C[:, np.arange(len(rows)), np.arange(len(rows))] = 1.0
+            Linv = np.linalg.inv(np.linalg.cholesky(C))
+            done[key] = Linv
+        out[:, r, rows] = Linv @ A[:, r, rows]
     return out
 
 
@@ -395,7 +450,7 @@ def _centre(M: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Columns M (..., R, n, k) minus their w^2-weighted mean per repetition (the
     repetition's bias fitted: Frisch-Waugh-Lovell for the per-repetition bias columns), and
     the means (..., R, k)."""
-    w2 = w ** 2
+    w2 = w**2
     mu = np.einsum("...n,...nk->...k", w2, M) / w2.sum(axis=-1)[..., None]
     return M - mu[..., None, :], mu
 
@@ -410,7 +465,7 @@ class _FitResult:
     v: np.ndarray  # (6, k) per channel: [-K_c, -theta on its live term columns, 0..., 1]
     ss_channel: np.ndarray | None  # (6,) weighted residual sum of squares (fold of all reps)
     pure_channel: np.ndarray | None  # (6,) its pure-error part
-    solution: "_LstsqSolution | None" = field(default=None, repr=False)
+    solution: _LstsqSolution | None = field(default=None, repr=False)
 
     @property
     def cov(self) -> np.ndarray:
@@ -435,7 +490,7 @@ class _LstsqSolution:
     def cov(self) -> np.ndarray:
         if "_cov" not in self.__dict__:
             Vt, inv_s, keep, live, scale = self.Vt, self.inv_s, self.keep, self.live, self.scale
-            cov = (Vt.T * inv_s ** 2) @ Vt / np.outer(scale, scale)
+            cov = (Vt.T * inv_s**2) @ Vt / np.outer(scale, scale)
             # a parameter with a component along an undetermined direction is undetermined
             undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
             cov[undetermined, :] = np.nan
@@ -451,7 +506,7 @@ def _lstsq(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, _LstsqSolutio
     live = norms > 1e-12 * max(norms.max(), 1e-300)
     scale = np.where(live, norms, 1.0)
     U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)  # Z is small (R factor) here
-    keep = s > _RCOND ** 0.5 * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
+    keep = s > _RCOND**0.5 * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
     keep &= s > 0
     rank = int(keep.sum())
     inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
@@ -474,7 +529,7 @@ def _lstsq_theta_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
     live = norms > 1e-12 * np.maximum(norms.max(axis=-1, keepdims=True), 1e-300)
     scale = np.where(live, norms, 1.0)
     U, s, Vt = np.linalg.svd(Z / scale[:, None, :], full_matrices=False)
-    keep = (s > _RCOND ** 0.5 * s[:, :1]) & (s[:, :1] > 0) & (s > 0)
+    keep = (s > _RCOND**0.5 * s[:, :1]) & (s[:, :1] > 0) & (s > 0)
     inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
     uy = np.einsum("bmk,bm->bk", U, y)
     theta = np.einsum("bkp,bk->bp", Vt, inv_s * uy) / scale
@@ -491,8 +546,9 @@ RANK_SURE_RATIO = 1e-8
 def _fold_columns(R: int) -> np.ndarray:
     """Per fold 1 + h (h < R), the columns of the full affine Gram it keeps: the three raw
     columns and every repetition's bias column but h's."""
-    out = np.array([[0, 1, 2] + [3 + r for r in range(R) if r != h] for h in range(R)],
-                   dtype=np.intp).reshape(R, 2 + R)
+    out = np.array(
+        [[0, 1, 2] + [3 + r for r in range(R) if r != h] for h in range(R)], dtype=np.intp
+    ).reshape(R, 2 + R)
     out.setflags(write=False)
     return out
 
@@ -570,47 +626,58 @@ class Diagnosis:
     def calibration(self) -> Calibration:
         """The unit's extended calibration (biases averaged over the repetitions)."""
         cals = self.calibrations_after
-        return replace(cals[0], w0=np.mean([c.w0 for c in cals], axis=0),
-                       f0=np.mean([c.f0 for c in cals], axis=0))
+        return replace(
+            cals[0], w0=np.mean([c.w0 for c in cals], axis=0), f0=np.mean([c.f0 for c in cals], axis=0)
+        )
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (non-finite numbers become None)."""
-        return jsonable({
-            "unit": self.unit, "lot": self.lot, "n_reps": self.n_reps, "alpha": self.alpha,
-            "misfit": self.misfit, "unexplained": self.unexplained,
-            "effects": [e.to_dict() for e in self.effects],
-            "partial": [e.to_dict() for e in self.partial],
-            "negligible": [e.to_dict() for e in self.negligible],
-            "min_gain": self.min_gain,
-            "relinearisations": list(self.relinearisations),
-            "confounded": [c.to_dict() for c in self.confounded],
-            "confounded_set_aside": [list(g) for g in self.confounded_set_aside],
-            "advice": list(self.advice),
-            "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
-            "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
-            "misfit_channels_before": [c for c, t in self.channel_misfit_before.items()
-                                       if t.rejects],
-            "misfit_channels_after": [c for c, t in self.channel_misfit_after.items()
-                                      if t.rejects],
-            "heldout_rms_baseline": self.heldout_rms_baseline,
-            "heldout_rms_final": self.heldout_rms_final,
-            "noise": self.noise.records(),
-        })
+        return jsonable(
+            {
+                "unit": self.unit,
+                "lot": self.lot,
+                "n_reps": self.n_reps,
+                "alpha": self.alpha,
+                "misfit": self.misfit,
+                "unexplained": self.unexplained,
+                "effects": [e.to_dict() for e in self.effects],
+                "partial": [e.to_dict() for e in self.partial],
+                "negligible": [e.to_dict() for e in self.negligible],
+                "min_gain": self.min_gain,
+                "relinearisations": list(self.relinearisations),
+                "confounded": [c.to_dict() for c in self.confounded],
+                "confounded_set_aside": [list(g) for g in self.confounded_set_aside],
+                "advice": list(self.advice),
+                "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
+                "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
+                "misfit_channels_before": [c for c, t in self.channel_misfit_before.items() if t.rejects],
+                "misfit_channels_after": [c for c, t in self.channel_misfit_after.items() if t.rejects],
+                "heldout_rms_baseline": self.heldout_rms_baseline,
+                "heldout_rms_final": self.heldout_rms_final,
+                "noise": self.noise.records(),
+            }
+        )
 
 
 # -- the procedure ----------------------------------------------------------------------
 class _Discovery:
-    def __init__(self, sessions: list[StepMeans], alpha: float,
-                 geometry: SensingGeometry | None = None,
-                 noise_model: tuple[np.ndarray, np.ndarray] | None = None,
-                 min_gain: float = DEFAULT_MIN_GAIN):
+    def __init__(
+        self,
+        sessions: list[StepMeans],
+        alpha: float,
+        geometry: SensingGeometry | None = None,
+        noise_model: tuple[np.ndarray, np.ndarray] | None = None,
+        min_gain: float = DEFAULT_MIN_GAIN,
+    ):
         """``geometry``: the sensing geometry the terms act through (default: that of the
         affine fit's K). ``noise_model`` = (K rows (6, 3), physical residual (R, n, 6) on the
         grid) of the model whose residuals estimate the noise; default: the affine model."""
         if len(sessions) < 2:
-            raise DesignError("E_DISCOVERY_REPS",
-                              "model discovery needs at least 2 repetitions of the unit: the "
-                              "step-to-step noise is estimated from their scatter")
+            raise DesignError(
+                "E_DISCOVERY_REPS",
+                "model discovery needs at least 2 repetitions of the unit: the "
+                "step-to-step noise is estimated from their scatter",
+            )
         units = {(sm.key.lot, sm.key.unit) for sm in sessions}
         if len(units) != 1:
             raise ValueError(f"sessions of several units: {sorted(units)}")
@@ -664,13 +731,16 @@ class _Discovery:
             se = np.sqrt(np.diag(sol.cov))
             for k, v in zip(cols, se):
                 if not np.isfinite(v):
-                    out[int(k)] = ("not separable from the base model and the term's other "
-                                   "parameters on these steps")
+                    out[int(k)] = (
+                        "not separable from the base model and the term's other parameters on these steps"
+                    )
                 elif v > term.max_useful_stderr:
                     unit = term.param_units[int(k) - a]
-                    out[int(k)] = (f"standard error {v:.3g} {unit} on these steps exceeds "
-                                   f"{term.max_useful_stderr:g} {unit}: too weakly excited "
-                                   f"({term.excited_by})")
+                    out[int(k)] = (
+                        f"standard error {v:.3g} {unit} on these steps exceeds "
+                        f"{term.max_useful_stderr:g} {unit}: too weakly excited "
+                        f"({term.excited_by})"
+                    )
         return out
 
     # -- set-up ---------------------------------------------------------------------------
@@ -720,13 +790,13 @@ class _Discovery:
                 wsd = math.sqrt(w2v)
                 var = v / int(d) if d >= MIN_POOL_DOF else pooled_var
                 step_sd = math.sqrt(var) if math.isfinite(var) else wsd
-                inst_g.append(math.sqrt(max(step_sd ** 2 - wsd ** 2, 0.0)))
+                inst_g.append(math.sqrt(max(step_sd**2 - wsd**2, 0.0)))
                 rows.append((ch, gname, int(d), step_sd, wsd))
             inst_c.append(inst_g)
         inst = np.array(inst_c, dtype=float).reshape(6, ng)
         rows = [r + (x,) for r, x in zip(rows, inst.ravel())]  # np.float64, as before
         inst_row = np.where(g.real[..., None], inst.T[np.maximum(g.gcode, 0)], 0.0)
-        sigma = np.sqrt(white ** 2 + np.nan_to_num(inst_row) ** 2)
+        sigma = np.sqrt(white**2 + np.nan_to_num(inst_row) ** 2)
         if not np.all(sigma[g.real] > 0):
             raise DesignError("E_DISCOVERY_NOISE", "zero noise estimate on some steps")
         sigma[~g.real] = 1.0
@@ -736,7 +806,8 @@ class _Discovery:
     def noise(self) -> NoiseEstimate:
         if not hasattr(self, "_noise_estimate"):
             self._noise_estimate = NoiseEstimate.from_records(
-                [dict(zip(NOISE_COLUMNS, r)) for r in self._noise_rows], from_repetitions=True)
+                [dict(zip(NOISE_COLUMNS, r)) for r in self._noise_rows], from_repetitions=True
+            )
         return self._noise_estimate
 
     def _factorise(self) -> None:
@@ -765,7 +836,7 @@ class _Discovery:
         T = np.zeros((R + 1, 6, k - 3, P + 2))
         for c in range(6):
             T[:, c][..., np.append(g.colmap[c], P)] = self.Rf[c, :, 3:, 3:]
-        S = T.reshape(R + 1, 6 * (k - 3), P + 2)[..., :P + 1]
+        S = T.reshape(R + 1, 6 * (k - 3), P + 2)[..., : P + 1]
         self.Rg = _qr_r(S)  # (R+1, P+1, P+1): [R_terms c; 0 sqrt(ss_perp)] per fold
         self.rows_channel = int(g.real.sum())
         self.base_rank = [3 + R] * 6
@@ -797,10 +868,12 @@ class _Discovery:
         bad = np.argwhere((rank < n_cols).T)  # fold by fold, channel by channel
         if bad.size:
             f, c = bad[0]
-            raise DesignError("E_DISCOVERY_RANK",
-                              f"channel {CHANNELS[c]}: the steps cannot determine the "
-                              f"affine model (rank {int(rank[c, f])} < {int(n_cols[f])})",
-                              (CHANNELS[c],))
+            raise DesignError(
+                "E_DISCOVERY_RANK",
+                f"channel {CHANNELS[c]}: the steps cannot determine the "
+                f"affine model (rank {int(rank[c, f])} < {int(n_cols[f])})",
+                (CHANNELS[c],),
+            )
 
     # -- fits -----------------------------------------------------------------------------
     def fit(self, names: tuple[str, ...], fold: int | None = None) -> _FitResult:
@@ -836,8 +909,17 @@ class _Discovery:
         if fold is None:
             ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf[:, 0], v) ** 2, axis=1)
             pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
-        return _FitResult(names=list(names), theta=theta, rank=rank, ss=ss, K=K, v=v,
-                          ss_channel=ss_c, pure_channel=pure_c, solution=solution)
+        return _FitResult(
+            names=list(names),
+            theta=theta,
+            rank=rank,
+            ss=ss,
+            K=K,
+            v=v,
+            ss_channel=ss_c,
+            pure_channel=pure_c,
+            solution=solution,
+        )
 
     def biases(self, f: _FitResult) -> np.ndarray:
         """Each repetition's biases (R, 6) under a fit of all repetitions: the weighted mean
@@ -872,7 +954,7 @@ class _Discovery:
             K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
             v = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
             z = np.einsum("chij,chj->chi", self.Rrep, v)  # Rrep[:, h]: repetition h's factor
-            self._heldout[key] = np.sum(z ** 2, axis=(1, 2))
+            self._heldout[key] = np.sum(z**2, axis=(1, 2))
         return self._heldout[key]
 
     def heldout_rms(self, names: tuple[str, ...], channels: tuple[int, ...] | None = None) -> float:
@@ -901,8 +983,7 @@ class _Discovery:
             self._tests[key] = self._channel_lack_of_fit(names, threshold)
         return dict(self._tests[key])  # the tests are frozen; the dict is the caller's
 
-    def _channel_lack_of_fit(self, names: tuple[str, ...], threshold: float
-                             ) -> dict[str, FTest]:
+    def _channel_lack_of_fit(self, names: tuple[str, ...], threshold: float) -> dict[str, FTest]:
         f = self.fit(names)
         ps, pd_ = self.pure(names)
         cols = self.g.cols(tuple(sorted(names)))
@@ -910,15 +991,15 @@ class _Discovery:
         for c in range(6):
             n_params = int(self.g.live_mask[c, cols].sum())
             dof_res = self.rows_channel - self.base_rank[c] - min(n_params, f.rank)
-            out[CHANNELS[c]] = f_test(float(f.ss_channel[c]) - ps[c], dof_res - int(pd_[c]),
-                                       ps[c], int(pd_[c]), threshold)
+            out[CHANNELS[c]] = f_test(
+                float(f.ss_channel[c]) - ps[c], dof_res - int(pd_[c]), ps[c], int(pd_[c]), threshold
+            )
         return out
 
     def term_test(self, current: tuple[str, ...], name: str, threshold: float) -> FTest:
         return self.group_test(current, (name,), threshold)
 
-    def group_test(self, current: tuple[str, ...], names: tuple[str, ...], threshold: float
-                   ) -> FTest:
+    def group_test(self, current: tuple[str, ...], names: tuple[str, ...], threshold: float) -> FTest:
         """F test of the terms ``names`` together, added to ``current``."""
         full = tuple(current) + tuple(n for n in names if n not in current)
         a, b = self.fit(current), self.fit(full)
@@ -938,13 +1019,11 @@ class _Discovery:
             terms, pnames = {}, {}
             for n in self.names:
                 a, b = self.g.offset[n]
-                keep = [k for k in range(a, b) if k not in self.undetermined
-                        and self.g.live_mask[:, k].any()]
+                keep = [k for k in range(a, b) if k not in self.undetermined and self.g.live_mask[:, k].any()]
                 if keep:
                     terms[n] = Rg[:, keep]
                     pnames[n] = tuple(get_effect(n).param_names[k - a] for k in keep)
-            self.__dict__["_ident"] = analyse(np.zeros((P, 0)), terms, pnames,
-                                              CONFOUNDING_TOL)
+            self.__dict__["_ident"] = analyse(np.zeros((P, 0)), terms, pnames, CONFOUNDING_TOL)
         return self.__dict__["_ident"]
 
     def test_groups(self) -> list[tuple[str, ...]]:
@@ -994,16 +1073,22 @@ class _Discovery:
         while chosen:
             names = [n for item in chosen for n in item]
             verdicts = {item: self._verdict(names, item) for item in chosen}
-            failing = [(kind != "partial", gain, item)
-                       for item, (kind, gain, _) in verdicts.items() if kind != "named"]
+            failing = [
+                (kind != "partial", gain, item)
+                for item, (kind, gain, _) in verdicts.items()
+                if kind != "named"
+            ]
             if not failing:
                 break
             is_negligible, _, worst = min(failing)
             chosen.remove(worst)
             (negligible if is_negligible else partial).append(worst)
         self.items = {"chosen": chosen, "partial": partial, "negligible": negligible}
-        return ([n for i in chosen for n in i], [n for i in partial for n in i],
-                [n for i in negligible for n in i])
+        return (
+            [n for i in chosen for n in i],
+            [n for i in partial for n in i],
+            [n for i in negligible for n in i],
+        )
 
     def _resolve(self, items: list[tuple[str, ...]]) -> list[tuple[str, ...]]:
         """A chosen group of confounded terms keeps the members the data single out: each
@@ -1017,8 +1102,7 @@ class _Discovery:
             if len(item) == 1:
                 out.append(item)
                 continue
-            alone = [m for m in item
-                     if self.term_test(tuple(n for n in names if n != m), m, thr).rejects]
+            alone = [m for m in item if self.term_test(tuple(n for n in names if n != m), m, thr).rejects]
             if alone:
                 names = [n for n in names if n not in item or n in alone]
                 out += [(m,) for m in alone]
@@ -1034,8 +1118,7 @@ class _Discovery:
     def unit_misfits(self) -> bool:
         return bool(self.lack_of_fit((), self.alpha).rejects or self.misfit_channels())
 
-    def _verdict(self, chosen: list[str], name: str | tuple[str, ...]
-                 ) -> tuple[str, float, tuple[int, ...]]:
+    def _verdict(self, chosen: list[str], name: str | tuple[str, ...]) -> tuple[str, float, tuple[int, ...]]:
         """("named" | "partial" | "negligible", held-out gain, channels it fixes) of a term
         or a confounded group. Named: the unit misfits, the term fixes a channel of its
         sensors that misfit at baseline (misfit without it, given the other chosen terms,
@@ -1056,11 +1139,12 @@ class _Discovery:
         if not self.misfit_channels():
             # only the overall test rejects: the term must fix that, and its gain counts on
             # the sensors of its individually significant parameters
-            if not (self.lack_of_fit(others, self.alpha).rejects
-                    and not self.lack_of_fit(tuple(chosen), self.alpha).rejects):
+            if not (
+                self.lack_of_fit(others, self.alpha).rejects
+                and not self.lack_of_fit(tuple(chosen), self.alpha).rejects
+            ):
                 return "negligible", 1.0, ()
-            ch = tuple(sorted({c for n in item
-                               for c in self.significant_channels(list(chosen), n)}))
+            ch = tuple(sorted({c for n in item for c in self.significant_channels(list(chosen), n)}))
             if not ch:
                 return "negligible", 1.0, ()
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
@@ -1070,8 +1154,7 @@ class _Discovery:
             return "negligible", 1.0, ()
         without = self.channel_lack_of_fit(others, self.alpha / 6)
         with_ = self.channel_lack_of_fit(tuple(chosen), self.alpha / 6)
-        fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects
-                      and not with_[CHANNELS[c]].rejects)
+        fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects and not with_[CHANNELS[c]].rejects)
         if not fixed:
             if all(with_[CHANNELS[c]].rejects for c in bad):
                 return "partial", 1.0, ()
@@ -1085,10 +1168,10 @@ class _Discovery:
         full = tuple(chosen)
         f = self.fit(full)
         names_sorted = sorted(full)
-        off = sum(get_effect(n).n_params for n in names_sorted[:names_sorted.index(name)])
+        off = sum(get_effect(n).n_params for n in names_sorted[: names_sorted.index(name)])
         p = get_effect(name).n_params
-        theta = f.theta[off:off + p]
-        se = np.sqrt(np.diag(f.cov)[off:off + p] * self._scale(full))
+        theta = f.theta[off : off + p]
+        se = np.sqrt(np.diag(f.cov)[off : off + p] * self._scale(full))
         t = np.abs(theta) / np.where(np.isfinite(se) & (se > 0), se, np.inf)
         sig = t > stats.norm.isf(self.alpha / (2 * p))
         if not sig.any() and np.isfinite(t).any() and np.nanmax(t) > 0:
@@ -1107,8 +1190,7 @@ class _Discovery:
         p = term.n_params
         theta, se, sig = self._param_t(list(full), name)
         a = self.g.offset[name][0]
-        undet = {term.param_names[k - a]: why for k, why in self.undetermined.items()
-                 if a <= k < a + p}
+        undet = {term.param_names[k - a]: why for k, why in self.undetermined.items() if a <= k < a + p}
         _, _, fixed = self._verdict(list(full), name)
         ch = fixed or self.sensor_channels(name) or self.channels_of(name)
         sensor = term.param_sensor()
@@ -1118,23 +1200,32 @@ class _Discovery:
             return None if n in undet or not np.isfinite(v) else float(v)
 
         return EffectFinding(
-            name=name, axes=tuple(sorted(axes)),
+            name=name,
+            axes=tuple(sorted(axes)),
             estimate={n: number(n, v) for n, v in zip(term.param_names, theta)},
             stderr={n: number(n, v) for n, v in zip(term.param_names, se)},
             units=dict(zip(term.param_names, term.param_units)),
             evidence=self.term_test(others, name, threshold),
             heldout_rms_before=self.heldout_rms(others, ch),
             heldout_rms_after=self.heldout_rms(full, ch),
-            channels=tuple(CHANNELS[c] for c in ch), undetermined=undet)
+            channels=tuple(CHANNELS[c] for c in ch),
+            undetermined=undet,
+        )
 
-    def confounded_finding(self, chosen: list[str], item: tuple[str, ...], threshold: float,
-                           separated_by: tuple[str, ...] | None = None) -> ConfoundedFinding:
+    def confounded_finding(
+        self,
+        chosen: list[str],
+        item: tuple[str, ...],
+        threshold: float,
+        separated_by: tuple[str, ...] | None = None,
+    ) -> ConfoundedFinding:
         """A group the steps cannot tell apart, fitted together with ``chosen``."""
         full = list(chosen) + [n for n in item if n not in chosen]
         others = tuple(n for n in full if n not in item)
         ch = tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
-        sin = min((c.sin_angle for c in self.identifiability.confounded
-                   if set(c.terms) & set(item)), default=0.0)
+        sin = min(
+            (c.sin_angle for c in self.identifiability.confounded if set(c.terms) & set(item)), default=0.0
+        )
         # each member as if it were the whole explanation (with the other chosen terms): the
         # combined fit's split along the shared direction is arbitrary
         return ConfoundedFinding(
@@ -1143,8 +1234,11 @@ class _Discovery:
             evidence=self.group_test(others, item, threshold),
             heldout_rms_before=self.heldout_rms(others, ch),
             heldout_rms_after=self.heldout_rms(tuple(full), ch),
-            channels=tuple(CHANNELS[c] for c in ch), sin_angle=float(sin),
-            separated_by=tuple(separated_by or ()), separable=separated_by is None)
+            channels=tuple(CHANNELS[c] for c in ch),
+            sin_angle=float(sin),
+            separated_by=tuple(separated_by or ()),
+            separable=separated_by is None,
+        )
 
     def _scale(self, names: tuple[str, ...]) -> float:
         """Variance factor of the weighted residual: the pure-error mean square."""
@@ -1158,23 +1252,31 @@ class _Discovery:
         terms, off = [], 0
         for n in names_sorted:
             p = get_effect(n).n_params
-            se = np.sqrt(np.diag(f.cov)[off:off + p] * scale)
+            se = np.sqrt(np.diag(f.cov)[off : off + p] * scale)
             a = self.g.offset[n][0]
             names_p = get_effect(n).param_names
-            undet = {names_p[k - a]: why for k, why in self.undetermined.items()
-                     if a <= k < a + p}
-            theta = f.theta[off:off + p].copy()
+            undet = {names_p[k - a]: why for k, why in self.undetermined.items() if a <= k < a + p}
+            theta = f.theta[off : off + p].copy()
             theta[~np.isfinite(theta)] = 0.0
             terms.append(TermValue(n, theta, se, undet))
             off += p
         b = self.biases(f)
         out = []
         for r, sm in enumerate(self.sessions):
-            out.append(Calibration(
-                K_g=f.K[:3].copy(), w0=b[r, :3].copy(), K_a=f.K[3:].copy(), f0=b[r, 3:].copy(),
-                gyro_unit=sm.gyro_unit, accel_unit=sm.accel_unit, terms=tuple(terms),
-                g_local=sm.g_local, kind="turntable",
-                metadata={"source": "mimucal discovery joint fit", "rep": int(sm.key.rep)}))
+            out.append(
+                Calibration(
+                    K_g=f.K[:3].copy(),
+                    w0=b[r, :3].copy(),
+                    K_a=f.K[3:].copy(),
+                    f0=b[r, 3:].copy(),
+                    gyro_unit=sm.gyro_unit,
+                    accel_unit=sm.accel_unit,
+                    terms=tuple(terms),
+                    g_local=sm.g_local,
+                    kind="turntable",
+                    metadata={"source": "mimucal discovery joint fit", "rep": int(sm.key.rep)},
+                )
+            )
         return out
 
 
@@ -1189,6 +1291,7 @@ def _single_thread_blas():
         from threadpoolctl import ThreadpoolController
     except ImportError:  # pragma: no cover
         import contextlib
+
         return contextlib.nullcontext()
     if not _BLAS_CONTROLLER:
         _BLAS_CONTROLLER.append(ThreadpoolController())
@@ -1203,8 +1306,12 @@ GEOMETRY_TOL = 1e-6
 MAX_RELINEARISATIONS = 4
 
 
-def diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float = DEFAULT_ALPHA,
-                  tables: bool = True, min_gain: float = DEFAULT_MIN_GAIN) -> Diagnosis:
+def diagnose_unit(
+    step_means_by_rep: list[StepMeans],
+    alpha: float = DEFAULT_ALPHA,
+    tables: bool = True,
+    min_gain: float = DEFAULT_MIN_GAIN,
+) -> Diagnosis:
     """Diagnose one unit from its repetitions (see the module docstring for the tests).
 
     ``alpha`` is the family-wise false-alarm rate per unit; ``min_gain`` the held-out gain a
@@ -1214,8 +1321,9 @@ def diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float = DEFAULT_ALP
         return _diagnose_unit(step_means_by_rep, alpha, tables, min_gain)
 
 
-def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: bool,
-                   min_gain: float) -> Diagnosis:
+def _diagnose_unit(
+    step_means_by_rep: list[StepMeans], alpha: float, tables: bool, min_gain: float
+) -> Diagnosis:
     d = _Discovery(step_means_by_rep, alpha, min_gain=min_gain)
     chosen, partial, negligible = d.select()
     moves: list[float] = []
@@ -1228,15 +1336,18 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
         K = d.fit(model).K
         geometry = SensingGeometry.from_gains(K[:3], K[3:])
         moves.append(geometry.distance(d.geometry))
-        d2 = _Discovery(step_means_by_rep, alpha, geometry=geometry,
-                        noise_model=d.noise_model(model), min_gain=min_gain)
+        d2 = _Discovery(
+            step_means_by_rep, alpha, geometry=geometry, noise_model=d.noise_model(model), min_gain=min_gain
+        )
         noise_moved = float(np.max(np.abs(np.log(d2.sigma / d.sigma))))
         before = (sorted(chosen), sorted(partial), sorted(negligible))
         d = d2
         chosen, partial, negligible = d.select()
-        if (moves[-1] < GEOMETRY_TOL
-                and (sorted(chosen), sorted(partial), sorted(negligible)) == before
-                and noise_moved < np.log(1.03)):
+        if (
+            moves[-1] < GEOMETRY_TOL
+            and (sorted(chosen), sorted(partial), sorted(negligible)) == before
+            and noise_moved < np.log(1.03)
+        ):
             break
     lof_before = d.lack_of_fit((), alpha)
     chosen_t = tuple(chosen)
@@ -1247,10 +1358,10 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     effects = [d.finding(chosen, i[0], thr) for i in items["chosen"] if len(i) == 1]
     partial_f = [d.finding(chosen + [n], n, thr) for n in partial]
     negligible_f = [d.finding(chosen + [n], n, thr) for n in negligible]
-    advice = _advice(d.sessions[0]) if groups or any(
-        e.undetermined for e in effects) else []
-    confounded = [d.confounded_finding(chosen, i, thr, _separated_by(advice, i))
-                  for i in items["chosen"] if len(i) > 1]
+    advice = _advice(d.sessions[0]) if groups or any(e.undetermined for e in effects) else []
+    confounded = [
+        d.confounded_finding(chosen, i, thr, _separated_by(advice, i)) for i in items["chosen"] if len(i) > 1
+    ]
     cal_before = d.calibrations(())
     cal_after = d.calibrations(chosen_t)
     if tables:
@@ -1262,22 +1373,41 @@ def _diagnose_unit(step_means_by_rep: list[StepMeans], alpha: float, tables: boo
     ch_before = d.channel_lack_of_fit((), alpha / 6)
     ch_after = d.channel_lack_of_fit(chosen_t, alpha / 6)
     diag = Diagnosis(
-        lot=sm0.key.lot, unit=sm0.key.unit, n_reps=len(d.sessions), alpha=alpha,
+        lot=sm0.key.lot,
+        unit=sm0.key.unit,
+        n_reps=len(d.sessions),
+        alpha=alpha,
         misfit=bool(d.unit_misfits() or chosen or partial),
-        unexplained=bool(lof_after.rejects or partial
-                         or any(t.rejects for t in ch_after.values())),
-        effects=effects, partial=partial_f, negligible=negligible_f, terms=cal_after[0].terms,
-        lack_of_fit_before=lof_before, lack_of_fit_after=lof_after,
-        channel_misfit_before=ch_before, channel_misfit_after=ch_after,
-        noise=d.noise, calibrations_before=cal_before, calibrations_after=cal_after,
-        residuals_before=res_before, residuals_after=res_after,
-        heldout_rms_baseline=d.heldout_rms(()), heldout_rms_final=d.heldout_rms(chosen_t),
-        min_gain=min_gain, relinearisations=moves, confounded=confounded,
-        confounded_set_aside=[list(i) for k in ("partial", "negligible") for i in items[k]
-                              if len(i) > 1],
-        advice=[a.describe() for a in advice if a.terms and (
-            any(set(a.terms) == set(i) or set(a.terms) <= set(i) for i in groups)
-            or any(e.name in a.terms and e.undetermined for e in effects))])
+        unexplained=bool(lof_after.rejects or partial or any(t.rejects for t in ch_after.values())),
+        effects=effects,
+        partial=partial_f,
+        negligible=negligible_f,
+        terms=cal_after[0].terms,
+        lack_of_fit_before=lof_before,
+        lack_of_fit_after=lof_after,
+        channel_misfit_before=ch_before,
+        channel_misfit_after=ch_after,
+        noise=d.noise,
+        calibrations_before=cal_before,
+        calibrations_after=cal_after,
+        residuals_before=res_before,
+        residuals_after=res_after,
+        heldout_rms_baseline=d.heldout_rms(()),
+        heldout_rms_final=d.heldout_rms(chosen_t),
+        min_gain=min_gain,
+        relinearisations=moves,
+        confounded=confounded,
+        confounded_set_aside=[list(i) for k in ("partial", "negligible") for i in items[k] if len(i) > 1],
+        advice=[
+            a.describe()
+            for a in advice
+            if a.terms
+            and (
+                any(set(a.terms) == set(i) or set(a.terms) <= set(i) for i in groups)
+                or any(e.name in a.terms and e.undetermined for e in effects)
+            )
+        ],
+    )
     try:
         diag.evidence = evidence_frame(d, diag, chosen, items)
     except Exception:  # pragma: no cover - figures never cost the unit its diagnosis
@@ -1293,20 +1423,33 @@ def _advice(sm: StepMeans) -> list:
     headings, nominal times and warm-up: the same for every unit of the protocol, kept)."""
     from calib_core.plan import advise
 
-    key = b"".join([np.asarray(sm.w_ref, float).tobytes(), np.asarray(sm.f_ref, float).tobytes(),
-                    sm.headings.tobytes(), sm.turned_deg().tobytes(),
-                    repr((sm.latitude_deg, sm.table_heading_deg)).encode()])
+    key = b"".join(
+        [
+            np.asarray(sm.w_ref, float).tobytes(),
+            np.asarray(sm.f_ref, float).tobytes(),
+            sm.headings.tobytes(),
+            sm.turned_deg().tobytes(),
+            repr((sm.latitude_deg, sm.table_heading_deg)).encode(),
+        ]
+    )
     if key not in _ADVICE_CACHE:
-        steps = pd.DataFrame({
-            "step": np.asarray(sm.step, np.int64), "test": np.asarray(sm.test).astype(str),
-            **{f"w_ref_{a}": sm.w_ref[:, i] for i, a in enumerate("xyz")},
-            **{f"f_ref_{a}": sm.f_ref[:, i] for i, a in enumerate("xyz")},
-            "settle_s": np.zeros(len(sm)), "heading_deg": sm.headings,
-            "turned0_deg": sm.turned_deg()[:, 0], "turned1_deg": sm.turned_deg()[:, 1]})
+        steps = pd.DataFrame(
+            {
+                "step": np.asarray(sm.step, np.int64),
+                "test": np.asarray(sm.test).astype(str),
+                **{f"w_ref_{a}": sm.w_ref[:, i] for i, a in enumerate("xyz")},
+                **{f"f_ref_{a}": sm.f_ref[:, i] for i, a in enumerate("xyz")},
+                "settle_s": np.zeros(len(sm)),
+                "heading_deg": sm.headings,
+                "turned0_deg": sm.turned_deg()[:, 0],
+                "turned1_deg": sm.turned_deg()[:, 1],
+            }
+        )
         if len(_ADVICE_CACHE) >= 8:
             _ADVICE_CACHE.clear()
-        _ADVICE_CACHE[key] = advise(steps, latitude_deg=sm.latitude_deg,
-                                    table_heading_deg=sm.table_heading_deg)
+        _ADVICE_CACHE[key] = advise(
+            steps, latitude_deg=sm.latitude_deg, table_heading_deg=sm.table_heading_deg
+        )
     return _ADVICE_CACHE[key]
 
 

@@ -1,11 +1,18 @@
 """Accelerometer scale-factor nonlinearity: quadratic in the accelerometer's own input
 u = a . f (mg per g^2)."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (EffectTerm, FigureVariable, MotionContext,
-                                     SensingGeometry, random_sign, register_effect)
+from calib_core.effects.base import (
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 
 @register_effect
@@ -14,8 +21,10 @@ class AccelScaleNonlinearity(EffectTerm):
     description = "accelerometer scale-factor nonlinearity, quadratic in its own input"
     param_names = ("k2_x", "k2_y", "k2_z")
     param_units = ("mg per g^2",) * 3
-    excited_by = ("orientations with gravity partly along the axis (multiposition at "
-                  "intermediate angles): at 0 and +/-1 g the quadratic is a scale and bias")
+    excited_by = (
+        "orientations with gravity partly along the axis (multiposition at "
+        "intermediate angles): at 0 and +/-1 g the quadratic is a scale and bias"
+    )
     max_useful_stderr = 1.0
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
@@ -36,5 +45,4 @@ class AccelScaleNonlinearity(EffectTerm):
         return {("accel", i): {"k2": float(theta[i]) * 1e-3} for i in range(3) if theta[i]}
 
     def figure_variable(self, ctx, channel):
-        return FigureVariable("specific force on the accelerometer's own axis", "g",
-                              ctx.f[:, channel % 3])
+        return FigureVariable("specific force on the accelerometer's own axis", "g", ctx.f[:, channel % 3])

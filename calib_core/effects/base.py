@@ -19,6 +19,7 @@ misaligned (:meth:`SensingGeometry.to_body`). The geometry comes from the fitted
 (:meth:`SensingGeometry.from_gains`): the model is bilinear in (K, theta) and discovery
 re-linearises it until the geometry settles.
 """
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
@@ -71,9 +72,19 @@ class MotionContext:
     turned_deg: np.ndarray | None = None
 
     @classmethod
-    def from_refs(cls, w, f, temp_c=None, t=None, dwdt=None, g_local=9.80665,
-                  heading_deg=None, latitude_deg=None, table_heading_deg=None,
-                  turned_deg=None) -> "MotionContext":
+    def from_refs(
+        cls,
+        w,
+        f,
+        temp_c=None,
+        t=None,
+        dwdt=None,
+        g_local=9.80665,
+        heading_deg=None,
+        latitude_deg=None,
+        table_heading_deg=None,
+        turned_deg=None,
+    ) -> MotionContext:
         w = np.atleast_2d(np.asarray(w, dtype=float))
         n = len(w)
         return cls(
@@ -102,16 +113,18 @@ class SensingGeometry:
     accel_axes: np.ndarray  # (3, 3)
 
     @classmethod
-    def identity(cls) -> "SensingGeometry":
+    def identity(cls) -> SensingGeometry:
         return _IDENTITY
 
     @classmethod
-    def from_gains(cls, K_g: np.ndarray, K_a: np.ndarray) -> "SensingGeometry":
+    def from_gains(cls, K_g: np.ndarray, K_a: np.ndarray) -> SensingGeometry:
         """From a calibration's gains (physical per raw): the rows of K^-1 are each sensor's
         scale times its sensing direction."""
+
         def axes(K):
             S = np.linalg.inv(np.asarray(K, float))
             return S / np.linalg.norm(S, axis=1, keepdims=True)
+
         return cls(axes(K_g), axes(K_a))
 
     def sensor_inputs(self, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
@@ -131,10 +144,14 @@ class SensingGeometry:
             object.__setattr__(self, key, np.linalg.inv(getattr(self, f"{which}_axes")))
         return self.__dict__[key]
 
-    def distance(self, other: "SensingGeometry") -> float:
+    def distance(self, other: SensingGeometry) -> float:
         """Largest change of a sensing direction, rad (small angles)."""
-        return float(max(np.abs(self.gyro_axes - other.gyro_axes).max(),
-                         np.abs(self.accel_axes - other.accel_axes).max()))
+        return float(
+            max(
+                np.abs(self.gyro_axes - other.gyro_axes).max(),
+                np.abs(self.accel_axes - other.accel_axes).max(),
+            )
+        )
 
 
 _IDENTITY = SensingGeometry(np.eye(3), np.eye(3))
@@ -180,31 +197,39 @@ class EffectTerm(ABC):
         """d(error sensed by sensor j)/d(theta), (n, 6, n_params), in each sensor's own
         physical unit (rows 0-2 the gyros, 3-5 the accelerometers)."""
 
-    def regressors(self, ctx: MotionContext, geometry: SensingGeometry | None = None
-                   ) -> np.ndarray:
+    def regressors(self, ctx: MotionContext, geometry: SensingGeometry | None = None) -> np.ndarray:
         """d(calibrated channel error)/d(theta), (n, 6, n_params): the sensor errors through
         the sensing geometry (identity when not given)."""
         g = SensingGeometry.identity() if geometry is None else geometry
         return g.to_body(np.asarray(self.sensor_regressors(ctx, g), float))
 
-    def error(self, ctx: MotionContext, theta: np.ndarray,
-              geometry: SensingGeometry | None = None) -> np.ndarray:
+    def error(
+        self, ctx: MotionContext, theta: np.ndarray, geometry: SensingGeometry | None = None
+    ) -> np.ndarray:
         """Additive error on the six calibrated channels, (n, 6)."""
         return self.regressors(ctx, geometry) @ np.asarray(theta, dtype=float)
 
     def sensors(self) -> tuple[int, ...]:
         """Sensors (0-5, as CHANNELS) whose own output this term can touch."""
         probe = MotionContext.from_refs(
-            w=[[100.0, -200.0, 300.0]], f=[[0.3, -0.5, 0.8]], temp_c=[30.0], t=[100.0],
-            dwdt=[[10.0, 20.0, 30.0]])
+            w=[[100.0, -200.0, 300.0]],
+            f=[[0.3, -0.5, 0.8]],
+            temp_c=[30.0],
+            t=[100.0],
+            dwdt=[[10.0, 20.0, 30.0]],
+        )
         E = self.sensor_regressors(probe, SensingGeometry.identity())[0]
         return tuple(int(i) for i in np.flatnonzero(np.abs(E).sum(axis=1) > 0))
 
     def param_sensor(self) -> np.ndarray:
         """The sensor (0-5) each parameter acts on, (n_params,)."""
         probe = MotionContext.from_refs(
-            w=[[100.0, -200.0, 300.0]], f=[[0.3, -0.5, 0.8]], temp_c=[30.0], t=[100.0],
-            dwdt=[[10.0, 20.0, 30.0]])
+            w=[[100.0, -200.0, 300.0]],
+            f=[[0.3, -0.5, 0.8]],
+            temp_c=[30.0],
+            t=[100.0],
+            dwdt=[[10.0, 20.0, 30.0]],
+        )
         E = np.abs(self.sensor_regressors(probe, SensingGeometry.identity())[0])
         return np.argmax(E, axis=0)
 
@@ -212,8 +237,7 @@ class EffectTerm(ABC):
 
     # -- realistic size and the independent simulator --------------------------------------
     @abstractmethod
-    def realistic(self, rng: np.random.Generator, scale: float = 1.0
-                  ) -> tuple[np.ndarray, str]:
+    def realistic(self, rng: np.random.Generator, scale: float = 1.0) -> tuple[np.ndarray, str]:
         """Parameters of the effect at ``scale`` times a realistic size, on random sensors,
         and a description of where it was put."""
 
@@ -268,8 +292,9 @@ def get_effect(name: str) -> EffectTerm:
         raise KeyError(f"unknown effect {name!r}; known: {sorted(_CATALOGUE)}") from None
 
 
-def total_error(ctx: MotionContext, effects: list[tuple[EffectTerm, np.ndarray]],
-                geometry: SensingGeometry | None = None) -> np.ndarray:
+def total_error(
+    ctx: MotionContext, effects: list[tuple[EffectTerm, np.ndarray]], geometry: SensingGeometry | None = None
+) -> np.ndarray:
     """Sum of several effects' errors on the calibrated channels, (n, 6)."""
     out = np.zeros((len(ctx), 6))
     for term, theta in effects:
@@ -283,8 +308,11 @@ def up_direction(ctx: MotionContext) -> np.ndarray:
     f = ctx.f
     n = np.linalg.norm(f, axis=1, keepdims=True)
     wn = np.linalg.norm(ctx.w, axis=1, keepdims=True)
-    up = np.where(n > 1e-9, f / np.where(n > 1e-9, n, 1.0),
-                  np.where(wn > 0, ctx.w / np.where(wn > 0, wn, 1.0), [0.0, 0.0, 1.0]))
+    up = np.where(
+        n > 1e-9,
+        f / np.where(n > 1e-9, n, 1.0),
+        np.where(wn > 0, ctx.w / np.where(wn > 0, wn, 1.0), [0.0, 0.0, 1.0]),
+    )
     return up
 
 
@@ -299,8 +327,7 @@ def heading_reference(up: np.ndarray) -> np.ndarray:
 def turn_about(v: np.ndarray, axis: np.ndarray, angle_rad: np.ndarray) -> np.ndarray:
     """Rows of v turned right-handedly about unit rows ``axis`` by ``angle_rad`` (Rodrigues)."""
     c, s = np.cos(angle_rad)[:, None], np.sin(angle_rad)[:, None]
-    return (v * c + np.cross(axis, v) * s
-            + axis * np.sum(axis * v, axis=1, keepdims=True) * (1.0 - c))
+    return v * c + np.cross(axis, v) * s + axis * np.sum(axis * v, axis=1, keepdims=True) * (1.0 - c)
 
 
 def random_sign(rng: np.random.Generator) -> float:

@@ -1,10 +1,17 @@
 """Gyro g-sensitivity: gyro i's rate error is g_i . f (deg/s per g of body specific force)."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (EffectTerm, FigureVariable, MotionContext,
-                                     SensingGeometry, random_sign, register_effect)
+from calib_core.effects.base import (
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 
 @register_effect
@@ -19,7 +26,7 @@ class GyroGSensitivity(EffectTerm):
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         out = np.zeros((len(ctx), 6, 9))
         for i in range(3):
-            out[:, i, 3 * i:3 * i + 3] = ctx.f
+            out[:, i, 3 * i : 3 * i + 3] = ctx.f
         return out
 
     def realistic(self, rng, scale=1.0):
@@ -31,8 +38,7 @@ class GyroGSensitivity(EffectTerm):
 
     def physics_knobs(self, theta):
         G = np.asarray(theta, float).reshape(3, 3)
-        return {("gyro", i): {"g_sens": tuple(float(x) for x in G[i])}
-                for i in range(3) if np.any(G[i])}
+        return {("gyro", i): {"g_sens": tuple(float(x) for x in G[i])} for i in range(3) if np.any(G[i])}
 
     def figure_variable(self, ctx, channel):
         j = int(np.argmax(np.std(ctx.f, axis=0)))

@@ -1,11 +1,18 @@
 """Gyro scale-factor asymmetry: the scale factor differs for positive and negative inputs,
 scale(+) - scale(-) = a (ppm), in the gyro's own input u = a . w."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (EffectTerm, FigureVariable, MotionContext,
-                                     SensingGeometry, random_sign, register_effect)
+from calib_core.effects.base import (
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 
 @register_effect

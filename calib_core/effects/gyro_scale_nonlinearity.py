@@ -1,12 +1,19 @@
 """Gyro scale-factor nonlinearity: quadratic and cubic in the gyro's own input u = a . w, in
 units of 1000 deg/s. The +/- difference method of xu2016 cancels the quadratic part; steps
 entering one by one do not."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (EffectTerm, FigureVariable, MotionContext,
-                                     SensingGeometry, random_sign, register_effect)
+from calib_core.effects.base import (
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 FULL_SCALE_DPS = np.array([300.0, 300.0, 3600.0])  # the rated range of the simulated units
 
@@ -35,15 +42,14 @@ class GyroScaleNonlinearity(EffectTerm):
         i = int(rng.integers(3))
         fs = FULL_SCALE_DPS[i]
         u = fs / 1000.0
-        theta[i] = random_sign(rng) * rng.uniform(2e-4, 6e-4) * fs / u ** 2
-        theta[3 + i] = random_sign(rng) * rng.uniform(2e-4, 6e-4) * fs / u ** 3
+        theta[i] = random_sign(rng) * rng.uniform(2e-4, 6e-4) * fs / u**2
+        theta[3 + i] = random_sign(rng) * rng.uniform(2e-4, 6e-4) * fs / u**3
         return theta * scale, f"gyro {'xyz'[i]}"
 
     def physics_knobs(self, theta):
         t = np.asarray(theta, float)
         # the simulator's polynomial is u + k2 u^2 + k3 u^3 with u in deg/s
-        return {("gyro", i): {"k2": t[i] * 1e-6, "k3": t[3 + i] * 1e-9}
-                for i in range(3) if t[i] or t[3 + i]}
+        return {("gyro", i): {"k2": t[i] * 1e-6, "k3": t[3 + i] * 1e-9} for i in range(3) if t[i] or t[3 + i]}
 
     def figure_variable(self, ctx, channel):
         return FigureVariable("rate on the gyro's own axis", "deg/s", ctx.w[:, channel % 3])

@@ -1,13 +1,21 @@
 """Bias linear in temperature (per degC from 25 degC) on each of the six sensors. Needs the
 temperature column: without it no step excites the term (a drift in time is
 :mod:`calib_core.effects.bias_time_drift`)."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (CHANNELS, THERMAL_REF_C, EffectTerm, FigureVariable,
-                                     MotionContext, SensingGeometry, random_sign,
-                                     register_effect)
+from calib_core.effects.base import (
+    CHANNELS,
+    THERMAL_REF_C,
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 
 @register_effect
@@ -30,15 +38,13 @@ class ThermalBiasDrift(EffectTerm):
         """One sensor: gyro 0.005-0.02 deg/s/degC or accelerometer 0.05-0.2 mg/degC."""
         theta = np.zeros(6)
         c = int(rng.integers(6))
-        theta[c] = random_sign(rng) * (rng.uniform(0.005, 0.02) if c < 3
-                                       else rng.uniform(0.05, 0.2))
+        theta[c] = random_sign(rng) * (rng.uniform(0.005, 0.02) if c < 3 else rng.uniform(0.05, 0.2))
         return theta * scale, f"sensor {CHANNELS[c]}"
 
     def physics_knobs(self, theta):
         t = np.asarray(theta, float)
         out = {("gyro", i): {"bias_tc": float(t[i])} for i in range(3) if t[i]}
-        out.update({("accel", i): {"bias_tc": float(t[3 + i]) * 1e-3}
-                    for i in range(3) if t[3 + i]})
+        out.update({("accel", i): {"bias_tc": float(t[3 + i]) * 1e-3} for i in range(3) if t[3 + i]})
         return out
 
     def figure_variable(self, ctx, channel):
