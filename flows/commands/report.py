@@ -21,17 +21,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="TOML", default=None,
                    help="outlier options and per-parameter limits")
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from schemas.results_store import ResultsStore
-    store = ResultsStore(Path(args.results))
-    if not store.has_table("summary") and not store.has_table("sessions"):
-        raise CliError(f"{args.results} is not a results store (no sessions table); run "
-                       f"'mimucal nightly' first")
+    from flows.user_errors import check_lot
+    check_lot(args.results, args.lot)  # answered before Prefect starts, with the lots there are
     from flows import runtime
-    runtime.ensure_environment(args.results)
+    runtime.ensure_environment(args.results, verbose=args.verbose)
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
