@@ -222,25 +222,17 @@ def calibration_file_extra(ur: UnitResult, context: dict[str, Any]) -> dict[str,
     run id, code version, time..., then the sessions used and failed, the extension terms,
     model discovery's verdict), ``averaged`` (mean, std and units over the repetitions) and
     ``repetitions`` (each repetition's fits with standard errors)."""
-    from schemas.unit_document import unit_document
+    from schemas.unit_document import calibration_file_sections
     out = ur.outcome
     failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
               for s in out.sessions if not s.succeeded]
-    doc = unit_document(ur.lot, ur.unit, out.calibration.reps, failed)
-    provenance = {
-        "lot": ur.lot, "unit": ur.unit, **context,
-        "sessions_used": [{"rep": s.key.rep, "path": str(s.path),
-                           "fingerprint": s.fingerprint, "status": s.status,
-                           "session_start": (s.calibration.provenance or {}).get(
-                               "session_start") if s.calibration else None}
-                          for s in out.sessions if s.succeeded],
-        "sessions_failed": failed,
-        "extension_terms": [t.name for t in out.applied.terms],
-        "model_discovery": None if ur.diagnosis is None else {
-            k: ur.diagnosis.get(k) for k in ("misfit", "unexplained", "effects")},
-    }
-    return {"provenance": provenance, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
-            "repetitions": doc["reps"]}
+    used = [{"rep": s.key.rep, "path": str(s.path), "fingerprint": s.fingerprint,
+             "status": s.status,
+             "session_start": (s.calibration.provenance or {}).get("session_start")
+             if s.calibration else None}
+            for s in out.sessions if s.succeeded]
+    return calibration_file_sections(ur.lot, ur.unit, out.calibration.reps, failed, used,
+                                     [t.name for t in out.applied.terms], ur.diagnosis, context)
 
 
 def _discovery_available() -> bool:

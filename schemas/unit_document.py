@@ -84,3 +84,23 @@ def unit_document(lot: str, unit: str, reps: list[RepetitionCalibration],
         units["lever_arm_mm"] = "mm"
     return {"lot": lot, "unit": unit, "format_version": FORMAT_VERSION, "reps": doc_reps,
             "mean": mean, "std": std, "units": units, "failed": list(failed or [])}
+
+
+def calibration_file_sections(lot: str, unit: str, reps: list[RepetitionCalibration],
+                              failed: list[dict[str, Any]], sessions_used: list[dict[str, Any]],
+                              extension_terms: list[str], model_discovery: dict | None,
+                              context: dict[str, Any]) -> dict[str, Any]:
+    """The sections a unit's calibration file holds beside the applied calibration (one
+    format for the results store, ``mimucal calibrate --json`` and ``schemas.api``):
+    ``provenance`` (``context``: run id, code version, time...; the sessions used and failed,
+    the extension terms, model discovery's verdict), ``averaged`` (mean, std and units over
+    the repetitions) and ``repetitions`` (each repetition's fits with standard errors)."""
+    doc = unit_document(lot, unit, reps, failed)
+    provenance = {
+        "lot": lot, "unit": unit, **context, "sessions_used": sessions_used,
+        "sessions_failed": list(failed), "extension_terms": list(extension_terms),
+        "model_discovery": None if model_discovery is None else {
+            k: model_discovery.get(k) for k in ("misfit", "unexplained", "effects")},
+    }
+    return {"provenance": provenance, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
+            "repetitions": doc["reps"]}
