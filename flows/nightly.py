@@ -666,7 +666,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,
                  progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
-                 runner: str | None = None) -> dict:
+                 runner: str | None = None, unit_reports: bool = False) -> dict:
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
     report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
     worker processes; ``dask`` means the task runner already sends it elsewhere."""
@@ -756,7 +756,12 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         release_memory()
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
         release_memory()
-        reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
+        # unit reports (``unit_reports``): every unit of the lots whose report is rewritten
+        units = tuple(sorted({str(u) for u in store.read("units", lots=report_lots,
+                                                          columns=["unit"])["unit"]})
+                      ) if unit_reports and report_lots else ()
+        reports, problems = (write_reports(results, report_lots, units) if report_lots
+                             else ([], []))
         for p in problems:
             logger.warning(p)
         flagged = sorted({f"{f.lot}/{f.unit}" for lf in lot_flags for f in lf.flags})
@@ -959,7 +964,7 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
                               batch_size: int = DEFAULT_BATCH_SIZE,
                               config: str | Path | None = None, wait: bool = False,
                               run_discovery: bool = True, progress: bool = True,
-                              runner: str | None = None) -> dict:
+                              runner: str | None = None, unit_reports: bool = False) -> dict:
     """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
     (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
     see flows.task_runners)."""
@@ -976,7 +981,7 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
             str(dataset), str(results), force=force, batch_size=batch_size,
             config=None if config is None else str(config), wait=wait,
             run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
-            runner=kind)
+            runner=kind, unit_reports=unit_reports)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
