@@ -824,7 +824,7 @@ def symlog_axis(max_abs: float, c: float = SYMLOG_LINEAR_DPS) -> dict:
             "ticktext": [f"{v:g}".replace("-", MINUS) for v in vals], "zeroline": True}
 
 
-def rates_span_decades(rates: np.ndarray, decades: float = 2.0) -> bool:
+def rates_span_decades(rates: np.ndarray, decades: float = 1.0) -> bool:
     """Whether the non-zero |rates| span at least ``decades`` decades (a linear axis would
     pile the low rates together)."""
     r = np.abs(np.asarray(rates, dtype=float))
@@ -833,8 +833,9 @@ def rates_span_decades(rates: np.ndarray, decades: float = 2.0) -> bool:
 
 
 def gyro_residual_figure(ctx: LotContext, unit: str) -> dict | None:
-    """Gyro error vs table rate; a symlog rate axis when the rates span two decades or more
-    (the xu2016 protocol: 6 to 3,600 deg/s of both signs)."""
+    """Gyro error vs table rate; a symlog rate axis when the rates span a decade or more
+    (the xu2016 protocol: 6 to 300 deg/s of both signs; a linear axis piles the low rates
+    together)."""
     ri = residual_index(ctx)
     if ri is None:
         return None

@@ -168,6 +168,17 @@ def test_a_wrong_lot_or_unit_is_one_line_with_what_exists_before_prefect(data, s
     assert r.returncode == 2 and "(units: U0001, U0002)" in r.stderr and r.stderr.count("\n") == 1
 
 
+def test_report_pdf_without_chromium_is_one_clear_line_before_the_run(store):
+    env = {**ENV, "MIMUCAL_CHROMIUM": "/nonexistent/chromium"}
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "flows.cli", "report", "--results", str(store),
+                        "--lot", "L01", "--pdf"], capture_output=True, text=True, env=env,
+                       timeout=120)
+    assert r.returncode == 2 and time.monotonic() - t0 < 5.0
+    assert r.stderr.count("\n") == 1 and "needs Debian's chromium" in r.stderr
+    assert "apt-get install chromium" in r.stderr
+
+
 @pytest.mark.slow
 def test_nightly_logs_prefect_to_a_file_prints_progress_and_wall_time(data):
     """Prefect's INFO lines go to RESULTS/logs/prefect.log; the terminal has the per-lot
@@ -177,7 +188,7 @@ def test_nightly_logs_prefect_to_a_file_prints_progress_and_wall_time(data):
     results = base / "results"
     t0 = time.monotonic()
     r = mimucal("nightly", root, "--results", results, "--no-discovery", "--batch-size", "1",
-                "--runner", "threads")
+                "--runner", "threads", "--unit-reports")
     wall = time.monotonic() - t0
     assert r.returncode == 0, r.stderr
     assert " | INFO " not in r.stderr and "Flow run" not in r.stderr, r.stderr
@@ -190,6 +201,38 @@ def test_nightly_logs_prefect_to_a_file_prints_progress_and_wall_time(data):
     assert m, r.stdout
     reported, in_flow = float(m.group(1)), float(m.group(2))
     assert in_flow < reported <= wall + 0.1 and reported > 0.8 * wall
-    v = mimucal("nightly", root, "--results", results, "--force", "--no-discovery",
-                "--runner", "threads", "--verbose")
-    assert v.returncode == 0 and "Flow run" in v.stderr
+    # --unit-reports (the demo's): a report per unit of the lot
+    assert sorted(p.name for p in (results / "reports" / "units").glob("*.html")) == [
+        "U0001.html", "U0002.html"]
+    assert "unit reports: " in r.stdout
+    from reports.browser import find_chromium
+    if find_chromium() is not None:  # the lot report printed to PDF through the CLI
+        pdf = mimucal("report", "--results", results, "--lot", "L01", "--pdf", base / "L01.pdf")
+        assert pdf.returncode == 0, pdf.stderr
+        assert pdf.stdout.splitlines()[-1] == str(base / "L01.pdf")
+        assert (base / "L01.pdf").read_bytes()[:5] == b"%PDF-"
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_verbose_leaves_prefect_logging_on_the_terminal(tmp_path, verbose):
+    """ensure_environment routes Prefect's console handler to RESULTS/logs/prefect.log, or
+    (verbose) leaves it on stderr at INFO; checked with Prefect's own logging set-up."""
+    code = (
+        "import logging, sys\n"
+        "from flows import runtime\n"
+        f"runtime.ensure_environment({str(tmp_path / 'results')!r}, verbose={verbose})\n"
+        "import prefect\n"
+        "from prefect.logging.configuration import setup_logging\n"
+        "setup_logging()\n"
+        "logging.getLogger('prefect.flow_runs').info('a flow run line')\n"
+        "logging.getLogger('prefect').info('a prefect line')\n"
+        "for h in logging.getLogger().handlers: h.flush()\n")
+    env = {k: v for k, v in ENV.items() if not k.startswith("PREFECT_")}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    log = tmp_path / "results" / "logs" / "prefect.log"
+    if verbose:
+        assert "a prefect line" in r.stderr and not log.exists()
+    else:
+        assert "a prefect line" not in r.stderr and "a prefect line" in log.read_text()
