@@ -1,14 +1,18 @@
-"""The JSON document of one unit's calibration (`mimucal calibrate --json`).
+"""The per-repetition and averaged sections of a unit's calibration file.
 
-Layout (keys are only ever added, never removed)::
+A unit's calibration file (``schemas.calibration_file``: the store's
+``calibrations/<unit>/<time>.json``, ``mimucal calibrate --json``, ``schemas.api``) is the
+applied calibration plus the sections :func:`calibration_file_sections` builds from
+:func:`unit_document`::
 
-    {"lot", "unit", "format_version",
-     "reps": [{"rep", "K_g", "w0", "K_a", "f0", "stderr": {same keys}, "warnings",
-               "accel_static"?, "lever_arm_mm"?, "condition_numbers"}],
-     "mean": {...}, "std": {...}, "units": {...}, "failed": [{"rep", "code", "message"}]}
+    "provenance": {"lot", "unit", run context..., "sessions_used", "sessions_failed",
+                   "extension_terms", "model_discovery"},
+    "averaged": {"mean", "std", "units"},
+    "repetitions": [{"rep", "K_g", "w0", "K_a", "f0", "stderr": {same keys}, "warnings",
+                     "accel_static"?, "lever_arm_mm"?, "condition_numbers"}]
 
 K matrices are 3x3 row-major lists (w = K_g G + w0, f = K_a A + f0); w0 in deg/s and f0 in g
-whatever the raw units (the boundary converts rad/s and m/s^2).
+whatever the raw units (the boundary converts rad/s and m/s^2). Keys are only ever added.
 """
 from __future__ import annotations
 

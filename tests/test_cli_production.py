@@ -166,6 +166,11 @@ def test_a_wrong_lot_or_unit_is_one_line_with_what_exists_before_prefect(data, s
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "run 'mimucal nightly'" in r.stderr
     r = mimucal("calibrate", root, "--unit", "U7")
     assert r.returncode == 2 and "(units: U0001, U0002)" in r.stderr and r.stderr.count("\n") == 1
+    r = mimucal("diagnose", root, "--unit", "U7")
+    assert r.returncode == 2 and "(units: U0001, U0002)" in r.stderr and r.stderr.count("\n") == 1
+    r = mimucal("calibration", "--results", store, "--unit", "U7")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert "(units with calibrations: none)" in r.stderr
 
 
 def test_report_pdf_without_chromium_is_one_clear_line_before_the_run(store):
