@@ -21,7 +21,10 @@ from flows.cli import main as cli_main
 from flows.fleet_sim import load_manifest, simulate_fleet
 
 ROOT = Path(__file__).resolve().parent.parent
-ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
+# a user's shell: none of the PREFECT_* settings that modules imported by other tests of this
+# process put into os.environ (flows.nightly sets Prefect's defaults when imported)
+ENV = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")},
+       "PYTHONPATH": str(ROOT)}
 
 
 def mimucal(*args: str, **kw) -> subprocess.CompletedProcess:
@@ -232,8 +235,7 @@ def test_verbose_leaves_prefect_logging_on_the_terminal(tmp_path, verbose):
         "logging.getLogger('prefect.flow_runs').info('a flow run line')\n"
         "logging.getLogger('prefect').info('a prefect line')\n"
         "for h in logging.getLogger().handlers: h.flush()\n")
-    env = {k: v for k, v in ENV.items() if not k.startswith("PREFECT_")}
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV,
                        timeout=300)
     assert r.returncode == 0, r.stderr
     log = tmp_path / "results" / "logs" / "prefect.log"
