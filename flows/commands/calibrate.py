@@ -77,7 +77,9 @@ def summary_lines(ur, failed: list[dict], n_reps: int) -> list[str]:
     elif ur.discovery_note:
         lines.append(ur.discovery_note)
     for f in failed:
-        lines.append(f"failed rep {f['rep']}: [{f['code']}] {f['message']}")
+        msg = f["message"] or ""
+        lines.append(f"failed rep {f['rep']}: "
+                     + (msg if msg.startswith("[") else f"[{f['code']}] {msg}"))
     return lines
 
 
