@@ -18,7 +18,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from flows.cli import main as cli_main
-from flows.fleet_sim import load_manifest, simulate_fleet
+from conftest import load_manifest
+from flows.fleet_sim import simulate_fleet
 
 ROOT = Path(__file__).resolve().parent.parent
 # a user's shell: none of the PREFECT_* settings that modules imported by other tests of this
