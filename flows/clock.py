@@ -1,5 +1,6 @@
 """Wall time since the command started: from the process's start (Linux /proc), so that a
 command's reported time includes its imports and Prefect's start-up, not only its flow."""
+
 from __future__ import annotations
 
 import os

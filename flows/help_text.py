@@ -1,6 +1,7 @@
 """Help texts as people read them: the commands' docstrings are reStructuredText (``code``),
 argparse prints them verbatim, so literal markup is turned into plain quotes once, for every
 command, after they are registered."""
+
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
 """A closed output pipe (``mimucal ... | head``) ends a command quietly, as it ends ``seq``."""
+
 from __future__ import annotations
 
 import os

@@ -2,6 +2,7 @@
 
 Read from directory names and the store's small tables only, so that a wrong lot or unit is
 answered in well under a second, before Prefect starts."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,7 +13,7 @@ MAX_LISTED = 12
 
 
 def listing(names: list[str] | set[str], max_listed: int = MAX_LISTED) -> str:
-    """"A, B, C" (sorted), "none", or the first ``max_listed`` and how many in all."""
+    """ "A, B, C" (sorted), "none", or the first ``max_listed`` and how many in all."""
     names = sorted({str(n) for n in names})
     if not names:
         return "none"
@@ -31,6 +32,7 @@ def units_under(dataset: str | Path) -> str:
 def store_units(results: str | Path) -> dict[str, set[str]]:
     """lot -> units of a results store (its units table, else its calibration folders)."""
     from schemas.results_store import ResultsStore
+
     store = ResultsStore(Path(results))
     out: dict[str, set[str]] = {}
     if store.has_table("units"):
@@ -43,13 +45,13 @@ def store_units(results: str | Path) -> dict[str, set[str]]:
 def check_store(results: str | Path) -> dict[str, set[str]]:
     """The store's lots and units; CliError when ``results`` holds no results store."""
     from schemas.results_store import ResultsStore
+
     root = Path(results)
     if not root.is_dir():
         raise CliError(f"results store {root} does not exist; run 'mimucal nightly' first")
     store = ResultsStore(root)
     if not store.has_table("units") and not store.has_table("summary"):
-        raise CliError(f"{root} is not a results store (no units table); run 'mimucal nightly' "
-                       f"first")
+        raise CliError(f"{root} is not a results store (no units table); run 'mimucal nightly' first")
     return store_units(root)
 
 

@@ -6,6 +6,7 @@ sections stay folded: a lot's PDF is its summary, tables and lot figures.
 
 ``python -m reports.pdf REPORT.html OUT.pdf``.
 """
+
 from __future__ import annotations
 
 import subprocess
@@ -26,8 +27,10 @@ def chromium_or_error() -> str:
     """The chromium executable, else :class:`PdfError` saying how to install it."""
     exe = find_chromium()
     if exe is None:
-        raise PdfError("printing a PDF needs Debian's chromium, which is not installed "
-                       "(sudo apt-get install chromium, or bash scripts/install-browser.sh)")
+        raise PdfError(
+            "printing a PDF needs Debian's chromium, which is not installed "
+            "(sudo apt-get install chromium, or bash scripts/install-browser.sh)"
+        )
     return exe
 
 
@@ -41,10 +44,16 @@ def print_pdf(html_path: str | Path, pdf_path: str | Path, timeout_s: float = 18
     pdf_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = pdf_path.with_name(f".{pdf_path.name}.tmp")
     with tempfile.TemporaryDirectory(prefix="mimucal-pdf-") as profile:
-        cmd = [exe, *FLAGS, f"--user-data-dir={profile}", "--no-pdf-header-footer",
-               "--run-all-compositor-stages-before-draw",
-               f"--virtual-time-budget={SCRIPT_BUDGET_MS}", f"--print-to-pdf={tmp}",
-               html_path.as_uri()]
+        cmd = [
+            exe,
+            *FLAGS,
+            f"--user-data-dir={profile}",
+            "--no-pdf-header-footer",
+            "--run-all-compositor-stages-before-draw",
+            f"--virtual-time-budget={SCRIPT_BUDGET_MS}",
+            f"--print-to-pdf={tmp}",
+            html_path.as_uri(),
+        ]
         try:
             out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:

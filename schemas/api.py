@@ -43,11 +43,12 @@ True
 Traceback (most recent call last):
 ...
 schemas.api.CalibrationMismatch: the samples are of unit U0002, the calibration of unit U0001
->>> apply_to_frame(cal, raw, gyro_unit="LSB")
+>>> apply_to_frame(cal, raw, gyro_unit="LSB")  # doctest: +ELLIPSIS
 Traceback (most recent call last):
 ...
-schemas.api.CalibrationMismatch: raw units gyro='LSB' (LSB after conversion), accel='g' do not match the calibration's raw_units gyro='deg/s', accel='g' (unit U0001)
+schemas.api.CalibrationMismatch: raw units gyro='LSB' (LSB after conversion), accel='g' do not match ...
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -62,8 +63,14 @@ from calib_core.calibration import Calibration
 from calib_core.results import RepetitionCalibration, UnitCalibration
 
 __all__ = [
-    "CalibrationMismatch", "UnitCalibrationResult", "apply_to_frame", "calibrate_unit",
-    "discover_unit", "load_calibration_for", "read_samples", "simulate_unit_dataset",
+    "CalibrationMismatch",
+    "UnitCalibrationResult",
+    "apply_to_frame",
+    "calibrate_unit",
+    "discover_unit",
+    "load_calibration_for",
+    "read_samples",
+    "simulate_unit_dataset",
 ]
 
 RAD_TO_DEG = 180.0 / np.pi
@@ -76,8 +83,9 @@ class CalibrationMismatch(ValueError):
 
 
 # --- loading -------------------------------------------------------------------------------------
-def load_calibration_for(source: str | Path, unit: str | None = None,
-                         at: str | datetime | None = None, mode: str = "before") -> Calibration:
+def load_calibration_for(
+    source: str | Path, unit: str | None = None, at: str | datetime | None = None, mode: str = "before"
+) -> Calibration:
     """The calibration of ``unit`` valid at ``at`` from a results folder, or the one in a
     calibration file.
 
@@ -98,6 +106,7 @@ def load_calibration_for(source: str | Path, unit: str | None = None,
     """
     from schemas.calibration_file import load_calibration
     from schemas.results_store import find_calibration, parse_when
+
     source = Path(source)
     if source.is_file():
         cal = load_calibration(source)
@@ -120,6 +129,7 @@ def read_samples(path: str | Path) -> pd.DataFrame:
     import pyarrow.parquet as pq
 
     from schemas.contract import decode_metadata
+
     table = pq.read_table(path)
     df = table.to_pandas()
     df.attrs.update(decode_metadata(table.schema.metadata))
@@ -135,8 +145,13 @@ def _to_inside(values: np.ndarray, unit: str, g_local: float) -> tuple[np.ndarra
     return values, unit
 
 
-def apply_to_frame(cal: Calibration, df: pd.DataFrame, gyro_unit: str | None = None,
-                   accel_unit: str | None = None, unit: str | None = None) -> pd.DataFrame:
+def apply_to_frame(
+    cal: Calibration,
+    df: pd.DataFrame,
+    gyro_unit: str | None = None,
+    accel_unit: str | None = None,
+    unit: str | None = None,
+) -> pd.DataFrame:
     """Calibrated rates and specific forces of the raw samples in ``df``.
 
     ``df`` has the contract's columns ``gx, gy, gz`` and ``ax, ay, az`` (raw outputs) and
@@ -158,13 +173,13 @@ def apply_to_frame(cal: Calibration, df: pd.DataFrame, gyro_unit: str | None = N
         raise ValueError("name the raw units: gyro_unit= and accel_unit= (or df.attrs)")
     missing = [c for c in GYRO_COLUMNS + ACCEL_COLUMNS if c not in df.columns]
     if missing:
-        raise ValueError(f"missing column(s) {', '.join(missing)} (need "
-                         f"{', '.join(GYRO_COLUMNS + ACCEL_COLUMNS)})")
+        raise ValueError(
+            f"missing column(s) {', '.join(missing)} (need {', '.join(GYRO_COLUMNS + ACCEL_COLUMNS)})"
+        )
     unit = unit or attrs.get("unit")
     cal_unit = cal.metadata.get("unit")
     if unit is not None and cal_unit is not None and str(unit) != str(cal_unit):
-        raise CalibrationMismatch(f"the samples are of unit {unit}, the calibration of unit "
-                                  f"{cal_unit}")
+        raise CalibrationMismatch(f"the samples are of unit {unit}, the calibration of unit {cal_unit}")
     g_local = float(attrs.get("g_local", cal.g_local))
     G, gu = _to_inside(df[list(GYRO_COLUMNS)].to_numpy(float), gyro_unit, g_local)
     A, au = _to_inside(df[list(ACCEL_COLUMNS)].to_numpy(float), accel_unit, g_local)
@@ -172,7 +187,8 @@ def apply_to_frame(cal: Calibration, df: pd.DataFrame, gyro_unit: str | None = N
         raise CalibrationMismatch(
             f"raw units gyro={gyro_unit!r} ({gu} after conversion), accel={accel_unit!r} do not "
             f"match the calibration's raw_units gyro={cal.gyro_unit!r}, "
-            f"accel={cal.accel_unit!r} (unit {cal_unit})")
+            f"accel={cal.accel_unit!r} (unit {cal_unit})"
+        )
     t = df["t"].to_numpy(float) if "t" in df else None
     temp = df["temp_c"].to_numpy(float) if "temp_c" in df else None
     dwdt = None
@@ -185,8 +201,7 @@ def apply_to_frame(cal: Calibration, df: pd.DataFrame, gyro_unit: str | None = N
         out[f"w_{ax}"] = w[:, i]
     for i, ax in enumerate("xyz"):
         out[f"f_{ax}"] = f[:, i]
-    out.attrs = {"gyro_unit": "deg/s", "accel_unit": "g", "unit": cal_unit,
-                 "calibrated": True}
+    out.attrs = {"gyro_unit": "deg/s", "accel_unit": "g", "unit": cal_unit, "calibrated": True}
     return out
 
 
@@ -210,47 +225,63 @@ class UnitCalibrationResult:
 
     def summary_frame(self) -> pd.DataFrame:
         """One row per parameter: model, parameter, mean, std (over repetitions), unit."""
-        return pd.DataFrame([{"model": s.model, "parameter": s.name, "mean": s.mean,
-                              "std": s.std, "n_reps": s.n_reps, "unit": s.unit}
-                             for s in self.unit_calibration.summary])
+        return pd.DataFrame(
+            [
+                {
+                    "model": s.model,
+                    "parameter": s.name,
+                    "mean": s.mean,
+                    "std": s.std,
+                    "n_reps": s.n_reps,
+                    "unit": s.unit,
+                }
+                for s in self.unit_calibration.summary
+            ]
+        )
 
     def save(self, path: str | Path) -> Path:
         """Write the calibration file (the results store's format, which ``mimucal apply``
         and :func:`load_calibration_for` read) atomically; return its path."""
         from schemas.calibration_file import save_calibration
         from schemas.unit_document import calibration_file_sections
+
         diag = None if self.diagnosis is None else self.diagnosis.to_dict()
         extra = calibration_file_sections(
-            self.lot, self.unit, self.unit_calibration.reps, self.failed, self.sessions,
-            [t.name for t in self.calibration.terms], diag,
-            {"run_id": None, "command": "schemas.api.calibrate_unit"})
-        return save_calibration(self.calibration, Path(path), extra, extra_nonfinite="null",
-                                default=str)
+            self.lot,
+            self.unit,
+            self.unit_calibration.reps,
+            self.failed,
+            self.sessions,
+            [t.name for t in self.calibration.terms],
+            diag,
+            {"run_id": None, "command": "schemas.api.calibrate_unit"},
+        )
+        return save_calibration(self.calibration, Path(path), extra, extra_nonfinite="null", default=str)
 
 
 def _read_unit(dataset: str | Path, unit: str):
     """The unit's sessions read and averaged: (lot, [(ref, step means)], failed)."""
     from schemas.averaging import read_step_means
     from schemas.dataset import find_sessions
+
     refs, _ = find_sessions(dataset, unit=unit)
     if not refs:
         units = sorted({p.name.split("=", 1)[1] for p in Path(dataset).glob("lot=*/unit=*")})
-        raise LookupError(f"no session of unit {unit!r} under {dataset} (units: "
-                          f"{', '.join(units) or 'none'})")
+        raise LookupError(
+            f"no session of unit {unit!r} under {dataset} (units: {', '.join(units) or 'none'})"
+        )
     read, failed = [], []
     for ref in sorted(refs, key=lambda r: r.key.rep):
         try:
             sm, _ = read_step_means(ref)
         except ValueError as exc:  # SessionError: names the session, file and reason
-            failed.append({"rep": ref.key.rep, "code": getattr(exc, "code", "E_INPUT"),
-                           "message": str(exc)})
+            failed.append({"rep": ref.key.rep, "code": getattr(exc, "code", "E_INPUT"), "message": str(exc)})
             continue
         read.append((ref, sm))
     return refs[0].key.lot, read, failed
 
 
-def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True
-                   ) -> UnitCalibrationResult:
+def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> UnitCalibrationResult:
     """Calibrate every session (repetition) of ``unit`` in a hive dataset
     (``lot=*/unit=*/rep=*``): the xu2016 and zhang2017 fits of each repetition, their
     average, and (``discover``, with two or more good repetitions) model discovery, whose
@@ -267,6 +298,7 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True
     """
     from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
     from schemas.errors import SessionError
+
     lot, read, failed = _read_unit(dataset, unit)
     fits = calibrate_repetitions([sm for _, sm in read])
     reps: list[RepetitionCalibration] = []
@@ -279,12 +311,17 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True
             continue
         reps.append(fit.calibration)
         good_sm.append(sm)
-        sessions.append({"rep": ref.key.rep, "path": str(ref.path), "status": "ok",
-                         "session_start": fit.calibration.provenance.get("session_start")})
+        sessions.append(
+            {
+                "rep": ref.key.rep,
+                "path": str(ref.path),
+                "status": "ok",
+                "session_start": fit.calibration.provenance.get("session_start"),
+            }
+        )
     failed.sort(key=lambda f: f["rep"])
     if not reps:
-        raise ValueError(f"unit {unit}: every session failed: "
-                         + "; ".join(f["message"] for f in failed))
+        raise ValueError(f"unit {unit}: every session failed: " + "; ".join(f["message"] for f in failed))
     uc = UnitCalibration.from_reps(lot, unit, reps)
     cal = calibration_from_unit(uc)
     diagnosis = None
@@ -292,10 +329,10 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True
         from dataclasses import replace
 
         from calib_core.discovery import diagnose_unit
+
         diagnosis = diagnose_unit(good_sm, tables=False)
         if diagnosis.terms:
-            cal = replace(diagnosis.calibration,
-                          metadata={**cal.metadata, "model": "discovery (joint fit)"})
+            cal = replace(diagnosis.calibration, metadata={**cal.metadata, "model": "discovery (joint fit)"})
     return UnitCalibrationResult(lot, unit, cal, uc, failed, diagnosis, sessions)
 
 
@@ -304,31 +341,46 @@ def discover_unit(dataset: str | Path, unit: str, alpha: float | None = None):
     misfit test, the catalogue effects found with their estimates and held-out gains, what
     stays unexplained (``calib_core.discovery.Diagnosis``; ``.to_dict()`` for JSON)."""
     from calib_core.discovery import DEFAULT_ALPHA, diagnose_unit
+
     _, read, failed = _read_unit(dataset, unit)
     if len(read) < 2:
-        raise ValueError(f"unit {unit}: model discovery needs two readable repetitions, "
-                         f"{len(read)} read" + (f" ({failed[0]['message']})" if failed else ""))
+        raise ValueError(
+            f"unit {unit}: model discovery needs two readable repetitions, "
+            f"{len(read)} read" + (f" ({failed[0]['message']})" if failed else "")
+        )
     return diagnose_unit([sm for _, sm in read], DEFAULT_ALPHA if alpha is None else alpha)
 
 
 # --- a small dataset to try things on ------------------------------------------------------------
-def simulate_unit_dataset(root: str | Path, unit: str = "U0001", lot: str = "L01", reps: int = 2,
-                          seed: int = 0, rate_hz: float = 10.0):
+def simulate_unit_dataset(
+    root: str | Path,
+    unit: str = "U0001",
+    lot: str = "L01",
+    reps: int = 2,
+    seed: int = 0,
+    rate_hz: float = 10.0,
+):
     """Write ``reps`` simulated turntable sessions of one unit (the default xu2016 +
     zhang2017 protocol, a typical MEMS unit) under ``root/lot=<lot>/unit=<unit>/`` and
     return its truth (``calib_core.simulator.MimuTruth``). For examples and tests."""
     from calib_core.protocols import default_session
-    from calib_core.simulator import (draw_repetition_truth, session_metadata, simulate_session,
-                                      typical_truth)
+    from calib_core.simulator import draw_repetition_truth, session_metadata, simulate_session, typical_truth
     from calib_core.steps import SessionKey
     from schemas.writer import write_session
+
     rng = np.random.default_rng(seed)
     truth = typical_truth(rng)
     steps = default_session()
     for rep in range(1, reps + 1):
         rep_truth = draw_repetition_truth(truth, rng)
         samples = simulate_session(rep_truth, steps, rng, rate_hz)
-        md = session_metadata(rep_truth, rate_hz, session_start=f"2026-11-20T02:{rep - 1:02d}:00Z",
-                              lot=lot, unit=unit, rep=str(rep))
+        md = session_metadata(
+            rep_truth,
+            rate_hz,
+            session_start=f"2026-11-20T02:{rep - 1:02d}:00Z",
+            lot=lot,
+            unit=unit,
+            rep=str(rep),
+        )
         write_session(root, SessionKey(lot, unit, rep), steps, samples, md)
     return truth

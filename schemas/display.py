@@ -9,6 +9,7 @@ Values are stored in mimucal's inside units (deg/s, g, mm, deg, dimensionless ra
   dimensionless ratios (scale factors, misalignments) in **ppm**, gyro biases in **deg/h**,
   accelerometer biases in **mg**, the rest as stored.
 """
+
 from __future__ import annotations
 
 import math
@@ -90,7 +91,7 @@ def spread_text(std: float | None, uom: str | None, sig: int = 2) -> str:
         return "-"
     if not math.isfinite(v):
         return "-"
-    text = f"{v:.{sig}g}" if abs(v) < 10 ** sig else f"{v:.0f}"
+    text = f"{v:.{sig}g}" if abs(v) < 10**sig else f"{v:.0f}"
     return f"{text} {shown.label}".rstrip()
 
 

@@ -1,6 +1,7 @@
 """The Python API (schemas.api, issue 20 item 6): its docstring examples, the README's
 example, loading from a results folder by date, the unit checks, discovery on a unit with a
 known effect, and the same numbers as the CLI."""
+
 from __future__ import annotations
 
 import doctest
@@ -8,7 +9,7 @@ import json
 import re
 import subprocess
 import sys
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -27,10 +28,16 @@ def test_docstring_examples_run():
 
 def test_readme_example_runs(tmp_path):
     text = (ROOT / "README.md").read_text()
-    section = text[text.index("## Python API"):]
+    section = text[text.index("## Python API") :]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=300, env={"PYTHONPATH": str(ROOT), "PATH": ""})
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+        env={"PYTHONPATH": str(ROOT), "PATH": ""},
+    )
     assert out.returncode == 0, out.stderr
     assert "w_x" in out.stdout and out.stdout.rstrip().endswith("[]")
 
@@ -48,9 +55,24 @@ def test_calibrate_unit_recovers_the_truth_and_equals_the_cli(unit, tmp_path):
     assert np.abs(res.calibration.K_g - truth.K_g).max() < 1e-3
     assert np.abs(res.calibration.K_a - truth.K_a).max() < 1e-3
     path = tmp_path / "cli.json"
-    out = subprocess.run([sys.executable, "-m", "flows.cli", "calibrate", str(root / "data"),
-                          "--unit", "U0007", "--json", str(path), "--no-discovery"],
-                         capture_output=True, text=True, env={"PYTHONPATH": str(ROOT)}, timeout=300)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "calibrate",
+            str(root / "data"),
+            "--unit",
+            "U0007",
+            "--json",
+            str(path),
+            "--no-discovery",
+        ],
+        capture_output=True,
+        text=True,
+        env={"PYTHONPATH": str(ROOT)},
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr
     cli = json.loads(path.read_text())
     mine = json.loads(res.save(tmp_path / "api.json").read_text())
@@ -61,10 +83,11 @@ def test_calibrate_unit_recovers_the_truth_and_equals_the_cli(unit, tmp_path):
 
 def test_load_from_a_results_folder_by_date_and_the_unit_checks(unit, tmp_path):
     from schemas.results_store import ResultsStore
+
     root, truth, res = unit
     store = ResultsStore(tmp_path / "results")
     old = res.calibration.__class__(**{**res.calibration.__dict__, "w0": res.calibration.w0 + 1.0})
-    t1 = datetime(2026, 11, 20, 12, tzinfo=timezone.utc)
+    t1 = datetime(2026, 11, 20, 12, tzinfo=UTC)
     store.save_calibration(old, "U0007", {}, t1)
     store.save_calibration(res.calibration, "U0007", {}, t1 + timedelta(days=2))
     got = api.load_calibration_for(store.root, unit="U0007", at="2026-11-21")
@@ -113,22 +136,27 @@ def test_apply_to_frame_converts_named_units_and_refuses_mismatches(unit):
 def test_discover_unit_names_an_effect_put_into_the_simulation(tmp_path):
     """A gyro scale nonlinearity put into the simulated unit is named; a linear unit gets
     none (the README example's [] is checked in test_readme_example_runs)."""
+    from calib_core.effects import get_effect
     from calib_core.protocols import default_session
-    from calib_core.simulator import (draw_repetition_truth, session_metadata, simulate_session,
-                                      typical_truth)
+    from calib_core.simulator import draw_repetition_truth, session_metadata, simulate_session, typical_truth
     from calib_core.steps import SessionKey
     from schemas.writer import write_session
-    from calib_core.effects import get_effect
+
     rng = np.random.default_rng(21)
     # z gyro cubic scale error: 0.3 deg/s at 1000 deg/s (as tests/test_flows_extended_residuals)
     truth = typical_truth(rng, gyro_noise_dps=0.05, gyro_bias_instability_dps=0.005).with_effects(
-        (get_effect("gyro_scale_nonlinearity"), np.array([0, 0, 0, 0, 0, 0.3])))
+        (get_effect("gyro_scale_nonlinearity"), np.array([0, 0, 0, 0, 0, 0.3]))
+    )
     steps = default_session()
     for rep in (1, 2, 3):
         rt = draw_repetition_truth(truth, rng)
-        write_session(tmp_path, SessionKey("L01", "U0001", rep), steps,
-                      simulate_session(rt, steps, rng, 20.0),
-                      session_metadata(rt, 20.0, lot="L01", unit="U0001", rep=str(rep)))
+        write_session(
+            tmp_path,
+            SessionKey("L01", "U0001", rep),
+            steps,
+            simulate_session(rt, steps, rng, 20.0),
+            session_metadata(rt, 20.0, lot="L01", unit="U0001", rep=str(rep)),
+        )
     d = api.discover_unit(tmp_path, "U0001").to_dict()
     assert [e["name"] for e in d["effects"]] == ["gyro_scale_nonlinearity"]
     res = api.calibrate_unit(tmp_path, "U0001")  # discovery's calibration is the one applied

@@ -2,6 +2,7 @@
 `calibrate --json` to `apply`, a short `calibrate` summary, closed pipes, `apply` writing the
 format its output name says, user errors answered before Prefect starts with what exists,
 clean help texts, Prefect's logs in a file, per-lot progress lines, true wall times."""
+
 from __future__ import annotations
 
 import json
@@ -17,20 +18,25 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from flows.cli import main as cli_main
-from conftest import load_manifest
 from flows.fleet_sim import simulate_fleet
+
+from conftest import load_manifest
 
 ROOT = Path(__file__).resolve().parent.parent
 # a user's shell: none of the PREFECT_* settings that modules imported by other tests of this
 # process put into os.environ (flows.nightly sets Prefect's defaults when imported)
-ENV = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")},
-       "PYTHONPATH": str(ROOT)}
+ENV = {**{k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}, "PYTHONPATH": str(ROOT)}
 
 
 def mimucal(*args: str, **kw) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "flows.cli", *map(str, args)],
-                          capture_output=True, text=True, env=ENV, timeout=300, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "flows.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        env=ENV,
+        timeout=300,
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -45,8 +51,10 @@ def data(tmp_path_factory):
     df = t.to_pandas()
     df.loc[100:120, "gx"] = np.nan
     import pyarrow as pa
-    pq.write_table(pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(
-        t.schema.metadata), path)
+
+    pq.write_table(
+        pa.Table.from_pandas(df, preserve_index=False).replace_schema_metadata(t.schema.metadata), path
+    )
     return base, root
 
 
@@ -58,11 +66,11 @@ def test_calibrate_json_is_the_file_apply_reads_and_the_summary_is_short(data):
     lines = out.stdout.splitlines()
     assert 6 <= len(lines) <= 14, out.stdout
     assert lines[0] == "unit U0001 (lot L01): 3 repetition(s) calibrated, 0 failed"
-    scale = next(l for l in lines if l.startswith("gyro scale"))
+    scale = next(x for x in lines if x.startswith("gyro scale"))
     assert re.search(r"\(spread [\d.]+ ppm +[\d.]+ ppm +[\d.]+ ppm\)$", scale), scale
-    bias = next(l for l in lines if l.startswith("gyro bias"))
+    bias = next(x for x in lines if x.startswith("gyro bias"))
     assert "deg/h" in bias and "deg/s" in bias
-    assert "mg" in next(l for l in lines if l.startswith("accel bias"))
+    assert "mg" in next(x for x in lines if x.startswith("accel bias"))
     # the file is the store's format, with its version, and its per-repetition section
     doc = json.loads(cal_path.read_text())
     assert doc["format"] == "mimucal-calibration" and doc["format_version"] == "1.0"
@@ -101,22 +109,26 @@ def test_calibrate_full_prints_the_file_and_a_failed_session_is_one_line(data):
     assert [r["rep"] for r in doc["repetitions"]] == [1, 3]
     assert doc["provenance"]["sessions_failed"][0]["code"] == "E_NONFINITE_VALUE"
     short = mimucal("calibrate", root, "--unit", "U0002", "--no-discovery")
-    failed = [l for l in short.stdout.splitlines() if l.startswith("failed rep 2")]
+    failed = [x for x in short.stdout.splitlines() if x.startswith("failed rep 2")]
     assert len(failed) == 1 and "E_NONFINITE_VALUE" in failed[0]
 
 
-@pytest.mark.parametrize("args", [
-    ("calibrate", "{root}", "--unit", "U0001", "--full", "--no-discovery"),
-    ("simulate", "{base}/sim", "--lots", "1", "--units", "1", "--reps", "1", "--rate", "5"),
-    ("--help",),
-])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("calibrate", "{root}", "--unit", "U0001", "--full", "--no-discovery"),
+        ("simulate", "{base}/sim", "--lots", "1", "--units", "1", "--reps", "1", "--rate", "5"),
+        ("--help",),
+    ],
+)
 def test_a_closed_pipe_ends_quietly(data, args):
     """The reader goes away before the command writes (as `| head` does): no traceback,
     the exit code of a command its pipe ended (141, as `seq`)."""
     base, root = data
     argv = [a.format(root=root, base=base) for a in args]
-    proc = subprocess.Popen([sys.executable, "-m", "flows.cli", *argv], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, env=ENV)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flows.cli", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=ENV
+    )
     proc.stdout.close()  # the reader is gone
     err = proc.stderr.read().decode()
     rc = proc.wait(timeout=300)
@@ -127,6 +139,7 @@ def test_a_closed_pipe_ends_quietly(data, args):
 
 def test_every_help_text_renders_without_rest_markup():
     from flows.cli import build_parser
+
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
     seen = 0
@@ -142,13 +155,31 @@ def store(tmp_path_factory):
     """A results store with two lots (units table only: enough for the checks that answer
     before Prefect starts)."""
     from schemas.results_store import ResultsStore
+
     root = tmp_path_factory.mktemp("store") / "results"
     st = ResultsStore(root)
-    st.write("units", pd.DataFrame([
-        {"lot": lot, "unit": unit, "n_sessions": 1, "n_ok": 1, "n_warned": 0, "n_failed": 0,
-         "run_id": "r", "updated_at": "2026-11-20T00:00:00Z", "state": "calibrated",
-         "reason": "", "calibration_file": None, "calibrated_at": None}
-        for lot, unit in (("L01", "U0001"), ("L01", "U0002"), ("L02", "U0003"))]))
+    st.write(
+        "units",
+        pd.DataFrame(
+            [
+                {
+                    "lot": lot,
+                    "unit": unit,
+                    "n_sessions": 1,
+                    "n_ok": 1,
+                    "n_warned": 0,
+                    "n_failed": 0,
+                    "run_id": "r",
+                    "updated_at": "2026-11-20T00:00:00Z",
+                    "state": "calibrated",
+                    "reason": "",
+                    "calibration_file": None,
+                    "calibrated_at": None,
+                }
+                for lot, unit in (("L01", "U0001"), ("L01", "U0002"), ("L02", "U0003"))
+            ]
+        ),
+    )
     return root
 
 
@@ -158,14 +189,16 @@ def test_a_wrong_lot_or_unit_is_one_line_with_what_exists_before_prefect(data, s
     r = mimucal("report", "--results", store, "--lot", "L9")
     took = time.monotonic() - t0
     assert r.returncode == 2
-    assert r.stderr.strip() == (f"mimucal report: error: lot 'L9' is not in results store "
-                                f"{store} (lots: L01, L02)")
+    assert r.stderr.strip() == (
+        f"mimucal report: error: lot 'L9' is not in results store {store} (lots: L01, L02)"
+    )
     assert took < 5.0  # no Prefect start-up (8.6 s before)
     assert not (store / ".prefect").exists()
     r = mimucal("rerun", root, "--results", store, "--unit", "U9")
     assert r.returncode == 2
-    assert r.stderr.strip() == (f"mimucal rerun: error: unit 'U9' is not in dataset {root} "
-                                f"(units: U0001, U0002)")
+    assert r.stderr.strip() == (
+        f"mimucal rerun: error: unit 'U9' is not in dataset {root} (units: U0001, U0002)"
+    )
     r = mimucal("report", "--results", base / "nowhere", "--lot", "L01")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "run 'mimucal nightly'" in r.stderr
     r = mimucal("calibrate", root, "--unit", "U7")
@@ -180,9 +213,13 @@ def test_a_wrong_lot_or_unit_is_one_line_with_what_exists_before_prefect(data, s
 def test_report_pdf_without_chromium_is_one_clear_line_before_the_run(store):
     env = {**ENV, "MIMUCAL_CHROMIUM": "/nonexistent/chromium"}
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "flows.cli", "report", "--results", str(store),
-                        "--lot", "L01", "--pdf"], capture_output=True, text=True, env=env,
-                       timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "report", "--results", str(store), "--lot", "L01", "--pdf"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert r.returncode == 2 and time.monotonic() - t0 < 5.0
     assert r.stderr.count("\n") == 1 and "needs Debian's chromium" in r.stderr
     assert "apt-get install chromium" in r.stderr
@@ -196,15 +233,24 @@ def test_nightly_logs_prefect_to_a_file_prints_progress_and_wall_time(data):
     base, root = data
     results = base / "results"
     t0 = time.monotonic()
-    r = mimucal("nightly", root, "--results", results, "--no-discovery", "--batch-size", "1",
-                "--runner", "threads", "--unit-reports")
+    r = mimucal(
+        "nightly",
+        root,
+        "--results",
+        results,
+        "--no-discovery",
+        "--batch-size",
+        "1",
+        "--runner",
+        "threads",
+        "--unit-reports",
+    )
     wall = time.monotonic() - t0
     assert r.returncode == 0, r.stderr
     assert " | INFO " not in r.stderr and "Flow run" not in r.stderr, r.stderr
     log = (results / "logs" / "prefect.log").read_text()
     assert "Flow run" in log and "Finished in state Completed" in log
-    progress = re.findall(r"^lot L01: (\d)/2 units(?: \((\d) failed sessions\))?, [\d.]+ s$",
-                          r.stderr, re.M)
+    progress = re.findall(r"^lot L01: (\d)/2 units(?: \((\d) failed sessions\))?, [\d.]+ s$", r.stderr, re.M)
     assert [int(n) for n, _ in progress] == [1, 2], r.stderr
     m = re.search(r"; ([\d.]+) s wall \(([\d.]+) s in the flow\)$", r.stdout, re.M)
     assert m, r.stdout
@@ -212,9 +258,12 @@ def test_nightly_logs_prefect_to_a_file_prints_progress_and_wall_time(data):
     assert in_flow < reported <= wall + 0.1 and reported > 0.8 * wall
     # --unit-reports (the demo's): a report per unit of the lot
     assert sorted(p.name for p in (results / "reports" / "units").glob("*.html")) == [
-        "U0001.html", "U0002.html"]
+        "U0001.html",
+        "U0002.html",
+    ]
     assert "unit reports: " in r.stdout
     from reports.browser import find_chromium
+
     if find_chromium() is not None:  # the lot report printed to PDF through the CLI
         pdf = mimucal("report", "--results", results, "--lot", "L01", "--pdf", base / "L01.pdf")
         assert pdf.returncode == 0, pdf.stderr
@@ -235,9 +284,9 @@ def test_verbose_leaves_prefect_logging_on_the_terminal(tmp_path, verbose):
         "setup_logging()\n"
         "logging.getLogger('prefect.flow_runs').info('a flow run line')\n"
         "logging.getLogger('prefect').info('a prefect line')\n"
-        "for h in logging.getLogger().handlers: h.flush()\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV,
-                       timeout=300)
+        "for h in logging.getLogger().handlers: h.flush()\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=ENV, timeout=300)
     assert r.returncode == 0, r.stderr
     log = tmp_path / "results" / "logs" / "prefect.log"
     if verbose:

@@ -2,6 +2,7 @@
 key-parameter tables behind a model chooser, flagged units first, the unit column frozen,
 spreads in ppm / deg/h / mg, the symlog rate axis of gyro error vs rate, the print style,
 and the PDF of a lot report."""
+
 from __future__ import annotations
 
 import re
@@ -22,13 +23,22 @@ def test_symlog_is_monotonic_signed_and_its_ticks_name_the_rates():
     # a decade of rate is (nearly) one unit of axis far from the linear zone
     assert abs((symlog(np.array([1000.0])) - symlog(np.array([100.0])))[0] - 1) < 0.01
     ax = symlog_axis(3600)
-    assert ax["ticktext"] == ["\u221210000", "\u22121000", "\u2212100", "\u221210", "\u22121", "0",
-                              "1", "10", "100", "1000", "10000"]
+    assert ax["ticktext"] == [
+        "\u221210000",
+        "\u22121000",
+        "\u2212100",
+        "\u221210",
+        "\u22121",
+        "0",
+        "1",
+        "10",
+        "100",
+        "1000",
+        "10000",
+    ]
     assert np.allclose(ax["tickvals"], symlog(np.array([-1e4, -1e3, -100, -10, -1, 0, 1, 10, 100, 1e3, 1e4])))
     assert rates_span_decades(np.array([6, -6, 3600, 0.0]))
     assert not rates_span_decades(np.array([50, -50, 200, 0.0]))
-
-
 
 
 @pytest.fixture(scope="module")
@@ -47,9 +57,11 @@ def page(store):
 
 
 def visible_panels(b) -> list[str]:
-    return b.evaluate("Array.from(document.querySelectorAll('.tabpanel'))"
-                      ".filter(function(p){return p.offsetParent !== null;})"
-                      ".map(function(p){return p.getAttribute('data-model');})")
+    return b.evaluate(
+        "Array.from(document.querySelectorAll('.tabpanel'))"
+        ".filter(function(p){return p.offsetParent !== null;})"
+        ".map(function(p){return p.getAttribute('data-model');})"
+    )
 
 
 @pytest.mark.browser
@@ -57,8 +69,10 @@ def visible_panels(b) -> list[str]:
 def test_one_table_per_model_behind_a_chooser(page, store):
     b, _ = page
     assert visible_panels(b) == ["gyro"]
-    tabs = b.evaluate("Array.from(document.querySelectorAll('#key-parameter-tabs [role=tab]'))"
-                      ".map(function(t){return [t.getAttribute('data-tab'), t.textContent];})")
+    tabs = b.evaluate(
+        "Array.from(document.querySelectorAll('#key-parameter-tabs [role=tab]'))"
+        ".map(function(t){return [t.getAttribute('data-tab'), t.textContent];})"
+    )
     assert [t for t, _ in tabs] == ["kp-gyro", "kp-accel", "kp-accel_static", "kp-lever_arm"]
     # each tab says how many flagged cells its table holds
     injected = {}
@@ -82,15 +96,17 @@ def test_one_table_per_model_behind_a_chooser(page, store):
 def test_flagged_units_first_and_the_unit_column_frozen(page, store):
     b, _ = page
     for model in ("gyro", "accel", "accel_static", "lever_arm"):
-        order = b.evaluate(f"Array.from(document.querySelectorAll('#key-parameters-{model} tbody tr[data-unit]'))"
-                           ".map(function(r){return [r.getAttribute('data-unit'), "
-                           "r.classList.contains('flagged-unit')];})")
+        order = b.evaluate(
+            f"Array.from(document.querySelectorAll('#key-parameters-{model} tbody tr[data-unit]'))"
+            ".map(function(r){return [r.getAttribute('data-unit'), "
+            "r.classList.contains('flagged-unit')];})"
+        )
         flags = [f for _, f in order]
         n = sum(flags)
         assert n == len(store.outliers) and flags == [True] * n + [False] * (len(order) - n), model
         # within this model, the units with a flagged cell of this model come first
         here = sorted(u for u, pairs in store.outliers.items() if any(m == model for m, _ in pairs))
-        assert [u for u, _ in order[:len(here)]] == here
+        assert [u for u, _ in order[: len(here)]] == here
     # scroll the gyro table right: the unit cells stay at the left edge, the values move
     moved = b.evaluate("""(function(){
         var t = document.getElementById('key-parameters-gyro');
@@ -117,9 +133,12 @@ def test_spreads_in_ppm_deg_per_hour_and_mg(page):
         var out = {};
         ['gyro', 'accel'].forEach(function(m){
             var t = document.getElementById('key-parameters-' + m);
-            var heads = Array.from(t.tHead.rows[t.tHead.rows.length - 1].cells).map(function(h){return h.textContent;});
-            var stat = Array.from(t.tBodies[0].rows).filter(function(r){return r.classList.contains('lotstat');});
-            out[m] = {heads: heads, scatter: Array.from(stat[1].cells).map(function(c){return c.textContent;})};
+            var heads = Array.from(t.tHead.rows[t.tHead.rows.length - 1].cells)
+                .map(function(h){return h.textContent;});
+            var stat = Array.from(t.tBodies[0].rows)
+                .filter(function(r){return r.classList.contains('lotstat');});
+            out[m] = {heads: heads,
+                      scatter: Array.from(stat[1].cells).map(function(c){return c.textContent;})};
         });
         return out;
     })()""")
@@ -137,8 +156,10 @@ def test_spreads_in_ppm_deg_per_hour_and_mg(page):
             assert re.fullmatch(r"[\d.]+\u00a0mg", v), (h, v)
     assert col  # the headings were read
     # no spread in scientific notation anywhere in the tables (8.8e-06 before)
-    text = b.evaluate("Array.from(document.querySelectorAll('td.spread, tr.lotstat td'))"
-                      ".map(function(c){return c.textContent;}).join(' ')")
+    text = b.evaluate(
+        "Array.from(document.querySelectorAll('td.spread, tr.lotstat td'))"
+        ".map(function(c){return c.textContent;}).join(' ')"
+    )
     assert not re.search(r"\de[-+]\d", text)
 
 
@@ -182,6 +203,7 @@ def test_print_style_shows_every_model_table(page):
 @pytest.mark.skipif(find_chromium() is None, reason="Debian's chromium is not installed")
 def test_lot_report_prints_to_pdf(page, tmp_path):
     from reports.pdf import print_pdf
+
     _, html = page
     pdf = print_pdf(html, tmp_path / "lot.pdf")
     data = pdf.read_bytes()

@@ -6,6 +6,7 @@ prints a short summary: the unit, repetitions calibrated and failed, the key par
 their spread over repetitions. --json FILE writes the unit's calibration file, the format the
 results store holds and 'mimucal apply' reads (format "mimucal-calibration" with its
 format_version; per-repetition fits under "repetitions"). --full prints that whole file."""
+
 from __future__ import annotations
 
 import argparse
@@ -31,14 +32,28 @@ SUMMARY_ROWS = (
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "calibrate", help="calibrate every session of one unit (xu2016 + zhang2017 fits)",
-        description=__doc__, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "calibrate",
+        help="calibrate every session of one unit (xu2016 + zhang2017 fits)",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dataset", type=Path, help="dataset root (lot=*/unit=*/rep=*/)")
     p.add_argument("--unit", required=True, help="unit id")
-    p.add_argument("--json", type=Path, default=None, metavar="FILE",
-                   help="write the unit's calibration file here (the format 'apply' reads)")
-    p.add_argument("--full", "--verbose", dest="full", action="store_true",
-                   help="print the whole calibration file (JSON) instead of the summary")
+    p.add_argument(
+        "--json",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the unit's calibration file here (the format 'apply' reads)",
+    )
+    p.add_argument(
+        "--full",
+        "--verbose",
+        dest="full",
+        action="store_true",
+        help="print the whole calibration file (JSON) instead of the summary",
+    )
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
     p.set_defaults(func=run)
 
@@ -49,12 +64,13 @@ def summary_lines(ur, failed: list[dict], n_reps: int) -> list[str]:
     import numpy as np
 
     from schemas.display import spread_text, value_text
+
     out = ur.outcome
-    lines = [f"unit {ur.unit} (lot {ur.lot}): {n_reps} repetition(s) calibrated, "
-             f"{len(failed)} failed"]
+    lines = [f"unit {ur.unit} (lot {ur.lot}): {n_reps} repetition(s) calibrated, {len(failed)} failed"]
     terms = [t.name for t in out.applied.terms]
-    lines.append("model: w = K_g G + w0, f = K_a A + f0; extension terms: "
-                 + (", ".join(terms) if terms else "none"))
+    lines.append(
+        "model: w = K_g G + w0, f = K_a A + f0; extension terms: " + (", ".join(terms) if terms else "none")
+    )
     by_key = {(s.model, s.name): s for s in out.calibration.summary}
     for model, label, names in SUMMARY_ROWS:
         ps = [by_key.get((model, n)) for n in names]
@@ -67,19 +83,22 @@ def summary_lines(ur, failed: list[dict], n_reps: int) -> list[str]:
     arms = [s for s in out.calibration.summary if s.model == "lever_arm"]
     if arms:
         worst = max(arms, key=lambda s: abs(s.std) if s.std == s.std else -1)
-        lines.append(f"{'lever arms':<30} {len(arms)} components, largest spread "
-                     f"{spread_text(worst.std, worst.unit)} ({worst.name})")
+        lines.append(
+            f"{'lever arms':<30} {len(arms)} components, largest spread "
+            f"{spread_text(worst.std, worst.unit)} ({worst.name})"
+        )
     if ur.diagnosis is not None:
         effects = [e.get("name") or e.get("effect") for e in (ur.diagnosis.get("effects") or [])]
-        lines.append("model discovery: " + (", ".join(map(str, effects)) if effects else
-                                            "no effect beyond the base model")
-                     + ("; misfit left unexplained" if ur.diagnosis.get("unexplained") else ""))
+        lines.append(
+            "model discovery: "
+            + (", ".join(map(str, effects)) if effects else "no effect beyond the base model")
+            + ("; misfit left unexplained" if ur.diagnosis.get("unexplained") else "")
+        )
     elif ur.discovery_note:
         lines.append(ur.discovery_note)
     for f in failed:
         msg = f["message"] or ""
-        lines.append(f"failed rep {f['rep']}: "
-                     + (msg if msg.startswith("[") else f"[{f['code']}] {msg}"))
+        lines.append(f"failed rep {f['rep']}: " + (msg if msg.startswith("[") else f"[{f['code']}] {msg}"))
     return lines
 
 
@@ -97,27 +116,39 @@ def run(args) -> int:
         print(f"skipped: {e}", file=sys.stderr)
     if not refs:
         from flows.user_errors import units_under
-        raise CliError(f"no session of unit {args.unit!r} under {args.dataset} "
-                       f"(units: {units_under(args.dataset)})")
+
+        raise CliError(
+            f"no session of unit {args.unit!r} under {args.dataset} (units: {units_under(args.dataset)})"
+        )
     lot = refs[0].key.lot
-    ur = calibrate_unit_job(UnitJob(lot, args.unit, refs, "mimucal calibrate"), run_discovery=not args.no_discovery)
+    ur = calibrate_unit_job(
+        UnitJob(lot, args.unit, refs, "mimucal calibrate"), run_discovery=not args.no_discovery
+    )
     out = ur.outcome
-    failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
-              for s in out.sessions if not s.succeeded]
+    failed = [
+        {"rep": s.key.rep, "code": s.code, "message": s.message} for s in out.sessions if not s.succeeded
+    ]
     if not ur.calibrated:
         for f in failed:
             print(f"failed: {f['message']}", file=sys.stderr)
         raise CliError(f"unit {args.unit}: every session failed; no calibration")
     n_reps = len(out.calibration.reps)
-    extra = calibration_file_extra(ur, {"run_id": None, "command": "mimucal calibrate",
-                                        "dataset": str(args.dataset),
-                                        "code_version": code_version(),
-                                        "calibrated_at": iso(utc_now())})
+    extra = calibration_file_extra(
+        ur,
+        {
+            "run_id": None,
+            "command": "mimucal calibrate",
+            "dataset": str(args.dataset),
+            "code_version": code_version(),
+            "calibrated_at": iso(utc_now()),
+        },
+    )
     if args.json:
         save_calibration(out.applied, args.json, extra, extra_nonfinite="null", default=str)
     if args.full:
-        sys.stdout.write(dumps_json(calibration_to_dict(out.applied, extra), default=str,
-                                    null_keys=frozenset(extra)))
+        sys.stdout.write(
+            dumps_json(calibration_to_dict(out.applied, extra), default=str, null_keys=frozenset(extra))
+        )
     else:
         for line in summary_lines(ur, failed, n_reps):
             print(line)
