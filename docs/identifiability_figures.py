@@ -1,6 +1,7 @@
 """Regenerate the confounding, Earth-rate and thermal figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/identifiability_figures.py [N_UNITS]    # 40 units per row
+    .venv/bin/python docs/identifiability_figures.py [N_UNITS [EFFECTS]]    # 40 units per row
+        # EFFECTS: comma-separated thermal rows only, e.g. thermal_bias_drift,bias_time_drift
 
 Seeded: the same numbers every run.
 """
@@ -10,10 +11,12 @@ import sys
 import time
 
 
-def main(n_units: int = 40) -> None:
+def main(n_units: int = 40, sections: str = "") -> None:
+    """``sections``: comma-separated effect names to run only those thermal rows (and no
+    Earth-rate rows); empty: everything."""
     from calib_core import protocols
     from calib_core.discovery.evaluation_ident import earth_rate_scenario, sensor_effect_scenario
-    from calib_core.sim.physics import Turntable
+    from calib_core.sim.physics import Turntable, WarmUp
     from schemas.physics_sessions import physics_unit_step_means
 
     def step_means_of(unit, steps, rng, unit_id, table):
@@ -23,16 +26,17 @@ def main(n_units: int = 40) -> None:
     default = protocols.default_session()
     whole = protocols.whole_turn_session()
     two = protocols.extended(whole, protocols.two_heading_stationary())
+    earth = [] if sections else [
+        ("whole turns about the vertical only", whole, False, True, 11),
+        ("whole turns + stationary steps at two headings", two, False, True, 12),
+        ("default protocol, latitude/heading not given", default, False, True, 13),
+        ("default protocol, latitude_deg/table_heading_deg given", default, True, True, 14),
+        ("default protocol, typical MEMS gyro (36 deg/h instability)", default, False,
+         False, 15)]
     print("| Earth rate, 45 deg latitude | units | named alone | confounded with "
           "gyro_g_sensitivity | other effect named | estimate within 2 SE of 10.64 deg/h |")
     print("|---|---|---|---|---|---|")
-    for label, steps, declare, quiet, seed in (
-            ("whole turns about the vertical only", whole, False, True, 11),
-            ("whole turns + stationary steps at two headings", two, False, True, 12),
-            ("default protocol, latitude/heading not given", default, False, True, 13),
-            ("default protocol, latitude_deg/table_heading_deg given", default, True, True, 14),
-            ("default protocol, typical MEMS gyro (36 deg/h instability)", default, False,
-             False, 15)):
+    for label, steps, declare, quiet, seed in earth:
         t0 = time.perf_counter()
         o = earth_rate_scenario(step_means_of, steps, n_units, seed, declare=declare,
                                 quiet=quiet)
@@ -47,14 +51,21 @@ def main(n_units: int = 40) -> None:
     print("| hidden effect (default protocol, warm-up ramp) | units | named alone | named | "
           "right parameter largest | other effect named |")
     print("|---|---|---|---|---|---|")
-    for name, seed in (("thermal_scale_drift", 21), ("thermal_bias_drift", 22),
-                       ("bias_time_drift", 23)):
-        o = sensor_effect_scenario(step_means_of, default, name, n_units, seed)
-        print(f"| {name} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.named):.0f} % | "
+    fast = WarmUp(rise_c=10.0, tau_s=150.0)
+    for name, seed, warm, label in (
+            ("thermal_scale_drift", 21, WarmUp(), ""),
+            ("thermal_bias_drift", 22, WarmUp(), ""),
+            ("bias_time_drift", 23, WarmUp(), ""),
+            ("thermal_bias_drift", 24, fast, ", warm-up time constant 150 s"),
+            ("bias_time_drift", 25, fast, ", warm-up time constant 150 s")):
+        if sections and name not in sections:
+            continue
+        o = sensor_effect_scenario(step_means_of, default, name, n_units, seed, warm_up=warm)
+        print(f"| {name}{label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.named):.0f} % | "
               f"{o.right_axis}/{o.named} | {o.pct(o.other_named):.0f} % |", flush=True)
         for note in o.notes[:5]:
             print(f"<!--   {note} -->")
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40)
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40, sys.argv[2] if len(sys.argv) > 2 else "")

@@ -22,7 +22,7 @@ import pandas as pd
 from calib_core.discovery.turntable import diagnose_unit
 from calib_core.effects import get_effect
 from calib_core.effects.earth_rate import EARTH_RATE_DEG_H
-from calib_core.sim.physics import PhysicsUnit, Turntable, typical_physics_unit
+from calib_core.sim.physics import PhysicsUnit, Turntable, WarmUp, typical_physics_unit
 
 StepMeansOf = Callable[..., list]
 DEG = np.pi / 180.0
@@ -96,15 +96,16 @@ def earth_rate_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, n_units
 
 
 def sensor_effect_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, name: str,
-                           n_units: int, seed: int, scale: float = 1.0) -> Outcome:
-    """Units with the catalogue effect ``name`` hidden by its module at ``scale``; the
-    "right axis" is the sensor of its largest hidden parameter being the sensor of the
-    estimate's largest |t|."""
+                           n_units: int, seed: int, scale: float = 1.0,
+                           warm_up: WarmUp = WarmUp()) -> Outcome:
+    """Units with the catalogue effect ``name`` hidden by its module at ``scale`` (and the
+    temperature ``warm_up``); the "right axis" is the sensor of its largest hidden parameter
+    being the sensor of the estimate's largest |t|."""
     rng = np.random.default_rng(seed)
     term = get_effect(name)
     out = Outcome()
     for u in range(n_units):
-        unit = typical_physics_unit(rng)
+        unit = typical_physics_unit(rng, temperature=warm_up)
         unit, theta, what = term.hide(unit, rng, scale)
         hidden_param = term.param_names[int(np.argmax(np.abs(theta)))]
 
