@@ -13,6 +13,7 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation_ident import (earth_rate_scenario, quiet_gyros,
                                                    sensor_effect_scenario)
+from calib_core.effects import get_effect
 from calib_core.effects.earth_rate import EARTH_RATE_DEG_H
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from flows.commands.diagnose import summary_lines
@@ -111,3 +112,33 @@ def test_a_calibration_never_removes_the_earth_rate():
     A = np.array([[0.0, 0.0, 1.0]])
     w, f = cal.apply(G, A)
     assert np.allclose(w, G) and np.allclose(f, A)
+
+
+@pytest.mark.slow
+def test_nightly_stores_findings_and_their_evidence_and_the_report_draws_it(tmp_path):
+    from flows import runtime
+
+    runtime.ensure_environment()
+    from flows.cli import main as cli_main
+    from reports.lot import write_lot_report
+    from schemas.results_store import ResultsStore
+
+    data, results = tmp_path / "data", tmp_path / "results"
+    rng = np.random.default_rng(2118)
+    unit, _, _ = get_effect("lever_arm").hide(typical_physics_unit(rng), rng)
+    write_physics_unit(data, unit, protocols.default_session(), rng, n_reps=3, rate_hz=20.0,
+                       lot="EV", unit_id="U0")
+    assert cli_main(["nightly", str(data), "--results", str(results)]) == 0
+    store = ResultsStore(results)
+    disc = store.read("discovery")
+    named = disc[disc["kind"] == "named"]
+    assert list(named["effect"]) == ["lever_arm"]
+    assert " mm" in named["estimates"].iloc[0] and " ± " in named["estimates"].iloc[0]
+    ev = store.read("discovery_evidence")
+    ev = ev[ev["effect"] == "lever_arm"]
+    assert len(ev) and set(ev["channel"]) <= {"ax", "ay", "az"}
+    assert np.isfinite(ev[["x", "before", "fitted", "after"]].to_numpy(float)).all()
+    # the effect explains the baseline residual: the residual after is much smaller
+    assert ev["after"].abs().mean() < 0.5 * ev["before"].abs().mean()
+    html = write_lot_report(results, "EV").read_text()
+    assert 'class="evidence"' in html and "lever_arm · a" in html
