@@ -44,6 +44,7 @@ class Outcome:
     named_alone: int = 0  # the hidden effect named, nothing else named or confounded
     named: int = 0  # the hidden effect named (others beside it allowed)
     confounded: int = 0  # the hidden effect in a confounded group, nothing named alone
+    confounded_set_aside: int = 0  # ... in a confounded group found negligible, nothing named
     other_named: int = 0  # some other catalogue effect named alone
     within_2se: int = 0  # estimate within 2 standard errors of the truth (when named)
     right_axis: int = 0
@@ -60,6 +61,8 @@ def _tally(out: Outcome, d, hidden: str, check=None, what: str = "") -> None:
     out.named += hidden in named
     out.named_alone += named == [hidden] and not groups
     out.confounded += bool(not named and any(hidden in g for g in groups))
+    out.confounded_set_aside += bool(not named and not groups and any(
+        hidden in g for g in getattr(d, "confounded_set_aside", [])))
     out.other_named += bool(set(named) - {hidden})
     if hidden in named and check is not None:
         ok_est, ok_axis = check(next(e for e in d.effects if e.name == hidden))

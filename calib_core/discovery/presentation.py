@@ -93,8 +93,23 @@ def finding_rows(diag) -> list[dict[str, Any]]:
                          heldout_rms_before=float(c.heldout_rms_before),
                          heldout_rms_after=float(c.heldout_rms_after), gain=float(c.gain),
                          separated_by=c.advice(), **unit_cols))
-    rows += [effect_row(e, "partial") for e in diag.partial]
-    rows += [effect_row(e, "negligible") for e in diag.negligible]
+    # a confounded group set aside is one row, as the group it is
+    grouped = {n: tuple(g) for g in diag.confounded_set_aside for n in g}
+    for kind, found in (("partial", diag.partial), ("negligible", diag.negligible)):
+        seen = set()
+        for e in found:
+            g = grouped.get(e.name)
+            if g is None:
+                rows.append(effect_row(e, kind))
+                continue
+            if g in seen:
+                continue
+            seen.add(g)
+            members = [m for m in found if m.name in g]
+            row = effect_row(e, kind)
+            row.update(effect="confounded: " + ", ".join(g), axes="",
+                       estimates=" | ".join(f"{m.name}: {estimates_text(m)}" for m in members))
+            rows.append(row)
     if diag.unexplained:
         still = [c for c, t in diag.channel_misfit_after.items() if t.rejects]
         la = diag.lack_of_fit_after
