@@ -26,8 +26,9 @@ def physics(
 
     steps = protocols.default_session()
 
-    def step_means_of(unit, steps, rng, unit_id):
-        return physics_unit_step_means(unit, steps, rng, n_reps=5, unit_id=unit_id)
+    def step_means_of(unit, steps, rng, unit_id, table=None):
+        kw = {} if table is None else {"table": table}
+        return physics_unit_step_means(unit, steps, rng, n_reps=5, unit_id=unit_id, **kw)
 
     def seed(*parts) -> int:
         return sum(ord(ch) for p in parts for ch in str(p)) * 7919 % 2**31

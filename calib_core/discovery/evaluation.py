@@ -19,7 +19,7 @@ import pandas as pd
 
 from calib_core.discovery.turntable import diagnose_unit
 from calib_core.effects import get_effect
-from calib_core.sim.physics import PhysicsUnit, typical_physics_unit
+from calib_core.sim.physics import PhysicsUnit, Turntable, typical_physics_unit
 
 StepMeansOf = Callable[[PhysicsUnit, pd.DataFrame, np.random.Generator, str], list]
 
@@ -47,18 +47,11 @@ def _random_walk(unit, rng, scale):
     ), f"gyro {'xyz'[i]} bias random walk {rw:.2g} deg/s/sqrt(s)"
 
 
-def _scale_tc(unit, rng, scale):
-    i = int(rng.integers(3))
-    ppm = rng.choice([-1.0, 1.0]) * rng.uniform(30.0, 100.0) * scale
-    return unit.replace_gyro(i, scale_tc_ppm=float(ppm)), f"gyro {'xyz'[i]} scale factor {ppm:.3g} ppm/degC"
-
-
 # physical errors no catalogue term models: name -> (unit, rng, scale) -> (unit, description)
 OUT_OF_CATALOGUE = {
     "periodic_rate_error": _periodic,
     "rate_squared_cross_coupling": _cross_quad,
     "bias_random_walk": _random_walk,
-    "thermal_scale_drift": _scale_tc,
 }
 
 PAIRS = (
@@ -128,14 +121,16 @@ def run_scenario(
     tally = Tally(tuple(hidden))
     for u in range(n_units):
         unit = typical_physics_unit(rng)
-        what = []
+        what, table = [], {}
         for name in hidden:
-            unit, _, w = get_effect(name).hide(unit, rng, scale)
+            unit, theta, w = get_effect(name).hide(unit, rng, scale)
+            table.update(get_effect(name).table_knobs(theta))  # where the table stands
             what.append(f"{name} on {w}")
         if out_of_catalogue is not None:
             unit, w = OUT_OF_CATALOGUE[out_of_catalogue](unit, rng, scale)
             what.append(w)
-        sessions = step_means_of(unit, steps, rng, f"U{u:03d}")
+        sessions = (step_means_of(unit, steps, rng, f"U{u:03d}", table=Turntable(**table))
+                    if table else step_means_of(unit, steps, rng, f"U{u:03d}"))
         t0 = time.perf_counter()
         d = diagnose_unit(sessions, alpha=alpha, tables=False)
         tally.seconds += time.perf_counter() - t0
