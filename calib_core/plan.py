@@ -10,14 +10,16 @@ Assumptions, stated because the steps table alone does not say them:
   MEMS unit averaged over a few seconds, bias instability included); only the ratio of the
   two matters (the terms are compared within a channel);
 - time: steps follow each other, each lasting its ``duration_s`` (3 s without it; the
-  settling time is part of it, averaging starts after it); the temperature follows a 10 degC warm-up with a 600 s time constant from
+  settling time is part of it, averaging starts after it); the temperature follows a 10 degC
+  warm-up with a 600 s time constant from
   power-on (the physics simulator's default), unless the frame carries ``t_mid``/``temp_c``;
 - the base model is each channel's affine calibration (three gains and a bias).
 """
+
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 import pandas as pd
@@ -30,16 +32,16 @@ WARM_UP_C = (25.0, 10.0, 600.0)  # start, rise, time constant (s)
 DEFAULT_DURATION_S = 3.0
 
 
-def step_context(steps: pd.DataFrame, latitude_deg: float | None = None,
-                 table_heading_deg: float | None = None) -> MotionContext:
+def step_context(
+    steps: pd.DataFrame, latitude_deg: float | None = None, table_heading_deg: float | None = None
+) -> MotionContext:
     """The motion of each step of a steps table (contract columns; optional ``duration_s``,
     ``heading_deg``, ``t_mid``, ``temp_c``), times and temperatures filled as the module
     docstring says."""
     n = len(steps)
     w = steps[["w_ref_x", "w_ref_y", "w_ref_z"]].to_numpy(float)
     f = steps[["f_ref_x", "f_ref_y", "f_ref_z"]].to_numpy(float)
-    dur = (steps["duration_s"].to_numpy(float) if "duration_s" in steps
-           else np.full(n, DEFAULT_DURATION_S))
+    dur = steps["duration_s"].to_numpy(float) if "duration_s" in steps else np.full(n, DEFAULT_DURATION_S)
     dur = np.where(np.isfinite(dur), dur, DEFAULT_DURATION_S)
     settle = steps["settle_s"].to_numpy(float) if "settle_s" in steps else np.zeros(n)
     t_nominal = np.cumsum(dur) - (dur - settle) / 2.0
@@ -57,19 +59,28 @@ def step_context(steps: pd.DataFrame, latitude_deg: float | None = None,
     # angle turned since the step's start at the averaged window's start and end (the
     # orientation convention, as StepMeans.turned_deg): given, or from settle and duration
     rate = np.linalg.norm(w, axis=1)
-    turned = np.column_stack([0.75 * settle * rate, (0.75 * settle + np.maximum(dur - settle, 0.0))
-                              * rate])
+    turned = np.column_stack([0.75 * settle * rate, (0.75 * settle + np.maximum(dur - settle, 0.0)) * rate])
     if {"turned0_deg", "turned1_deg"} <= set(steps.columns):
         given = steps[["turned0_deg", "turned1_deg"]].to_numpy(float)
         turned = np.where(np.isfinite(given), given, turned)
-    return MotionContext.from_refs(w, f, temp_c=temp, t=t, heading_deg=heading,
-                                   latitude_deg=latitude_deg,
-                                   table_heading_deg=table_heading_deg, turned_deg=turned)
+    return MotionContext.from_refs(
+        w,
+        f,
+        temp_c=temp,
+        t=t,
+        heading_deg=heading,
+        latitude_deg=latitude_deg,
+        table_heading_deg=table_heading_deg,
+        turned_deg=turned,
+    )
 
 
-def design(steps: pd.DataFrame, names: list[str] | None = None,
-           latitude_deg: float | None = None, table_heading_deg: float | None = None
-           ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, tuple[str, ...]]]:
+def design(
+    steps: pd.DataFrame,
+    names: list[str] | None = None,
+    latitude_deg: float | None = None,
+    table_heading_deg: float | None = None,
+) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, tuple[str, ...]]]:
     """Weighted base columns (6 n, 24) and each term's columns (6 n, p): rows are the six
     channels of every step, each channel with its own affine base block."""
     ctx = step_context(steps, latitude_deg, table_heading_deg)
@@ -79,7 +90,7 @@ def design(steps: pd.DataFrame, names: list[str] | None = None,
     for c in range(6):
         ref = ctx.w if c < 3 else ctx.f
         rows = slice(c * n, (c + 1) * n)
-        base[rows, 4 * c:4 * c + 3] = ref / NOMINAL_SIGMA[c]
+        base[rows, 4 * c : 4 * c + 3] = ref / NOMINAL_SIGMA[c]
         base[rows, 4 * c + 3] = 1.0 / NOMINAL_SIGMA[c]
     terms, pnames = {}, {}
     for nm in names:
@@ -98,7 +109,7 @@ def design(steps: pd.DataFrame, names: list[str] | None = None,
     base_r = Rf[:, :24]
     out, at = {}, 24
     for nm, k in zip(names_live, widths):
-        out[nm] = Rf[:, at:at + k]
+        out[nm] = Rf[:, at : at + k]
         at += k
     return base_r, out, pnames
 
@@ -110,8 +121,9 @@ def _excited(Z: np.ndarray) -> np.ndarray:
     return norms > 1e-9 * max(norms.max(initial=0.0), 1e-300)
 
 
-def not_excited(steps: pd.DataFrame, latitude_deg: float | None = None,
-                table_heading_deg: float | None = None) -> dict[str, tuple[str, ...]]:
+def not_excited(
+    steps: pd.DataFrame, latitude_deg: float | None = None, table_heading_deg: float | None = None
+) -> dict[str, tuple[str, ...]]:
     """Parameters no step excites at all, per term (e.g. temperature terms without a
     temperature change)."""
     ctx = step_context(steps, latitude_deg, table_heading_deg)
@@ -125,16 +137,23 @@ def not_excited(steps: pd.DataFrame, latitude_deg: float | None = None,
     return out
 
 
-def analyse_steps(steps: pd.DataFrame, tol: float = DEFAULT_TOL,
-                  latitude_deg: float | None = None,
-                  table_heading_deg: float | None = None) -> Identifiability:
-    base, terms, pnames = design(steps, latitude_deg=latitude_deg,
-                                 table_heading_deg=table_heading_deg)
+def analyse_steps(
+    steps: pd.DataFrame,
+    tol: float = DEFAULT_TOL,
+    latitude_deg: float | None = None,
+    table_heading_deg: float | None = None,
+) -> Identifiability:
+    base, terms, pnames = design(steps, latitude_deg=latitude_deg, table_heading_deg=table_heading_deg)
     return analyse(base, terms, pnames, tol)
 
 
-def own_directions(base: np.ndarray, terms: Mapping[str, np.ndarray], term: str,
-                   others: tuple[str, ...], tol: float = DEFAULT_TOL) -> int:
+def own_directions(
+    base: np.ndarray,
+    terms: Mapping[str, np.ndarray],
+    term: str,
+    others: tuple[str, ...],
+    tol: float = DEFAULT_TOL,
+) -> int:
     """Directions of ``term``'s columns that neither the base model nor ``others`` explain
     (the part left above ``tol``): what a test of ``term`` given the others can see."""
     Q = _orth(np.hstack([base] + [terms[o] for o in others if o in terms]))
@@ -147,11 +166,11 @@ def own_directions(base: np.ndarray, terms: Mapping[str, np.ndarray], term: str,
     return int(np.sum(s > tol * max(s_all.max(initial=0.0), 1e-300)))
 
 
-def separable(base: np.ndarray, terms: Mapping[str, np.ndarray], members: tuple[str, ...],
-              tol: float = DEFAULT_TOL) -> bool:
+def separable(
+    base: np.ndarray, terms: Mapping[str, np.ndarray], members: tuple[str, ...], tol: float = DEFAULT_TOL
+) -> bool:
     """Every member of a confounded set has a direction of its own given the others."""
-    return all(own_directions(base, terms, m, tuple(x for x in members if x != m), tol) > 0
-               for m in members)
+    return all(own_directions(base, terms, m, tuple(x for x in members if x != m), tol) > 0 for m in members)
 
 
 def _orth(A: np.ndarray) -> np.ndarray:
@@ -159,9 +178,14 @@ def _orth(A: np.ndarray) -> np.ndarray:
     return u[:, s > 1e-10 * max(s.max(initial=0.0), 1e-300)]
 
 
-def advise(steps: pd.DataFrame, library: Mapping | None = None, tol: float = DEFAULT_TOL,
-           latitude_deg: float | None = None, table_heading_deg: float | None = None,
-           ident: Identifiability | None = None) -> list[Advice]:
+def advise(
+    steps: pd.DataFrame,
+    library: Mapping | None = None,
+    tol: float = DEFAULT_TOL,
+    latitude_deg: float | None = None,
+    table_heading_deg: float | None = None,
+    ident: Identifiability | None = None,
+) -> list[Advice]:
     """For each confounded set and each term with undetermined parameters, the step sets of
     ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it. A
     confounded set is resolved when every member has a direction of its own given the
@@ -174,8 +198,11 @@ def advise(steps: pd.DataFrame, library: Mapping | None = None, tol: float = DEF
     kw = {"latitude_deg": latitude_deg, "table_heading_deg": table_heading_deg}
     ident = analyse_steps(steps, tol, **kw) if ident is None else ident
     base0, terms0, _ = design(steps, **kw)
-    issues = [(c.describe(), c.terms, "confounded") for c in ident.confounded
-              if not separable(base0, terms0, c.terms, tol)]
+    issues = [
+        (c.describe(), c.terms, "confounded")
+        for c in ident.confounded
+        if not separable(base0, terms0, c.terms, tol)
+    ]
     for term in sorted({u.term for u in ident.undetermined}):
         params = sorted({p for u in ident.undetermined if u.term == term for p in u.params})
         issues.append((f"undetermined: {term} ({', '.join(params)})", (term,), "undetermined"))
@@ -190,8 +217,9 @@ def advise(steps: pd.DataFrame, library: Mapping | None = None, tol: float = DEF
                 ok = separable(base, terms, members, tol)
             else:
                 if ext is None:
-                    ext = analyse(base, terms, {n: tuple(map(str, range(z.shape[1])))
-                                                for n, z in terms.items()}, tol)
+                    ext = analyse(
+                        base, terms, {n: tuple(map(str, range(z.shape[1]))) for n, z in terms.items()}, tol
+                    )
                 ok = members[0] in ext.rank and ext.rank[members[0]] == ext.n_params[members[0]]
             if ok:
                 resolved[text].append(label)
@@ -215,21 +243,24 @@ class Plan:
 
     def lines(self) -> list[str]:
         ident = self.identifiability
-        out = [f"{self.n_steps} steps; base model: an affine calibration per channel; "
-               f"confounded / undetermined below {ident.tol:g} (sine of angle, part left)"]
+        out = [
+            f"{self.n_steps} steps; base model: an affine calibration per channel; "
+            f"confounded / undetermined below {ident.tol:g} (sine of angle, part left)"
+        ]
         for t in sorted(set(ident.terms) | set(self.not_excited)):
             if t in self.not_excited and t not in ident.terms:
                 out.append(f"  {t}: not excited ({', '.join(self.not_excited[t])})")
                 continue
             rank, p = ident.rank[t], ident.n_params[t]
             state = "identifiable" if ident.identifiable(t) else "NOT identifiable"
-            extra = (f"; not excited: {', '.join(self.not_excited[t])}"
-                     if t in self.not_excited else "")
+            extra = f"; not excited: {', '.join(self.not_excited[t])}" if t in self.not_excited else ""
             out.append(f"  {t}: {state}, {rank} of {p} parameter directions determined{extra}")
         for c in ident.confounded:
             if c.terms in self.separable:
-                out.append(f"  {c.describe()}: they share a direction, but each has one of "
-                           f"its own (discovery tests each given the others)")
+                out.append(
+                    f"  {c.describe()}: they share a direction, but each has one of "
+                    f"its own (discovery tests each given the others)"
+                )
             else:
                 out.append(f"  {c.describe()}: cannot be told apart")
         for u in ident.undetermined:
@@ -239,11 +270,18 @@ class Plan:
         return out
 
 
-def plan(steps: pd.DataFrame, tol: float = DEFAULT_TOL, latitude_deg: float | None = None,
-         table_heading_deg: float | None = None) -> Plan:
+def plan(
+    steps: pd.DataFrame,
+    tol: float = DEFAULT_TOL,
+    latitude_deg: float | None = None,
+    table_heading_deg: float | None = None,
+) -> Plan:
     ident = analyse_steps(steps, tol, latitude_deg, table_heading_deg)
-    base, terms, _ = design(steps, latitude_deg=latitude_deg,
-                            table_heading_deg=table_heading_deg)
-    return Plan(len(steps), ident, not_excited(steps, latitude_deg, table_heading_deg),
-                tuple(advise(steps, None, tol, latitude_deg, table_heading_deg, ident)),
-                tuple(c.terms for c in ident.confounded if separable(base, terms, c.terms, tol)))
+    base, terms, _ = design(steps, latitude_deg=latitude_deg, table_heading_deg=table_heading_deg)
+    return Plan(
+        len(steps),
+        ident,
+        not_excited(steps, latitude_deg, table_heading_deg),
+        tuple(advise(steps, None, tol, latitude_deg, table_heading_deg, ident)),
+        tuple(c.terms for c in ident.confounded if separable(base, terms, c.terms, tol)),
+    )

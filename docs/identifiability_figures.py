@@ -45,7 +45,8 @@ def main(n_units: int = 40, sections: str = "") -> None:
         within = (f"{o.within_2se}/{o.named} ({100 * o.within_2se / o.named:.0f} %)"
                   if o.named else "-")
         print(f"| {label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.confounded):.0f} % | "
-              f"{o.pct(o.confounded_set_aside):.0f} % | {o.pct(o.other_named):.0f} % | {within} |  <!-- {time.perf_counter() - t0:.0f} s -->",
+              f"{o.pct(o.confounded_set_aside):.0f} % | {o.pct(o.other_named):.0f} % | {within} |"
+              f"  <!-- {time.perf_counter() - t0:.0f} s -->",
               flush=True)
         for note in o.notes[:5]:
             print(f"<!--   {note} -->")

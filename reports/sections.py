@@ -5,15 +5,35 @@ a missing table gives a visible "not available" note, never an exception."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, Page, arr, decimals_for, display_unit,
-                          MINUS, esc, fmt, fmt_spread, fmt_time, grid, kpi, missing, spread_display, table,
-                          td_numbers, with_unit)
+from reports.html import (
+    CHANNEL_COLOURS,
+    CLEAN,
+    DASH,
+    FLAGGED,
+    MINUS,
+    Page,
+    arr,
+    decimals_for,
+    display_unit,
+    esc,
+    fmt,
+    fmt_spread,
+    fmt_time,
+    grid,
+    kpi,
+    missing,
+    spread_display,
+    table,
+    td_numbers,
+    with_unit,
+)
 from reports.store import StoreView
 
 # Models in the key-parameter table and strip plots, with their headings.
@@ -116,7 +136,7 @@ class LotContext:
     unit_level_flags: dict[str, str] = field(default_factory=dict)
 
     @classmethod
-    def load(cls, view: StoreView, lot: str, unit: str | None = None) -> "LotContext":
+    def load(cls, view: StoreView, lot: str, unit: str | None = None) -> LotContext:
         ctx = cls(view=view, lot=lot,
                   sessions=view.of("sessions", lot, unit), parameters=view.of("parameters", lot, unit),
                   summary=view.of("summary", lot), units_table=view.of("units", lot),

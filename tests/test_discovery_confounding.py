@@ -2,32 +2,30 @@
 simulator (small seeded samples of the figures in docs/model-discovery.md), the location
 metadata and heading_deg through the reader, and the Earth rate never removed by a
 calibration."""
+
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from calib_core import protocols
 from calib_core.calibration import Calibration, TermValue
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation_ident import (earth_rate_scenario, quiet_gyros,
-                                                   sensor_effect_scenario)
+from calib_core.discovery.evaluation_ident import earth_rate_scenario, quiet_gyros, sensor_effect_scenario
 from calib_core.effects import get_effect
 from calib_core.effects.earth_rate import EARTH_RATE_DEG_H
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from flows.commands.diagnose import summary_lines
 from schemas.averaging import read_step_means
+from schemas.contract import parse_metadata
 from schemas.dataset import find_sessions
 from schemas.errors import SessionError
 from schemas.physics_sessions import physics_unit_step_means, write_physics_unit
 from schemas.reader import validate_steps
-from schemas.contract import parse_metadata
 
 
 def step_means_of(unit, steps, rng, unit_id, table):
-    return physics_unit_step_means(unit, steps, rng, n_reps=5, unit_id=unit_id,
-                                   table=table or Turntable())
+    return physics_unit_step_means(unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable())
 
 
 @pytest.mark.slow
@@ -49,8 +47,10 @@ def test_two_headings_name_earth_rate_alone_with_the_right_size():
 def test_confounded_diagnosis_prints_the_group_and_the_advice():
     rng = np.random.default_rng(3)
     unit = quiet_gyros(typical_physics_unit(rng))
-    d = diagnose_unit(step_means_of(unit, protocols.whole_turn_session(), rng, "U",
-                                    Turntable(latitude_deg=45.0)), tables=False)
+    d = diagnose_unit(
+        step_means_of(unit, protocols.whole_turn_session(), rng, "U", Turntable(latitude_deg=45.0)),
+        tables=False,
+    )
     assert [c.terms for c in d.confounded] == [("earth_rate", "gyro_g_sensitivity")]
     assert d.effects == []
     text = "\n".join(summary_lines(d))
@@ -82,8 +82,7 @@ def test_location_metadata_through_the_reader_pins_the_earth_rate(tmp_path):
 
 @pytest.mark.slow
 def test_thermal_scale_drift_named_with_its_sensor():
-    o = sensor_effect_scenario(step_means_of, protocols.default_session(),
-                               "thermal_scale_drift", 4, seed=21)
+    o = sensor_effect_scenario(step_means_of, protocols.default_session(), "thermal_scale_drift", 4, seed=21)
     assert o.named >= 3 and o.other_named == 0, o.notes
     assert o.right_axis == o.named
 
@@ -93,8 +92,7 @@ def test_heading_column_and_location_metadata_are_validated():
     assert (validate_steps(steps, "s")["heading_deg"] == 90.0).all()
     with pytest.raises(SessionError, match="heading_deg is nan"):
         validate_steps(steps.assign(heading_deg=np.nan), "s")
-    md = {"gyro_unit": "deg/s", "accel_unit": "g", "gyro_range_dps": "300",
-          "accel_range_g": "16"}
+    md = {"gyro_unit": "deg/s", "accel_unit": "g", "gyro_range_dps": "300", "accel_range_g": "16"}
     meta = parse_metadata({**md, "latitude_deg": "45.5", "table_heading_deg": "-10"}, "s")
     assert (meta.latitude_deg, meta.table_heading_deg) == (45.5, -10.0)
     assert parse_metadata(md, "s").latitude_deg is None
@@ -105,9 +103,13 @@ def test_heading_column_and_location_metadata_are_validated():
 def test_a_calibration_never_removes_the_earth_rate():
     """The Earth's rotation is signal once the unit leaves the table: applying a calibration
     with an earth_rate term leaves the outputs as the affine part makes them."""
-    cal = Calibration(K_g=np.eye(3), w0=np.zeros(3), K_a=np.eye(3), f0=np.zeros(3),
-                      terms=(TermValue("earth_rate", np.array([10.6, 3.0, 1.0]),
-                                       np.array([0.4, 0.5, 0.5]), {}),))
+    cal = Calibration(
+        K_g=np.eye(3),
+        w0=np.zeros(3),
+        K_a=np.eye(3),
+        f0=np.zeros(3),
+        terms=(TermValue("earth_rate", np.array([10.6, 3.0, 1.0]), np.array([0.4, 0.5, 0.5]), {}),),
+    )
     G = np.array([[0.1, 0.2, 0.3]])
     A = np.array([[0.0, 0.0, 1.0]])
     w, f = cal.apply(G, A)
@@ -126,8 +128,9 @@ def test_nightly_stores_findings_and_their_evidence_and_the_report_draws_it(tmp_
     data, results = tmp_path / "data", tmp_path / "results"
     rng = np.random.default_rng(2118)
     unit, _, _ = get_effect("lever_arm").hide(typical_physics_unit(rng), rng)
-    write_physics_unit(data, unit, protocols.default_session(), rng, n_reps=3, rate_hz=20.0,
-                       lot="EV", unit_id="U0")
+    write_physics_unit(
+        data, unit, protocols.default_session(), rng, n_reps=3, rate_hz=20.0, lot="EV", unit_id="U0"
+    )
     assert cli_main(["nightly", str(data), "--results", str(results)]) == 0
     store = ResultsStore(results)
     disc = store.read("discovery")

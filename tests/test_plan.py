@@ -2,6 +2,7 @@
 here independently (generalised eigenvalues of the projected and the raw Gram matrices of
 each term's columns), and the advisor on the protocol where the Earth rate and an isotropic
 g-sensitivity are one column."""
+
 from __future__ import annotations
 
 import re
@@ -19,10 +20,12 @@ from schemas.writer import steps_table
 
 PROTOCOLS = {
     "default": protocols.default_session(),
-    "no_tilted": protocols.to_frame(protocols.xu2016_multirate() + protocols.xu2016_multiposition()
-                                    + protocols.dynamic_steps(tilted=False)),
-    "static_only": protocols.to_frame(protocols.xu2016_multiposition()
-                                      + protocols.zhang2017_six_position()),
+    "no_tilted": protocols.to_frame(
+        protocols.xu2016_multirate()
+        + protocols.xu2016_multiposition()
+        + protocols.dynamic_steps(tilted=False)
+    ),
+    "static_only": protocols.to_frame(protocols.xu2016_multiposition() + protocols.zhang2017_six_position()),
 }
 
 
@@ -48,7 +51,7 @@ def independent_rank(steps, name: str, tol: float = 0.05) -> tuple[int, int]:
     Z = Z / np.linalg.norm(Z, axis=0)
     PZ = PZ / np.linalg.norm(np.vstack(rows_Z)[:, live], axis=0)
     lam = linalg.eigh(PZ.T @ PZ, Z.T @ Z, eigvals_only=True)
-    return int(np.sum(lam >= tol ** 2)), int(live.sum())
+    return int(np.sum(lam >= tol**2)), int(live.sum())
 
 
 def plan_output(tmp_path, steps, capsys, *extra) -> str:
@@ -76,8 +79,10 @@ def test_plan_reports_each_terms_rank_as_the_design_has_it(which, tmp_path, caps
 def test_plan_lever_arm_and_static_facts(tmp_path, capsys):
     out = plan_output(tmp_path, PROTOCOLS["no_tilted"], capsys)
     # principal axes up only: each accelerometer sees its own arm component alone
-    assert "lever_arm: identifiable, 3 of 3 parameter directions determined; not excited: " \
-           "r1y, r1z, r2x, r2z, r3x, r3y" in out
+    assert (
+        "lever_arm: identifiable, 3 of 3 parameter directions determined; not excited: "
+        "r1y, r1z, r2x, r2z, r3x, r3y" in out
+    )
     out = plan_output(tmp_path, PROTOCOLS["static_only"], capsys)
     for name in ("gyro_scale_asymmetry", "gyro_scale_nonlinearity", "lever_arm"):
         assert f"  {name}: not excited" in out
@@ -86,10 +91,16 @@ def test_plan_lever_arm_and_static_facts(tmp_path, capsys):
 @pytest.mark.slow
 def test_plan_whole_turns_confound_earth_rate_and_says_what_separates_them(tmp_path, capsys):
     out = plan_output(tmp_path, protocols.whole_turn_session(), capsys)
-    assert re.search(r"confounded: earth_rate, gyro_g_sensitivity \(sin of angle [0-9.e-]+\): "
-                     r"cannot be told apart", out)
-    line = next(ln for ln in out.splitlines()
-                if ln.startswith("  to resolve confounded: earth_rate, gyro_g_sensitivity"))
+    assert re.search(
+        r"confounded: earth_rate, gyro_g_sensitivity \(sin of angle [0-9.e-]+\): "
+        r"cannot be told apart",
+        out,
+    )
+    line = next(
+        ln
+        for ln in out.splitlines()
+        if ln.startswith("  to resolve confounded: earth_rate, gyro_g_sensitivity")
+    )
     assert "stationary steps at two headings" in line
     # with stationary steps at two headings added, each has a direction of its own
     two = protocols.extended(protocols.whole_turn_session(), protocols.two_heading_stationary())

@@ -4,6 +4,7 @@ confounded pair (Earth rate and g-sensitivity on whole turns about the vertical)
 no catalogue effect explains (a periodic rate error), a negligible term (the Earth rate seen
 by a typical MEMS gyro). Checks that each finding's evidence figures are drawn, that no table
 cell holds JSON, and saves the screenshot of docs/img/discovery-section.png."""
+
 from __future__ import annotations
 
 import json
@@ -28,9 +29,11 @@ from schemas.physics_sessions import physics_unit_step_means
 from schemas.results_store import ResultsStore
 
 pytestmark = [
-    pytest.mark.browser, pytest.mark.slow,
-    pytest.mark.skipif(find_chromium() is None,
-                       reason="Debian's chromium is not installed (run scripts/install-browser.sh)"),
+    pytest.mark.browser,
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        find_chromium() is None, reason="Debian's chromium is not installed (run scripts/install-browser.sh)"
+    ),
 ]
 SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "img" / "discovery-section.png"
 
@@ -41,21 +44,25 @@ def _diagnosis(kind: str):
     if kind == "named":
         unit, _, _ = get_effect("thermal_scale_drift").hide(unit, rng, 1.0)
     elif kind == "confounded":
-        unit, table, steps, reps = (quiet_gyros(unit), Turntable(latitude_deg=45.0),
-                                    protocols.whole_turn_session(), 5)
+        unit, table, steps, reps = (
+            quiet_gyros(unit),
+            Turntable(latitude_deg=45.0),
+            protocols.whole_turn_session(),
+            5,
+        )
     elif kind == "unexplained":
         unit, _ = OUT_OF_CATALOGUE["periodic_rate_error"](unit, rng, 1.0)
     else:  # negligible: the Earth rate below a typical MEMS gyro's noise
         table = Turntable(latitude_deg=45.0)
-    return diagnose_unit(physics_unit_step_means(unit, steps, rng, n_reps=reps, table=table),
-                         tables=False)
+    return diagnose_unit(physics_unit_step_means(unit, steps, rng, n_reps=reps, table=table), tables=False)
 
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
     root = tmp_path_factory.mktemp("discovery-browser")
-    truth = build_synthetic_store(root, n_units=4, n_outliers=0, n_failed=0, seed=3,
-                                  discovery=False, navigation=False)
+    truth = build_synthetic_store(
+        root, n_units=4, n_outliers=0, n_failed=0, seed=3, discovery=False, navigation=False
+    )
     rows, evidence = [], []
     for unit, kind in zip(truth.units, ("named", "confounded", "unexplained", "negligible")):
         d = _diagnosis(kind)
@@ -93,22 +100,24 @@ def page(report):
                   function(l){return l.textContent;})};
         })()""")
         if os.environ.get("MIMUCAL_SCREENSHOTS", "1") != "0":
-            b.evaluate("document.querySelectorAll('details.unit').forEach(function(d){"
-                       "d.open = d.getAttribute('data-unit') === %r;});"
-                       "document.getElementById('discovery').scrollIntoView();" % truth.units[1])
+            b.evaluate(
+                "document.querySelectorAll('details.unit').forEach(function(d){"
+                f"d.open = d.getAttribute('data-unit') === {json.dumps(truth.units[1])};}});"
+                "document.getElementById('discovery').scrollIntoView();"
+            )
             b.screenshot(SCREENSHOT, clip_selector="#discovery", max_height=1400)
             sel = f'details.unit[data-unit="{truth.units[1]}"] .evidence'
             b.evaluate(f"document.querySelector({json.dumps(sel)}).scrollIntoView();")
             b.pump(0.3)
-            b.screenshot(SCREENSHOT.with_name("discovery-evidence.png"), clip_selector=sel,
-                         max_height=1400)
+            b.screenshot(SCREENSHOT.with_name("discovery-evidence.png"), clip_selector=sel, max_height=1400)
         yield facts, b.log.errors
 
 
 def test_one_unit_per_finding_kind(report):
     _, rows, _ = report
-    assert {"named", "confounded", "unexplained", "negligible"} <= set(rows["kind"]), \
-        rows[["unit", "effect", "kind"]]
+    assert {"named", "confounded", "unexplained", "negligible"} <= set(rows["kind"]), rows[
+        ["unit", "effect", "kind"]
+    ]
     conf = rows[rows["kind"] == "confounded"].iloc[0]
     assert conf["effect"] == "confounded: earth_rate, gyro_g_sensitivity"
     assert "stationary steps at two headings" in conf["separated_by"]

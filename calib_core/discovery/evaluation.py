@@ -129,8 +129,11 @@ def run_scenario(
         if out_of_catalogue is not None:
             unit, w = OUT_OF_CATALOGUE[out_of_catalogue](unit, rng, scale)
             what.append(w)
-        sessions = (step_means_of(unit, steps, rng, f"U{u:03d}", table=Turntable(**table))
-                    if table else step_means_of(unit, steps, rng, f"U{u:03d}"))
+        sessions = (
+            step_means_of(unit, steps, rng, f"U{u:03d}", table=Turntable(**table))
+            if table
+            else step_means_of(unit, steps, rng, f"U{u:03d}")
+        )
         t0 = time.perf_counter()
         d = diagnose_unit(sessions, alpha=alpha, tables=False)
         tally.seconds += time.perf_counter() - t0

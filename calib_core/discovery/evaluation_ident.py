@@ -11,10 +11,11 @@ noise 0.002 deg/s/sqrt(Hz)) is below the Earth rate: with the typical MEMS unit 
 latitude is below what five repetitions can tell from the noise (see
 :func:`earth_rate_scenario`'s ``quiet`` flag and the figures).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -61,21 +62,27 @@ def _tally(out: Outcome, d, hidden: str, check=None, what: str = "") -> None:
     out.named += hidden in named
     out.named_alone += named == [hidden] and not groups
     out.confounded += bool(not named and any(hidden in g for g in groups))
-    out.confounded_set_aside += bool(not named and not groups and any(
-        hidden in g for g in getattr(d, "confounded_set_aside", [])))
+    out.confounded_set_aside += bool(
+        not named and not groups and any(hidden in g for g in getattr(d, "confounded_set_aside", []))
+    )
     out.other_named += bool(set(named) - {hidden})
     if hidden in named and check is not None:
         ok_est, ok_axis = check(next(e for e in d.effects if e.name == hidden))
         out.within_2se += ok_est
         out.right_axis += ok_axis
     if not (named == [hidden] and not groups):
-        out.notes.append(f"{what}: named {named or '-'}, confounded "
-                         f"{[sorted(g) for g in groups] or '-'}")
+        out.notes.append(f"{what}: named {named or '-'}, confounded {[sorted(g) for g in groups] or '-'}")
 
 
-def earth_rate_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, n_units: int,
-                        seed: int, latitude_deg: float = 45.0, declare: bool = False,
-                        quiet: bool = True) -> Outcome:
+def earth_rate_scenario(
+    step_means_of: StepMeansOf,
+    steps: pd.DataFrame,
+    n_units: int,
+    seed: int,
+    latitude_deg: float = 45.0,
+    declare: bool = False,
+    quiet: bool = True,
+) -> Outcome:
     """Units with the Earth's rotation at ``latitude_deg`` (random table heading); with
     ``declare`` the samples carry latitude_deg/table_heading_deg. The estimate is checked
     against 15.041 sin(latitude) deg/h (omega_up)."""
@@ -91,30 +98,36 @@ def earth_rate_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, n_units
         unit = typical_physics_unit(rng)
         if quiet:
             unit = quiet_gyros(unit)
-        table = Turntable(latitude_deg=latitude_deg, heading_deg=float(rng.uniform(0, 360)),
-                          declare_location=declare)
+        table = Turntable(
+            latitude_deg=latitude_deg, heading_deg=float(rng.uniform(0, 360)), declare_location=declare
+        )
         d = diagnose_unit(step_means_of(unit, steps, rng, f"E{u:03d}", table), tables=False)
         _tally(out, d, "earth_rate", check, f"unit {u}")
     return out
 
 
-def sensor_effect_scenario(step_means_of: StepMeansOf, steps: pd.DataFrame, name: str,
-                           n_units: int, seed: int, scale: float = 1.0,
-                           warm_up: WarmUp = WarmUp()) -> Outcome:
+def sensor_effect_scenario(
+    step_means_of: StepMeansOf,
+    steps: pd.DataFrame,
+    name: str,
+    n_units: int,
+    seed: int,
+    scale: float = 1.0,
+    warm_up: WarmUp | None = None,
+) -> Outcome:
     """Units with the catalogue effect ``name`` hidden by its module at ``scale`` (and the
-    temperature ``warm_up``); the "right axis" is the sensor of its largest hidden parameter
-    being the sensor of the estimate's largest |t|."""
+    temperature ``warm_up``, default :class:`WarmUp`); the "right axis" is the sensor of
+    its largest hidden parameter being the sensor of the estimate's largest |t|."""
     rng = np.random.default_rng(seed)
     term = get_effect(name)
     out = Outcome()
     for u in range(n_units):
-        unit = typical_physics_unit(rng, temperature=warm_up)
+        unit = typical_physics_unit(rng, temperature=WarmUp() if warm_up is None else warm_up)
         unit, theta, what = term.hide(unit, rng, scale)
         hidden_param = term.param_names[int(np.argmax(np.abs(theta)))]
 
-        def check(e, hidden_param=hidden_param):
-            t = {k: abs(v) / e.stderr[k] for k, v in e.estimate.items()
-                 if v is not None and e.stderr[k]}
+        def check(e, hidden_param=hidden_param, theta=theta):
+            t = {k: abs(v) / e.stderr[k] for k, v in e.estimate.items() if v is not None and e.stderr[k]}
             best = max(t, key=t.get) if t else None
             v, se = e.estimate.get(hidden_param), e.stderr.get(hidden_param)
             true = float(theta[term.param_names.index(hidden_param)])

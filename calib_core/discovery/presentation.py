@@ -4,6 +4,7 @@ units at a precision its standard error supports, and the evidence series behind
 (the baseline residual against the variable that drives the effect, the fitted effect, the
 residual after). Reports read these rows and draw them; they compute nothing.
 """
+
 from __future__ import annotations
 
 import math
@@ -12,7 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from calib_core.effects import CHANNELS, get_effect
+from calib_core.effects import CHANNELS, FigureVariable, get_effect
 
 KINDS = ("named", "confounded", "partial", "negligible", "unexplained")
 
@@ -62,8 +63,15 @@ def evidence_text(t) -> str:
 
 
 def _row(diag, kind: str, effect: str, **kw) -> dict[str, Any]:
-    return {"lot": diag.lot, "unit": diag.unit, "effect": effect, "kind": kind,
-            "misfit": bool(diag.misfit), "unexplained": bool(diag.unexplained), **kw}
+    return {
+        "lot": diag.lot,
+        "unit": diag.unit,
+        "effect": effect,
+        "kind": kind,
+        "misfit": bool(diag.misfit),
+        "unexplained": bool(diag.unexplained),
+        **kw,
+    }
 
 
 def finding_rows(diag) -> list[dict[str, Any]]:
@@ -77,22 +85,42 @@ def finding_rows(diag) -> list[dict[str, Any]]:
     rows = []
 
     def effect_row(e, kind):
-        return _row(diag, kind, e.name, axes=",".join(e.axes), channels=",".join(e.channels),
-                    estimates=estimates_text(e), evidence=evidence_text(e.evidence),
-                    evidence_p=float(e.evidence.p_value),
-                    heldout_rms_before=float(e.heldout_rms_before),
-                    heldout_rms_after=float(e.heldout_rms_after), gain=float(e.gain),
-                    separated_by="", **unit_cols)
+        return _row(
+            diag,
+            kind,
+            e.name,
+            axes=",".join(e.axes),
+            channels=",".join(e.channels),
+            estimates=estimates_text(e),
+            evidence=evidence_text(e.evidence),
+            evidence_p=float(e.evidence.p_value),
+            heldout_rms_before=float(e.heldout_rms_before),
+            heldout_rms_after=float(e.heldout_rms_after),
+            gain=float(e.gain),
+            separated_by="",
+            **unit_cols,
+        )
 
     rows += [effect_row(e, "named") for e in diag.effects]
     for c in diag.confounded:
         est = " | ".join(f"if {m.name}: {estimates_text(m)}" for m in c.members)
-        rows.append(_row(diag, "confounded", "confounded: " + ", ".join(c.terms), axes="",
-                         channels=",".join(c.channels), estimates=est,
-                         evidence=evidence_text(c.evidence), evidence_p=float(c.evidence.p_value),
-                         heldout_rms_before=float(c.heldout_rms_before),
-                         heldout_rms_after=float(c.heldout_rms_after), gain=float(c.gain),
-                         separated_by=c.advice(), **unit_cols))
+        rows.append(
+            _row(
+                diag,
+                "confounded",
+                "confounded: " + ", ".join(c.terms),
+                axes="",
+                channels=",".join(c.channels),
+                estimates=est,
+                evidence=evidence_text(c.evidence),
+                evidence_p=float(c.evidence.p_value),
+                heldout_rms_before=float(c.heldout_rms_before),
+                heldout_rms_after=float(c.heldout_rms_after),
+                gain=float(c.gain),
+                separated_by=c.advice(),
+                **unit_cols,
+            )
+        )
     # a confounded group set aside is one row, as the group it is
     grouped = {n: tuple(g) for g in diag.confounded_set_aside for n in g}
     for kind, found in (("partial", diag.partial), ("negligible", diag.negligible)):
@@ -107,20 +135,34 @@ def finding_rows(diag) -> list[dict[str, Any]]:
             seen.add(g)
             members = [m for m in found if m.name in g]
             row = effect_row(e, kind)
-            row.update(effect="confounded: " + ", ".join(g), axes="",
-                       estimates=" | ".join(f"{m.name}: {estimates_text(m)}" for m in members))
+            row.update(
+                effect="confounded: " + ", ".join(g),
+                axes="",
+                estimates=" | ".join(f"{m.name}: {estimates_text(m)}" for m in members),
+            )
             rows.append(row)
     if diag.unexplained:
         still = [c for c, t in diag.channel_misfit_after.items() if t.rejects]
         la = diag.lack_of_fit_after
-        rows.append(_row(diag, "unexplained", "unexplained misfit", axes="",
-                         channels=",".join(still), estimates="",
-                         evidence=evidence_text(la), evidence_p=float(la.p_value),
-                         heldout_rms_before=float(diag.heldout_rms_baseline),
-                         heldout_rms_after=float(diag.heldout_rms_final),
-                         gain=float(diag.heldout_rms_baseline / diag.heldout_rms_final)
-                         if diag.heldout_rms_final > 0 else float("nan"),
-                         separated_by="", **unit_cols))
+        rows.append(
+            _row(
+                diag,
+                "unexplained",
+                "unexplained misfit",
+                axes="",
+                channels=",".join(still),
+                estimates="",
+                evidence=evidence_text(la),
+                evidence_p=float(la.p_value),
+                heldout_rms_before=float(diag.heldout_rms_baseline),
+                heldout_rms_after=float(diag.heldout_rms_final),
+                gain=float(diag.heldout_rms_baseline / diag.heldout_rms_final)
+                if diag.heldout_rms_final > 0
+                else float("nan"),
+                separated_by="",
+                **unit_cols,
+            )
+        )
     if not rows:
         rows.append(_row(diag, "none", None, **unit_cols))
     return rows
@@ -140,8 +182,9 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
     r_after = np.einsum("crnk,ck->rnc", d.Mc, f_after.v)
     frames = []
 
-    def add(effect: str, kind: str, names: tuple[str, ...], channels: tuple[str, ...],
-            fitted: np.ndarray | None):
+    def add(
+        effect: str, kind: str, names: tuple[str, ...], channels: tuple[str, ...], fitted: np.ndarray | None
+    ):
         for ch in channels:
             c = CHANNELS.index(ch)
             scale = 1.0 if c < 3 else 1e3
@@ -150,22 +193,32 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
                 ctx = _layout_ctx(d, r)
                 if names:
                     fv = get_effect(names[0]).figure_variable(ctx, c)
-                else:
+                else:  # unexplained: against the channel's own reference
                     own = (ctx.w if c < 3 else ctx.f)[:, c % 3]
-                    from calib_core.effects.base import FigureVariable
                     fv = FigureVariable(f"reference on {ch}", "deg/s" if c < 3 else "g", own)
                 n = int(m.sum())
-                frames.append(pd.DataFrame({
-                    "lot": diag.lot, "unit": diag.unit, "effect": effect, "kind": kind,
-                    "channel": ch, "rep": int(d.sessions[r].key.rep),
-                    "step": g.step[r, m].astype(np.int32),
-                    "x": np.asarray(fv.values, float)[:n].astype(np.float32),
-                    "x_label": fv.label, "x_unit": fv.unit,
-                    "y_unit": "deg/s" if c < 3 else "mg",
-                    "before": (scale * r_before[r, m, c]).astype(np.float32),
-                    "fitted": (np.full(n, np.nan) if fitted is None
-                               else scale * fitted[r, m, c]).astype(np.float32),
-                    "after": (scale * r_after[r, m, c]).astype(np.float32)}))
+                frames.append(
+                    pd.DataFrame(
+                        {
+                            "lot": diag.lot,
+                            "unit": diag.unit,
+                            "effect": effect,
+                            "kind": kind,
+                            "channel": ch,
+                            "rep": int(d.sessions[r].key.rep),
+                            "step": g.step[r, m].astype(np.int32),
+                            "x": np.asarray(fv.values, float)[:n].astype(np.float32),
+                            "x_label": fv.label,
+                            "x_unit": fv.unit,
+                            "y_unit": "deg/s" if c < 3 else "mg",
+                            "before": (scale * r_before[r, m, c]).astype(np.float32),
+                            "fitted": (
+                                np.full(n, np.nan) if fitted is None else scale * fitted[r, m, c]
+                            ).astype(np.float32),
+                            "after": (scale * r_after[r, m, c]).astype(np.float32),
+                        }
+                    )
+                )
 
     for item in items["chosen"]:
         v2 = f_after.v.copy()
@@ -183,7 +236,8 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
             add(cf.name, "confounded", tuple(item), cf.channels, fitted)
     if diag.unexplained:
         still = tuple(c for c, t in diag.channel_misfit_after.items() if t.rejects) or (
-            min(diag.channel_misfit_after, key=lambda c: diag.channel_misfit_after[c].p_value),)
+            min(diag.channel_misfit_after, key=lambda c: diag.channel_misfit_after[c].p_value),
+        )
         add("unexplained misfit", "unexplained", (), still, None)
     if not frames:
         return pd.DataFrame()
@@ -192,4 +246,5 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
 
 def _layout_ctx(d, r: int):
     from calib_core.discovery.turntable import _layout
+
     return _layout(d.sessions).ctx[r]

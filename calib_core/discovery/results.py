@@ -122,24 +122,33 @@ class ConfoundedFinding:
 
     @property
     def gain(self) -> float:
-        return (self.heldout_rms_before / self.heldout_rms_after if self.heldout_rms_after > 0
-                else float("inf"))
+        return (
+            self.heldout_rms_before / self.heldout_rms_after if self.heldout_rms_after > 0 else float("inf")
+        )
 
     def advice(self) -> str:
         what = f"{', '.join(self.terms)} cannot be told apart on these steps"
         if self.separable:
-            return (f"{', '.join(self.terms)}: these steps see a part of each of its own, too "
-                    f"weakly here to single one out (more repetitions or longer steps)")
+            return (
+                f"{', '.join(self.terms)}: these steps see a part of each of its own, too "
+                f"weakly here to single one out (more repetitions or longer steps)"
+            )
         if not self.separated_by:
             return f"{what}; no step set of the library separates them"
         return f"{what}; add {' or '.join(self.separated_by)}"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"terms": list(self.terms), "members": [m.to_dict() for m in self.members],
-                "evidence": self.evidence.to_dict(), "heldout_unit": self.heldout_unit,
-                "heldout_channels": list(self.channels),
-                "heldout_rms_before": self.heldout_rms_before,
-                "heldout_rms_after": self.heldout_rms_after, "gain": self.gain,
-                "sin_angle": self.sin_angle, "separated_by": list(self.separated_by),
-                "separable": self.separable,
-                "advice": self.advice()}
+        return {
+            "terms": list(self.terms),
+            "members": [m.to_dict() for m in self.members],
+            "evidence": self.evidence.to_dict(),
+            "heldout_unit": self.heldout_unit,
+            "heldout_channels": list(self.channels),
+            "heldout_rms_before": self.heldout_rms_before,
+            "heldout_rms_after": self.heldout_rms_after,
+            "gain": self.gain,
+            "sin_angle": self.sin_angle,
+            "separated_by": list(self.separated_by),
+            "separable": self.separable,
+            "advice": self.advice(),
+        }

@@ -263,8 +263,11 @@ class _StaticDiscovery:
         # effects of the sensors only: a recording without references has no heading or
         # location, so the Earth rate's direction in each pose is unknown (it is part of the
         # gyro bias the base model fits per pose block)
-        self.names = (sorted(n for n, cls in catalogue().items() if cls.sensor_effect)
-                      if candidates is None else list(candidates))
+        self.names = (
+            sorted(n for n, cls in catalogue().items() if cls.sensor_effect)
+            if candidates is None
+            else list(candidates)
+        )
         self.cols = {nm: _term_columns(nm, ctx, self.u, cal.geometry) for nm in self.names}
         self.sigma_white = {"gyro": sg, "accel": s_mag}
         self._cache: dict = {}

@@ -2,12 +2,20 @@
 trend that is not temperature (ageing of the turn-on transient, a slow drift of the
 electronics). With a warm-up ramp recorded, time and temperature are told apart by the
 curvature of the ramp (:mod:`calib_core.identifiability` says when they are not)."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (CHANNELS, EffectTerm, FigureVariable, MotionContext,
-                                     SensingGeometry, random_sign, register_effect)
+from calib_core.effects.base import (
+    CHANNELS,
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 
 @register_effect
@@ -37,8 +45,7 @@ class BiasTimeDrift(EffectTerm):
     def physics_knobs(self, theta):
         t = np.asarray(theta, float)
         out = {("gyro", i): {"bias_per_h": float(t[i])} for i in range(3) if t[i]}
-        out.update({("accel", i): {"bias_per_h": float(t[3 + i]) * 1e-3}
-                    for i in range(3) if t[3 + i]})
+        out.update({("accel", i): {"bias_per_h": float(t[3 + i]) * 1e-3} for i in range(3) if t[3 + i]})
         return out
 
     def figure_variable(self, ctx, channel):

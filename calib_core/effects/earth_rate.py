@@ -25,13 +25,22 @@ cos(latitude) deg/h towards true north):
 An effect of where the table stands, not of the sensors: a calibration never removes it
 from the unit's outputs (``sensor_effect`` False).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (DEG, EffectTerm, FigureVariable, MotionContext,
-                                     SensingGeometry, heading_reference, register_effect,
-                                     turn_about, up_direction)
+from calib_core.effects.base import (
+    DEG,
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    heading_reference,
+    register_effect,
+    turn_about,
+    up_direction,
+)
 
 EARTH_RATE_DEG_H = 7.2921150e-5 / DEG * 3600.0  # sidereal rotation, 15.041 deg/h
 MIN_PINNED_LATITUDE_DEG = 6.0  # below, the vertical part is too small to carry the vector
@@ -39,8 +48,11 @@ MIN_PINNED_LATITUDE_DEG = 6.0  # below, the vertical part is too small to carry 
 
 def pinned(ctx: MotionContext) -> bool:
     """The metadata give the Earth rate's direction in every step's body frame."""
-    return (ctx.latitude_deg is not None and ctx.table_heading_deg is not None
-            and abs(ctx.latitude_deg) >= MIN_PINNED_LATITUDE_DEG)
+    return (
+        ctx.latitude_deg is not None
+        and ctx.table_heading_deg is not None
+        and abs(ctx.latitude_deg) >= MIN_PINNED_LATITUDE_DEG
+    )
 
 
 def horizontal_mean(ctx: MotionContext, up: np.ndarray) -> np.ndarray:
@@ -79,8 +91,7 @@ def body_columns(ctx: MotionContext) -> np.ndarray:
 
     out = np.zeros((len(ctx), 3, 3))
     if pinned(ctx):
-        north = turn_about(heading_reference(up), up,
-                           (heading + ctx.table_heading_deg) * DEG)
+        north = turn_about(heading_reference(up), up, (heading + ctx.table_heading_deg) * DEG)
         cot = 1.0 / np.tan(ctx.latitude_deg * DEG)
         out[:, :, 0] = up + cot * seen(north)
     else:
@@ -97,8 +108,10 @@ class EarthRate(EffectTerm):
     description = "the Earth's rotation (15.04 deg/h) seen by the gyros"
     param_names = ("omega_up", "omega_h1", "omega_h2")
     param_units = ("deg/h",) * 3
-    excited_by = ("stationary steps at two headings or a known table heading (the "
-                  "horizontal part); the vertical part alone is a gyro g-sensitivity")
+    excited_by = (
+        "stationary steps at two headings or a known table heading (the "
+        "horizontal part); the vertical part alone is a gyro g-sensitivity"
+    )
     max_useful_stderr = 5.0  # deg/h: a third of the Earth rate
     sensor_effect = False
     named_when_significant = False
@@ -115,8 +128,9 @@ class EarthRate(EffectTerm):
         lat = rng.uniform(30.0, 60.0) * rng.choice([-1.0, 1.0])
         heading = rng.uniform(0.0, 360.0)
         h = EARTH_RATE_DEG_H * np.cos(lat * DEG)
-        theta = np.array([EARTH_RATE_DEG_H * np.sin(lat * DEG), h * np.cos(heading * DEG),
-                          h * np.sin(heading * DEG)])
+        theta = np.array(
+            [EARTH_RATE_DEG_H * np.sin(lat * DEG), h * np.cos(heading * DEG), h * np.sin(heading * DEG)]
+        )
         return theta, f"latitude {lat:.0f} deg, table heading {heading:.0f} deg"
 
     def physics_knobs(self, theta):
@@ -124,10 +138,13 @@ class EarthRate(EffectTerm):
 
     def table_knobs(self, theta):
         up, h1, h2 = (float(x) for x in theta)
-        return {"latitude_deg": float(np.degrees(np.arctan2(up, np.hypot(h1, h2)))),
-                "heading_deg": float(np.degrees(np.arctan2(h2, h1)) % 360.0)}
+        return {
+            "latitude_deg": float(np.degrees(np.arctan2(up, np.hypot(h1, h2)))),
+            "heading_deg": float(np.degrees(np.arctan2(h2, h1)) % 360.0),
+        }
 
     def figure_variable(self, ctx, channel):
         up = up_direction(ctx)
-        return FigureVariable(f"up along {'xyz'[channel % 3]} (specific force direction)",
-                              "", up[:, channel % 3])
+        return FigureVariable(
+            f"up along {'xyz'[channel % 3]} (specific force direction)", "", up[:, channel % 3]
+        )

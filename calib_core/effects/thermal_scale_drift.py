@@ -1,13 +1,21 @@
 """Scale factor linear in temperature: each sensor's output is its input times
 (1 + c (T - 25 degC)), c in ppm/degC (xu2016's k_g33 drift between repetitions). Needs the
 temperature column: without it no step excites the term."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from calib_core.effects.base import (CHANNELS, THERMAL_REF_C, EffectTerm, FigureVariable,
-                                     MotionContext, SensingGeometry, random_sign,
-                                     register_effect)
+from calib_core.effects.base import (
+    CHANNELS,
+    THERMAL_REF_C,
+    EffectTerm,
+    FigureVariable,
+    MotionContext,
+    SensingGeometry,
+    random_sign,
+    register_effect,
+)
 
 
 @register_effect
@@ -16,8 +24,10 @@ class ThermalScaleDrift(EffectTerm):
     description = "scale factor drift with temperature"
     param_names = ("tc_gx", "tc_gy", "tc_gz", "tc_ax", "tc_ay", "tc_az")
     param_units = ("ppm/degC",) * 6
-    excited_by = ("a temperature change during the session (warm-up) while the input is "
-                  "large: fast rates for the gyros, several orientations for the accelerometers")
+    excited_by = (
+        "a temperature change during the session (warm-up) while the input is "
+        "large: fast rates for the gyros, several orientations for the accelerometers"
+    )
     max_useful_stderr = 100.0
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
@@ -38,8 +48,9 @@ class ThermalScaleDrift(EffectTerm):
 
     def physics_knobs(self, theta):
         t = np.asarray(theta, float)
-        return {("gyro" if i < 3 else "accel", i % 3): {"scale_tc_ppm": float(t[i])}
-                for i in range(6) if t[i]}
+        return {
+            ("gyro" if i < 3 else "accel", i % 3): {"scale_tc_ppm": float(t[i])} for i in range(6) if t[i]
+        }
 
     def figure_variable(self, ctx, channel):
         u = (ctx.w if channel < 3 else ctx.f)[:, channel % 3]
