@@ -39,7 +39,7 @@ from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
 
 from calib_core.tables import ColumnTable  # noqa: E402
 from calib_core.outliers import (  # noqa: E402
-    LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots, known_thresholds,
+    KIND_LIMIT, LotFlags, OutlierConfig, apply_flags, flag_lots, known_thresholds,
     pooled_scales, pooling_rows, remember_thresholds,
 )
 from flows.compute_pool import run_in_pool  # noqa: E402
@@ -52,6 +52,7 @@ from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and to
     UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
 )
 from schemas.dataset import SessionRef, find_sessions  # noqa: E402
+from schemas.limits import config_from_toml  # noqa: E402
 from schemas.results_store import (  # noqa: E402
     STORE_FORMAT_VERSION, ResultsStore, iso, jsonable, utc_now,
 )
@@ -124,6 +125,20 @@ def _session_rows(results: list[UnitResult], attr: str) -> pd.DataFrame | None:
         return pd.concat(frames, ignore_index=True) if frames else None
 
 
+def acquisition_time(session_starts) -> str | None:
+    """The last of the sessions' ``session_start`` values (ISO 8601, UTC), None when none is
+    readable: a calibration describes the unit as measured once its sessions are done."""
+    from schemas.results_store import parse_when
+    times = []
+    for v in session_starts:
+        if isinstance(v, str) and v.strip():
+            try:
+                times.append(parse_when(v))
+            except ValueError:
+                continue
+    return iso(max(times)) if times else None
+
+
 def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                   code_version: str, when=None) -> dict[str, Any]:
     """Write the units' rows (replacing only those units), their calibration files, and mark
@@ -136,7 +151,8 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     ok_units: set[tuple[str, str]] = set()
     stale_units: dict[tuple[str, str], str] = {}
     previous_units = store.read("units", lots={ur.lot for ur in results},
-                                columns=["lot", "unit", "calibration_file", "calibrated_at"])
+                                columns=["lot", "unit", "calibration_file", "calibrated_at",
+                                         "acquired_at"])
     prev_state = {(r.lot, r.unit): r for r in previous_units.itertuples()}
     for ur in results:
         key = (ur.lot, ur.unit)
@@ -173,9 +189,15 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
             failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
                       for s in out.sessions if not s.succeeded]
             doc = unit_document(ur.lot, ur.unit, out.calibration.reps, failed)
+            acquired = acquisition_time(
+                (s.calibration.provenance or {}).get("session_start") if s.calibration else None
+                for s in out.sessions if s.succeeded)
             extra = {"provenance": {
                 "lot": ur.lot, "unit": ur.unit, "run_id": run_id, "code_version": code_version,
                 "calibrated_at": stamp, "store_format_version": STORE_FORMAT_VERSION,
+                # when the unit was measured (its sessions' last session_start); None when no
+                # session says it: then the time of a calibration is calibrated_at
+                "acquired_at": acquired,
                 "sessions_used": [{"rep": s.key.rep, "path": str(s.path),
                                    "fingerprint": s.fingerprint, "status": s.status,
                                    "session_start": (s.calibration.provenance or {}).get(
@@ -192,7 +214,7 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
             path = store.save_calibration(out.applied, ur.unit, extra, when, jsonable=True)
             unit_rows.append({**base, "state": "calibrated", "reason": "",
                               "calibration_file": str(path.relative_to(store.root)),
-                              "calibrated_at": stamp})
+                              "calibrated_at": stamp, "acquired_at": acquired})
         else:
             reasons = "; ".join(f"rep {s.key.rep}: {s.code}" for s in out.sessions
                                 if not s.succeeded) or "no session"
@@ -202,7 +224,8 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                 stale_units[key] = why
                 unit_rows.append({**base, "state": "stale", "reason": why,
                                   "calibration_file": prev.calibration_file,
-                                  "calibrated_at": prev.calibrated_at})
+                                  "calibrated_at": prev.calibrated_at,
+                                  "acquired_at": getattr(prev, "acquired_at", None)})
             else:
                 unit_rows.append({**base, "state": "failed", "reason": why,
                                   "calibration_file": None, "calibrated_at": None})
@@ -279,8 +302,11 @@ class RunTally:
                                                          key=lambda x: x[0])]}
 
 
+CLEAR_CONFIG = "none"  # ``--config none``: forget the stored configuration, use the defaults
+
+
 def load_config(path: str | Path | None) -> OutlierConfig:
-    if not path:
+    if not path or str(path) == CLEAR_CONFIG:
         return OutlierConfig()
     p = Path(path)
     try:
@@ -288,6 +314,29 @@ def load_config(path: str | Path | None) -> OutlierConfig:
     except OSError as exc:
         raise FileNotFoundError(f"outlier configuration {p}: {exc.strerror}") from None
     return config_from_toml(text, source=str(p))
+
+
+def resolve_config(store: ResultsStore, path: str | Path | None
+                   ) -> tuple[OutlierConfig, str | None | bool]:
+    """The QA configuration of a run and what to store under the lock: ``--config FILE``
+    sets it for this and every later run (returned text), ``--config none`` clears it
+    (None), no ``--config`` keeps the one stored (False: nothing to store). A stored text
+    that no longer parses is an error naming the file."""
+    if path is None:
+        text = store.read_qa_config()
+        if text is None:
+            return OutlierConfig(), False
+        return config_from_toml(text, source=str(store.qa_config_path)), False
+    if str(path) == CLEAR_CONFIG:
+        return OutlierConfig(), None
+    cfg = load_config(path)
+    return cfg, Path(path).read_text()
+
+
+def save_config(store: ResultsStore, text: str | None | bool) -> None:
+    """Store what :func:`resolve_config` returned (under the run's lock)."""
+    if text is not False:
+        store.write_qa_config(text)  # type: ignore[arg-type]
 
 
 def flagged_by_lot(store: ResultsStore) -> dict[str, set[str]]:
@@ -373,20 +422,50 @@ def _reflag(store: ResultsStore, lots: set[str] | list[str], config: OutlierConf
     if not todo:
         return [], {}, {}
     lf = _flag(store, summary, config, todo)
-    before, after = _write_flags(store, summary, lf, todo, lots=None)
+    before, after = _write_flags(store, summary, lf, todo, lots=None, config=config)
     if keep_state:
         _write_flag_state(store, config, pooling_rows(summary, config),
                           pooled_scales(summary, config))
     return lf, before, after
 
 
+def unit_times(store: ResultsStore) -> dict[tuple[str, str], float]:
+    """(lot, unit) -> acquisition time of its current calibration (POSIX s): the units
+    table's ``acquired_at`` (its sessions' last ``session_start``), else when it was
+    calibrated (``calibrated_at``: units whose sessions carry no ``session_start``)."""
+    units = store.read("units")
+    if not len(units):
+        return {}
+    when = pd.Series(pd.NaT, index=units.index, dtype="datetime64[ns, UTC]")
+    for col in ("calibrated_at", "acquired_at"):  # acquired_at wins where present
+        if col in units:
+            t = pd.to_datetime(units[col], utc=True, errors="coerce", format="ISO8601")
+            when = t.where(t.notna(), when)
+    secs = (when - pd.Timestamp(0, tz="UTC")).dt.total_seconds()
+    return {(str(lot), str(u)): float(t) for lot, u, t in
+            zip(units["lot"], units["unit"], secs) if pd.notna(t)}
+
+
+def _has_small_lots(store: ResultsStore, config: OutlierConfig) -> bool:
+    """Whether any lot is judged against the fleet history (config.history_below)."""
+    if not config.uses_history():
+        return False
+    units = store.read("units", columns=["lot", "unit"])
+    if not len(units):
+        return False
+    return bool((units.groupby("lot", observed=True)["unit"].nunique()
+                 < config.history_below).any())
+
+
 def _flag(store: ResultsStore, summary: pd.DataFrame, config: OutlierConfig,
           todo: list[str]) -> list[LotFlags]:
     """flag_lots of ``todo``, with the thresholds simulated by earlier runs (kept in the
-    store; new lot layouts are added to it)."""
+    store; new lot layouts are added to it) and the units' acquisition times (small lots'
+    fleet history)."""
     cached = store.read_outlier_thresholds()
     remember_thresholds(cached)
-    lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
+    times = unit_times(store) if config.uses_history() else None
+    lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo, times)
     now = known_thresholds()
     if now != cached:  # new lot layouts simulated: keep them for the next process
         store.write_outlier_thresholds(now)
@@ -394,7 +473,7 @@ def _flag(store: ResultsStore, summary: pd.DataFrame, config: OutlierConfig,
 
 
 def _write_flags(store: ResultsStore, summary: pd.DataFrame, lf: list[LotFlags],
-                 todo: list[str], lots: list[str] | None
+                 todo: list[str], lots: list[str] | None, config: OutlierConfig
                  ) -> tuple[dict[str, set[str]], dict[str, set[str]]]:
     """Write the flags ``lf`` of the lots ``todo`` to the summary and units tables:
     ``summary`` holds the stored rows of ``lots`` (None: every lot), and the units rows of
@@ -424,7 +503,66 @@ def _write_flags(store: ResultsStore, summary: pd.DataFrame, lf: list[LotFlags],
         units["flag_reason"] = ["; ".join(flagged.get(k, [])) if m else (v if isinstance(v, str) else "")
                                 for k, m, v in zip(keys, in_lots, units.get("flag_reason", [""] * len(units)))]
         store.write("units", units, lots=lots, skip_unchanged=True, previous=units_before)
+        stamp_qa(store, units_before, units, lf, config)
     return _flagged_units(units_before), _flagged_units(units)
+
+
+def qa_status(lot_flags: LotFlags, unit: str, config: OutlierConfig, when: str) -> dict:
+    """The QA block of a unit's calibration file: ``pass``, ``flagged`` (every reason) or
+    ``limits`` (a limit failed: the failed limits, and every other reason too), and the lot
+    context it was judged in."""
+    mine = [f for f in lot_flags.flags if f.unit == unit]
+    failed = [f"{f.reason}" for f in mine if f.kind == KIND_LIMIT]
+    status = "limits" if failed else "flagged" if mine else "pass"
+    return {"status": status, "reasons": [f"[{f.kind}] {f.reason}" for f in mine],
+            "failed_limits": failed,
+            "lot": lot_flags.lot, "lot_units": lot_flags.n_units,
+            "reference": lot_flags.reference, "reference_detail": lot_flags.reference_detail,
+            "z_threshold": lot_flags.z_threshold_used, "note": lot_flags.note,
+            "config": {"z_threshold": config.z_threshold, "family_alpha": config.family_alpha,
+                       "spread_factor": config.spread_factor, "min_units": config.min_units,
+                       "scale_pool": config.scale_pool, "history_units": config.history_units,
+                       "history_below": config.history_below,
+                       "limits": [f"{lim.model}.{lim.parameter}: {lim.written or ''}"
+                                  for lim in config.limits]},
+            "judged_at": when}
+
+
+def stamp_qa(store: ResultsStore, before: pd.DataFrame, after: pd.DataFrame,
+             lot_flags: list[LotFlags], config: OutlierConfig) -> list[str]:
+    """Write the QA status into the current calibration file of every unit of the lots
+    re-flagged (``lot_flags``) whose status is new: freshly calibrated (no flags yet), or
+    whose flags changed. Each file is rewritten atomically and keeps its earlier statuses
+    (``qa_history``); the lot's context goes to ``qa/<lot>.json``. Returns the files
+    rewritten."""
+    from schemas.calibration_file import CalibrationFileError, set_qa_status
+    when = iso(utc_now())
+    by_lot = {x.lot: x for x in lot_flags}
+    prev = {(str(r.lot), str(r.unit)): (r.flagged, r.flag_reason)
+            for r in before.itertuples()} if len(before) else {}
+    done = []
+    for lf in lot_flags:
+        store.write_qa_lot(lf.lot, {"lot": lf.lot, "n_units": lf.n_units,
+                                    "reference": lf.reference,
+                                    "reference_detail": lf.reference_detail,
+                                    "z_threshold": lf.z_threshold_used, "note": lf.note,
+                                    "judged_at": when})
+    for r in after.itertuples():
+        lot, unit = str(r.lot), str(r.unit)
+        lf = by_lot.get(lot)
+        path = getattr(r, "calibration_file", None)
+        if lf is None or not isinstance(path, str) or not path:
+            continue
+        old_flagged, old_reason = prev.get((lot, unit), (None, None))
+        if old_flagged is not None and not pd.isna(old_flagged) \
+                and bool(old_flagged) == bool(r.flagged) and old_reason == r.flag_reason:
+            continue  # judged before, same status
+        try:
+            set_qa_status(store.root / path, qa_status(lf, unit, config, when))
+            done.append(path)
+        except (OSError, CalibrationFileError) as exc:  # the flags stand; the file says less
+            print(f"QA status of {lot}/{unit} not written to {path}: {exc}", file=sys.stderr)
+    return done
 
 
 # --- the flag state kept between runs --------------------------------------------------------------
@@ -489,7 +627,9 @@ def _reflag_fleet(store: ResultsStore, touched: list[str], config: OutlierConfig
     and after of the lots whose units rows were read."""
     state = store.read_flag_state()
     files = _lot_files(store)
-    if state is not None and files is not None:
+    # a small lot is judged against the history of earlier lots, which the pooled scales
+    # do not summarise: every lot is re-flagged then
+    if state is not None and files is not None and not _has_small_lots(store, config):
         rows, doc = state
         if doc.get("version") == FLAG_STATE_VERSION and doc.get("key") == _flag_state_key(config):
             done = _reflag_changed_lots(store, touched, config, rows, doc, files)
@@ -524,7 +664,7 @@ def _reflag_changed_lots(store: ResultsStore, touched: list[str], config: Outlie
         # scales from them and flags only the lots in todo
         lf = _flag(store, pd.concat([summary, kept.assign(std=np.nan, n_reps=np.nan)],
                                     ignore_index=True), config, todo)
-    before, after = _write_flags(store, summary, lf, todo, lots=dirty)
+    before, after = _write_flags(store, summary, lf, todo, lots=dirty, config=config)
     _write_flag_state(store, config, pool, pooled)
     return lf, before, after
 
@@ -671,9 +811,10 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
     logger = get_run_logger()
     run_id = new_run_id()
     store = ResultsStore(Path(results))
-    cfg = load_config(config)
+    cfg, cfg_text = resolve_config(store, config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        save_config(store, cfg_text)
         t0 = time.monotonic()
         log: dict[str, Any] = {"run_id": run_id, "kind": "nightly", "start": iso(utc_now()),
                                "dataset": str(dataset), "results": str(results),
@@ -803,12 +944,16 @@ def summary_line(log: dict) -> str:
 def lot_report_flow(results: str, lot: str, config: str | None = None,
                     wait: bool = False) -> dict:
     store = ResultsStore(Path(results))
-    cfg = load_config(config)
+    cfg, cfg_text = resolve_config(store, config)
     with store.lock(owner=f"report-{lot}", wait=wait):
         if lot not in store.table_lots("summary") and lot not in store.table_lots("sessions"):
             raise LookupError(f"lot {lot!r} is not in the results store {results}")
-        lf = reflag_lots(store, [lot], cfg)
-        reports, problems = write_reports(results, [lot])
+        save_config(store, cfg_text)
+        # the lot as touched: with a new configuration every lot is re-flagged (the flag
+        # state is of another configuration) and the reports of lots whose flags changed
+        # are rebuilt too
+        lf, report_lots = reflag_after_update(store, [lot], cfg)
+        reports, problems = write_reports(results, report_lots)
     return {"lot": lot, "reports": reports, "problems": problems,
             "flags": [f.to_dict() for f in lf]}
 
@@ -887,9 +1032,10 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
     of tasks saves (the flow run, its state and the run log record the rerun)."""
     run_id = new_run_id()
     store = ResultsStore(Path(results))
-    cfg = load_config(config)
+    cfg, cfg_text = resolve_config(store, config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        save_config(store, cfg_text)
         t0 = time.monotonic()
         phases: dict[str, float] = {}
         cpu: dict[str, float] = {}

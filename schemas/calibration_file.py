@@ -273,3 +273,53 @@ def load_calibration(path: Path) -> Calibration:
     except json.JSONDecodeError as exc:
         raise CalibrationFileError(f"{path}: not valid JSON ({exc})") from exc
     return calibration_from_dict(doc, source=str(path))
+
+
+# --- QA status --------------------------------------------------------------------------------
+# A calibration file produced by a fleet run carries ``qa``: the status its unit was judged
+# with in its lot (``pass``, ``flagged`` with every reason, ``limits`` with the failed limits)
+# and the lot context (lot, reference the robust z used, thresholds, configuration, date).
+# A later re-flag that changes the status rewrites the file atomically; the statuses it had
+# before are kept, oldest first, in ``qa_history``. A file without ``qa`` was not judged
+# (written by ``mimucal calibrate``, or by a fleet run that did not reach its flags).
+QA_STATUSES = ("pass", "flagged", "limits")
+
+
+def read_calibration_document(path: Path) -> dict[str, Any]:
+    """The JSON document of a calibration file (CalibrationFileError when unreadable)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationFileError(f"{path}: no such calibration file") from None
+    except json.JSONDecodeError as exc:
+        raise CalibrationFileError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(doc, dict):
+        raise CalibrationFileError(f"{path}: not a mimucal calibration file")
+    return doc
+
+
+def qa_of(doc: dict[str, Any]) -> dict[str, Any] | None:
+    """The ``qa`` block of a calibration document, None when it was never judged."""
+    qa = doc.get("qa")
+    return qa if isinstance(qa, dict) and qa.get("status") in QA_STATUSES else None
+
+
+def set_qa_status(path: Path, qa: dict[str, Any]) -> bool:
+    """Set the file's QA status (atomic rewrite); the previous one goes to ``qa_history``.
+    Returns False (file untouched) when the status and reasons are already these."""
+    if qa.get("status") not in QA_STATUSES:
+        raise ValueError(f"QA status must be one of {QA_STATUSES}, got {qa.get('status')!r}")
+    doc = read_calibration_document(path)
+    if doc.get("format") != FORMAT:
+        raise CalibrationFileError(f"{path}: not a mimucal calibration file "
+                                   f"(format={doc.get('format')!r})")
+    old = qa_of(doc)
+    if old is not None and old.get("status") == qa["status"] \
+            and old.get("reasons") == qa.get("reasons"):
+        return False
+    if old is not None:
+        doc["qa_history"] = [*(doc.get("qa_history") or []), old]
+    doc["qa"] = qa
+    write_json_atomic(Path(path), doc, nonfinite="null")
+    return True

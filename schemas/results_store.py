@@ -76,7 +76,7 @@ TABLE_COLUMNS: dict[str, list[str]] = {
                 "stale_reason", "run_id"],
     "units": ["lot", "unit", "state", "reason", "n_sessions", "n_ok", "n_warned", "n_failed",
               "calibration_file", "calibrated_at", "run_id", "updated_at", "flagged",
-              "flag_reason"],
+              "flag_reason", "acquired_at"],
     "residuals": ["lot", "unit", "rep"],
     "compensation": ["lot", "unit", "rep"],
     "discovery": ["lot", "unit", "effect"],
@@ -751,6 +751,54 @@ class ResultsStore:
                 FLAG_STATE_METADATA_KEY: json.dumps(doc).encode()}
         write_table_atomic(table.replace_schema_metadata(meta), self.flag_state_path)
 
+    # the QA configuration (outlier options and limits) every later run applies
+    @property
+    def qa_config_path(self) -> Path:
+        return self.root / "qa-config.toml"
+
+    def read_qa_config(self) -> str | None:
+        """The TOML text set by the last ``--config`` (None: the defaults)."""
+        try:
+            return self.qa_config_path.read_text()
+        except FileNotFoundError:
+            return None
+
+    def write_qa_config(self, text: str | None) -> None:
+        """Keep ``text`` as the QA configuration of every later run; None clears it."""
+        if text is None:
+            try:
+                self.qa_config_path.unlink()
+            except FileNotFoundError:
+                pass
+            return
+        path = self.qa_config_path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.chmod(tmp, 0o666 & ~_UMASK)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    # each lot's QA context (reference, thresholds, configuration) as its last re-flag left it
+    def qa_lot_path(self, lot: str) -> Path:
+        return self.root / "qa" / f"{quote(str(lot), safe='')}.json"
+
+    def write_qa_lot(self, lot: str, doc: dict) -> None:
+        write_json_atomic(self.qa_lot_path(lot), _jsonable(doc))
+
+    def read_qa_lot(self, lot: str) -> dict | None:
+        try:
+            return json.loads(self.qa_lot_path(lot).read_text())
+        except (OSError, ValueError):
+            return None
+
     # run logs
     def write_run(self, run_id: str, doc: dict[str, Any]) -> Path:
         path = self.runs_dir / f"{run_id}.json"
@@ -814,7 +862,8 @@ class ResultsStore:
         (SIGKILL, power loss: their ``except`` never ran). Only called while holding the
         lock, so no live writer owns them; the files they were replacing are intact."""
         removed = []
-        for d in (self.root, self.runs_dir, self.root / "cache", *(self.calibrations_dir.glob("*")
+        for d in (self.root, self.runs_dir, self.root / "cache", self.root / "qa",
+                  *(self.calibrations_dir.glob("*")
                                                 if self.calibrations_dir.is_dir() else ()),
                   *(self.tables_dir.glob("*") if self.tables_dir.is_dir() else ())):
             if not d.is_dir():
