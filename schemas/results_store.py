@@ -887,36 +887,61 @@ class ResultsStore:
                 f"since {info.get('since')})")
 
 
+def calibration_times(results: Path | str, unit: str
+                      ) -> list[tuple[datetime, datetime, Path, str]]:
+    """Every calibration file of ``unit`` as (time, produced, path, source of the time),
+    sorted by time then production. The time of a calibration is when its unit was measured:
+    ``provenance.acquired_at`` (its sessions' last ``session_start``; source
+    ``"session_start"``), else when it was produced (the file name, source
+    ``"processing time"``: sessions without ``session_start``, or files of older code)."""
+    out = []
+    for produced, path in ResultsStore(Path(results)).calibration_files(unit):
+        when, source = produced, "processing time"
+        try:
+            prov = json.loads(path.read_text()).get("provenance") or {}
+            if isinstance(prov.get("acquired_at"), str):
+                when, source = parse_when(prov["acquired_at"]), "session_start"
+        except (OSError, ValueError, AttributeError):
+            pass
+        out.append((when, produced, path, source))
+    return sorted(out, key=lambda x: (x[0], x[1]))
+
+
 def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
                      before_after: str = "before") -> Path:
     """The calibration file of ``unit`` valid at ``at`` (default: now).
 
-    ``before`` (default): the latest calibration made at or before ``at``; ``after``: the
-    earliest at or after; ``closest``: the nearest either way (imucal's
-    ``find_closest_calibration_info_to_date`` with ``before_after=None``). The time of a
-    calibration is when it was produced (its file name, UTC)."""
+    ``before`` (default): the latest calibration of a measurement at or before ``at``;
+    ``after``: the earliest at or after; ``closest``: the nearest either way (imucal's
+    ``find_closest_calibration_info_to_date`` with ``before_after=None``). Times are
+    acquisition times (:func:`calibration_times`); of several calibrations of one
+    measurement (recalibrated with newer code) the last produced is given."""
     if before_after not in ("before", "after", "closest"):
         raise ValueError("before_after must be 'before', 'after' or 'closest'")
     at = at or utc_now()
     if at.tzinfo is None:
         at = at.replace(tzinfo=timezone.utc)
-    files = ResultsStore(Path(results)).calibration_files(unit)
+    files = calibration_times(results, unit)
     if not files:
         raise CalibrationNotFound(f"no calibration of unit {unit!r} under "
                                   f"{Path(results) / 'calibrations' / unit}")
+
+    def last_of(when: datetime) -> Path:  # the last produced of one measurement
+        return [f for f in files if f[0] == when][-1][2]
+
     if before_after == "before":
         cands = [f for f in files if f[0] <= at]
         if not cands:
-            raise CalibrationNotFound(f"unit {unit!r}: no calibration at or before {iso(at)} "
-                                      f"(first one is {iso(files[0][0])})")
-        return cands[-1][1]
+            raise CalibrationNotFound(f"unit {unit!r}: no calibration of sessions acquired at "
+                                      f"or before {iso(at)} (first acquired {iso(files[0][0])})")
+        return last_of(cands[-1][0])
     if before_after == "after":
         cands = [f for f in files if f[0] >= at]
         if not cands:
-            raise CalibrationNotFound(f"unit {unit!r}: no calibration at or after {iso(at)} "
-                                      f"(last one is {iso(files[-1][0])})")
-        return cands[0][1]
-    return min(files, key=lambda f: abs((f[0] - at).total_seconds()))[1]
+            raise CalibrationNotFound(f"unit {unit!r}: no calibration of sessions acquired at "
+                                      f"or after {iso(at)} (last acquired {iso(files[-1][0])})")
+        return last_of(cands[0][0])
+    return last_of(min(files, key=lambda f: abs((f[0] - at).total_seconds()))[0])
 
 
 def _store_default(obj: Any) -> Any:
