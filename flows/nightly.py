@@ -51,7 +51,7 @@ from flows.task_runners import (  # noqa: E402,F401
 from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and tools import them here)
     UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
 )
-from schemas.dataset import SessionRef, find_sessions  # noqa: E402
+from schemas.dataset import DigestCache, SessionRef, find_sessions  # noqa: E402
 from schemas.limits import config_from_toml  # noqa: E402
 from schemas.results_store import (  # noqa: E402
     STORE_FORMAT_VERSION, ResultsStore, iso, jsonable, utc_now,
@@ -62,9 +62,10 @@ DEFAULT_BATCH_SIZE = 8
 
 # --- plain-Python pieces (tested without Prefect) ------------------------------------------------
 def plan_units(refs: list[SessionRef], previous: dict[tuple[str, str, int], str],
-               force: bool = False) -> tuple[list[UnitJob], list[tuple[str, str]]]:
+               force: bool = False, cache=None) -> tuple[list[UnitJob], list[tuple[str, str]]]:
     """Units to calibrate (new, changed, or all with ``force``) and units skipped because
-    every session's fingerprint is unchanged and no session appeared or disappeared."""
+    every session's fingerprint (a content hash, schemas.dataset.fingerprint) is unchanged
+    and no session appeared or disappeared. ``cache``: a schemas.dataset.DigestCache."""
     from schemas.dataset import fingerprint
     by_unit: dict[tuple[str, str], list[SessionRef]] = {}
     for r in refs:
@@ -82,7 +83,7 @@ def plan_units(refs: list[SessionRef], previous: dict[tuple[str, str, int], str]
             continue
         reps_now = {r.key.rep for r in rs}
         changed = [r.key.rep for r in rs
-                   if previous.get((lot, unit, r.key.rep)) != fingerprint(r.path)]
+                   if previous.get((lot, unit, r.key.rep)) != fingerprint(r.path, cache)]
         if changed or reps_now != prev_reps[(lot, unit)]:
             why = []
             if changed:
@@ -834,7 +835,12 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         if preloaded is not None:
             log["preload"] = preloaded
         refs, path_errors = find_sessions(dataset)
-        jobs, skipped = plan_units(refs, store.fingerprints(), force)
+        digests = DigestCache(store.read_digest_cache())
+        jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
+        current = {os.path.join(str(r.path), n) for r in refs
+                   for n in ("steps.parquet", "samples.parquet")}
+        if digests.read or set(digests.entries) - current:  # files of moved datasets go
+            store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
         if run_discovery and not _discovery_available():
             logger.warning("model discovery skipped: calib_core.discovery is not available")
         log.update({"sessions_found": len(refs), "units_found": len(jobs) + len(skipped),

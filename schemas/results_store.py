@@ -751,6 +751,23 @@ class ResultsStore:
                 FLAG_STATE_METADATA_KEY: json.dumps(doc).encode()}
         write_table_atomic(table.replace_schema_metadata(meta), self.flag_state_path)
 
+    # file digests of the sessions, by their stat (schemas.dataset.DigestCache)
+    @property
+    def digest_cache_path(self) -> Path:
+        return self.root / "cache" / "session_digests.json"
+
+    def read_digest_cache(self) -> dict:
+        """A cache: empty when absent or unreadable (the files are hashed again)."""
+        try:
+            doc = json.loads(self.digest_cache_path.read_text())
+        except (OSError, ValueError):
+            return {}
+        return doc.get("entries", {}) if isinstance(doc, dict) and doc.get("version") == 1 \
+            else {}
+
+    def write_digest_cache(self, entries: dict) -> None:
+        write_json_atomic(self.digest_cache_path, {"version": 1, "entries": entries})
+
     # the QA configuration (outlier options and limits) every later run applies
     @property
     def qa_config_path(self) -> Path:
