@@ -197,7 +197,8 @@ def test_without_a_usable_state_every_lot_is_reflagged(tmp_path, monkeypatch, da
         store.flag_state_path.unlink()
     elif damage == "broken":
         store.flag_state_path.write_bytes(b"not parquet")
-    cfg = OutlierConfig(family_alpha=0.0, z_threshold=3.0) if damage == "other config" else CFG
+    cfg = OutlierConfig(family_alpha=0.0, z_threshold=3.0, history_units=0) \
+        if damage == "other config" else CFG
     spy = _FullReflags(monkeypatch)
     nightly.reflag_after_update(store, ["L1"], cfg)
     assert spy.calls == 1
