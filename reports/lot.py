@@ -8,7 +8,8 @@ from pathlib import Path
 
 from reports.html import Page, esc, missing, write_atomic
 from reports.sections import (KEY_MODELS, LotContext, discovery_figure, discovery_table, flags_list,
-                              key_models, key_parameter_table, kpi_block, residual_overview_figure,
+                              key_models, key_parameter_table, kpi_block, qa_reference_note,
+                              residual_overview_figure,
                               sessions_section, strip_figure, unit_section)
 from reports.store import StoreView
 
@@ -38,7 +39,7 @@ def render_lot_report(results_root: str | Path, lot: str, view: StoreView | None
     page = Page(f"Lot {lot} · mimucal calibration report")
     body = []
     body.append(f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx)}'
-                f'<h3>Outlier flags</h3>{flags_list(ctx)}</section>')
+                f'<h3>Flags: limit failures and outliers</h3>{qa_reference_note(ctx)}{flags_list(ctx)}</section>')
     body.append(f'<section id="parameters"><h2>Key parameters by unit</h2>{key_parameter_table(ctx)}</section>')
 
     strips = []
