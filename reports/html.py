@@ -102,7 +102,7 @@ td.flagged::before { content:"\\2691\\00a0"; }
 .badge.limit { background:#b45309; color:#fff; }
 .badge.unjudged { background:#d9e2ec; color:#1f2933; }
 td.limit { background:#fdebd3; color:#b45309; font-weight:600; }
-td.limit::before { content:"\2716\00a0"; }
+td.limit::before { content:"\\2716\\00a0"; }
 .qa-reference { margin:4px 0 8px; }
 .badge.failed { background:#742a2a; color:#fff; }
 .badge.warned { background:#f0b429; color:#1f2933; }

@@ -52,7 +52,9 @@ def render_lot_report(results_root: str | Path, lot: str, view: StoreView | None
                           + page.figure(fig, height=120 + 210 * rows, name=f"strip {model}"))
     body.append('<section id="spread"><h2>Parameters across the lot</h2>'
                 '<p class="note">Each point is one unit (mean over its repetitions); the box is the '
-                'lot without the flagged units. Flagged units are red diamonds labelled with the unit.</p>'
+                'whole lot, flagged units included. Statistical outliers are red diamonds, limit '
+                'failures orange crosses, both labelled with the unit; dashed orange lines are the '
+                'acceptance limits.</p>'
                 + ("".join(strips) or missing("Strip plots", "summary.parquet is absent")) + "</section>")
 
     ov = residual_overview_figure(ctx)
