@@ -91,6 +91,9 @@ class OutlierConfig:
     # min(history_units, HISTORY_MIN_UNITS) of them; 0 turns the history reference off
     history_units: int = 60
     history_below: int = 20
+    # "lot": a small lot's units against its own median with the history's (lot-centred)
+    # scale, robust to lot-to-lot offsets; "history": against the history's median and scale
+    history_location: str = "lot"
 
     def __post_init__(self) -> None:
         if self.scale_pool not in ("fleet", "lot"):
@@ -99,6 +102,8 @@ class OutlierConfig:
             raise OutlierConfigError("family_alpha must be in [0, 1)")
         if self.z_threshold <= 0 or self.spread_factor <= 1.0 or self.min_units < 3:
             raise OutlierConfigError("need z_threshold > 0, spread_factor > 1, min_units >= 3")
+        if self.history_location not in ("lot", "history"):
+            raise OutlierConfigError("history_location must be 'lot' or 'history'")
         if self.history_units < 0 or self.history_below < 0:
             raise OutlierConfigError("history_units and history_below must be >= 0")
 
@@ -260,36 +265,61 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
 
 
 @lru_cache(maxsize=256)
-def history_z_threshold(n_history: int, n_lot: int, n_parameters: int,
-                        z_threshold: float = 3.5, family_alpha: float = 0.01) -> float:
-    """Threshold on ``|x - history median| / history scale`` for the ``n_lot`` units of a lot
-    judged against ``n_history`` earlier units: ``max(z_threshold, q)``, ``q`` exceeded by
-    the largest of the ``n_lot`` values with probability ``family_alpha / n_parameters``
-    when every unit is clean and Gaussian (seeded simulation of that statistic: the history's
-    median and MAD are themselves uncertain). Cached with the other thresholds under the
-    group sizes ``(0, n_history, n_lot)`` (a real layout never has a lot of 0 units)."""
-    n_history, n_lot = int(n_history), int(n_lot)
+def history_z_threshold(history_groups: tuple[int, ...], n_lot: int, n_parameters: int,
+                        z_threshold: float = 3.5, family_alpha: float = 0.01,
+                        location: str = "lot") -> float:
+    """Threshold on the robust z of the ``n_lot`` units of a small lot judged against a
+    history of earlier units (``history_groups``: how many of them per earlier lot):
+    ``max(z_threshold, q)``, ``q`` exceeded by the largest of the ``n_lot`` |z| with
+    probability ``family_alpha / n_parameters`` when every unit is clean and Gaussian, from
+    a seeded simulation of that very statistic:
+
+    - ``location="lot"``: ``z = (x - lot median) / s``, ``s`` the robust scale of the
+      history's values each centred on its own lot's median (the lot's median from its few
+      units is uncertain, the scale from the history much less);
+    - ``location="history"``: ``z = (x - history median) / s``, ``s`` the history's robust
+      scale (history median and scale both uncertain; lots are assumed to share one mean).
+
+    Cached with the other thresholds under the group sizes ``(0, n_lot, *history_groups)``
+    ("lot") or ``(0, 0, n_lot, *history_groups)`` ("history"): a real layout never has a
+    lot of 0 units."""
+    groups = tuple(sorted(int(g) for g in history_groups))
+    n_lot = int(n_lot)
+    n_history = sum(groups)
     if family_alpha <= 0 or n_history < 3 or n_lot < 1:
         return float(z_threshold)
-    key = _threshold_key((0, n_history, n_lot), n_parameters, z_threshold, family_alpha)
+    tag = (0, n_lot) if location == "lot" else (0, 0, n_lot)
+    key = _threshold_key(tag + groups, n_parameters, z_threshold, family_alpha)
     if key in _KNOWN_THRESHOLDS:
         return float(max(z_threshold, _KNOWN_THRESHOLDS[key]))
     p = family_alpha / max(n_parameters, 1)
     total = n_history + n_lot
     rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
     chunk = max(1, 2_000_000 // total)
-    rng = np.random.default_rng(20261124 + 7919 * n_history + 104729 * n_lot)
+    rng = np.random.default_rng([20261124, n_lot, len(tag), *groups])
     parts = []
     for start in range(0, rows, chunk):
         m = min(chunk, rows - start)
-        hist = rng.standard_normal((m, n_history))
         lot = rng.standard_normal((m, n_lot))
-        hist.sort(axis=1)
-        med = _sorted_median(hist)
-        dev = np.abs(hist - med[:, None])
+        if location == "lot":
+            dev = np.empty((m, n_history))
+            col = 0
+            for g in groups:  # each earlier lot centred on its own median
+                block = rng.standard_normal((m, g))
+                block.sort(axis=1)
+                dev[:, col:col + g] = np.abs(block - _sorted_median(block)[:, None])
+                col += g
+            lot_sorted = np.sort(lot, axis=1)
+            centre = _sorted_median(lot_sorted)
+        else:
+            hist = rng.standard_normal((m, n_history))
+            hist.sort(axis=1)
+            centre = _sorted_median(hist)
+            dev = np.abs(hist - centre[:, None])
         dev.sort(axis=1)
         scale = MAD_TO_SIGMA * _sorted_median(dev)
-        parts.append(np.abs(lot - med[:, None]).max(axis=1) / np.where(scale > 0, scale, np.inf))
+        parts.append(np.abs(lot - centre[:, None]).max(axis=1)
+                     / np.where(scale > 0, scale, np.inf))
     zmax = np.concatenate(parts)
     if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
@@ -408,6 +438,7 @@ class HistoryReference:
     of the last good units of earlier lots."""
 
     stats: dict[tuple[str, str], tuple[float, float, int]]  # median, scale, n values
+    centred: dict[tuple[str, str], tuple[float, tuple[int, ...]]]  # lot-centred scale, groups
     n_units: int
     lots: tuple[str, ...]
     detail: str
@@ -482,16 +513,34 @@ def history_references(summary: pd.DataFrame, config: OutlierConfig,
         # newest first; ties by (lot, unit) for a deterministic choice
         order = sorted(cand.tolist(), key=lambda i: (-t_unit[i], keys[i]))
         chosen = np.array(order[:cfg.history_units])
-        stats = {}
+        stats, centred = {}, {}
+        chosen_lots = lot_of[chosen]
         for j, col in enumerate(wide.columns):
             v = X[chosen, j]
-            v = v[np.isfinite(v)]
-            if len(v) >= need:
-                stats[(str(col[0]), str(col[1]))] = (float(np.median(v)), robust_scale(v), len(v))
+            fin = np.isfinite(v)
+            if fin.sum() < need:
+                continue
+            key = (str(col[0]), str(col[1]))
+            stats[key] = (float(np.median(v[fin])), robust_scale(v[fin]), int(fin.sum()))
+            # each chosen unit centred on the median of all its lot's units; MAD about 0
+            dev, groups = [], []
+            for lot_h in sorted(set(chosen_lots.tolist())):
+                all_of_lot = X[lot_of == lot_h, j]
+                all_of_lot = all_of_lot[np.isfinite(all_of_lot)]
+                mine = v[(chosen_lots == lot_h) & fin]
+                if len(mine) and len(all_of_lot):
+                    dev.append(mine - np.median(all_of_lot))
+                    groups.append(len(mine))
+            c = np.abs(np.concatenate(dev))
+            mad = float(np.median(c))
+            scale = MAD_TO_SIGMA * mad if mad > 0 else MEANAD_TO_SIGMA * float(np.mean(c))
+            centred[key] = (scale, tuple(sorted(groups)))
         used_lots = tuple(sorted({str(lot_of[i]) for i in chosen}))
-        detail = (f"fleet history: {len(chosen)} good units (the last of lots acquired before "
-                  f"this one: {', '.join(used_lots)})")
-        out[lot] = HistoryReference(stats, len(chosen), used_lots, detail)
+        how = ("the lot's own median and the spread of" if cfg.history_location == "lot"
+               else "the median and spread of")
+        detail = (f"{how} the fleet history: {len(chosen)} good units, the last of lots "
+                  f"acquired before this one ({', '.join(used_lots)})")
+        out[lot] = HistoryReference(stats, centred, len(chosen), used_lots, detail)
     return out
 
 
@@ -596,18 +645,25 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
         in_robust = (not cfg.robust_models) or model in cfg.robust_models
         ref = history.stats.get((model, name)) if history is not None else None
         if in_robust and ref is not None:
-            ref_med, scale, n_hist = ref
-            thr = history_z_threshold(n_hist, int(ok.sum()), n_params, cfg.z_threshold,
-                                      cfg.family_alpha)
+            if cfg.history_location == "history":
+                ref_med, scale, n_hist = ref
+                groups: tuple[int, ...] = (n_hist,)
+                where = f"fleet history median {_fmt(ref_med)} ({n_hist} units)"
+            else:
+                ref_med = med
+                scale, groups = history.centred[(model, name)]
+                where = (f"lot median {_fmt(med)}, scale of the fleet history "
+                         f"({sum(groups)} units)")
+            thr = history_z_threshold(groups, int(ok.sum()), n_params, cfg.z_threshold,
+                                      cfg.family_alpha, cfg.history_location)
             thresholds.append(thr)
             z = np.where(ok, (x - ref_med) / scale, np.nan) if scale > 0 else np.zeros(len(x))
             score[idx] = z
             for i in np.flatnonzero(np.abs(np.nan_to_num(z)) > thr):
                 flags.append(Flag(lot, str(grp_units[i]), model, name, KIND_ROBUST, float(x[i]),
                                   ref_med, float(z[i]), thr,
-                                  f"{model}.{name} = {_fmt(x[i])}, fleet history median "
-                                  f"{_fmt(ref_med)} ({n_hist} units), robust z {z[i]:+.1f} "
-                                  f"(|z| > {thr:.2f})"))
+                                  f"{model}.{name} = {_fmt(x[i])}, {where}, robust z "
+                                  f"{z[i]:+.1f} (|z| > {thr:.2f})"))
         elif robust and in_robust and ok.sum() >= cfg.min_units:
             if (model, name) in pooled:
                 scale, n_pool = pooled[(model, name)]
@@ -668,7 +724,7 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
     if history is not None:
         reference, detail = "fleet history", history.detail
         note = (f"{n_units} units in lot {lot} (fewer than {cfg.history_below}): judged "
-                f"against the {detail}; |robust z| threshold {thr_used:.2f} (max of "
+                f"with {detail}; |robust z| threshold {thr_used:.2f} (max of "
                 f"{cfg.z_threshold:g} and the family-wise level for alpha="
                 f"{cfg.family_alpha:g})")
         if robust:

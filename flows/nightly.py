@@ -524,6 +524,7 @@ def qa_status(lot_flags: LotFlags, unit: str, config: OutlierConfig, when: str) 
                        "spread_factor": config.spread_factor, "min_units": config.min_units,
                        "scale_pool": config.scale_pool, "history_units": config.history_units,
                        "history_below": config.history_below,
+                       "history_location": config.history_location,
                        "limits": [f"{lim.model}.{lim.parameter}: {lim.written or ''}"
                                   for lim in config.limits]},
             "judged_at": when}

@@ -6,6 +6,7 @@ the unit written next to every dimensional number::
     family_alpha = 0.01
     history_units = 60         # small lots: judged against the last N good units of earlier lots
     history_below = 20         # ... when the lot has fewer units than this
+    history_location = "lot"   # "lot": own median, history's spread; "history": both from it
 
     [limits]                   # parameter names are unique across models
     f0_y  = {min = "-7 mg", max = "7 mg"}
@@ -164,7 +165,7 @@ def parse_limits(doc: Any, source: str) -> tuple[Limit, ...]:
 
 OUTLIER_KEYS = {"z_threshold": float, "family_alpha": float, "spread_factor": float,
                 "min_units": int, "robust_models": list, "scale_pool": str,
-                "history_units": int, "history_below": int}
+                "history_units": int, "history_below": int, "history_location": str}
 
 
 def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
