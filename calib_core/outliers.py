@@ -48,7 +48,7 @@ MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian -> its sigma
 MEANAD_TO_SIGMA = 1.2533  # sqrt(pi/2): mean absolute deviation of a Gaussian -> sigma
 MIN_REPS_FOR_SPREAD = 4
 # a history reference needs at least this many good units (or history_units, if fewer)
-HISTORY_MIN_UNITS = 20
+HISTORY_MIN_UNITS = 15
 # a unit of an earlier lot is "good" for the history when no robust-model parameter is further
 # than this many robust sd from the fleet's median (and it fails no limit): per value a clean
 # Gaussian unit is excluded with probability 6e-7
