@@ -8,7 +8,8 @@ of ``n`` units; every unit has 24 parameters (the gyro and accel models), unit m
 Gaussian with sd 1 around 0 (the same population in every lot); one unit of the lot under
 test has one parameter shifted by ``shift`` lot sd. The fleet's summary goes through
 :func:`calib_core.outliers.flag_lots` with ``history_units = 0`` ("own lot": its own median,
-the scale pooled over the lots), the default configuration ("history spread": lots below 20
+the scale pooled over the lots), "lot alone" (the same with no earlier lot in the store:
+the lot's own median and scale), the default configuration ("history spread": lots below 20
 units judged with their own median and the spread of the last 60 good units of earlier
 lots) and ``history_location = "history"`` (median and spread of those units). "found":
 the shifted unit flagged on that parameter (robust z); "false units": other units of the
@@ -56,7 +57,8 @@ def simulated_fleet(rng: np.random.Generator, n: int, shift: float
 
 def measure(sizes: list[int], shifts: list[float], trials: int, seed: int = 20261124
             ) -> pd.DataFrame:
-    configs = {"own lot": OutlierConfig(history_units=0),
+    configs = {"lot alone": OutlierConfig(history_units=0),
+               "own lot": OutlierConfig(history_units=0),
                "history spread (default)": OutlierConfig(),
                "history median and spread": OutlierConfig(history_location="history")}
     out = []
@@ -69,7 +71,9 @@ def measure(sizes: list[int], shifts: list[float], trials: int, seed: int = 2026
             for _ in range(trials):
                 df, times, target = simulated_fleet(rng, n, shift)
                 for name, cfg in configs.items():
-                    lf = flag_lots(df, cfg, ["T"], times)[0]
+                    # "lot alone": no earlier lot in the store (a first small lot)
+                    rows = df[df["lot"] == "T"] if name == "lot alone" else df
+                    lf = flag_lots(rows, cfg, ["T"], times)[0]
                     hit = {(f.unit, f.model, f.parameter) for f in lf.flags
                            if f.kind == KIND_ROBUST}
                     found[name] += target in hit and shift > 0
