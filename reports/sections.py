@@ -537,7 +537,7 @@ def key_parameter_table(ctx: LotContext) -> str:
                 why = col["flag_reason"][i] if "flag_reason" in col else ""
                 kinds = flag_kinds(why) or {KIND_OUTLIER}
                 cls = "limit" if KIND_LIMITS in kinds else "flagged"
-                tip += f" — {'LIMIT FAILED' if cls == 'limit' else 'OUTLIER'}: {why}"
+                tip += f" — FLAGGED ({'limit failed' if cls == 'limit' else 'outlier'}): {why}"
                 cells.append(f'<td class="{cls}" data-flagged="1" data-kind="{esc(" ".join(sorted(kinds)))}" '
                              f'data-param="{esc(n)}" data-sort="{float(mean)!r}" '
                              f'title="{esc(tip)}">{val}</td>')

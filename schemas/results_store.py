@@ -949,14 +949,14 @@ def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
     if before_after == "before":
         cands = [f for f in files if f[0] <= at]
         if not cands:
-            raise CalibrationNotFound(f"unit {unit!r}: no calibration of sessions acquired at "
-                                      f"or before {iso(at)} (first acquired {iso(files[0][0])})")
+            raise CalibrationNotFound(f"unit {unit!r}: no calibration at or before {iso(at)} "
+                                      f"(the first is of {iso(files[0][0])}, {files[0][3]})")
         return last_of(cands[-1][0])
     if before_after == "after":
         cands = [f for f in files if f[0] >= at]
         if not cands:
-            raise CalibrationNotFound(f"unit {unit!r}: no calibration of sessions acquired at "
-                                      f"or after {iso(at)} (last acquired {iso(files[-1][0])})")
+            raise CalibrationNotFound(f"unit {unit!r}: no calibration at or after {iso(at)} "
+                                      f"(the last is of {iso(files[-1][0])}, {files[-1][3]})")
         return last_of(cands[0][0])
     return last_of(min(files, key=lambda f: abs((f[0] - at).total_seconds()))[0])
 
