@@ -26,11 +26,17 @@ Three rules, each flag naming the parameter, the unit's value, the lot median an
    flagged above ``spread_factor`` (default 3). Needs >= 4 repetitions: with 5 reps a clean
    unit exceeds 3x the lot median std with probability ~5e-6 per parameter (chi-square, 4 dof),
    with 2 reps it would be ~0.04.
-3. **Limits** from configuration (per model/parameter ``min``/``max``), applied to every unit
-   whatever the lot size.
+3. **Limits** from configuration (per model/parameter ``min``/``max`` in the stored unit,
+   parsed from the engineers' TOML with units by :mod:`schemas.limits`), applied to every
+   unit whatever the lot size; a separate category (``kind = "limit"``) from the two
+   statistical ones.
 
-Lots with fewer than ``min_units`` (5) units get no robust or spread flags (a median of four
-units says little about what is typical); :class:`LotFlags` says so in ``note``.
+Small lots (fewer than ``history_below`` units) are judged against the fleet's history when
+the caller gives the units' acquisition times: the last ``history_units`` good units of the
+lots acquired before (:func:`history_references`), with a threshold simulated for that
+statistic (:func:`history_z_threshold`); ``LotFlags.reference`` says which reference was
+used. Without a history, lots with fewer than ``min_units`` (5) units get no robust or spread
+flags (a median of four units says little about what is typical); ``note`` says so.
 
 Pure: inputs are a summary table (pandas), outputs dataclasses and a table.
 """
