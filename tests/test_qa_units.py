@@ -208,3 +208,37 @@ def test_apply_refuses_gravity_in_m_s2_for_a_g_calibration_and_converts_when_tol
     np.testing.assert_allclose(w_rad, 1.0)
     with pytest.raises(RawUnitError, match="LSB"):
         cal.apply(G, A_g, accel_unit="LSB")
+
+
+def test_the_limits_table_knows_every_parameter_a_calibration_produces():
+    from calib_core.pipeline import calibrate_repetition
+    from calib_core.protocols import default_session
+    from calib_core.simulator import simulate_step_means, typical_truth
+    from schemas.limits import PARAMETERS, STORED_UNIT
+    rng = np.random.default_rng(3)
+    sm = simulate_step_means(typical_truth(rng), default_session(), rng)
+    rep = calibrate_repetition(sm).calibration
+    seen = set()
+    for fit in rep.fits.values():
+        for p in fit.parameters():
+            if p.model not in PARAMETERS:
+                continue
+            seen.add((p.model, p.name))
+            kind = PARAMETERS[p.model].get(p.name)
+            assert kind is not None, (p.model, p.name)
+            sep = " per " if " per " in p.unit else "/"
+            a, _, b = p.unit.partition(sep)
+            dimensionless = b and a.strip() == b.strip()
+            assert (STORED_UNIT[kind] == "") == bool(dimensionless) or \
+                STORED_UNIT[kind] == p.unit, (p.model, p.name, p.unit, kind)
+    assert {m for m, _ in seen} >= {"gyro", "accel", "accel_static"}
+
+
+def test_a_bad_limits_file_is_one_line_before_anything_starts(tmp_path, capsys):
+    from flows.cli import main as cli_main
+    bad = tmp_path / "limits.toml"
+    bad.write_text('[limits]\nf0_y = {max = "7 mG"}\n')
+    assert cli_main(["report", "--results", str(tmp_path / "none"), "--lot", "L01",
+                     "--config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'mG'" in err and "'mg'" in err

@@ -35,8 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(one core), processes (a forkserver pool, both cores, ~3 s start-up), "
                         "prefect-processes (Prefect's process pool), dask (a local Dask "
                         "cluster); default $MIMUCAL_TASK_RUNNER or auto")
-    p.add_argument("--config", metavar="TOML", default=None,
-                   help="outlier options and per-parameter limits (see docs/flows.md)")
+    p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--batch-size", type=int, default=None, metavar="N",
                    help="units per Prefect task (default 8)")
     p.add_argument("--wait", action="store_true",
@@ -46,12 +45,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+CONFIG_HELP = ("QA configuration: outlier options and acceptance limits with units (docs/"
+               "flows.md); stored in the results store and applied by every later run; "
+               "'none' clears it")
+
+
+def check_config(path: str | None) -> None:
+    """A ``--config`` refused before any orchestration starts: a missing file, TOML that does
+    not parse, unknown parameters or units (one line naming the valid ones)."""
+    if path is None or path == "none":
+        return
+    from schemas.limits import LimitsError, config_from_toml
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise CliError(f"configuration {path}: {exc.strerror or exc}") from None
+    try:
+        config_from_toml(text, source=str(path))
+    except LimitsError as exc:
+        raise CliError(str(exc)) from None
+
+
 def run(args: argparse.Namespace) -> int:
     dataset = Path(args.dataset)
     if not dataset.is_dir():
         raise CliError(f"dataset {dataset} is not a directory")
-    if args.config and not Path(args.config).is_file():
-        raise CliError(f"configuration {args.config} does not exist")
+    check_config(args.config)
     if args.batch_size is not None and args.batch_size < 1:
         raise CliError("--batch-size must be >= 1")
     from flows.task_runners import resolve_kind

@@ -6,10 +6,12 @@ import argparse
 from pathlib import Path
 
 from flows.cli import CliError
+from flows.commands.nightly import CONFIG_HELP, check_config
 
 EPILOG = """examples:
   mimucal report --results results --lot L01
-  mimucal report --results results --lot L01 --config limits.toml"""
+  mimucal report --results results --lot L01 --config limits.toml
+  mimucal report --results results --lot L01 --config none   # forget the stored limits"""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,14 +20,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
     p.add_argument("--lot", required=True, help="lot id")
-    p.add_argument("--config", metavar="TOML", default=None,
-                   help="outlier options and per-parameter limits")
+    p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from schemas.results_store import ResultsStore
+    check_config(args.config)
     store = ResultsStore(Path(args.results))
     if not store.has_table("summary") and not store.has_table("sessions"):
         raise CliError(f"{args.results} is not a results store (no sessions table); run "

@@ -9,7 +9,7 @@ import argparse
 from pathlib import Path
 
 from flows.cli import CliError
-from flows.commands.nightly import print_outcome
+from flows.commands.nightly import CONFIG_HELP, check_config, print_outcome
 
 EPILOG = """examples:
   mimucal rerun data/fleet --results results --unit U0042"""
@@ -22,8 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", metavar="DATASET", help="hive dataset root")
     p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
     p.add_argument("--unit", required=True, help="unit id")
-    p.add_argument("--config", metavar="TOML", default=None,
-                   help="outlier options and per-parameter limits")
+    p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
     p.set_defaults(func=run)
@@ -32,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).is_dir():
         raise CliError(f"dataset {args.dataset} is not a directory")
+    check_config(args.config)
     from flows import runtime
     runtime.ensure_environment(args.results)
     from calib_core.outliers import OutlierConfigError
