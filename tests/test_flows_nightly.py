@@ -112,7 +112,7 @@ def test_fleet_run_flags_outliers_lists_bad_sessions_calibrates_the_rest(fleet):
 
 
 @pytest.mark.slow
-def test_second_run_recalibrates_nothing_then_one_touched_session_one_unit(fleet):
+def test_second_run_recalibrates_nothing_then_one_changed_session_one_unit(fleet):
     data, results, manifest, first = fleet
     params_before = table(results, "parameters")
     files_before = sorted((results / "calibrations").rglob("*.json"))
@@ -124,6 +124,12 @@ def test_second_run_recalibrates_nothing_then_one_touched_session_one_unit(fleet
     target = data / "lot=L02" / "unit=U0025" / "rep=3" / "samples.parquet"
     st = target.stat()
     os.utime(target, ns=(st.st_atime_ns, st.st_mtime_ns + 10_000_000_000))
+    log = nightly_fleet_calibration(data, results, run_discovery=False, progress=False)
+    assert log["units_calibrated"] == 0  # touched, same content: a content fingerprint
+    # the same samples written again with one more metadata entry: other bytes
+    tab = pq.read_table(target)
+    pq.write_table(tab.replace_schema_metadata({**tab.schema.metadata, b"operator": b"x"}),
+                   target)
     files_before = lot_files(results)
     log = nightly_fleet_calibration(data, results, run_discovery=False, progress=False)
     assert log["units_calibrated"] == 1 and log["units_skipped"] == 59
