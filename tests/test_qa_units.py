@@ -13,7 +13,7 @@ import pytest
 from calib_core.calibration import Calibration, RawUnitError
 from calib_core.outliers import (KIND_LIMIT, KIND_ROBUST, OutlierConfig, OutlierConfigError,
                                  MAD_TO_SIGMA, flag_lots, history_z_threshold)
-from schemas.calibration_file import qa_of, save_calibration, set_qa_status
+from schemas.calibration_file import dumps_json, qa_of, save_calibration, set_qa_status
 from schemas.limits import LimitsError, config_from_toml
 
 PARAMS = ([("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
@@ -179,13 +179,20 @@ def _cal() -> Calibration:
 def test_qa_status_is_rewritten_with_its_history_and_unchanged_status_is_left_alone(tmp_path):
     path = save_calibration(_cal(), tmp_path / "c.json", {"provenance": {"unit": "U1"}})
     assert qa_of(json.loads(path.read_text())) is None
-    assert set_qa_status(path, {"status": "pass", "reasons": [], "lot": "L"})
+    assert set_qa_status(path, {"status": "pass", "reasons": [], "lot": "L",
+                                "z_threshold": float("nan"), "config": {"limits": ["a: b"]}})
+    # appended to a fresh file without re-encoding it: byte for byte what a rewrite writes
+    text = path.read_text()
+    assert text == dumps_json(json.loads(text), nonfinite="null")
+    assert json.loads(text)["qa"]["config"] == {"limits": ["a: b"]}
+    assert set_qa_status(path, {"status": "pass", "reasons": [], "lot": "L"}) is False
     mtime = path.stat().st_mtime_ns
     assert not set_qa_status(path, {"status": "pass", "reasons": [], "lot": "L"})
     assert path.stat().st_mtime_ns == mtime
     assert set_qa_status(path, {"status": "limits", "reasons": ["[limit] x"], "lot": "L"})
     doc = json.loads(path.read_text())
     assert doc["qa"]["status"] == "limits" and [h["status"] for h in doc["qa_history"]] == ["pass"]
+    assert doc["qa_history"][0]["z_threshold"] is None  # NaN written as null
     assert doc["provenance"] == {"unit": "U1"} and doc["K_g"] == np.eye(3).tolist()
     assert not list(tmp_path.glob("*.tmp"))
     with pytest.raises(ValueError):
