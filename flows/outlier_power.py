@@ -16,6 +16,7 @@ the shifted unit flagged on that parameter (robust z); "false units": other unit
 lot under test flagged, per lot (a shift of 0 is a clean lot). Seeded: the same table every
 time.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,16 +27,19 @@ import pandas as pd
 
 from calib_core.outliers import KIND_ROBUST, OutlierConfig, flag_lots
 
-PARAMS = ([("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
-          + [("gyro", f"w0_{a}") for a in "xyz"]
-          + [("accel", f"k_a{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
-          + [("accel", f"f0_{a}") for a in "xyz"])
+PARAMS = (
+    [("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
+    + [("gyro", f"w0_{a}") for a in "xyz"]
+    + [("accel", f"k_a{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
+    + [("accel", f"f0_{a}") for a in "xyz"]
+)
 EARLIER_LOTS = 3
 EARLIER_UNITS = 20
 
 
-def simulated_fleet(rng: np.random.Generator, n: int, shift: float
-                    ) -> tuple[pd.DataFrame, dict, tuple[str, str, str]]:
+def simulated_fleet(
+    rng: np.random.Generator, n: int, shift: float
+) -> tuple[pd.DataFrame, dict, tuple[str, str, str]]:
     """(summary, unit times, (unit, model, parameter) shifted) of one trial."""
     lots = [(f"E{k}", EARLIER_UNITS, k * 86400.0) for k in range(EARLIER_LOTS)]
     lots.append(("T", n, EARLIER_LOTS * 86400.0))
@@ -55,12 +59,13 @@ def simulated_fleet(rng: np.random.Generator, n: int, shift: float
     return df, times, target
 
 
-def measure(sizes: list[int], shifts: list[float], trials: int, seed: int = 20261124
-            ) -> pd.DataFrame:
-    configs = {"lot alone": OutlierConfig(history_units=0),
-               "own lot": OutlierConfig(history_units=0),
-               "history spread (default)": OutlierConfig(),
-               "history median and spread": OutlierConfig(history_location="history")}
+def measure(sizes: list[int], shifts: list[float], trials: int, seed: int = 20261124) -> pd.DataFrame:
+    configs = {
+        "lot alone": OutlierConfig(history_units=0),
+        "own lot": OutlierConfig(history_units=0),
+        "history spread (default)": OutlierConfig(),
+        "history median and spread": OutlierConfig(history_location="history"),
+    }
     out = []
     for n in sizes:
         for shift in shifts:
@@ -74,16 +79,21 @@ def measure(sizes: list[int], shifts: list[float], trials: int, seed: int = 2026
                     # "lot alone": no earlier lot in the store (a first small lot)
                     rows = df[df["lot"] == "T"] if name == "lot alone" else df
                     lf = flag_lots(rows, cfg, ["T"], times)[0]
-                    hit = {(f.unit, f.model, f.parameter) for f in lf.flags
-                           if f.kind == KIND_ROBUST}
+                    hit = {(f.unit, f.model, f.parameter) for f in lf.flags if f.kind == KIND_ROBUST}
                     found[name] += target in hit and shift > 0
                     false[name] += len({f.unit for f in lf.flags} - {target[0]})
                     thr[name].append(lf.z_threshold_used)
             for name in configs:
-                out.append({"lot units": n, "reference": name, "shift (lot sd)": shift,
-                            "found": found[name] / trials if shift > 0 else np.nan,
-                            "false units per lot": false[name] / trials,
-                            "threshold": float(np.nanmedian(thr[name]))})
+                out.append(
+                    {
+                        "lot units": n,
+                        "reference": name,
+                        "shift (lot sd)": shift,
+                        "found": found[name] / trials if shift > 0 else np.nan,
+                        "false units per lot": false[name] / trials,
+                        "threshold": float(np.nanmedian(thr[name])),
+                    }
+                )
     return pd.DataFrame(out)
 
 
@@ -96,8 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     t = time.perf_counter()
     df = measure(a.sizes, a.shifts, a.trials)
     # one row per lot size and reference: threshold, false units, found per shift
-    print(f"| lot units | reference | |z| threshold | false units per clean lot | "
-          + " | ".join(f"found at {s:g} sd" for s in a.shifts if s > 0) + " |")
+    print(
+        "| lot units | reference | |z| threshold | false units per clean lot | "
+        + " | ".join(f"found at {s:g} sd" for s in a.shifts if s > 0)
+        + " |"
+    )
     print("|---|---|---|---|" + "---|" * sum(s > 0 for s in a.shifts))
     for (n, ref), g in df.groupby(["lot units", "reference"], sort=False):
         clean = g[g["shift (lot sd)"] == 0]

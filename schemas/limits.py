@@ -26,6 +26,7 @@ m/s^2 converts with standard gravity (9.80665): the store keeps g of each sessio
 
 The numerics of judging are :mod:`calib_core.outliers`; this module only parses.
 """
+
 from __future__ import annotations
 
 import math
@@ -42,31 +43,57 @@ _AX = "xyz"
 # kind of quantity -> {unit as written: factor to the stored unit}; the stored unit first
 UNITS: dict[str, dict[str, float]] = {
     "dimensionless": {"": 1.0, "1": 1.0, "%": 1e-2, "ppm": 1e-6},
-    "acceleration": {"g": 1.0, "mg": 1e-3, "ug": 1e-6, "µg": 1e-6,
-                     "m/s^2": 1.0 / STANDARD_GRAVITY, "m/s2": 1.0 / STANDARD_GRAVITY},
-    "angular rate": {"deg/s": 1.0, "mdeg/s": 1e-3, "deg/h": 1.0 / 3600.0,
-                     "rad/s": 180.0 / math.pi, "mrad/s": 0.18 / math.pi},
-    "angle": {"deg": 1.0, "mdeg": 1e-3, "arcmin": 1.0 / 60.0, "arcsec": 1.0 / 3600.0,
-              "rad": 180.0 / math.pi, "mrad": 0.18 / math.pi},
+    "acceleration": {
+        "g": 1.0,
+        "mg": 1e-3,
+        "ug": 1e-6,
+        "µg": 1e-6,
+        "m/s^2": 1.0 / STANDARD_GRAVITY,
+        "m/s2": 1.0 / STANDARD_GRAVITY,
+    },
+    "angular rate": {
+        "deg/s": 1.0,
+        "mdeg/s": 1e-3,
+        "deg/h": 1.0 / 3600.0,
+        "rad/s": 180.0 / math.pi,
+        "mrad/s": 0.18 / math.pi,
+    },
+    "angle": {
+        "deg": 1.0,
+        "mdeg": 1e-3,
+        "arcmin": 1.0 / 60.0,
+        "arcsec": 1.0 / 3600.0,
+        "rad": 180.0 / math.pi,
+        "mrad": 0.18 / math.pi,
+    },
     "length": {"mm": 1.0, "um": 1e-3, "cm": 10.0, "m": 1000.0},
 }
-STORED_UNIT = {"dimensionless": "", "acceleration": "g", "angular rate": "deg/s",
-               "angle": "deg", "length": "mm"}
+STORED_UNIT = {
+    "dimensionless": "",
+    "acceleration": "g",
+    "angular rate": "deg/s",
+    "angle": "deg",
+    "length": "mm",
+}
 
 # model -> parameter -> kind of quantity (the stored units when the raw units are deg/s and g;
 # a unit fitted on LSB keeps "deg/s per LSB" etc., which a limit may name literally)
 PARAMETERS: dict[str, dict[str, str]] = {
-    "gyro": {**{f"k_g{m}": "dimensionless" for m in _MAT},
-             **{f"w0_{a}": "angular rate" for a in _AX}},
-    "accel": {**{f"k_a{m}": "dimensionless" for m in _MAT},
-              **{f"f0_{a}": "acceleration" for a in _AX}},
-    "gyro_traditional": {**{f"s_g{m}": "dimensionless" for m in _MAT},
-                         **{f"b_g_{a}": "angular rate" for a in _AX}},
-    "accel_traditional": {**{f"s_a{m}": "dimensionless" for m in _MAT},
-                          **{f"b_a_{a}": "acceleration" for a in _AX}},
-    "accel_static": {**{f"k_{a}": "dimensionless" for a in _AX},
-                     **{f"u0_{a}": "acceleration" for a in _AX},
-                     **{f"theta_{a}{b}": "angle" for a in _AX for b in _AX}},
+    "gyro": {**{f"k_g{m}": "dimensionless" for m in _MAT}, **{f"w0_{a}": "angular rate" for a in _AX}},
+    "accel": {**{f"k_a{m}": "dimensionless" for m in _MAT}, **{f"f0_{a}": "acceleration" for a in _AX}},
+    "gyro_traditional": {
+        **{f"s_g{m}": "dimensionless" for m in _MAT},
+        **{f"b_g_{a}": "angular rate" for a in _AX},
+    },
+    "accel_traditional": {
+        **{f"s_a{m}": "dimensionless" for m in _MAT},
+        **{f"b_a_{a}": "acceleration" for a in _AX},
+    },
+    "accel_static": {
+        **{f"k_{a}": "dimensionless" for a in _AX},
+        **{f"u0_{a}": "acceleration" for a in _AX},
+        **{f"theta_{a}{b}": "angle" for a in _AX for b in _AX},
+    },
     "lever_arm": {f"r{i}{a}": "length" for i in (1, 2, 3) for a in _AX},
 }
 MODEL_OF = {name: model for model, names in PARAMETERS.items() for name in names}
@@ -85,9 +112,11 @@ def parse_quantity(value: Any, kind: str, where: str) -> tuple[float, str]:
         raise LimitsError(f"{where}: {value!r} is not a quantity")
     if isinstance(value, (int, float)):
         if kind != "dimensionless":
-            raise LimitsError(f"{where}: {value!r} has no unit; write it with one, e.g. "
-                              f"\"{value} {next(iter(UNITS[kind]))}\" (units for {kind}: "
-                              f"{', '.join(UNITS[kind])})")
+            raise LimitsError(
+                f"{where}: {value!r} has no unit; write it with one, e.g. "
+                f'"{value} {next(iter(UNITS[kind]))}" (units for {kind}: '
+                f"{', '.join(UNITS[kind])})"
+            )
         return float(value), ""
     if not isinstance(value, str):
         raise LimitsError(f"{where}: {value!r} is not a number with a unit")
@@ -102,16 +131,17 @@ def parse_quantity(value: Any, kind: str, where: str) -> tuple[float, str]:
         return number, unit
     other = next((k for k, f in UNITS.items() if unit in f), None)
     why = f"a unit of {other}, not {kind}" if other else "an unknown unit"
-    raise LimitsError(f"{where}: {unit!r} is {why}; valid units for {kind}: "
-                      f"{', '.join(repr(u) for u in factors if u) or 'none'}"
-                      + (" or a plain number" if kind == "dimensionless" else ""))
+    raise LimitsError(
+        f"{where}: {unit!r} is {why}; valid units for {kind}: "
+        f"{', '.join(repr(u) for u in factors if u) or 'none'}"
+        + (" or a plain number" if kind == "dimensionless" else "")
+    )
 
 
 def _limit(model: str, name: str, spec: Any, source: str) -> Limit:
     where = f"{source}: limit of {model}.{name}"
     if not isinstance(spec, dict) or not spec or not set(spec) <= {"min", "max"}:
-        raise LimitsError(f"{where} must be {{min = ..., max = ...}} (either or both), got "
-                          f"{spec!r}")
+        raise LimitsError(f"{where} must be {{min = ..., max = ...}} (either or both), got {spec!r}")
     kind = PARAMETERS[model][name]
     lo = hi = None
     units = set()
@@ -125,17 +155,26 @@ def _limit(model: str, name: str, spec: Any, source: str) -> Limit:
         raise LimitsError(f"{where}: min and max in units of different kinds {sorted(units)}")
     if lo is not None and hi is not None and lo > hi:
         raise LimitsError(f"{where}: min {spec['min']!r} > max {spec['max']!r}")
-    return Limit(model, name, lo, hi, unit=units.pop(),
-                 written=" .. ".join(str(spec.get(k, "")) for k in ("min", "max")))
+    return Limit(
+        model,
+        name,
+        lo,
+        hi,
+        unit=units.pop(),
+        written=" .. ".join(str(spec.get(k, "")) for k in ("min", "max")),
+    )
 
 
 def _unknown_parameter(name: str, model: str | None, source: str) -> LimitsError:
     if model is not None:
-        return LimitsError(f"{source}: unknown parameter {name!r} of model {model!r}; valid: "
-                           f"{', '.join(PARAMETERS[model])}")
-    return LimitsError(f"{source}: unknown parameter or model {name!r} in [limits]; models: "
-                       f"{', '.join(PARAMETERS)}; parameters: "
-                       + "; ".join(f"{m}: {', '.join(p)}" for m, p in PARAMETERS.items()))
+        return LimitsError(
+            f"{source}: unknown parameter {name!r} of model {model!r}; valid: {', '.join(PARAMETERS[model])}"
+        )
+    return LimitsError(
+        f"{source}: unknown parameter or model {name!r} in [limits]; models: "
+        f"{', '.join(PARAMETERS)}; parameters: "
+        + "; ".join(f"{m}: {', '.join(p)}" for m, p in PARAMETERS.items())
+    )
 
 
 def parse_limits(doc: Any, source: str) -> tuple[Limit, ...]:
@@ -145,8 +184,9 @@ def parse_limits(doc: Any, source: str) -> tuple[Limit, ...]:
     for key, value in doc.items():
         if key in PARAMETERS:
             if not isinstance(value, dict):
-                raise LimitsError(f"{source}: [limits.{key}] must hold <parameter> = "
-                                  f"{{min = ..., max = ...}}")
+                raise LimitsError(
+                    f"{source}: [limits.{key}] must hold <parameter> = {{min = ..., max = ...}}"
+                )
             for name, spec in value.items():
                 if name not in PARAMETERS[key]:
                     raise _unknown_parameter(name, key, source)
@@ -163,9 +203,17 @@ def parse_limits(doc: Any, source: str) -> tuple[Limit, ...]:
     return tuple(out)
 
 
-OUTLIER_KEYS = {"z_threshold": float, "family_alpha": float, "spread_factor": float,
-                "min_units": int, "robust_models": list, "scale_pool": str,
-                "history_units": int, "history_below": int, "history_location": str}
+OUTLIER_KEYS = {
+    "z_threshold": float,
+    "family_alpha": float,
+    "spread_factor": float,
+    "min_units": int,
+    "robust_models": list,
+    "scale_pool": str,
+    "history_units": int,
+    "history_below": int,
+    "history_location": str,
+}
 
 
 def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
@@ -176,13 +224,13 @@ def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
         raise LimitsError(f"{source}: not valid TOML ({exc})") from exc
     unknown = set(doc) - {"outliers", "limits"}
     if unknown:
-        raise LimitsError(f"{source}: unknown section(s) {sorted(unknown)}; expected "
-                          f"[outliers] and [limits]")
+        raise LimitsError(f"{source}: unknown section(s) {sorted(unknown)}; expected [outliers] and [limits]")
     opts = doc.get("outliers", {})
     if not isinstance(opts, dict) or set(opts) - set(OUTLIER_KEYS):
         bad = sorted(set(opts) - set(OUTLIER_KEYS)) if isinstance(opts, dict) else opts
-        raise LimitsError(f"{source}: unknown key(s) {bad} in [outliers]; allowed: "
-                          f"{', '.join(sorted(OUTLIER_KEYS))}")
+        raise LimitsError(
+            f"{source}: unknown key(s) {bad} in [outliers]; allowed: {', '.join(sorted(OUTLIER_KEYS))}"
+        )
     kwargs: dict[str, Any] = {}
     for key, value in opts.items():
         want = OUTLIER_KEYS[key]
@@ -198,8 +246,7 @@ def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
             else:
                 kwargs[key] = want(value)
         except (TypeError, ValueError):
-            raise LimitsError(f"{source}: [outliers] {key} = {value!r} is not a "
-                              f"{want.__name__}") from None
+            raise LimitsError(f"{source}: [outliers] {key} = {value!r} is not a {want.__name__}") from None
     kwargs["limits"] = parse_limits(doc.get("limits", {}), source)
     try:
         return OutlierConfig(**kwargs)

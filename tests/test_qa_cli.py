@@ -5,6 +5,7 @@ against the fleet history, times are acquisition times, fingerprints are content
 One fleet for the module: two lots sharing one population (so that lot L02 can be judged
 against L01), L01 of 20 units and L02 cut to 6; U0003 (L01) has f0_y 12 mg (12 unit sd)
 off, outside the limits the test writes in mg; U0021 (L02) has k_g11 +0.03 (10 unit sd)."""
+
 from __future__ import annotations
 
 import json
@@ -13,7 +14,6 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from flows import runtime
@@ -37,6 +37,7 @@ KG_SHIFT = 0.03
 
 def _truth(rng, lot, unit):
     from dataclasses import replace
+
     t = fleet_sim.unit_truth(COMMON, rng)
     if unit == "U0003":
         t = replace(t, f0=t.f0 + np.array([0.0, F0_SHIFT_G, 0.0]))
@@ -62,16 +63,17 @@ def _cli(capsys, *argv) -> tuple[int, str, str]:
 def fleet(tmp_path_factory):
     base = tmp_path_factory.mktemp("qa")
     data, results = base / "data", base / "results"
-    fleet_sim.simulate_fleet(data, lots=2, units=20, reps=3, seed=20, sample_rate_hz=20.0,
-                             truth_factory=_truth)
+    fleet_sim.simulate_fleet(
+        data, lots=2, units=20, reps=3, seed=20, sample_rate_hz=20.0, truth_factory=_truth
+    )
     for d in sorted((data / "lot=L02").iterdir())[6:]:  # L02: U0021..U0026
         shutil.rmtree(d)
     f0_y_mg = COMMON.f0[1] * 1e3
     limits = base / "limits.toml"
-    limits.write_text("[limits]\n"
-                      f'f0_y = {{min = "{f0_y_mg - 6:.3f} mg", max = "{f0_y_mg + 6:.3f} mg"}}\n')
-    code = cli_main(["nightly", str(data), "--results", str(results), "--config", str(limits),
-                     "--no-discovery"])
+    limits.write_text(f'[limits]\nf0_y = {{min = "{f0_y_mg - 6:.3f} mg", max = "{f0_y_mg + 6:.3f} mg"}}\n')
+    code = cli_main(
+        ["nightly", str(data), "--results", str(results), "--config", str(limits), "--no-discovery"]
+    )
     assert code == 0
     return base, data, results
 
@@ -88,13 +90,11 @@ def test_limits_written_in_mg_fail_the_shifted_unit_and_the_status_travels(fleet
     assert qa["reference"] == "lot" and qa["config"]["limits"]
     code, out, err = _cli(capsys, "calibration", "--results", results, "--unit", "U0003")
     assert code == 3 and out == "" and "refused" in err and "limits" in err
-    code, out, err = _cli(capsys, "calibration", "--results", results, "--unit", "U0003",
-                          "--allow-flagged")
+    code, out, err = _cli(capsys, "calibration", "--results", results, "--unit", "U0003", "--allow-flagged")
     assert code == 0 and out.strip().endswith(".json") and "warning" in err
     # clean units pass; only U0003 fails the limit
     units = ResultsStore(results).read("units")
-    limit_units = sorted(units.loc[units["flag_reason"].fillna("").str.contains(r"\[limit\]"),
-                                   "unit"])
+    limit_units = sorted(units.loc[units["flag_reason"].fillna("").str.contains(r"\[limit\]"), "unit"])
     assert limit_units == ["U0003"]
     code, out, _ = _cli(capsys, "calibration", "--results", results, "--unit", "U0001")
     assert code == 0 and _qa(results, "U0001")["qa"]["status"] == "pass"
@@ -104,7 +104,8 @@ def test_small_lot_is_judged_against_the_fleet_history_and_the_report_says_so(fl
     base, data, results = fleet
     qa = _qa(results, "U0021")["qa"]
     assert qa["status"] == "flagged" and qa["reference"] == "fleet history"
-    assert "19 good units" in qa["reference_detail"]  # U0003 failed a limit and "L01" in qa["reference_detail"]
+    # L01's 20 units but U0003, which failed a limit
+    assert "19 good units" in qa["reference_detail"] and "(L01)" in qa["reference_detail"]
     assert any("gyro.k_g11" in r for r in qa["reasons"])
     flagged = set(ResultsStore(results).read("units").query("lot == 'L02' and flagged")["unit"])
     assert flagged == {"U0021"}  # the clean units of the small lot stay clean
@@ -118,6 +119,7 @@ def _values(a) -> np.ndarray:
     """A plotly array: a list, or a typed array {dtype, bdata (base64)}."""
     if isinstance(a, dict):
         import base64
+
         return np.frombuffer(base64.b64decode(a["bdata"]), dtype=a["dtype"])
     return np.asarray(a, float)
 
@@ -125,8 +127,11 @@ def _values(a) -> np.ndarray:
 def _figures(html: str) -> dict[str, dict]:
     """The report's figure specs by their data-name."""
     out = {}
-    for name, fid in re.findall(r'data-name="([^"]*)"[^>]*></div><script type="application/json" '
-                                r'id="(fig\d+)-spec">', html):
+    for name, fid in re.findall(
+        r'data-name="([^"]*)"[^>]*></div><script type="application/json" '
+        r'id="(fig\d+)-spec">',
+        html,
+    ):
         m = re.search(rf'id="{fid}-spec">(.*?)</script>', html, re.S)
         out[name] = json.loads(m.group(1))
     return out
@@ -139,8 +144,11 @@ def test_report_shows_limits_on_the_box_plot_and_separate_badges(fleet):
     fig = _figures(html)["strip accel"]
     f0_y_mg = COMMON.f0[1] * 1e3
     # the dashed lines at the limits, in the report's unit (mg), on the f0_y panel
-    lines = [(sh["yref"], sh["y0"]) for sh in fig["layout"]["shapes"] if sh.get("type") == "line"
-             and sh.get("line", {}).get("dash") == "dash"]
+    lines = [
+        (sh["yref"], sh["y0"])
+        for sh in fig["layout"]["shapes"]
+        if sh.get("type") == "line" and sh.get("line", {}).get("dash") == "dash"
+    ]
     assert sorted(y for _, y in lines) == pytest.approx([f0_y_mg - 6, f0_y_mg + 6], abs=1e-3)
     assert len({ref for ref, _ in lines}) == 1
     # every box holds all 20 units, the flagged U0003 included; U0003 is a labelled limit
@@ -155,13 +163,11 @@ def test_report_shows_limits_on_the_box_plot_and_separate_badges(fleet):
 
 def test_limits_stick_for_later_runs_until_cleared(fleet, capsys):
     base, data, results = fleet
-    code, out, err = _cli(capsys, "rerun", data, "--results", results, "--unit", "U0004",
-                          "--no-discovery")
+    code, out, err = _cli(capsys, "rerun", data, "--results", results, "--unit", "U0004", "--no-discovery")
     assert code == 0
     assert _qa(results, "U0003")["qa"]["status"] == "limits"  # no --config: still applied
     assert ResultsStore(results).read_qa_config() is not None
-    code, out, err = _cli(capsys, "report", "--results", results, "--lot", "L01",
-                          "--config", "none")
+    code, out, err = _cli(capsys, "report", "--results", results, "--lot", "L01", "--config", "none")
     assert code == 0 and ResultsStore(results).read_qa_config() is None
     doc = _qa(results, "U0003")
     assert doc["qa"]["status"] == "flagged"  # the robust z remains, the limit is gone
@@ -183,11 +189,13 @@ def test_apply_refuses_another_units_raw_file_unless_forced(fleet, tmp_path, cap
 def test_acquisition_time_drives_at_trends_and_a_copy_is_unchanged(fleet, capsys, tmp_path):
     base, data, results = fleet
     # sessions of L01 were acquired on 2026-11-20 (the calibrations were produced today)
-    code, out, err = _cli(capsys, "calibration", "--results", results, "--unit", "U0001",
-                          "--at", "2026-11-20")
+    code, out, err = _cli(
+        capsys, "calibration", "--results", results, "--unit", "U0001", "--at", "2026-11-20"
+    )
     assert code == 0 and out.strip().endswith(".json")
-    code, out, err = _cli(capsys, "calibration", "--results", results, "--unit", "U0001",
-                          "--at", "2026-11-19")
+    code, out, err = _cli(
+        capsys, "calibration", "--results", results, "--unit", "U0001", "--at", "2026-11-19"
+    )
     assert code == 2 and "no calibration at or before 2026-11-19T23:59:59" in err
     assert "session_start" in err  # the time it goes by
     # after the rerun of U0004 the lot's trend point is the median over all 20 units
@@ -198,8 +206,10 @@ def test_acquisition_time_drives_at_trends_and_a_copy_is_unchanged(fleet, capsys
     kg = summary.query("lot == 'L01' and model == 'gyro' and parameter == 'k_g11'")["mean"]
     assert tr.loc["L01", "k_g11"] == pytest.approx(float(np.median(kg)), abs=1e-12)
     assert tr.loc["L01", "time"] < tr.loc["L02", "time"]  # L01 acquired first
-    assert (tr.loc["L01", "time"].strftime("%Y-%m-%d"), tr.loc["L02", "time"].strftime(
-        "%Y-%m-%d")) == ("2026-11-20", "2026-11-21")
+    assert (tr.loc["L01", "time"].strftime("%Y-%m-%d"), tr.loc["L02", "time"].strftime("%Y-%m-%d")) == (
+        "2026-11-20",
+        "2026-11-21",
+    )
     # a copied dataset: no unit recalibrated, no calibration file added
     files = sorted((results / "calibrations").rglob("*.json"))
     copy = tmp_path / "copy"

@@ -2,6 +2,7 @@
 judged in the stored unit, the fleet-history reference of small lots and its threshold
 (calib_core.outliers), the QA status of calibration files, the raw-unit check of
 Calibration.apply. Expected values are hand computed or from independent simulations."""
+
 from __future__ import annotations
 
 import json
@@ -11,31 +12,41 @@ import pandas as pd
 import pytest
 
 from calib_core.calibration import Calibration, RawUnitError
-from calib_core.outliers import (KIND_LIMIT, KIND_ROBUST, OutlierConfig, OutlierConfigError,
-                                 MAD_TO_SIGMA, flag_lots, history_z_threshold)
+from calib_core.outliers import (
+    KIND_LIMIT,
+    KIND_ROBUST,
+    MAD_TO_SIGMA,
+    OutlierConfig,
+    OutlierConfigError,
+    flag_lots,
+    history_z_threshold,
+)
 from schemas.calibration_file import dumps_json, qa_of, save_calibration, set_qa_status
 from schemas.limits import LimitsError, config_from_toml
 
-PARAMS = ([("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
-          + [("gyro", f"w0_{a}") for a in "xyz"]
-          + [("accel", f"k_a{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
-          + [("accel", f"f0_{a}") for a in "xyz"])
+PARAMS = (
+    [("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
+    + [("gyro", f"w0_{a}") for a in "xyz"]
+    + [("accel", f"k_a{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
+    + [("accel", f"f0_{a}") for a in "xyz"]
+)
 
 
 # --- limits in the units engineers write ----------------------------------------------------
 def test_limits_are_converted_from_the_written_unit_to_the_stored_one():
-    cfg = config_from_toml('''
+    cfg = config_from_toml("""
 [limits]
 f0_y = {min = "-7 mg", max = "7 mg"}
 w0_z = {max = "36 deg/h"}
 k_g11 = {min = 0.995, max = "1005000 ppm"}
 [limits.lever_arm]
 r1x = {min = "-2 cm", max = "0.02 m"}
-''')
+""")
     f0 = cfg.limit_of("accel", "f0_y")
     assert (f0.min, f0.max, f0.unit) == (pytest.approx(-0.007), pytest.approx(0.007), "g")
-    assert cfg.limit_of("gyro", "w0_z").max == pytest.approx(0.01) and \
-        cfg.limit_of("gyro", "w0_z").min is None
+    assert (
+        cfg.limit_of("gyro", "w0_z").max == pytest.approx(0.01) and cfg.limit_of("gyro", "w0_z").min is None
+    )
     kg = cfg.limit_of("gyro", "k_g11")
     assert (kg.min, kg.max, kg.unit) == (0.995, pytest.approx(1.005), "")
     r = cfg.limit_of("lever_arm", "r1x")
@@ -44,18 +55,21 @@ r1x = {min = "-2 cm", max = "0.02 m"}
     assert ms2.max == pytest.approx(0.01)
 
 
-@pytest.mark.parametrize("text, message", [
-    ('[limits]\nf0_q = {max = "7 mg"}\n', "unknown parameter or model 'f0_q'.*f0_y"),
-    ('[limits.accel]\nf0_q = {max = "7 mg"}\n', "unknown parameter 'f0_q' of model 'accel'.*f0_x"),
-    ('[limits]\nf0_y = {max = "7 mG"}\n', "unknown unit.*'mg'"),
-    ('[limits]\nf0_y = {max = "7 deg/s"}\n', "a unit of angular rate, not acceleration"),
-    ('[limits]\nf0_y = {max = 7.0}\n', "has no unit.*mg"),
-    ('[limits]\nf0_y = {min = "7 mg", max = "-7 mg"}\n', "min '7 mg' > max '-7 mg'"),
-    ('[limits]\nf0_y = {maximum = "7 mg"}\n', "must be {min = ..., max = ...}"),
-    ('[outliers]\nhistory_units = "ten"\n', "history_units = 'ten' is not a int"),
-    ('[outliers]\nhistory_location = "fleet"\n', "history_location must be"),
-    ('[limit]\n', "unknown section"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('[limits]\nf0_q = {max = "7 mg"}\n', "unknown parameter or model 'f0_q'.*f0_y"),
+        ('[limits.accel]\nf0_q = {max = "7 mg"}\n', "unknown parameter 'f0_q' of model 'accel'.*f0_x"),
+        ('[limits]\nf0_y = {max = "7 mG"}\n', "unknown unit.*'mg'"),
+        ('[limits]\nf0_y = {max = "7 deg/s"}\n', "a unit of angular rate, not acceleration"),
+        ("[limits]\nf0_y = {max = 7.0}\n", "has no unit.*mg"),
+        ('[limits]\nf0_y = {min = "7 mg", max = "-7 mg"}\n', "min '7 mg' > max '-7 mg'"),
+        ('[limits]\nf0_y = {maximum = "7 mg"}\n', "must be {min = ..., max = ...}"),
+        ('[outliers]\nhistory_units = "ten"\n', "history_units = 'ten' is not a int"),
+        ('[outliers]\nhistory_location = "fleet"\n', "history_location must be"),
+        ("[limit]\n", "unknown section"),
+    ],
+)
 def test_limits_errors_name_what_is_valid(text, message):
     with pytest.raises(LimitsError, match=message):
         config_from_toml(text, source="limits.toml")
@@ -66,9 +80,18 @@ def _summary(values: dict[str, np.ndarray], uom: str = "g") -> pd.DataFrame:
     rows = []
     for lot, v in values.items():
         for i, x in enumerate(v):
-            rows.append({"lot": lot, "unit": f"{lot}-U{i}", "model": "accel",
-                         "parameter": "f0_y", "mean": x, "std": np.nan, "n_reps": 5,
-                         "unit_of_measure": uom})
+            rows.append(
+                {
+                    "lot": lot,
+                    "unit": f"{lot}-U{i}",
+                    "model": "accel",
+                    "parameter": "f0_y",
+                    "mean": x,
+                    "std": np.nan,
+                    "n_reps": 5,
+                    "unit_of_measure": uom,
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -82,7 +105,7 @@ def test_a_limit_in_mg_flags_by_the_stored_g_value_and_names_the_written_limit()
 
 
 def test_a_limit_is_not_applied_to_values_stored_in_another_unit():
-    cfg = config_from_toml('[limits]\nk_a11 = {min = 0.99, max = 1.01}\n')
+    cfg = config_from_toml("[limits]\nk_a11 = {min = 0.99, max = 1.01}\n")
     df = _summary({"L": np.array([0.5, 0.6, 0.55, 0.52, 0.58])}, uom="g per LSB")
     df["parameter"] = "k_a11"
     lf = flag_lots(df, cfg)[0]
@@ -126,8 +149,17 @@ def _fleet(rng, n_small: int, shift: float, offset: float = 0.0):
         for u in range(size):
             times[(lot, f"{lot}-U{u}")] = t * 86400 + u
             for j, (model, name) in enumerate(PARAMS):
-                rows.append({"lot": lot, "unit": f"{lot}-U{u}", "model": model,
-                             "parameter": name, "mean": v[u, j], "std": np.nan, "n_reps": 5})
+                rows.append(
+                    {
+                        "lot": lot,
+                        "unit": f"{lot}-U{u}",
+                        "model": model,
+                        "parameter": name,
+                        "mean": v[u, j],
+                        "std": np.nan,
+                        "n_reps": 5,
+                    }
+                )
     return pd.DataFrame(rows), times
 
 
@@ -144,8 +176,9 @@ def test_small_lot_finds_a_shift_its_own_lot_misses_and_says_which_reference():
         n_good = int(hist.reference_detail.split(" good units")[0].rsplit(" ", 1)[1])
         assert 37 <= n_good <= 40  # the 40 earlier units, but a clean one beyond 5 sd
         for name, lf in (("own", own), ("history", hist)):
-            found[name] += any(f.unit == "T-U0" and f.parameter == "k_g11"
-                               and f.kind == KIND_ROBUST for f in lf.flags)
+            found[name] += any(
+                f.unit == "T-U0" and f.parameter == "k_g11" and f.kind == KIND_ROBUST for f in lf.flags
+            )
     # a lot of 6 alone needs |z| > ~12 (docs/flows.md): a 6 sd shift is almost never found;
     # against the history (threshold ~5.4) about 7 times in 10 (measured: 12 of 20)
     assert found["own"] <= 2 and found["history"] >= 10, found
@@ -179,8 +212,16 @@ def _cal() -> Calibration:
 def test_qa_status_is_rewritten_with_its_history_and_unchanged_status_is_left_alone(tmp_path):
     path = save_calibration(_cal(), tmp_path / "c.json", {"provenance": {"unit": "U1"}})
     assert qa_of(json.loads(path.read_text())) is None
-    assert set_qa_status(path, {"status": "pass", "reasons": [], "lot": "L",
-                                "z_threshold": float("nan"), "config": {"limits": ["a: b"]}})
+    assert set_qa_status(
+        path,
+        {
+            "status": "pass",
+            "reasons": [],
+            "lot": "L",
+            "z_threshold": float("nan"),
+            "config": {"limits": ["a: b"]},
+        },
+    )
     # appended to a fresh file without re-encoding it: byte for byte what a rewrite writes
     text = path.read_text()
     assert text == dumps_json(json.loads(text), nonfinite="null")
@@ -201,8 +242,9 @@ def test_qa_status_is_rewritten_with_its_history_and_unchanged_status_is_left_al
 
 # --- raw units at the boundary of Calibration.apply -----------------------------------------
 def test_apply_refuses_gravity_in_m_s2_for_a_g_calibration_and_converts_when_told():
-    cal = Calibration(K_g=np.eye(3), w0=np.zeros(3), K_a=np.eye(3) * 1.01,
-                      f0=np.array([0.01, 0, 0]), g_local=9.81)
+    cal = Calibration(
+        K_g=np.eye(3), w0=np.zeros(3), K_a=np.eye(3) * 1.01, f0=np.array([0.01, 0, 0]), g_local=9.81
+    )
     A_g = np.tile([0.0, 0.0, 1.0], (50, 1))
     G = np.zeros((50, 3))
     with pytest.raises(RawUnitError, match="m/s\\^2"):
@@ -222,6 +264,7 @@ def test_the_limits_table_knows_every_parameter_a_calibration_produces():
     from calib_core.protocols import default_session
     from calib_core.simulator import simulate_step_means, typical_truth
     from schemas.limits import PARAMETERS, STORED_UNIT
+
     rng = np.random.default_rng(3)
     sm = simulate_step_means(typical_truth(rng), default_session(), rng)
     rep = calibrate_repetition(sm).calibration
@@ -236,16 +279,22 @@ def test_the_limits_table_knows_every_parameter_a_calibration_produces():
             sep = " per " if " per " in p.unit else "/"
             a, _, b = p.unit.partition(sep)
             dimensionless = b and a.strip() == b.strip()
-            assert (STORED_UNIT[kind] == "") == bool(dimensionless) or \
-                STORED_UNIT[kind] == p.unit, (p.model, p.name, p.unit, kind)
+            assert (STORED_UNIT[kind] == "") == bool(dimensionless) or STORED_UNIT[kind] == p.unit, (
+                p.model,
+                p.name,
+                p.unit,
+                kind,
+            )
     assert {m for m, _ in seen} >= {"gyro", "accel", "accel_static"}
 
 
 def test_a_bad_limits_file_is_one_line_before_anything_starts(tmp_path, capsys):
     from flows.cli import main as cli_main
+
     bad = tmp_path / "limits.toml"
     bad.write_text('[limits]\nf0_y = {max = "7 mG"}\n')
-    assert cli_main(["report", "--results", str(tmp_path / "none"), "--lot", "L01",
-                     "--config", str(bad)]) == 2
+    assert (
+        cli_main(["report", "--results", str(tmp_path / "none"), "--lot", "L01", "--config", str(bad)]) == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "'mG'" in err and "'mg'" in err
