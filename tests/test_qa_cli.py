@@ -217,3 +217,38 @@ def test_acquisition_time_drives_at_trends_and_a_copy_is_unchanged(fleet, capsys
     code, out, err = _cli(capsys, "nightly", copy, "--results", results, "--no-discovery")
     assert code == 0 and "(0 calibrated, 26 unchanged" in out + err
     assert sorted((results / "calibrations").rglob("*.json")) == files
+
+
+@pytest.mark.browser
+def test_lot_report_in_the_browser_draws_the_limits_and_both_badges(fleet):
+    from reports.browser import Chromium, find_chromium
+
+    if find_chromium() is None:
+        pytest.skip("Debian's chromium is not installed (run scripts/install-browser.sh)")
+    base, _, results = fleet
+    # the limits again (an earlier test cleared them): the report is rebuilt with them
+    assert (
+        cli_main(["report", "--results", str(results), "--lot", "L01", "--config", str(base / "limits.toml")])
+        == 0
+    )
+    with Chromium(width=1400, height=1000, timeout_s=120) as b:
+        b.open(results / "reports" / "L02.html")
+        b.wait_figures()
+        b.open(results / "reports" / "L01.html")
+        b.wait_figures()
+        b.pump(0.3)
+        assert b.log.errors == []
+        facts = b.evaluate("""(function(){
+          const fig = document.querySelector('.figure[data-name="strip accel"]');
+          const dashed = [...fig.querySelectorAll('.shapelayer path')]
+            .filter(p => (p.style.strokeDasharray || '') !== '');
+          const badge = document.querySelector('.badge.limit');
+          return {state: fig.dataset.state, dashed: dashed.length,
+                  limitBadge: badge ? getComputedStyle(badge).backgroundColor : null,
+                  limitText: badge ? badge.textContent : null,
+                  reference: document.querySelector('.qa-reference').textContent};
+        })()""")
+    assert facts["state"] == "rendered"
+    assert facts["dashed"] == 2  # min and max of f0_y
+    assert facts["limitBadge"] == "rgb(180, 83, 9)" and "limit failed" in facts["limitText"]
+    assert "Reference:" in facts["reference"] and "f0_y" in facts["reference"]
