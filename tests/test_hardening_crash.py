@@ -162,6 +162,7 @@ def current_calibrations(results: Path) -> dict[str, dict]:
         doc = json.loads((results / r.calibration_file).read_text())
         for k in VOLATILE_PROVENANCE:
             doc["provenance"].pop(k)
+        (doc.get("qa") or {}).pop("judged_at", None)  # when the lot was re-flagged
         out[str(r.unit)] = doc
     return out
 
