@@ -457,6 +457,30 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
     return f'<ul class="flags">{"".join(items)}</ul>'
 
 
+def unit_qa_note(ctx: LotContext, unit: str) -> str:
+    """The QA status of the unit's current calibration file (what ``mimucal calibration``
+    hands out or refuses) with its reasons and the lot context it was judged in."""
+    import json
+    ut = ctx.unit_rows("units_table", unit) if ctx.units_table is not None else None
+    rel = None if ut is None or not len(ut) else ut["calibration_file"].iloc[0]
+    if not isinstance(rel, str) or not rel:
+        return '<p class="note">No current calibration file.</p>'
+    try:
+        doc = json.loads((ctx.view.root / rel).read_text())
+    except (OSError, ValueError) as exc:
+        return f'<p class="note">QA status unreadable: {esc(exc)}</p>'
+    qa = doc.get("qa") if isinstance(doc.get("qa"), dict) else None
+    if qa is None:
+        return (f'<p class="note qa-status">{qa_badge(None)} the current calibration '
+                f'<span class="mono">{esc(rel)}</span> was not judged in a lot.</p>')
+    reasons = "".join(f"<li>{esc(r)}</li>" for r in qa.get("reasons") or [])
+    return (f'<div class="qa-status"><p>{qa_badge(qa.get("status"))} QA status of the current '
+            f'calibration <span class="mono">{esc(rel)}</span> in lot {esc(qa.get("lot"))} '
+            f'({esc(qa.get("reference_detail") or qa.get("reference"))}; judged '
+            f'{esc(fmt_time(qa.get("judged_at")) or DASH)})</p>'
+            + (f'<ul class="flags">{reasons}</ul>' if reasons else "") + "</div>")
+
+
 def qa_reference_note(ctx: LotContext) -> str:
     """Which reference the lot's units were judged against (its own lot or the fleet
     history of earlier lots), the threshold and the limits in force."""

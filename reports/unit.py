@@ -14,7 +14,7 @@ from reports.history import KEY_ELEMENTS, history_frame
 from reports.html import (CASE_COLOURS, DASH, Page, arr, decimate, esc, fmt, fmt_time, grid, missing,
                           table, write_atomic)
 from reports.lot import ReportError, safe_name
-from reports.sections import LotContext, kpi_block, qa_badge, unit_section
+from reports.sections import LotContext, kpi_block, qa_badge, unit_qa_note, unit_section
 from reports.store import StoreView
 
 NAV_MAX_POINTS = 1500  # per trace; a 60 s drift at 1 kHz is 60,000 samples
@@ -128,7 +128,8 @@ def render_unit_report(results_root: str | Path, unit: str, view: StoreView | No
     body = []
     if lot is not None:
         ctx = LotContext.load(view, lot, unit=unit)
-        body.append(f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx, unit)}</section>')
+        body.append(f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx, unit)}'
+                    f'{unit_qa_note(ctx, unit)}</section>')
         body.append(f'<section id="unit"><h2>Calibration of {esc(unit)}</h2>'
                     + unit_section(ctx, page, unit, open_=True) + "</section>")
     else:

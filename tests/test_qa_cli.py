@@ -166,6 +166,8 @@ def test_limits_stick_for_later_runs_until_cleared(fleet, capsys):
     code, out, err = _cli(capsys, "rerun", data, "--results", results, "--unit", "U0004", "--no-discovery")
     assert code == 0
     assert _qa(results, "U0003")["qa"]["status"] == "limits"  # no --config: still applied
+    unit_html = (results / "reports" / "units" / "U0004.html").read_text()
+    assert 'class="qa-status"' in unit_html and '<span class="badge ok">pass</span>' in unit_html
     assert ResultsStore(results).read_qa_config() is not None
     code, out, err = _cli(capsys, "report", "--results", results, "--lot", "L01", "--config", "none")
     assert code == 0 and ResultsStore(results).read_qa_config() is None
