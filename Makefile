@@ -24,8 +24,9 @@ demo: setup
 	rm -rf $(DEMO)
 	$(VENV)/bin/mimucal simulate $(DEMO)/dataset --lots 2 --units 8 --reps 5 --seed 7 --rate 50 \
 		--outliers 1 --bad-sessions 1
-	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results
+	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results --unit-reports
 	@echo "Lot reports: $$(ls $(DEMO)/results/reports/*.html 2>/dev/null | tr '\n' ' ')"
+	@echo "Unit reports: $$(ls $(DEMO)/results/reports/units/*.html 2>/dev/null | wc -l) in $(DEMO)/results/reports/units/"
 
 # --dist loadfile: a module's tests share one worker, so module fixtures (a 60-unit fleet,
 # a browser, a Prefect API) are built once, not once per worker.

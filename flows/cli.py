@@ -24,10 +24,20 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(f"flows.commands.{info.name}")
         if hasattr(module, "register"):
             module.register(sub)
+    from flows.help_text import clean_help
+    clean_help(parser)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _run(argv)
+    except BrokenPipeError:  # the reader went away (``mimucal ... | head``): end quietly
+        from flows.pipes import closed_pipe_exit
+        return closed_pipe_exit()
+
+
+def _run(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -25,6 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
     p.set_defaults(func=run)
 
 
@@ -32,8 +34,10 @@ def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).is_dir():
         raise CliError(f"dataset {args.dataset} is not a directory")
     check_config(args.config)
+    from flows.user_errors import check_unit_in_dataset
+    check_unit_in_dataset(args.dataset, args.unit)  # answered before Prefect starts
     from flows import runtime
-    runtime.ensure_environment(args.results)
+    runtime.ensure_environment(args.results, verbose=args.verbose)
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
