@@ -100,6 +100,16 @@ def test_limits_written_in_mg_fail_the_shifted_unit_and_the_status_travels(fleet
     assert code == 0 and _qa(results, "U0001")["qa"]["status"] == "pass"
 
 
+def test_the_python_api_refuses_a_flagged_calibration_too(fleet):
+    from schemas import api
+
+    _, _, results = fleet
+    with pytest.raises(api.FlaggedCalibration, match="U0021|k_g11"):
+        api.load_calibration_for(results, unit="U0021")
+    assert api.load_calibration_for(results, unit="U0021", allow_flagged=True) is not None
+    assert api.load_calibration_for(results, unit="U0001") is not None  # pass
+
+
 def test_small_lot_is_judged_against_the_fleet_history_and_the_report_says_so(fleet, capsys):
     base, data, results = fleet
     qa = _qa(results, "U0021")["qa"]
