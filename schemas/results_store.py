@@ -74,7 +74,7 @@ TABLE_COLUMNS: dict[str, list[str]] = {
     "summary": ["lot", "unit", "model", "parameter", "mean", "std", "min", "max", "n_reps",
                 "unit_of_measure", "flagged", "flag_reason", "score", "lot_median", "stale",
                 "stale_reason", "run_id"],
-    "units": ["lot", "unit", "state", "reason", "n_sessions", "n_ok", "n_warned", "n_failed",
+    "units": ["lot", "unit", "state", "reason", "error_code", "n_sessions", "n_ok", "n_warned", "n_failed",
               "calibration_file", "calibrated_at", "run_id", "updated_at", "flagged",
               "flag_reason"],
     "residuals": ["lot", "unit", "rep"],

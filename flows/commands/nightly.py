@@ -79,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
 def print_outcome(log: dict) -> None:
     for f in log.get("failed_sessions", []):
         print(f"failed session {f['session']}: {f['message']}", file=sys.stderr)
+    for e in log.get("unit_errors", []):
+        print(f"failed unit {e['unit']}: {e['message']}", file=sys.stderr)
     for e in log.get("path_errors", []):
         print(f"bad path: {e.get('message')}", file=sys.stderr)
     for unit, why in (log.get("units_stale") or {}).items():
