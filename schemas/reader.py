@@ -541,7 +541,7 @@ def parse_key(key: SessionKey | str) -> SessionKey | None:
     """``"lot=L1/unit=U1/rep=2"`` -> SessionKey; None when a plain label does not parse."""
     if isinstance(key, SessionKey):
         return key
-    m = _KEY_PATTERN.match(str(key))
+    m = _KEY_PATTERN.fullmatch(str(key))
     return SessionKey(m["lot"], m["unit"], int(m["rep"])) if m else None
 
 

@@ -46,7 +46,7 @@ import tempfile
 import time
 from collections.abc import Iterable
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, Iterator
@@ -60,29 +60,15 @@ import pyarrow.parquet as pq
 
 from calib_core.results import to_jsonable
 from schemas.calibration_file import write_json_atomic
+from schemas.store_tables import TABLE_SCHEMAS, conform, schema_problem
 
 STORE_FORMAT_VERSION = "2.0"
 LEGACY_FORMAT_VERSION = "1.0"  # flat <name>.parquet at the root; read, and migrated on write
 TIMESTAMP_FORMAT = "%Y%m%dT%H%M%S.%fZ"
 
-# column order of each table (documented in docs/flows.md); extra columns are kept
-TABLE_COLUMNS: dict[str, list[str]] = {
-    "sessions": ["lot", "unit", "rep", "status", "error_code", "message", "warnings",
-                 "fingerprint", "run_id", "path", "calibrated_at"],
-    "parameters": ["lot", "unit", "rep", "model", "parameter", "value", "stderr",
-                   "unit_of_measure", "code_version", "run_id"],
-    "summary": ["lot", "unit", "model", "parameter", "mean", "std", "min", "max", "n_reps",
-                "unit_of_measure", "flagged", "flag_reason", "score", "lot_median", "stale",
-                "stale_reason", "run_id"],
-    "units": ["lot", "unit", "state", "reason", "error_code", "n_sessions", "n_ok", "n_warned", "n_failed",
-              "calibration_file", "calibrated_at", "run_id", "updated_at", "flagged",
-              "flag_reason"],
-    "residuals": ["lot", "unit", "rep"],
-    "compensation": ["lot", "unit", "rep"],
-    "discovery": ["lot", "unit", "effect"],
-    # zhang2017 navigation drift of a unit's own fitted model (written by reruns)
-    "navigation": ["lot", "unit", "case", "t", "vel_err", "pos_err"],
-}
+# column order of each table: its declared schema's (schemas/store_tables.py, documented in
+# docs/flows.md); extra columns are kept after them
+TABLE_COLUMNS: dict[str, list[str]] = {name: schema.names for name, schema in TABLE_SCHEMAS.items()}
 TABLES = tuple(TABLE_COLUMNS)
 # dtypes of key columns, so that empty tables and concatenations agree
 _KEY_DTYPES = {"lot": "string", "unit": "string", "rep": "Int64"}
@@ -133,9 +119,13 @@ FLAG_STATE_METADATA_KEY = b"mimucal.flag_state"
 
 
 # --- atomic writes ------------------------------------------------------------------------------
-def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
-    """Parquet via a temp file in the same directory, fsync, then ``os.replace``."""
-    write_table_atomic(pa.Table.from_pandas(df, preserve_index=False), path)
+def write_parquet_atomic(df: pd.DataFrame, path: Path, table_name: str | None = None) -> None:
+    """Parquet via a temp file in the same directory, fsync, then ``os.replace``;
+    ``table_name``: with that results table's declared schema (schemas.store_tables)."""
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    if table_name is not None:
+        table = conform(table, table_name)
+    write_table_atomic(table, path)
 
 
 def write_table_atomic(table: pa.Table, path: Path) -> None:
@@ -239,9 +229,21 @@ def _normalise(df: pd.DataFrame, name: str) -> pd.DataFrame:
         return df
     cols = TABLE_COLUMNS[name]
     df = df.copy()
+    declared = TABLE_SCHEMAS[name]
     for c in cols:
         if c not in df.columns:
-            df[c] = pd.Series([None] * len(df), dtype=_KEY_DTYPES.get(c, "object"))
+            # as the declared type reads back when the column is all null (float NaN,
+            # pandas' string dtype); the key columns in their dtypes
+            t = declared.field(c).type if c in declared.names else pa.null()
+            if c in _KEY_DTYPES:
+                dtype = _KEY_DTYPES[c]
+            elif pa.types.is_floating(t) or pa.types.is_integer(t):
+                dtype = "float64"  # an all-null int64 column reads back as float64 NaN
+            elif _is_string(t):
+                dtype = "str"
+            else:
+                dtype = "object"
+            df[c] = pd.Series([None] * len(df), dtype=dtype)
     for c, dt in _KEY_DTYPES.items():
         if c in df.columns:
             df[c] = df[c].astype(dt)
@@ -335,6 +337,9 @@ def _lot_set(lots: Iterable[Any]) -> set[str | None]:
 @dataclass
 class ResultsStore:
     root: Path
+    # whether this object's first write has checked every lot file against the declared
+    # schemas (see _migrate)
+    _schemas_checked: bool = field(default=False, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
@@ -510,7 +515,7 @@ class ResultsStore:
                     _normalise(_read_files([current[lot]]), name)
                 if old is not None and _same_frame(old, part):
                     continue
-            write_parquet_atomic(part, path)
+            write_parquet_atomic(part, path, name)
             written.append(lot)
         return written
 
@@ -560,10 +565,10 @@ class ResultsStore:
         if new is not None and len(new) and not set(new["unit"].astype(object)) <= units:
             return False
         schema = pq.read_schema(path)  # the stored Arrow types, with the pandas metadata
-        if "unit" not in schema.names or not _is_string(schema.field("unit").type):
-            return False
+        if schema_problem(schema, name) is not None:
+            return False  # a file of an older layout: rewritten whole, with the declared schema
         if new is not None and len(new):
-            add = pa.Table.from_pandas(new, preserve_index=False, nthreads=1)
+            add = conform(pa.Table.from_pandas(new, preserve_index=False, nthreads=1), name)
             if not add.schema.remove_metadata().equals(schema.remove_metadata()):
                 return False
             add = add.replace_schema_metadata(schema.metadata)
@@ -654,10 +659,12 @@ class ResultsStore:
                 if lot not in by_lot:
                     path.unlink()
             for lot, part in by_lot.items():
-                write_parquet_atomic(part, self.partition_path(name, lot))
+                write_parquet_atomic(part, self.partition_path(name, lot), name)
             _fsync_dir(d)
             legacy.unlink()
             migrated.append(name)
+        if not self._schemas_checked:
+            self._conform_lot_files()
         if migrated or not self.format_path.exists():
             self.root.mkdir(parents=True, exist_ok=True)
             write_json_atomic(self.format_path, {
@@ -666,6 +673,19 @@ class ResultsStore:
                 **({"migrated_from": LEGACY_FORMAT_VERSION, "migrated_tables": migrated,
                     "migrated_at": iso(utc_now())} if migrated else {})})
         return migrated
+
+    def _conform_lot_files(self) -> list[Path]:
+        """Rewrite every lot file whose schema is not its table's declared one (stores
+        written before the schemas were declared); once per store object, on its first
+        write (under the caller's lock). Returns the files rewritten."""
+        rewritten = []
+        for name in TABLES:
+            for path in self.partitions(name).values():
+                if schema_problem(pq.read_schema(path), name) is not None:
+                    write_table_atomic(conform(pq.read_table(path), name), path)
+                    rewritten.append(path)
+        self._schemas_checked = True
+        return rewritten
 
     # fingerprints of the last run: (lot, unit, rep) -> fingerprint
     def fingerprints(self) -> dict[tuple[str, str, int], str]:
