@@ -665,6 +665,51 @@ def write_reports(results: str | Path, lots: list[str], units: tuple[str, ...] =
     return written, problems
 
 
+def reports_to_rebuild(store: ResultsStore) -> list[str]:
+    """Lots whose report is missing or older than the lot's summary or units file (a run
+    that died, or found the disk full, while writing it); every lot when the fleet index is
+    missing (it is written with any lot's report)."""
+    lots = sorted(set(store.table_lots("units")) | set(store.table_lots("summary")))
+    if not lots:
+        return []
+    if not (store.reports_dir / "index.html").is_file():
+        return lots
+    out = []
+    for lot in lots:
+        try:
+            made = (store.reports_dir / f"{lot}.html").stat().st_mtime_ns
+        except OSError:
+            out.append(lot)
+            continue
+        newest = max((p.stat().st_mtime_ns for name in ("units", "summary")
+                      for lt, p in store.partitions(name).items() if lt == lot and p.exists()),
+                     default=0)
+        if newest > made:
+            out.append(lot)
+    return out
+
+
+def known_names(dataset: str | Path, field: str) -> str:
+    """``units there: U0001, U0002, ...`` (or lots) of a dataset, for a message."""
+    root = Path(dataset)
+    names = set()
+    try:
+        for lot_dir in root.iterdir():
+            if not lot_dir.name.startswith("lot="):
+                continue
+            if field == "lot":
+                names.add(lot_dir.name[4:])
+                continue
+            for unit_dir in lot_dir.iterdir():
+                if unit_dir.name.startswith("unit="):
+                    names.add(unit_dir.name[5:])
+    except OSError:
+        pass
+    shown = sorted(names)
+    more = f", ... ({len(shown)} in all)" if len(shown) > 20 else ""
+    return f"{field}s there: {', '.join(shown[:20]) or 'none'}{more}"
+
+
 def make_batches(jobs: list[UnitJob], batch_size: int) -> list[list[UnitJob]]:
     batch_size = max(1, int(batch_size))
     return [jobs[i:i + batch_size] for i in range(0, len(jobs), batch_size)]
@@ -744,7 +789,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,
                  progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
-                 runner: str | None = None) -> dict:
+                 runner: str | None = None, follow_symlinks: bool = False) -> dict:
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
     report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
     worker processes; ``dask`` means the task runner already sends it elsewhere."""
@@ -754,6 +799,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
     cfg = load_config(config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        store.check()  # a damaged store is refused before anything is written
         t0 = time.monotonic()
         log: dict[str, Any] = {"run_id": run_id, "kind": "nightly", "start": iso(utc_now()),
                                "dataset": str(dataset), "results": str(results),
@@ -772,7 +818,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         preloaded = _await_preload()
         if preloaded is not None:
             log["preload"] = preloaded
-        refs, path_errors = find_sessions(dataset)
+        refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
         jobs, skipped = plan_units(refs, store.fingerprints(), force)
         if run_discovery and not _discovery_available():
             logger.warning("model discovery skipped: calib_core.discovery is not available")
@@ -832,6 +878,9 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         # this thread's arena (flows.memory; docs/perf3-store.md)
         release_memory()
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
+        # reports that are missing or older than their lot's tables (a run that died or hit
+        # a full disk while writing them) are rebuilt too
+        report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         release_memory()
         reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
         for p in problems:
@@ -885,8 +934,11 @@ def lot_report_flow(results: str, lot: str, config: str | None = None,
     store = ResultsStore(Path(results))
     cfg = load_config(config)
     with store.lock(owner=f"report-{lot}", wait=wait):
+        store.check()
         if lot not in store.table_lots("summary") and lot not in store.table_lots("sessions"):
-            raise LookupError(f"lot {lot!r} is not in the results store {results}")
+            lots = sorted(set(store.table_lots("summary")) | set(store.table_lots("sessions")))
+            raise LookupError(f"lot {lot!r} is not in the results store {results} (lots there: "
+                              f"{', '.join(lots) or 'none'})")
         lf = reflag_lots(store, [lot], cfg)
         reports, problems = write_reports(results, [lot])
     return {"lot": lot, "reports": reports, "problems": problems,
@@ -958,7 +1010,8 @@ def _await_preload() -> dict[str, Any] | None:
 
 @flow(name="rerun-unit", persist_result=False, log_prints=False)
 def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
-               wait: bool = False, run_discovery: bool = True) -> dict:
+               wait: bool = False, run_discovery: bool = True,
+               follow_symlinks: bool = False) -> dict:
     """Recalibrate one unit now; its rows are replaced only if it succeeds (otherwise its last
     good calibration stays and is marked stale); its lot is re-flagged and its report rebuilt.
 
@@ -970,6 +1023,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
     cfg = load_config(config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        store.check()
         t0 = time.monotonic()
         phases: dict[str, float] = {}
         cpu: dict[str, float] = {}
@@ -981,10 +1035,11 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             t, c = time.monotonic(), time.process_time()
 
         preloaded = _await_preload()
-        refs, path_errors = find_sessions(dataset, unit=unit)
+        refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
         if not refs:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
-            raise LookupError(f"unit {unit!r}: no session under {dataset} ({why})")
+            raise LookupError(f"unit {unit!r}: no session under {dataset} ({why}); "
+                              f"{known_names(dataset, 'unit')}")
         lot = refs[0].key.lot
         job = UnitJob(lot, unit, refs, "rerun")
         log: dict[str, Any] = {"run_id": run_id, "kind": "rerun", "start": iso(utc_now()),
@@ -1005,6 +1060,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
         stored = store_results(store, res, run_id, version)  # reads/rewrites its lot only
         phase("store")
         lf, report_lots = reflag_after_update(store, [lot], cfg)
+        report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         phase("reflag")
         reports, problems = write_reports(results, report_lots, units=(unit,))
         phase("reports")
@@ -1035,12 +1091,13 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
                               batch_size: int = DEFAULT_BATCH_SIZE,
                               config: str | Path | None = None, wait: bool = False,
                               run_discovery: bool = True, progress: bool = True,
-                              runner: str | None = None) -> dict:
+                              runner: str | None = None, follow_symlinks: bool = False) -> dict:
     """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
     (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
     see flows.task_runners)."""
     if not wait:  # a clear refusal, not a failed flow run in Prefect's database
         ResultsStore(Path(results)).ensure_unlocked()
+    ResultsStore(Path(results)).check()  # and a damaged store, before Prefect starts
     kind = "dask" if dask_address else resolve_kind(runner)
     task_runner = make_task_runner(dask_address, kind=None if dask_address else kind)
     # Dask may have many workers: keep them all fed (memory: this many batches in flight)
@@ -1052,22 +1109,25 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
             str(dataset), str(results), force=force, batch_size=batch_size,
             config=None if config is None else str(config), wait=wait,
             run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
-            runner=kind)
+            runner=kind, follow_symlinks=follow_symlinks)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
                        wait: bool = False) -> dict:
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
+    ResultsStore(Path(results)).check()
     with runtime.run_settings():
         return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
 
 
 def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
                config: str | Path | None = None, wait: bool = False,
-               run_discovery: bool = True) -> dict:
+               run_discovery: bool = True, follow_symlinks: bool = False) -> dict:
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
+    ResultsStore(Path(results)).check()
     with _preloading(), runtime.run_settings():
         return rerun_flow(str(dataset), str(results), unit,
-                          None if config is None else str(config), wait, run_discovery)
+                          None if config is None else str(config), wait, run_discovery,
+                          follow_symlinks)

@@ -78,6 +78,14 @@ class StoreLockedError(RuntimeError):
     """Another run holds the results root."""
 
 
+class StoreError(RuntimeError):
+    """The results store cannot be used as it is (a damaged or missing file, a symbolic link
+    where the tool writes): one line naming the file and the fix."""
+
+
+REPAIR_HINT = "run 'mimucal repair --results {root}' to rebuild what can be rebuilt"
+
+
 class CalibrationNotFound(LookupError):
     """No calibration of the unit matches the request."""
 
@@ -703,8 +711,9 @@ class ResultsStore:
         ``jsonable``: ``extra`` is written as :func:`jsonable` would make it (numpy values as
         Python ones, NaN as null, datetimes and paths as text)."""
         from schemas.calibration_file import save_calibration
+        from schemas.dataset import check_id
         when = when or utc_now()
-        d = self.calibrations_dir / unit
+        d = self.calibrations_dir / check_id(unit, "unit")  # a file name: never '..' etc.
         d.mkdir(parents=True, exist_ok=True)
         for _ in range(1000):
             path = d / f"{when.astimezone(timezone.utc).strftime(TIMESTAMP_FORMAT)}.json"
@@ -791,7 +800,16 @@ class ResultsStore:
         process dies, so a crashed run never leaves the store locked. A second run is refused
         with :class:`StoreLockedError` naming the holder, or waits (``wait=True``)."""
         self.root.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:  # never through a symbolic link: it would truncate the file it points to
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise StoreError(f"{self.lock_path} is a symbolic link; the results folder "
+                                 f"must hold only the tool's own files: remove it") from None
+            raise
+        if not stat_is_regular(fd):
+            os.close(fd)
+            raise StoreError(f"{self.lock_path} is not a regular file: remove it")
         start = time.monotonic()
         try:
             while True:
@@ -820,6 +838,60 @@ class ResultsStore:
                 fcntl.flock(fd, fcntl.LOCK_UN)
         finally:
             os.close(fd)
+
+    # self-check
+    def symlinks(self) -> list[Path]:
+        """Symbolic links anywhere under the root (the root itself may be one): the tool
+        writes only to its own files and directories, never through a link."""
+        found = []
+        if not self.root.is_dir():
+            return found
+        for dirpath, dirnames, filenames in os.walk(self.root, followlinks=False):
+            for name in dirnames + filenames:
+                p = Path(dirpath) / name
+                if p.is_symlink():
+                    found.append(p)
+        return sorted(found)
+
+    def verify(self) -> list[str]:
+        """What is wrong with the store, one line per problem (empty: it can be used). Every
+        run checks this before writing anything (:meth:`check`): no symbolic link under the
+        root, every table file readable (its footer and schema: a truncated or overwritten
+        file has neither) with the declared columns castable, every current calibration file
+        (``units.calibration_file``) present."""
+        problems = []
+        hint = REPAIR_HINT.format(root=self.root)
+        for link in self.symlinks():
+            problems.append(f"{link} is a symbolic link; the results folder must hold only "
+                            f"the tool's own files and directories: replace it by a real "
+                            f"file/directory or remove it")
+        if problems:
+            return problems
+        units_ok = True
+        for name in TABLES:
+            files = ([self.legacy_path(name)] if self.legacy_path(name).exists() else []) + \
+                list(self.partitions(name).values())
+            for path in files:
+                why = _unreadable(path, name)
+                if why:
+                    problems.append(f"table {name}: {path} is damaged ({why}); {hint}")
+                    units_ok = units_ok and name != "units"
+        if units_ok and self.has_table("units"):
+            units = self.read("units", columns=["lot", "unit", "state", "calibration_file"])
+            for r in units.itertuples():
+                f = r.calibration_file
+                if isinstance(f, str) and f and not (self.root / f).is_file():
+                    problems.append(f"unit {r.lot}/{r.unit}: its current calibration file "
+                                    f"{self.root / f} is missing; {hint}")
+        return problems
+
+    def check(self) -> None:
+        """:meth:`verify`, raising :class:`StoreError` with the first problem (and how many
+        more there are)."""
+        problems = self.verify()
+        if problems:
+            more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            raise StoreError(problems[0] + more)
 
     def ensure_unlocked(self) -> None:
         """Refuse early (before any orchestration starts) when another run holds the root.
@@ -856,6 +928,34 @@ class ResultsStore:
             return None
         return (f"run {info.get('owner')} (pid {info.get('pid')} on {info.get('host')}, "
                 f"since {info.get('since')})")
+
+
+def stat_is_regular(fd: int) -> bool:
+    import stat
+    return stat.S_ISREG(os.fstat(fd).st_mode)
+
+
+def _unreadable(path: Path, name: str) -> str | None:
+    """Why a table file cannot be read with its declared schema (None: it can)."""
+    try:
+        schema = pq.read_schema(path)
+    except (OSError, pa.ArrowException) as exc:
+        return f"{type(exc).__name__}: {exc}".splitlines()[0]
+    declared = TABLE_SCHEMAS[name]
+    for f in declared:
+        if f.name in schema.names:
+            got = schema.field(f.name).type
+            if not (got.equals(f.type) or pa.types.is_null(got) or _castable(got, f.type)):
+                return f"column {f.name!r} has type {got}, not castable to {f.type}"
+    return None
+
+
+def _castable(a: pa.DataType, b: pa.DataType) -> bool:
+    try:
+        pa.array([], type=a).cast(b)
+    except (pa.ArrowException, NotImplementedError):
+        return False
+    return True
 
 
 def find_calibration(results: Path | str, unit: str, at: datetime | None = None,

@@ -43,6 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="wait for another run holding the results store instead of refusing")
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--follow-symlinks", action="store_true",
+                   help="calibrate session directories reached through a symbolic link that "
+                        "leads outside DATASET (refused by default)")
     p.set_defaults(func=run)
 
 
@@ -69,11 +72,22 @@ def run(args: argparse.Namespace) -> int:
             dataset, args.results, force=args.force, dask_address=args.dask_address,
             batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
             wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet,
-            runner=args.runner)
+            runner=args.runner, follow_symlinks=args.follow_symlinks)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
-    return 0
+    if not log.get("sessions_found") and not log.get("path_errors"):
+        print(f"mimucal nightly: warning: no session under {dataset} (expected "
+              f"lot=<id>/unit=<id>/rep=<n>/ directories); nothing to do", file=sys.stderr)
+        return 3
+    return exit_code(log)
+
+
+def exit_code(log: dict) -> int:
+    """1 when any session, unit or report failed, or a directory did not parse; else 0."""
+    failed = (log.get("failed_sessions") or log.get("units_failed") or log.get("path_errors")
+              or log.get("report_problems") or log.get("unit_errors"))
+    return 1 if failed else 0
 
 
 def print_outcome(log: dict) -> None:

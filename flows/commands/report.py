@@ -3,6 +3,7 @@ results store (no raw data is read)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from flows.cli import CliError
@@ -44,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         for f in lf["flags"]:
             print(f"flag {f['lot']}/{f['unit']}: [{f['kind']}] {f['reason']}")
     for p in out["problems"]:
-        print(f"report: {p}")
+        print(f"report: {p}", file=sys.stderr)
     for r in out["reports"]:
         print(r)
-    return 0
+    return 1 if out["problems"] else 0
