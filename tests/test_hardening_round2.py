@@ -273,8 +273,7 @@ def test_nonfinite_term_values_are_written_as_null_and_read_back_as_nan(tmp_path
     cal = Calibration(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3),
                       terms=(TermValue("lever_arm", params, stderr),))
     path = save_calibration(cal, tmp_path / "c.json", {"x": {"y": float("inf")}})
-    doc = json.loads(path.read_text())  # strict JSON: no NaN / Infinity tokens
-    assert "NaN" not in path.read_text() and "Infinity" not in path.read_text()
+    doc = json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{c} written"))
     assert doc["terms"][0]["params"][lever.param_names[4]] is None
     assert doc["terms"][0]["stderr"][lever.param_names[5]] is None
     assert doc["x"]["y"] is None
@@ -429,7 +428,7 @@ def test_disk_full_and_read_only_are_one_line(tmp_path, capsys, monkeypatch):
 
 
 # --- end to end through the nightly flow (one temporary Prefect API for these) ------------------
-BIG_OUTLIERS = (("k_g11", "K_g", (0, 0), 0.06),)
+BIG_OUTLIERS = (("k_g11", "K_g", (0, 0), 0.15),)
 
 
 @pytest.fixture(scope="module")
@@ -464,9 +463,8 @@ def test_nightly_and_rerun_succeed_with_unobservable_lever_arm_components(lever_
     assert log["units_calibrated"] == 10 and log["units_failed"] == [] and "end" in log
     assert len(log["failed_sessions"]) == 1
     for path in calibration_files(results):
-        text = path.read_text()
-        assert "NaN" not in text and "Infinity" not in text
-        doc = json.loads(text)
+        doc = json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(
+            f"{path}: {c} is not JSON"))
         load_calibration(path)
         if any(t["name"] == "lever_arm" for t in doc["terms"]):
             lever = next(t for t in doc["terms"] if t["name"] == "lever_arm")
@@ -532,7 +530,7 @@ def test_damaged_store_is_refused_repaired_and_the_next_run_completes(lever_lot,
     assert len(store.read("residuals")["unit"].unique()) == 10
     assert (results / "reports" / "L01.html").is_file()  # missing reports rebuilt
     assert (results / "reports" / "index.html").is_file()
-    assert cli_main(argv) == 1  # next run: nothing to recalibrate, the store stays whole
+    assert cli_main(argv) == 0  # next run: nothing to recalibrate, nothing failed in it
     assert ResultsStore(results).verify() == []
 
 
