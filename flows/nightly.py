@@ -132,7 +132,8 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     One unit's failure here (an exception while building its rows or writing its calibration
     file) marks that unit failed with ``E_INTERNAL`` and the others are stored; a failure of
     the table writes (disk full, read-only store) removes the calibration files this call
-    wrote (the tables never point at them) and is raised: a failed run adds no calibration."""
+    wrote while no table points at them yet (the units table is written next to last) and
+    is raised: a run that fails before its units table adds no calibration."""
     when = when or utc_now()
     stamp = iso(when)
     rows = _StoreRows()
@@ -156,7 +157,8 @@ def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
     try:
         _write_unit_tables(store, results, rows)
     except BaseException:
-        _remove_files(rows.new_files)
+        if not rows.new_files_referenced:  # no table points to them: the run added nothing
+            _remove_files(rows.new_files)
         raise
     return {"calibrated": sorted(f"{lot}/{u}" for lot, u in rows.ok_units),
             "stale": {f"{lot}/{u}": w for (lot, u), w in rows.stale_units.items()}}
@@ -175,6 +177,7 @@ class _StoreRows:
     ok_units: set[tuple[str, str]] = field(default_factory=set)
     stale_units: dict[tuple[str, str], str] = field(default_factory=dict)
     new_files: list[Path] = field(default_factory=list)
+    new_files_referenced: bool = False  # the units table pointing to new_files is written
 
     def extend(self, other: "_StoreRows") -> None:
         for name in ("sessions", "parameters", "summary", "units", "discovery", "navigation",
@@ -296,7 +299,6 @@ def _write_unit_tables(store: ResultsStore, results: list[UnitResult], rows: _St
     """The tables' rows of ``results`` (gathered by :func:`store_results`)."""
     ok_units, stale_units = rows.ok_units, rows.stale_units
     all_units = {(ur.lot, ur.unit) for ur in results}
-    store.replace_units("units", _frame(rows.units, "units"), all_units)
     store.replace_units("parameters", _frame(rows.parameters, "parameters"), ok_units)
     # units whose recalibration failed keep their rows, marked stale in the same write
     store.replace_units("summary", _frame(rows.summary, "summary"), ok_units,
@@ -312,6 +314,10 @@ def _write_unit_tables(store: ResultsStore, results: list[UnitResult], rows: _St
     disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
     if disc_units:
         store.replace_units("discovery", _frame(rows.discovery, "discovery"), disc_units)
+    # the units table next to last: until it is written no table points to the new
+    # calibration files, so a failure before it may remove them (store_results)
+    store.replace_units("units", _frame(rows.units, "units"), all_units)
+    rows.new_files_referenced = True
     # sessions.parquet last: its fingerprints tell the next run which units are done, so a
     # crash before this point leaves the units "changed" and the rerun redoes them whole
     store.replace_units("sessions", _frame(rows.sessions, "sessions"), all_units)

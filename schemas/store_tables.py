@@ -71,9 +71,9 @@ def conform(table: pa.Table, name: str) -> pa.Table:
         if f.name in table.column_names:
             col = table.column(f.name)
             if not col.type.equals(f.type):
-                if pa.types.is_null(col.type):
-                    untyped.add(f.name)
-                col = col.cast(f.type)
+                if pa.types.is_null(col.type) or pa.types.is_list(f.type):
+                    untyped.add(f.name)  # its pandas metadata describes the old type
+                col = _cast(col, f.type)
         else:
             col = pa.nulls(n, f.type)
         cols.append(col)
@@ -89,6 +89,15 @@ def conform(table: pa.Table, name: str) -> pa.Table:
         fields.append(pa.field(extra.name, col.type))
     return pa.Table.from_arrays(cols, schema=pa.schema(
         fields, metadata=_typed_metadata(table.schema.metadata, untyped, fields)))
+
+
+def _cast(col: pa.ChunkedArray, t: pa.DataType) -> pa.ChunkedArray:
+    """``col`` as type ``t``; a text column declared a list of texts (one warning written as
+    a plain string) becomes one-element lists, an empty text an empty list."""
+    if pa.types.is_list(t) and (pa.types.is_string(col.type) or pa.types.is_large_string(col.type)):
+        return pa.chunked_array([pa.array([None if v is None else ([v] if v else [])
+                                           for v in col.to_pylist()], type=t)], type=t)
+    return col.cast(t)
 
 
 def _typed_metadata(metadata: dict | None, untyped: set[str], fields: list[pa.Field]
