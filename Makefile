@@ -6,7 +6,7 @@ PIP    := $(VENV)/bin/pip
 DEMO   ?= demo-output
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test test-fast browser reproduce bench clean
+.PHONY: setup demo test test-fast lint browser reproduce bench clean
 
 $(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,10 @@ test: setup
 
 test-fast: setup
 	$(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow and not browser and not server"
+
+# ruff check + format check, no rewriting ([tool.ruff] in pyproject.toml)
+lint: setup
+	bash scripts/lint.sh
 
 reproduce: setup
 	$(VENV)/bin/mimucal reproduce xu2016

@@ -231,6 +231,3 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
     _write_json_atomic(out / MANIFEST, manifest)
     return manifest
 
-
-def load_manifest(out: Path | str) -> dict:
-    return json.loads((Path(out) / MANIFEST).read_text())

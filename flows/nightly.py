@@ -881,7 +881,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         lots = sorted(tally.lots | (set(store.lots()) if interrupted else set()))
         # the pages the fit phase and the lots' storing freed (in the task runner's and the
         # writer's malloc arenas), given back before flags and reports allocate theirs in
-        # this thread's arena (flows.memory; docs/perf3-store.md)
+        # this thread's arena (flows.memory; docs/benchmarks.md)
         release_memory()
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
         # reports that are missing or older than their lot's tables (a run that died or hit

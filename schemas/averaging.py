@@ -28,7 +28,7 @@ Steps left out, each named in a :class:`SessionWarning`:
   detected unless its full scale is declared (``gyro_full_scale_raw``) or, in physical units,
   reached; with noise below about half a quantum a noise tail can look like a clip.
 
-Speed (docs/benchmarks.md, docs/perf-read.md): the steps table's columns come from the reader
+Speed (docs/benchmarks.md): the steps table's columns come from the reader
 (``SessionData.step_columns``, taken out of pandas once per distinct steps file), the sample ->
 step index too (``SessionData.step_row``), and the six channels as one ``(6, n)`` array
 (``SessionData.channels``). The samples of a step are contiguous runs, so every per-step
@@ -37,7 +37,7 @@ step in the usual file) with ``np.add.reduceat`` over the segment boundaries, on
 six channels, and segments are added up per step only when a step has several. The settling
 rule is the same comparison as ever (``t - t0 >= settle_s - tolerance``, per sample); as ``t``
 is strictly increasing its kept samples are a suffix of each run of a step, found per run
-(``searchsorted`` and the exact rule at the boundary, :func:`_settled_from`; docs/perf5-sample.md)
+(``searchsorted`` and the exact rule at the boundary, :func:`_settled_from`; docs/benchmarks.md)
 instead of over all samples, and the segments are those suffixes.
 Means and standard deviations are two-pass as before; the sums are ``reduceat``'s (pairwise)
 instead of ``bincount``'s (sequential), which changes results by rounding only (a few ulp).

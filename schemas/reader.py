@@ -9,7 +9,7 @@ Order of checks (the first failure is the one reported): files exist -> steps.pa
 readable, columns, types, content -> samples.parquet readable, metadata, columns, types,
 content (step ids, time, finite values).
 
-Speed (docs/benchmarks.md, docs/perf-read.md): a session is read with one ``ParquetFile.read``
+Speed (docs/benchmarks.md): a session is read with one ``ParquetFile.read``
 with column projection and no pandas on the sample path. ``steps.parquet`` is the same small
 table in every session of a fleet, so its validated form (the DataFrame and its columns as
 read-only numpy arrays, :class:`StepColumns`) is cached by the SHA-256 of the file's bytes (an

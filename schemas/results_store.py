@@ -118,7 +118,7 @@ _UMASK = _current_umask()
 
 # Rows are sorted by lot and unit, so row groups of this size let a reader that filters one
 # unit (the unit report's navigation curves: 60,000 rows per case) skip the rest; pyarrow's
-# default (1M rows) made it decode a whole lot (255 ms vs 73 ms CPU, docs/perf-reports.md)
+# default (1M rows) made it decode a whole lot (255 ms vs 73 ms CPU, docs/benchmarks.md)
 ROW_GROUP_ROWS = 65_536
 
 

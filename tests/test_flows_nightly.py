@@ -19,7 +19,7 @@ runtime.ensure_environment()
 
 from flows import fleet_sim  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
-from flows.fleet_sim import load_manifest, simulate_fleet  # noqa: E402
+from flows.fleet_sim import simulate_fleet  # noqa: E402
 from flows.nightly import FLOW_PRELOAD, nightly_fleet_calibration, rerun_unit  # noqa: E402
 from schemas.results_store import ResultsStore, StoreLockedError, find_calibration  # noqa: E402
 
@@ -198,6 +198,7 @@ def small(tmp_path_factory):
     return data, base, manifest
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_the_same_results(small):
     from distributed import LocalCluster
     data, base, manifest = small
@@ -221,6 +222,7 @@ def test_dask_local_cluster_gives_the_same_results(small):
         [b["session"] for b in manifest["bad_sessions"]]
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_same_results_as_threads(small):
     """runner=processes (flows.compute_pool: a forkserver pool doing the unit work) stores
     exactly what the thread pool stores; the run log says where the work ran."""

@@ -64,7 +64,8 @@ def test_every_figure_rendered(lot_page, browser):
                 withSvg: figs.filter(function(f){
                     return f.querySelector('.plot-container .main-svg') !== null;}).length,
                 withTraces: figs.filter(function(f){
-                    return f.querySelectorAll('.scatterlayer .trace, .boxlayer .trace, .barlayer .trace').length > 0;}).length,
+                    return f.querySelectorAll(
+                        '.scatterlayer .trace, .boxlayer .trace, .barlayer .trace').length > 0;}).length,
                 attr: document.body.getAttribute('data-figures-rendered')};
     })()""")
     assert facts["total"] == 4 + 1 + 1 + 2 * 12
@@ -111,11 +112,11 @@ def test_outliers_marked_and_labelled_in_strip_plots(lot_page, browser, store):
         return out;
     })()""")
     injected = {(f"strip {m}", u) for u, pairs in store.outliers.items() for m, _ in pairs}
-    got = {(l["fig"], l["text"]) for l in labels}
+    got = {(label["fig"], label["text"]) for label in labels}
     assert got == injected
     # one labelled red marker per flagged (unit, parameter)
     assert len(labels) == sum(len(p) for p in store.outliers.values())
-    assert all(l["fill"] == FLAGGED_RGB for l in labels)
+    assert all(label["fill"] == FLAGGED_RGB for label in labels)
 
 
 def test_sorting_by_a_parameter(lot_page, browser, store):

@@ -78,7 +78,7 @@ def test_lot_report_marks_exactly_the_injected_outliers(lot_store, lot_html):
     flagged = {(u, prm) for u, prm, f, _ in p.cells if f}
     injected = {(u, prm) for u, pairs in lot_store.outliers.items() for _, prm in pairs}
     assert flagged == injected
-    for u, prm, f, title in p.cells:
+    for _, _, f, title in p.cells:
         if f:
             assert "FLAGGED" in title and "robust z" in title
     # the flagged units are named in the header and carry a badge in their table row

@@ -1,4 +1,4 @@
-"""The speed paths of reading and averaging (docs/perf-read.md) give the answers of an
+"""The speed paths of reading and averaging (docs/benchmarks.md) give the answers of an
 independent computation: per-segment sums (several runs per step), the (6, n) channel array
 and its fallback when gyro / accel are replaced, the cached step columns, the saturation
 pre-check (the exact rules decide whenever it lets them), the one-pass finiteness check, and

@@ -22,11 +22,11 @@ from calib_core.results import (Param, _block_layout, _summarise_by_key, _summar
                                 param_list, summarise)
 from calib_core.xu2016 import AXES
 
-from test_fit_stacked import STEPS, _unit  # a simulated unit's step means
+from conftest import STEPS_WITH_VERIFICATION, unit_step_means
 
 
-def _reps(n: int = 5, seed: int = 7, steps=STEPS):
-    return [f.calibration for f in calibrate_repetitions(_unit(n, seed, steps))]
+def _reps(n: int = 5, seed: int = 7, steps=STEPS_WITH_VERIFICATION):
+    return [f.calibration for f in calibrate_repetitions(unit_step_means(n, seed, steps))]
 
 
 def _bits(x):
