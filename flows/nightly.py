@@ -179,7 +179,7 @@ class _StoreRows:
     new_files: list[Path] = field(default_factory=list)
     new_files_referenced: bool = False  # the units table pointing to new_files is written
 
-    def extend(self, other: "_StoreRows") -> None:
+    def extend(self, other: _StoreRows) -> None:
         for name in ("sessions", "parameters", "summary", "units", "discovery", "navigation",
                      "new_files"):
             getattr(self, name).extend(getattr(other, name))

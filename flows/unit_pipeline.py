@@ -282,7 +282,7 @@ def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
 
 
 def failed_unit_result(lot: str, unit: str, doing: str, exc: BaseException,
-                       outcome: "UnitOutcome | None" = None) -> UnitResult:
+                       outcome: UnitOutcome | None = None) -> UnitResult:
     """The E_INTERNAL result of a unit whose work raised ``exc`` while ``doing`` it; its
     sessions (when known) are kept, its calibration is not."""
     why = traceback.format_exception_only(type(exc), exc)[-1].strip()

@@ -462,9 +462,11 @@ def test_nightly_and_rerun_succeed_with_unobservable_lever_arm_components(lever_
     log = json.loads(sorted((results / "runs").glob("*.json"))[-1].read_text())
     assert log["units_calibrated"] == 10 and log["units_failed"] == [] and "end" in log
     assert len(log["failed_sessions"]) == 1
+    def not_json(token):
+        pytest.fail(f"{token} in a calibration file is not JSON")
+
     for path in calibration_files(results):
-        doc = json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(
-            f"{path}: {c} is not JSON"))
+        doc = json.loads(path.read_text(), parse_constant=not_json)
         load_calibration(path)
         if any(t["name"] == "lever_arm" for t in doc["terms"]):
             lever = next(t for t in doc["terms"] if t["name"] == "lever_arm")

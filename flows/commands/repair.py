@@ -22,9 +22,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
-from pathlib import Path
 
 from flows.cli import CliError
 
@@ -157,6 +157,7 @@ def _rebuild_units_rows(store, lot: str | None) -> int:
     """The units rows of ``lot`` from the calibration files: each unit's newest file (its
     provenance names the lot, unit and run)."""
     import pandas as pd
+
     from schemas.results_store import TIMESTAMP_FORMAT, iso  # noqa: F401
     rows = []
     n = 0
