@@ -1122,7 +1122,12 @@ def lot_quality_report(results: str | Path, lot: str, config: str | Path | None 
                        wait: bool = False) -> dict:
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
-    ResultsStore(Path(results)).check()
+    store = ResultsStore(Path(results))
+    store.check()
+    lots = set(store.table_lots("summary")) | set(store.table_lots("sessions"))
+    if lot not in lots:  # before Prefect starts: one line, no failed flow run
+        raise LookupError(f"lot {lot!r} is not in the results store {results} (lots there: "
+                          f"{', '.join(sorted(lots)) or 'none'})")
     with runtime.run_settings():
         return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
 
@@ -1133,6 +1138,11 @@ def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
     ResultsStore(Path(results)).check()
+    refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
+    if not refs:  # before Prefect starts: one line, no failed flow run
+        why = "; ".join(str(e) for e in path_errors) or "no session directory found"
+        raise LookupError(f"unit {unit!r}: no session under {dataset} ({why}); "
+                          f"{known_names(dataset, 'unit')}")
     with _preloading(), runtime.run_settings():
         return rerun_flow(str(dataset), str(results), unit,
                           None if config is None else str(config), wait, run_discovery,
