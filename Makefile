@@ -24,7 +24,8 @@ demo: setup
 	rm -rf $(DEMO)
 	$(VENV)/bin/mimucal simulate $(DEMO)/dataset --lots 2 --units 8 --reps 5 --seed 7 --rate 50 \
 		--outliers 1 --bad-sessions 1
-	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results
+	# exit code 1 is expected: the demo fleet has one bad session on purpose
+	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results || [ $$? -eq 1 ]
 	@echo "Lot reports: $$(ls $(DEMO)/results/reports/*.html 2>/dev/null | tr '\n' ' ')"
 
 # --dist loadfile: a module's tests share one worker, so module fixtures (a 60-unit fleet,
