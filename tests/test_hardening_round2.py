@@ -579,3 +579,27 @@ def test_numpy_runtime_warnings_reach_the_terminal_only_with_debug(tmp_path):
     assert quiet.returncode == 0 and debug.returncode == 0, quiet.stderr
     assert "RuntimeWarning" in debug.stderr  # the case does raise them
     assert "RuntimeWarning" not in quiet.stderr
+
+
+@pytest.mark.slow
+def test_disk_full_while_writing_reports_exits_1_and_the_next_run_rebuilds_them(
+        lever_lot, tmp_path, capsys, monkeypatch):
+    data, results0, _, _ = lever_lot
+    results = tmp_path / "results"
+    shutil.copytree(results0, results)
+    import reports.lot
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(reports.lot, "write_lot_report", full)
+    argv = ["nightly", str(data), "--results", str(results), "--quiet", "--runner", "threads"]
+    assert cli_main(argv + ["--force"]) == 1
+    err = capsys.readouterr().err
+    assert "report: lot report L01: OSError: [Errno 28] No space left on device" in err
+    store = ResultsStore(results)
+    report = results / "reports" / "L01.html"
+    assert report.stat().st_mtime_ns < store.partition_path("units", "L01").stat().st_mtime_ns
+    monkeypatch.undo()
+    assert cli_main(argv) == 0  # nothing to recalibrate; the stale report is rebuilt
+    assert report.stat().st_mtime_ns > store.partition_path("units", "L01").stat().st_mtime_ns
