@@ -41,6 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(f"flows.commands.{info.name}")
         if hasattr(module, "register"):
             module.register(sub)
+    from flows.help_text import clean_help
+    clean_help(parser)
     return parser
 
 
@@ -71,6 +73,14 @@ def describe_os_error(exc: OSError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _run(argv)
+    except BrokenPipeError:  # the reader went away (``mimucal ... | head``): end quietly
+        from flows.pipes import closed_pipe_exit
+        return closed_pipe_exit()
+
+
+def _run(argv: list[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]
@@ -91,6 +101,8 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"mimucal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:
+        raise  # main() ends quietly
     except OSError as exc:
         if debug:
             raise

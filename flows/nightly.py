@@ -50,6 +50,7 @@ from flows.task_runners import (  # noqa: E402,F401
 )
 from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and tools import them here)
     UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
+    calibration_file_extra,
 )
 from schemas.dataset import SessionRef, find_sessions  # noqa: E402
 from schemas.results_store import (  # noqa: E402
@@ -234,23 +235,9 @@ def _unit_store_rows(store: ResultsStore, ur: UnitResult, rows: _StoreRows,
                                  "unit_of_measure": ps.unit, "flagged": False,
                                  "flag_reason": "", "stale": False, "stale_reason": "",
                                  "run_id": run_id})
-        failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
-                  for s in out.sessions if not s.succeeded]
-        doc = unit_document(ur.lot, ur.unit, out.calibration.reps, failed)
-        extra = {"provenance": {
-            "lot": ur.lot, "unit": ur.unit, "run_id": run_id, "code_version": code_version,
-            "calibrated_at": stamp, "store_format_version": STORE_FORMAT_VERSION,
-            "sessions_used": [{"rep": s.key.rep, "path": str(s.path),
-                               "fingerprint": s.fingerprint, "status": s.status,
-                               "session_start": (s.calibration.provenance or {}).get(
-                                   "session_start") if s.calibration else None}
-                              for s in out.sessions if s.succeeded],
-            "sessions_failed": failed,
-            "extension_terms": [t.name for t in out.applied.terms],
-            "model_discovery": None if ur.diagnosis is None else {
-                k: ur.diagnosis.get(k) for k in ("misfit", "unexplained", "effects")},
-        }, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
-            "repetitions": doc["reps"]}
+        extra = calibration_file_extra(ur, {
+            "run_id": run_id, "code_version": code_version, "calibrated_at": stamp,
+            "store_format_version": STORE_FORMAT_VERSION})
         _discovery_rows(ur, rows, run_id)
         # numpy values and NaNs of the document are converted while writing (as jsonable()
         # would, without a second walk over the document); the file is written last, so a
@@ -735,21 +722,37 @@ def calibrate_units_task(jobs: list[UnitJob], run_discovery: bool = True) -> lis
 
 
 class _Progress:
-    def __init__(self, total: int, stream=None):
+    """One terminal line per lot each time a batch brings units of it: "lot L1: 8/16 units
+    (0 failed sessions), 3.2 s". A closed terminal pipe never fails the run."""
+
+    def __init__(self, total: int, stream=None, per_lot: dict[str, int] | None = None):
         self.total = total
         self.done = 0
         self.failed_sessions = 0
+        self.per_lot = dict(per_lot or {})
+        self.lot_done: Counter = Counter()
+        self.lot_failed: Counter = Counter()
         self.stream = stream if stream is not None else sys.stderr
         self.t0 = time.monotonic()
 
     def update(self, results: list[UnitResult]) -> str:
         self.done += len(results)
         self.failed_sessions += sum(r.n_failed for r in results)
-        line = (f"progress: units {self.done}/{self.total} done, failed sessions "
-                f"{self.failed_sessions}, {time.monotonic() - self.t0:.1f} s")
+        for r in results:
+            self.lot_done[r.lot] += 1
+            self.lot_failed[r.lot] += r.n_failed
+        elapsed = time.monotonic() - self.t0
+        lines = [f"lot {lot}: {self.lot_done[lot]}/{self.per_lot.get(lot, '?')} units"
+                 + (f" ({self.lot_failed[lot]} failed sessions)" if self.lot_failed[lot] else "")
+                 + f", {elapsed:.1f} s" for lot in sorted({r.lot for r in results})]
         if self.stream:
-            print(line, file=self.stream, flush=True)
-        return line
+            try:
+                for line in lines:
+                    print(line, file=self.stream, flush=True)
+            except (BrokenPipeError, ValueError):  # the terminal's pipe closed: keep working
+                self.stream = False
+        return (f"units {self.done}/{self.total} done, failed sessions {self.failed_sessions}, "
+                f"{elapsed:.1f} s")
 
 
 DEFAULT_MAX_IN_FLIGHT = 4  # batches submitted at once: 2 workers busy + 2 queued
@@ -795,7 +798,8 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,
                  progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
-                 runner: str | None = None, follow_symlinks: bool = False) -> dict:
+                 runner: str | None = None, unit_reports: bool = False,
+                 follow_symlinks: bool = False) -> dict:
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
     report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
     worker processes; ``dask`` means the task runner already sends it elsewhere."""
@@ -833,7 +837,8 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                     "path_errors": [e.to_dict() for e in path_errors],
                     "progress": {"units_done": 0, "units_total": len(jobs)}})
         store.write_run(run_id, log)
-        prog = _Progress(len(jobs), stream=sys.stderr if progress else False)
+        prog = _Progress(len(jobs), stream=sys.stderr if progress else False,
+                         per_lot=Counter(j.lot for j in jobs))
 
         def on_progress(batch: list[UnitResult]) -> None:
             line = prog.update(batch)
@@ -888,7 +893,12 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         # a full disk while writing them) are rebuilt too
         report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         release_memory()
-        reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
+        # unit reports (``unit_reports``): every unit of the lots whose report is rewritten
+        units = tuple(sorted({str(u) for u in store.read("units", lots=report_lots,
+                                                          columns=["unit"])["unit"]})
+                      ) if unit_reports and report_lots else ()
+        reports, problems = (write_reports(results, report_lots, units) if report_lots
+                             else ([], []))
         for p in problems:
             logger.warning(p)
         flagged = sorted({f"{f.lot}/{f.unit}" for lf in lot_flags for f in lf.flags})
@@ -924,14 +934,17 @@ def interrupted_runs(store: ResultsStore) -> list[str]:
     return out
 
 
-def summary_line(log: dict) -> str:
+def summary_line(log: dict, wall_s: float | None = None) -> str:
+    """One line: units, sessions, flags; the flow's time, or ``wall_s`` (the command's wall
+    time) with the flow's time in brackets."""
     return (f"{log.get('kind', 'run')} {log['run_id']}: {log.get('units_found', '?')} units "
             f"({log.get('units_calibrated', 0)} calibrated, {log.get('units_skipped', 0)} "
             f"unchanged, {len(log.get('units_failed', []))} failed, {len(log.get('units_stale', {}))}"
             f" stale), {log.get('sessions_calibrated', 0)} sessions ok, "
             f"{len(log.get('failed_sessions', []))} failed, {len(log.get('path_errors', []))} bad "
             f"paths, flagged units: {', '.join(log.get('flagged_units', [])) or 'none'}; "
-            f"{log.get('elapsed_s', 0):.1f} s")
+            + (f"{log.get('elapsed_s', 0):.1f} s" if wall_s is None else
+               f"{wall_s:.1f} s wall ({log.get('elapsed_s', 0):.1f} s in the flow)"))
 
 
 @flow(name="lot-quality-report", persist_result=False, log_prints=False)
@@ -1097,7 +1110,8 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
                               batch_size: int = DEFAULT_BATCH_SIZE,
                               config: str | Path | None = None, wait: bool = False,
                               run_discovery: bool = True, progress: bool = True,
-                              runner: str | None = None, follow_symlinks: bool = False) -> dict:
+                              runner: str | None = None, unit_reports: bool = False,
+                              follow_symlinks: bool = False) -> dict:
     """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
     (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
     see flows.task_runners)."""
@@ -1115,7 +1129,7 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
             str(dataset), str(results), force=force, batch_size=batch_size,
             config=None if config is None else str(config), wait=wait,
             run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
-            runner=kind, follow_symlinks=follow_symlinks)
+            runner=kind, unit_reports=unit_reports, follow_symlinks=follow_symlinks)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,

@@ -220,6 +220,25 @@ class UnitResult:
         return sum(1 for s in self.outcome.sessions if s.status == "failed")
 
 
+def calibration_file_extra(ur: UnitResult, context: dict[str, Any]) -> dict[str, Any]:
+    """The sections a unit's calibration file holds beside the applied calibration (the same
+    for the results store and ``mimucal calibrate --json``): ``provenance`` (``context``:
+    run id, code version, time..., then the sessions used and failed, the extension terms,
+    model discovery's verdict), ``averaged`` (mean, std and units over the repetitions) and
+    ``repetitions`` (each repetition's fits with standard errors)."""
+    from schemas.unit_document import calibration_file_sections
+    out = ur.outcome
+    failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
+              for s in out.sessions if not s.succeeded]
+    used = [{"rep": s.key.rep, "path": str(s.path), "fingerprint": s.fingerprint,
+             "status": s.status,
+             "session_start": (s.calibration.provenance or {}).get("session_start")
+             if s.calibration else None}
+            for s in out.sessions if s.succeeded]
+    return calibration_file_sections(ur.lot, ur.unit, out.calibration.reps, failed, used,
+                                     [t.name for t in out.applied.terms], ur.diagnosis, context)
+
+
 def _discovery_available() -> bool:
     try:
         import calib_core.discovery  # noqa: F401

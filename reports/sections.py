@@ -12,7 +12,8 @@ import numpy as np
 import pandas as pd
 
 from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, Page, arr, decimals_for, display_unit,
-                          esc, fmt, fmt_time, grid, kpi, missing, table, td_numbers, with_unit)
+                          MINUS, esc, fmt, fmt_spread, fmt_time, grid, kpi, missing, spread_display, table,
+                          td_numbers, with_unit)
 from reports.store import StoreView
 
 # Models in the key-parameter table and strip plots, with their headings.
@@ -83,9 +84,15 @@ class ParamInfo:
     model: str
     name: str
     uom: str
-    label: str          # display unit
-    scale: float        # display factor (g -> mg)
+    label: str          # display unit of values
+    scale: float        # display factor of values (g -> mg)
     decimals: int | None
+    spread_label: str = ""    # display unit of spreads (ppm, deg/h, mg...: schemas.display)
+    spread_scale: float = 1.0
+
+    def spread(self, v: Any, sig: int = 2) -> str:
+        """A spread in the stored unit as shown, e.g. "8.8 ppm"."""
+        return fmt_spread(v, self.spread_scale, self.spread_label, sig)
 
 
 @dataclass
@@ -162,7 +169,9 @@ class LotContext:
                 m = means[pos]
                 spread = float(np.nanmedian(np.abs(m - np.nanmedian(m)))) * 1.4826 if len(m) > 1 else np.nan
             dec = decimals_for(spread * scale, extra=1)
-            self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec)
+            slabel, sscale = spread_display(uom)
+            self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec,
+                                                             slabel, sscale)
 
     def unit_rows(self, name: str, unit: str) -> pd.DataFrame | None:
         """Rows of one unit from a table, grouped once per table (filtering a 50-unit lot's
@@ -233,7 +242,7 @@ class LotContext:
         return cache.get(unit, [])
 
     def info(self, model: str, name: str) -> ParamInfo:
-        return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None)
+        return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None, "ppm", 1e6)
 
     def value(self, model: str, name: str, v: Any) -> str:
         p = self.info(model, name)
@@ -392,61 +401,112 @@ def key_models(ctx: LotContext) -> list[str]:
     return [m for m, _ in KEY_MODELS if m in present]
 
 
+def _flagged_cells(ctx: LotContext) -> dict[str, dict[str, set[str]]]:
+    """model -> unit -> flagged parameters (from the summary's flagged rows)."""
+    out: dict[str, dict[str, set[str]]] = {}
+    f = ctx.flags
+    if f is not None and len(f):
+        for u, m, n in zip(py_values(f["unit"]), py_values(f["model"]), py_values(f["parameter"])):
+            out.setdefault(str(m), {}).setdefault(str(u), set()).add(str(n))
+    return out
+
+
 def key_parameter_table(ctx: LotContext) -> str:
+    """The key parameters, one table per model behind a chooser (tabs): a row per unit, the
+    flagged units first, the unit column frozen; under each table the lot's median and its
+    scatter (1.4826 MAD) in the spread's unit (ppm, deg/h, mg)."""
     s = ctx.summary
     if s is None or not len(s):
         return missing("Key-parameter table", "summary.parquet is absent or empty")
     models = key_models(ctx)
     if not models:
         return missing("Key parameters", "no gyro/accel/accel_static/lever_arm rows in summary.parquet")
-    cols: list[tuple[str, str]] = []
-    group = ['<tr class="group"><th colspan="3"></th>']
-    for m in models:
-        names = ordered_params(m, s.loc[s["model"] == m, "parameter"].unique())
-        cols += [(m, n) for n in names]
-        title = dict(KEY_MODELS).get(m, m)
-        group.append(f'<th colspan="{len(names)}">{title}</th>')
-    group.append("</tr>")
     # the summary's columns as Python lists once (itertuples over ~3,000 rows costs ~40 ms)
     col = {c: py_values(s[c]) for c in ("mean", "std", "n_reps", "flagged", "flag_reason") if c in s}
     by_key = {k: i for i, k in enumerate(zip(py_values(s["unit"]), py_values(s["model"]), py_values(s["parameter"])))}
     no_flags = [False] * len(s)
-    headers = ["Unit", "Sessions used/all", "Flags"]
-    for m, n in cols:
-        p = ctx.info(m, n)
-        headers.append(f'{pretty_param(n)}<br><small>{esc(p.label) or "&nbsp;"}</small>')
-    rows = []
-    for unit in ctx.units:
-        c = ctx.session_counts(unit)
-        n_all = sum(c.values()) if c else 0
-        n_flags = ctx.n_param_flags(unit) + (unit in ctx.unit_level_flags)
-        cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
-                 + (' <span class="badge flag">⚑ flagged</span>' if n_flags else "") + "</td>",
-                 f'<td data-sort="{c.get("ok", 0) + c.get("warned", 0)}">{c.get("ok", 0) + c.get("warned", 0)}/{n_all}'
-                 + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
-                 f'<td data-sort="{n_flags}">{n_flags or ""}</td>']
-        for m, n in cols:
-            i = by_key.get((unit, m, n))
-            if i is None:
-                cells.append(f'<td data-sort="">{DASH}</td>')
-                continue
+    flag_cells = _flagged_cells(ctx)
+    n_flags = {u: ctx.n_param_flags(u) + (u in ctx.unit_level_flags) for u in ctx.units}
+    counts = {u: ctx.session_counts(u) for u in ctx.units}
+    tabs, panels = [], []
+    for k, m in enumerate(models):
+        names = ordered_params(m, s.loc[s["model"] == m, "parameter"].unique())
+        in_model = flag_cells.get(m, {})
+        # flagged in this model first, then flagged elsewhere, then the rest; by unit id within
+        units = sorted(ctx.units, key=lambda u: (not in_model.get(u), not n_flags[u], u))
+        headers = ["Unit", "Sessions used/all", "Flags"]
+        for n in names:
             p = ctx.info(m, n)
-            mean, r_std = col["mean"][i], col["std"][i]
-            val = ctx.value(m, n, mean)
-            std = fmt(float(r_std) * p.scale, sig=2) if pd.notna(r_std) else DASH
-            tip = f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: {std})"
-            if bool(col.get("flagged", no_flags)[i]):
-                tip += f" — FLAGGED: {col['flag_reason'][i] if 'flag_reason' in col else ''}"
-                cells.append(f'<td class="flagged" data-flagged="1" data-param="{esc(n)}" data-sort="{float(mean)!r}" '
-                             f'title="{esc(tip)}">{val}</td>')
-            else:
-                cells.append(f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>')
-        rows.append(({"class": "flagged-unit" if n_flags else "", "data-unit": unit}, cells))
-    note = ('<p class="note">Mean over repetitions per unit. Click a column heading to sort. '
-            'Flagged cells (red, ⚑) are outliers of the lot; hover a cell for its spread and the reason. '
-            'Biases stored in g are shown in mg; a blank unit means dimensionless.</p>')
-    return note + table(headers, rows, cls="sortable params", group_row="".join(group), text_cols=1,
-                        attrs=' id="key-parameters"')
+            headers.append(f'{pretty_param(n)}<br><small>{esc(p.label) or "&nbsp;"}</small>')
+        rows = []
+        for unit in units:
+            c = counts[unit]
+            n_all = sum(c.values()) if c else 0
+            used = c.get("ok", 0) + c.get("warned", 0)
+            cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
+                     + (' <span class="badge flag">⚑ flagged</span>' if n_flags[unit] else "") + "</td>",
+                     f'<td data-sort="{used}">{used}/{n_all}'
+                     + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
+                     f'<td data-sort="{n_flags[unit]}">{n_flags[unit] or ""}</td>']
+            for n in names:
+                i = by_key.get((unit, m, n))
+                if i is None:
+                    cells.append(f'<td data-sort="">{DASH}</td>')
+                    continue
+                p = ctx.info(m, n)
+                mean, r_std = col["mean"][i], col["std"][i]
+                val = ctx.value(m, n, mean)
+                tip = (f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: "
+                       f"{p.spread(r_std).replace(chr(160), ' ')})")
+                if bool(col.get("flagged", no_flags)[i]):
+                    tip += f" — FLAGGED: {col['flag_reason'][i] if 'flag_reason' in col else ''}"
+                    cells.append(f'<td class="flagged" data-flagged="1" data-param="{esc(n)}" data-sort="{float(mean)!r}" '
+                                 f'title="{esc(tip)}">{val}</td>')
+                else:
+                    cells.append(f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>')
+            rows.append(({"class": "flagged-unit" if n_flags[unit] else "", "data-unit": unit}, cells))
+        foot = _lot_rows(ctx, s, m, names)
+        title = dict(KEY_MODELS).get(m, m)
+        n_cells = sum(len(v) for v in in_model.values())
+        badge = f' <span class="badge flag">{n_cells} ⚑</span>' if n_cells else ""
+        tid = f"kp-{m}"
+        tabs.append(f'<button type="button" role="tab" class="tab" id="{tid}-tab" aria-controls="{tid}" '
+                    f'aria-selected="{"true" if k == 0 else "false"}" data-tab="{tid}">{title}{badge}</button>')
+        panels.append(f'<div class="tabpanel" role="tabpanel" id="{tid}" data-model="{esc(m)}" '
+                      f'aria-labelledby="{tid}-tab"{"" if k == 0 else " hidden"}>'
+                      f'<h3 class="print-only">{title}</h3>'
+                      + table(headers, rows + foot, cls="sortable params key-parameters", text_cols=1,
+                              attrs=f' id="key-parameters-{esc(m)}"')
+                      + "</div>")
+    note = ('<p class="note">Mean over repetitions per unit; one table per model (choose above). '
+            'Flagged units come first; click a column heading to sort. Flagged cells (red, ⚑) are '
+            'outliers of the lot; hover a cell for its spread over repetitions and the reason. '
+            'Values: biases stored in g in mg, a blank unit means dimensionless. The last two rows: '
+            'the lot median and its scatter (1.4826 × MAD), spreads in ppm (ratios), deg/h (gyro '
+            'biases) or mg (accelerometer biases).</p>')
+    return (note + f'<div class="tabs" role="tablist" id="key-parameter-tabs">{"".join(tabs)}</div>'
+            + "".join(panels))
+
+
+def _lot_rows(ctx: LotContext, s: pd.DataFrame, model: str, names: list[str]) -> list[str]:
+    """The lot median and scatter (1.4826 MAD) rows under a key-parameter table; they stay
+    last when the table is sorted (the runtime sorts the rows without class "lotstat")."""
+    sub = s[s["model"] == model]
+    med, mad = [], []
+    for n in names:
+        v = sub.loc[sub["parameter"] == n, "mean"].to_numpy(float)
+        v = v[np.isfinite(v)]
+        p = ctx.info(model, n)
+        if len(v):
+            m = float(np.median(v))
+            med.append(f"<td>{ctx.value(model, n, m)}</td>")
+            mad.append(f"<td>{p.spread(1.4826 * float(np.median(np.abs(v - m))))}</td>"
+                       if len(v) > 2 else f"<td>{DASH}</td>")
+        else:
+            med.append(f"<td>{DASH}</td>")
+            mad.append(f"<td>{DASH}</td>")
+    return [f'<tr class="lotstat"><td class="text">lot median</td><td></td><td></td>{"".join(med)}</tr>',
+            f'<tr class="lotstat"><td class="text">lot scatter</td><td></td><td></td>{"".join(mad)}</tr>']
 
 
 # ----------------------------------------------------------------------------- strip plots
@@ -577,7 +637,7 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
             names, [row_of[n] for n in names], infos, heads, np.array([info.scale for info in infos])[:, None])
     names, order, infos, heads, scale = layout
     flagged = ctx.flagged_params(unit, model)
-    headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Mean stderr"]
+    headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Stderr of average"]
     Vs = V[order] * scale
     avg, spread, mean_se = ctx.rep_stats(unit, model, order)
     rows = []
@@ -588,7 +648,9 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
         rows.append(heads[k]
                     + td_numbers(values[k], finite[k], info.decimals)
                     + f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>'
-                    f'<td class="spread">{fmt(spread[k], sig=2)}</td><td class="spread">{fmt(mean_se[k], sig=2)}</td></tr>')
+                    # spreads in their own units (ppm, deg/h, mg): avg etc. are in the value unit
+                    f'<td class="spread">{info.spread(spread[k] / info.scale)}</td>'
+                    f'<td class="spread">{info.spread(mean_se[k] / info.scale)}</td></tr>')
     return (f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>"
             + table(headers, rows, cls="paper", text_cols=2, wrap=False))
 
@@ -706,8 +768,11 @@ def residual_index(ctx: LotContext) -> ResidualIndex | None:
 
 
 def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...], x_of, scale: float,
-                     unit: str, x_title: str, symbol: str, categorical: bool) -> dict:
-    """``d``: row positions in ``ri`` of one unit's points, in drawing order."""
+                     unit: str, x_title: str, symbol: str, categorical: bool,
+                     x_axis: dict | None = None, hover_x_of=None) -> dict:
+    """``d``: row positions in ``ri`` of one unit's points, in drawing order. ``x_axis``:
+    settings of every x axis (e.g. symlog ticks); ``hover_x_of``: the x shown on hover when
+    the drawn x is transformed."""
     model = ri.model[d]
     found = set(model)
     models = [m for m in ("baseline", "extended") if m in found] + sorted(found - {"baseline", "extended"})
@@ -722,7 +787,10 @@ def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...]
             if not len(dc):
                 continue
             y = ri.residual[dc] * scale
+            extra = {} if hover_x_of is None else {"customdata": hover_x_of(dc)}
+            at = "%{x}" if hover_x_of is None else "%{customdata:.4g}"
             data.append({
+                **extra,
                 "type": "scatter", "x": x_of(dc), "y": arr(y), "mode": "markers", "name": f"{ch} error",
                 "marker": {"color": CHANNEL_COLOURS[ch[1]], "size": 6, "symbol": symbol},
                 "error_y": {"type": "data", "symmetric": False,
@@ -730,8 +798,8 @@ def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...]
                             "arrayminus": arr(y - ri.rmin[dc] * scale),
                             "thickness": 1, "width": 0, "color": CHANNEL_COLOURS[ch[1]]},
                 "legendgroup": ch, "showlegend": j == 0, "xaxis": xr, "yaxis": yr,
-                "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at %{{x}}<extra>{m} model</extra>"})
-        layout["xaxis" + xr[1:]].update(title={"text": x_title})
+                "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at {at}<extra>{m} model</extra>"})
+        layout["xaxis" + xr[1:]].update(title={"text": x_title}, **(x_axis or {}))
         if categorical:
             layout["xaxis" + xr[1:]].update(type="category", tickangle=-60, tickfont={"size": 10})
     layout["yaxis"].update(title={"text": f"error [{unit}]"}, zeroline=True)
@@ -739,13 +807,47 @@ def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...]
     return {"data": data, "layout": layout}
 
 
+SYMLOG_LINEAR_DPS = 1.0  # the symlog rate axis is linear within +/- this rate, logarithmic beyond
+
+
+def symlog(x: np.ndarray, c: float = SYMLOG_LINEAR_DPS) -> np.ndarray:
+    """sign(x) log10(1 + |x|/c): a logarithmic axis for both signs and zero."""
+    x = np.asarray(x, dtype=float)
+    return np.sign(x) * np.log10(1.0 + np.abs(x) / c)
+
+
+def symlog_axis(max_abs: float, c: float = SYMLOG_LINEAR_DPS) -> dict:
+    """Tick values and labels of a symlog axis up to ``max_abs``: 0, +/-1, 10, 100... c."""
+    decades = [c * 10 ** k for k in range(0, int(np.ceil(np.log10(max(max_abs, c) / c))) + 1)]
+    vals = sorted({0.0, *decades, *(-d for d in decades)})
+    return {"tickmode": "array", "tickvals": symlog(np.array(vals), c).tolist(),
+            "ticktext": [f"{v:g}".replace("-", MINUS) for v in vals], "zeroline": True}
+
+
+def rates_span_decades(rates: np.ndarray, decades: float = 1.0) -> bool:
+    """Whether the non-zero |rates| span at least ``decades`` decades (a linear axis would
+    pile the low rates together)."""
+    r = np.abs(np.asarray(rates, dtype=float))
+    r = r[np.isfinite(r) & (r > 0)]
+    return len(r) > 1 and r.max() / r.min() >= 10 ** decades
+
+
 def gyro_residual_figure(ctx: LotContext, unit: str) -> dict | None:
+    """Gyro error vs table rate; a symlog rate axis when the rates span a decade or more
+    (the xu2016 protocol: 6 to 300 deg/s of both signs; a linear axis piles the low rates
+    together)."""
     ri = residual_index(ctx)
     if ri is None:
         return None
     d = ri.select(unit, ri.is_gyro, ri.rate_dps)
     if d is None or not len(d):
         return None
+    rates = ri.rate_dps[d]
+    if rates_span_decades(rates):
+        return _residual_figure(ri, d, ("gx", "gy", "gz"), lambda dc: arr(symlog(ri.rate_dps[dc])),
+                                1.0, "deg/s", "table rate [deg/s] (symmetric log scale)", "circle", False,
+                                x_axis=symlog_axis(float(np.nanmax(np.abs(rates)))),
+                                hover_x_of=lambda dc: ri.rate_dps[dc].tolist())
     return _residual_figure(ri, d, ("gx", "gy", "gz"), lambda dc: arr(ri.rate_dps[dc]),
                             1.0, "deg/s", "table rate [deg/s]", "circle", False)
 

@@ -979,8 +979,11 @@ def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
         at = at.replace(tzinfo=timezone.utc)
     files = ResultsStore(Path(results)).calibration_files(unit)
     if not files:
-        raise CalibrationNotFound(f"no calibration of unit {unit!r} under "
-                                  f"{Path(results) / 'calibrations' / unit}")
+        cal_dir = Path(results) / "calibrations"
+        have = sorted(p.name for p in cal_dir.iterdir() if p.is_dir()) if cal_dir.is_dir() else []
+        listed = ", ".join(have[:12]) + (f", ... ({len(have)} in all)" if len(have) > 12 else "")
+        raise CalibrationNotFound(f"no calibration of unit {unit!r} under {cal_dir / unit} "
+                                  f"(units with calibrations: {listed or 'none'})")
     if before_after == "before":
         cands = [f for f in files if f[0] <= at]
         if not cands:

@@ -85,6 +85,26 @@ def test_stacked_group_equals_each_session_alone():
     assert len({f.calibration.fits["lever_arm"].stderr[1, 2] for f in out}) == len(out)
 
 
+def test_each_batched_fit_equals_its_per_session_fit():
+    from calib_core import xu2016, zhang2017
+
+    sms = unit_step_means(n=4, seed=21)
+    pairs = [(xu2016.fit_gyro_multirate_stack, xu2016.fit_gyro_multirate),
+             (xu2016.fit_accel_multiposition_stack, xu2016.fit_accel_multiposition),
+             (xu2016.fit_gyro_traditional_stack, xu2016.fit_gyro_traditional),
+             (xu2016.fit_accel_traditional_stack, xu2016.fit_accel_traditional),
+             (zhang2017.fit_accel_static_stack, zhang2017.fit_accel_static)]
+    for batched, alone in pairs:
+        for together, sm in zip(batched(sms), sms):
+            _assert_same(together, alone(sm))
+    statics = zhang2017.fit_accel_static_stack(sms)
+    inputs = zhang2017.lever_arm_inputs_stack(sms, statics)
+    for projection in zhang2017.PROJECTIONS:
+        for together, sm, st in zip(zhang2017.fit_lever_arm_from_stack(inputs, projection=projection),
+                                    sms, statics):
+            _assert_same(together, zhang2017.fit_lever_arm(sm, st, projection=projection))
+
+
 def test_one_implausible_session_fails_alone_and_the_rest_is_unchanged():
     sms = unit_step_means(seed=8)
     sms[2] = replace(sms[2], gyro=sms[2].gyro * 2.0)  # K_g diagonal ~0.5: not a sensor
@@ -136,8 +156,8 @@ def test_solve_lstsq_stack_equals_one_problem_at_a_time():
                                   condition_number=float(st.condition_number[r]),
                                   rank=int(st.rank[r])))
     assert st.rank.tolist() == [4, 4, 3, 4]
-    # a shared design (2-D X) with a stack of right-hand sides, through the design cache
-    shared = solve_lstsq_stack(X[0], Y, reuse_design=True)
+    # a shared design (2-D X) with a stack of right-hand sides, factorised once
+    shared = solve_lstsq_stack(X[0], Y)
     for r in range(4):
         np.testing.assert_array_equal(shared.coef[r], solve_lstsq(X[0], Y[r]).coef)
 

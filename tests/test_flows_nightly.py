@@ -278,7 +278,13 @@ def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
     out, err = capsys.readouterr()
     bad = manifest["bad_sessions"][0]["session"]
     assert f"failed session {bad}: [" in err
-    assert "progress: units 5/5 done, failed sessions 1" in err
+    # one line per lot as its batches (of 2 units) come back, the last one 5/5 units
+    import re
+    counts = [int(m) for m in re.findall(r"^lot L\w+: (\d)/5 units", err, re.M)]
+    assert counts == sorted(counts) and counts[-1] == 5 and len(counts) == 3
+    assert re.search(r"^lot L\w+: 5/5 units \(1 failed sessions\), [\d.]+ s$", err, re.M)
+    # the summary's time is the wall time since the process started, the flow's in brackets
+    assert re.search(r"; [\d.]+ s wall \([\d.]+ s in the flow\)$", out, re.M)
     summary = [line for line in out.splitlines() if line.startswith("nightly ")]
     assert len(summary) == 1 and "5 units (5 calibrated, 0 unchanged" in summary[0]
     assert "reports: " in out

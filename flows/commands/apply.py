@@ -5,9 +5,11 @@ units; ``rad/s`` and ``m/s^2`` are converted to deg/s and g first, with the file
 ``g_local``) or a CSV with columns ``acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z`` (units given by
 ``--gyro-unit`` / ``--accel-unit``, default deg/s and m/s^2; other columns are passed through).
 
-Output: Parquet input -> Parquet with ``w_x, w_y, w_z`` in deg/s and ``f_x, f_y, f_z`` in g
-(plus ``t``, ``step``, ``temp_c`` when present); CSV input -> CSV with ``gyr_*`` in deg/s and
-``acc_*`` in m/s^2 (the calibration's ``g_local``), other columns unchanged.
+Output columns: from a Parquet input ``w_x, w_y, w_z`` in deg/s and ``f_x, f_y, f_z`` in g
+(plus ``t``, ``step``, ``temp_c`` when present); from a CSV input ``gyr_*`` in deg/s and
+``acc_*`` in m/s^2 (the calibration's ``g_local``), other columns unchanged. The output's
+format is the one its name says: ``.parquet`` (with the units and the calibration file in its
+metadata) or ``.csv``; any other name is refused before anything is read.
 
 Refuses (exit 2) when the raw units of the data are not the ones the calibration expects
 (its ``raw_units``), e.g. LSB data with a calibration fitted on deg/s."""
@@ -36,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("calibration", metavar="CALIBRATION.json")
     p.add_argument("raw", metavar="RAW", help="samples.parquet of the contract, or a .csv")
-    p.add_argument("out", metavar="OUT", help="output file (.parquet or .csv like RAW)")
+    p.add_argument("out", metavar="OUT", help="output file: .parquet or .csv (the format its name says)")
     p.add_argument("--gyro-unit", default="deg/s", choices=("deg/s", "rad/s", "LSB", "V"),
                    help="CSV only: unit of gyr_* (default deg/s)")
     p.add_argument("--accel-unit", default="m/s^2", choices=("g", "m/s^2", "LSB", "V"),
@@ -68,9 +70,37 @@ def _apply(cal, G, A, t=None, temp=None):
     return cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t)
 
 
+OUTPUT_FORMATS = {".parquet": "Parquet", ".csv": "CSV"}
+
+
+def write_output(res, out: Path, out_format: str, meta: dict[str, str]) -> None:
+    """Write the calibrated samples atomically (temp file + rename) in ``out_format``;
+    Parquet keeps ``meta`` (units, calibration file, source) as key-value metadata."""
+    import os
+    import tempfile
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    os.close(fd)
+    try:
+        if out_format == "Parquet":
+            tab = pa.Table.from_pandas(res, preserve_index=False)
+            tab = tab.replace_schema_metadata({**(tab.schema.metadata or {}), **meta})
+            pq.write_table(tab, tmp, compression="zstd")
+        else:
+            res.to_csv(tmp, index=False)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, out)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
 def run(args: argparse.Namespace) -> int:
     import pandas as pd
-    import pyarrow as pa
     import pyarrow.parquet as pq
 
     from schemas.calibration_file import CalibrationFileError, load_calibration
@@ -81,6 +111,9 @@ def run(args: argparse.Namespace) -> int:
     except CalibrationFileError as exc:
         raise CliError(str(exc)) from None
     raw, out = Path(args.raw), Path(args.out)
+    out_format = OUTPUT_FORMATS.get(out.suffix.lower())
+    if out_format is None:
+        raise CliError(f"{out}: output name must end in .parquet or .csv (the format written)")
     if not raw.is_file():
         raise CliError(f"{raw}: no such file")
     suffix = raw.suffix.lower()
@@ -111,10 +144,6 @@ def run(args: argparse.Namespace) -> int:
         meta = {"gyro_unit": "deg/s", "accel_unit": "g", "calibrated": "true",
                 "calibration_file": str(Path(args.calibration).resolve()), "source": str(raw),
                 "g_local": f"{cal.g_local:.5f}"}
-        tab = pa.Table.from_pandas(res, preserve_index=False)
-        tab = tab.replace_schema_metadata({**(tab.schema.metadata or {}), **meta})
-        out.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(tab, out, compression="zstd")
         units = "w_* deg/s, f_* g"
     elif suffix == ".csv":
         try:
@@ -133,10 +162,12 @@ def run(args: argparse.Namespace) -> int:
         res = df.copy()
         res[list(CSV_GYRO)] = w
         res[list(CSV_ACCEL)] = f * cal.g_local
-        out.parent.mkdir(parents=True, exist_ok=True)
-        res.to_csv(out, index=False)
+        meta = {"gyro_unit": "deg/s", "accel_unit": "m/s^2", "calibrated": "true",
+                "calibration_file": str(Path(args.calibration).resolve()), "source": str(raw),
+                "g_local": f"{cal.g_local:.5f}"}
         units = "gyr_* deg/s, acc_* m/s^2"
     else:
         raise CliError(f"{raw}: expected a .parquet (contract samples) or .csv file")
-    print(f"{out}: {len(w)} samples calibrated ({units})")
+    write_output(res, out, out_format, meta)
+    print(f"{out}: {len(w)} samples calibrated ({units}, {out_format})")
     return 0

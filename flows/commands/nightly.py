@@ -15,8 +15,10 @@ EPILOG = """examples:
 
 Sessions whose input fingerprint (size and mtime of both files) is unchanged since the last
 run are skipped; a unit with any new, changed or removed session is recalibrated as a whole.
-Prints a progress line per batch of units and a one-line summary; the run log is
-RESULTS/runs/<run_id>.json and the reports RESULTS/reports/."""
+Prints a progress line per lot as its units come back ("lot L01: 8/16 units, 3.2 s") and a
+one-line summary with the wall time since the command started; the run log is
+RESULTS/runs/<run_id>.json, Prefect's own log RESULTS/logs/prefect.log (--verbose: on the
+terminal) and the reports RESULTS/reports/."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,6 +45,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="wait for another run holding the results store instead of refusing")
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--unit-reports", action="store_true",
+                   help="also write a report per unit of the lots reported (RESULTS/reports/units/; "
+                        "~0.2 s and ~5 MB each)")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
     p.add_argument("--follow-symlinks", action="store_true",
                    help="calibrate session directories reached through a symbolic link that "
                         "leads outside DATASET (refused by default)")
@@ -57,13 +64,13 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"configuration {args.config} does not exist")
     if args.batch_size is not None and args.batch_size < 1:
         raise CliError("--batch-size must be >= 1")
+    from flows import runtime
+    runtime.ensure_environment(args.results, verbose=args.verbose)  # before Prefect's import
     from flows.task_runners import resolve_kind
     try:
         resolve_kind(args.runner)  # a bad $MIMUCAL_TASK_RUNNER is refused before start-up
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    from flows import runtime
-    runtime.ensure_environment(args.results)
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
@@ -72,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
             dataset, args.results, force=args.force, dask_address=args.dask_address,
             batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
             wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet,
-            runner=args.runner, follow_symlinks=args.follow_symlinks)
+            runner=args.runner, unit_reports=args.unit_reports,
+            follow_symlinks=args.follow_symlinks)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
@@ -91,6 +99,8 @@ def exit_code(log: dict) -> int:
 
 
 def print_outcome(log: dict) -> None:
+    """The run's failures, flags and report problems, then its summary with the wall time
+    since the command started (imports and Prefect's start-up included)."""
     for f in log.get("failed_sessions", []):
         print(f"failed session {f['session']}: {f['message']}", file=sys.stderr)
     for e in log.get("unit_errors", []):
@@ -104,7 +114,21 @@ def print_outcome(log: dict) -> None:
             print(f"flag {f['lot']}/{f['unit']}: [{f['kind']}] {f['reason']}")
     for p in log.get("report_problems", []):
         print(f"report: {p}", file=sys.stderr)
-    print(log["summary"])
+    print(summary_with_wall_time(log))
     reports = log.get("reports") or []
-    if reports:
-        print("reports: " + ", ".join(reports))
+    units = [r for r in reports if Path(r).parent.name == "units"]
+    others = [r for r in reports if r not in units]
+    if others:
+        print("reports: " + ", ".join(others))
+    if len(units) > 3:
+        print(f"unit reports: {len(units)} in {Path(units[0]).parent}")
+    elif units:
+        print("unit reports: " + ", ".join(units))
+
+
+def summary_with_wall_time(log: dict) -> str:
+    """The run's summary line, its time being the command's wall time (the flow's own time
+    in brackets)."""
+    from flows.clock import since_start
+    from flows.nightly import summary_line
+    return summary_line(log, wall_s=since_start())

@@ -26,6 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="outlier options and per-parameter limits")
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
     p.add_argument("--follow-symlinks", action="store_true",
                    help="calibrate session directories reached through a symbolic link that "
                         "leads outside DATASET (refused by default)")
@@ -35,8 +37,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).is_dir():
         raise CliError(f"dataset {args.dataset} is not a directory")
+    from flows.user_errors import check_unit_in_dataset
+    check_unit_in_dataset(args.dataset, args.unit)  # answered before Prefect starts
     from flows import runtime
-    runtime.ensure_environment(args.results)
+    runtime.ensure_environment(args.results, verbose=args.verbose)
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
