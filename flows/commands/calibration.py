@@ -37,13 +37,6 @@ def run(args: argparse.Namespace) -> int:
     if args.list:
         for ts, path in ResultsStore(args.results).calibration_files(args.unit):
             print(f"{iso(ts)}  {path}")
-    store = ResultsStore(args.results)
-    if not store.calibration_files(args.unit):
-        units = sorted(p.name for p in store.calibrations_dir.iterdir()
-                       if p.is_dir()) if store.calibrations_dir.is_dir() else []
-        shown = ", ".join(units[:20]) + (f", ... ({len(units)} in all)" if len(units) > 20 else "")
-        raise CliError(f"no calibration of unit {args.unit!r} in {args.results} (units there: "
-                       f"{shown or 'none'})")
     try:
         print(find_calibration(args.results, args.unit, at, args.mode))
     except CalibrationNotFound as exc:
