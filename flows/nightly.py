@@ -130,106 +130,189 @@ def _session_rows(results: list[UnitResult], attr: str) -> pd.DataFrame | None:
 def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                   code_version: str, when=None) -> dict[str, Any]:
     """Write the units' rows (replacing only those units), their calibration files, and mark
-    units whose recalibration failed as stale (keeping their last good results)."""
+    units whose recalibration failed as stale (keeping their last good results).
+
+    One unit's failure here (an exception while building its rows or writing its calibration
+    file) marks that unit failed with ``E_INTERNAL`` and the others are stored; a failure of
+    the table writes (disk full, read-only store) removes the calibration files this call
+    wrote while no table points at them yet (the units table is written next to last) and
+    is raised: a run that fails before its units table adds no calibration."""
     when = when or utc_now()
     stamp = iso(when)
-    sess_rows, par_rows, sum_rows, unit_rows, disc_rows = [], [], [], [], []
-    nav_frames = []
-    ok_units: set[tuple[str, str]] = set()
-    stale_units: dict[tuple[str, str], str] = {}
+    rows = _StoreRows()
     previous_units = store.read("units", lots={ur.lot for ur in results},
                                 columns=["lot", "unit", "calibration_file", "calibrated_at",
                                          "acquired_at"])
     prev_state = {(r.lot, r.unit): r for r in previous_units.itertuples()}
-    for ur in results:
-        key = (ur.lot, ur.unit)
-        out = ur.outcome
+    for i, ur in enumerate(results):
+        unit_rows = _StoreRows()
+        try:
+            _unit_store_rows(store, ur, unit_rows, prev_state, run_id, code_version, when, stamp)
+        except Exception as exc:  # noqa: BLE001 - one unit never fails the flow
+            from flows.unit_pipeline import failed_unit_result
+            if unit_rows.new_files:
+                _remove_files(unit_rows.new_files)
+            failed = failed_unit_result(ur.lot, ur.unit, "storing its results", exc, ur.outcome)
+            failed.diagnosis, failed.discovery_note = None, ur.discovery_note
+            results[i] = ur = failed
+            unit_rows = _StoreRows()
+            _unit_store_rows(store, ur, unit_rows, prev_state, run_id, code_version, when, stamp)
+        rows.extend(unit_rows)
+    try:
+        _write_unit_tables(store, results, rows)
+    except BaseException:
+        if not rows.new_files_referenced:  # no table points to them: the run added nothing
+            _remove_files(rows.new_files)
+        raise
+    return {"calibrated": sorted(f"{lot}/{u}" for lot, u in rows.ok_units),
+            "stale": {f"{lot}/{u}": w for (lot, u), w in rows.stale_units.items()}}
+
+
+@dataclass
+class _StoreRows:
+    """The rows :func:`store_results` writes, gathered unit by unit."""
+
+    sessions: list[dict] = field(default_factory=list)
+    parameters: list[dict] = field(default_factory=list)
+    summary: list[dict] = field(default_factory=list)
+    units: list[dict] = field(default_factory=list)
+    discovery: list[dict] = field(default_factory=list)
+    navigation: list[pd.DataFrame] = field(default_factory=list)
+    ok_units: set[tuple[str, str]] = field(default_factory=set)
+    stale_units: dict[tuple[str, str], str] = field(default_factory=dict)
+    new_files: list[Path] = field(default_factory=list)
+    new_files_referenced: bool = False  # the units table pointing to new_files is written
+
+    def extend(self, other: _StoreRows) -> None:
+        for name in ("sessions", "parameters", "summary", "units", "discovery", "navigation",
+                     "new_files"):
+            getattr(self, name).extend(getattr(other, name))
+        self.ok_units |= other.ok_units
+        self.stale_units.update(other.stale_units)
+
+
+def _remove_files(paths: list[Path]) -> None:
+    for p in paths:
+        try:
+            p.unlink()
+        except OSError:
+            pass
+
+
+def _unit_store_rows(store: ResultsStore, ur: UnitResult, rows: _StoreRows,
+                     prev_state: dict, run_id: str, code_version: str, when, stamp: str
+                     ) -> None:
+    """One unit's rows into ``rows``, and its calibration file (written last)."""
+    from schemas.unit_document import unit_document
+    key = (ur.lot, ur.unit)
+    out = ur.outcome
+    for s in out.sessions:
+        rows.sessions.append({
+            "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep, "status": s.status,
+            "error_code": s.code, "message": s.message, "warnings": list(s.warnings),
+            # a unit that failed as a whole (E_INTERNAL) keeps no fingerprint: the next run
+            # sees its sessions as changed and tries it again
+            "fingerprint": None if ur.error_code else s.fingerprint, "run_id": run_id,
+            "path": str(s.path), "calibrated_at": stamp})
+    n_ok = sum(s.status == "ok" for s in out.sessions)
+    n_warned = sum(s.status == "warned" for s in out.sessions)
+    n_failed = sum(s.status == "failed" for s in out.sessions)
+    base = {"lot": ur.lot, "unit": ur.unit, "n_sessions": len(out.sessions), "n_ok": n_ok,
+            "n_warned": n_warned, "n_failed": n_failed, "run_id": run_id, "updated_at": stamp,
+            "error_code": ur.error_code}
+    if ur.calibrated:
+        if ur.navigation is not None and len(ur.navigation):
+            rows.navigation.append(ur.navigation.assign(lot=ur.lot, unit=ur.unit))
         for s in out.sessions:
-            sess_rows.append({
-                "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep, "status": s.status,
-                "error_code": s.code, "message": s.message, "warnings": list(s.warnings),
-                "fingerprint": s.fingerprint, "run_id": run_id, "path": str(s.path),
-                "calibrated_at": stamp})
-        n_ok = sum(s.status == "ok" for s in out.sessions)
-        n_warned = sum(s.status == "warned" for s in out.sessions)
-        n_failed = sum(s.status == "failed" for s in out.sessions)
-        base = {"lot": ur.lot, "unit": ur.unit, "n_sessions": len(out.sessions), "n_ok": n_ok,
-                "n_warned": n_warned, "n_failed": n_failed, "run_id": run_id, "updated_at": stamp}
-        if ur.calibrated:
-            ok_units.add(key)
-            if ur.navigation is not None and len(ur.navigation):
-                nav_frames.append(ur.navigation.assign(lot=ur.lot, unit=ur.unit))
-            for s in out.sessions:
-                if s.calibration is None or not s.succeeded:
-                    continue
-                for p in s.calibration.parameters():
-                    par_rows.append({"lot": ur.lot, "unit": ur.unit, "rep": s.key.rep,
-                                     "model": p.model, "parameter": p.name, "value": p.value,
-                                     "stderr": p.stderr, "unit_of_measure": p.unit,
-                                     "code_version": code_version, "run_id": run_id})
-            for ps in out.calibration.summary:
-                sum_rows.append({"lot": ur.lot, "unit": ur.unit, "model": ps.model,
+            if s.calibration is None or not s.succeeded:
+                continue
+            for p in s.calibration.parameters():
+                rows.parameters.append({"lot": ur.lot, "unit": ur.unit, "rep": s.key.rep,
+                                        "model": p.model, "parameter": p.name, "value": p.value,
+                                        "stderr": p.stderr, "unit_of_measure": p.unit,
+                                        "code_version": code_version, "run_id": run_id})
+        for ps in out.calibration.summary:
+            rows.summary.append({"lot": ur.lot, "unit": ur.unit, "model": ps.model,
                                  "parameter": ps.name, "mean": ps.mean, "std": ps.std,
                                  "min": ps.min, "max": ps.max, "n_reps": ps.n_reps,
-                                 "unit_of_measure": ps.unit, "flagged": False, "flag_reason": "",
-                                 "stale": False, "stale_reason": "", "run_id": run_id})
-            extra = calibration_file_extra(ur, {
-                "run_id": run_id, "code_version": code_version, "calibrated_at": stamp,
-                "store_format_version": STORE_FORMAT_VERSION})
-            acquired = extra["provenance"]["acquired_at"]
-            # numpy values and NaNs of ``extra`` are converted while writing (as jsonable()
-            # would, without a second walk over the document)
-            path = store.save_calibration(out.applied, ur.unit, extra, when, jsonable=True)
-            unit_rows.append({**base, "state": "calibrated", "reason": "",
-                              "calibration_file": str(path.relative_to(store.root)),
-                              "calibrated_at": stamp, "acquired_at": acquired})
-        else:
-            reasons = "; ".join(f"rep {s.key.rep}: {s.code}" for s in out.sessions
-                                if not s.succeeded) or "no session"
-            why = f"recalibration failed in run {run_id} ({reasons})"
-            prev = prev_state.get(key)
-            if prev is not None and isinstance(prev.calibration_file, str) and prev.calibration_file:
-                stale_units[key] = why
-                unit_rows.append({**base, "state": "stale", "reason": why,
-                                  "calibration_file": prev.calibration_file,
-                                  "calibrated_at": prev.calibrated_at,
-                                  "acquired_at": getattr(prev, "acquired_at", None)})
-            else:
-                unit_rows.append({**base, "state": "failed", "reason": why,
-                                  "calibration_file": None, "calibrated_at": None})
-        if ur.diagnosis is not None:
-            effects = ur.diagnosis.get("effects") or []
-            common = {"lot": ur.lot, "unit": ur.unit, "misfit": ur.diagnosis.get("misfit"),
-                      "unexplained": ur.diagnosis.get("unexplained"), "run_id": run_id}
-            if effects:
-                for e in effects:
-                    d = _flatten_effect(e)
-                    d["effect"] = d.pop("name", None)
-                    disc_rows.append({**common, **d})
-            else:
-                disc_rows.append({**common, "effect": None})
+                                 "unit_of_measure": ps.unit, "flagged": False,
+                                 "flag_reason": "", "stale": False, "stale_reason": "",
+                                 "run_id": run_id})
+        extra = calibration_file_extra(ur, {
+            "run_id": run_id, "code_version": code_version, "calibrated_at": stamp,
+            "store_format_version": STORE_FORMAT_VERSION})
+        acquired = extra["provenance"]["acquired_at"]
+        _discovery_rows(ur, rows, run_id)
+        # numpy values and NaNs of the document are converted while writing (as jsonable()
+        # would, without a second walk over the document); the file is written last, so a
+        # unit that fails before it leaves no file
+        path = store.save_calibration(out.applied, ur.unit, extra, when, jsonable=True)
+        rows.new_files.append(path)
+        rows.units.append({**base, "state": "calibrated", "reason": "",
+                           "calibration_file": str(path.relative_to(store.root)),
+                           "calibrated_at": stamp, "acquired_at": acquired})
+        rows.ok_units.add(key)
+        return
+    reasons = "; ".join(f"rep {s.key.rep}: {s.code}" for s in out.sessions
+                        if not s.succeeded) or ("no session" if ur.error is None else "")
+    why = f"recalibration failed in run {run_id} ({reasons or ur.error_code})"
+    if ur.error:
+        why += f": {ur.error}"
+    prev = prev_state.get(key)
+    if prev is not None and isinstance(prev.calibration_file, str) and prev.calibration_file:
+        rows.stale_units[key] = why
+        rows.units.append({**base, "state": "stale", "reason": why,
+                           "calibration_file": prev.calibration_file,
+                           "calibrated_at": prev.calibrated_at,
+                           "acquired_at": getattr(prev, "acquired_at", None)})
+    else:
+        rows.units.append({**base, "state": "failed", "reason": why,
+                           "calibration_file": None, "calibrated_at": None})
+    _discovery_rows(ur, rows, run_id)
+
+
+def _discovery_rows(ur: UnitResult, rows: _StoreRows, run_id: str) -> None:
+    if ur.diagnosis is None:
+        return
+    effects = ur.diagnosis.get("effects") or []
+    common = {"lot": ur.lot, "unit": ur.unit, "misfit": ur.diagnosis.get("misfit"),
+              "unexplained": ur.diagnosis.get("unexplained"), "run_id": run_id}
+    if effects:
+        for e in effects:
+            d = _flatten_effect(e)
+            d["effect"] = d.pop("name", None)
+            rows.discovery.append({**common, **d})
+    else:
+        rows.discovery.append({**common, "effect": None})
+
+
+def _write_unit_tables(store: ResultsStore, results: list[UnitResult], rows: _StoreRows
+                       ) -> None:
+    """The tables' rows of ``results`` (gathered by :func:`store_results`)."""
+    ok_units, stale_units = rows.ok_units, rows.stale_units
     all_units = {(ur.lot, ur.unit) for ur in results}
-    store.replace_units("units", _frame(unit_rows, "units"), all_units)
-    store.replace_units("parameters", _frame(par_rows, "parameters"), ok_units)
+    store.replace_units("parameters", _frame(rows.parameters, "parameters"), ok_units)
     # units whose recalibration failed keep their rows, marked stale in the same write
-    store.replace_units("summary", _frame(sum_rows, "summary"), ok_units,
+    store.replace_units("summary", _frame(rows.summary, "summary"), ok_units,
                         set_values={key: {"stale": True, "stale_reason": why}
                                     for key, why in stale_units.items()})
-    calibrated = [ur for ur in results if ur.calibrated]
+    calibrated = [ur for ur in results if (ur.lot, ur.unit) in ok_units]
     for name, attr in (("residuals", "residual_table"), ("compensation", "compensation_table")):
         store.replace_units(name, _session_rows(calibrated, attr), ok_units)
     nav_units = {(ur.lot, ur.unit) for ur in results if ur.navigation is not None}
     if nav_units:
-        store.replace_units("navigation", pd.concat(nav_frames, ignore_index=True)
-                            if nav_frames else None, nav_units)
+        store.replace_units("navigation", pd.concat(rows.navigation, ignore_index=True)
+                            if rows.navigation else None, nav_units)
     disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
     if disc_units:
-        store.replace_units("discovery", _frame(disc_rows, "discovery"), disc_units)
+        store.replace_units("discovery", _frame(rows.discovery, "discovery"), disc_units)
+    # the units table next to last: until it is written no table points to the new
+    # calibration files, so a failure before it may remove them (store_results)
+    store.replace_units("units", _frame(rows.units, "units"), all_units)
+    rows.new_files_referenced = True
     # sessions.parquet last: its fingerprints tell the next run which units are done, so a
     # crash before this point leaves the units "changed" and the rerun redoes them whole
-    store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)
-    return {"calibrated": sorted(f"{lot}/{u}" for lot, u in ok_units),
-            "stale": {f"{lot}/{u}": w for (lot, u), w in stale_units.items()}}
+    store.replace_units("sessions", _frame(rows.sessions, "sessions"), all_units)
 
 
 @dataclass
@@ -240,6 +323,7 @@ class RunTally:
     calibrated: list[str] = field(default_factory=list)
     stale: dict[tuple[str, str], str] = field(default_factory=dict)
     failed_units: list[str] = field(default_factory=list)
+    unit_errors: list[dict[str, str]] = field(default_factory=list)
     sessions_calibrated: int = 0
     failed_sessions: list[tuple[tuple, dict[str, Any]]] = field(default_factory=list)
     discovery_notes: set[str] = field(default_factory=set)
@@ -253,6 +337,8 @@ class RunTally:
                 self.stale[(r.lot, r.unit)] = stored["stale"][name]
         self.lots.update(r.lot for r in results)
         self.failed_units.extend(f"{r.lot}/{r.unit}" for r in results if not r.calibrated)
+        self.unit_errors.extend({"unit": f"{r.lot}/{r.unit}", "code": r.error_code,
+                                 "message": r.error} for r in results if r.error_code)
         self.sessions_calibrated += sum(1 for r in results for s in r.outcome.sessions
                                         if s.status != "failed")
         self.failed_sessions.extend(
@@ -265,6 +351,7 @@ class RunTally:
         return {"units_calibrated": len(self.calibrated),
                 "units_stale": {f"{lot}/{u}": self.stale[(lot, u)] for lot, u in sorted(self.stale)},
                 "units_failed": sorted(self.failed_units),
+                "unit_errors": sorted(self.unit_errors, key=lambda e: e["unit"]),
                 "sessions_calibrated": self.sessions_calibrated,
                 "failed_sessions": [f for _, f in sorted(self.failed_sessions,
                                                          key=lambda x: x[0])]}
@@ -694,6 +781,51 @@ def write_reports(results: str | Path, lots: list[str], units: tuple[str, ...] =
     return written, problems
 
 
+def reports_to_rebuild(store: ResultsStore) -> list[str]:
+    """Lots whose report is missing or older than the lot's summary or units file (a run
+    that died, or found the disk full, while writing it); every lot when the fleet index is
+    missing (it is written with any lot's report)."""
+    lots = sorted(set(store.table_lots("units")) | set(store.table_lots("summary")))
+    if not lots:
+        return []
+    if not (store.reports_dir / "index.html").is_file():
+        return lots
+    out = []
+    for lot in lots:
+        try:
+            made = (store.reports_dir / f"{lot}.html").stat().st_mtime_ns
+        except OSError:
+            out.append(lot)
+            continue
+        newest = max((p.stat().st_mtime_ns for name in ("units", "summary")
+                      for lt, p in store.partitions(name).items() if lt == lot and p.exists()),
+                     default=0)
+        if newest > made:
+            out.append(lot)
+    return out
+
+
+def known_names(dataset: str | Path, field: str) -> str:
+    """``units there: U0001, U0002, ...`` (or lots) of a dataset, for a message."""
+    root = Path(dataset)
+    names = set()
+    try:
+        for lot_dir in root.iterdir():
+            if not lot_dir.name.startswith("lot="):
+                continue
+            if field == "lot":
+                names.add(lot_dir.name[4:])
+                continue
+            for unit_dir in lot_dir.iterdir():
+                if unit_dir.name.startswith("unit="):
+                    names.add(unit_dir.name[5:])
+    except OSError:
+        pass
+    shown = sorted(names)
+    more = f", ... ({len(shown)} in all)" if len(shown) > 20 else ""
+    return f"{field}s there: {', '.join(shown[:20]) or 'none'}{more}"
+
+
 def make_batches(jobs: list[UnitJob], batch_size: int) -> list[list[UnitJob]]:
     batch_size = max(1, int(batch_size))
     return [jobs[i:i + batch_size] for i in range(0, len(jobs), batch_size)]
@@ -789,7 +921,8 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,
                  progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
-                 runner: str | None = None, unit_reports: bool = False) -> dict:
+                 runner: str | None = None, unit_reports: bool = False,
+                 follow_symlinks: bool = False) -> dict:
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
     report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
     worker processes; ``dask`` means the task runner already sends it elsewhere."""
@@ -799,6 +932,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
     cfg, cfg_text = resolve_config(store, config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        store.check()  # a damaged store is refused before anything is written
         save_config(store, cfg_text)
         t0 = time.monotonic()
         log: dict[str, Any] = {"run_id": run_id, "kind": "nightly", "start": iso(utc_now()),
@@ -818,7 +952,7 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         preloaded = _await_preload()
         if preloaded is not None:
             log["preload"] = preloaded
-        refs, path_errors = find_sessions(dataset)
+        refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
         digests = DigestCache(store.read_digest_cache())
         jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
         current = {os.path.join(str(r.path), n) for r in refs
@@ -884,6 +1018,9 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         # this thread's arena (flows.memory; docs/benchmarks.md)
         release_memory()
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
+        # reports that are missing or older than their lot's tables (a run that died or hit
+        # a full disk while writing them) are rebuilt too
+        report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         release_memory()
         # unit reports (``unit_reports``): every unit of the lots whose report is rewritten
         units = tuple(sorted({str(u) for u in store.read("units", lots=report_lots,
@@ -945,8 +1082,11 @@ def lot_report_flow(results: str, lot: str, config: str | None = None,
     store = ResultsStore(Path(results))
     cfg, cfg_text = resolve_config(store, config)
     with store.lock(owner=f"report-{lot}", wait=wait):
+        store.check()
         if lot not in store.table_lots("summary") and lot not in store.table_lots("sessions"):
-            raise LookupError(f"lot {lot!r} is not in the results store {results}")
+            lots = sorted(set(store.table_lots("summary")) | set(store.table_lots("sessions")))
+            raise LookupError(f"lot {lot!r} is not in the results store {results} (lots there: "
+                              f"{', '.join(lots) or 'none'})")
         save_config(store, cfg_text)
         # the lot as touched: with a new configuration every lot is re-flagged (the flag
         # state is of another configuration) and the reports of lots whose flags changed
@@ -1022,7 +1162,8 @@ def _await_preload() -> dict[str, Any] | None:
 
 @flow(name="rerun-unit", persist_result=False, log_prints=False)
 def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
-               wait: bool = False, run_discovery: bool = True) -> dict:
+               wait: bool = False, run_discovery: bool = True,
+               follow_symlinks: bool = False) -> dict:
     """Recalibrate one unit now; its rows are replaced only if it succeeds (otherwise its last
     good calibration stays and is marked stale); its lot is re-flagged and its report rebuilt.
 
@@ -1034,6 +1175,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
     cfg, cfg_text = resolve_config(store, config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        store.check()
         save_config(store, cfg_text)
         t0 = time.monotonic()
         phases: dict[str, float] = {}
@@ -1046,10 +1188,11 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             t, c = time.monotonic(), time.process_time()
 
         preloaded = _await_preload()
-        refs, path_errors = find_sessions(dataset, unit=unit)
+        refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
         if not refs:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
-            raise LookupError(f"unit {unit!r}: no session under {dataset} ({why})")
+            raise LookupError(f"unit {unit!r}: no session under {dataset} ({why}); "
+                              f"{known_names(dataset, 'unit')}")
         lot = refs[0].key.lot
         job = UnitJob(lot, unit, refs, "rerun")
         log: dict[str, Any] = {"run_id": run_id, "kind": "rerun", "start": iso(utc_now()),
@@ -1070,6 +1213,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
         stored = store_results(store, res, run_id, version)  # reads/rewrites its lot only
         phase("store")
         lf, report_lots = reflag_after_update(store, [lot], cfg)
+        report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         phase("reflag")
         reports, problems = write_reports(results, report_lots, units=(unit,))
         phase("reports")
@@ -1079,6 +1223,8 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             "end": iso(utc_now()), "elapsed_s": round(time.monotonic() - t0, 3),
             "units_calibrated": len(stored["calibrated"]), "units_stale": stored["stale"],
             "units_failed": [f"{lot}/{unit}"] if not res[0].calibrated else [],
+            "unit_errors": [{"unit": f"{lot}/{unit}", "code": r.error_code, "message": r.error}
+                            for r in res if r.error_code],
             "sessions_calibrated": sum(1 for s in res[0].outcome.sessions if s.status != "failed"),
             "failed_sessions": failed,
             "flagged_units": sorted({f"{f.lot}/{f.unit}" for x in lf for f in x.flags}),
@@ -1098,12 +1244,14 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
                               batch_size: int = DEFAULT_BATCH_SIZE,
                               config: str | Path | None = None, wait: bool = False,
                               run_discovery: bool = True, progress: bool = True,
-                              runner: str | None = None, unit_reports: bool = False) -> dict:
+                              runner: str | None = None, unit_reports: bool = False,
+                              follow_symlinks: bool = False) -> dict:
     """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
     (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
     see flows.task_runners)."""
     if not wait:  # a clear refusal, not a failed flow run in Prefect's database
         ResultsStore(Path(results)).ensure_unlocked()
+    ResultsStore(Path(results)).check()  # and a damaged store, before Prefect starts
     kind = "dask" if dask_address else resolve_kind(runner)
     task_runner = make_task_runner(dask_address, kind=None if dask_address else kind)
     # Dask may have many workers: keep them all fed (memory: this many batches in flight)
@@ -1115,22 +1263,35 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
             str(dataset), str(results), force=force, batch_size=batch_size,
             config=None if config is None else str(config), wait=wait,
             run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
-            runner=kind, unit_reports=unit_reports)
+            runner=kind, unit_reports=unit_reports, follow_symlinks=follow_symlinks)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
                        wait: bool = False) -> dict:
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
+    store = ResultsStore(Path(results))
+    store.check()
+    lots = set(store.table_lots("summary")) | set(store.table_lots("sessions"))
+    if lot not in lots:  # before Prefect starts: one line, no failed flow run
+        raise LookupError(f"lot {lot!r} is not in the results store {results} (lots there: "
+                          f"{', '.join(sorted(lots)) or 'none'})")
     with runtime.run_settings():
         return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
 
 
 def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
                config: str | Path | None = None, wait: bool = False,
-               run_discovery: bool = True) -> dict:
+               run_discovery: bool = True, follow_symlinks: bool = False) -> dict:
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
+    ResultsStore(Path(results)).check()
+    refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
+    if not refs:  # before Prefect starts: one line, no failed flow run
+        why = "; ".join(str(e) for e in path_errors) or "no session directory found"
+        raise LookupError(f"unit {unit!r}: no session under {dataset} ({why}); "
+                          f"{known_names(dataset, 'unit')}")
     with _preloading(), runtime.run_settings():
         return rerun_flow(str(dataset), str(results), unit,
-                          None if config is None else str(config), wait, run_discovery)
+                          None if config is None else str(config), wait, run_discovery,
+                          follow_symlinks)

@@ -260,13 +260,18 @@ def _write_text_atomic(path: Path, text: str) -> None:
 
 
 def save_calibration(cal: Calibration, path: Path, extra: dict[str, Any] | None = None,
-                     extra_nonfinite: str = "error", default=None) -> Path:
+                     extra_nonfinite: str = "null", default=None) -> Path:
     """Write the calibration file. ``extra`` (top-level keys added to the document) may hold
-    numpy values; with ``extra_nonfinite="null"`` its NaNs are written as null (the
-    calibration itself must be finite: ValueError otherwise)."""
-    write_json_atomic(Path(path), calibration_to_dict(cal, extra),
-                      default=default,
-                      null_keys=frozenset(extra or ()) if extra_nonfinite == "null" else frozenset())
+    numpy values. Non-finite numbers (the standard errors, or values, of components a
+    protocol cannot observe) are written as JSON null, in the terms as in ``extra``, and read
+    back as NaN; the affine part (K_g, w0, K_a, f0) must be finite (ValueError otherwise, no
+    file written). ``extra_nonfinite="error"`` refuses non-finite values in ``extra``."""
+    for name in ("K_g", "w0", "K_a", "f0"):
+        if not np.isfinite(np.asarray(getattr(cal, name), dtype=float)).all():
+            raise ValueError(f"calibration {name} is not finite; no calibration file written")
+    doc = calibration_to_dict(cal, extra)
+    null_keys = set(doc) - (set(extra or ()) if extra_nonfinite == "error" else set())
+    write_json_atomic(Path(path), doc, default=default, null_keys=frozenset(null_keys))
     return Path(path)
 
 

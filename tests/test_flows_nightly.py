@@ -278,8 +278,9 @@ def test_second_concurrent_run_is_refused(small, capsys):
 def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
     data, base, manifest = small
     results = base / "r_cli"
+    # exit code 1: a session failed (README, exit codes)
     assert cli_main(["nightly", str(data), "--results", str(results), "--no-discovery",
-                     "--batch-size", "2"]) == 0
+                     "--batch-size", "2"]) == 1
     out, err = capsys.readouterr()
     bad = manifest["bad_sessions"][0]["session"]
     assert f"failed session {bad}: [" in err

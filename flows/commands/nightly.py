@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "~0.2 s and ~5 MB each)")
     p.add_argument("--verbose", action="store_true",
                    help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
+    p.add_argument("--follow-symlinks", action="store_true",
+                   help="calibrate session directories reached through a symbolic link that "
+                        "leads outside DATASET (refused by default)")
     p.set_defaults(func=run)
 
 
@@ -95,11 +98,23 @@ def run(args: argparse.Namespace) -> int:
             dataset, args.results, force=args.force, dask_address=args.dask_address,
             batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
             wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet,
-            runner=args.runner, unit_reports=args.unit_reports)
+            runner=args.runner, unit_reports=args.unit_reports,
+            follow_symlinks=args.follow_symlinks)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
-    return 0
+    if not log.get("sessions_found") and not log.get("path_errors"):
+        print(f"mimucal nightly: warning: no session under {dataset} (expected "
+              f"lot=<id>/unit=<id>/rep=<n>/ directories); nothing to do", file=sys.stderr)
+        return 3
+    return exit_code(log)
+
+
+def exit_code(log: dict) -> int:
+    """1 when any session, unit or report failed, or a directory did not parse; else 0."""
+    failed = (log.get("failed_sessions") or log.get("units_failed") or log.get("path_errors")
+              or log.get("report_problems") or log.get("unit_errors"))
+    return 1 if failed else 0
 
 
 def print_outcome(log: dict) -> None:
@@ -107,6 +122,8 @@ def print_outcome(log: dict) -> None:
     since the command started (imports and Prefect's start-up included)."""
     for f in log.get("failed_sessions", []):
         print(f"failed session {f['session']}: {f['message']}", file=sys.stderr)
+    for e in log.get("unit_errors", []):
+        print(f"failed unit {e['unit']}: {e['message']}", file=sys.stderr)
     for e in log.get("path_errors", []):
         print(f"bad path: {e.get('message')}", file=sys.stderr)
     for unit, why in (log.get("units_stale") or {}).items():

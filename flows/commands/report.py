@@ -3,6 +3,7 @@ results store (no raw data is read)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from flows.cli import CliError
@@ -58,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         for f in lf["flags"]:
             print(f"flag {f['lot']}/{f['unit']}: [{f['kind']}] {f['reason']}")
     for p in out["problems"]:
-        print(f"report: {p}")
+        print(f"report: {p}", file=sys.stderr)
     for r in out["reports"]:
         print(r)
     if args.pdf is not None:
@@ -70,4 +71,4 @@ def run(args: argparse.Namespace) -> int:
             print(print_pdf(html, pdf))
         except PdfError as exc:
             raise CliError(str(exc)) from None
-    return 0
+    return 1 if out["problems"] else 0
