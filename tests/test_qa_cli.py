@@ -89,7 +89,7 @@ def test_limits_written_in_mg_fail_the_shifted_unit_and_the_status_travels(fleet
     assert any(r.startswith("[robust_z] accel.f0_y") for r in qa["reasons"])
     assert qa["reference"] == "lot" and qa["config"]["limits"]
     code, out, err = _cli(capsys, "calibration", "--results", results, "--unit", "U0003")
-    assert code == 3 and out == "" and "refused" in err and "limits" in err
+    assert code == 4 and out == "" and "refused" in err and "limits" in err
     code, out, err = _cli(capsys, "calibration", "--results", results, "--unit", "U0003", "--allow-flagged")
     assert code == 0 and out.strip().endswith(".json") and "warning" in err
     # clean units pass; only U0003 fails the limit
@@ -122,7 +122,7 @@ def test_small_lot_is_judged_against_the_fleet_history_and_the_report_says_so(fl
     html = (results / "reports" / "L02.html").read_text()
     assert "fleet history" in html and "Reference:" in html
     code, _, _ = _cli(capsys, "calibration", "--results", results, "--unit", "U0021")
-    assert code == 3
+    assert code == 4
 
 
 def _values(a) -> np.ndarray:

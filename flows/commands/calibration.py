@@ -8,7 +8,7 @@ measurement at or before ``--at`` (default now, UTC; a date alone means the end 
 nearest.
 
 A unit whose calibration was judged ``flagged`` (an outlier in its lot) or ``limits`` (a
-limit failed) is refused with exit code 3 and the reasons on stderr, unless
+limit failed) is refused with exit code 4 and the reasons on stderr, unless
 ``--allow-flagged`` (then the reasons are printed on stderr and the path on stdout)."""
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from datetime import timedelta
 
 from flows.cli import CliError
 
-EXIT_FLAGGED = 3  # the calibration found was judged flagged or outside limits
+EXIT_FLAGGED = 4  # the calibration found was judged flagged or outside limits
 
 EPILOG = """examples:
   mimucal calibration --results results --unit U0001
@@ -28,7 +28,7 @@ EPILOG = """examples:
   mimucal calibration --results results --unit U0007 --allow-flagged
 
 exit codes: 0 found (QA pass, not judged, or --allow-flagged), 2 not found or bad
-arguments, 3 refused: its QA status is flagged or limits"""
+arguments, 4 refused: its QA status is flagged or limits"""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
