@@ -29,6 +29,7 @@ from schemas.display import decimals_for, spread_unit, value_unit  # noqa: F401 
 # grey-scale print (flagged points are also larger, diamond-shaped and labelled).
 CLEAN = "#4c78a8"
 FLAGGED = "#d62728"
+LIMIT = "#b45309"  # a failed acceptance limit: its own colour, symbol (x) and badge
 CHANNEL_COLOURS = {"x": "#1f77b4", "y": "#2ca02c", "z": "#9467bd"}
 CASE_COLOURS = {"none": "#d62728", "static": "#ff7f0e", "static+dynamic": "#2ca02c"}
 
@@ -100,6 +101,11 @@ td.flagged::before { content:"\\2691\\00a0"; }
 .badge { display:inline-block; padding:0 6px; border-radius:9px; font-size:11px; font-weight:600;
          vertical-align:1px; }
 .badge.flag { background:var(--flag); color:#fff; }
+.badge.limit { background:#b45309; color:#fff; }
+.badge.unjudged { background:#d9e2ec; color:#1f2933; }
+td.limit { background:#fdebd3; color:#b45309; font-weight:600; }
+td.limit::before { content:"\\2716\\00a0"; }
+.qa-reference { margin:4px 0 8px; }
 .badge.failed { background:#742a2a; color:#fff; }
 .badge.warned { background:#f0b429; color:#1f2933; }
 .badge.ok { background:#c6f6d5; color:#22543d; }

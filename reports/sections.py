@@ -12,28 +12,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from reports.html import (
-    CHANNEL_COLOURS,
-    CLEAN,
-    DASH,
-    FLAGGED,
-    MINUS,
-    Page,
-    arr,
-    decimals_for,
-    display_unit,
-    esc,
-    fmt,
-    fmt_spread,
-    fmt_time,
-    grid,
-    kpi,
-    missing,
-    spread_display,
-    table,
-    td_numbers,
-    with_unit,
-)
+from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, LIMIT, Page, arr, decimals_for,
+                          display_unit, MINUS, esc, fmt, fmt_spread, fmt_time, grid, kpi, missing,
+                          spread_display, table, td_numbers, with_unit)
 from reports.store import StoreView
 
 # Models in the key-parameter table and strip plots, with their headings.
@@ -95,6 +76,61 @@ def ordered_models(models: Iterable[str]) -> list[str]:
     return [m for m in first if m in models] + sorted(m for m in models if m not in first)
 
 
+# ----------------------------------------------------------------------------- flag kinds
+
+# Two separate categories: a failed acceptance limit (the engineer's limits file) and a
+# statistical outlier (robust z or repetition spread against the lot or the fleet history).
+KIND_OUTLIER = "outlier"
+KIND_LIMITS = "limits"
+
+
+def flag_kinds(reason: Any) -> set[str]:
+    """The categories named by a stored ``flag_reason`` ("[limit] ...; [robust_z] ...")."""
+    text = reason if isinstance(reason, str) else ""
+    kinds = set()
+    if "[limit]" in text:
+        kinds.add(KIND_LIMITS)
+    if "[robust_z]" in text or "[spread]" in text:
+        kinds.add(KIND_OUTLIER)
+    return kinds
+
+
+def kind_badges(kinds: set[str], count: int | None = None) -> str:
+    """The badges of a unit or parameter: limits failed, outlier, or both."""
+    n = f"{count} " if count else ""
+    out = []
+    if KIND_LIMITS in kinds:
+        out.append(f'<span class="badge limit">✖ {n}limit failed</span>')
+    if KIND_OUTLIER in kinds:
+        out.append(f'<span class="badge flag">⚑ {"" if KIND_LIMITS in kinds else n}outlier</span>')
+    return " ".join(out)
+
+
+def qa_badge(status: Any) -> str:
+    """The badge of a calibration file's QA status (pass / flagged / limits / not judged)."""
+    if status == "pass":
+        return '<span class="badge ok">pass</span>'
+    if status == "flagged":
+        return '<span class="badge flag">⚑ outlier</span>'
+    if status == "limits":
+        return '<span class="badge limit">✖ limits</span>'
+    return '<span class="badge unjudged">not judged</span>'
+
+
+def stored_limits(view: StoreView) -> tuple[dict[tuple[str, str], Any], str]:
+    """The acceptance limits of the store's QA configuration by (model, parameter), and a
+    problem text ("" when none): a report never fails on the configuration."""
+    try:
+        text = view.store.read_qa_config()
+        if text is None:
+            return {}, ""
+        from schemas.limits import config_from_toml
+        cfg = config_from_toml(text, source=str(view.store.qa_config_path))
+    except Exception as exc:  # noqa: BLE001 (shown in the report)
+        return {}, f"limits not drawn: {exc}"
+    return {(lim.model, lim.parameter): lim for lim in cfg.limits}, ""
+
+
 # ----------------------------------------------------------------------------- lot context
 
 @dataclass
@@ -134,6 +170,10 @@ class LotContext:
     flagged_units: list[str] = field(default_factory=list)
     residual_agg: pd.DataFrame | None = None
     unit_level_flags: dict[str, str] = field(default_factory=dict)
+    unit_kinds: dict[str, set[str]] = field(default_factory=dict)  # unit -> flag categories
+    limits: dict[tuple[str, str], Any] = field(default_factory=dict)
+    limits_problem: str = ""
+    qa_lot: dict | None = None  # the lot's QA context (reference used, threshold, note)
 
     @classmethod
     def load(cls, view: StoreView, lot: str, unit: str | None = None) -> LotContext:
@@ -161,6 +201,17 @@ class LotContext:
             ctx.unit_level_flags = {str(r.unit): as_text(getattr(r, "flag_reason", "")) for r in uf.itertuples()
                                     if str(r.unit) not in ctx.flagged_units}
             ctx.flagged_units = sorted(set(ctx.flagged_units) | set(ctx.unit_level_flags))
+        if ut is not None and len(ut) and "flag_reason" in ut:
+            for u, r, fl in zip(py_values(ut["unit"]), py_values(ut["flag_reason"]),
+                                py_values(ut["flagged"]) if "flagged" in ut else [None] * len(ut)):
+                if fl is not None and not pd.isna(fl) and bool(fl):
+                    ctx.unit_kinds[str(u)] = flag_kinds(r) or {KIND_OUTLIER}
+        if ctx.flags is not None:
+            for u, r in zip(py_values(ctx.flags["unit"]), py_values(ctx.flags["flag_reason"])
+                            if "flag_reason" in ctx.flags else [""] * len(ctx.flags)):
+                ctx.unit_kinds.setdefault(str(u), set()).update(flag_kinds(r) or {KIND_OUTLIER})
+        ctx.limits, ctx.limits_problem = stored_limits(view)
+        ctx.qa_lot = view.store.read_qa_lot(lot)
         ctx.residual_agg = aggregate_residuals(ctx.residuals)
         if ctx.summary is not None and len(ctx.summary) and not ctx.units:
             ctx.units = sorted({str(u) for u in ctx.summary["unit"].dropna()})
@@ -395,7 +446,7 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
     for u, reason in sorted(ctx.unit_level_flags.items()):
         if unit is None or u == unit:
             ul = f'<a href="#unit-{esc(u)}">{esc(u)}</a>' if link else esc(u)
-            items.append(f'<li data-unit="{esc(u)}"><span class="badge flag">flagged unit</span> '
+            items.append(f'<li data-unit="{esc(u)}">{kind_badges(flag_kinds(reason) or {KIND_OUTLIER})} '
                          f'<b>{ul}</b> · {esc(reason)}</li>')
     if (f is None or not len(f)) and not items:
         return '<p class="note">No parameter flagged.</p>'
@@ -405,13 +456,65 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
         u = f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>' if link else esc(r.unit)
         med = getattr(r, "lot_median", np.nan)
         score = getattr(r, "score", np.nan)
+        kinds = flag_kinds(getattr(r, "flag_reason", "")) or {KIND_OUTLIER}
         items.append(
-            f'<li data-unit="{esc(r.unit)}" data-param="{esc(r.parameter)}"><span class="badge flag">flagged</span> '
+            f'<li data-unit="{esc(r.unit)}" data-param="{esc(r.parameter)}" '
+            f'data-kind="{esc(" ".join(sorted(kinds)))}">{kind_badges(kinds)} '
             f"<b>{u}</b> · {esc(r.model)} {pretty_param(r.parameter)} = "
             f"<b>{ctx.value(r.model, r.parameter, r.mean)}</b>{with_unit(p.label)} "
             f"(lot median {ctx.value(r.model, r.parameter, med)}, score {fmt(score, 1)}) · "
             f"{esc(getattr(r, 'flag_reason', '') or '')}</li>")
     return f'<ul class="flags">{"".join(items)}</ul>'
+
+
+def unit_qa_note(ctx: LotContext, unit: str) -> str:
+    """The QA status of the unit's current calibration file (what ``mimucal calibration``
+    hands out or refuses) with its reasons and the lot context it was judged in."""
+    import json
+    ut = ctx.unit_rows("units_table", unit) if ctx.units_table is not None else None
+    rel = None if ut is None or not len(ut) else ut["calibration_file"].iloc[0]
+    if not isinstance(rel, str) or not rel:
+        return '<p class="note">No current calibration file.</p>'
+    try:
+        doc = json.loads((ctx.view.root / rel).read_text())
+    except (OSError, ValueError) as exc:
+        return f'<p class="note">QA status unreadable: {esc(exc)}</p>'
+    qa = doc.get("qa") if isinstance(doc.get("qa"), dict) else None
+    if qa is None:
+        return (f'<p class="note qa-status">{qa_badge(None)} the current calibration '
+                f'<span class="mono">{esc(rel)}</span> was not judged in a lot.</p>')
+    reasons = "".join(f"<li>{esc(r)}</li>" for r in qa.get("reasons") or [])
+    return (f'<div class="qa-status"><p>{qa_badge(qa.get("status"))} QA status of the current '
+            f'calibration <span class="mono">{esc(rel)}</span> in lot {esc(qa.get("lot"))} '
+            f'({esc(qa.get("reference_detail") or qa.get("reference"))}; judged '
+            f'{esc(fmt_time(qa.get("judged_at")) or DASH)})</p>'
+            + (f'<ul class="flags">{reasons}</ul>' if reasons else "") + "</div>")
+
+
+def qa_reference_note(ctx: LotContext) -> str:
+    """Which reference the lot's units were judged against (its own lot or the fleet
+    history of earlier lots), the threshold and the limits in force."""
+    qa = ctx.qa_lot or {}
+    parts = []
+    if qa:
+        ref = {"lot": "the lot itself", "fleet history": "the fleet history",
+               "none": "no reference (too few units, no fleet history)"}.get(
+            qa.get("reference"), str(qa.get("reference")))
+        parts.append(f"<b>Reference:</b> {esc(ref)}"
+                     + (f" ({esc(qa.get('reference_detail'))})" if qa.get("reference_detail") else "")
+                     + f"; |robust z| threshold {fmt(qa.get('z_threshold'), 2)}; judged "
+                     f"{esc(fmt_time(qa.get('judged_at')) or DASH)}.")
+    else:
+        parts.append("<b>Reference:</b> not recorded (the lot was not re-flagged by this version).")
+    if ctx.limits:
+        parts.append(f"<b>Limits:</b> {len(ctx.limits)} parameter(s) "
+                     + ", ".join(f"{esc(m)}.{esc(n)} ({esc(lim.written)})"
+                                 for (m, n), lim in sorted(ctx.limits.items())) + ".")
+    else:
+        parts.append("<b>Limits:</b> none configured.")
+    if ctx.limits_problem:
+        parts.append(esc(ctx.limits_problem))
+    return f'<p class="note qa-reference">{" ".join(parts)}</p>'
 
 
 # ----------------------------------------------------------------------------- key table
@@ -464,7 +567,8 @@ def key_parameter_table(ctx: LotContext) -> str:
             n_all = sum(c.values()) if c else 0
             used = c.get("ok", 0) + c.get("warned", 0)
             cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
-                     + (' <span class="badge flag">⚑ flagged</span>' if n_flags[unit] else "") + "</td>",
+                     + (" " + kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER})) if n_flags[unit] else "")
+                     + "</td>",
                      f'<td data-sort="{used}">{used}/{n_all}'
                      + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
                      f'<td data-sort="{n_flags[unit]}">{n_flags[unit] or ""}</td>']
@@ -479,8 +583,12 @@ def key_parameter_table(ctx: LotContext) -> str:
                 tip = (f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: "
                        f"{p.spread(r_std).replace(chr(160), ' ')})")
                 if bool(col.get("flagged", no_flags)[i]):
-                    tip += f" — FLAGGED: {col['flag_reason'][i] if 'flag_reason' in col else ''}"
-                    cells.append(f'<td class="flagged" data-flagged="1" data-param="{esc(n)}" data-sort="{float(mean)!r}" '
+                    why = col["flag_reason"][i] if "flag_reason" in col else ""
+                    kinds = flag_kinds(why) or {KIND_OUTLIER}
+                    cls = "limit" if KIND_LIMITS in kinds else "flagged"
+                    tip += f" — FLAGGED ({'limit failed' if cls == 'limit' else 'outlier'}): {why}"
+                    cells.append(f'<td class="{cls}" data-flagged="1" data-kind="{esc(" ".join(sorted(kinds)))}" '
+                                 f'data-param="{esc(n)}" data-sort="{float(mean)!r}" '
                                  f'title="{esc(tip)}">{val}</td>')
                 else:
                     cells.append(f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>')
@@ -499,8 +607,9 @@ def key_parameter_table(ctx: LotContext) -> str:
                               attrs=f' id="key-parameters-{esc(m)}"')
                       + "</div>")
     note = ('<p class="note">Mean over repetitions per unit; one table per model (choose above). '
-            'Flagged units come first; click a column heading to sort. Flagged cells (red, ⚑) are '
-            'outliers of the lot; hover a cell for its spread over repetitions and the reason. '
+            'Flagged units come first; click a column heading to sort. Red cells (⚑) are statistical '
+            'outliers, orange cells (✖) failed an acceptance limit; hover a cell for its spread over '
+            'repetitions and the reason. '
             'Values: biases stored in g in mg, a blank unit means dimensionless. The last two rows: '
             'the lot median and its scatter (1.4826 × MAD), spreads in ppm (ratios), deg/h (gyro '
             'biases) or mg (accelerometer biases).</p>')
@@ -541,8 +650,10 @@ def _legend_top(y: float = 1.0) -> dict:
 
 
 def strip_figure(ctx: LotContext, model: str) -> dict | None:
-    """One panel per parameter: the lot's unit means as a box (clean units) and points;
-    units flagged on that parameter as large red diamonds labelled with the unit id."""
+    """One panel per parameter: the box of every unit's mean (flagged ones included: the box
+    is the lot as measured) and a point per unit; statistical outliers on that parameter as
+    large red diamonds, limit failures as orange crosses, both labelled with the unit id;
+    the acceptance limits of the parameter as dashed orange lines."""
     s = ctx.summary
     if s is None:
         return None
@@ -558,6 +669,7 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
         titles.append(f"{pretty_param(n)}{' [' + p.label + ']' if p.label else ''}")
     layout, refs = grid(nrows, ncols, titles, hspace=0.055, vspace=0.3 / nrows)
     data: list[dict] = []
+    shapes: list[dict] = []
     unit_index = {u: i for i, u in enumerate(ctx.units)}
     # the model's columns once, then each parameter's rows by position (pandas per parameter
     # costs ~1 ms a panel, 45 panels a lot)
@@ -566,17 +678,22 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
     flagged_all = (sm["flagged"].fillna(False).astype(bool).to_numpy() if "flagged" in sm
                    else np.zeros(len(sm), bool))
     units_all = sm["unit"].astype(str).to_numpy()
-    reasons_all = sm["flag_reason"].astype(str).to_numpy() if "flag_reason" in sm else None
+    reasons_all = sm["flag_reason"].astype(str).to_numpy() if "flag_reason" in sm else \
+        np.array([""] * len(sm), object)
+    limit_all = np.array(["[limit]" in r for r in reasons_all], bool) & flagged_all
+    any_limit_line = False
     for k, n in enumerate(names):
         xr, yr = refs[k]
         pos = by_name[n]
         p = ctx.info(model, n)
         vals = mean_all[pos] * p.scale
         flagged = flagged_all[pos]
+        at_limit = limit_all[pos]
+        outlier = flagged & ~at_limit
         units = units_all[pos]
         x = np.array([_jitter(unit_index.get(u, i)) for i, u in enumerate(units)])
         hover = np.array([f"{u}<br>{n} = {fmt(v, p.decimals)} {p.label}" for u, v in zip(units, vals)])
-        data.append({"type": "box", "y": arr(vals[~flagged]), "x0": 0, "name": "lot", "boxpoints": False,
+        data.append({"type": "box", "y": arr(vals), "x0": 0, "name": "lot (all units)", "boxpoints": False,
                      "marker": {"color": "#9fb3c8"}, "fillcolor": "rgba(159,179,200,0.25)",
                      "line": {"width": 1}, "width": 0.8, "hoverinfo": "skip", "showlegend": False,
                      "xaxis": xr, "yaxis": yr})
@@ -584,27 +701,54 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
                      "marker": {"color": CLEAN, "size": 6, "opacity": 0.85}, "name": "unit (in family)",
                      "text": list(hover[~flagged]), "hoverinfo": "text", "showlegend": k == 0,
                      "legendgroup": "clean", "xaxis": xr, "yaxis": yr})
-        if flagged.any():
-            reasons = reasons_all[pos][flagged] if reasons_all is not None else [""] * int(flagged.sum())
-            data.append({"type": "scatter", "x": arr(x[flagged]), "y": arr(vals[flagged]),
-                         "mode": "markers+text", "name": "flagged unit",
-                         "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond",
-                                    "line": {"color": "#7f1d1d", "width": 1}},
-                         "text": list(units[flagged]), "textposition": "middle right",
-                         "textfont": {"color": FLAGGED, "size": 12},
-                         "hovertext": [f"{h}<br><b>flagged</b>: {r}" for h, r in zip(hover[flagged], reasons)],
-                         "hoverinfo": "text", "showlegend": False, "legendgroup": "flagged",
+        for sel, name, colour, symbol, edge in ((outlier, "outlier", FLAGGED, "diamond", "#7f1d1d"),
+                                                (at_limit, "limit failed", LIMIT, "x", "#7c2d12")):
+            if not sel.any():
+                continue
+            reasons = reasons_all[pos][sel]
+            data.append({"type": "scatter", "x": arr(x[sel]), "y": arr(vals[sel]),
+                         "mode": "markers+text", "name": name,
+                         "marker": {"color": colour, "size": 12, "symbol": symbol,
+                                    "line": {"color": edge, "width": 1}},
+                         "text": list(units[sel]), "textposition": "middle right",
+                         "textfont": {"color": colour, "size": 12},
+                         "hovertext": [f"{h}<br><b>{name}</b>: {r}" for h, r in zip(hover[sel], reasons)],
+                         "hoverinfo": "text", "showlegend": False, "legendgroup": name,
                          "cliponaxis": False, "xaxis": xr, "yaxis": yr})
+        lim = ctx.limits.get((model, n))
+        if lim is not None:
+            for bound in (lim.min, lim.max):
+                if bound is None:
+                    continue
+                any_limit_line = True
+                y = float(bound) * p.scale
+                shapes.append({"type": "line", "xref": xr, "yref": yr, "x0": -0.6, "x1": 1.0,
+                               "y0": y, "y1": y, "line": {"color": LIMIT, "width": 1.5, "dash": "dash"}})
+                # an invisible point at the limit keeps it inside the autoranged axis
+                data.append({"type": "scatter", "x": [0.95], "y": [y], "mode": "markers",
+                             "marker": {"opacity": 0}, "hoverinfo": "text",
+                             "text": [f"limit {'min' if bound is lim.min else 'max'} "
+                                      f"{fmt(y, p.decimals)} {p.label}"],
+                             "showlegend": False, "xaxis": xr, "yaxis": yr})
         ax = "xaxis" + xr[1:]
         layout[ax].update(range=[-0.6, 1.0], showticklabels=False, showgrid=False, zeroline=False)
         layout["yaxis" + yr[1:]].update(
             tickformat=f".{max(p.decimals - 1, 0)}~f" if p.decimals is not None else "", nticks=5)
-    # one legend entry for flagged units even if the first panel has none
+    # one legend entry per category even if the first panel has none
     data.append({"type": "scatter", "x": [None], "y": [None], "mode": "markers",
-                 "name": "flagged unit (labelled)", "xaxis": "x", "yaxis": "y",
+                 "name": "outlier (labelled)", "xaxis": "x", "yaxis": "y",
                  "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond"}, "showlegend": True})
+    data.append({"type": "scatter", "x": [None], "y": [None], "mode": "markers",
+                 "name": "limit failed (labelled)", "xaxis": "x", "yaxis": "y",
+                 "marker": {"color": LIMIT, "size": 12, "symbol": "x"}, "showlegend": True})
+    if any_limit_line:
+        data.append({"type": "scatter", "x": [None], "y": [None], "mode": "lines",
+                     "name": "acceptance limit", "xaxis": "x", "yaxis": "y",
+                     "line": {"color": LIMIT, "dash": "dash"}, "showlegend": True})
     layout.update(margin={"l": 60, "r": 20, "t": 50, "b": 20}, hovermode="closest",
                   legend={**_legend_top(), "y": 1.0 + 0.25 / nrows / 1.5})
+    if shapes:
+        layout["shapes"] = [*layout.get("shapes", []), *shapes]
     return {"data": data, "layout": layout}
 
 
@@ -1104,7 +1248,8 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     meta = []
     if c:
         meta.append(f"sessions ok {c['ok']}, warned {c['warned']}, failed {c['failed']}")
-    badge = f'<span class="badge flag">⚑ {n_flags} flagged</span>' if n_flags else '<span class="badge ok">in family</span>'
+    badge = (kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER}), n_flags) if n_flags
+             else '<span class="badge ok">in family</span>')
     if c.get("failed"):
         badge += f' <span class="badge failed">{c["failed"]} failed session(s)</span>'
     parts = []

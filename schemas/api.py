@@ -64,6 +64,7 @@ from calib_core.results import RepetitionCalibration, UnitCalibration
 
 __all__ = [
     "CalibrationMismatch",
+    "FlaggedCalibration",
     "UnitCalibrationResult",
     "apply_to_frame",
     "calibrate_unit",
@@ -84,7 +85,11 @@ class CalibrationMismatch(ValueError):
 
 # --- loading -------------------------------------------------------------------------------------
 def load_calibration_for(
-    source: str | Path, unit: str | None = None, at: str | datetime | None = None, mode: str = "before"
+    source: str | Path,
+    unit: str | None = None,
+    at: str | datetime | None = None,
+    mode: str = "before",
+    allow_flagged: bool = False,
 ) -> Calibration:
     """The calibration of ``unit`` valid at ``at`` from a results folder, or the one in a
     calibration file.
@@ -93,7 +98,11 @@ def load_calibration_for(
     date or date-time or a datetime, default now; ``mode`` ``before`` takes the latest
     calibration made at or before ``at``, ``after`` the earliest at or after, ``closest`` the
     nearest) or a calibration file (``mimucal calibrate --json``, the store's files, Ferraris
-    and field calibrations), whose unit must be ``unit`` when both are known.
+    and field calibrations), whose unit must be ``unit`` when both are known. Times are when
+    the unit's sessions were acquired (``session_start``; the production time for files
+    without it). A calibration whose QA status is ``flagged`` or ``limits`` raises
+    :class:`FlaggedCalibration` (with the reasons) unless ``allow_flagged``, as
+    ``mimucal calibration`` refuses it.
 
     Raises ``LookupError`` (no calibration of the unit at that date, with the calibrations
     there are), :class:`CalibrationMismatch` (a file of another unit) or
@@ -119,7 +128,27 @@ def load_calibration_for(
     if unit is None:
         raise ValueError("a results folder holds many units: give unit=")
     when = parse_when(at) if isinstance(at, str) else at
-    return load_calibration(find_calibration(source, unit, when, mode))
+    path = find_calibration(source, unit, when, mode)
+    check_qa(path, allow_flagged)
+    return load_calibration(path)
+
+
+class FlaggedCalibration(LookupError):
+    """The calibration found was judged an outlier or outside limits in its lot."""
+
+
+def check_qa(path: str | Path, allow_flagged: bool = False) -> None:
+    """Raise :class:`FlaggedCalibration` when the calibration file's QA status is ``flagged``
+    or ``limits`` (unless ``allow_flagged``); a file never judged passes."""
+    from schemas.calibration_file import qa_of, read_calibration_document
+
+    qa = qa_of(read_calibration_document(Path(path)))
+    if qa is not None and qa["status"] != "pass" and not allow_flagged:
+        raise FlaggedCalibration(
+            f"{path}: QA status {qa['status']!r} in lot {qa.get('lot')}: "
+            + "; ".join(qa.get("reasons") or [])
+            + " (allow_flagged=True to use it anyway)"
+        )
 
 
 def read_samples(path: str | Path) -> pd.DataFrame:

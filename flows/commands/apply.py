@@ -12,7 +12,11 @@ format is the one its name says: ``.parquet`` (with the units and the calibratio
 metadata) or ``.csv``; any other name is refused before anything is read.
 
 Refuses (exit 2) when the raw units of the data are not the ones the calibration expects
-(its ``raw_units``), e.g. LSB data with a calibration fitted on deg/s."""
+(its ``raw_units``), e.g. LSB data with a calibration fitted on deg/s: the result would be
+meaningless, so ``--force`` does not override this. Refuses (exit 2) a ``samples.parquet``
+whose metadata names another unit than the calibration's (``provenance.unit``), unless
+``--force`` (then a warning on stderr). Warns on stderr when the calibration's QA status is
+``flagged`` or ``limits``."""
 from __future__ import annotations
 
 import argparse
@@ -43,6 +47,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="CSV only: unit of gyr_* (default deg/s)")
     p.add_argument("--accel-unit", default="m/s^2", choices=("g", "m/s^2", "LSB", "V"),
                    help="CSV only: unit of acc_* (default m/s^2)")
+    p.add_argument("--force", action="store_true",
+                   help="apply even if the raw file's metadata names another unit")
     p.set_defaults(func=run)
 
 
@@ -67,7 +73,30 @@ def _apply(cal, G, A, t=None, temp=None):
     if cal.terms and t is not None and len(t) > 2:
         w_aff, _ = cal.apply_affine(G, A)
         dwdt = np.gradient(w_aff, t, axis=0)
-    return cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t)
+    return cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t, gyro_unit=cal.gyro_unit,
+                     accel_unit=cal.accel_unit)  # units checked and converted by the caller
+
+
+def _check_unit_id(doc: dict, md: dict, src: str, force: bool) -> None:
+    """The unit named by the raw file's metadata against the calibration's unit."""
+    import sys
+    cal_unit = (doc.get("provenance") or {}).get("unit") or (doc.get("metadata") or {}).get("unit")
+    raw_unit = md.get("unit")
+    if cal_unit and raw_unit and str(cal_unit) != str(raw_unit):
+        msg = (f"{src}: the raw file's metadata names unit {raw_unit!r}, the calibration is "
+               f"of unit {cal_unit!r}")
+        if not force:
+            raise CliError(msg + "; pass --force to apply it anyway")
+        print(f"mimucal apply: warning: {msg} (--force)", file=sys.stderr)
+
+
+def _warn_qa(doc: dict, path: str) -> None:
+    import sys
+    from schemas.calibration_file import qa_of
+    qa = qa_of(doc)
+    if qa is not None and qa["status"] != "pass":
+        print(f"mimucal apply: warning: {path} has QA status {qa['status']!r}: "
+              + "; ".join(qa.get("reasons") or []), file=sys.stderr)
 
 
 OUTPUT_FORMATS = {".parquet": "Parquet", ".csv": "CSV"}
@@ -103,13 +132,16 @@ def run(args: argparse.Namespace) -> int:
     import pandas as pd
     import pyarrow.parquet as pq
 
-    from schemas.calibration_file import CalibrationFileError, load_calibration
+    from schemas.calibration_file import (CalibrationFileError, calibration_from_dict,
+                                          read_calibration_document)
     from schemas.contract import G_LOCAL_DEFAULT, decode_metadata
 
     try:
-        cal = load_calibration(Path(args.calibration))
+        doc = read_calibration_document(Path(args.calibration))
+        cal = calibration_from_dict(doc, source=str(args.calibration))
     except CalibrationFileError as exc:
         raise CliError(str(exc)) from None
+    _warn_qa(doc, args.calibration)
     raw, out = Path(args.raw), Path(args.out)
     out_format = OUTPUT_FORMATS.get(out.suffix.lower())
     if out_format is None:
@@ -128,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"{raw}: missing column(s) {', '.join(missing)} (contract samples.parquet)")
         if "gyro_unit" not in md or "accel_unit" not in md:
             raise CliError(f"{raw}: metadata gyro_unit/accel_unit missing; cannot tell the raw units")
+        _check_unit_id(doc, md, str(raw), args.force)
         g_local = float(md.get("g_local", G_LOCAL_DEFAULT))
         df = table.to_pandas()
         G, gu = _to_inside(df[["gx", "gy", "gz"]].to_numpy(float), md["gyro_unit"], g_local)

@@ -37,8 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(one core), processes (a forkserver pool, both cores, ~3 s start-up), "
                         "prefect-processes (Prefect's process pool), dask (a local Dask "
                         "cluster); default $MIMUCAL_TASK_RUNNER or auto")
-    p.add_argument("--config", metavar="TOML", default=None,
-                   help="outlier options and per-parameter limits (see docs/flows.md)")
+    p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--batch-size", type=int, default=None, metavar="N",
                    help="units per Prefect task (default 8)")
     p.add_argument("--wait", action="store_true",
@@ -50,15 +49,38 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "~0.2 s and ~5 MB each)")
     p.add_argument("--verbose", action="store_true",
                    help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
+    p.add_argument("--follow-symlinks", action="store_true",
+                   help="calibrate session directories reached through a symbolic link that "
+                        "leads outside DATASET (refused by default)")
     p.set_defaults(func=run)
+
+
+CONFIG_HELP = ("QA configuration: outlier options and acceptance limits with units (docs/"
+               "flows.md); stored in the results store and applied by every later run; "
+               "'none' clears it")
+
+
+def check_config(path: str | None) -> None:
+    """A ``--config`` refused before any orchestration starts: a missing file, TOML that does
+    not parse, unknown parameters or units (one line naming the valid ones)."""
+    if path is None or path == "none":
+        return
+    from schemas.limits import LimitsError, config_from_toml
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise CliError(f"configuration {path}: {exc.strerror or exc}") from None
+    try:
+        config_from_toml(text, source=str(path))
+    except LimitsError as exc:
+        raise CliError(str(exc)) from None
 
 
 def run(args: argparse.Namespace) -> int:
     dataset = Path(args.dataset)
     if not dataset.is_dir():
         raise CliError(f"dataset {dataset} is not a directory")
-    if args.config and not Path(args.config).is_file():
-        raise CliError(f"configuration {args.config} does not exist")
+    check_config(args.config)
     if args.batch_size is not None and args.batch_size < 1:
         raise CliError("--batch-size must be >= 1")
     from flows import runtime
@@ -76,11 +98,23 @@ def run(args: argparse.Namespace) -> int:
             dataset, args.results, force=args.force, dask_address=args.dask_address,
             batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
             wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet,
-            runner=args.runner, unit_reports=args.unit_reports)
+            runner=args.runner, unit_reports=args.unit_reports,
+            follow_symlinks=args.follow_symlinks)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
-    return 0
+    if not log.get("sessions_found") and not log.get("path_errors"):
+        print(f"mimucal nightly: warning: no session under {dataset} (expected "
+              f"lot=<id>/unit=<id>/rep=<n>/ directories); nothing to do", file=sys.stderr)
+        return 3
+    return exit_code(log)
+
+
+def exit_code(log: dict) -> int:
+    """1 when any session, unit or report failed, or a directory did not parse; else 0."""
+    failed = (log.get("failed_sessions") or log.get("units_failed") or log.get("path_errors")
+              or log.get("report_problems") or log.get("unit_errors"))
+    return 1 if failed else 0
 
 
 def print_outcome(log: dict) -> None:
@@ -88,6 +122,8 @@ def print_outcome(log: dict) -> None:
     since the command started (imports and Prefect's start-up included)."""
     for f in log.get("failed_sessions", []):
         print(f"failed session {f['session']}: {f['message']}", file=sys.stderr)
+    for e in log.get("unit_errors", []):
+        print(f"failed unit {e['unit']}: {e['message']}", file=sys.stderr)
     for e in log.get("path_errors", []):
         print(f"bad path: {e.get('message')}", file=sys.stderr)
     for unit, why in (log.get("units_stale") or {}).items():

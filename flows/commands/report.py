@@ -3,13 +3,16 @@ results store (no raw data is read)."""
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from flows.cli import CliError
+from flows.commands.nightly import CONFIG_HELP, check_config
 
 EPILOG = """examples:
   mimucal report --results results --lot L01
   mimucal report --results results --lot L01 --config limits.toml
+  mimucal report --results results --lot L01 --config none   # forget the stored limits
   mimucal report --results results --lot L01 --pdf            # results/reports/L01.pdf
   mimucal report --results results --lot L01 --pdf L01-2026-11.pdf
 
@@ -23,8 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
     p.add_argument("--lot", required=True, help="lot id")
-    p.add_argument("--config", metavar="TOML", default=None,
-                   help="outlier options and per-parameter limits")
+    p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
     p.add_argument("--pdf", nargs="?", const="", default=None, metavar="FILE",
                    help="also print the lot report to PDF (default RESULTS/reports/<lot>.pdf)")
@@ -34,6 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_config(args.config)
     from flows.user_errors import check_lot
     check_lot(args.results, args.lot)  # answered before Prefect starts, with the lots there are
     if args.pdf is not None:
@@ -56,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         for f in lf["flags"]:
             print(f"flag {f['lot']}/{f['unit']}: [{f['kind']}] {f['reason']}")
     for p in out["problems"]:
-        print(f"report: {p}")
+        print(f"report: {p}", file=sys.stderr)
     for r in out["reports"]:
         print(r)
     if args.pdf is not None:
@@ -68,4 +71,4 @@ def run(args: argparse.Namespace) -> int:
             print(print_pdf(html, pdf))
         except PdfError as exc:
             raise CliError(str(exc)) from None
-    return 0
+    return 1 if out["problems"] else 0
