@@ -24,8 +24,11 @@ demo: setup
 	rm -rf $(DEMO)
 	$(VENV)/bin/mimucal simulate $(DEMO)/dataset --lots 2 --units 8 --reps 5 --seed 7 --rate 50 \
 		--outliers 1 --bad-sessions 1
-	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results
+	# exit code 1 is expected: the demo fleet has one bad session on purpose
+	$(VENV)/bin/mimucal nightly $(DEMO)/dataset --results $(DEMO)/results --unit-reports \
+		|| [ $$? -eq 1 ]
 	@echo "Lot reports: $$(ls $(DEMO)/results/reports/*.html 2>/dev/null | tr '\n' ' ')"
+	@echo "Unit reports: $$(ls $(DEMO)/results/reports/units/*.html 2>/dev/null | wc -l) in $(DEMO)/results/reports/units/"
 
 # --dist loadfile: a module's tests share one worker, so module fixtures (a 60-unit fleet,
 # a browser, a Prefect API) are built once, not once per worker.

@@ -78,14 +78,14 @@ def test_every_figure_rendered(lot_page, browser):
 
 def test_outliers_marked_in_table(lot_page, browser, store):
     cells = browser.evaluate("""(function(){
-        return Array.from(document.querySelectorAll('#key-parameters td.flagged')).map(function(td){
+        return Array.from(document.querySelectorAll('.key-parameters td.flagged')).map(function(td){
             var s = getComputedStyle(td);
             return {unit: td.parentElement.getAttribute('data-unit'), param: td.getAttribute('data-param'),
                     bg: s.backgroundColor, color: s.color, text: td.textContent, title: td.title};
         });
     })()""")
     normal = browser.evaluate("""(function(){
-        var td = document.querySelector('#key-parameters td[data-param]:not(.flagged)');
+        var td = document.querySelector('.key-parameters td[data-param]:not(.flagged)');
         var s = getComputedStyle(td); return {bg: s.backgroundColor, color: s.color};
     })()""")
     injected = {(u, p) for u, pairs in store.outliers.items() for _, p in pairs}
@@ -94,7 +94,7 @@ def test_outliers_marked_in_table(lot_page, browser, store):
         assert c["bg"] != normal["bg"] and c["color"] != normal["color"]  # visibly different
         assert "FLAGGED" in c["title"]
     badges = browser.evaluate(
-        "Array.from(document.querySelectorAll('#key-parameters tr.flagged-unit')).map(function(r){"
+        "Array.from(document.querySelectorAll('#key-parameters-gyro tr.flagged-unit')).map(function(r){"
         "return r.getAttribute('data-unit');})")
     assert sorted(badges) == sorted(store.outliers)
 
@@ -123,15 +123,16 @@ def test_sorting_by_a_parameter(lot_page, browser, store):
     # the k_g11 outlier was shifted by +0.012, far above the lot: first when sorted descending
     (unit, _), = [(u, p) for u, pairs in store.outliers.items() for _, p in pairs if p == "k_g11"]
     order = browser.evaluate("""(function(){
-        var th = Array.from(document.querySelectorAll('#key-parameters thead tr:last-child th'))
+        var th = Array.from(document.querySelectorAll('#key-parameters-gyro thead tr:last-child th'))
                  .filter(function(h){return h.textContent.indexOf('g11') >= 0;})[0];
         th.click(); th.click();
         return [th.getAttribute('aria-sort'),
-                Array.from(document.querySelectorAll('#key-parameters tbody tr')).map(
+                Array.from(document.querySelectorAll('#key-parameters-gyro tbody tr')).map(
                     function(r){return r.getAttribute('data-unit');})];
     })()""")
     assert order[0] == "descending"
-    assert order[1][0] == unit and len(order[1]) == 12
+    # the lot median and scatter rows (no unit) stay last
+    assert order[1][0] == unit and len(order[1]) == 12 + 2 and order[1][-2:] == [None, None]
 
 
 def test_screenshot(lot_page, browser, tmp_path):
