@@ -34,6 +34,7 @@ from typing import Mapping
 import numpy as np
 
 from calib_core.calibration import Calibration, TermValue
+from calib_core.effects import SensingGeometry
 from calib_core.errors import DesignError
 
 STATIC_SECTIONS = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
@@ -116,7 +117,10 @@ def ferraris_calibration(G: np.ndarray, A: np.ndarray, sections: Mapping[str, tu
         raise DesignError("E_FERRARIS_ROTATIONS", "rotations do not span three axes", undetermined=("K_g",))
     K_g = np.linalg.solve(W.T, expected_angle_deg * np.eye(3)).T  # K_g W = angle I
     w0 = -K_g @ b_g
-    term = TermValue("gyro_g_sensitivity", (K_g @ S).reshape(-1))
+    # the catalogue's g-sensitivity is per gyro, along its own sensing direction (rows of
+    # A_g); the body-frame rate error K_g S f is A_g^-1 (A_g K_g S) f
+    A_g = SensingGeometry.from_gains(K_g, K_a).gyro_axes
+    term = TermValue("gyro_g_sensitivity", (A_g @ K_g @ S).reshape(-1))
     cal = Calibration(K_g=K_g, w0=w0, K_a=K_a, f0=f0, gyro_unit=gyro_unit, accel_unit=accel_unit,
                       terms=(term,), g_local=g_local, kind="ferraris",
                       metadata={"method": "Ferraris et al. 1995 (imucal's equations)",

@@ -38,6 +38,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from calib_core.calibration import Calibration, TermValue
+from calib_core.effects import SensingGeometry
 from calib_core.errors import DesignError
 from calib_core.static_detection import (StaticDetection, central_samples, detect_static, runs_of,
                                          static_pose_means)
@@ -334,7 +335,11 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
     gyro = fit_gyro_field(t, G_fit, A, acc.params, acc.extracted, bias_g, init_gyro_scale)
 
     K_g = np.degrees(gyro.matrix)
-    terms = () if S_raw is None else (TermValue("gyro_g_sensitivity", (K_g @ S_raw).reshape(-1)),)
+    # the catalogue's g-sensitivity is per gyro (own sensing direction, rows of A_g): the
+    # body-frame rate error K_g S_raw f is A_g^-1 (A_g K_g S_raw) f
+    A_g = SensingGeometry.from_gains(K_g, K_a).gyro_axes
+    terms = () if S_raw is None else (
+        TermValue("gyro_g_sensitivity", (A_g @ K_g @ S_raw).reshape(-1)),)
     cal = Calibration(K_g=K_g, w0=-K_g @ bias_g, K_a=K_a, f0=-K_a @ b_a, gyro_unit=gyro_unit,
                       accel_unit=accel_unit, g_local=g_local, kind="field", terms=terms,
                       metadata={"method": "Tedaldi, Pretto, Menegatti 2014 (IMU-TK)",

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from calib_core.effects import MotionContext, get_effect
 from calib_core.errors import DesignError
 from calib_core.ferraris import FERRARIS_SECTIONS, ferraris_calibration
 from schemas.calibration_file import load_calibration, save_calibration
@@ -80,9 +81,18 @@ def test_matrices_equal_imucal(ours, imucal_result):
     np.testing.assert_allclose(cal.K_g, gyr_mat, rtol=1e-10)
     np.testing.assert_allclose(cal.w0, -gyr_mat @ info.b_g, rtol=1e-10)
     # imucal's K_ga (deg/s per m/s^2, before the gyro matrix) -> catalogue term, deg/s per g
+    # per gyro (along each gyro's own sensing direction, the rows of A_g)
     (term,) = cal.terms
     assert term.name == "gyro_g_sensitivity"
-    np.testing.assert_allclose(term.params.reshape(3, 3), gyr_mat @ info.K_ga * IMUCAL_G, rtol=1e-10)
+    A_g = cal.geometry.gyro_axes
+    np.testing.assert_allclose(term.params.reshape(3, 3), A_g @ gyr_mat @ info.K_ga * IMUCAL_G,
+                               rtol=1e-10)
+    # applied, it is imucal's body-frame rate error K_g K_ga f
+    f = np.array([[0.3, -0.5, 0.8]])
+    np.testing.assert_allclose(
+        get_effect("gyro_g_sensitivity").error(MotionContext.from_refs(np.zeros((1, 3)), f),
+                                               term.params, cal.geometry)[0, :3],
+        gyr_mat @ info.K_ga @ f[0] * IMUCAL_G, rtol=1e-9)
 
 
 def test_calibration_file_round_trip_gives_deg_s_and_g(ours, tmp_path):
@@ -164,7 +174,9 @@ def test_ferraris_recovers_truth_on_a_synthetic_session():
     np.testing.assert_allclose(cal.f0, f0, atol=1e-12)
     np.testing.assert_allclose(cal.K_g, K_g, rtol=1e-9)
     np.testing.assert_allclose(cal.w0, w0, atol=1e-9)
-    np.testing.assert_allclose(cal.terms[0].params.reshape(3, 3), S, atol=1e-9)
+    # the body-frame g-sensitivity S, per gyro along its own sensing direction: A_g S
+    np.testing.assert_allclose(cal.terms[0].params.reshape(3, 3), cal.geometry.gyro_axes @ S,
+                               atol=1e-9)
 
 
 def test_turntable_style_fit_of_the_six_poses_agrees(ours):

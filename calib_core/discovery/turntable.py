@@ -821,9 +821,13 @@ class _Discovery:
         Mc, self.mu = _centre(g.M, w)  # (6, R, n, k), (6, R, k)
         Mc[:, ~g.real] = 0.0
         self.Mc = Mc
-        A = _prewhiten(w[..., None] * Mc, self.serial, g.real, g.t)
+        A_raw = w[..., None] * Mc
+        A = _prewhiten(A_raw, self.serial, g.real, g.t)
         k = A.shape[-1]
         self.Rrep = _qr_r(A)  # (6, R, k, k)
+        # the held-out score is the residual a user sees, residual / sigma, not whitened: a
+        # slow effect (thermal drift) matters by its size, not by how far it is from the wander
+        self.Rrep_seen = self.Rrep if A is A_raw else _qr_r(A_raw)
         folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
         folds[:, np.arange(1, R + 1), np.arange(R)] = 0.0
         self.Rf = _qr_r(folds.reshape(6, R + 1, R * k, k))  # (6, R+1, k, k)
@@ -953,7 +957,7 @@ class _Discovery:
             KS = self.K_solve[:, 1:]  # (6, R, 3, k - 3)
             K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
             v = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
-            z = np.einsum("chij,chj->chi", self.Rrep, v)  # Rrep[:, h]: repetition h's factor
+            z = np.einsum("chij,chj->chi", self.Rrep_seen, v)  # [:, h]: repetition h's factor
             self._heldout[key] = np.sum(z**2, axis=(1, 2))
         return self._heldout[key]
 
