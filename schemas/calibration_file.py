@@ -62,8 +62,10 @@ def calibration_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Calibr
         for t in doc.get("terms", []):
             term = get_effect(t["name"])
             undetermined = dict(t.get("undetermined") or {})
-            # an undetermined parameter is written as null and applied as 0
-            params = np.array([0.0 if t["params"][n] is None else t["params"][n]
+            # null: an undetermined parameter (the fit fixed it at 0, its reason in
+            # "undetermined") is applied as 0; any other null reads back as NaN
+            params = np.array([(0.0 if n in undetermined else np.nan)
+                               if t["params"][n] is None else t["params"][n]
                                for n in term.param_names], dtype=float)
             stderr = None
             if t.get("stderr"):

@@ -1,5 +1,5 @@
 """Model discovery on the two real recordings (no turntable references), through the effect
-catalogue (calib_core.discovery_static), plus controls on data with known truth.
+catalogue (calib_core.discovery.static), plus controls on data with known truth.
 
 Thresholds come from the numbers measured in docs/real-discovery.md:
 - Xsens (field calibration, 38 poses): gyro_g_sensitivity is found with F = 248 on (9, 102)

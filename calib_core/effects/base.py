@@ -209,18 +209,6 @@ class EffectTerm(ABC):
         """Additive error on the six calibrated channels, (n, 6)."""
         return self.regressors(ctx, geometry) @ np.asarray(theta, dtype=float)
 
-    def sensors(self) -> tuple[int, ...]:
-        """Sensors (0-5, as CHANNELS) whose own output this term can touch."""
-        probe = MotionContext.from_refs(
-            w=[[100.0, -200.0, 300.0]],
-            f=[[0.3, -0.5, 0.8]],
-            temp_c=[30.0],
-            t=[100.0],
-            dwdt=[[10.0, 20.0, 30.0]],
-        )
-        E = self.sensor_regressors(probe, SensingGeometry.identity())[0]
-        return tuple(int(i) for i in np.flatnonzero(np.abs(E).sum(axis=1) > 0))
-
     def param_sensor(self) -> np.ndarray:
         """The sensor (0-5) each parameter acts on, (n_params,)."""
         probe = MotionContext.from_refs(
@@ -232,8 +220,6 @@ class EffectTerm(ABC):
         )
         E = np.abs(self.sensor_regressors(probe, SensingGeometry.identity())[0])
         return np.argmax(E, axis=0)
-
-    channels = sensors  # on the nominal geometry a sensor's error is its channel's
 
     # -- realistic size and the independent simulator --------------------------------------
     @abstractmethod
