@@ -21,7 +21,7 @@ from calib_core.effects import (
     register_effect,
     unregister_effect,
 )
-from calib_core.sim.physics import typical_physics_unit
+from calib_core.sim.physics import Turntable, typical_physics_unit
 from schemas.calibration_file import calibration_from_dict, calibration_to_dict
 from schemas.physics_sessions import physics_unit_step_means
 
@@ -217,11 +217,25 @@ def test_each_effect_module_hides_what_its_term_models(name):
     hidden, theta, _ = term.hide(base, rng)
     steps = STEPS[STEPS["test"] != "dynamic"]  # constant rates: no angular acceleration
     (clean,) = physics_unit_step_means(base, steps, np.random.default_rng(1), n_reps=1)
-    (dirty,) = physics_unit_step_means(hidden, steps, np.random.default_rng(1), n_reps=1)
+    # an effect of where the table stands (the Earth rate) is hidden in the turntable
+    table = term.table_knobs(theta)
+    where = {"table": Turntable(**table)} if table else {}
+    (dirty,) = physics_unit_step_means(hidden, steps, np.random.default_rng(1), n_reps=1, **where)
+    # noise-free constant outputs near full scale read as clipped; an effect that varies within
+    # a step (the Earth rate turning with the body) keeps such a step: compare common steps
+    common = np.intersect1d(clean.step, dirty.step)
+    clean, dirty = clean.select(np.isin(clean.step, common)), dirty.select(np.isin(dirty.step, common))
     geometry = SensingGeometry(
         np.array([g.axis for g in base.gyros]), np.array([a.axis for a in base.accels])
     )
-    ctx = MotionContext.from_refs(dirty.w_ref, dirty.f_ref, temp_c=dirty.temp_c, t=dirty.t_mid)
+    ctx = MotionContext.from_refs(
+        dirty.w_ref,
+        dirty.f_ref,
+        temp_c=dirty.temp_c,
+        t=dirty.t_mid,
+        heading_deg=dirty.headings,
+        turned_deg=dirty.turned_deg(),
+    )
     sensed = term.sensor_regressors(ctx, geometry) @ theta  # (n, 6), sensor units
     scale = np.array([s.scale for s in base.gyros + base.accels])
     raw = np.hstack([dirty.gyro - clean.gyro, dirty.accel - clean.accel])

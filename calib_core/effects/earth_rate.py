@@ -145,6 +145,7 @@ class EarthRate(EffectTerm):
 
     def figure_variable(self, ctx, channel):
         up = up_direction(ctx)
+        # the vertical part goes with the up direction: 1 g of specific force along the axis
         return FigureVariable(
-            f"up along {'xyz'[channel % 3]} (specific force direction)", "", up[:, channel % 3]
+            f"specific force along {'xyz'[channel % 3]} (the up direction)", "g", up[:, channel % 3]
         )
