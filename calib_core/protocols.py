@@ -175,7 +175,7 @@ def diagonal_dynamic(duration_s: float = 3.0, settle_s: float = 0.5) -> list[dic
                          tilted_rates=(200, 400))
 
 
-WHOLE_TURN_RATES = (120, 180, 240, 360)  # deg/s
+WHOLE_TURN_RATES = (90, 120, 180, 240)  # deg/s, within a 300 deg/s gyro range about x and y
 
 
 def whole_turn_session(min_duration_s: float = 3.0, settle_s: float = 0.5,
