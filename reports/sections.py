@@ -1095,19 +1095,30 @@ def _cell(v, sig: int | None = None) -> str:
     return esc(str(v))
 
 
+def _lines(v, sep: str = "; ") -> str:
+    """A text cell with one item per line: a confounded set's readings (`` | ``), and the
+    items ``sep`` separates (kept at the end of the line: parameters, alternatives)."""
+    text = _cell(v).replace(" | ", "<br>")
+    return text.replace(esc(sep), esc(sep.rstrip()) + "<br>")
+
+
 def _kind_table(rows: pd.DataFrame, kind: str, with_unit_col: bool) -> str:
     headers = (["Unit"] if with_unit_col else []) + [
-        "Effect", "Channels", "Estimate ± standard error", "Evidence",
-        "Held-out rms before (σ)", "after (σ)", "gain"]
+        "Effects" if kind == "confounded" else "Effect", "Channels", "Estimate ± standard error", "Evidence",
+        "Held-out rms before", "after (σ)", "gain"]
     if kind == "confounded":
-        headers.append("What would separate them")
+        headers.append("Steps that would separate them")
     body = []
     for r in rows.itertuples():
         cells = ([f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>'] if with_unit_col else [])
-        cells += [_cell(r.effect), _cell(r.channels), _cell(r.estimates), _cell(r.evidence),
+        effect = str(r.effect).removeprefix("confounded: ") if kind == "confounded" else r.effect
+        cells += [_lines(effect, ", "), _cell(r.channels), _lines(r.estimates), _cell(r.evidence),
                   _cell(r.heldout_rms_before, 3), _cell(r.heldout_rms_after, 3), _cell(r.gain, 3)]
         if kind == "confounded":
-            cells.append(_cell(r.separated_by))
+            # the step sets (the row's effects say what they separate)
+            text = str(r.separated_by or "")
+            cells.append(_lines(text.split("; add ", 1)[1] if "; add " in text else text,
+                                " or "))
         body.append(cells)
     return table(headers, body, cls=f"discovery {kind}", text_cols=len(headers) - 3
                  if kind != "confounded" else len(headers))
