@@ -32,6 +32,18 @@ def register(sub) -> None:
                    help="unit of the written gyro samples (default deg/s)")
     p.add_argument("--accel-unit", choices=("g", "m/s^2"), default=None,
                    help="unit of the written accelerometer samples (default g)")
+    p.add_argument("--physics", action="store_true",
+                   help="simulate with the independent physics simulator (each sensor its own "
+                        "misaligned axis, noise processes, warm-up ramp; docs/physics-simulator.md)")
+    p.add_argument("--hide", action="append", default=[], metavar="EFFECT[:SCALE]",
+                   help="with --physics: hide a catalogue effect in every unit at SCALE times a "
+                        "realistic size (default 1); repeatable")
+    p.add_argument("--no-tilted", action="store_true",
+                   help="with --physics: leave out the dynamic steps on the 45-degree diagonals")
+    p.add_argument("--latitude", type=float, default=None, metavar="DEG",
+                   help="with --physics: add the Earth rate at this latitude")
+    p.add_argument("--declare-location", action="store_true",
+                   help="with --latitude: write latitude_deg/table_heading_deg into the metadata")
     p.add_argument("--force", action="store_true",
                    help="replace a fleet simulated earlier in OUT (its lot=* directories and "
                         "fleet.json are removed first; a dataset without fleet.json is never "
@@ -63,6 +75,10 @@ def run(args) -> int:
             shutil.rmtree(p)
         (out / MANIFEST).unlink(missing_ok=True)
     start = time.perf_counter()
+    if args.physics:
+        return _run_physics(args, out, start)
+    if args.hide or args.no_tilted or args.latitude is not None or args.declare_location:
+        raise CliError("--hide, --no-tilted, --latitude and --declare-location need --physics")
     try:
         manifest = simulate_fleet(
             out, args.lots, args.units, args.reps, args.seed, sample_rate_hz=args.rate,
@@ -80,5 +96,43 @@ def run(args) -> int:
         print(f"  outlier: lot={o['lot']}/unit={o['unit']} ({o['param']} {o['shift']:+g})")
     for b in manifest["bad_sessions"]:
         print(f"  bad session: {b['session']} ({b['kind']}: expect {b['expected_code']})")
+    print(f"  truth: {out / MANIFEST}")
+    return 0
+
+
+def _parse_hide(specs: list[str]) -> tuple[tuple[str, float], ...]:
+    from calib_core.effects import catalogue
+
+    out = []
+    for spec in specs:
+        name, _, scale = spec.partition(":")
+        if name not in catalogue():
+            raise CliError(f"--hide {spec}: unknown effect {name!r}; known: "
+                           f"{', '.join(sorted(catalogue()))}")
+        try:
+            value = float(scale) if scale else 1.0
+        except ValueError:
+            raise CliError(f"--hide {spec}: scale {scale!r} is not a number") from None
+        out.append((name, value))
+    return tuple(out)
+
+
+def _run_physics(args, out: Path, start: float) -> int:
+    from flows.fleet_sim import MANIFEST, simulate_physics_fleet
+
+    if args.outliers or args.bad_sessions or args.verification or args.gyro_unit or args.accel_unit:
+        raise CliError("--physics takes --lots/--units/--reps/--seed/--rate/--hide/--no-tilted/"
+                       "--latitude/--declare-location only")
+    hide = _parse_hide(args.hide)
+    rate = args.rate if args.rate != 100.0 else 50.0  # the physics units' noise is set at 50 Hz
+    manifest = simulate_physics_fleet(out, args.lots, args.units, args.reps, args.seed,
+                                      sample_rate_hz=rate, hide=hide, tilted=not args.no_tilted,
+                                      latitude_deg=args.latitude,
+                                      declare_location=args.declare_location)
+    n = args.lots * args.units * args.reps
+    hidden = ", ".join(f"{h['effect']} x{h['scale']:g}" for h in manifest["hidden"]) or "none"
+    print(f"wrote {n} physics-simulator sessions ({args.lots} lot(s) x {args.units} unit(s) x "
+          f"{args.reps} rep(s), {manifest['n_steps']} steps at {rate:g} Hz; hidden: {hidden}) "
+          f"to {out} in {time.perf_counter() - start:.1f} s")
     print(f"  truth: {out / MANIFEST}")
     return 0
