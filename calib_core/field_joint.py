@@ -113,12 +113,7 @@ def _covariance(sol, n_params: int) -> np.ndarray:
         return np.full((n_params, n_params), np.nan)
 
 
-def _stderr(sol, n_params: int) -> np.ndarray:
-    return np.sqrt(np.clip(np.diag(_covariance(sol, n_params)), 0, None))
 
-
-def _pose_bounds(pm: "PoseMeans") -> tuple[np.ndarray, np.ndarray]:
-    return pm.start, pm.end
 
 
 # --- accelerometer ------------------------------------------------------------------------
@@ -128,6 +123,7 @@ class AccelPoseFit:
     stderr: np.ndarray
     x0: np.ndarray  # starting point
     residual_mg: np.ndarray  # per fitted pose, |f| - g in mg
+    cov: np.ndarray | None = None
 
 
 def initial_accel_params(accel_means: np.ndarray, g_local: float, scale: float | None = None,
@@ -182,7 +178,9 @@ def fit_accel_poses(pm: PoseMeans, g_local: float, x0: np.ndarray, use=None,
     sol = least_squares(resid, np.asarray(x0, float), method="lm", x_scale="jac")
     M, b = accel_matrix(sol.x)
     res_mg = 1e3 * (np.linalg.norm((X - b) @ M.T, axis=1) / g_local - 1)
-    return AccelPoseFit(sol.x, _stderr(sol, 9), np.asarray(x0, float), res_mg)
+    cov = _covariance(sol, 9)
+    return AccelPoseFit(sol.x, np.sqrt(np.clip(np.diag(cov), 0, None)), np.asarray(x0, float),
+                        res_mg, cov)
 
 
 def gravity_directions(accel_params: np.ndarray, accel_means: np.ndarray) -> np.ndarray:
@@ -204,7 +202,9 @@ class GyroJointFit:
     sigma_quiet: float  # RMS of the quiet-pose residuals (in standard errors of the pose mean)
     n_moves: int
     n_quiet: int
-    cov: np.ndarray | None = None  # covariance of params
+    cov: np.ndarray | None = None  # covariance of params, accel parameters taken as known
+    jac: np.ndarray | None = field(default=None, repr=False)  # weighted rows (data, then prior)
+    weighted: object = field(default=None, repr=False, compare=False)  # (p, u, F) -> data rows
     wald: dict = field(default_factory=dict)  # block -> (statistic, threshold) when "auto" tested
 
     @property
@@ -234,24 +234,29 @@ def moves_of(mid: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, drift: bool,
-                      g_sens: bool, Fq):
+                      g_sens: bool):
     """Residual groups (moves, quiet poses) of the gyro model; ``F`` calibrated specific
-    force (g) per sample, ``Fq`` per quiet pose, used by the g-sensitivity block."""
+    force (g) per sample, used by the g-sensitivity block. ``parts(p, u, F)`` takes other
+    gravity directions / specific forces (the accelerometer's uncertainty propagation)."""
     samples = np.unique(integ.idx[integ.idx >= 0])  # only the samples the moves integrate
-    G_s, t_s, F_s = G[samples], t[samples], F[samples]
+    G_s, t_s = G[samples], t[samples]
     Gq, tq, se_q = pm.gyro[quiet_use], pm.t_mean[quiet_use], pm.gyro_se[quiet_use]
     j0, j1 = np.flatnonzero(move_use), np.flatnonzero(move_use) + 1
     k_s = 15 if drift else 12
+    starts, ends = pm.start[quiet_use], pm.end[quiet_use]
 
-    def parts(p):
+    def parts(p, u_=u, F_=F):
         M = gyro_matrix(p[:9])
         b0 = p[9:12]
         b1 = p[12:15] if drift else np.zeros(3)
         S = p[k_s:k_s + 9].reshape(3, 3) if g_sens else np.zeros((3, 3))
         w = np.zeros((len(G), 3))
-        w[samples] = (G_s - b0 - t_s[:, None] * b1 - F_s @ S.T) @ M.T
+        corr = F_[samples] @ S.T if g_sens else 0.0
+        w[samples] = (G_s - b0 - t_s[:, None] * b1 - corr) @ M.T
         q = integ.rotations(w)
-        r_move = (_rotate_by_conjugate(q[j0], u[j0]) - u[j1]).ravel()
+        r_move = (_rotate_by_conjugate(q[j0], u_[j0]) - u_[j1]).ravel()
+        Fq = (np.array([F_[a:b].mean(axis=0) for a, b in zip(starts, ends)]).reshape(-1, 3)
+              if g_sens else np.zeros((len(Gq), 3)))
         r_quiet = ((Gq - b0 - tq[:, None] * b1 - Fq @ S.T) / se_q).ravel()
         return r_move, r_quiet
 
@@ -322,9 +327,8 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
     if g_sensitivity and F is None:
         raise ValueError("g_sensitivity needs the calibrated specific force F")
     F = np.zeros((len(G), 3)) if F is None else np.asarray(F, float)
-    Fq = np.array([F[p_s:p_e].mean(axis=0) for p_s, p_e in zip(*_pose_bounds(pm))]).reshape(-1, 3)[quiet_use]
     integ = SegmentIntegrator(t, moves)
-    parts = _gyro_residual_fn(t, G, F, integ, u, move_use, pm, quiet_use, drift, g_sensitivity, Fq)
+    parts = _gyro_residual_fn(t, G, F, integ, u, move_use, pm, quiet_use, drift, g_sensitivity)
     extra = np.zeros((3 if drift else 0) + (9 if g_sensitivity else 0))
     if init_scale is None:  # isotropic scale from a coarse log grid (no datasheet value given)
         grid = np.logspace(-8, 1, 73)  # 8 per decade: steps of x1.33
@@ -342,6 +346,7 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
                 r.append(p[:6] / mis_sig)
             return np.concatenate(r)
         sol = least_squares(resid, x, method="lm", x_scale="jac")
+        sig_m_used, sig_q_used = sig_m, sig_q
         x = sol.x
         rm, rq = parts(x)
         sig_m = max(float(np.sqrt(np.mean(rm ** 2))), 1e-9)
@@ -349,8 +354,51 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
     names = (GYRO_PARAM_NAMES + GYRO_BIAS_NAMES + (GYRO_DRIFT_NAMES if drift else ())
              + (GYRO_G_SENS_NAMES if g_sensitivity else ()))
     cov = _covariance(sol, len(x0))
+    sm_final, sq_final = sig_m_used, sig_q_used
+
+    def weighted(p, u_, F_):
+        rm, rq = parts(p, u_, F_)
+        return np.concatenate([rm / sm_final, rq / sq_final])
+
     return GyroJointFit(sol.x, np.sqrt(np.clip(np.diag(cov), 0, None)), names, drift, g_sensitivity,
-                        x0, sig_m, sig_q, int(move_use.sum()), int(quiet_use.sum()), cov=cov)
+                        x0, sig_m, sig_q, int(move_use.sum()), int(quiet_use.sum()), cov=cov,
+                        jac=sol.jac, weighted=weighted)
+
+
+def _with_accel_uncertainty(gyr: GyroJointFit, acc: AccelPoseFit, A, pm: PoseMeans,
+                            g_local: float) -> GyroJointFit:
+    """Gyro covariance including the accelerometer's: the gravity directions (and the
+    specific force of the g-sensitivity) come from the accel parameters, so to first order
+    ``dx_g = D dx_a`` with ``D = -(J_g^T J_g)^-1 J_g^T J_a`` (``J_a`` by central differences
+    of the gyro's weighted residuals in the accel parameters) and
+    ``Cov_g = Cov_g|a + D Cov_a D^T``."""
+    cov_a = _covariance_from_stderr(acc)
+    if gyr.jac is None or not np.all(np.isfinite(cov_a)):
+        return gyr
+    pa = acc.params
+    cols = []
+    for i in range(9):
+        h = max(float(acc.stderr[i]), 1e-9 * max(abs(pa[i]), 1.0))
+        r = []
+        for sign in (1, -1):
+            q = pa.copy()
+            q[i] += sign * h
+            M, b = accel_matrix(q)
+            r.append(gyr.weighted(gyr.params, gravity_directions(q, pm.accel), (A - b) @ (M / g_local).T))
+        cols.append((r[0] - r[1]) / (2 * h))
+    J_g = gyr.jac
+    J_a = np.zeros((len(J_g), 9))  # prior rows do not depend on the accel
+    J_a[:len(cols[0])] = np.column_stack(cols)
+    try:
+        D = -np.linalg.solve(J_g.T @ J_g, J_g.T @ J_a)
+    except np.linalg.LinAlgError:
+        return gyr
+    cov = gyr.cov + D @ cov_a @ D.T
+    return GyroJointFit(**{**gyr.__dict__, "cov": cov, "stderr": np.sqrt(np.clip(np.diag(cov), 0, None))})
+
+
+def _covariance_from_stderr(acc: AccelPoseFit) -> np.ndarray:
+    return acc.cov if acc.cov is not None else np.diag(acc.stderr ** 2)
 
 
 # --- the calibration -----------------------------------------------------------------------
@@ -418,6 +466,7 @@ def fit_field(t, G, A, poses, g_local: float, accel_scale: float | None = None,
     F = (A - b_a) @ (M_a / g_local).T  # calibrated specific force, g
     gyr = fit_gyro_joint(t, G, pm, u, move_use, drift, gyro_scale, priors=priors,
                          g_sensitivity=g_sensitivity, F=F)
+    gyr = _with_accel_uncertainty(gyr, acc, A, pm, g_local)
     meta = {"method": "hand-held poses: accel |f| per pose mean; gyro scale, misalignment, bias "
                       "(and drift) jointly over the moves and the quiet poses",
             "n_poses": int(pose_use.sum()), "n_moves": int(move_use.sum()),
@@ -511,11 +560,16 @@ def default_folds(n: int) -> int:
 def held_out_figures(t, G, A, poses, g_local: float, move_ok=None, n_folds: int | None = None,
                      **fit_kwargs) -> HeldOut:
     """k-fold held-out figures of :func:`fit_field` (see :class:`HeldOut`); ``move_ok`` the
-    usable moves (:func:`usable_moves`)."""
+    usable moves (:func:`usable_moves`). Optional gyro blocks left on ``"auto"`` are decided
+    on all data first and then fixed in every fold."""
     t, G, A = (np.asarray(x, float) for x in (t, G, A))
     n_p = len(poses)
     move_ok = np.ones(max(n_p - 1, 0), bool) if move_ok is None else np.asarray(move_ok, bool)
     ok_idx = np.flatnonzero(move_ok)
+    if "auto" in (fit_kwargs.get("drift", "auto"), fit_kwargs.get("g_sensitivity", "auto")):
+        # the optional gyro blocks are chosen once, on all data, and kept in every fold
+        full = fit_field(t, G, A, poses, g_local, move_use=move_ok, **fit_kwargs)
+        fit_kwargs = {**fit_kwargs, "drift": full.gyro.drift, "g_sensitivity": full.gyro.g_sensitivity}
     pf = default_folds(n_p) if n_folds is None else int(n_folds)
     mf = default_folds(len(ok_idx)) if n_folds is None else int(n_folds)
     norm_err, angle = np.full(n_p, np.nan), np.full(len(move_ok), np.nan)

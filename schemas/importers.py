@@ -18,6 +18,7 @@ name: these recordings have no lot/unit/rep).
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 from dataclasses import dataclass, field
@@ -261,9 +262,11 @@ def _read_table(path: Path) -> pd.DataFrame:
     except (OSError, UnicodeDecodeError) as exc:
         raise _err(E_UNREADABLE_FILE, path, f"cannot read as text ({exc})") from exc
     try:
-        df = pd.read_csv(path, sep=layout.sep if layout.sep else r"\s+", header=None,
-                         names=layout.columns, skiprows=layout.data_line - 1,
-                         comment="#", skip_blank_lines=True, engine="c", dtype=float)
+        with path.open() as fh:  # drop comment lines anywhere (pandas knows only one prefix)
+            body = [ln for no, ln in enumerate(fh, start=1) if no >= layout.data_line
+                    and ln.strip() and not ln.lstrip().startswith(COMMENT_PREFIXES)]
+        df = pd.read_csv(io.StringIO("".join(body)), sep=layout.sep if layout.sep else r"\s+",
+                         header=None, names=layout.columns, engine="c", dtype=float)
     except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise _err(E_UNREADABLE_FILE, path, _first_bad_line(path, layout)) from exc
     if df.isna().any().any():  # a short row is padded with NaN by the parser
