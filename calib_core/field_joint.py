@@ -48,8 +48,14 @@ from scipy.optimize import least_squares
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.field import (ACCEL_PARAM_NAMES, GYRO_PARAM_NAMES, SegmentIntegrator, accel_matrix,
-                              gyro_matrix, _rotate_by_conjugate)
+from calib_core.field import (
+    ACCEL_PARAM_NAMES,
+    GYRO_PARAM_NAMES,
+    SegmentIntegrator,
+    _rotate_by_conjugate,
+    accel_matrix,
+    gyro_matrix,
+)
 from calib_core.static_detection import Pose, odd_window
 
 GYRO_BIAS_NAMES = ("b_gx", "b_gy", "b_gz")

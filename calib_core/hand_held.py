@@ -3,8 +3,9 @@ and Monte Carlo), written independently of the fit code in :mod:`calib_core.fiel
 
 The unit rests, then is turned by hand through ``n_poses`` rotations about random body axes
 (raised-cosine angle profile) and held still after each. A hand does not hold perfectly
-still: ``hold_rate_dps`` adds a slow rotation during the holds (the accelerometer stays at
-rest, the gyro does not), as in real recordings. Sample times carry a jitter, so an
+still: ``hold_rate_dps`` adds a wobble during the holds (a rotation rate oscillating at
+0.5-1.5 Hz about a random axis, that RMS), which the gyro sees and the accelerometer barely
+does, as in real recordings. Sample times carry a jitter, so an
 estimator that assumes a nominal rate is visibly wrong.
 
 Sensor model (IMU-TK's ``x' = T K (x - b)`` inverted to produce raw outputs):
@@ -79,8 +80,8 @@ def simulate_hand_held(truth: HandHeldTruth, rng: np.random.Generator, n_poses: 
                        acc_noise: float = 60.0, gyro_noise: float = 12.0,
                        jitter: float = 0.05, oversample: int = 4) -> HandHeldSession:
     """A hand-held session of ``truth``. Noise in counts (white), ``jitter`` the relative
-    spread of the sample intervals (uniform), ``hold_rate_dps`` the RMS of the slow rotation
-    of the hand during the holds (not during the initial rest)."""
+    spread of the sample intervals (uniform), ``hold_rate_dps`` the RMS rate of the hand's
+    wobble during the holds (not during the initial rest)."""
     dt_nom = 1.0 / rate_hz
     segments = []  # (n samples, rate function of local time, rest?)
     segments.append((int(init_s * rate_hz), None, True))
@@ -89,9 +90,10 @@ def simulate_hand_held(truth: HandHeldTruth, rng: np.random.Generator, n_poses: 
         axis /= np.linalg.norm(axis)
         total = np.radians(rng.uniform(60, 150)) * rng.choice([-1, 1])
         segments.append((int(move_s * rate_hz), (axis, total), False))
-        drift_axis = rng.normal(0, 1, 3)
-        drift_axis *= np.radians(hold_rate_dps) / np.sqrt(3)
-        segments.append((int(hold_s * rate_hz), ("hold", drift_axis), True))
+        wobble_axis = rng.normal(0, 1, 3)
+        wobble_axis *= np.radians(hold_rate_dps) * np.sqrt(2) / np.linalg.norm(wobble_axis)
+        segments.append((int(hold_s * rate_hz), ("hold", wobble_axis, rng.uniform(0.5, 1.5),
+                                                 rng.uniform(0, 2 * np.pi)), True))
     n = sum(s[0] for s in segments)
     dt = dt_nom * (1 + rng.uniform(-jitter, jitter, n))
     t = np.concatenate([[0.0], np.cumsum(dt)[:-1]])
@@ -110,7 +112,11 @@ def simulate_hand_held(truth: HandHeldTruth, rng: np.random.Generator, n_poses: 
                 tau = tau0 + (j + 0.5) / oversample * dt[sl]
                 w[sl, j] = (total * np.pi / (2 * T) * np.sin(np.pi * np.clip(tau / T, 0, 1)))[:, None] * axis
         elif spec is not None:
-            w[sl] = spec[1]
+            _, axis, freq, phase = spec
+            tau0 = t[sl] - t[k]
+            for j in range(oversample):
+                tau = tau0 + (j + 0.5) / oversample * dt[sl]
+                w[sl, j] = np.sin(2 * np.pi * freq * tau + phase)[:, None] * axis
         k += count
     # orientation body->world at each sample time; specific force f = R^T [0, 0, g]
     R = Rotation.from_rotvec(rng.normal(0, 1, 3))

@@ -197,8 +197,10 @@ class PoseDetection:
 
 
 def odd_window(rate_hz: float, window_s: float) -> int:
-    """Samples in a centred window of ``window_s`` seconds (odd, at least 5)."""
-    return max(5, 2 * int(round(window_s * rate_hz / 2)) + 1)
+    """Samples in a centred window of ``window_s`` seconds: the nearest count, made odd by
+    adding one if needed (at least 5)."""
+    n = round(window_s * rate_hz)
+    return max(5, n if n % 2 else n + 1)
 
 
 def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: float | None = None,

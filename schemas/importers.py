@@ -21,16 +21,24 @@ from __future__ import annotations
 import io
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from schemas.errors import (E_MISSING_COLUMN, E_MISSING_FILE, E_NONFINITE_VALUE,
-                            E_NONINCREASING_TIME, E_UNKNOWN_UNIT, E_UNREADABLE_FILE,
-                            E_WRONG_TYPE, SessionError)
+from schemas.errors import (
+    E_MISSING_COLUMN,
+    E_MISSING_FILE,
+    E_NONFINITE_VALUE,
+    E_NONINCREASING_TIME,
+    E_UNKNOWN_UNIT,
+    E_UNREADABLE_FILE,
+    E_WRONG_TYPE,
+    SessionError,
+)
 
 CHANNELS = ("gx", "gy", "gz", "ax", "ay", "az")
 GYRO_CHANNELS = CHANNELS[:3]

@@ -20,8 +20,13 @@ import numpy as np
 from calib_core.calibration import Calibration
 from calib_core.ferraris import ferraris_calibration
 from calib_core.field import fit_accel_field, fit_gyro_field
-from calib_core.field_joint import (field_figures, fit_field, held_out_figures, to_calibration,
-                                    usable_moves)
+from calib_core.field_joint import (
+    field_figures,
+    fit_field,
+    held_out_figures,
+    to_calibration,
+    usable_moves,
+)
 from calib_core.static_detection import clipped_samples, detect_poses
 from schemas.importers import read_imucal_csv, read_imutk_pair, read_table_recording
 
@@ -38,10 +43,10 @@ def _row(name, fig, move_ok, held=None):
 
 def _header(title, det, move_ok):
     return [f"### {title}", "",
-            f"{len(det.poses)} poses ({sum(p.gyro_quiet for p in det.poses)} with the gyro at rest), "
-            f"{len(det.rejected)} rejected; {int(move_ok.sum())} of {len(move_ok)} moves usable.", "",
-            "| calibration | static \\|f\\| RMS, mg (in-sample) | held out | gravity direction "
-            "RMS, deg (in-sample) | held out |", "|---|---|---|---|---|"]
+            (f"{len(det.poses)} poses ({sum(p.gyro_quiet for p in det.poses)} with the gyro at rest), "
+            f"{len(det.rejected)} rejected; {int(move_ok.sum())} of {len(move_ok)} moves usable."), "",
+            ("| calibration | static \\|f\\| RMS, mg (in-sample) | held out | gravity direction "
+            "RMS, deg (in-sample) | held out |"), "|---|---|---|---|---|"]
 
 
 def _ours(rec, det, move_ok, g, **kw):
@@ -64,7 +69,7 @@ def mpu(real: Path) -> list[str]:
     Kg = np.degrees(np.array([[1, -m[0], m[1]], [m[2], 1, -m[3]], [-m[4], m[5], 1]]) @ np.diag(pg[6:9]))
     pub = Calibration(K_g=Kg, w0=-Kg @ pg[9:12], K_a=Ka, f0=Ka @ pa[6:9], gyro_unit="LSB",
                       accel_unit="LSB", g_local=G0, kind="field")
-    f = lambda c: field_figures(c, rec.t, rec.gyro, rec.accel, det.poses)  # noqa: E731
+    f = lambda c: field_figures(c, rec.t, rec.gyro, rec.accel, det.poses)
     return _header("MPU-6050, Tedaldi session (tomisuarez2/ImuCalibration)", det, move_ok) + [
         _row("datasheet scales (2 g, 250 deg/s), bias: pose centre / initial rest", f(fit.start), move_ok),
         _row("the authors' published calibration", f(pub), move_ok),
@@ -89,7 +94,7 @@ def xsens(real: Path) -> list[str]:
     det = detect_poses(rec.t, rec.gyro, rec.accel, init_s=50)
     move_ok = usable_moves(rec.gyro, det.poses, clipped_samples(rec.gyro))
     fit, held = _ours(rec, det, move_ok, g, gyro_scale=1 / 6258, accel_bias=32768)
-    f = lambda c: field_figures(c, rec.t, rec.gyro, rec.accel, det.poses)  # noqa: E731
+    f = lambda c: field_figures(c, rec.t, rec.gyro, rec.accel, det.poses)
     n_p, n_m = len(det.poses), len(move_ok)
     ref_all = _imu_tk_procedure(rec, det, g, np.ones(n_p, bool), move_ok)
     # IMU-TK refitted on the same 5 folds as mimucal's held-out figures
@@ -121,7 +126,7 @@ def imucal(real: Path) -> list[str]:
     move_ok = usable_moves(rec.gyro, det.poses, clipped_samples(rec.gyro))
     fit, held = _ours(rec, det, move_ok, rec.g_local, accel_scale=rec.g_local,
                       gyro_scale=np.radians(1.0))
-    f = lambda c: field_figures(c, rec.t, rec.gyro, rec.accel, det.poses)  # noqa: E731
+    f = lambda c: field_figures(c, rec.t, rec.gyro, rec.accel, det.poses)
     return _header("imucal's Ferraris session", det, move_ok) + [
         _row("Ferraris (= imucal), fitted on the 6 poses and 3 turns", f(ref), move_ok),
         _row("mimucal field", f(fit.calibration), move_ok, held)]

@@ -7,8 +7,13 @@ import math
 from pathlib import Path
 
 from flows.cli import CliError
-from flows.commands.import_raw import (ACCEL_UNIT_CHOICES, GYRO_UNIT_CHOICES, add_table_options,
-                                       number, read_table_args)
+from flows.commands.import_raw import (
+    ACCEL_UNIT_CHOICES,
+    GYRO_UNIT_CHOICES,
+    add_table_options,
+    number,
+    read_table_args,
+)
 
 INIT_PREAMBLE_KEYS = ("initialization time", "init time", "initial rest", "tinit")
 INT16_LIMIT = 32767.0  # an int16 output clips here
@@ -131,8 +136,13 @@ def run(args) -> int:
     import numpy as np
 
     from calib_core.errors import DesignError
-    from calib_core.field_joint import (Priors, field_figures, fit_field, held_out_figures,
-                                        usable_moves)
+    from calib_core.field_joint import (
+        Priors,
+        field_figures,
+        fit_field,
+        held_out_figures,
+        usable_moves,
+    )
     from calib_core.static_detection import clipped_samples, detect_poses
     from schemas.calibration_file import save_calibration
 
@@ -147,9 +157,9 @@ def run(args) -> int:
     clipped = clipped_samples(rec.gyro, INT16_LIMIT if args.gyro_range else None)
     move_ok = usable_moves(rec.gyro, det.poses, clipped)
     on_off = {"auto": "auto", "on": True, "off": False}
-    kwargs = dict(accel_scale=acc_scale, gyro_scale=gyro_scale, accel_bias=args.acc_bias,
-                  drift=on_off[args.drift], g_sensitivity=on_off[args.gyro_g_sensitivity],
-                  priors=Priors(args.misalignment_prior or None))
+    kwargs = {"accel_scale": acc_scale, "gyro_scale": gyro_scale, "accel_bias": args.acc_bias,
+              "drift": on_off[args.drift], "g_sensitivity": on_off[args.gyro_g_sensitivity],
+              "priors": Priors(args.misalignment_prior or None)}
     try:
         if args.method == "imu-tk":
             cal, params, stderr, model = _imu_tk(args, rec, init_s)
@@ -160,8 +170,8 @@ def run(args) -> int:
             cal, params, stderr = fit.calibration, fit.params(), fit.stderrs()
             model = {"gyro_bias_drift": fit.gyro.drift, "gyro_g_sensitivity": fit.gyro.g_sensitivity,
                      "wald": {k: list(v) for k, v in fit.gyro.wald.items()}}
-        before = field_figures(fit.start if args.method != "imu-tk" else cal, rec.t, rec.gyro,
-                               rec.accel, det.poses) if args.method != "imu-tk" else None
+        before = (None if args.method == "imu-tk" else
+                  field_figures(fit.start, rec.t, rec.gyro, rec.accel, det.poses))
         after = field_figures(cal, rec.t, rec.gyro, rec.accel, det.poses)
         held = None
         if not args.no_held_out and args.method != "imu-tk":
