@@ -62,6 +62,7 @@ GYRO_BIAS_NAMES = ("b_gx", "b_gy", "b_gz")
 GYRO_DRIFT_NAMES = ("d_gx", "d_gy", "d_gz")
 GYRO_G_SENS_NAMES = tuple(f"S_{r}{c}" for r in "xyz" for c in "xyz")  # raw gyro per g
 MIN_ACCEL_POSES = 10  # 9 parameters + 1 degree of freedom for the residual variance
+MIN_ACCEL_POSES_WITH_PRIOR = 7  # the prior determines the 3 misalignments: 6 + 1
 CORR_WINDOW_S = 0.25  # samples closer than this are not independent in a pose's gyro mean
 MIN_MOVES = 5  # 2 direction constraints each: 10 >= 9 gyro parameters (bias from quiet poses)
 
@@ -168,9 +169,10 @@ def fit_accel_poses(pm: PoseMeans, g_local: float, x0: np.ndarray, use=None,
     scaled by the residual variance."""
     use = np.ones(len(pm), bool) if use is None else np.asarray(use, bool)
     X = pm.accel[use]
-    if len(X) < MIN_ACCEL_POSES:
+    need = MIN_ACCEL_POSES_WITH_PRIOR if priors.misalignment else MIN_ACCEL_POSES
+    if len(X) < need:
         raise DesignError("E_FIELD_TOO_FEW_POSES", f"{len(X)} static poses: the accelerometer's 9 "
-                          f"parameters need at least {MIN_ACCEL_POSES}", undetermined=ACCEL_PARAM_NAMES)
+                          f"parameters need at least {need}", undetermined=ACCEL_PARAM_NAMES)
     se = np.maximum(_pose_norm_se_mg(pm, float(np.mean(x0[3:6])) / g_local)[use], 1e-6)
     mis_sig = priors.misalignment
 
@@ -278,7 +280,8 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
     """Joint fit of the gyro (see the module docstring). ``move_use`` selects the moves
     fitted (default all). Optional blocks, each True/False or ``"auto"`` (fitted, then kept
     only if its Wald statistic ``x^T Cov^-1 x`` exceeds the chi-square quantile at
-    ``WALD_P``): ``drift`` (bias linear in time, counts per s) and ``g_sensitivity`` (bias
+    ``WALD_P``; a drift is only tried with three or more quiet poses at different times):
+    ``drift`` (bias linear in time, counts per s) and ``g_sensitivity`` (bias
     linear in the calibrated specific force ``F``, (n, 3) in g, raw units per g).
     ``init_scale`` rad/s per raw unit (e.g. from the full-scale range); without it an
     isotropic scale is found on a coarse log grid."""
@@ -299,7 +302,9 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
     b0 = np.broadcast_to(np.asarray(init_bias, float), (3,)).copy()
     n_quiet_times = len(np.unique(np.round(pm.t_mean[quiet_use], 3)))
     if "auto" in (drift, g_sensitivity):
-        try_drift = drift == "auto" and n_quiet_times >= 2 or drift is True
+        # "auto" needs a third quiet pose: through two, a line fits exactly and a hand's
+        # wobble in one of them would pass for a drift
+        try_drift = drift == "auto" and n_quiet_times >= 3 or drift is True
         try_gs = g_sensitivity == "auto" and quiet_use.sum() >= 5 or g_sensitivity is True
         full = fit_gyro_joint(t, G, pm, u, move_use, try_drift, init_scale, b0, priors, try_gs, F)
         wald = {}

@@ -215,7 +215,7 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
     (:func:`moving_variance_magnitude`): their median over the initial rest (``init_s``
     seconds) or, without one, their ``quantile`` over the whole recording (the quietest
     windows). A pose is a run where the accel statistic is below ``multiplier`` x floor for
-    at least ``min_pose_s`` (runs apart by less than the window, with the statistic below
+    at least ``min_pose_s`` (runs apart by at most two windows, with the statistic below
     ``loose_multiplier`` x floor in between, are one pose). A pose is ``gyro_quiet`` (a bias
     observation) when its median gyro statistic is below ``quiet_multiplier`` x the gyro
     floor: stricter than the accelerometer's test, because a hand's slow wobble moves a
@@ -248,8 +248,10 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
     finite = np.isfinite(s_a)
     strict = []
     for a, b in runs_of(finite & (s_a < multiplier * floor_a)):
-        # a twitch of the hand shorter than the window inside one pose does not split it
-        if strict and a - strict[-1][1] < window and \
+        # a twitch of the hand inside one pose does not split it: a disturbance of d samples
+        # lifts the windowed statistic for d + window - 1 samples, so gaps up to two windows
+        # are twitches shorter than a window
+        if strict and a - strict[-1][1] <= 2 * window and \
                 np.all(s_a[strict[-1][1]:a] < loose_multiplier * floor_a):
             strict[-1] = (strict[-1][0], b)
         else:

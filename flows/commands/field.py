@@ -195,14 +195,19 @@ def run(args) -> int:
                      "multiplier": det.multiplier, "floor_from": det.floor_from,
                      "accel_floor": det.accel_floor, "gyro_floor": det.gyro_floor},
     }
-    save_calibration(cal, args.out, extra={"fit": {"figures": figures, "model": model,
-                                                   "params": params, "stderr": stderr},
+    save_calibration(cal, args.out, extra={"fit": {"figures": _json_numbers(figures), "model": model,
+                                                   "params": params, "stderr": _json_numbers(stderr)},
                                            "poses": poses_doc})
     if args.poses:
         from calib_core.static_detection import static_pose_means
         static_pose_means(rec.t, rec.gyro, rec.accel, det.intervals()).to_csv(args.poses, index=False)
     _print_summary(args, rec, det, move_ok, figures, model, held)
     return 0
+
+
+def _json_numbers(d: dict) -> dict:
+    """Non-finite figures (a fold that could not be fitted) are written as null."""
+    return {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in d.items()}
 
 
 def _imu_tk(args, rec, init_s):
