@@ -156,7 +156,7 @@ class Pose:
     end: int
     gyro_quiet: bool
     accel_ratio: float  # median accel statistic / accel noise floor
-    gyro_ratio: float  # median gyro statistic / gyro noise floor
+    gyro_ratio: float  # 90th percentile of the gyro statistic / gyro noise floor
 
     @property
     def mid(self) -> int:
@@ -217,9 +217,10 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
     windows). A pose is a run where the accel statistic is below ``multiplier`` x floor for
     at least ``min_pose_s`` (runs apart by at most two windows, with the statistic below
     ``loose_multiplier`` x floor in between, are one pose). A pose is ``gyro_quiet`` (a bias
-    observation) when its median gyro statistic is below ``quiet_multiplier`` x the gyro
-    floor: stricter than the accelerometer's test, because a hand's slow wobble moves a
-    pose's mean rate by tens of counts while its variance grows only 2-3x. Rejected and listed: runs below ``loose_multiplier`` x floor that
+    observation) when the 90th percentile of its gyro statistic is below ``quiet_multiplier``
+    x the gyro floor: stricter than the accelerometer's test, because a hand's slow wobble
+    moves a pose's mean rate by tens of counts while its variance grows only 2-3x, and a turn
+    about the vertical, invisible to the accelerometer, must not enter a bias. Rejected and listed: runs below ``loose_multiplier`` x floor that
     hold no pose (residual motion), and quiet runs shorter than ``min_pose_s``."""
     t = np.asarray(t, float)
     G = np.asarray(gyro, float)
@@ -260,7 +261,7 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
     for a, b in strict:
         if b - a >= min_samples:
             ra = float(np.median(s_a[a:b]) / floor_a)
-            rg = float(np.median(s_g[a:b]) / floor_g)
+            rg = float(np.quantile(s_g[a:b], 0.9) / floor_g)  # a turn in a tenth of it shows
             poses.append(Pose(a, b, rg < quiet_multiplier, ra, rg))
     rejected = []
     for a, b in runs_of(finite & (s_a < loose_multiplier * floor_a)):
