@@ -206,6 +206,7 @@ def odd_window(rate_hz: float, window_s: float) -> int:
 def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: float | None = None,
                  window_s: float = 0.25, min_pose_s: float = 1.0, multiplier: float = 3.0,
                  loose_multiplier: float = 10.0, quiet_multiplier: float = 2.0,
+                 turn_multiplier: float = 1000.0,
                  quantile: float = 0.05) -> PoseDetection:
     """Static poses of a recording moved by hand, with every threshold from the data.
 
@@ -247,8 +248,10 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
         floor_a, floor_g, floor_from = float(np.quantile(fa, quantile)), float(np.quantile(fg, quantile)), "quantile"
     floor_a, floor_g = max(floor_a, 1e-300), max(floor_g, 1e-300)
     finite = np.isfinite(s_a)
+    # a turn about the vertical leaves the accelerometer at rest: the gyro cuts the pose there
+    turning = np.isfinite(s_g) & (s_g > turn_multiplier * floor_g)
     strict = []
-    for a, b in runs_of(finite & (s_a < multiplier * floor_a)):
+    for a, b in runs_of(finite & (s_a < multiplier * floor_a) & ~turning):
         # a twitch of the hand inside one pose does not split it: a disturbance of d samples
         # lifts the windowed statistic for d + window - 1 samples, so gaps up to two windows
         # are twitches shorter than a window
