@@ -37,6 +37,10 @@ class TermValue:
         }
 
 
+class RawUnitError(ValueError):
+    """Raw data in units a calibration cannot take."""
+
+
 @dataclass(frozen=True)
 class Calibration:
     """Affine calibration of both sensors plus optional extension terms."""
@@ -57,13 +61,49 @@ class Calibration:
         A = np.atleast_2d(A)
         return G @ self.K_g.T + self.w0, A @ self.K_a.T + self.f0
 
+    def raw_inputs(self, G: np.ndarray, A: np.ndarray, gyro_unit: str | None = None,
+                   accel_unit: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``G``, ``A`` in the raw units this calibration expects (:class:`RawUnitError`
+        when they cannot be). ``gyro_unit`` / ``accel_unit``: the units of the data;
+        rad/s -> deg/s and m/s^2 -> g (this calibration's ``g_local``) are converted when the
+        calibration expects deg/s and g; any other difference is refused. Without
+        ``accel_unit``, accelerometer data whose median norm is that of gravity in m/s^2
+        (7.8-12.3) given to a calibration in g are refused (the mistake that otherwise
+        returns |f| ~ 9.8 "g")."""
+        G = np.atleast_2d(np.asarray(G, float))
+        A = np.atleast_2d(np.asarray(A, float))
+        if gyro_unit is not None and gyro_unit != self.gyro_unit:
+            if gyro_unit == "rad/s" and self.gyro_unit == "deg/s":
+                G = G * (180.0 / np.pi)
+            else:
+                raise RawUnitError(f"gyro data in {gyro_unit!r}, calibration expects "
+                                   f"{self.gyro_unit!r}")
+        if accel_unit is not None and accel_unit != self.accel_unit:
+            if accel_unit == "m/s^2" and self.accel_unit == "g":
+                A = A / self.g_local
+            else:
+                raise RawUnitError(f"accelerometer data in {accel_unit!r}, calibration "
+                                   f"expects {self.accel_unit!r}")
+        elif accel_unit is None and self.accel_unit == "g" and A.size:
+            norm = float(np.nanmedian(np.linalg.norm(A, axis=1)))
+            if 0.8 * self.g_local <= norm <= 1.25 * self.g_local:
+                raise RawUnitError(
+                    f"accelerometer data have a median norm of {norm:.3g}: that is gravity "
+                    f"in m/s^2, and this calibration expects g; pass accel_unit='m/s^2' (or "
+                    f"'g' if the data really are in g)")
+        return G, A
+
     def apply(self, G: np.ndarray, A: np.ndarray, dwdt: np.ndarray | None = None,
               temp_c: np.ndarray | None = None, t: np.ndarray | None = None,
-              iterations: int = 2) -> tuple[np.ndarray, np.ndarray]:
+              iterations: int = 2, gyro_unit: str | None = None,
+              accel_unit: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Calibrated rate (deg/s) and specific force (g), rows of raw samples or step means.
 
+        ``gyro_unit`` / ``accel_unit``: the units of ``G`` and ``A``, checked against the
+        calibration's and converted where that is exact (:meth:`raw_inputs`).
         Extension terms depend on the true motion, which is estimated by the affine part and
         refined by a fixed-point iteration (terms are small: two iterations reach noise)."""
+        G, A = self.raw_inputs(G, A, gyro_unit, accel_unit)
         w, f = self.apply_affine(G, A)
         if not self.terms:
             return w, f

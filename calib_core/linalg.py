@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
@@ -46,8 +45,8 @@ class LstsqStack:
 
 @dataclass(frozen=True)
 class _Factorisation:
-    """What the solve needs of a design X alone (its arrays are shared: read-only); for a
-    stack of designs (..., n, p) every field has the stack's leading axes."""
+    """What the solve needs of a design X alone; for a stack of designs (..., n, p) every
+    field has the stack's leading axes."""
 
     norms: np.ndarray
     U: np.ndarray
@@ -74,32 +73,16 @@ def _factorise(X: np.ndarray, rcond: float) -> _Factorisation:
     return _Factorisation(norms, U, s_inv, Vt, rank, cond, cov_unscaled)
 
 
-@lru_cache(maxsize=32)
-def _factorise_cached(shape: tuple[int, int], data: bytes, rcond: float) -> _Factorisation:
-    fac = _factorise(np.frombuffer(data, dtype=float).reshape(shape).copy(), rcond)
-    for a in (fac.norms, fac.U, fac.s_inv, fac.Vt, fac.cov_unscaled):
-        a.setflags(write=False)
-    return fac
-
-
-def solve_lstsq(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10,
-                reuse_design: bool = False) -> LstsqResult:
+def solve_lstsq(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> LstsqResult:
     """Least squares via SVD of the column-equilibrated design (never inv(X^T X)).
 
     Columns are scaled to unit norm first: the condition number then measures the geometry
     of the design, not the units of its columns, and the solve is better conditioned.
-
-    ``reuse_design=True`` for a design that is the same for many calls (one built from a
-    protocol's references, identical for every session of a fleet): its factorisation is
-    kept in a small cache keyed by the design's bytes, so a fleet pays one SVD per design.
-    The numbers are identical either way.
     """
     X = np.asarray(X, dtype=float)
     Y = np.asarray(Y, dtype=float)
     squeeze = Y.ndim == 1
-    # a stack of one problem (a shared design stays 2-D: it is the cache's key)
-    ls = solve_lstsq_stack(X if reuse_design else X[None], (Y[:, None] if squeeze else Y)[None],
-                           rcond, reuse_design)
+    ls = solve_lstsq_stack(X[None], (Y[:, None] if squeeze else Y)[None], rcond)
     coef, resid, stderr = ls.coef[0], ls.residuals[0], ls.stderr[0]
     if squeeze:
         coef, resid, stderr = coef[:, 0], resid[:, 0], stderr[:, 0]
@@ -107,19 +90,14 @@ def solve_lstsq(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10,
                        float(ls.condition_number[0]), int(ls.rank[0]))
 
 
-def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10,
-                      reuse_design: bool = False) -> LstsqStack:
+def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> LstsqStack:
     """:func:`solve_lstsq` of R problems at once: X (R, n, p), or (n, p) when the design is
     the same for all; Y (R, n, k), or (n, k) when the right-hand sides are. One stacked SVD
     and one matmul per step instead of R of each (problem r's numbers are those of
-    ``solve_lstsq(X[r], Y[r])``); ``reuse_design`` as there, for a shared 2-D X."""
+    ``solve_lstsq(X[r], Y[r])``; a shared 2-D X is factorised once)."""
     X = np.asarray(X, dtype=float)
     Y = np.asarray(Y, dtype=float)
-    if reuse_design:
-        X = np.ascontiguousarray(X)
-        fac = _factorise_cached(X.shape, X.tobytes(), float(rcond))
-    else:
-        fac = _factorise(X, rcond)
+    fac = _factorise(X, rcond)
     coef_s = np.swapaxes(fac.Vt, -1, -2) @ (
         fac.s_inv[..., :, None] * (np.swapaxes(fac.U, -1, -2) @ Y))
     coef = coef_s / fac.norms[..., :, None]

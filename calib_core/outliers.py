@@ -26,18 +26,23 @@ Three rules, each flag naming the parameter, the unit's value, the lot median an
    flagged above ``spread_factor`` (default 3). Needs >= 4 repetitions: with 5 reps a clean
    unit exceeds 3x the lot median std with probability ~5e-6 per parameter (chi-square, 4 dof),
    with 2 reps it would be ~0.04.
-3. **Limits** from configuration (per model/parameter ``min``/``max``), applied to every unit
-   whatever the lot size.
+3. **Limits** from configuration (per model/parameter ``min``/``max`` in the stored unit,
+   parsed from the engineers' TOML with units by :mod:`schemas.limits`), applied to every
+   unit whatever the lot size; a separate category (``kind = "limit"``) from the two
+   statistical ones.
 
-Lots with fewer than ``min_units`` (5) units get no robust or spread flags (a median of four
-units says little about what is typical); :class:`LotFlags` says so in ``note``.
+Small lots (fewer than ``history_below`` units) are judged against the fleet's history when
+the caller gives the units' acquisition times: the last ``history_units`` good units of the
+lots acquired before (:func:`history_references`), with a threshold simulated for that
+statistic (:func:`history_z_threshold`); ``LotFlags.reference`` says which reference was
+used. Without a history, lots with fewer than ``min_units`` (5) units get no robust or spread
+flags (a median of four units says little about what is typical); ``note`` says so.
 
 Pure: inputs are a summary table (pandas), outputs dataclasses and a table.
 """
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Any
@@ -48,6 +53,12 @@ import pandas as pd
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian -> its sigma
 MEANAD_TO_SIGMA = 1.2533  # sqrt(pi/2): mean absolute deviation of a Gaussian -> sigma
 MIN_REPS_FOR_SPREAD = 4
+# a history reference needs at least this many good units (or history_units, if fewer)
+HISTORY_MIN_UNITS = 15
+# a unit of an earlier lot is "good" for the history when no robust-model parameter is further
+# than this many robust sd from the fleet's median (and it fails no limit): per value a clean
+# Gaussian unit is excluded with probability 6e-7
+HISTORY_CLEAN_Z = 5.0
 
 KIND_ROBUST = "robust_z"
 KIND_SPREAD = "spread"
@@ -56,12 +67,17 @@ KIND_LIMIT = "limit"
 
 @dataclass(frozen=True)
 class Limit:
-    """Acceptance limits of one parameter (either bound may be None)."""
+    """Acceptance limits of one parameter (either bound may be None), in ``unit``: the unit
+    the summary stores the parameter in ("" dimensionless; None: not checked against the
+    rows' ``unit_of_measure``). ``written``: the bounds as the engineer wrote them (with
+    their units), for the flag reason. Parsed from TOML by :mod:`schemas.limits`."""
 
     model: str
     parameter: str
     min: float | None = None
     max: float | None = None
+    unit: str | None = None
+    written: str = ""
 
 
 @dataclass(frozen=True)
@@ -76,6 +92,26 @@ class OutlierConfig:
     # the number of tests (and so the threshold) without finding other units.
     robust_models: tuple[str, ...] = ("gyro", "accel")
     scale_pool: str = "fleet"  # fleet: lot-centred MAD over all lots; lot: each lot alone
+    # lots with fewer units than history_below are judged against the last history_units
+    # good units of earlier lots (by acquisition time) when there are at least
+    # min(history_units, HISTORY_MIN_UNITS) of them; 0 turns the history reference off
+    history_units: int = 60
+    history_below: int = 20
+    # "lot": a small lot's units against its own median with the history's (lot-centred)
+    # scale, robust to lot-to-lot offsets; "history": against the history's median and scale
+    history_location: str = "lot"
+
+    def __post_init__(self) -> None:
+        if self.scale_pool not in ("fleet", "lot"):
+            raise OutlierConfigError("scale_pool must be 'fleet' or 'lot'")
+        if not 0.0 <= self.family_alpha < 1.0:
+            raise OutlierConfigError("family_alpha must be in [0, 1)")
+        if self.z_threshold <= 0 or self.spread_factor <= 1.0 or self.min_units < 3:
+            raise OutlierConfigError("need z_threshold > 0, spread_factor > 1, min_units >= 3")
+        if self.history_location not in ("lot", "history"):
+            raise OutlierConfigError("history_location must be 'lot' or 'history'")
+        if self.history_units < 0 or self.history_below < 0:
+            raise OutlierConfigError("history_units and history_below must be >= 0")
 
     def limit_of(self, model: str, parameter: str) -> Limit | None:
         for lim in self.limits:
@@ -83,75 +119,12 @@ class OutlierConfig:
                 return lim
         return None
 
+    def uses_history(self) -> bool:
+        return self.history_units > 0 and self.history_below > 0
+
 
 class OutlierConfigError(ValueError):
     """A limits/outlier configuration that cannot be used, with the reason."""
-
-
-def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
-    """Parse a TOML configuration::
-
-        [outliers]            # all optional
-        z_threshold = 3.5
-        family_alpha = 0.01
-        spread_factor = 3.0
-        min_units = 5
-
-        [limits.gyro.k_g11]   # [limits.<model>.<parameter>], min and/or max
-        min = 0.95
-        max = 1.05
-    """
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise OutlierConfigError(f"{source}: not valid TOML ({exc})") from exc
-    known = {"outliers", "limits"}
-    unknown = set(doc) - known
-    if unknown:
-        raise OutlierConfigError(f"{source}: unknown section(s) {sorted(unknown)}; expected "
-                                 f"[outliers] and [limits.<model>.<parameter>]")
-    opts = doc.get("outliers", {})
-    allowed = {"z_threshold", "family_alpha", "spread_factor", "min_units", "robust_models",
-               "scale_pool"}
-    if set(opts) - allowed:
-        raise OutlierConfigError(f"{source}: unknown key(s) {sorted(set(opts) - allowed)} in "
-                                 f"[outliers]; allowed: {sorted(allowed)}")
-    limits = []
-    for model, params in doc.get("limits", {}).items():
-        if not isinstance(params, dict):
-            raise OutlierConfigError(f"{source}: [limits.{model}] must hold tables "
-                                     f"[limits.{model}.<parameter>] with min/max")
-        for name, lim in params.items():
-            if not isinstance(lim, dict) or not set(lim) <= {"min", "max"} or not lim:
-                raise OutlierConfigError(f"{source}: [limits.{model}.{name}] must have keys "
-                                         f"min and/or max")
-            lo, hi = lim.get("min"), lim.get("max")
-            for v in (lo, hi):
-                if v is not None and not isinstance(v, (int, float)):
-                    raise OutlierConfigError(f"{source}: limits of {model}.{name} must be numbers")
-            if lo is not None and hi is not None and lo > hi:
-                raise OutlierConfigError(f"{source}: {model}.{name}: min {lo} > max {hi}")
-            limits.append(Limit(model, name, None if lo is None else float(lo),
-                                None if hi is None else float(hi)))
-    try:
-        cfg = OutlierConfig(
-            z_threshold=float(opts.get("z_threshold", 3.5)),
-            family_alpha=float(opts.get("family_alpha", 0.01)),
-            spread_factor=float(opts.get("spread_factor", 3.0)),
-            min_units=int(opts.get("min_units", 5)),
-            limits=tuple(limits),
-            robust_models=tuple(str(m) for m in opts.get("robust_models", ("gyro", "accel"))),
-            scale_pool=str(opts.get("scale_pool", "fleet")))
-    except (TypeError, ValueError) as exc:
-        raise OutlierConfigError(f"{source}: [outliers] values must be numbers ({exc})") from exc
-    if cfg.scale_pool not in ("fleet", "lot"):
-        raise OutlierConfigError(f"{source}: scale_pool must be 'fleet' or 'lot'")
-    if not 0.0 <= cfg.family_alpha < 1.0:
-        raise OutlierConfigError(f"{source}: family_alpha must be in [0, 1)")
-    if cfg.z_threshold <= 0 or cfg.spread_factor <= 1.0 or cfg.min_units < 3:
-        raise OutlierConfigError(f"{source}: need z_threshold > 0, spread_factor > 1, "
-                                 f"min_units >= 3")
-    return cfg
 
 
 @dataclass(frozen=True)
@@ -177,6 +150,11 @@ class LotFlags:
     note: str
     flags: list[Flag] = field(default_factory=list)
     scores: pd.DataFrame | None = None  # lot, unit, model, parameter, score, lot_median
+    # what the robust z was computed against: "lot" (its own median, the pooled or lot
+    # scale), "fleet history" (median and scale of the last good units of earlier lots) or
+    # "none" (too few units and no history)
+    reference: str = "lot"
+    reference_detail: str = ""
 
     @property
     def flagged_units(self) -> list[str]:
@@ -185,6 +163,7 @@ class LotFlags:
     def to_dict(self) -> dict[str, Any]:
         return {"lot": self.lot, "n_units": self.n_units, "robust": self.robust,
                 "z_threshold_used": self.z_threshold_used, "note": self.note,
+                "reference": self.reference, "reference_detail": self.reference_detail,
                 "flagged_units": self.flagged_units,
                 "flags": [f.__dict__ for f in self.flags]}
 
@@ -283,6 +262,74 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
     else:  # beyond the simulated resolution: extrapolate log-linearly from the last decade
+        p_hi = 200.0 / rows
+        q1 = float(np.quantile(zmax, 1.0 - p_hi))
+        q2 = float(np.quantile(zmax, 1.0 - p_hi / 10.0))
+        q = q2 + (q2 - q1) * math.log10(p_hi / 10.0 / p)
+    _KNOWN_THRESHOLDS[key] = float(q)
+    return float(max(z_threshold, q))
+
+
+@lru_cache(maxsize=256)
+def history_z_threshold(history_groups: tuple[int, ...], n_lot: int, n_parameters: int,
+                        z_threshold: float = 3.5, family_alpha: float = 0.01,
+                        location: str = "lot") -> float:
+    """Threshold on the robust z of the ``n_lot`` units of a small lot judged against a
+    history of earlier units (``history_groups``: how many of them per earlier lot):
+    ``max(z_threshold, q)``, ``q`` exceeded by the largest of the ``n_lot`` |z| with
+    probability ``family_alpha / n_parameters`` when every unit is clean and Gaussian, from
+    a seeded simulation of that very statistic:
+
+    - ``location="lot"``: ``z = (x - lot median) / s``, ``s`` the robust scale of the
+      history's values each centred on its own lot's median (the lot's median from its few
+      units is uncertain, the scale from the history much less);
+    - ``location="history"``: ``z = (x - history median) / s``, ``s`` the history's robust
+      scale (history median and scale both uncertain; lots are assumed to share one mean).
+
+    Cached with the other thresholds under the group sizes ``(0, n_lot, *history_groups)``
+    ("lot") or ``(0, 0, n_lot, *history_groups)`` ("history"): a real layout never has a
+    lot of 0 units."""
+    groups = tuple(sorted(int(g) for g in history_groups))
+    n_lot = int(n_lot)
+    n_history = sum(groups)
+    if family_alpha <= 0 or n_history < 3 or n_lot < 1:
+        return float(z_threshold)
+    tag = (0, n_lot) if location == "lot" else (0, 0, n_lot)
+    key = _threshold_key(tag + groups, n_parameters, z_threshold, family_alpha)
+    if key in _KNOWN_THRESHOLDS:
+        return float(max(z_threshold, _KNOWN_THRESHOLDS[key]))
+    p = family_alpha / max(n_parameters, 1)
+    total = n_history + n_lot
+    rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
+    chunk = max(1, 2_000_000 // total)
+    rng = np.random.default_rng([20261124, n_lot, len(tag), *groups])
+    parts = []
+    for start in range(0, rows, chunk):
+        m = min(chunk, rows - start)
+        lot = rng.standard_normal((m, n_lot))
+        if location == "lot":
+            dev = np.empty((m, n_history))
+            col = 0
+            for g in groups:  # each earlier lot centred on its own median
+                block = rng.standard_normal((m, g))
+                block.sort(axis=1)
+                dev[:, col:col + g] = np.abs(block - _sorted_median(block)[:, None])
+                col += g
+            lot_sorted = np.sort(lot, axis=1)
+            centre = _sorted_median(lot_sorted)
+        else:
+            hist = rng.standard_normal((m, n_history))
+            hist.sort(axis=1)
+            centre = _sorted_median(hist)
+            dev = np.abs(hist - centre[:, None])
+        dev.sort(axis=1)
+        scale = MAD_TO_SIGMA * _sorted_median(dev)
+        parts.append(np.abs(lot - centre[:, None]).max(axis=1)
+                     / np.where(scale > 0, scale, np.inf))
+    zmax = np.concatenate(parts)
+    if p * rows >= 20:
+        q = float(np.quantile(zmax, 1.0 - p))
+    else:
         p_hi = 200.0 / rows
         q1 = float(np.quantile(zmax, 1.0 - p_hi))
         q2 = float(np.quantile(zmax, 1.0 - p_hi / 10.0))
@@ -391,8 +438,121 @@ def _lot_centred_scales(df: pd.DataFrame, min_units: int
     return out
 
 
+@dataclass(frozen=True)
+class HistoryReference:
+    """What a small lot is judged against: per (model, parameter) the median and robust scale
+    of the last good units of earlier lots."""
+
+    stats: dict[tuple[str, str], tuple[float, float, int]]  # median, scale, n values
+    centred: dict[tuple[str, str], tuple[float, tuple[int, ...]]]  # lot-centred scale, groups
+    n_units: int
+    lots: tuple[str, ...]
+    detail: str
+
+
+def _limit_failures(df: pd.DataFrame, cfg: OutlierConfig) -> set[tuple[str, str]]:
+    """(lot, unit) of the units failing any configured limit."""
+    out: set[tuple[str, str]] = set()
+    for lim in cfg.limits:
+        rows = df[(df["model"] == lim.model) & (df["parameter"] == lim.parameter)]
+        v = rows["mean"].to_numpy(float)
+        bad = np.zeros(len(v), bool)
+        if lim.min is not None:
+            bad |= ~(v >= lim.min)
+        if lim.max is not None:
+            bad |= ~(v <= lim.max)
+        out.update(zip(rows["lot"].to_numpy(object)[bad], rows["unit"].to_numpy(object)[bad]))
+    return out
+
+
+def history_references(summary: pd.DataFrame, config: OutlierConfig,
+                       unit_times: dict[tuple[str, str], float], lots: list[str]
+                       ) -> dict[str, HistoryReference]:
+    """The history reference of each lot of ``lots`` with fewer than ``history_below`` units
+    that has one: the last ``history_units`` good units (by acquisition time,
+    ``unit_times[(lot, unit)]`` in seconds) of the lots acquired before it (a lot's time is
+    its first unit's). A good unit fails no limit and has every robust-model parameter within
+    ``HISTORY_CLEAN_Z`` robust sd of the fleet's median (the fleet: every unit of
+    ``summary``). Lots without enough good earlier units (fewer than
+    ``min(history_units, HISTORY_MIN_UNITS)``) or without a time get none."""
+    cfg = config
+    if not cfg.uses_history() or not unit_times or not len(summary):
+        return {}
+    df = summary[["lot", "unit", "model", "parameter", "mean"]].copy()
+    df["lot"] = df["lot"].astype(str)
+    df["unit"] = df["unit"].astype(str)
+    n_units = df.groupby("lot")["unit"].nunique()
+    small = [lot for lot in lots if lot in n_units.index and n_units[lot] < cfg.history_below]
+    if not small:
+        return {}
+    robust = df[df["model"].isin(cfg.robust_models)] if cfg.robust_models else df
+    wide = robust.pivot_table(index=["lot", "unit"], columns=["model", "parameter"],
+                              values="mean", aggfunc="first")
+    if not len(wide):
+        return {}
+    X = wide.to_numpy(float)
+    med = np.nanmedian(X, axis=0)
+    scale = np.array([robust_scale(c[np.isfinite(c)]) if np.isfinite(c).any() else 0.0
+                      for c in X.T])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.abs(X - med) / np.where(scale > 0, scale, np.inf)
+    keys = list(wide.index)
+    failing = _limit_failures(df, cfg)
+    good = np.array([not (np.nan_to_num(z[i]) > HISTORY_CLEAN_Z).any() and keys[i] not in failing
+                     for i in range(len(keys))], bool)
+    t_unit = np.array([unit_times.get(k, np.nan) for k in keys], float)
+    lot_time: dict[str, float] = {}
+    for (lot, _), t in zip(keys, t_unit):
+        if np.isfinite(t):
+            lot_time[lot] = min(lot_time.get(lot, np.inf), t)
+    lot_of = np.array([k[0] for k in keys], object)
+    need = min(cfg.history_units, HISTORY_MIN_UNITS)
+    out: dict[str, HistoryReference] = {}
+    for lot in small:
+        t0 = lot_time.get(lot)
+        if t0 is None:
+            continue
+        earlier = np.array([lot_time.get(x, np.inf) < t0 for x in lot_of], bool)
+        cand = np.flatnonzero(good & earlier & np.isfinite(t_unit))
+        if len(cand) < need:
+            continue
+        # newest first; ties by (lot, unit) for a deterministic choice
+        order = sorted(cand.tolist(), key=lambda i: (-t_unit[i], keys[i]))
+        chosen = np.array(order[:cfg.history_units])
+        stats, centred = {}, {}
+        chosen_lots = lot_of[chosen]
+        for j, col in enumerate(wide.columns):
+            v = X[chosen, j]
+            fin = np.isfinite(v)
+            if fin.sum() < need:
+                continue
+            key = (str(col[0]), str(col[1]))
+            stats[key] = (float(np.median(v[fin])), robust_scale(v[fin]), int(fin.sum()))
+            # each chosen unit centred on the median of all its lot's units; MAD about 0
+            dev, groups = [], []
+            for lot_h in sorted(set(chosen_lots.tolist())):
+                all_of_lot = X[lot_of == lot_h, j]
+                all_of_lot = all_of_lot[np.isfinite(all_of_lot)]
+                mine = v[(chosen_lots == lot_h) & fin]
+                if len(mine) and len(all_of_lot):
+                    dev.append(mine - np.median(all_of_lot))
+                    groups.append(len(mine))
+            c = np.abs(np.concatenate(dev))
+            mad = float(np.median(c))
+            scale = MAD_TO_SIGMA * mad if mad > 0 else MEANAD_TO_SIGMA * float(np.mean(c))
+            centred[key] = (scale, tuple(sorted(groups)))
+        used_lots = tuple(sorted({str(lot_of[i]) for i in chosen}))
+        how = ("the lot's own median and the spread of" if cfg.history_location == "lot"
+               else "the median and spread of")
+        detail = (f"{how} the fleet history: {len(chosen)} good units, the last of lots "
+                  f"acquired before this one ({', '.join(used_lots)})")
+        out[lot] = HistoryReference(stats, centred, len(chosen), used_lots, detail)
+    return out
+
+
 def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
-              lots: list[str] | None = None) -> list[LotFlags]:
+              lots: list[str] | None = None,
+              unit_times: dict[tuple[str, str], float] | None = None) -> list[LotFlags]:
     """Flags of each lot (all lots in ``summary`` unless ``lots`` is given). ``summary`` has
     one row per lot, unit, model and parameter with columns lot, unit, model, parameter,
     mean, std, n_reps.
@@ -400,7 +560,11 @@ def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
     With ``scale_pool="fleet"`` (default) the robust scale of a parameter is the MAD of the
     lot-centred unit means over every lot of ``summary`` with enough units: a MAD from 20
     units is itself uncertain by ~28 % and that, not the data, is what makes clean units cross
-    3.5. Location is always the lot's own median. ``scale_pool="lot"`` uses each lot alone."""
+    3.5. Location is the lot's own median. ``scale_pool="lot"`` uses each lot alone.
+
+    ``unit_times`` ((lot, unit) -> acquisition time, s): lots with fewer than
+    ``history_below`` units are judged against the fleet's history instead
+    (:func:`history_references`) when they have one; without it, as above."""
     cfg = config or OutlierConfig()
     need = {"lot", "unit", "model", "parameter", "mean", "std", "n_reps"}
     missing = need - set(summary.columns)
@@ -418,6 +582,9 @@ def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
     # the columns as numpy arrays once (not a frame per lot and per parameter)
     cols = {c: df[c].to_numpy(object) for c in ("lot", "unit", "model", "parameter")}
     cols.update({c: df[c].to_numpy(float) for c in ("mean", "std", "n_reps")})
+    if "unit_of_measure" in df:
+        cols["unit_of_measure"] = df["unit_of_measure"].to_numpy(object)
+    history = history_references(df, cfg, unit_times or {}, todo)
     out = []
     for lot in todo:
         in_lot = cols["lot"] == lot
@@ -425,7 +592,7 @@ def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
                                cols["parameter"][in_lot & robust].tolist())))
         rows = np.flatnonzero(in_lot)
         out.append(_flag_one_lot({c: v[rows] for c, v in cols.items()}, n_params, lot, cfg,
-                                 pooled))
+                                 pooled, history.get(lot)))
     return out
 
 
@@ -443,10 +610,24 @@ def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
     return flag_lots(rows, local, [str(lot)])[0]
 
 
+def _same_unit(stored: Any, limit_unit: str) -> bool:
+    """Whether a row's ``unit_of_measure`` is the unit a limit is in ("A per A" and "A/A"
+    are dimensionless, "")."""
+    u = "" if stored is None or (isinstance(stored, float) and math.isnan(stored)) \
+        else str(stored).strip()
+    for sep in (" per ", "/"):
+        parts = u.split(sep)
+        if len(parts) == 2 and parts[0].strip() == parts[1].strip():
+            u = ""
+    return u in ("", "1") if limit_unit == "" else u == limit_unit
+
+
 def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: OutlierConfig,
-                  pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]]) -> LotFlags:
+                  pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]],
+                  history: HistoryReference | None = None) -> LotFlags:
     """Flags of one lot: ``cols`` its rows' columns (unit, model, parameter, mean, std,
-    n_reps), ``n_params`` its number of distinct (model, parameter) in the robust models."""
+    n_reps, optionally unit_of_measure), ``n_params`` its number of distinct (model,
+    parameter) in the robust models; ``history``: judge the robust z against it."""
     unit_col = cols["unit"]
     units = sorted(set(unit_col.tolist()))
     n_units = len(units)
@@ -456,7 +637,9 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
     score = np.full(n_rows, np.nan)
     median = np.full(n_rows, np.nan)
     thresholds: list[float] = []
+    limit_notes: list[str] = []
     mean_col, std_col, nreps_col = cols["mean"], cols["std"], cols["n_reps"]
+    uom_col = cols.get("unit_of_measure")
     for (model, name), idx in _key_groups(cols["model"], cols["parameter"]):
         x = mean_col[idx]
         grp_units = unit_col[idx]
@@ -466,7 +649,28 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
         med = float(np.median(x[ok]))
         median[idx] = med
         in_robust = (not cfg.robust_models) or model in cfg.robust_models
-        if robust and in_robust and ok.sum() >= cfg.min_units:
+        ref = history.stats.get((model, name)) if history is not None else None
+        if in_robust and ref is not None:
+            if cfg.history_location == "history":
+                ref_med, scale, n_hist = ref
+                groups: tuple[int, ...] = (n_hist,)
+                where = f"fleet history median {_fmt(ref_med)} ({n_hist} units)"
+            else:
+                ref_med = med
+                scale, groups = history.centred[(model, name)]
+                where = (f"lot median {_fmt(med)}, scale of the fleet history "
+                         f"({sum(groups)} units)")
+            thr = history_z_threshold(groups, int(ok.sum()), n_params, cfg.z_threshold,
+                                      cfg.family_alpha, cfg.history_location)
+            thresholds.append(thr)
+            z = np.where(ok, (x - ref_med) / scale, np.nan) if scale > 0 else np.zeros(len(x))
+            score[idx] = z
+            for i in np.flatnonzero(np.abs(np.nan_to_num(z)) > thr):
+                flags.append(Flag(lot, str(grp_units[i]), model, name, KIND_ROBUST, float(x[i]),
+                                  ref_med, float(z[i]), thr,
+                                  f"{model}.{name} = {_fmt(x[i])}, {where}, robust z "
+                                  f"{z[i]:+.1f} (|z| > {thr:.2f})"))
+        elif robust and in_robust and ok.sum() >= cfg.min_units:
             if (model, name) in pooled:
                 scale, n_pool = pooled[(model, name)]
             else:
@@ -481,6 +685,7 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
                                   float(z[i]), thr,
                                   f"{model}.{name} = {_fmt(x[i])}, lot median {_fmt(med)}, "
                                   f"robust z {z[i]:+.1f} (|z| > {thr:.2f})"))
+        if robust and in_robust and ok.sum() >= cfg.min_units:
             s = std_col[idx]
             nr = nreps_col[idx]
             use = np.isfinite(s) & (nr >= MIN_REPS_FOR_SPREAD)
@@ -497,32 +702,58 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
                             f"{_fmt(med_s)}, ratio {ratio[i]:.1f} (> {cfg.spread_factor:g})"))
         lim = cfg.limit_of(model, name)
         if lim is not None:
+            if lim.unit is not None and uom_col is not None:
+                stored = uom_col[idx]
+                wrong = {str(u) for u in stored if not _same_unit(u, lim.unit)}
+                if wrong:
+                    limit_notes.append(f"limit of {model}.{name} not applied: it is in "
+                                       f"{lim.unit or 'dimensionless'!r}, the values in "
+                                       f"{', '.join(sorted(wrong))}")
+                    continue
+            u_txt = f" {lim.unit}" if lim.unit else ""
             for i in range(len(x)):
                 v = x[i]
                 u = str(grp_units[i])
                 if lim.min is not None and not v >= lim.min:
                     flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), med,
                                       float(v - lim.min), lim.min,
-                                      f"{model}.{name} = {_fmt(v)} below limit min {_fmt(lim.min)}"
-                                      f", lot median {_fmt(med)}"))
+                                      f"{model}.{name} = {_fmt(v)}{u_txt} below limit min "
+                                      f"{_fmt(lim.min)}{u_txt}"
+                                      + (f" (limit {lim.written})" if lim.written else "")))
                 if lim.max is not None and not v <= lim.max:
                     flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), med,
                                       float(v - lim.max), lim.max,
-                                      f"{model}.{name} = {_fmt(v)} above limit max {_fmt(lim.max)}"
-                                      f", lot median {_fmt(med)}"))
+                                      f"{model}.{name} = {_fmt(v)}{u_txt} above limit max "
+                                      f"{_fmt(lim.max)}{u_txt}"
+                                      + (f" (limit {lim.written})" if lim.written else "")))
     thr_used = float(np.median(thresholds)) if thresholds else float("nan")
-    if robust:
+    if history is not None:
+        reference, detail = "fleet history", history.detail
+        note = (f"{n_units} units in lot {lot} (fewer than {cfg.history_below}): judged "
+                f"with {detail}; |robust z| threshold {thr_used:.2f} (max of "
+                f"{cfg.z_threshold:g} and the family-wise level for alpha="
+                f"{cfg.family_alpha:g})")
+        if robust:
+            note += f"; spread factor {cfg.spread_factor:g} within the lot"
+    elif robust:
+        reference, detail = "lot", f"lot {lot}'s own median, scale {cfg.scale_pool}"
         note = (f"{n_units} units, {n_params} parameters in robust models "
                 f"{', '.join(cfg.robust_models) or 'all'}: |robust z| threshold "
                 f"{thr_used:.2f} (max of {cfg.z_threshold:g} and the family-wise level for "
                 f"alpha={cfg.family_alpha:g}; scale {cfg.scale_pool}); spread factor "
                 f"{cfg.spread_factor:g}")
+        if cfg.uses_history() and n_units < cfg.history_below:
+            note += "; no fleet history of earlier lots to judge this small lot against"
     else:
-        note = (f"{n_units} unit(s) in lot {lot}: fewer than {cfg.min_units}, no robust z or "
-                f"spread flags (only configured limits)")
+        reference, detail = "none", "too few units and no fleet history of earlier lots"
+        note = (f"{n_units} unit(s) in lot {lot}: fewer than {cfg.min_units} and no fleet "
+                f"history of earlier lots, no robust z or spread flags (only configured limits)")
+    if limit_notes:
+        note += "; " + "; ".join(limit_notes)
     scores = pd.DataFrame({"lot": lot, "unit": unit_col, "model": cols["model"],
                            "parameter": cols["parameter"], "score": score, "lot_median": median})
-    return LotFlags(lot, n_units, robust, thr_used, note, flags, scores)
+    return LotFlags(lot, n_units, robust or history is not None, thr_used, note, flags, scores,
+                    reference, detail)
 
 
 def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFrame:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 import pandas as pd
@@ -20,8 +19,8 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
 from calib_core.results import RepetitionCalibration, UnitCalibration
-from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans, stack_field
+from calib_core.tables import CodedStrings, ColumnTable
 
 
 @dataclass
@@ -85,13 +84,27 @@ def calibrate_repetitions(sms: list[StepMeans]) -> list[SessionFit | Exception]:
 
 def _same_layout(sms: list[StepMeans]) -> list[list[int]]:
     """Indices of the sessions grouped by step layout (first-seen order)."""
-    groups: dict[tuple, list[int]] = {}
+    groups: list[list[int]] = []
     for i, sm in enumerate(sms):
-        layout = (sm.gyro_unit, sm.accel_unit, sm.g_local) + tuple(
-            (a.dtype.str, a.shape, a.tobytes()) for a in (
-                sm.step, sm.test, sm.up_axis, sm.rate_dps, sm.angle_deg, sm.w_ref, sm.f_ref))
-        groups.setdefault(layout, []).append(i)
-    return list(groups.values())
+        group = next((g for g in groups if _share_layout(sms[g[0]], sm)), None)
+        if group is None:
+            groups.append([i])
+        else:
+            group.append(i)
+    return groups
+
+
+def _share_layout(a: StepMeans, b: StepMeans) -> bool:
+    """Same units, gravity, steps, tests and references, to the bit."""
+    return ((a.gyro_unit, a.accel_unit, a.g_local) == (b.gyro_unit, b.accel_unit, b.g_local)
+            and all(_identical(getattr(a, name), getattr(b, name)) for name in (
+                "step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref")))
+
+
+def _identical(x: np.ndarray, y: np.ndarray) -> bool:
+    """Same dtype, shape and bytes (a comparison of the bytes is ~50x faster than
+    ``np.array_equal`` on these small arrays; stricter, never looser)."""
+    return x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
 
 
 def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | None = None
@@ -272,8 +285,8 @@ def residual_tables(sms: list[StepMeans], cals: list[Calibration], model: str = 
     sa = np.sqrt(stack_field(sms, "accel_std") ** 2 @ K_a2) / n
     sig = np.concatenate([sg, sa], axis=2)
     layout = {
-        "step": np.repeat(sm.step, 6), "test": _coded(sm.test).repeat(6),
-        "up_axis": _coded(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
+        "step": np.repeat(sm.step, 6), "test": CodedStrings.of(sm.test).repeat(6),
+        "up_axis": CodedStrings.of(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
         "angle_deg": np.repeat(sm.angle_deg, 6),
         "channel": CodedStrings(CHANNELS, np.tile(np.arange(6), k)),
         "reference": np.hstack([sm.w_ref, sm.f_ref]).ravel(),
@@ -287,20 +300,3 @@ def residual_tables(sms: list[StepMeans], cals: list[Calibration], model: str = 
                                   "reference")},
         "residual": res[r].ravel(), "sigma": sig[r].ravel(), "model": model,
     }, 6 * k) for r, s in enumerate(sms)]
-
-
-def _coded(values: np.ndarray) -> CodedStrings:
-    """Codes of a step-level string column; the same protocol gives the same column in every
-    session, so the (sorting) np.unique runs once per protocol."""
-    values = np.asarray(values)
-    if values.dtype.kind != "U":
-        return CodedStrings.of(values)
-    return _coded_cached(values.dtype.str, len(values), values.tobytes())
-
-
-@lru_cache(maxsize=64)
-def _coded_cached(dtype: str, n: int, data: bytes) -> CodedStrings:
-    coded = CodedStrings.of(np.frombuffer(data, dtype=dtype, count=n))
-    for a in (coded.categories, coded.codes):
-        a.setflags(write=False)
-    return coded

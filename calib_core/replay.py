@@ -24,7 +24,6 @@ would cry wolf on any unit with bias instability; :mod:`calib_core.discovery` re
 """
 from __future__ import annotations
 
-
 import numpy as np
 import pandas as pd
 
@@ -47,11 +46,6 @@ REPLAY_COLUMNS = ("lot", "unit", "rep", "step", "test", "up_axis", "rate_dps", "
 
 def test_group(test: str) -> str:
     return TEST_GROUP.get(str(test), str(test))
-
-
-def step_context_arrays(sm: StepMeans) -> dict[str, np.ndarray]:
-    """Motion of each step as the effect terms want it (references, temperature, time)."""
-    return {"w": sm.w_ref, "f": sm.f_ref, "temp_c": sm.temp_c, "t": sm.t_mid}
 
 
 def physical_residuals(cal: Calibration, sm: StepMeans) -> tuple[np.ndarray, np.ndarray]:

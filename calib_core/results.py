@@ -3,7 +3,6 @@ per-repetition calibrations and their aggregate over repetitions (xu2016 Tables 
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Protocol, runtime_checkable
 
@@ -65,23 +64,18 @@ def param_list(model: str, names: Iterable[str], values: Iterable[float],
                stderrs: Iterable[float], unit: str) -> list[Param]:
     """Params of one model and unit, built without the frozen dataclass's per-field
     ``object.__setattr__`` (a session lists ~70 parameters; the objects are identical)."""
-    out = []
-    for name, v, e in zip(names, values, stderrs):
-        p = _new(Param)
-        p.__dict__.update(model=model, name=name, value=v, stderr=e, unit=unit)
-        out.append(p)
-    return out
+    return [_built(Param, model=model, name=name, value=v, stderr=e, unit=unit)
+            for name, v, e in zip(names, values, stderrs)]
 
 
-_new = object.__new__
+def _built(cls: type, **fields: Any) -> Any:
+    """``cls(**fields)`` of a frozen dataclass without its per-field ``object.__setattr__``
+    (a third of the cost where ~70 per session or unit are built); the objects are equal."""
+    obj = object.__new__(cls)
+    obj.__dict__.update(fields)
+    return obj
 
 
-def matrix_params(model: str, prefix: str, M: np.ndarray, S: np.ndarray, unit: str) -> list[Param]:
-    """Params ``prefix11 .. prefix33`` of a 3x3 matrix (paper numbering, row-major)."""
-    return params_of_blocks(((model, matrix_names(prefix), M, S, unit),))
-
-
-@lru_cache(maxsize=None)
 def matrix_names(prefix: str) -> tuple[str, ...]:
     """``prefix11 .. prefix33``: the names of a 3x3 matrix's entries, row-major."""
     return tuple(f"{prefix}{suffix}" for suffix in _MATRIX_SUFFIXES)
@@ -90,15 +84,9 @@ def matrix_names(prefix: str) -> tuple[str, ...]:
 _MATRIX_SUFFIXES = tuple(f"{i + 1}{j + 1}" for i in range(3) for j in range(3))
 
 
-def vector_params(model: str, names: Iterable[str], v: np.ndarray, s: np.ndarray,
-                  unit: str) -> list[Param]:
-    return params_of_blocks(((model, tuple(names), v, s, unit),))
-
-
 # A fit's parameters as blocks (model, names, values, stderrs, unit): ``names`` a tuple,
 # ``values`` / ``stderrs`` arrays (raveled in row-major order) of one name each. A fit with
-# a ``param_blocks()`` method lists its parameters from them (``params_of_blocks``), and
-# ``summarise`` reads the repetitions' values from them as arrays, without a Param each.
+# a ``param_blocks()`` method lists its parameters from them (``params_of_blocks``).
 ParamBlock = tuple[str, tuple[str, ...], Any, Any, str]
 
 
@@ -111,17 +99,6 @@ def params_of_blocks(blocks: Iterable[ParamBlock]) -> list[Param]:
         out += param_list(model, names, np.asarray(values, dtype=float).ravel().tolist(),
                           np.asarray(stderrs, dtype=float).ravel().tolist(), unit)
     return out
-
-
-@lru_cache(maxsize=256)
-def _block_layout(heads: tuple[tuple[str, tuple[str, ...], str], ...]
-                  ) -> tuple[tuple[tuple[str, str], ...], tuple[str, ...], bool]:
-    """(model, name) of every parameter of blocks with these (model, names, unit) heads,
-    their units, and whether the (model, name) pairs are distinct. The same few heads come
-    back for every repetition of every unit: worked out once each."""
-    keys = tuple((model, name) for model, names, _ in heads for name in names)
-    units = tuple(unit for _, names, unit in heads for _ in names)
-    return keys, units, len(set(keys)) == len(keys)
 
 
 def _is_frozen(obj: Any) -> bool:
@@ -161,17 +138,6 @@ class RepetitionCalibration:
         state.pop("_parameters", None)
         return state
 
-    def param_blocks(self) -> list[ParamBlock] | None:
-        """Every fit's parameter blocks in ``parameters()`` order, or None when a fit has no
-        ``param_blocks`` method (then only ``parameters()`` lists them)."""
-        blocks: list[ParamBlock] = []
-        for fit in self.fits.values():
-            of_fit = getattr(fit, "param_blocks", None)
-            if of_fit is None:
-                return None
-            blocks += of_fit()
-        return blocks
-
 
 @dataclass(frozen=True)
 class ParamSummary:
@@ -190,79 +156,50 @@ class ParamSummary:
 
 
 def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
-    """Mean, sample std (ddof=1), min, max over repetitions of every parameter."""
+    """Every parameter over the repetitions (xu2016 Tables 1-2): mean, sample std (ddof=1),
+    min, max, the values in rep order and the mean of the standard errors (NaN when no
+    repetition has a finite one), in the order the parameters first appear.
+
+    A parameter some repetitions lack (a model they could not fit) is summarised over those
+    that have it; each repetition lists a parameter at most once."""
     reps = sorted(reps, key=lambda r: r.rep)
     if not reps:
         return []
-    # the values as arrays straight from the fits' parameter blocks (a Param per parameter
-    # and repetition would cost more than the statistics); Params only for other fits
-    blocks = [rep.param_blocks() for rep in reps]
-    if any(b is None for b in blocks):
-        return _summarise_params([rep.parameters() for rep in reps])
-    layouts = [_block_layout(tuple((model, names, unit) for model, names, _, _, unit in b))
-               for b in blocks]
-    keys, units, distinct = layouts[0]
-    if not distinct or any(lay[0] != keys for lay in layouts[1:]):
-        return _summarise_by_key([rep.parameters() for rep in reps])
-    n = len(reps)
-    v = np.concatenate([np.asarray(x, dtype=float).ravel()
-                        for b in blocks for _, _, x, _, _ in b]).reshape(n, len(keys))
-    s = np.concatenate([np.asarray(x, dtype=float).ravel()
-                        for b in blocks for _, _, _, x, _ in b]).reshape(n, len(keys))
-    return _summary_rows(keys, units, v, s)
-
-
-def _summarise_params(params: list[list[Param]]) -> list[ParamSummary]:
-    """summarise() of the repetitions' parameter lists."""
-    keys = [(p.model, p.name) for p in params[0]]
-    if len(set(keys)) != len(keys) or any(
-            [(p.model, p.name) for p in ps] != keys for ps in params[1:]):
-        return _summarise_by_key(params)
-    v = np.array([[p.value for p in ps] for ps in params], dtype=float)
-    s = np.array([[p.stderr for p in ps] for ps in params], dtype=float)
-    return _summary_rows(keys, [p.unit for p in params[0]], v, s)
-
-
-def _summary_rows(keys, units, v: np.ndarray, s: np.ndarray) -> list[ParamSummary]:
-    """The summaries when every repetition has the same parameters in the same order (the
-    usual case): v and s (reps, parameters) values and standard errors, every statistic a
-    reduction over the first axis."""
-    n = v.shape[0]
+    # the repetitions x parameters table: value, stderr, and whether the repetition has it
+    column: dict[tuple[str, str], int] = {}
+    units: list[str] = []
+    listed = [rep.parameters() for rep in reps]
+    for params in listed:
+        for p in params:
+            if column.setdefault((p.model, p.name), len(column)) == len(units):
+                units.append(p.unit)
+    v = np.full((len(reps), len(units)), np.nan)
+    s = np.full_like(v, np.nan)
+    has = np.zeros(v.shape, dtype=bool)
+    for row, params in enumerate(listed):
+        cols = [column[(p.model, p.name)] for p in params]
+        if len(set(cols)) != len(cols):
+            raise ValueError(f"repetition {reps[row].rep} lists a parameter twice")
+        has[row, cols] = True
+        v[row, cols] = [p.value for p in params]
+        s[row, cols] = [p.stderr for p in params]
+    n = has.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = v.mean(axis=0)
-        std = v.std(axis=0, ddof=1) if n > 1 else np.full(v.shape[1], np.nan)
-        has_se = np.isfinite(s).any(axis=0)
-        s_sum = np.where(np.isnan(s), 0.0, s).sum(axis=0)  # nanmean, same arithmetic
-        mean_se = np.where(has_se, s_sum / (~np.isnan(s)).sum(axis=0), np.nan)
-    vmin, vmax = v.min(axis=0), v.max(axis=0)
-    out = []
-    for (model, name), unit, m, sd, lo, hi, col, se in zip(
-            keys, units, mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
-            v.T.tolist(), mean_se.tolist()):
-        summary = _new(ParamSummary)  # as ParamSummary(...), minus the frozen __setattr__s
-        summary.__dict__.update(model=model, name=name, unit=unit, mean=m, std=sd, min=lo,
-                                max=hi, n_reps=n, values=tuple(col), mean_stderr=se)
-        out.append(summary)
-    return out
-
-
-def _summarise_by_key(params: list[list[Param]]) -> list[ParamSummary]:
-    """summarise() when the repetitions do not list the same parameters."""
-    by_key: dict[tuple[str, str], list[Param]] = {}
-    for ps in params:
-        for p in ps:
-            by_key.setdefault((p.model, p.name), []).append(p)
-    out = []
-    for (model, name), ps in by_key.items():
-        v = np.array([p.value for p in ps])
-        s = np.array([p.stderr for p in ps])
-        out.append(ParamSummary(
-            model=model, name=name, unit=ps[0].unit, mean=float(v.mean()),
-            std=float(v.std(ddof=1)) if len(v) > 1 else float("nan"),
-            min=float(v.min()), max=float(v.max()), n_reps=len(v), values=tuple(v.tolist()),
-            mean_stderr=float(np.nanmean(s)) if np.isfinite(s).any() else float("nan"),
-        ))
-    return out
+        mean = np.where(has, v, 0.0).sum(axis=0) / n
+        deviation = np.where(has, v - mean, 0.0)
+        std = np.sqrt((deviation * deviation).sum(axis=0) / (n - 1))  # NaN for one value
+        se_known = has & ~np.isnan(s)
+        mean_se = np.where(se_known, s, 0.0).sum(axis=0) / se_known.sum(axis=0)
+    mean_se[~(has & np.isfinite(s)).any(axis=0)] = np.nan
+    vmin = np.where(has, v, np.inf).min(axis=0)
+    vmax = np.where(has, v, -np.inf).max(axis=0)
+    values = [tuple(x for x, h in zip(col, col_has) if h)
+              for col, col_has in zip(v.T.tolist(), has.T.tolist())]
+    return [_built(ParamSummary, model=model, name=name, unit=unit, mean=m, std=sd, min=lo,
+                   max=hi, n_reps=k, values=vals, mean_stderr=se)
+            for (model, name), unit, m, sd, lo, hi, k, vals, se in zip(
+                column, units, mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
+                n.tolist(), values, mean_se.tolist())]
 
 
 @dataclass
@@ -278,6 +215,3 @@ class UnitCalibration:
     def from_reps(cls, lot: str, unit: str, reps: list[RepetitionCalibration]) -> "UnitCalibration":
         reps = sorted(reps, key=lambda r: r.rep)
         return cls(lot=lot, unit=unit, reps=reps, summary=summarise(reps))
-
-    def summary_of(self, model: str) -> dict[str, ParamSummary]:
-        return {s.name: s for s in self.summary if s.model == model}

@@ -12,7 +12,6 @@ unit (``LSB``, ``V``) that the fitted matrices absorb; accelerometer channels ar
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from functools import lru_cache
 from typing import Any, Sequence
 
 import numpy as np
@@ -37,13 +36,6 @@ class SessionKey:
 
 _ROW_FIELDS = ("step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref", "gyro",
                "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c")
-
-
-@lru_cache(maxsize=256)
-def _rows_of_test(dtype: str, n: int, test: bytes, tests: tuple[str, ...]) -> np.ndarray:
-    rows = np.flatnonzero(np.isin(np.frombuffer(test, dtype=dtype, count=n), tests))
-    rows.setflags(write=False)
-    return rows
 
 
 @dataclass(frozen=True)
@@ -118,21 +110,14 @@ class StepMeans:
         return sub
 
     def rows_of_test(self, *tests: str) -> np.ndarray:
-        """Indices of the rows of the given tests, in row order (read-only: the array is
-        shared by every session of the same protocol, where it is found once)."""
-        test = self.test
-        if test.dtype.kind != "U":  # not a fixed-width string column: nothing to key on
-            return np.flatnonzero(np.isin(test, tests))
-        return _rows_of_test(test.dtype.str, len(test), test.tobytes(), tests)
+        """Indices of the rows of the given tests, in row order."""
+        return np.flatnonzero(np.isin(self.test, tests))
 
     def __getstate__(self) -> dict:  # the subsets are a cache: not pickled
         state = dict(self.__dict__)
         state.pop("_subsets", None)
         return state
 
-    @property
-    def has_temperature(self) -> bool:
-        return bool(np.isfinite(self.temp_c).any())
 
 
 def stack_field(sms: Sequence[StepMeans], name: str) -> np.ndarray:

@@ -1,11 +1,20 @@
 """The calibration method of Xu, Wang, Su, Zhu (2016), with standard errors.
 
-- Gyro, eq. 3-11: ``w = K_g G + w0``. The difference of a +rate and a -rate step about the
-  same axis removes the bias (eq. 5); K_g from all multirate pairs by least squares (eq. 6-8);
-  w0 = -K_g mean(G(0)) from the stationary steps (eq. 10-11).
-- Accelerometer, eq. 12-16: ``f = K_a A + f0`` from all multiposition steps.
+- Gyro, eq. 1 ``w = K_g G + w0`` (G raw output, w rate in deg/s), section 2.3.1:
+  eq. 3-4 the model at +rate and -rate about one axis; eq. 5 their difference
+  ``dw = K_g dG`` has no bias; eq. 6-8 K_g from all pairs by least squares; eq. 9-11
+  ``w0 = -K_g G(0)``, G(0) the mean output of the stationary steps.
+- Accelerometer, eq. 2 ``f = K_a A + f0``, section 2.3.2: eq. 12-13 the model of one
+  position as linear in the 12 parameters; eq. 14-16 all multiposition steps, least squares.
 - The "traditional" inverse model, ``G = S w + b`` so ``w = S^-1 (G - b)``, fitted on the
   same steps, for the comparison of the paper's Table 3.
+
+The paper writes each least squares as one stacked system (eq. 7, 15: a block-diagonal
+design with one block per row of K). The blocks share their design, so each fit below solves
+the three rows at once: ``dW = dG K_g^T`` (eq. 6) and ``F = [A 1] [K_a f0]^T`` (eq. 14), the
+same estimates. Every fit works on a leading repetition axis: ``fit_*`` of one session is the
+``fit_*_stack`` of a list of one, and the stack of a unit's repetitions (same step layout)
+runs each operation once for all of them.
 
 Standard errors come from the residuals and the design. The step-level noise that the +/-
 differences reveal (white noise averaged over the step plus step-to-step bias instability) is
@@ -14,8 +23,7 @@ possible from only three stationary steps.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from functools import lru_cache
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -24,16 +32,22 @@ import pandas as pd
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq_stack
 from calib_core.results import Param, ParamBlock, matrix_names, params_of_blocks
-from calib_core.tables import CodedStrings, ColumnTable
 from calib_core.steps import StepMeans, stack_field
+from calib_core.tables import CodedStrings, ColumnTable
 
 AXES = "xyz"
 MAX_CONDITION = 1e6  # beyond this the design cannot separate the parameters
 
 
-@lru_cache(maxsize=None)
 def _axis_names(prefix: str) -> tuple[str, ...]:
     return tuple(f"{prefix}_{a}" for a in AXES)
+
+
+# parameter names (the paper's): K_g, w0 (eq. 1), K_a, f0 (eq. 2), the traditional S, b
+K_G_NAMES, W0_NAMES = matrix_names("k_g"), _axis_names("w0")
+K_A_NAMES, F0_NAMES = matrix_names("k_a"), _axis_names("f0")
+S_G_NAMES, B_G_NAMES = matrix_names("s_g"), _axis_names("b_g")
+S_A_NAMES, B_A_NAMES = matrix_names("s_a"), _axis_names("b_a")
 
 
 def _check_determined(sm: StepMeans, excitation: np.ndarray, what: str, needed: str) -> None:
@@ -56,41 +70,24 @@ def multirate_pairs(sm: StepMeans) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     Returns (dG (n,3) raw, dW (n,3) deg/s, index pairs (n,2) into ``sm``). A step whose
     partner is missing (saturated, too short) is left out: the difference needs both.
     """
-    pairs_arr = _protocol_pairs(sm)
-    dG = sm.gyro[pairs_arr[:, 0]] - sm.gyro[pairs_arr[:, 1]]
-    dW = sm.w_ref[pairs_arr[:, 0]] - sm.w_ref[pairs_arr[:, 1]]
-    return dG, dW, pairs_arr.copy()
+    pairs = _pair_indices(sm)
+    dG = sm.gyro[pairs[:, 0]] - sm.gyro[pairs[:, 1]]
+    dW = sm.w_ref[pairs[:, 0]] - sm.w_ref[pairs[:, 1]]
+    return dG, dW, pairs
 
 
-def _protocol_pairs(sm: StepMeans) -> np.ndarray:
-    # the pairing depends on the protocol only (tests, rates, reference rates), the same for
-    # every session of a fleet: found once per protocol, not once per session
-    multirate = sm.test == "multirate"
-    return _pairs_of_protocol(multirate.tobytes(), sm.rate_dps.astype(float).tobytes(),
-                              np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
-
-
-@lru_cache(maxsize=64)
-def _pairs_of_protocol(multirate: bytes, rate_dps: bytes, w_ref: bytes) -> np.ndarray:
-    """(n,2) index pairs (+rate step, -rate step) of a protocol, read-only (it is shared)."""
-    rate = np.frombuffer(rate_dps, dtype=float)
-    w_ref_arr = np.frombuffer(w_ref, dtype=float).reshape(-1, 3)
-    idx = np.flatnonzero(np.frombuffer(multirate, dtype=bool))
-    groups: dict[tuple, dict[int, list[int]]] = {}
-    for i in idx:  # one pass over the protocol's steps, once per protocol
-        r = rate[i]
-        if r == 0:
-            continue
-        direction = np.round(w_ref_arr[i] / r, 6) + 0.0  # rotation axis, sign-free
-        key = (round(abs(r), 6), tuple(direction))
-        groups.setdefault(key, {1: [], -1: []})[int(np.sign(r))].append(i)
-    pairs = []
-    for sides in groups.values():
-        for p, m in zip(sides[1], sides[-1]):
-            pairs.append((p, m))
-    pairs_arr = np.array(sorted(pairs), dtype=int).reshape(-1, 2)
-    pairs_arr.setflags(write=False)
-    return pairs_arr
+def _pair_indices(sm: StepMeans) -> np.ndarray:
+    """(n,2) index pairs (+rate step, -rate step) of the multirate steps: same rotation axis,
+    same |rate|, opposite signs; matched in step order, sorted."""
+    idx = np.flatnonzero((sm.test == "multirate") & (sm.rate_dps != 0))
+    rate = sm.rate_dps[idx].astype(float)
+    # a step's key: |rate| and rotation axis (w_ref / rate: the same for + and -), rounded
+    key = np.round(np.column_stack([np.abs(rate), sm.w_ref[idx] / rate[:, None]]), 6) + 0.0
+    sides: dict[tuple, tuple[list[int], list[int]]] = {}
+    for i, k, minus in zip(idx.tolist(), map(tuple, key.tolist()), (rate < 0).tolist()):
+        sides.setdefault(k, ([], []))[minus].append(i)
+    pairs = sorted(p for plus, minus in sides.values() for p in zip(plus, minus))
+    return np.array(pairs, dtype=int).reshape(-1, 2)
 
 
 @dataclass(frozen=True)
@@ -118,9 +115,8 @@ class GyroMultirateFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        return [(self.model, matrix_names("k_g"), self.K, self.K_stderr,
-                 f"deg/s per {self.raw_unit}"),
-                (self.model, _axis_names("w0"), self.w0, self.w0_stderr, "deg/s")]
+        return [(self.model, K_G_NAMES, self.K, self.K_stderr, f"deg/s per {self.raw_unit}"),
+                (self.model, W0_NAMES, self.w0, self.w0_stderr, "deg/s")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -134,26 +130,31 @@ class GyroMultirateFit:
 
 
 def fit_gyro_multirate(sm: StepMeans) -> GyroMultirateFit:
-    """xu2016 eq. 5-11 on one session's step means."""
+    """xu2016 eq. 3-11 on one session's step means (see :func:`fit_gyro_multirate_stack`)."""
     return fit_gyro_multirate_stack([sm])[0]
 
 
 def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]:
-    """:func:`fit_gyro_multirate` of sessions that share one step layout (the repetitions of
-    a unit: same steps, tests and references), solved together; session r's fit is the one
-    ``fit_gyro_multirate(sms[r])`` returns, bit for bit. Raises the DesignError of the first
-    session that has one."""
+    """K_g and w0 of each session of one step layout (the repetitions of a unit: same steps,
+    tests and references); item r is ``fit_gyro_multirate(sms[r])``, bit for bit. Raises the
+    DesignError of the first session that has one."""
     sm = sms[0]  # the layout every session shares
-    pairs = _protocol_pairs(sm)
-    dW = sm.w_ref[pairs[:, 0]] - sm.w_ref[pairs[:, 1]]
+    pairs = _pair_indices(sm)
     if len(pairs) < 4:
         raise DesignError("E_UNDETERMINED",
                           f"gyro: {len(pairs)} complete +/- multirate pairs, at least 4 needed "
                           "to determine the 9 elements of K_g with a residual")
+    plus, minus = pairs[:, 0], pairs[:, 1]
+    G = stack_field(sms, "gyro")  # (R, n, 3) raw outputs, one row per step
+
+    # eq. 3-5: w+(i) - w-(i) = K_g (G+(i) - G-(i)), the bias w0 cancels
+    dW = sm.w_ref[plus] - sm.w_ref[minus]  # (pairs, 3): the rows of dOmega
+    dG = G[:, plus] - G[:, minus]  # (R, pairs, 3): the rows of dG
     _check_determined(sm, dW, "gyro", "multirate rotation")
-    G = stack_field(sms, "gyro")  # (R, n, 3)
-    # eq. 6-8 for all three rows at once: dW (n,3) = dG (n,3) K^T
-    ls = solve_lstsq_stack(G[:, pairs[:, 0]] - G[:, pairs[:, 1]], dW)
+
+    # eq. 6-8: K_G = (dG^T dG)^-1 dG^T dOmega over all pairs, the three rows of K_g at once
+    # (dW = dG K_g^T); by SVD, never forming dG^T dG
+    ls = solve_lstsq_stack(dG, dW)
     singular = (ls.rank < 3) | (ls.condition_number > MAX_CONDITION)
     if singular.any():
         cond = float(ls.condition_number[np.argmax(singular)])
@@ -162,16 +163,18 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
                           f"{cond:.3g}): the rotation axes do not span 3-D")
     K = np.swapaxes(ls.coef, 1, 2)
     K_se = np.swapaxes(ls.stderr, 1, 2)
-    # A difference holds the noise of two steps: step-level variance is half the residual's.
+    # a difference holds the noise of two steps: the step-level variance is half the residual's
     step_sigma = np.sqrt(ls.sigma2 / 2.0)
+
+    # eq. 9-11: w0 = -K_g G(0), G(0) the mean output of the stationary steps
     stat = np.flatnonzero(sm.test == "stationary")
     if len(stat):
         G0 = G[:, stat].mean(axis=1)
         n0, source = len(stat), "stationary"
-    else:  # a linear sensor's +/- midpoint is its zero-rate output
-        G0 = 0.5 * (G[:, pairs[:, 0]] + G[:, pairs[:, 1]]).mean(axis=1)
+    else:  # without stationary steps: a linear sensor's +/- midpoint is its zero-rate output
+        G0 = 0.5 * (G[:, plus] + G[:, minus]).mean(axis=1)
         n0, source = 2 * len(pairs), "pair_midpoints"
-    w0 = (-K @ G0[:, :, None])[:, :, 0]  # eq. 10-11
+    w0 = (-K @ G0[:, :, None])[:, :, 0]
     # var(w0_i) = step noise / n0  +  G0^T cov(K_i) G0   (independent steps)
     var_k = np.array([[g0 @ (cov * s2[i]) @ g0 for i in range(3)]
                       for g0, cov, s2 in zip(G0, ls.cov_unscaled, ls.sigma2)])
@@ -206,9 +209,8 @@ class AccelMultipositionFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        return [(self.model, matrix_names("k_a"), self.K, self.K_stderr,
-                 f"g per {self.raw_unit}"),
-                (self.model, _axis_names("f0"), self.f0, self.f0_stderr, "g")]
+        return [(self.model, K_A_NAMES, self.K, self.K_stderr, f"g per {self.raw_unit}"),
+                (self.model, F0_NAMES, self.f0, self.f0_stderr, "g")]
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -220,13 +222,13 @@ class AccelMultipositionFit:
 
 
 def fit_accel_multiposition(sm: StepMeans) -> AccelMultipositionFit:
-    """xu2016 eq. 12-16: F = K_a A + f0 over all multiposition steps."""
+    """xu2016 eq. 12-16 on one session's step means (see
+    :func:`fit_accel_multiposition_stack`)."""
     return fit_accel_multiposition_stack([sm])[0]
 
 
 def fit_accel_multiposition_stack(sms: Sequence[StepMeans]) -> list[AccelMultipositionFit]:
-    """:func:`fit_accel_multiposition` of sessions that share one step layout, solved
-    together (as :func:`fit_gyro_multirate_stack`)."""
+    """K_a and f0 of each session of one step layout, as :func:`fit_gyro_multirate_stack`."""
     sm = sms[0]
     rows = sm.rows_of_test("multiposition")
     n = len(rows)
@@ -234,10 +236,14 @@ def fit_accel_multiposition_stack(sms: Sequence[StepMeans]) -> list[AccelMultipo
         raise DesignError("E_UNDETERMINED",
                           f"accel: {n} multiposition steps, at least 5 needed for the "
                           "12 parameters of K_a and f0 with a residual")
-    f_ref = sm.f_ref[rows]
-    _check_determined(sm, f_ref, "accel", "multiposition specific force")
-    X = np.concatenate([stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))], axis=2)
-    ls = solve_lstsq_stack(X, f_ref)
+    # eq. 12-13: at one position, f = K_a A + f0 is linear in (K_a, f0): f_i = [A 1] . row i
+    F = sm.f_ref[rows]  # (n, 3) the known specific force of each position
+    _check_determined(sm, F, "accel", "multiposition specific force")
+    A1 = np.concatenate([stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))],
+                        axis=2)  # (R, n, 4): [A 1]
+
+    # eq. 14-16: K_A = (A^T A)^-1 A^T F over all positions, the three rows at once
+    ls = solve_lstsq_stack(A1, F)
     singular = (ls.rank < 4) | (ls.condition_number > MAX_CONDITION)
     if singular.any():
         cond = float(ls.condition_number[np.argmax(singular)])
@@ -282,11 +288,11 @@ class TraditionalFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        prefix = "s_g" if self.model.startswith("gyro") else "s_a"
-        bname = "b_g" if self.model.startswith("gyro") else "b_a"
-        return [(self.model, matrix_names(prefix), self.S, self.S_stderr,
+        s_names, b_names = ((S_G_NAMES, B_G_NAMES) if self.model.startswith("gyro")
+                            else (S_A_NAMES, B_A_NAMES))
+        return [(self.model, s_names, self.S, self.S_stderr,
                  f"{self.raw_unit} per {self.physical_unit}"),
-                (self.model, _axis_names(bname), self.b, self.b_stderr, self.raw_unit)]
+                (self.model, b_names, self.b, self.b_stderr, self.raw_unit)]
 
     def to_dict(self) -> dict[str, Any]:
         return {"S": self.S.tolist(), "b": self.b.tolist(),
@@ -298,8 +304,8 @@ class TraditionalFit:
 def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> list[TraditionalFit]:
     """raw (R, n, 3) of R sessions on the references ref (n, 3) they share."""
     X = np.hstack([ref, np.ones((len(ref), 1))])
-    ls = solve_lstsq_stack(X, raw, reuse_design=True)  # [references, 1]: the protocol's
-    rank, cond = int(ls.rank[0]), float(ls.condition_number[0])  # the design's: shared
+    ls = solve_lstsq_stack(X, raw)  # one design [references, 1], shared by the sessions
+    rank, cond = int(ls.rank[0]), float(ls.condition_number[0])
     if rank < 4 or cond > MAX_CONDITION:
         raise DesignError("E_UNDETERMINED", f"{model}: design is singular "
                           f"(condition number {cond:.3g})")
@@ -342,11 +348,6 @@ def fit_accel_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit
 
 
 # --------------------------------------------------------------------------- Table 3
-def input_axis_of(w_ref: np.ndarray) -> np.ndarray:
-    """Body axis a rotation step excites most ('x', 'y', 'z')."""
-    return np.array(list(AXES))[np.argmax(np.abs(w_ref), axis=1)]
-
-
 COMPENSATION_COLUMNS = ["input_axis", "output_axis", "method", "err_min", "err_max",
                         "unit_of_measure", "source", "n_steps"]
 
@@ -381,9 +382,7 @@ def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroM
         return [compensation_error_table(sm, p, t, tests)
                 for sm, p, t in zip(sms, proposed, traditional)]
     sm = sms[0]
-    rows = _rotation_groups(tests, np.isin(sm.test, tests).tobytes(),
-                            sm.rate_dps.astype(float).tobytes(),
-                            np.ascontiguousarray(sm.w_ref, dtype=float).tobytes())
+    rows = _rotation_groups(sm, tests)
     if rows is None:
         return [ColumnTable({c: np.empty(0) for c in COMPENSATION_COLUMNS}, 0) for _ in sms]
     idx, starts, present, n_steps = rows  # steps ordered by input axis, group starts
@@ -421,19 +420,14 @@ def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroM
     }, n_rows) for r in range(len(sms))]
 
 
-@lru_cache(maxsize=64)
-def _rotation_groups(tests: tuple[str, ...], in_tests: bytes, rate_dps: bytes, w_ref: bytes):
-    """Rotation steps of the given tests grouped by input axis, for a protocol (the same for
-    every session of a fleet): (step indices ordered by input axis, start of each group,
-    the input axes present, steps per group), or None when there is no such step."""
-    mask = np.frombuffer(in_tests, dtype=bool) & (np.frombuffer(rate_dps, dtype=float) != 0)
-    idx = np.flatnonzero(mask)
+def _rotation_groups(sm: StepMeans, tests: tuple[str, ...]):
+    """Rotation steps of the given tests grouped by input axis (the body axis the step
+    excites most): (step indices ordered by input axis, start of each group, the input axes
+    present, steps per group), or None when there is no such step."""
+    idx = np.flatnonzero(np.isin(sm.test, tests) & (sm.rate_dps != 0))
     if len(idx) == 0:
         return None
-    axis = np.argmax(np.abs(np.frombuffer(w_ref, dtype=float).reshape(-1, 3)[idx]), axis=1)
+    axis = np.argmax(np.abs(sm.w_ref[idx]), axis=1)
     order = np.argsort(axis, kind="stable")  # within a group, steps keep their order
     present, starts, n_steps = np.unique(axis[order], return_index=True, return_counts=True)
-    out = (idx[order], starts, np.array(list(AXES))[present], n_steps.astype(np.int64))
-    for a in out:
-        a.setflags(write=False)
-    return out
+    return idx[order], starts, np.array(list(AXES))[present], n_steps.astype(np.int64)

@@ -3,9 +3,10 @@ lever arms (size effect) of the three accelerometers.
 
 Static model (paper section 2.1, eq. 1-9). Accelerometer i has a scale factor k_i (raw unit
 per g), a zero bias u_i0 = k_i B_i (raw unit) and a sensitive axis c_i, the unit vector of
-direction cosines cos(theta_ij) against the body axes (column i of the paper's C_ab):
+direction cosines cos(theta_ij) against the body axes (column i of the paper's C_ab, eq. 9):
 
-    u_i = k_i (c_i . f + B_i)        i.e.   A = M f + u0,   M = diag(k) C^T
+    u_i = k_i (c_i . f + B_i)   (eq. 2, 4)
+    i.e.  A = M f + u0,   M = diag(k) C^T   (eq. 5, 7)
 
 M and u0 (12 numbers) are estimated by linear least squares; k_i = |M_i| and c_i = M_i / k_i
 recover the 15 parameters exactly (3 of the 15 are fixed by |c_i| = 1). The affine form of
@@ -14,17 +15,16 @@ xu2016 (f = K_a A + f0) is K_a = M^-1, f0 = -M^-1 u0.
 Dynamic model (sections 2.2-2.3). Accelerometer i sits at r_i (mm) from the rotation centre
 and senses its own axis' component of the specific force at r_i:
 
-    u_i = k_i (c_i . (f + W r_i) + B_i),    W = [w x]^2 + [dw/dt x]
+    u_i = k_i (c_i . (f + W r_i) + B_i),    W = [w x]^2 + [dw/dt x]      (eq. 11-13)
 
-With the static model known, y_i = (u_i - u0_i) / k_i - c_i . f = c_i^T W r_i is linear in
-r_i; :func:`fit_lever_arm` solves it for all nine components in one least squares over every
+With the static model known, y_i = (u_i - u0_i) / k_i - c_i . f = c_i^T W r_i (eq. 12, the
+lever term f_iL) is linear in r_i; :func:`fit_lever_arm` solves it for all nine components in one least squares over every
 dynamic step and rate. The paper's closed form (its eq. 24, :func:`paper_lever_arm`) divides by
 the direction cosines, which are near zero for the off-diagonal components: kept for contrast.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any, ClassVar, Sequence
 
 import numpy as np
@@ -45,9 +45,6 @@ BIAS_NAMES = tuple(f"u0_{a}" for a in AXES)
 # is reported as undetermined (with x/y/z-up steps only, the off-diagonal components are seen
 # through direction cosines of ~0.01: the paper's "distortion")
 UNDETERMINED_RCOND = 0.05
-# the lever-arm fit takes its block-diagonal shortcut when every component is determined
-# (tests switch it off to compare with the general joint solve)
-_BLOCK_PATH = True
 
 
 # -- conversions between the 15-parameter form and the paper's 12-parameter affine form --------
@@ -161,33 +158,6 @@ class AccelStaticFit:
         }
 
 
-def _ls_cov(X: np.ndarray) -> np.ndarray:
-    """(X^T X)^-1 = V S^-2 V^T from the SVD of X (never forming or inverting X^T X)."""
-    _, sv, Vt = np.linalg.svd(X, full_matrices=False)
-    return (Vt.T / sv ** 2) @ Vt
-
-
-@dataclass(frozen=True)
-class _StaticDesign:
-    """What the static fit needs of its design [f_ref, 1] alone (read-only, shared)."""
-
-    sv: np.ndarray  # singular values, largest first
-    unscaled: np.ndarray  # (4, 4) (X^T X)^-1
-
-
-@lru_cache(maxsize=32)
-def _static_design(shape: tuple[int, int], data: bytes) -> _StaticDesign:
-    # [f_ref, 1] comes from the protocol's references, the same for every session of a
-    # fleet: its singular values and (X^T X)^-1 once per protocol, not twice per session
-    X = np.frombuffer(data, dtype=float).reshape(shape)
-    sv = np.linalg.svd(X, compute_uv=False)
-    unscaled = (_ls_cov(X) if sv[-1] > 1e-9 * sv[0]
-                else np.full((shape[1], shape[1]), np.nan))  # never used: the fit refuses
-    for a in (sv, unscaled):
-        a.setflags(write=False)
-    return _StaticDesign(sv, unscaled)
-
-
 def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> AccelStaticFit:
     """15-parameter static model from the static steps with known specific force.
 
@@ -211,9 +181,9 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
         raise DesignError("E_TOO_FEW_STATIC_STEPS",
                           f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
                           "at least 5 to estimate its noise", ("accel_static",))
+    # eq. 5: A = M f + u0, per channel i A_i = [f 1] . (M_i, u0_i): one design X = [f_ref 1]
     X = np.hstack([sm.f_ref[rows], np.ones((n, 1))])
-    design = _static_design(X.shape, X.tobytes())
-    sv = design.sv
+    _, sv, Vt = np.linalg.svd(X, full_matrices=False)
     if sv[-1] <= 1e-9 * sv[0]:
         raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
                           "directions and a constant: M and u0 are not determined",
@@ -225,14 +195,18 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
     beta = np.stack([np.linalg.lstsq(X, a, rcond=None)[0] for a in A])  # column i: (M_i, u0_i)
     M = np.swapaxes(beta[:, :3], 1, 2)
     u0 = beta[:, 3]
+    # eq. 7, 9: M = diag(k) C^T, so k_i = |M_i| and c_i = M_i / k_i (a unit vector)
     k, C = decompose_static(M)
+    # noise pooled over the three channels in g (one accelerometer type: equal noise in g)
     resid = A - X @ beta
     dof_ch = n - 4
     var_g = ((resid / k[:, None, :]) ** 2).reshape(len(sms), -1).sum(axis=1) / (3 * dof_ch)
-    channel_cov = design.unscaled * (var_g[:, None] * k ** 2)[:, :, None, None]  # (R,3,4,4)
+    unscaled = (Vt.T / sv ** 2) @ Vt  # (X^T X)^-1 from the SVD, never inverting X^T X
+    channel_cov = unscaled * (var_g[:, None] * k ** 2)[:, :, None, None]  # (R,3,4,4)
     cov_m = channel_cov[:, :, :3, :3]
     u0_se = np.sqrt(channel_cov[:, :, 3, 3])
-    k_se = np.sqrt(np.einsum("rji,rijk,rki->ri", C, cov_m, C))  # dk_i/dM_i = c_i
+    # standard errors through the Jacobian of the decomposition: dk_i/dM_i = c_i
+    k_se = np.sqrt(np.einsum("rji,rijk,rki->ri", C, cov_m, C))
     # dc_i/dM_i = (I - c_i c_i^T) / k_i; d theta_ij / d M_i = -(row j of it) / sin theta_ij
     Ct = np.swapaxes(C, 1, 2)  # row i = c_i
     dc = (np.eye(3) - Ct[:, :, :, None] * Ct[:, :, None, :]) / k[:, :, None, None]
@@ -332,7 +306,7 @@ def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=No
                   projection: str = "sensitive_axis") -> LeverArmFit:
     """r_1, r_2, r_3 (mm) from the ``dynamic`` steps by one joint least squares.
 
-    ``projection="sensitive_axis"`` (the paper, eq. 13): row (i, s) is
+    ``projection="sensitive_axis"`` (the paper, eq. 12-13): row (i, s) is
     y_is = (u_is - u0_i)/k_i - c_i . f_ref,s = c_i^T W_s r_i (1e-3/g: mm -> g).
     ``projection="body_axis"`` is the model of the catalogue's ``lever_arm`` term
     (:class:`calib_core.effect_terms.LeverArmTerm`): the statically compensated body-frame
@@ -420,14 +394,13 @@ def fit_lever_arm_from_stack(inputs: Sequence[LeverArmInputs],
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
     designs = [_lever_design(x, projection) for x in inputs]
-    if _BLOCK_PATH:
-        certified = _certify_determined(designs, rcond)
-        if certified is not None:
-            return _fit_all_determined(inputs, [_all_kept(Xb, yb) for Xb, yb in designs],
-                                       projection, estimate_only, certified)
+    certified = _certify_determined(designs, rcond)
+    if certified is not None:
+        return _fit_all_determined(inputs, [_all_kept(Xb, yb) for Xb, yb in designs],
+                                   projection, estimate_only, certified)
     blocks = [_lever_blocks(x, rcond, projection, design)
               for x, design in zip(inputs, designs)]
-    determined = [_BLOCK_PATH and len(b.cols) == 9 for b in blocks]
+    determined = [len(b.cols) == 9 for b in blocks]
     if all(determined):
         return _fit_all_determined(inputs, blocks, projection, estimate_only)
     return [_fit_all_determined([x], [b], projection, estimate_only)[0] if all_determined
@@ -443,7 +416,7 @@ CERTIFY_MARGIN = 2.0
 def _certify_determined(designs: Sequence[tuple[np.ndarray, np.ndarray]], rcond: float):
     """The stacked blocks and their SVD, (Xb (R,3,n,3), yb (R,3,n), (U, s, Vt)), when every
     block of every session certainly keeps its three columns in :func:`_lever_blocks`'
-    pivoted QR; else None (then the QR decides, as before).
+    pivoted QR; else None (then the QR decides).
 
     Why it is certain: every diagonal entry of a pivoted QR's R of X is the distance of a
     column from the span of other columns, hence >= sigma_min(X), and the first is a column
@@ -504,13 +477,14 @@ def _lever_design(inputs: LeverArmInputs, projection: str) -> tuple[np.ndarray, 
     X (3, n, 3) and y (3, n), block i the rows of accelerometer i."""
     static, d, W, f_hat = inputs.static, inputs.d, inputs.W, inputs.f_hat
     if projection == "sensitive_axis":
+        # eq. 12-13: (u_i - u0_i)/k_i - c_i . f = c_i^T W r_i, the lever term f_iL
         k, C, u0 = static.scale, static.C, static.bias
         M = static.M
         Xb = np.einsum("ji,njk->ink", C, W)  # row s of block i: c_i^T W_s
-        # f_ref @ M[i] one row at a time, as before: the lever term is a small difference
+        # f_ref @ M[i] one row at a time: the lever term is a small difference
         # of these, and d.f_ref @ M.T rounds differently (1e-10 of a near-zero lever arm)
         yb = (d.accel.T - u0[:, None] - np.stack([d.f_ref @ M[i] for i in range(3)])) / k[:, None]
-    else:
+    else:  # eq. 11 on the body axes: (K_a (u - u0) - f)_i = (W r_i)_i
         Xb = np.ascontiguousarray(W.transpose(1, 0, 2))  # block i: rows i of W_s
         yb = (f_hat - d.f_ref).T
     return Xb, yb
@@ -558,8 +532,8 @@ def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str,
 
 def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
                estimate_only: bool = False):
-    """The joint least squares of one session over its determined components (the general
-    path: some component undetermined, or the block path switched off)."""
+    """The joint least squares of one session over its determined components (some
+    component is undetermined: the blocks no longer have three columns each)."""
     static, d, K_a, f_hat = inputs.static, inputs.d, inputs.K_a, inputs.f_hat
     n = len(d)
     k, M = static.scale, static.M
@@ -578,8 +552,7 @@ def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
     resid = Y - A @ theta
     dof = 3 * n - len(cols)
     var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
-    # one SVD of A gives (A^T A)^-1, the pseudo-inverse and the condition number (the same
-    # operations as _ls_cov and np.linalg.pinv, which each took their own SVD)
+    # one SVD of A gives (A^T A)^-1, the pseudo-inverse and the condition number
     U, sva, Vt = np.linalg.svd(A, full_matrices=False)
     cov = ((Vt.T / sva ** 2) @ Vt) * var_g
     s_inv = np.divide(1.0, sva, where=sva > 1e-15 * sva.max(), out=np.zeros_like(sva))
@@ -602,13 +575,10 @@ def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
     for c, (i, j) in enumerate(cols):
         r[i, j] = theta[c]
         se[i, j] = np.sqrt(cov[c, c])
-    if len(cols) == 9:  # every column kept: the full design is A itself
-        svf = sva
-    else:
-        full = np.zeros((3 * n, 9))
-        for i, X, _, _ in blocks:
-            full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
-        svf = np.linalg.svd(full, compute_uv=False)
+    full = np.zeros((3 * n, 9))  # the design with all nine components
+    for i, X, _, _ in blocks:
+        full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
+    svf = np.linalg.svd(full, compute_uv=False)
     return LeverArmFit(
         lever_arm_mm=r, stderr=se, condition_number=float(sva[0] / sva[-1]),
         condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
@@ -624,7 +594,7 @@ def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_Leve
     tilted steps), all sessions together.
 
     The design is then block diagonal with three (n,3) blocks, one per accelerometer, so one
-    batched SVD of the blocks (of every session) gives what the general path gets from
+    batched SVD of the blocks (of every session) gives what :func:`_fit_joint` gets from
     lstsq, two SVDs and a pseudo-inverse of the (3n,9) design: the same estimates and
     covariance, to rounding."""
     d = inputs[0].d

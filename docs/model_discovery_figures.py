@@ -28,7 +28,7 @@ def power(n_units: int = 20, scales=(0.25, 0.5, 1.0), n_clean: int = 200) -> Non
     rng = np.random.default_rng(2026)
     t0 = time.perf_counter()
     fx = mis = 0
-    for u in range(n_clean):
+    for _ in range(n_clean):
         d = diagnose_unit(simulate_unit(truth0(rng), steps, rng)[0], tables=False)
         fx += bool(d.effects)
         mis += d.misfit
@@ -46,7 +46,7 @@ def power(n_units: int = 20, scales=(0.25, 0.5, 1.0), n_clean: int = 200) -> Non
             rng = np.random.default_rng(sum(map(ord, name)) + int(100 * scale))
             right = mis = 0
             gains = []
-            for u in range(n_units):
+            for _ in range(n_units):
                 theta, _ = hidden_effect(name, rng, scale)
                 truth = truth0(rng).with_effects((get_effect(name), theta))
                 d = diagnose_unit(simulate_unit(truth, steps, rng)[0], tables=False)
@@ -78,9 +78,9 @@ def xu2016() -> None:
     print("| input | method | output | published | linear model | extended model | gap closed |")
     print("|---|---|---|---|---|---|---|")
     for row in r["table3"]:
-        p, l, e = row["published"], row["linear"], row["extended"]
-        print(f"| {row['input']} | {row['method']} | {row['output']} | {p[0]:.3f} ~ {p[1]:.3f} | "
-              f"{l[0]:.3f} ~ {l[1]:.3f} | {e[0]:.3f} ~ {e[1]:.3f} | {100 * row['closed']:.0f} % |")
+        pub, lin, ext = row["published"], row["linear"], row["extended"]
+        print(f"| {row['input']} | {row['method']} | {row['output']} | {pub[0]:.3f} ~ {pub[1]:.3f} | "
+              f"{lin[0]:.3f} ~ {lin[1]:.3f} | {ext[0]:.3f} ~ {ext[1]:.3f} | {100 * row['closed']:.0f} % |")
     print()
     for b in r["bias"]:
         print(b)

@@ -4,7 +4,7 @@ The unit work (read, average, fit, discovery) is Python and numpy on small array
 the GIL, so Prefect's thread pool runs it on one core. Prefect's own ``ProcessPoolTaskRunner``
 uses both cores but each spawned worker imports Prefect and builds its own client and task
 context before its first task (8-10 s of CPU per worker on these machines,
-docs/perf-parallel.md), which only pays on fleets of several hundred units.
+docs/benchmarks.md), which only pays on fleets of several hundred units.
 
 Here the Prefect tasks stay where they are (one task run per batch of units in the flow's
 thread pool, with its state and logs as with ``threads``); each task hands its batch to a pool
@@ -138,7 +138,7 @@ class DaskPool:
         # pickled blob: left to Dask, every numpy buffer of the result's tables travels as a
         # frame of its own (961 frames for a 4-unit batch, 70 ms to serialise in the worker
         # against 24 ms for one pickle), each read separately by this process, which also runs
-        # Prefect and the store (docs/perf3-dask.md)
+        # Prefect and the store (docs/benchmarks.md)
         import pickle
         blob = self.client.submit(_call_pickled, fn, *args, pure=False).result()
         return pickle.loads(blob)

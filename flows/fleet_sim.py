@@ -24,6 +24,7 @@ import json
 import os
 import tempfile
 from dataclasses import replace
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Callable
 
@@ -143,6 +144,8 @@ def damage_session(path: Path, kind: str, steps: pd.DataFrame, rng: np.random.Ge
     return BAD_KINDS[kind][1]
 
 
+SIM_FIRST_SESSION = datetime(2026, 11, 20, 2, 0, tzinfo=timezone.utc)
+
 def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
                    sample_rate_hz: float = 100.0, outliers: int = 0, bad_sessions: int = 0,
                    verification: bool = False, gyro_unit: str | None = None,
@@ -208,9 +211,11 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
                 key = SessionKey(lot, unit, rep)
                 rep_truth = draw_repetition_truth(truth, unit_rng)
                 samples = simulate_session(rep_truth, steps, unit_rng, sample_rate_hz)
+                # lot k is acquired on day k from 2026-11-20 02:00 UTC, its units one after
+                # the other, a minute per repetition (acquisition order: trends, history)
+                start = SIM_FIRST_SESSION + timedelta(days=li, minutes=ui * reps + rep - 1)
                 md = session_metadata(rep_truth, sample_rate_hz,
-                                      session_start=f"2026-11-20T{2 + (rep - 1) // 60:02d}:"
-                                                    f"{(rep - 1) % 60:02d}:00Z",
+                                      session_start=start.strftime("%Y-%m-%dT%H:%M:%SZ"),
                                       lot=lot, unit=unit, rep=str(rep), seed=str(seed))
                 path = write_session(out, key, steps, samples, md, gyro_unit, accel_unit)
                 rep_doc = {"rep": rep, "path": str(path.relative_to(out)),
@@ -231,6 +236,3 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
     _write_json_atomic(out / MANIFEST, manifest)
     return manifest
 
-
-def load_manifest(out: Path | str) -> dict:
-    return json.loads((Path(out) / MANIFEST).read_text())

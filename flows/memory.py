@@ -1,6 +1,6 @@
 """Give memory the process has freed back to the operating system.
 
-Why (docs/perf3-store.md): the nightly flow's process works lot by lot (store a lot, later
+Why (docs/benchmarks.md): the nightly flow's process works lot by lot (store a lot, later
 write a lot report), and each lot's work allocates ~50-100 MB that is freed when the lot is
 done. glibc's malloc keeps freed chunks in its arenas (one per thread that allocated: the
 flow's thread, the store's writer thread, the task runner's threads) and returns them to the

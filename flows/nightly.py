@@ -39,7 +39,7 @@ from prefect.task_runners import ThreadPoolTaskRunner  # noqa: E402
 
 from calib_core.tables import ColumnTable  # noqa: E402
 from calib_core.outliers import (  # noqa: E402
-    LotFlags, OutlierConfig, apply_flags, config_from_toml, flag_lots, known_thresholds,
+    KIND_LIMIT, LotFlags, OutlierConfig, apply_flags, flag_lots, known_thresholds,
     pooled_scales, pooling_rows, remember_thresholds,
 )
 from flows.compute_pool import run_in_pool  # noqa: E402
@@ -50,8 +50,10 @@ from flows.task_runners import (  # noqa: E402,F401
 )
 from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and tools import them here)
     UnitJob, UnitResult, _discovery_available, calibrate_batch, calibrate_unit_job,
+    calibration_file_extra,
 )
-from schemas.dataset import SessionRef, find_sessions  # noqa: E402
+from schemas.dataset import DigestCache, SessionRef, find_sessions  # noqa: E402
+from schemas.limits import config_from_toml  # noqa: E402
 from schemas.results_store import (  # noqa: E402
     STORE_FORMAT_VERSION, ResultsStore, iso, jsonable, utc_now,
 )
@@ -61,9 +63,10 @@ DEFAULT_BATCH_SIZE = 8
 
 # --- plain-Python pieces (tested without Prefect) ------------------------------------------------
 def plan_units(refs: list[SessionRef], previous: dict[tuple[str, str, int], str],
-               force: bool = False) -> tuple[list[UnitJob], list[tuple[str, str]]]:
+               force: bool = False, cache=None) -> tuple[list[UnitJob], list[tuple[str, str]]]:
     """Units to calibrate (new, changed, or all with ``force``) and units skipped because
-    every session's fingerprint is unchanged and no session appeared or disappeared."""
+    every session's fingerprint (a content hash, schemas.dataset.fingerprint) is unchanged
+    and no session appeared or disappeared. ``cache``: a schemas.dataset.DigestCache."""
     from schemas.dataset import fingerprint
     by_unit: dict[tuple[str, str], list[SessionRef]] = {}
     for r in refs:
@@ -81,7 +84,7 @@ def plan_units(refs: list[SessionRef], previous: dict[tuple[str, str, int], str]
             continue
         reps_now = {r.key.rep for r in rs}
         changed = [r.key.rep for r in rs
-                   if previous.get((lot, unit, r.key.rep)) != fingerprint(r.path)]
+                   if previous.get((lot, unit, r.key.rep)) != fingerprint(r.path, cache)]
         if changed or reps_now != prev_reps[(lot, unit)]:
             why = []
             if changed:
@@ -127,118 +130,189 @@ def _session_rows(results: list[UnitResult], attr: str) -> pd.DataFrame | None:
 def store_results(store: ResultsStore, results: list[UnitResult], run_id: str,
                   code_version: str, when=None) -> dict[str, Any]:
     """Write the units' rows (replacing only those units), their calibration files, and mark
-    units whose recalibration failed as stale (keeping their last good results)."""
-    from schemas.unit_document import unit_document
+    units whose recalibration failed as stale (keeping their last good results).
+
+    One unit's failure here (an exception while building its rows or writing its calibration
+    file) marks that unit failed with ``E_INTERNAL`` and the others are stored; a failure of
+    the table writes (disk full, read-only store) removes the calibration files this call
+    wrote while no table points at them yet (the units table is written next to last) and
+    is raised: a run that fails before its units table adds no calibration."""
     when = when or utc_now()
     stamp = iso(when)
-    sess_rows, par_rows, sum_rows, unit_rows, disc_rows = [], [], [], [], []
-    nav_frames = []
-    ok_units: set[tuple[str, str]] = set()
-    stale_units: dict[tuple[str, str], str] = {}
+    rows = _StoreRows()
     previous_units = store.read("units", lots={ur.lot for ur in results},
-                                columns=["lot", "unit", "calibration_file", "calibrated_at"])
+                                columns=["lot", "unit", "calibration_file", "calibrated_at",
+                                         "acquired_at"])
     prev_state = {(r.lot, r.unit): r for r in previous_units.itertuples()}
-    for ur in results:
-        key = (ur.lot, ur.unit)
-        out = ur.outcome
+    for i, ur in enumerate(results):
+        unit_rows = _StoreRows()
+        try:
+            _unit_store_rows(store, ur, unit_rows, prev_state, run_id, code_version, when, stamp)
+        except Exception as exc:  # noqa: BLE001 - one unit never fails the flow
+            from flows.unit_pipeline import failed_unit_result
+            if unit_rows.new_files:
+                _remove_files(unit_rows.new_files)
+            failed = failed_unit_result(ur.lot, ur.unit, "storing its results", exc, ur.outcome)
+            failed.diagnosis, failed.discovery_note = None, ur.discovery_note
+            results[i] = ur = failed
+            unit_rows = _StoreRows()
+            _unit_store_rows(store, ur, unit_rows, prev_state, run_id, code_version, when, stamp)
+        rows.extend(unit_rows)
+    try:
+        _write_unit_tables(store, results, rows)
+    except BaseException:
+        if not rows.new_files_referenced:  # no table points to them: the run added nothing
+            _remove_files(rows.new_files)
+        raise
+    return {"calibrated": sorted(f"{lot}/{u}" for lot, u in rows.ok_units),
+            "stale": {f"{lot}/{u}": w for (lot, u), w in rows.stale_units.items()}}
+
+
+@dataclass
+class _StoreRows:
+    """The rows :func:`store_results` writes, gathered unit by unit."""
+
+    sessions: list[dict] = field(default_factory=list)
+    parameters: list[dict] = field(default_factory=list)
+    summary: list[dict] = field(default_factory=list)
+    units: list[dict] = field(default_factory=list)
+    discovery: list[dict] = field(default_factory=list)
+    navigation: list[pd.DataFrame] = field(default_factory=list)
+    ok_units: set[tuple[str, str]] = field(default_factory=set)
+    stale_units: dict[tuple[str, str], str] = field(default_factory=dict)
+    new_files: list[Path] = field(default_factory=list)
+    new_files_referenced: bool = False  # the units table pointing to new_files is written
+
+    def extend(self, other: _StoreRows) -> None:
+        for name in ("sessions", "parameters", "summary", "units", "discovery", "navigation",
+                     "new_files"):
+            getattr(self, name).extend(getattr(other, name))
+        self.ok_units |= other.ok_units
+        self.stale_units.update(other.stale_units)
+
+
+def _remove_files(paths: list[Path]) -> None:
+    for p in paths:
+        try:
+            p.unlink()
+        except OSError:
+            pass
+
+
+def _unit_store_rows(store: ResultsStore, ur: UnitResult, rows: _StoreRows,
+                     prev_state: dict, run_id: str, code_version: str, when, stamp: str
+                     ) -> None:
+    """One unit's rows into ``rows``, and its calibration file (written last)."""
+    from schemas.unit_document import unit_document
+    key = (ur.lot, ur.unit)
+    out = ur.outcome
+    for s in out.sessions:
+        rows.sessions.append({
+            "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep, "status": s.status,
+            "error_code": s.code, "message": s.message, "warnings": list(s.warnings),
+            # a unit that failed as a whole (E_INTERNAL) keeps no fingerprint: the next run
+            # sees its sessions as changed and tries it again
+            "fingerprint": None if ur.error_code else s.fingerprint, "run_id": run_id,
+            "path": str(s.path), "calibrated_at": stamp})
+    n_ok = sum(s.status == "ok" for s in out.sessions)
+    n_warned = sum(s.status == "warned" for s in out.sessions)
+    n_failed = sum(s.status == "failed" for s in out.sessions)
+    base = {"lot": ur.lot, "unit": ur.unit, "n_sessions": len(out.sessions), "n_ok": n_ok,
+            "n_warned": n_warned, "n_failed": n_failed, "run_id": run_id, "updated_at": stamp,
+            "error_code": ur.error_code}
+    if ur.calibrated:
+        if ur.navigation is not None and len(ur.navigation):
+            rows.navigation.append(ur.navigation.assign(lot=ur.lot, unit=ur.unit))
         for s in out.sessions:
-            sess_rows.append({
-                "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep, "status": s.status,
-                "error_code": s.code, "message": s.message, "warnings": list(s.warnings),
-                "fingerprint": s.fingerprint, "run_id": run_id, "path": str(s.path),
-                "calibrated_at": stamp})
-        n_ok = sum(s.status == "ok" for s in out.sessions)
-        n_warned = sum(s.status == "warned" for s in out.sessions)
-        n_failed = sum(s.status == "failed" for s in out.sessions)
-        base = {"lot": ur.lot, "unit": ur.unit, "n_sessions": len(out.sessions), "n_ok": n_ok,
-                "n_warned": n_warned, "n_failed": n_failed, "run_id": run_id, "updated_at": stamp}
-        if ur.calibrated:
-            ok_units.add(key)
-            if ur.navigation is not None and len(ur.navigation):
-                nav_frames.append(ur.navigation.assign(lot=ur.lot, unit=ur.unit))
-            for s in out.sessions:
-                if s.calibration is None or not s.succeeded:
-                    continue
-                for p in s.calibration.parameters():
-                    par_rows.append({"lot": ur.lot, "unit": ur.unit, "rep": s.key.rep,
-                                     "model": p.model, "parameter": p.name, "value": p.value,
-                                     "stderr": p.stderr, "unit_of_measure": p.unit,
-                                     "code_version": code_version, "run_id": run_id})
-            for ps in out.calibration.summary:
-                sum_rows.append({"lot": ur.lot, "unit": ur.unit, "model": ps.model,
+            if s.calibration is None or not s.succeeded:
+                continue
+            for p in s.calibration.parameters():
+                rows.parameters.append({"lot": ur.lot, "unit": ur.unit, "rep": s.key.rep,
+                                        "model": p.model, "parameter": p.name, "value": p.value,
+                                        "stderr": p.stderr, "unit_of_measure": p.unit,
+                                        "code_version": code_version, "run_id": run_id})
+        for ps in out.calibration.summary:
+            rows.summary.append({"lot": ur.lot, "unit": ur.unit, "model": ps.model,
                                  "parameter": ps.name, "mean": ps.mean, "std": ps.std,
                                  "min": ps.min, "max": ps.max, "n_reps": ps.n_reps,
-                                 "unit_of_measure": ps.unit, "flagged": False, "flag_reason": "",
-                                 "stale": False, "stale_reason": "", "run_id": run_id})
-            failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
-                      for s in out.sessions if not s.succeeded]
-            doc = unit_document(ur.lot, ur.unit, out.calibration.reps, failed)
-            extra = {"provenance": {
-                "lot": ur.lot, "unit": ur.unit, "run_id": run_id, "code_version": code_version,
-                "calibrated_at": stamp, "store_format_version": STORE_FORMAT_VERSION,
-                "sessions_used": [{"rep": s.key.rep, "path": str(s.path),
-                                   "fingerprint": s.fingerprint, "status": s.status,
-                                   "session_start": (s.calibration.provenance or {}).get(
-                                       "session_start") if s.calibration else None}
-                                  for s in out.sessions if s.succeeded],
-                "sessions_failed": failed,
-                "extension_terms": [t.name for t in out.applied.terms],
-                "model_discovery": None if ur.diagnosis is None else {
-                    k: ur.diagnosis.get(k) for k in ("misfit", "unexplained", "effects")},
-            }, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
-                "repetitions": doc["reps"]}
-            # numpy values and NaNs of ``extra`` are converted while writing (as jsonable()
-            # would, without a second walk over the document)
-            path = store.save_calibration(out.applied, ur.unit, extra, when, jsonable=True)
-            unit_rows.append({**base, "state": "calibrated", "reason": "",
-                              "calibration_file": str(path.relative_to(store.root)),
-                              "calibrated_at": stamp})
-        else:
-            reasons = "; ".join(f"rep {s.key.rep}: {s.code}" for s in out.sessions
-                                if not s.succeeded) or "no session"
-            why = f"recalibration failed in run {run_id} ({reasons})"
-            prev = prev_state.get(key)
-            if prev is not None and isinstance(prev.calibration_file, str) and prev.calibration_file:
-                stale_units[key] = why
-                unit_rows.append({**base, "state": "stale", "reason": why,
-                                  "calibration_file": prev.calibration_file,
-                                  "calibrated_at": prev.calibrated_at})
-            else:
-                unit_rows.append({**base, "state": "failed", "reason": why,
-                                  "calibration_file": None, "calibrated_at": None})
-        if ur.diagnosis is not None:
-            effects = ur.diagnosis.get("effects") or []
-            common = {"lot": ur.lot, "unit": ur.unit, "misfit": ur.diagnosis.get("misfit"),
-                      "unexplained": ur.diagnosis.get("unexplained"), "run_id": run_id}
-            if effects:
-                for e in effects:
-                    d = _flatten_effect(e)
-                    d["effect"] = d.pop("name", None)
-                    disc_rows.append({**common, **d})
-            else:
-                disc_rows.append({**common, "effect": None})
+                                 "unit_of_measure": ps.unit, "flagged": False,
+                                 "flag_reason": "", "stale": False, "stale_reason": "",
+                                 "run_id": run_id})
+        extra = calibration_file_extra(ur, {
+            "run_id": run_id, "code_version": code_version, "calibrated_at": stamp,
+            "store_format_version": STORE_FORMAT_VERSION})
+        acquired = extra["provenance"]["acquired_at"]
+        _discovery_rows(ur, rows, run_id)
+        # numpy values and NaNs of the document are converted while writing (as jsonable()
+        # would, without a second walk over the document); the file is written last, so a
+        # unit that fails before it leaves no file
+        path = store.save_calibration(out.applied, ur.unit, extra, when, jsonable=True)
+        rows.new_files.append(path)
+        rows.units.append({**base, "state": "calibrated", "reason": "",
+                           "calibration_file": str(path.relative_to(store.root)),
+                           "calibrated_at": stamp, "acquired_at": acquired})
+        rows.ok_units.add(key)
+        return
+    reasons = "; ".join(f"rep {s.key.rep}: {s.code}" for s in out.sessions
+                        if not s.succeeded) or ("no session" if ur.error is None else "")
+    why = f"recalibration failed in run {run_id} ({reasons or ur.error_code})"
+    if ur.error:
+        why += f": {ur.error}"
+    prev = prev_state.get(key)
+    if prev is not None and isinstance(prev.calibration_file, str) and prev.calibration_file:
+        rows.stale_units[key] = why
+        rows.units.append({**base, "state": "stale", "reason": why,
+                           "calibration_file": prev.calibration_file,
+                           "calibrated_at": prev.calibrated_at,
+                           "acquired_at": getattr(prev, "acquired_at", None)})
+    else:
+        rows.units.append({**base, "state": "failed", "reason": why,
+                           "calibration_file": None, "calibrated_at": None})
+    _discovery_rows(ur, rows, run_id)
+
+
+def _discovery_rows(ur: UnitResult, rows: _StoreRows, run_id: str) -> None:
+    if ur.diagnosis is None:
+        return
+    effects = ur.diagnosis.get("effects") or []
+    common = {"lot": ur.lot, "unit": ur.unit, "misfit": ur.diagnosis.get("misfit"),
+              "unexplained": ur.diagnosis.get("unexplained"), "run_id": run_id}
+    if effects:
+        for e in effects:
+            d = _flatten_effect(e)
+            d["effect"] = d.pop("name", None)
+            rows.discovery.append({**common, **d})
+    else:
+        rows.discovery.append({**common, "effect": None})
+
+
+def _write_unit_tables(store: ResultsStore, results: list[UnitResult], rows: _StoreRows
+                       ) -> None:
+    """The tables' rows of ``results`` (gathered by :func:`store_results`)."""
+    ok_units, stale_units = rows.ok_units, rows.stale_units
     all_units = {(ur.lot, ur.unit) for ur in results}
-    store.replace_units("units", _frame(unit_rows, "units"), all_units)
-    store.replace_units("parameters", _frame(par_rows, "parameters"), ok_units)
+    store.replace_units("parameters", _frame(rows.parameters, "parameters"), ok_units)
     # units whose recalibration failed keep their rows, marked stale in the same write
-    store.replace_units("summary", _frame(sum_rows, "summary"), ok_units,
+    store.replace_units("summary", _frame(rows.summary, "summary"), ok_units,
                         set_values={key: {"stale": True, "stale_reason": why}
                                     for key, why in stale_units.items()})
-    calibrated = [ur for ur in results if ur.calibrated]
+    calibrated = [ur for ur in results if (ur.lot, ur.unit) in ok_units]
     for name, attr in (("residuals", "residual_table"), ("compensation", "compensation_table")):
         store.replace_units(name, _session_rows(calibrated, attr), ok_units)
     nav_units = {(ur.lot, ur.unit) for ur in results if ur.navigation is not None}
     if nav_units:
-        store.replace_units("navigation", pd.concat(nav_frames, ignore_index=True)
-                            if nav_frames else None, nav_units)
+        store.replace_units("navigation", pd.concat(rows.navigation, ignore_index=True)
+                            if rows.navigation else None, nav_units)
     disc_units = {(ur.lot, ur.unit) for ur in results if ur.diagnosis is not None}
     if disc_units:
-        store.replace_units("discovery", _frame(disc_rows, "discovery"), disc_units)
+        store.replace_units("discovery", _frame(rows.discovery, "discovery"), disc_units)
+    # the units table next to last: until it is written no table points to the new
+    # calibration files, so a failure before it may remove them (store_results)
+    store.replace_units("units", _frame(rows.units, "units"), all_units)
+    rows.new_files_referenced = True
     # sessions.parquet last: its fingerprints tell the next run which units are done, so a
     # crash before this point leaves the units "changed" and the rerun redoes them whole
-    store.replace_units("sessions", _frame(sess_rows, "sessions"), all_units)
-    return {"calibrated": sorted(f"{lot}/{u}" for lot, u in ok_units),
-            "stale": {f"{lot}/{u}": w for (lot, u), w in stale_units.items()}}
+    store.replace_units("sessions", _frame(rows.sessions, "sessions"), all_units)
 
 
 @dataclass
@@ -249,6 +323,7 @@ class RunTally:
     calibrated: list[str] = field(default_factory=list)
     stale: dict[tuple[str, str], str] = field(default_factory=dict)
     failed_units: list[str] = field(default_factory=list)
+    unit_errors: list[dict[str, str]] = field(default_factory=list)
     sessions_calibrated: int = 0
     failed_sessions: list[tuple[tuple, dict[str, Any]]] = field(default_factory=list)
     discovery_notes: set[str] = field(default_factory=set)
@@ -262,6 +337,8 @@ class RunTally:
                 self.stale[(r.lot, r.unit)] = stored["stale"][name]
         self.lots.update(r.lot for r in results)
         self.failed_units.extend(f"{r.lot}/{r.unit}" for r in results if not r.calibrated)
+        self.unit_errors.extend({"unit": f"{r.lot}/{r.unit}", "code": r.error_code,
+                                 "message": r.error} for r in results if r.error_code)
         self.sessions_calibrated += sum(1 for r in results for s in r.outcome.sessions
                                         if s.status != "failed")
         self.failed_sessions.extend(
@@ -274,13 +351,17 @@ class RunTally:
         return {"units_calibrated": len(self.calibrated),
                 "units_stale": {f"{lot}/{u}": self.stale[(lot, u)] for lot, u in sorted(self.stale)},
                 "units_failed": sorted(self.failed_units),
+                "unit_errors": sorted(self.unit_errors, key=lambda e: e["unit"]),
                 "sessions_calibrated": self.sessions_calibrated,
                 "failed_sessions": [f for _, f in sorted(self.failed_sessions,
                                                          key=lambda x: x[0])]}
 
 
+CLEAR_CONFIG = "none"  # ``--config none``: forget the stored configuration, use the defaults
+
+
 def load_config(path: str | Path | None) -> OutlierConfig:
-    if not path:
+    if not path or str(path) == CLEAR_CONFIG:
         return OutlierConfig()
     p = Path(path)
     try:
@@ -288,6 +369,29 @@ def load_config(path: str | Path | None) -> OutlierConfig:
     except OSError as exc:
         raise FileNotFoundError(f"outlier configuration {p}: {exc.strerror}") from None
     return config_from_toml(text, source=str(p))
+
+
+def resolve_config(store: ResultsStore, path: str | Path | None
+                   ) -> tuple[OutlierConfig, str | None | bool]:
+    """The QA configuration of a run and what to store under the lock: ``--config FILE``
+    sets it for this and every later run (returned text), ``--config none`` clears it
+    (None), no ``--config`` keeps the one stored (False: nothing to store). A stored text
+    that no longer parses is an error naming the file."""
+    if path is None:
+        text = store.read_qa_config()
+        if text is None:
+            return OutlierConfig(), False
+        return config_from_toml(text, source=str(store.qa_config_path)), False
+    if str(path) == CLEAR_CONFIG:
+        return OutlierConfig(), None
+    cfg = load_config(path)
+    return cfg, Path(path).read_text()
+
+
+def save_config(store: ResultsStore, text: str | None | bool) -> None:
+    """Store what :func:`resolve_config` returned (under the run's lock)."""
+    if text is not False:
+        store.write_qa_config(text)  # type: ignore[arg-type]
 
 
 def flagged_by_lot(store: ResultsStore) -> dict[str, set[str]]:
@@ -373,20 +477,50 @@ def _reflag(store: ResultsStore, lots: set[str] | list[str], config: OutlierConf
     if not todo:
         return [], {}, {}
     lf = _flag(store, summary, config, todo)
-    before, after = _write_flags(store, summary, lf, todo, lots=None)
+    before, after = _write_flags(store, summary, lf, todo, lots=None, config=config)
     if keep_state:
         _write_flag_state(store, config, pooling_rows(summary, config),
                           pooled_scales(summary, config))
     return lf, before, after
 
 
+def unit_times(store: ResultsStore) -> dict[tuple[str, str], float]:
+    """(lot, unit) -> acquisition time of its current calibration (POSIX s): the units
+    table's ``acquired_at`` (its sessions' last ``session_start``), else when it was
+    calibrated (``calibrated_at``: units whose sessions carry no ``session_start``)."""
+    units = store.read("units")
+    if not len(units):
+        return {}
+    when = pd.Series(pd.NaT, index=units.index, dtype="datetime64[ns, UTC]")
+    for col in ("calibrated_at", "acquired_at"):  # acquired_at wins where present
+        if col in units:
+            t = pd.to_datetime(units[col], utc=True, errors="coerce", format="ISO8601")
+            when = t.where(t.notna(), when)
+    secs = (when - pd.Timestamp(0, tz="UTC")).dt.total_seconds()
+    return {(str(lot), str(u)): float(t) for lot, u, t in
+            zip(units["lot"], units["unit"], secs) if pd.notna(t)}
+
+
+def _has_small_lots(store: ResultsStore, config: OutlierConfig) -> bool:
+    """Whether any lot is judged against the fleet history (config.history_below)."""
+    if not config.uses_history():
+        return False
+    units = store.read("units", columns=["lot", "unit"])
+    if not len(units):
+        return False
+    return bool((units.groupby("lot", observed=True)["unit"].nunique()
+                 < config.history_below).any())
+
+
 def _flag(store: ResultsStore, summary: pd.DataFrame, config: OutlierConfig,
           todo: list[str]) -> list[LotFlags]:
     """flag_lots of ``todo``, with the thresholds simulated by earlier runs (kept in the
-    store; new lot layouts are added to it)."""
+    store; new lot layouts are added to it) and the units' acquisition times (small lots'
+    fleet history)."""
     cached = store.read_outlier_thresholds()
     remember_thresholds(cached)
-    lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo)
+    times = unit_times(store) if config.uses_history() else None
+    lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo, times)
     now = known_thresholds()
     if now != cached:  # new lot layouts simulated: keep them for the next process
         store.write_outlier_thresholds(now)
@@ -394,7 +528,7 @@ def _flag(store: ResultsStore, summary: pd.DataFrame, config: OutlierConfig,
 
 
 def _write_flags(store: ResultsStore, summary: pd.DataFrame, lf: list[LotFlags],
-                 todo: list[str], lots: list[str] | None
+                 todo: list[str], lots: list[str] | None, config: OutlierConfig
                  ) -> tuple[dict[str, set[str]], dict[str, set[str]]]:
     """Write the flags ``lf`` of the lots ``todo`` to the summary and units tables:
     ``summary`` holds the stored rows of ``lots`` (None: every lot), and the units rows of
@@ -424,7 +558,67 @@ def _write_flags(store: ResultsStore, summary: pd.DataFrame, lf: list[LotFlags],
         units["flag_reason"] = ["; ".join(flagged.get(k, [])) if m else (v if isinstance(v, str) else "")
                                 for k, m, v in zip(keys, in_lots, units.get("flag_reason", [""] * len(units)))]
         store.write("units", units, lots=lots, skip_unchanged=True, previous=units_before)
+        stamp_qa(store, units_before, units, lf, config)
     return _flagged_units(units_before), _flagged_units(units)
+
+
+def qa_status(lot_flags: LotFlags, unit: str, config: OutlierConfig, when: str) -> dict:
+    """The QA block of a unit's calibration file: ``pass``, ``flagged`` (every reason) or
+    ``limits`` (a limit failed: the failed limits, and every other reason too), and the lot
+    context it was judged in."""
+    mine = [f for f in lot_flags.flags if f.unit == unit]
+    failed = [f"{f.reason}" for f in mine if f.kind == KIND_LIMIT]
+    status = "limits" if failed else "flagged" if mine else "pass"
+    return {"status": status, "reasons": [f"[{f.kind}] {f.reason}" for f in mine],
+            "failed_limits": failed,
+            "lot": lot_flags.lot, "lot_units": lot_flags.n_units,
+            "reference": lot_flags.reference, "reference_detail": lot_flags.reference_detail,
+            "z_threshold": lot_flags.z_threshold_used, "note": lot_flags.note,
+            "config": {"z_threshold": config.z_threshold, "family_alpha": config.family_alpha,
+                       "spread_factor": config.spread_factor, "min_units": config.min_units,
+                       "scale_pool": config.scale_pool, "history_units": config.history_units,
+                       "history_below": config.history_below,
+                       "history_location": config.history_location,
+                       "limits": [f"{lim.model}.{lim.parameter}: {lim.written or ''}"
+                                  for lim in config.limits]},
+            "judged_at": when}
+
+
+def stamp_qa(store: ResultsStore, before: pd.DataFrame, after: pd.DataFrame,
+             lot_flags: list[LotFlags], config: OutlierConfig) -> list[str]:
+    """Write the QA status into the current calibration file of every unit of the lots
+    re-flagged (``lot_flags``) whose status is new: freshly calibrated (no flags yet), or
+    whose flags changed. Each file is rewritten atomically and keeps its earlier statuses
+    (``qa_history``); the lot's context goes to ``qa/<lot>.json``. Returns the files
+    rewritten."""
+    from schemas.calibration_file import CalibrationFileError, set_qa_status
+    when = iso(utc_now())
+    by_lot = {x.lot: x for x in lot_flags}
+    prev = {(str(r.lot), str(r.unit)): (r.flagged, r.flag_reason)
+            for r in before.itertuples()} if len(before) else {}
+    done = []
+    for lf in lot_flags:
+        store.write_qa_lot(lf.lot, {"lot": lf.lot, "n_units": lf.n_units,
+                                    "reference": lf.reference,
+                                    "reference_detail": lf.reference_detail,
+                                    "z_threshold": lf.z_threshold_used, "note": lf.note,
+                                    "judged_at": when})
+    for r in after.itertuples():
+        lot, unit = str(r.lot), str(r.unit)
+        lf = by_lot.get(lot)
+        path = getattr(r, "calibration_file", None)
+        if lf is None or not isinstance(path, str) or not path:
+            continue
+        old_flagged, old_reason = prev.get((lot, unit), (None, None))
+        if old_flagged is not None and not pd.isna(old_flagged) \
+                and bool(old_flagged) == bool(r.flagged) and old_reason == r.flag_reason:
+            continue  # judged before, same status
+        try:
+            set_qa_status(store.root / path, qa_status(lf, unit, config, when))
+            done.append(path)
+        except (OSError, CalibrationFileError) as exc:  # the flags stand; the file says less
+            print(f"QA status of {lot}/{unit} not written to {path}: {exc}", file=sys.stderr)
+    return done
 
 
 # --- the flag state kept between runs --------------------------------------------------------------
@@ -489,7 +683,9 @@ def _reflag_fleet(store: ResultsStore, touched: list[str], config: OutlierConfig
     and after of the lots whose units rows were read."""
     state = store.read_flag_state()
     files = _lot_files(store)
-    if state is not None and files is not None:
+    # a small lot is judged against the history of earlier lots, which the pooled scales
+    # do not summarise: every lot is re-flagged then
+    if state is not None and files is not None and not _has_small_lots(store, config):
         rows, doc = state
         if doc.get("version") == FLAG_STATE_VERSION and doc.get("key") == _flag_state_key(config):
             done = _reflag_changed_lots(store, touched, config, rows, doc, files)
@@ -524,7 +720,7 @@ def _reflag_changed_lots(store: ResultsStore, touched: list[str], config: Outlie
         # scales from them and flags only the lots in todo
         lf = _flag(store, pd.concat([summary, kept.assign(std=np.nan, n_reps=np.nan)],
                                     ignore_index=True), config, todo)
-    before, after = _write_flags(store, summary, lf, todo, lots=dirty)
+    before, after = _write_flags(store, summary, lf, todo, lots=dirty, config=config)
     _write_flag_state(store, config, pool, pooled)
     return lf, before, after
 
@@ -585,6 +781,51 @@ def write_reports(results: str | Path, lots: list[str], units: tuple[str, ...] =
     return written, problems
 
 
+def reports_to_rebuild(store: ResultsStore) -> list[str]:
+    """Lots whose report is missing or older than the lot's summary or units file (a run
+    that died, or found the disk full, while writing it); every lot when the fleet index is
+    missing (it is written with any lot's report)."""
+    lots = sorted(set(store.table_lots("units")) | set(store.table_lots("summary")))
+    if not lots:
+        return []
+    if not (store.reports_dir / "index.html").is_file():
+        return lots
+    out = []
+    for lot in lots:
+        try:
+            made = (store.reports_dir / f"{lot}.html").stat().st_mtime_ns
+        except OSError:
+            out.append(lot)
+            continue
+        newest = max((p.stat().st_mtime_ns for name in ("units", "summary")
+                      for lt, p in store.partitions(name).items() if lt == lot and p.exists()),
+                     default=0)
+        if newest > made:
+            out.append(lot)
+    return out
+
+
+def known_names(dataset: str | Path, field: str) -> str:
+    """``units there: U0001, U0002, ...`` (or lots) of a dataset, for a message."""
+    root = Path(dataset)
+    names = set()
+    try:
+        for lot_dir in root.iterdir():
+            if not lot_dir.name.startswith("lot="):
+                continue
+            if field == "lot":
+                names.add(lot_dir.name[4:])
+                continue
+            for unit_dir in lot_dir.iterdir():
+                if unit_dir.name.startswith("unit="):
+                    names.add(unit_dir.name[5:])
+    except OSError:
+        pass
+    shown = sorted(names)
+    more = f", ... ({len(shown)} in all)" if len(shown) > 20 else ""
+    return f"{field}s there: {', '.join(shown[:20]) or 'none'}{more}"
+
+
 def make_batches(jobs: list[UnitJob], batch_size: int) -> list[list[UnitJob]]:
     batch_size = max(1, int(batch_size))
     return [jobs[i:i + batch_size] for i in range(0, len(jobs), batch_size)]
@@ -604,21 +845,37 @@ def calibrate_units_task(jobs: list[UnitJob], run_discovery: bool = True) -> lis
 
 
 class _Progress:
-    def __init__(self, total: int, stream=None):
+    """One terminal line per lot each time a batch brings units of it: "lot L1: 8/16 units
+    (0 failed sessions), 3.2 s". A closed terminal pipe never fails the run."""
+
+    def __init__(self, total: int, stream=None, per_lot: dict[str, int] | None = None):
         self.total = total
         self.done = 0
         self.failed_sessions = 0
+        self.per_lot = dict(per_lot or {})
+        self.lot_done: Counter = Counter()
+        self.lot_failed: Counter = Counter()
         self.stream = stream if stream is not None else sys.stderr
         self.t0 = time.monotonic()
 
     def update(self, results: list[UnitResult]) -> str:
         self.done += len(results)
         self.failed_sessions += sum(r.n_failed for r in results)
-        line = (f"progress: units {self.done}/{self.total} done, failed sessions "
-                f"{self.failed_sessions}, {time.monotonic() - self.t0:.1f} s")
+        for r in results:
+            self.lot_done[r.lot] += 1
+            self.lot_failed[r.lot] += r.n_failed
+        elapsed = time.monotonic() - self.t0
+        lines = [f"lot {lot}: {self.lot_done[lot]}/{self.per_lot.get(lot, '?')} units"
+                 + (f" ({self.lot_failed[lot]} failed sessions)" if self.lot_failed[lot] else "")
+                 + f", {elapsed:.1f} s" for lot in sorted({r.lot for r in results})]
         if self.stream:
-            print(line, file=self.stream, flush=True)
-        return line
+            try:
+                for line in lines:
+                    print(line, file=self.stream, flush=True)
+            except (BrokenPipeError, ValueError):  # the terminal's pipe closed: keep working
+                self.stream = False
+        return (f"units {self.done}/{self.total} done, failed sessions {self.failed_sessions}, "
+                f"{elapsed:.1f} s")
 
 
 DEFAULT_MAX_IN_FLIGHT = 4  # batches submitted at once: 2 workers busy + 2 queued
@@ -664,16 +921,19 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                  batch_size: int = DEFAULT_BATCH_SIZE, config: str | None = None,
                  wait: bool = False, run_discovery: bool = True,
                  progress: bool = True, max_in_flight: int = DEFAULT_MAX_IN_FLIGHT,
-                 runner: str | None = None) -> dict:
+                 runner: str | None = None, unit_reports: bool = False,
+                 follow_symlinks: bool = False) -> dict:
     """Find sessions, calibrate new/changed units in batches, store lot by lot, flag,
     report. ``runner`` (flows.task_runners kinds) decides whether the batches' work goes to
     worker processes; ``dask`` means the task runner already sends it elsewhere."""
     logger = get_run_logger()
     run_id = new_run_id()
     store = ResultsStore(Path(results))
-    cfg = load_config(config)
+    cfg, cfg_text = resolve_config(store, config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        store.check()  # a damaged store is refused before anything is written
+        save_config(store, cfg_text)
         t0 = time.monotonic()
         log: dict[str, Any] = {"run_id": run_id, "kind": "nightly", "start": iso(utc_now()),
                                "dataset": str(dataset), "results": str(results),
@@ -692,8 +952,13 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         preloaded = _await_preload()
         if preloaded is not None:
             log["preload"] = preloaded
-        refs, path_errors = find_sessions(dataset)
-        jobs, skipped = plan_units(refs, store.fingerprints(), force)
+        refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
+        digests = DigestCache(store.read_digest_cache())
+        jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
+        current = {os.path.join(str(r.path), n) for r in refs
+                   for n in ("steps.parquet", "samples.parquet")}
+        if digests.read or set(digests.entries) - current:  # files of moved datasets go
+            store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
         if run_discovery and not _discovery_available():
             logger.warning("model discovery skipped: calib_core.discovery is not available")
         log.update({"sessions_found": len(refs), "units_found": len(jobs) + len(skipped),
@@ -701,7 +966,8 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
                     "path_errors": [e.to_dict() for e in path_errors],
                     "progress": {"units_done": 0, "units_total": len(jobs)}})
         store.write_run(run_id, log)
-        prog = _Progress(len(jobs), stream=sys.stderr if progress else False)
+        prog = _Progress(len(jobs), stream=sys.stderr if progress else False,
+                         per_lot=Counter(j.lot for j in jobs))
 
         def on_progress(batch: list[UnitResult]) -> None:
             line = prog.update(batch)
@@ -749,11 +1015,19 @@ def nightly_flow(dataset: str, results: str, force: bool = False,
         lots = sorted(tally.lots | (set(store.lots()) if interrupted else set()))
         # the pages the fit phase and the lots' storing freed (in the task runner's and the
         # writer's malloc arenas), given back before flags and reports allocate theirs in
-        # this thread's arena (flows.memory; docs/perf3-store.md)
+        # this thread's arena (flows.memory; docs/benchmarks.md)
         release_memory()
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
+        # reports that are missing or older than their lot's tables (a run that died or hit
+        # a full disk while writing them) are rebuilt too
+        report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         release_memory()
-        reports, problems = write_reports(results, report_lots) if report_lots else ([], [])
+        # unit reports (``unit_reports``): every unit of the lots whose report is rewritten
+        units = tuple(sorted({str(u) for u in store.read("units", lots=report_lots,
+                                                          columns=["unit"])["unit"]})
+                      ) if unit_reports and report_lots else ()
+        reports, problems = (write_reports(results, report_lots, units) if report_lots
+                             else ([], []))
         for p in problems:
             logger.warning(p)
         flagged = sorted({f"{f.lot}/{f.unit}" for lf in lot_flags for f in lf.flags})
@@ -789,26 +1063,36 @@ def interrupted_runs(store: ResultsStore) -> list[str]:
     return out
 
 
-def summary_line(log: dict) -> str:
+def summary_line(log: dict, wall_s: float | None = None) -> str:
+    """One line: units, sessions, flags; the flow's time, or ``wall_s`` (the command's wall
+    time) with the flow's time in brackets."""
     return (f"{log.get('kind', 'run')} {log['run_id']}: {log.get('units_found', '?')} units "
             f"({log.get('units_calibrated', 0)} calibrated, {log.get('units_skipped', 0)} "
             f"unchanged, {len(log.get('units_failed', []))} failed, {len(log.get('units_stale', {}))}"
             f" stale), {log.get('sessions_calibrated', 0)} sessions ok, "
             f"{len(log.get('failed_sessions', []))} failed, {len(log.get('path_errors', []))} bad "
             f"paths, flagged units: {', '.join(log.get('flagged_units', [])) or 'none'}; "
-            f"{log.get('elapsed_s', 0):.1f} s")
+            + (f"{log.get('elapsed_s', 0):.1f} s" if wall_s is None else
+               f"{wall_s:.1f} s wall ({log.get('elapsed_s', 0):.1f} s in the flow)"))
 
 
 @flow(name="lot-quality-report", persist_result=False, log_prints=False)
 def lot_report_flow(results: str, lot: str, config: str | None = None,
                     wait: bool = False) -> dict:
     store = ResultsStore(Path(results))
-    cfg = load_config(config)
+    cfg, cfg_text = resolve_config(store, config)
     with store.lock(owner=f"report-{lot}", wait=wait):
+        store.check()
         if lot not in store.table_lots("summary") and lot not in store.table_lots("sessions"):
-            raise LookupError(f"lot {lot!r} is not in the results store {results}")
-        lf = reflag_lots(store, [lot], cfg)
-        reports, problems = write_reports(results, [lot])
+            lots = sorted(set(store.table_lots("summary")) | set(store.table_lots("sessions")))
+            raise LookupError(f"lot {lot!r} is not in the results store {results} (lots there: "
+                              f"{', '.join(lots) or 'none'})")
+        save_config(store, cfg_text)
+        # the lot as touched: with a new configuration every lot is re-flagged (the flag
+        # state is of another configuration) and the reports of lots whose flags changed
+        # are rebuilt too
+        lf, report_lots = reflag_after_update(store, [lot], cfg)
+        reports, problems = write_reports(results, report_lots)
     return {"lot": lot, "reports": reports, "problems": problems,
             "flags": [f.to_dict() for f in lf]}
 
@@ -878,7 +1162,8 @@ def _await_preload() -> dict[str, Any] | None:
 
 @flow(name="rerun-unit", persist_result=False, log_prints=False)
 def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
-               wait: bool = False, run_discovery: bool = True) -> dict:
+               wait: bool = False, run_discovery: bool = True,
+               follow_symlinks: bool = False) -> dict:
     """Recalibrate one unit now; its rows are replaced only if it succeeds (otherwise its last
     good calibration stays and is marked stale); its lot is re-flagged and its report rebuilt.
 
@@ -887,9 +1172,11 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
     of tasks saves (the flow run, its state and the run log record the rerun)."""
     run_id = new_run_id()
     store = ResultsStore(Path(results))
-    cfg = load_config(config)
+    cfg, cfg_text = resolve_config(store, config)
     version = runtime.code_version()
     with store.lock(owner=run_id, wait=wait):
+        store.check()
+        save_config(store, cfg_text)
         t0 = time.monotonic()
         phases: dict[str, float] = {}
         cpu: dict[str, float] = {}
@@ -901,10 +1188,11 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             t, c = time.monotonic(), time.process_time()
 
         preloaded = _await_preload()
-        refs, path_errors = find_sessions(dataset, unit=unit)
+        refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
         if not refs:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
-            raise LookupError(f"unit {unit!r}: no session under {dataset} ({why})")
+            raise LookupError(f"unit {unit!r}: no session under {dataset} ({why}); "
+                              f"{known_names(dataset, 'unit')}")
         lot = refs[0].key.lot
         job = UnitJob(lot, unit, refs, "rerun")
         log: dict[str, Any] = {"run_id": run_id, "kind": "rerun", "start": iso(utc_now()),
@@ -925,6 +1213,7 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
         stored = store_results(store, res, run_id, version)  # reads/rewrites its lot only
         phase("store")
         lf, report_lots = reflag_after_update(store, [lot], cfg)
+        report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         phase("reflag")
         reports, problems = write_reports(results, report_lots, units=(unit,))
         phase("reports")
@@ -934,6 +1223,8 @@ def rerun_flow(dataset: str, results: str, unit: str, config: str | None = None,
             "end": iso(utc_now()), "elapsed_s": round(time.monotonic() - t0, 3),
             "units_calibrated": len(stored["calibrated"]), "units_stale": stored["stale"],
             "units_failed": [f"{lot}/{unit}"] if not res[0].calibrated else [],
+            "unit_errors": [{"unit": f"{lot}/{unit}", "code": r.error_code, "message": r.error}
+                            for r in res if r.error_code],
             "sessions_calibrated": sum(1 for s in res[0].outcome.sessions if s.status != "failed"),
             "failed_sessions": failed,
             "flagged_units": sorted({f"{f.lot}/{f.unit}" for x in lf for f in x.flags}),
@@ -953,12 +1244,14 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
                               batch_size: int = DEFAULT_BATCH_SIZE,
                               config: str | Path | None = None, wait: bool = False,
                               run_discovery: bool = True, progress: bool = True,
-                              runner: str | None = None) -> dict:
+                              runner: str | None = None, unit_reports: bool = False,
+                              follow_symlinks: bool = False) -> dict:
     """Run the nightly flow once: Dask at ``dask_address``, else the local ``runner``
     (``auto`` by default: worker processes from 24 units to calibrate, else a thread pool;
     see flows.task_runners)."""
     if not wait:  # a clear refusal, not a failed flow run in Prefect's database
         ResultsStore(Path(results)).ensure_unlocked()
+    ResultsStore(Path(results)).check()  # and a damaged store, before Prefect starts
     kind = "dask" if dask_address else resolve_kind(runner)
     task_runner = make_task_runner(dask_address, kind=None if dask_address else kind)
     # Dask may have many workers: keep them all fed (memory: this many batches in flight)
@@ -970,22 +1263,35 @@ def nightly_fleet_calibration(dataset: str | Path, results: str | Path, force: b
             str(dataset), str(results), force=force, batch_size=batch_size,
             config=None if config is None else str(config), wait=wait,
             run_discovery=run_discovery, progress=progress, max_in_flight=in_flight,
-            runner=kind)
+            runner=kind, unit_reports=unit_reports, follow_symlinks=follow_symlinks)
 
 
 def lot_quality_report(results: str | Path, lot: str, config: str | Path | None = None,
                        wait: bool = False) -> dict:
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
+    store = ResultsStore(Path(results))
+    store.check()
+    lots = set(store.table_lots("summary")) | set(store.table_lots("sessions"))
+    if lot not in lots:  # before Prefect starts: one line, no failed flow run
+        raise LookupError(f"lot {lot!r} is not in the results store {results} (lots there: "
+                          f"{', '.join(sorted(lots)) or 'none'})")
     with runtime.run_settings():
         return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
 
 
 def rerun_unit(dataset: str | Path, results: str | Path, unit: str,
                config: str | Path | None = None, wait: bool = False,
-               run_discovery: bool = True) -> dict:
+               run_discovery: bool = True, follow_symlinks: bool = False) -> dict:
     if not wait:
         ResultsStore(Path(results)).ensure_unlocked()
+    ResultsStore(Path(results)).check()
+    refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
+    if not refs:  # before Prefect starts: one line, no failed flow run
+        why = "; ".join(str(e) for e in path_errors) or "no session directory found"
+        raise LookupError(f"unit {unit!r}: no session under {dataset} ({why}); "
+                          f"{known_names(dataset, 'unit')}")
     with _preloading(), runtime.run_settings():
         return rerun_flow(str(dataset), str(results), unit,
-                          None if config is None else str(config), wait, run_discovery)
+                          None if config is None else str(config), wait, run_discovery,
+                          follow_symlinks)

@@ -4,7 +4,7 @@ LocalCluster of worker processes), with and without the shared API (a worker tha
 the flow's server vs one that starts its own).
 
 ``python -m flows.prefect_overhead [--quick]`` prints a Markdown table
-(docs/perf-parallel.md records one run). For each runner: the *fixed* cost of a flow run with
+(docs/flows.md records three runs). For each runner: the *fixed* cost of a flow run with
 that runner (pool or cluster start, worker imports, each worker's first Prefect client) =
 a 2-task flow minus an empty flow, the *per task* cost = the slope between the 2-task flow and
 an N-task flow, CPU seconds of the whole process tree (this process, workers, API servers)

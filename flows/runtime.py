@@ -12,6 +12,10 @@ results directory). Values the user already set in the environment win.
 - ``PREFECT_LOGGING_LEVEL=WARNING``: no per-task INFO lines.
 - ``PREFECT_RESULTS_PERSIST_BY_DEFAULT=false``: task results (which never hold samples: tasks
   take paths) are not written to disk; the results store is the record.
+- Prefect's own log lines (flow and task states, its warnings) go to ``<results>/logs/prefect.log``
+  at INFO level, not to the terminal, where mimucal prints its own progress and outcome lines;
+  ``verbose=True`` (the commands' ``--verbose``) leaves Prefect's console logging on, at INFO.
+  A ``PREFECT_LOGGING_SETTINGS_PATH`` of the user's wins.
 - the flow-run heartbeat is switched off with :func:`run_settings` (the environment cannot
   say "off"); it costs ~1 s per flow run when on.
 """
@@ -35,8 +39,16 @@ _DEFAULTS = {
 }
 
 
-def ensure_environment(results: Path | str | None = None) -> Path:
-    """Set mimucal's Prefect environment defaults; return PREFECT_HOME."""
+PREFECT_LOG = Path("logs") / "prefect.log"  # under the results directory
+
+
+def ensure_environment(results: Path | str | None = None, verbose: bool = False) -> Path:
+    """Set mimucal's Prefect environment defaults; return PREFECT_HOME. With a results
+    directory, Prefect's log lines go to its :data:`PREFECT_LOG` unless ``verbose``."""
+    if verbose:
+        os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")
+    elif results is not None:
+        route_prefect_logs(Path(results).resolve() / PREFECT_LOG)
     for k, v in _DEFAULTS.items():
         os.environ.setdefault(k, v)
     if "PREFECT_HOME" not in os.environ:
@@ -47,6 +59,36 @@ def ensure_environment(results: Path | str | None = None) -> Path:
         home.mkdir(parents=True, exist_ok=True)
         os.environ["PREFECT_HOME"] = str(home)
     return Path(os.environ["PREFECT_HOME"])
+
+
+def route_prefect_logs(log_file: Path) -> Path | None:
+    """Write a Prefect logging configuration whose console handlers write to ``log_file``
+    (Prefect's own configuration otherwise) and point ``PREFECT_LOGGING_SETTINGS_PATH`` at it;
+    must run before ``import prefect``. Returns the configuration's path, None when the user
+    set one."""
+    if "PREFECT_LOGGING_SETTINGS_PATH" in os.environ:
+        return None
+    import yaml  # a dependency of Prefect's
+
+    from importlib.util import find_spec
+    spec = find_spec("prefect")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    default = Path(list(spec.submodule_search_locations)[0]) / "logging" / "logging.yml"
+    config = yaml.safe_load(default.read_text())
+    log_file.parent.mkdir(parents=True, exist_ok=True)
+    to_file = {"level": 0, "class": "logging.FileHandler", "filename": str(log_file),
+               "encoding": "utf-8", "delay": True}
+    handlers = config.setdefault("handlers", {})
+    handlers["console"] = {**to_file, "formatter": "standard"}
+    handlers["debug"] = {**to_file, "formatter": "debug"}
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "INFO")  # the file keeps the whole story
+    path = log_file.parent / ".prefect-logging.yml"
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+    tmp.write_text(yaml.safe_dump(config, sort_keys=False))
+    os.replace(tmp, path)
+    os.environ["PREFECT_LOGGING_SETTINGS_PATH"] = str(path)
+    return path
 
 
 @contextmanager

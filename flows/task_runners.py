@@ -16,7 +16,7 @@ at an address always wins):
   imports (~1 s) run while Prefect starts (:func:`prestart_unit_work_pool`).
 - ``prefect-processes``: Prefect's ``ProcessPoolTaskRunner`` (every task run in a spawned
   worker with its own Prefect client): both cores, but each worker pays its imports and
-  Prefect's task context once (8-10 s CPU, docs/perf-parallel.md).
+  Prefect's task context once (8-10 s CPU, docs/benchmarks.md).
 - ``dask``: the same thread pool of Prefect tasks, each handing its batch to a Dask cluster
   (:class:`DaskPoolTaskRunner`): a ``LocalCluster`` of :data:`LOCAL_WORKERS` single-threaded
   worker processes started, and warmed, before the flow's body, or the scheduler at
@@ -30,7 +30,7 @@ worker that hangs at shutdown. This was most of the 4.5x gap between Dask and th
 in the first benchmark. The subclass puts the flow's own API URL into the settings a task
 carries, so every worker talks to the one server the flow already runs. (The ``dask`` runner
 used prefect-dask's ``DaskTaskRunner`` the same way until the third round; it now keeps the
-task runs in the flow's process, docs/perf3-dask.md.)
+task runs in the flow's process, docs/benchmarks.md.)
 """
 from __future__ import annotations
 
@@ -133,7 +133,7 @@ class DaskPoolTaskRunner(ThreadPoolTaskRunner):
     The cluster is opened, and its workers warmed (numerics imported), when Prefect enters the
     runner at the start of the flow run, before the flow's body: the fit phase no longer pays
     a worker's imports nor Prefect's task context in the worker (8-10 s CPU per worker before,
-    docs/perf3-dask.md). Task-run states stay in the flow's process; the workers never talk to
+    docs/benchmarks.md). Task-run states stay in the flow's process; the workers never talk to
     Prefect's API. Task threads (each waits on one batch; no CPU while it waits): ``max_workers``
     when given, else two per Dask worker found at the start (at most :data:`DASK_TASK_THREADS`),
     enough to keep every worker fed; each thread builds its own Prefect client on its first task

@@ -206,6 +206,10 @@ class UnitResult:
     discovery_note: str | None = None
     elapsed_s: float = 0.0
     navigation: pd.DataFrame | None = None  # zhang2017 drift curves (reruns only)
+    # a unit-level failure (an exception in its calibration, discovery or storage): its code
+    # (E_INTERNAL) and one-line message; the unit keeps its last good calibration
+    error_code: str | None = None
+    error: str | None = None
 
     @property
     def calibrated(self) -> bool:
@@ -214,6 +218,42 @@ class UnitResult:
     @property
     def n_failed(self) -> int:
         return sum(1 for s in self.outcome.sessions if s.status == "failed")
+
+
+def calibration_file_extra(ur: UnitResult, context: dict[str, Any]) -> dict[str, Any]:
+    """The sections a unit's calibration file holds beside the applied calibration (the same
+    for the results store and ``mimucal calibrate --json``): ``provenance`` (``context``:
+    run id, code version, time..., then the sessions used and failed, the extension terms,
+    model discovery's verdict), ``averaged`` (mean, std and units over the repetitions) and
+    ``repetitions`` (each repetition's fits with standard errors)."""
+    from schemas.unit_document import calibration_file_sections
+    out = ur.outcome
+    failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
+              for s in out.sessions if not s.succeeded]
+    used = [{"rep": s.key.rep, "path": str(s.path), "fingerprint": s.fingerprint,
+             "status": s.status,
+             "session_start": (s.calibration.provenance or {}).get("session_start")
+             if s.calibration else None}
+            for s in out.sessions if s.succeeded]
+    # when the unit was measured (its sessions' last session_start; None when no session
+    # says it: then the time of the calibration is when it was produced)
+    context = {**context, "acquired_at": acquisition_time(u["session_start"] for u in used)}
+    return calibration_file_sections(ur.lot, ur.unit, out.calibration.reps, failed, used,
+                                     [t.name for t in out.applied.terms], ur.diagnosis, context)
+
+
+def acquisition_time(session_starts) -> str | None:
+    """The last of the sessions' ``session_start`` values (ISO 8601, UTC), None when none is
+    readable: a calibration describes the unit as measured once its sessions are done."""
+    from schemas.results_store import iso, parse_when
+    times = []
+    for v in session_starts:
+        if isinstance(v, str) and v.strip():
+            try:
+                times.append(parse_when(v))
+            except ValueError:
+                continue
+    return iso(max(times)) if times else None
 
 
 def _discovery_available() -> bool:
@@ -265,6 +305,26 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
 
 
 def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
-    return [calibrate_unit_job(j, run_discovery) for j in jobs]
+    return [_isolated_unit_job(j, run_discovery) for j in jobs]
+
+
+def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
+    """:func:`calibrate_unit_job`, with any exception it lets through (a bug) turned into
+    the unit's failure: the rest of the batch and of the fleet goes on."""
+    try:
+        return calibrate_unit_job(job, run_discovery)
+    except Exception as exc:  # noqa: BLE001 - one unit never fails the flow
+        return failed_unit_result(job.lot, job.unit, "calibrating", exc)
+
+
+def failed_unit_result(lot: str, unit: str, doing: str, exc: BaseException,
+                       outcome: UnitOutcome | None = None) -> UnitResult:
+    """The E_INTERNAL result of a unit whose work raised ``exc`` while ``doing`` it; its
+    sessions (when known) are kept, its calibration is not."""
+    why = traceback.format_exception_only(type(exc), exc)[-1].strip()
+    msg = f"[E_INTERNAL] unit {lot}/{unit}: unexpected error while {doing} ({why})"
+    sessions = outcome.sessions if outcome is not None else []
+    out = UnitOutcome(lot, unit, sessions, notes=[msg])
+    return UnitResult(lot, unit, out, error_code="E_INTERNAL", error=msg)
 
 

@@ -43,7 +43,7 @@ def _element(doc: dict[str, Any], key: str, i: int, j: int | None) -> float:
 # files are the cached ones and it need not be listed (globbing 1,000 units' directories cost
 # ~0.1 s per fleet index; each file's size and mtime are still checked). Older code reads the
 # same document and ignores "dirs".
-HISTORY_CACHE_VERSION = 1
+HISTORY_CACHE_VERSION = 2  # 2: entries hold the acquisition time and the QA status
 DIR_SETTLED_NS = 2_000_000_000
 
 
@@ -81,8 +81,11 @@ def _parse_entry(path: Path, stat: os.stat_result) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     prov = provenance(doc)
+    qa = doc.get("qa") if isinstance(doc.get("qa"), dict) else {}
     return {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "lot": prov.get("lot"),
             "run_id": prov.get("run_id"), "code_version": prov.get("code_version"),
+            "acquired_at": prov.get("acquired_at") if isinstance(prov.get("acquired_at"), str)
+            else None, "qa_status": qa.get("status"),
             "values": [_element(doc, key, i, j) * scale for _, _, key, i, j, scale, _ in KEY_ELEMENTS]}
 
 
@@ -128,9 +131,21 @@ def _unit_entries(view: StoreView, unit: str, cache: dict[str, Any], dirs: dict[
                  else None), parsed
 
 
+def _when(text: Any) -> datetime | None:
+    if not isinstance(text, str) or not text:
+        return None
+    try:
+        from schemas.results_store import parse_when
+        return parse_when(text)
+    except ValueError:
+        return None
+
+
 def history_frame(view: StoreView, units: list[str] | None = None) -> pd.DataFrame:
-    """One row per calibration file: unit, lot, time, run_id, code_version, file and the
-    key elements (display units: f0 in mg). The parsed elements of each file, and the files
+    """One row per calibration file: unit, lot, time (when the unit was measured: the
+    sessions' last ``session_start``, else when the file was produced; ``time_source`` says
+    which), produced, qa_status, run_id, code_version, file and the key elements (display
+    units: f0 in mg). The parsed elements of each file, and the files
     of each unit directory, are cached in ``cache/report_history.json`` of the results root."""
     cache, dirs = _read_cache(view)
     seen: dict[str, Any] = {}
@@ -150,8 +165,12 @@ def history_frame(view: StoreView, units: list[str] | None = None) -> pd.DataFra
             if not lot:
                 lot_default = lot_default or view.lot_of_unit(unit)
                 lot = lot_default
-            row = {"unit": unit, "lot": lot, "time": ts, "run_id": entry["run_id"],
-                   "code_version": entry["code_version"], "file": path.name}
+            acquired = _when(entry.get("acquired_at"))
+            row = {"unit": unit, "lot": lot, "time": acquired or ts, "produced": ts,
+                   "time_source": "session_start" if acquired else "processing time",
+                   "qa_status": entry.get("qa_status"),
+                   "run_id": entry["run_id"], "code_version": entry["code_version"],
+                   "file": path.name}
             row.update(zip(names, entry["values"]))
             rows.append(row)
     # a pass over every unit also forgets the files and directories that are gone
@@ -163,5 +182,6 @@ def history_frame(view: StoreView, units: list[str] | None = None) -> pd.DataFra
         files, dirs_out = {**cache, **seen}, {**dirs, **seen_dirs}
     if parsed or changed:
         _write_cache(view, files, dirs_out)
-    cols = ["unit", "lot", "time", "run_id", "code_version", "file"] + names
+    cols = ["unit", "lot", "time", "produced", "time_source", "qa_status", "run_id",
+            "code_version", "file"] + names
     return pd.DataFrame(rows, columns=cols)

@@ -23,10 +23,13 @@ import numpy as np
 import plotly.graph_objects as go
 from plotly.offline import get_plotlyjs
 
+from schemas.display import decimals_for, spread_unit, value_unit  # noqa: F401 (decimals_for: re-exported)
+
 # Colours: the clean population and the flagged units must be told apart at a glance and in
 # grey-scale print (flagged points are also larger, diamond-shaped and labelled).
 CLEAN = "#4c78a8"
 FLAGGED = "#d62728"
+LIMIT = "#b45309"  # a failed acceptance limit: its own colour, symbol (x) and badge
 CHANNEL_COLOURS = {"x": "#1f77b4", "y": "#2ca02c", "z": "#9467bd"}
 CASE_COLOURS = {"none": "#d62728", "static": "#ff7f0e", "static+dynamic": "#2ca02c"}
 
@@ -98,6 +101,11 @@ td.flagged::before { content:"\\2691\\00a0"; }
 .badge { display:inline-block; padding:0 6px; border-radius:9px; font-size:11px; font-weight:600;
          vertical-align:1px; }
 .badge.flag { background:var(--flag); color:#fff; }
+.badge.limit { background:#b45309; color:#fff; }
+.badge.unjudged { background:#d9e2ec; color:#1f2933; }
+td.limit { background:#fdebd3; color:#b45309; font-weight:600; }
+td.limit::before { content:"\\2716\\00a0"; }
+.qa-reference { margin:4px 0 8px; }
 .badge.failed { background:#742a2a; color:#fff; }
 .badge.warned { background:#f0b429; color:#1f2933; }
 .badge.ok { background:#c6f6d5; color:#22543d; }
@@ -121,6 +129,26 @@ ul.flags { margin:4px 0 0; padding-left:20px; }
 ul.flags li { margin:2px 0; }
 .mono { font-family: "DejaVu Sans Mono", ui-monospace, monospace; font-size:12px; }
 footer { color:var(--muted); font-size:12px; text-align:center; padding:10px; }
+.tabs { display:flex; flex-wrap:wrap; gap:4px; margin:0 0 6px; border-bottom:2px solid var(--line); }
+.tabs .tab { border:1px solid var(--line); border-bottom:none; border-radius:4px 4px 0 0;
+             background:#f0f4f8; padding:4px 12px; margin-bottom:-2px; }
+.tabs .tab[aria-selected=true] { background:#fff; border-color:var(--accent); border-bottom:2px solid #fff;
+                                 font-weight:600; }
+tr.lotstat td { background:#f7fafc; color:var(--muted); border-top:1px solid var(--line); }
+table.params tr.lotstat td:first-child { background:#f7fafc; }
+.print-only { display:none; }
+@media print {
+  body { background:#fff; font-size:11px; }
+  main { max-width:none; padding:0 8px; }
+  section { break-inside:auto; border:none; padding:4px 0; }
+  .tabs, .toolbar, button { display:none; }
+  .tabpanel[hidden] { display:block; }
+  .print-only { display:block; }
+  .tablewrap { overflow:visible; max-height:none; border:none; }
+  th { position:static; }
+  table.params td:first-child, table.params th:first-child { position:static; }
+  .figure { break-inside:avoid; }
+}
 a { color:var(--accent); }
 """
 
@@ -177,7 +205,9 @@ _RUNTIME = """
         Array.prototype.forEach.call(heads, function (h) { h.removeAttribute("aria-sort"); });
         th.setAttribute("aria-sort", asc ? "ascending" : "descending");
         var body = table.tBodies[0];
-        var rows = Array.prototype.slice.call(body.rows);
+        var all = Array.prototype.slice.call(body.rows);
+        var fixed = all.filter(function (r) { return r.classList.contains("lotstat"); });
+        var rows = all.filter(function (r) { return !r.classList.contains("lotstat"); });
         rows.sort(function (a, b) {
           var x = cellValue(a, idx), y = cellValue(b, idx);
           var nx = parseFloat(x), ny = parseFloat(y);
@@ -185,7 +215,21 @@ _RUNTIME = """
                 : (isNaN(nx) !== isNaN(ny)) ? (isNaN(nx) ? 1 : -1) : x.localeCompare(y);
           return asc ? r : -r;
         });
-        rows.forEach(function (r) { body.appendChild(r); });
+        rows.concat(fixed).forEach(function (r) { body.appendChild(r); });
+      });
+    });
+  }
+  function makeTabs(list) {
+    var tabs = list.querySelectorAll("[role=tab]");
+    Array.prototype.forEach.call(tabs, function (tab) {
+      tab.addEventListener("click", function () {
+        Array.prototype.forEach.call(tabs, function (t) {
+          var on = t === tab;
+          t.setAttribute("aria-selected", on ? "true" : "false");
+          var panel = document.getElementById(t.getAttribute("data-tab"));
+          if (panel) panel.hidden = !on;
+        });
+        drawVisible();
       });
     });
   }
@@ -202,6 +246,8 @@ _RUNTIME = """
     if (typeof Plotly === "undefined") { console.error("plotly.js missing"); return; }
     var tables = document.querySelectorAll("table.sortable");
     for (var i = 0; i < tables.length; i++) makeSortable(tables[i]);
+    var lists = document.querySelectorAll("[role=tablist]");
+    for (var j = 0; j < lists.length; j++) makeTabs(lists[j]);
     drawVisible();
   }
   if (document.readyState === "loading") document.addEventListener("DOMContentLoaded", start);
@@ -217,28 +263,31 @@ def esc(x: Any) -> str:
 # ---------------------------------------------------------------------------- numbers/units
 
 def display_unit(uom: str | None) -> tuple[str, float]:
-    """(label shown, factor applied to values) for a stored unit of measure.
-
-    Ratios of a unit to itself ("deg/s per deg/s") are dimensionless; biases stored in g
-    are shown in mg (xu2016 Table 2 prints f0 in mg; a few 1e-3 g reads badly)."""
-    u = (uom or "").strip()
-    if u in ("", "1", "-", "none", "dimensionless"):
-        return "", 1.0
-    for sep in (" per ", "/"):
-        parts = u.split(sep)
-        if len(parts) == 2 and parts[0].strip() == parts[1].strip():
-            return "", 1.0
-    if u == "g":
-        return "mg", 1e3
-    return u, 1.0
+    """(label shown, factor applied to values) for a stored unit of measure: the values'
+    display of :mod:`schemas.display` (dimensionless ratios bare, biases in g as mg)."""
+    shown = value_unit(uom)
+    return shown.label, shown.factor
 
 
-def decimals_for(scale: float, extra: int = 1, max_decimals: int = 8) -> int | None:
-    """Decimals so that a quantity of size ``scale`` (a spread or stderr) shows
-    ``1 + extra`` significant digits; None when the scale is unknown."""
-    if scale is None or not math.isfinite(scale) or scale <= 0:
-        return None
-    return int(min(max(extra - math.floor(math.log10(scale)), 0), max_decimals))
+def spread_display(uom: str | None) -> tuple[str, float]:
+    """(label shown, factor) for a spread of a quantity stored in ``uom``: ppm for
+    dimensionless ratios, deg/h for gyro biases, mg for accelerometer biases
+    (:mod:`schemas.display`)."""
+    shown = spread_unit(uom)
+    return shown.label, shown.factor
+
+
+def fmt_spread(v: Any, factor: float, label: str, sig: int = 2) -> str:
+    """A spread already in the stored unit, shown with ``factor`` and ``label``
+    (:func:`spread_display`), e.g. "8.8 ppm"."""
+    try:
+        x = float(v) * factor
+    except (TypeError, ValueError):
+        return DASH
+    if not math.isfinite(x):
+        return DASH
+    text = fmt(x, sig=sig) if abs(x) < 10 ** sig else fmt(x, decimals=0)
+    return f"{text}\u00a0{esc(label)}" if label else text
 
 
 def fmt(v: Any, decimals: int | None = None, sig: int = 5) -> str:

@@ -21,16 +21,21 @@ LOT_COLOURS = ["#4c78a8", "#f58518", "#54a24b", "#e45756", "#72b7b2", "#b279a2",
 
 
 def lot_trends(h: pd.DataFrame) -> pd.DataFrame:
-    """Per lot and run: median over units of each key element and its spread (1.4826 MAD,
-    a robust standard deviation). Calibrations without a run id are grouped by UTC day."""
+    """Per lot: median over all its units of each key element and its spread (1.4826 MAD, a
+    robust standard deviation), from each unit's current calibration (its last produced
+    file), placed at the lot's acquisition time (the median of its units' times: when they
+    were measured, ``session_start``; processing time for files without it). A rerun of one
+    unit replaces that unit's value in its lot's median; it never makes a point of its own."""
     if not len(h):
         return pd.DataFrame()
-    h = h.copy()
-    h["run"] = h["run_id"].where(h["run_id"].notna(), h["time"].map(lambda t: t.strftime("%Y-%m-%d")))
+    cur = h.sort_values("produced", kind="stable").groupby(["lot", "unit"], sort=False,
+                                                            dropna=False).tail(1)
     names = [e[1] for e in KEY_ELEMENTS]
     rows = []
-    for (lot, run), g in h.groupby(["lot", "run"], sort=False, dropna=False):
-        row = {"lot": lot, "run": run, "time": g["time"].max(), "n_units": g["unit"].nunique()}
+    for lot, g in cur.groupby("lot", sort=False, dropna=False):
+        t = g["time"].sort_values()
+        row = {"lot": lot, "time": t.iloc[(len(t) - 1) // 2], "n_units": g["unit"].nunique(),
+               "time_source": ", ".join(sorted(set(g["time_source"].astype(str))))}
         values = g[names].to_numpy(float)  # one block per group, not a column at a time
         for k, n in enumerate(names):
             v = values[:, k]
@@ -39,7 +44,7 @@ def lot_trends(h: pd.DataFrame) -> pd.DataFrame:
             row[n] = med
             row[n + "_spread"] = float(1.4826 * np.median(np.abs(v - med))) if len(v) > 1 else np.nan
         rows.append(row)
-    return pd.DataFrame(rows).sort_values("time")
+    return pd.DataFrame(rows).sort_values("time", kind="stable").reset_index(drop=True)
 
 
 def trend_figure(tr: pd.DataFrame, group: str) -> dict:
@@ -55,7 +60,8 @@ def trend_figure(tr: pd.DataFrame, group: str) -> dict:
         d = tr[tr["lot"] == lot]
         cols = {c: d[c].to_numpy(float) for e in elems for c in (e[1], e[1] + "_spread")}
         by_lot[lot] = (cols, [t.isoformat() for t in d["time"]],
-                       [f"{lot} · run {r} · {u} units" for r, u in zip(d["run"], d["n_units"])])
+                       [f"{lot} · acquired {t:%Y-%m-%d %H:%M} UTC ({src}) · {u} units"
+                        for t, src, u in zip(d["time"], d["time_source"], d["n_units"])])
     data = []
     for k, e in enumerate(elems):
         xr, yr = refs[k]
@@ -191,12 +197,14 @@ def render_fleet_index(results_root: str | Path, view: StoreView | None = None) 
                                                                    height=200 + 190 * (3 if g.startswith("K") else 1),
                                                                    name=f"trend {g}")
                        for g in ("K_g", "w0", "K_a", "f0"))
-        trend_html = ('<p class="note">Per lot and run: median over the lot\'s units of each key parameter '
-                      '(points) and its spread (error bars: 1.4826 × MAD across units), from every '
-                      'calibration file kept under calibrations/.</p>' + figs)
+        src = ", ".join(sorted(set(", ".join(tr["time_source"]).split(", "))))
+        trend_html = ('<p class="note">Per lot: median over all the lot\'s units of each key parameter '
+                      '(points; each unit\'s current calibration) and its spread (error bars: '
+                      '1.4826 × MAD across units), at the time the lot was acquired (median of its '
+                      f'units\' acquisition times; from: {esc(src)}).</p>' + figs)
     else:
         trend_html = missing("Parameter trends", "no calibration files under calibrations/")
-    body.append(f'<section id="trends"><h2>Trends over runs</h2>{trend_html}</section>')
+    body.append(f'<section id="trends"><h2>Trends by acquisition date</h2>{trend_html}</section>')
 
     # run log
     runs = view.runs

@@ -8,7 +8,8 @@ from pathlib import Path
 
 from reports.html import Page, esc, missing, write_atomic
 from reports.sections import (KEY_MODELS, LotContext, discovery_figure, discovery_table, flags_list,
-                              key_models, key_parameter_table, kpi_block, residual_overview_figure,
+                              key_models, key_parameter_table, kpi_block, qa_reference_note,
+                              residual_overview_figure,
                               sessions_section, strip_figure, unit_section)
 from reports.store import StoreView
 
@@ -38,7 +39,7 @@ def render_lot_report(results_root: str | Path, lot: str, view: StoreView | None
     page = Page(f"Lot {lot} · mimucal calibration report")
     body = []
     body.append(f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx)}'
-                f'<h3>Outlier flags</h3>{flags_list(ctx)}</section>')
+                f'<h3>Flags: limit failures and outliers</h3>{qa_reference_note(ctx)}{flags_list(ctx)}</section>')
     body.append(f'<section id="parameters"><h2>Key parameters by unit</h2>{key_parameter_table(ctx)}</section>')
 
     strips = []
@@ -51,7 +52,9 @@ def render_lot_report(results_root: str | Path, lot: str, view: StoreView | None
                           + page.figure(fig, height=120 + 210 * rows, name=f"strip {model}"))
     body.append('<section id="spread"><h2>Parameters across the lot</h2>'
                 '<p class="note">Each point is one unit (mean over its repetitions); the box is the '
-                'lot without the flagged units. Flagged units are red diamonds labelled with the unit.</p>'
+                'whole lot, flagged units included. Statistical outliers are red diamonds, limit '
+                'failures orange crosses, both labelled with the unit; dashed orange lines are the '
+                'acceptance limits.</p>'
                 + ("".join(strips) or missing("Strip plots", "summary.parquet is absent")) + "</section>")
 
     ov = residual_overview_figure(ctx)

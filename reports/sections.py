@@ -11,8 +11,9 @@ from typing import Any, Iterable
 import numpy as np
 import pandas as pd
 
-from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, Page, arr, decimals_for, display_unit,
-                          esc, fmt, fmt_time, grid, kpi, missing, table, td_numbers, with_unit)
+from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, LIMIT, Page, arr, decimals_for,
+                          display_unit, MINUS, esc, fmt, fmt_spread, fmt_time, grid, kpi, missing,
+                          spread_display, table, td_numbers, with_unit)
 from reports.store import StoreView
 
 # Models in the key-parameter table and strip plots, with their headings.
@@ -74,6 +75,61 @@ def ordered_models(models: Iterable[str]) -> list[str]:
     return [m for m in first if m in models] + sorted(m for m in models if m not in first)
 
 
+# ----------------------------------------------------------------------------- flag kinds
+
+# Two separate categories: a failed acceptance limit (the engineer's limits file) and a
+# statistical outlier (robust z or repetition spread against the lot or the fleet history).
+KIND_OUTLIER = "outlier"
+KIND_LIMITS = "limits"
+
+
+def flag_kinds(reason: Any) -> set[str]:
+    """The categories named by a stored ``flag_reason`` ("[limit] ...; [robust_z] ...")."""
+    text = reason if isinstance(reason, str) else ""
+    kinds = set()
+    if "[limit]" in text:
+        kinds.add(KIND_LIMITS)
+    if "[robust_z]" in text or "[spread]" in text:
+        kinds.add(KIND_OUTLIER)
+    return kinds
+
+
+def kind_badges(kinds: set[str], count: int | None = None) -> str:
+    """The badges of a unit or parameter: limits failed, outlier, or both."""
+    n = f"{count} " if count else ""
+    out = []
+    if KIND_LIMITS in kinds:
+        out.append(f'<span class="badge limit">✖ {n}limit failed</span>')
+    if KIND_OUTLIER in kinds:
+        out.append(f'<span class="badge flag">⚑ {"" if KIND_LIMITS in kinds else n}outlier</span>')
+    return " ".join(out)
+
+
+def qa_badge(status: Any) -> str:
+    """The badge of a calibration file's QA status (pass / flagged / limits / not judged)."""
+    if status == "pass":
+        return '<span class="badge ok">pass</span>'
+    if status == "flagged":
+        return '<span class="badge flag">⚑ outlier</span>'
+    if status == "limits":
+        return '<span class="badge limit">✖ limits</span>'
+    return '<span class="badge unjudged">not judged</span>'
+
+
+def stored_limits(view: StoreView) -> tuple[dict[tuple[str, str], Any], str]:
+    """The acceptance limits of the store's QA configuration by (model, parameter), and a
+    problem text ("" when none): a report never fails on the configuration."""
+    try:
+        text = view.store.read_qa_config()
+        if text is None:
+            return {}, ""
+        from schemas.limits import config_from_toml
+        cfg = config_from_toml(text, source=str(view.store.qa_config_path))
+    except Exception as exc:  # noqa: BLE001 (shown in the report)
+        return {}, f"limits not drawn: {exc}"
+    return {(lim.model, lim.parameter): lim for lim in cfg.limits}, ""
+
+
 # ----------------------------------------------------------------------------- lot context
 
 @dataclass
@@ -83,9 +139,15 @@ class ParamInfo:
     model: str
     name: str
     uom: str
-    label: str          # display unit
-    scale: float        # display factor (g -> mg)
+    label: str          # display unit of values
+    scale: float        # display factor of values (g -> mg)
     decimals: int | None
+    spread_label: str = ""    # display unit of spreads (ppm, deg/h, mg...: schemas.display)
+    spread_scale: float = 1.0
+
+    def spread(self, v: Any, sig: int = 2) -> str:
+        """A spread in the stored unit as shown, e.g. "8.8 ppm"."""
+        return fmt_spread(v, self.spread_scale, self.spread_label, sig)
 
 
 @dataclass
@@ -107,6 +169,10 @@ class LotContext:
     flagged_units: list[str] = field(default_factory=list)
     residual_agg: pd.DataFrame | None = None
     unit_level_flags: dict[str, str] = field(default_factory=dict)
+    unit_kinds: dict[str, set[str]] = field(default_factory=dict)  # unit -> flag categories
+    limits: dict[tuple[str, str], Any] = field(default_factory=dict)
+    limits_problem: str = ""
+    qa_lot: dict | None = None  # the lot's QA context (reference used, threshold, note)
 
     @classmethod
     def load(cls, view: StoreView, lot: str, unit: str | None = None) -> "LotContext":
@@ -134,6 +200,17 @@ class LotContext:
             ctx.unit_level_flags = {str(r.unit): as_text(getattr(r, "flag_reason", "")) for r in uf.itertuples()
                                     if str(r.unit) not in ctx.flagged_units}
             ctx.flagged_units = sorted(set(ctx.flagged_units) | set(ctx.unit_level_flags))
+        if ut is not None and len(ut) and "flag_reason" in ut:
+            for u, r, fl in zip(py_values(ut["unit"]), py_values(ut["flag_reason"]),
+                                py_values(ut["flagged"]) if "flagged" in ut else [None] * len(ut)):
+                if fl is not None and not pd.isna(fl) and bool(fl):
+                    ctx.unit_kinds[str(u)] = flag_kinds(r) or {KIND_OUTLIER}
+        if ctx.flags is not None:
+            for u, r in zip(py_values(ctx.flags["unit"]), py_values(ctx.flags["flag_reason"])
+                            if "flag_reason" in ctx.flags else [""] * len(ctx.flags)):
+                ctx.unit_kinds.setdefault(str(u), set()).update(flag_kinds(r) or {KIND_OUTLIER})
+        ctx.limits, ctx.limits_problem = stored_limits(view)
+        ctx.qa_lot = view.store.read_qa_lot(lot)
         ctx.residual_agg = aggregate_residuals(ctx.residuals)
         if ctx.summary is not None and len(ctx.summary) and not ctx.units:
             ctx.units = sorted({str(u) for u in ctx.summary["unit"].dropna()})
@@ -162,7 +239,9 @@ class LotContext:
                 m = means[pos]
                 spread = float(np.nanmedian(np.abs(m - np.nanmedian(m)))) * 1.4826 if len(m) > 1 else np.nan
             dec = decimals_for(spread * scale, extra=1)
-            self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec)
+            slabel, sscale = spread_display(uom)
+            self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec,
+                                                             slabel, sscale)
 
     def unit_rows(self, name: str, unit: str) -> pd.DataFrame | None:
         """Rows of one unit from a table, grouped once per table (filtering a 50-unit lot's
@@ -233,7 +312,7 @@ class LotContext:
         return cache.get(unit, [])
 
     def info(self, model: str, name: str) -> ParamInfo:
-        return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None)
+        return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None, "ppm", 1e6)
 
     def value(self, model: str, name: str, v: Any) -> str:
         p = self.info(model, name)
@@ -366,7 +445,7 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
     for u, reason in sorted(ctx.unit_level_flags.items()):
         if unit is None or u == unit:
             ul = f'<a href="#unit-{esc(u)}">{esc(u)}</a>' if link else esc(u)
-            items.append(f'<li data-unit="{esc(u)}"><span class="badge flag">flagged unit</span> '
+            items.append(f'<li data-unit="{esc(u)}">{kind_badges(flag_kinds(reason) or {KIND_OUTLIER})} '
                          f'<b>{ul}</b> · {esc(reason)}</li>')
     if (f is None or not len(f)) and not items:
         return '<p class="note">No parameter flagged.</p>'
@@ -376,13 +455,65 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
         u = f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>' if link else esc(r.unit)
         med = getattr(r, "lot_median", np.nan)
         score = getattr(r, "score", np.nan)
+        kinds = flag_kinds(getattr(r, "flag_reason", "")) or {KIND_OUTLIER}
         items.append(
-            f'<li data-unit="{esc(r.unit)}" data-param="{esc(r.parameter)}"><span class="badge flag">flagged</span> '
+            f'<li data-unit="{esc(r.unit)}" data-param="{esc(r.parameter)}" '
+            f'data-kind="{esc(" ".join(sorted(kinds)))}">{kind_badges(kinds)} '
             f"<b>{u}</b> · {esc(r.model)} {pretty_param(r.parameter)} = "
             f"<b>{ctx.value(r.model, r.parameter, r.mean)}</b>{with_unit(p.label)} "
             f"(lot median {ctx.value(r.model, r.parameter, med)}, score {fmt(score, 1)}) · "
             f"{esc(getattr(r, 'flag_reason', '') or '')}</li>")
     return f'<ul class="flags">{"".join(items)}</ul>'
+
+
+def unit_qa_note(ctx: LotContext, unit: str) -> str:
+    """The QA status of the unit's current calibration file (what ``mimucal calibration``
+    hands out or refuses) with its reasons and the lot context it was judged in."""
+    import json
+    ut = ctx.unit_rows("units_table", unit) if ctx.units_table is not None else None
+    rel = None if ut is None or not len(ut) else ut["calibration_file"].iloc[0]
+    if not isinstance(rel, str) or not rel:
+        return '<p class="note">No current calibration file.</p>'
+    try:
+        doc = json.loads((ctx.view.root / rel).read_text())
+    except (OSError, ValueError) as exc:
+        return f'<p class="note">QA status unreadable: {esc(exc)}</p>'
+    qa = doc.get("qa") if isinstance(doc.get("qa"), dict) else None
+    if qa is None:
+        return (f'<p class="note qa-status">{qa_badge(None)} the current calibration '
+                f'<span class="mono">{esc(rel)}</span> was not judged in a lot.</p>')
+    reasons = "".join(f"<li>{esc(r)}</li>" for r in qa.get("reasons") or [])
+    return (f'<div class="qa-status"><p>{qa_badge(qa.get("status"))} QA status of the current '
+            f'calibration <span class="mono">{esc(rel)}</span> in lot {esc(qa.get("lot"))} '
+            f'({esc(qa.get("reference_detail") or qa.get("reference"))}; judged '
+            f'{esc(fmt_time(qa.get("judged_at")) or DASH)})</p>'
+            + (f'<ul class="flags">{reasons}</ul>' if reasons else "") + "</div>")
+
+
+def qa_reference_note(ctx: LotContext) -> str:
+    """Which reference the lot's units were judged against (its own lot or the fleet
+    history of earlier lots), the threshold and the limits in force."""
+    qa = ctx.qa_lot or {}
+    parts = []
+    if qa:
+        ref = {"lot": "the lot itself", "fleet history": "the fleet history",
+               "none": "no reference (too few units, no fleet history)"}.get(
+            qa.get("reference"), str(qa.get("reference")))
+        parts.append(f"<b>Reference:</b> {esc(ref)}"
+                     + (f" ({esc(qa.get('reference_detail'))})" if qa.get("reference_detail") else "")
+                     + f"; |robust z| threshold {fmt(qa.get('z_threshold'), 2)}; judged "
+                     f"{esc(fmt_time(qa.get('judged_at')) or DASH)}.")
+    else:
+        parts.append("<b>Reference:</b> not recorded (the lot was not re-flagged by this version).")
+    if ctx.limits:
+        parts.append(f"<b>Limits:</b> {len(ctx.limits)} parameter(s) "
+                     + ", ".join(f"{esc(m)}.{esc(n)} ({esc(lim.written)})"
+                                 for (m, n), lim in sorted(ctx.limits.items())) + ".")
+    else:
+        parts.append("<b>Limits:</b> none configured.")
+    if ctx.limits_problem:
+        parts.append(esc(ctx.limits_problem))
+    return f'<p class="note qa-reference">{" ".join(parts)}</p>'
 
 
 # ----------------------------------------------------------------------------- key table
@@ -392,61 +523,118 @@ def key_models(ctx: LotContext) -> list[str]:
     return [m for m, _ in KEY_MODELS if m in present]
 
 
+def _flagged_cells(ctx: LotContext) -> dict[str, dict[str, set[str]]]:
+    """model -> unit -> flagged parameters (from the summary's flagged rows)."""
+    out: dict[str, dict[str, set[str]]] = {}
+    f = ctx.flags
+    if f is not None and len(f):
+        for u, m, n in zip(py_values(f["unit"]), py_values(f["model"]), py_values(f["parameter"])):
+            out.setdefault(str(m), {}).setdefault(str(u), set()).add(str(n))
+    return out
+
+
 def key_parameter_table(ctx: LotContext) -> str:
+    """The key parameters, one table per model behind a chooser (tabs): a row per unit, the
+    flagged units first, the unit column frozen; under each table the lot's median and its
+    scatter (1.4826 MAD) in the spread's unit (ppm, deg/h, mg)."""
     s = ctx.summary
     if s is None or not len(s):
         return missing("Key-parameter table", "summary.parquet is absent or empty")
     models = key_models(ctx)
     if not models:
         return missing("Key parameters", "no gyro/accel/accel_static/lever_arm rows in summary.parquet")
-    cols: list[tuple[str, str]] = []
-    group = ['<tr class="group"><th colspan="3"></th>']
-    for m in models:
-        names = ordered_params(m, s.loc[s["model"] == m, "parameter"].unique())
-        cols += [(m, n) for n in names]
-        title = dict(KEY_MODELS).get(m, m)
-        group.append(f'<th colspan="{len(names)}">{title}</th>')
-    group.append("</tr>")
     # the summary's columns as Python lists once (itertuples over ~3,000 rows costs ~40 ms)
     col = {c: py_values(s[c]) for c in ("mean", "std", "n_reps", "flagged", "flag_reason") if c in s}
     by_key = {k: i for i, k in enumerate(zip(py_values(s["unit"]), py_values(s["model"]), py_values(s["parameter"])))}
     no_flags = [False] * len(s)
-    headers = ["Unit", "Sessions used/all", "Flags"]
-    for m, n in cols:
-        p = ctx.info(m, n)
-        headers.append(f'{pretty_param(n)}<br><small>{esc(p.label) or "&nbsp;"}</small>')
-    rows = []
-    for unit in ctx.units:
-        c = ctx.session_counts(unit)
-        n_all = sum(c.values()) if c else 0
-        n_flags = ctx.n_param_flags(unit) + (unit in ctx.unit_level_flags)
-        cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
-                 + (' <span class="badge flag">⚑ flagged</span>' if n_flags else "") + "</td>",
-                 f'<td data-sort="{c.get("ok", 0) + c.get("warned", 0)}">{c.get("ok", 0) + c.get("warned", 0)}/{n_all}'
-                 + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
-                 f'<td data-sort="{n_flags}">{n_flags or ""}</td>']
-        for m, n in cols:
-            i = by_key.get((unit, m, n))
-            if i is None:
-                cells.append(f'<td data-sort="">{DASH}</td>')
-                continue
+    flag_cells = _flagged_cells(ctx)
+    n_flags = {u: ctx.n_param_flags(u) + (u in ctx.unit_level_flags) for u in ctx.units}
+    counts = {u: ctx.session_counts(u) for u in ctx.units}
+    tabs, panels = [], []
+    for k, m in enumerate(models):
+        names = ordered_params(m, s.loc[s["model"] == m, "parameter"].unique())
+        in_model = flag_cells.get(m, {})
+        # flagged in this model first, then flagged elsewhere, then the rest; by unit id within
+        units = sorted(ctx.units, key=lambda u: (not in_model.get(u), not n_flags[u], u))
+        headers = ["Unit", "Sessions used/all", "Flags"]
+        for n in names:
             p = ctx.info(m, n)
-            mean, r_std = col["mean"][i], col["std"][i]
-            val = ctx.value(m, n, mean)
-            std = fmt(float(r_std) * p.scale, sig=2) if pd.notna(r_std) else DASH
-            tip = f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: {std})"
-            if bool(col.get("flagged", no_flags)[i]):
-                tip += f" — FLAGGED: {col['flag_reason'][i] if 'flag_reason' in col else ''}"
-                cells.append(f'<td class="flagged" data-flagged="1" data-param="{esc(n)}" data-sort="{float(mean)!r}" '
-                             f'title="{esc(tip)}">{val}</td>')
-            else:
-                cells.append(f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>')
-        rows.append(({"class": "flagged-unit" if n_flags else "", "data-unit": unit}, cells))
-    note = ('<p class="note">Mean over repetitions per unit. Click a column heading to sort. '
-            'Flagged cells (red, ⚑) are outliers of the lot; hover a cell for its spread and the reason. '
-            'Biases stored in g are shown in mg; a blank unit means dimensionless.</p>')
-    return note + table(headers, rows, cls="sortable params", group_row="".join(group), text_cols=1,
-                        attrs=' id="key-parameters"')
+            headers.append(f'{pretty_param(n)}<br><small>{esc(p.label) or "&nbsp;"}</small>')
+        rows = []
+        for unit in units:
+            c = counts[unit]
+            n_all = sum(c.values()) if c else 0
+            used = c.get("ok", 0) + c.get("warned", 0)
+            cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
+                     + (" " + kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER})) if n_flags[unit] else "")
+                     + "</td>",
+                     f'<td data-sort="{used}">{used}/{n_all}'
+                     + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
+                     f'<td data-sort="{n_flags[unit]}">{n_flags[unit] or ""}</td>']
+            for n in names:
+                i = by_key.get((unit, m, n))
+                if i is None:
+                    cells.append(f'<td data-sort="">{DASH}</td>')
+                    continue
+                p = ctx.info(m, n)
+                mean, r_std = col["mean"][i], col["std"][i]
+                val = ctx.value(m, n, mean)
+                tip = (f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: "
+                       f"{p.spread(r_std).replace(chr(160), ' ')})")
+                if bool(col.get("flagged", no_flags)[i]):
+                    why = col["flag_reason"][i] if "flag_reason" in col else ""
+                    kinds = flag_kinds(why) or {KIND_OUTLIER}
+                    cls = "limit" if KIND_LIMITS in kinds else "flagged"
+                    tip += f" — FLAGGED ({'limit failed' if cls == 'limit' else 'outlier'}): {why}"
+                    cells.append(f'<td class="{cls}" data-flagged="1" data-kind="{esc(" ".join(sorted(kinds)))}" '
+                                 f'data-param="{esc(n)}" data-sort="{float(mean)!r}" '
+                                 f'title="{esc(tip)}">{val}</td>')
+                else:
+                    cells.append(f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>')
+            rows.append(({"class": "flagged-unit" if n_flags[unit] else "", "data-unit": unit}, cells))
+        foot = _lot_rows(ctx, s, m, names)
+        title = dict(KEY_MODELS).get(m, m)
+        n_cells = sum(len(v) for v in in_model.values())
+        badge = f' <span class="badge flag">{n_cells} ⚑</span>' if n_cells else ""
+        tid = f"kp-{m}"
+        tabs.append(f'<button type="button" role="tab" class="tab" id="{tid}-tab" aria-controls="{tid}" '
+                    f'aria-selected="{"true" if k == 0 else "false"}" data-tab="{tid}">{title}{badge}</button>')
+        panels.append(f'<div class="tabpanel" role="tabpanel" id="{tid}" data-model="{esc(m)}" '
+                      f'aria-labelledby="{tid}-tab"{"" if k == 0 else " hidden"}>'
+                      f'<h3 class="print-only">{title}</h3>'
+                      + table(headers, rows + foot, cls="sortable params key-parameters", text_cols=1,
+                              attrs=f' id="key-parameters-{esc(m)}"')
+                      + "</div>")
+    note = ('<p class="note">Mean over repetitions per unit; one table per model (choose above). '
+            'Flagged units come first; click a column heading to sort. Red cells (⚑) are statistical '
+            'outliers, orange cells (✖) failed an acceptance limit; hover a cell for its spread over '
+            'repetitions and the reason. '
+            'Values: biases stored in g in mg, a blank unit means dimensionless. The last two rows: '
+            'the lot median and its scatter (1.4826 × MAD), spreads in ppm (ratios), deg/h (gyro '
+            'biases) or mg (accelerometer biases).</p>')
+    return (note + f'<div class="tabs" role="tablist" id="key-parameter-tabs">{"".join(tabs)}</div>'
+            + "".join(panels))
+
+
+def _lot_rows(ctx: LotContext, s: pd.DataFrame, model: str, names: list[str]) -> list[str]:
+    """The lot median and scatter (1.4826 MAD) rows under a key-parameter table; they stay
+    last when the table is sorted (the runtime sorts the rows without class "lotstat")."""
+    sub = s[s["model"] == model]
+    med, mad = [], []
+    for n in names:
+        v = sub.loc[sub["parameter"] == n, "mean"].to_numpy(float)
+        v = v[np.isfinite(v)]
+        p = ctx.info(model, n)
+        if len(v):
+            m = float(np.median(v))
+            med.append(f"<td>{ctx.value(model, n, m)}</td>")
+            mad.append(f"<td>{p.spread(1.4826 * float(np.median(np.abs(v - m))))}</td>"
+                       if len(v) > 2 else f"<td>{DASH}</td>")
+        else:
+            med.append(f"<td>{DASH}</td>")
+            mad.append(f"<td>{DASH}</td>")
+    return [f'<tr class="lotstat"><td class="text">lot median</td><td></td><td></td>{"".join(med)}</tr>',
+            f'<tr class="lotstat"><td class="text">lot scatter</td><td></td><td></td>{"".join(mad)}</tr>']
 
 
 # ----------------------------------------------------------------------------- strip plots
@@ -461,8 +649,10 @@ def _legend_top(y: float = 1.0) -> dict:
 
 
 def strip_figure(ctx: LotContext, model: str) -> dict | None:
-    """One panel per parameter: the lot's unit means as a box (clean units) and points;
-    units flagged on that parameter as large red diamonds labelled with the unit id."""
+    """One panel per parameter: the box of every unit's mean (flagged ones included: the box
+    is the lot as measured) and a point per unit; statistical outliers on that parameter as
+    large red diamonds, limit failures as orange crosses, both labelled with the unit id;
+    the acceptance limits of the parameter as dashed orange lines."""
     s = ctx.summary
     if s is None:
         return None
@@ -478,6 +668,7 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
         titles.append(f"{pretty_param(n)}{' [' + p.label + ']' if p.label else ''}")
     layout, refs = grid(nrows, ncols, titles, hspace=0.055, vspace=0.3 / nrows)
     data: list[dict] = []
+    shapes: list[dict] = []
     unit_index = {u: i for i, u in enumerate(ctx.units)}
     # the model's columns once, then each parameter's rows by position (pandas per parameter
     # costs ~1 ms a panel, 45 panels a lot)
@@ -486,17 +677,22 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
     flagged_all = (sm["flagged"].fillna(False).astype(bool).to_numpy() if "flagged" in sm
                    else np.zeros(len(sm), bool))
     units_all = sm["unit"].astype(str).to_numpy()
-    reasons_all = sm["flag_reason"].astype(str).to_numpy() if "flag_reason" in sm else None
+    reasons_all = sm["flag_reason"].astype(str).to_numpy() if "flag_reason" in sm else \
+        np.array([""] * len(sm), object)
+    limit_all = np.array(["[limit]" in r for r in reasons_all], bool) & flagged_all
+    any_limit_line = False
     for k, n in enumerate(names):
         xr, yr = refs[k]
         pos = by_name[n]
         p = ctx.info(model, n)
         vals = mean_all[pos] * p.scale
         flagged = flagged_all[pos]
+        at_limit = limit_all[pos]
+        outlier = flagged & ~at_limit
         units = units_all[pos]
         x = np.array([_jitter(unit_index.get(u, i)) for i, u in enumerate(units)])
         hover = np.array([f"{u}<br>{n} = {fmt(v, p.decimals)} {p.label}" for u, v in zip(units, vals)])
-        data.append({"type": "box", "y": arr(vals[~flagged]), "x0": 0, "name": "lot", "boxpoints": False,
+        data.append({"type": "box", "y": arr(vals), "x0": 0, "name": "lot (all units)", "boxpoints": False,
                      "marker": {"color": "#9fb3c8"}, "fillcolor": "rgba(159,179,200,0.25)",
                      "line": {"width": 1}, "width": 0.8, "hoverinfo": "skip", "showlegend": False,
                      "xaxis": xr, "yaxis": yr})
@@ -504,27 +700,54 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
                      "marker": {"color": CLEAN, "size": 6, "opacity": 0.85}, "name": "unit (in family)",
                      "text": list(hover[~flagged]), "hoverinfo": "text", "showlegend": k == 0,
                      "legendgroup": "clean", "xaxis": xr, "yaxis": yr})
-        if flagged.any():
-            reasons = reasons_all[pos][flagged] if reasons_all is not None else [""] * int(flagged.sum())
-            data.append({"type": "scatter", "x": arr(x[flagged]), "y": arr(vals[flagged]),
-                         "mode": "markers+text", "name": "flagged unit",
-                         "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond",
-                                    "line": {"color": "#7f1d1d", "width": 1}},
-                         "text": list(units[flagged]), "textposition": "middle right",
-                         "textfont": {"color": FLAGGED, "size": 12},
-                         "hovertext": [f"{h}<br><b>flagged</b>: {r}" for h, r in zip(hover[flagged], reasons)],
-                         "hoverinfo": "text", "showlegend": False, "legendgroup": "flagged",
+        for sel, name, colour, symbol, edge in ((outlier, "outlier", FLAGGED, "diamond", "#7f1d1d"),
+                                                (at_limit, "limit failed", LIMIT, "x", "#7c2d12")):
+            if not sel.any():
+                continue
+            reasons = reasons_all[pos][sel]
+            data.append({"type": "scatter", "x": arr(x[sel]), "y": arr(vals[sel]),
+                         "mode": "markers+text", "name": name,
+                         "marker": {"color": colour, "size": 12, "symbol": symbol,
+                                    "line": {"color": edge, "width": 1}},
+                         "text": list(units[sel]), "textposition": "middle right",
+                         "textfont": {"color": colour, "size": 12},
+                         "hovertext": [f"{h}<br><b>{name}</b>: {r}" for h, r in zip(hover[sel], reasons)],
+                         "hoverinfo": "text", "showlegend": False, "legendgroup": name,
                          "cliponaxis": False, "xaxis": xr, "yaxis": yr})
+        lim = ctx.limits.get((model, n))
+        if lim is not None:
+            for bound in (lim.min, lim.max):
+                if bound is None:
+                    continue
+                any_limit_line = True
+                y = float(bound) * p.scale
+                shapes.append({"type": "line", "xref": xr, "yref": yr, "x0": -0.6, "x1": 1.0,
+                               "y0": y, "y1": y, "line": {"color": LIMIT, "width": 1.5, "dash": "dash"}})
+                # an invisible point at the limit keeps it inside the autoranged axis
+                data.append({"type": "scatter", "x": [0.95], "y": [y], "mode": "markers",
+                             "marker": {"opacity": 0}, "hoverinfo": "text",
+                             "text": [f"limit {'min' if bound is lim.min else 'max'} "
+                                      f"{fmt(y, p.decimals)} {p.label}"],
+                             "showlegend": False, "xaxis": xr, "yaxis": yr})
         ax = "xaxis" + xr[1:]
         layout[ax].update(range=[-0.6, 1.0], showticklabels=False, showgrid=False, zeroline=False)
         layout["yaxis" + yr[1:]].update(
             tickformat=f".{max(p.decimals - 1, 0)}~f" if p.decimals is not None else "", nticks=5)
-    # one legend entry for flagged units even if the first panel has none
+    # one legend entry per category even if the first panel has none
     data.append({"type": "scatter", "x": [None], "y": [None], "mode": "markers",
-                 "name": "flagged unit (labelled)", "xaxis": "x", "yaxis": "y",
+                 "name": "outlier (labelled)", "xaxis": "x", "yaxis": "y",
                  "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond"}, "showlegend": True})
+    data.append({"type": "scatter", "x": [None], "y": [None], "mode": "markers",
+                 "name": "limit failed (labelled)", "xaxis": "x", "yaxis": "y",
+                 "marker": {"color": LIMIT, "size": 12, "symbol": "x"}, "showlegend": True})
+    if any_limit_line:
+        data.append({"type": "scatter", "x": [None], "y": [None], "mode": "lines",
+                     "name": "acceptance limit", "xaxis": "x", "yaxis": "y",
+                     "line": {"color": LIMIT, "dash": "dash"}, "showlegend": True})
     layout.update(margin={"l": 60, "r": 20, "t": 50, "b": 20}, hovermode="closest",
                   legend={**_legend_top(), "y": 1.0 + 0.25 / nrows / 1.5})
+    if shapes:
+        layout["shapes"] = [*layout.get("shapes", []), *shapes]
     return {"data": data, "layout": layout}
 
 
@@ -577,7 +800,7 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
             names, [row_of[n] for n in names], infos, heads, np.array([info.scale for info in infos])[:, None])
     names, order, infos, heads, scale = layout
     flagged = ctx.flagged_params(unit, model)
-    headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Mean stderr"]
+    headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Stderr of average"]
     Vs = V[order] * scale
     avg, spread, mean_se = ctx.rep_stats(unit, model, order)
     rows = []
@@ -588,7 +811,9 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
         rows.append(heads[k]
                     + td_numbers(values[k], finite[k], info.decimals)
                     + f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>'
-                    f'<td class="spread">{fmt(spread[k], sig=2)}</td><td class="spread">{fmt(mean_se[k], sig=2)}</td></tr>')
+                    # spreads in their own units (ppm, deg/h, mg): avg etc. are in the value unit
+                    f'<td class="spread">{info.spread(spread[k] / info.scale)}</td>'
+                    f'<td class="spread">{info.spread(mean_se[k] / info.scale)}</td></tr>')
     return (f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>"
             + table(headers, rows, cls="paper", text_cols=2, wrap=False))
 
@@ -706,8 +931,11 @@ def residual_index(ctx: LotContext) -> ResidualIndex | None:
 
 
 def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...], x_of, scale: float,
-                     unit: str, x_title: str, symbol: str, categorical: bool) -> dict:
-    """``d``: row positions in ``ri`` of one unit's points, in drawing order."""
+                     unit: str, x_title: str, symbol: str, categorical: bool,
+                     x_axis: dict | None = None, hover_x_of=None) -> dict:
+    """``d``: row positions in ``ri`` of one unit's points, in drawing order. ``x_axis``:
+    settings of every x axis (e.g. symlog ticks); ``hover_x_of``: the x shown on hover when
+    the drawn x is transformed."""
     model = ri.model[d]
     found = set(model)
     models = [m for m in ("baseline", "extended") if m in found] + sorted(found - {"baseline", "extended"})
@@ -722,7 +950,10 @@ def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...]
             if not len(dc):
                 continue
             y = ri.residual[dc] * scale
+            extra = {} if hover_x_of is None else {"customdata": hover_x_of(dc)}
+            at = "%{x}" if hover_x_of is None else "%{customdata:.4g}"
             data.append({
+                **extra,
                 "type": "scatter", "x": x_of(dc), "y": arr(y), "mode": "markers", "name": f"{ch} error",
                 "marker": {"color": CHANNEL_COLOURS[ch[1]], "size": 6, "symbol": symbol},
                 "error_y": {"type": "data", "symmetric": False,
@@ -730,8 +961,8 @@ def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...]
                             "arrayminus": arr(y - ri.rmin[dc] * scale),
                             "thickness": 1, "width": 0, "color": CHANNEL_COLOURS[ch[1]]},
                 "legendgroup": ch, "showlegend": j == 0, "xaxis": xr, "yaxis": yr,
-                "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at %{{x}}<extra>{m} model</extra>"})
-        layout["xaxis" + xr[1:]].update(title={"text": x_title})
+                "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at {at}<extra>{m} model</extra>"})
+        layout["xaxis" + xr[1:]].update(title={"text": x_title}, **(x_axis or {}))
         if categorical:
             layout["xaxis" + xr[1:]].update(type="category", tickangle=-60, tickfont={"size": 10})
     layout["yaxis"].update(title={"text": f"error [{unit}]"}, zeroline=True)
@@ -739,13 +970,47 @@ def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...]
     return {"data": data, "layout": layout}
 
 
+SYMLOG_LINEAR_DPS = 1.0  # the symlog rate axis is linear within +/- this rate, logarithmic beyond
+
+
+def symlog(x: np.ndarray, c: float = SYMLOG_LINEAR_DPS) -> np.ndarray:
+    """sign(x) log10(1 + |x|/c): a logarithmic axis for both signs and zero."""
+    x = np.asarray(x, dtype=float)
+    return np.sign(x) * np.log10(1.0 + np.abs(x) / c)
+
+
+def symlog_axis(max_abs: float, c: float = SYMLOG_LINEAR_DPS) -> dict:
+    """Tick values and labels of a symlog axis up to ``max_abs``: 0, +/-1, 10, 100... c."""
+    decades = [c * 10 ** k for k in range(0, int(np.ceil(np.log10(max(max_abs, c) / c))) + 1)]
+    vals = sorted({0.0, *decades, *(-d for d in decades)})
+    return {"tickmode": "array", "tickvals": symlog(np.array(vals), c).tolist(),
+            "ticktext": [f"{v:g}".replace("-", MINUS) for v in vals], "zeroline": True}
+
+
+def rates_span_decades(rates: np.ndarray, decades: float = 1.0) -> bool:
+    """Whether the non-zero |rates| span at least ``decades`` decades (a linear axis would
+    pile the low rates together)."""
+    r = np.abs(np.asarray(rates, dtype=float))
+    r = r[np.isfinite(r) & (r > 0)]
+    return len(r) > 1 and r.max() / r.min() >= 10 ** decades
+
+
 def gyro_residual_figure(ctx: LotContext, unit: str) -> dict | None:
+    """Gyro error vs table rate; a symlog rate axis when the rates span a decade or more
+    (the xu2016 protocol: 6 to 300 deg/s of both signs; a linear axis piles the low rates
+    together)."""
     ri = residual_index(ctx)
     if ri is None:
         return None
     d = ri.select(unit, ri.is_gyro, ri.rate_dps)
     if d is None or not len(d):
         return None
+    rates = ri.rate_dps[d]
+    if rates_span_decades(rates):
+        return _residual_figure(ri, d, ("gx", "gy", "gz"), lambda dc: arr(symlog(ri.rate_dps[dc])),
+                                1.0, "deg/s", "table rate [deg/s] (symmetric log scale)", "circle", False,
+                                x_axis=symlog_axis(float(np.nanmax(np.abs(rates)))),
+                                hover_x_of=lambda dc: ri.rate_dps[dc].tolist())
     return _residual_figure(ri, d, ("gx", "gy", "gz"), lambda dc: arr(ri.rate_dps[dc]),
                             1.0, "deg/s", "table rate [deg/s]", "circle", False)
 
@@ -921,7 +1186,8 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     meta = []
     if c:
         meta.append(f"sessions ok {c['ok']}, warned {c['warned']}, failed {c['failed']}")
-    badge = f'<span class="badge flag">⚑ {n_flags} flagged</span>' if n_flags else '<span class="badge ok">in family</span>'
+    badge = (kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER}), n_flags) if n_flags
+             else '<span class="badge ok">in family</span>')
     if c.get("failed"):
         badge += f' <span class="badge failed">{c["failed"]} failed session(s)</span>'
     parts = []

@@ -14,7 +14,7 @@ from reports.history import KEY_ELEMENTS, history_frame
 from reports.html import (CASE_COLOURS, DASH, Page, arr, decimate, esc, fmt, fmt_time, grid, missing,
                           table, write_atomic)
 from reports.lot import ReportError, safe_name
-from reports.sections import LotContext, kpi_block, unit_section
+from reports.sections import LotContext, kpi_block, qa_badge, unit_qa_note, unit_section
 from reports.store import StoreView
 
 NAV_MAX_POINTS = 1500  # per trace; a 60 s drift at 1 kHz is 60,000 samples
@@ -70,7 +70,7 @@ def history_figure(h: pd.DataFrame) -> dict | None:
     far more than they drift, so absolute values would draw flat lines."""
     if h is None or len(h) < 1:
         return None
-    h = h.sort_values("time")
+    h = h.sort_values(["time", "produced"], kind="stable")
     groups = ["K_g", "w0", "K_a", "f0"]
     titles = {"K_g": "Gyroscope K<sub>g</sub> diagonal: change [ppm]",
               "w0": "Gyroscope bias ω<sub>0</sub>: change [deg/s]",
@@ -101,17 +101,20 @@ def history_figure(h: pd.DataFrame) -> dict | None:
 def history_table(h: pd.DataFrame) -> str:
     names = [e[1] for e in KEY_ELEMENTS if e[0] in ("w0", "f0")] + ["k_g11", "k_g22", "k_g33",
                                                                    "k_a11", "k_a22", "k_a33"]
-    heads = ["Calibrated (UTC)", "Run id", "Code version", "File"] + [
+    heads = ["Acquired (UTC)", "Produced (UTC)", "QA", "Run id", "Code version", "File"] + [
         f"{n}{' [deg/s]' if n.startswith('w0') else ' [mg]' if n.startswith('f0') else ''}" for n in names]
     rows = []
-    for r in h.sort_values("time", ascending=False).itertuples():
-        cells = [esc(fmt_time(r.time)), f'<span class="mono">{esc(r.run_id or DASH)}</span>',
+    for r in h.sort_values(["time", "produced"], ascending=False, kind="stable").itertuples():
+        when = esc(fmt_time(r.time)) + ("" if r.time_source == "session_start"
+                                        else " <small>(processing time: no session_start)</small>")
+        cells = [when, esc(fmt_time(r.produced)), qa_badge(r.qa_status),
+                 f'<span class="mono">{esc(r.run_id or DASH)}</span>',
                  esc(r.code_version or DASH), f'<span class="mono">{esc(r.file)}</span>']
         for n in names:
             v = getattr(r, n)
             cells.append(fmt(v, 3 if n[0] in "wf" else 6))
         rows.append(cells)
-    return table(heads, rows, cls="sortable", text_cols=4)
+    return table(heads, rows, cls="sortable", text_cols=6)
 
 
 def render_unit_report(results_root: str | Path, unit: str, view: StoreView | None = None) -> str:
@@ -125,7 +128,8 @@ def render_unit_report(results_root: str | Path, unit: str, view: StoreView | No
     body = []
     if lot is not None:
         ctx = LotContext.load(view, lot, unit=unit)
-        body.append(f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx, unit)}</section>')
+        body.append(f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx, unit)}'
+                    f'{unit_qa_note(ctx, unit)}</section>')
         body.append(f'<section id="unit"><h2>Calibration of {esc(unit)}</h2>'
                     + unit_section(ctx, page, unit, open_=True) + "</section>")
     else:

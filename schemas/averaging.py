@@ -28,7 +28,7 @@ Steps left out, each named in a :class:`SessionWarning`:
   detected unless its full scale is declared (``gyro_full_scale_raw``) or, in physical units,
   reached; with noise below about half a quantum a noise tail can look like a clip.
 
-Speed (docs/benchmarks.md, docs/perf-read.md): the steps table's columns come from the reader
+Speed (docs/benchmarks.md): the steps table's columns come from the reader
 (``SessionData.step_columns``, taken out of pandas once per distinct steps file), the sample ->
 step index too (``SessionData.step_row``), and the six channels as one ``(6, n)`` array
 (``SessionData.channels``). The samples of a step are contiguous runs, so every per-step
@@ -37,7 +37,7 @@ step in the usual file) with ``np.add.reduceat`` over the segment boundaries, on
 six channels, and segments are added up per step only when a step has several. The settling
 rule is the same comparison as ever (``t - t0 >= settle_s - tolerance``, per sample); as ``t``
 is strictly increasing its kept samples are a suffix of each run of a step, found per run
-(``searchsorted`` and the exact rule at the boundary, :func:`_settled_from`; docs/perf5-sample.md)
+(``searchsorted`` and the exact rule at the boundary, :func:`_settled_from`; docs/benchmarks.md)
 instead of over all samples, and the segments are those suffixes.
 Means and standard deviations are two-pass as before; the sums are ``reduceat``'s (pairwise)
 instead of ``bincount``'s (sequential), which changes results by rounding only (a few ulp).
@@ -52,6 +52,8 @@ only when the exact rules run.
 """
 from __future__ import annotations
 
+import os
+from collections import Counter
 from typing import Mapping
 
 import numpy as np
@@ -62,7 +64,8 @@ from calib_core.steps import SessionKey, StepMeans
 from schemas.contract import ACCEL_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE
 from schemas.dataset import SessionRef
 from schemas.errors import (
-    E_EMPTY_SESSION, W_EMPTY_STEP, W_SATURATED, W_TOO_SHORT, SessionError, SessionWarning,
+    E_EMPTY_SESSION, E_TOO_MANY_STEPS_LOST, W_EMPTY_STEP, W_SATURATED, W_TOO_SHORT,
+    SessionError, SessionWarning,
 )
 from schemas.reader import SessionData, StepColumns, read_session, session_from_tables
 
@@ -419,10 +422,53 @@ def _may_saturate(x: np.ndarray, bounds: np.ndarray, full_scale: np.ndarray | No
     return False
 
 
-def read_step_means(ref: SessionRef, min_samples: int = 10
+# A session that loses more than this share of its steps (left out with a warning) is
+# rejected (E_TOO_MANY_STEPS_LOST) rather than calibrated from the rest: so many bad steps
+# say the file, not a step, is wrong (damaged bytes that still decode turned 16 of 118 step
+# ids into ids of no step). $MIMUCAL_MAX_LOST_STEP_SHARE overrides it (0..1).
+MAX_LOST_STEP_SHARE = 0.05
+LOST_SHARE_ENV = "MIMUCAL_MAX_LOST_STEP_SHARE"
+
+
+def max_lost_step_share() -> float:
+    """The share in force: $MIMUCAL_MAX_LOST_STEP_SHARE when set (a number in [0, 1]), else
+    :data:`MAX_LOST_STEP_SHARE`."""
+    text = os.environ.get(LOST_SHARE_ENV)
+    if not text:
+        return MAX_LOST_STEP_SHARE
+    try:
+        share = float(text)
+    except ValueError:
+        raise ValueError(f"${LOST_SHARE_ENV}={text!r} is not a number") from None
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"${LOST_SHARE_ENV}={text!r} must be between 0 and 1")
+    return share
+
+
+def check_lost_steps(label: str, n_steps: int, warnings: list[SessionWarning],
+                     max_share: float | None = None) -> None:
+    """E_TOO_MANY_STEPS_LOST when the steps left out (one warning each) exceed the share."""
+    share = max_lost_step_share() if max_share is None else max_share
+    lost = [w for w in warnings if w.step is not None]
+    if n_steps and len(lost) > share * n_steps:
+        counts = Counter(w.code for w in lost)
+        raise SessionError(E_TOO_MANY_STEPS_LOST, label, SAMPLES_FILE,
+                           f"{len(lost)} of {n_steps} steps left out ("
+                           + ", ".join(f"{v} {k}" for k, v in sorted(counts.items()))
+                           + f"), more than the {share:.0%} allowed; the session is not "
+                           f"calibrated from the rest")
+
+
+def read_step_means(ref: SessionRef, min_samples: int = 10,
+                    max_lost_share: float | None = None
                     ) -> tuple[StepMeans, list[SessionWarning]]:
-    """Read, validate and average one session directory. Raises :class:`SessionError`."""
-    return average_session(read_session(ref), min_samples)
+    """Read, validate and average one session directory. Raises :class:`SessionError`,
+    also when more than ``max_lost_share`` (default :func:`max_lost_step_share`) of its
+    steps are left out."""
+    data = read_session(ref)
+    sm, warns = average_session(data, min_samples)
+    check_lost_steps(data.label, len(data.steps), warns, max_lost_share)
+    return sm, warns
 
 
 def step_means_from_tables(key: SessionKey | str, steps_df: pd.DataFrame | pa.Table,

@@ -227,11 +227,17 @@ def dumps_json(doc: Any, nonfinite: str = "error", default=None,
     return "".join(out)
 
 
+_FORMAT_LINE = f'  "format": "{FORMAT}",'
+
+
 def write_json_atomic(path: Path, doc: dict[str, Any], nonfinite: str = "error", default=None,
                       null_keys: frozenset[str] | set[str] = frozenset()) -> None:
     """Write JSON (:func:`dumps_json`) to ``path`` via a temp file in the same directory and an
     atomic rename."""
-    text = dumps_json(doc, nonfinite, default, null_keys)  # before the temp file: may raise
+    _write_text_atomic(Path(path), dumps_json(doc, nonfinite, default, null_keys))
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -254,13 +260,18 @@ def write_json_atomic(path: Path, doc: dict[str, Any], nonfinite: str = "error",
 
 
 def save_calibration(cal: Calibration, path: Path, extra: dict[str, Any] | None = None,
-                     extra_nonfinite: str = "error", default=None) -> Path:
+                     extra_nonfinite: str = "null", default=None) -> Path:
     """Write the calibration file. ``extra`` (top-level keys added to the document) may hold
-    numpy values; with ``extra_nonfinite="null"`` its NaNs are written as null (the
-    calibration itself must be finite: ValueError otherwise)."""
-    write_json_atomic(Path(path), calibration_to_dict(cal, extra),
-                      default=default,
-                      null_keys=frozenset(extra or ()) if extra_nonfinite == "null" else frozenset())
+    numpy values. Non-finite numbers (the standard errors, or values, of components a
+    protocol cannot observe) are written as JSON null, in the terms as in ``extra``, and read
+    back as NaN; the affine part (K_g, w0, K_a, f0) must be finite (ValueError otherwise, no
+    file written). ``extra_nonfinite="error"`` refuses non-finite values in ``extra``."""
+    for name in ("K_g", "w0", "K_a", "f0"):
+        if not np.isfinite(np.asarray(getattr(cal, name), dtype=float)).all():
+            raise ValueError(f"calibration {name} is not finite; no calibration file written")
+    doc = calibration_to_dict(cal, extra)
+    null_keys = set(doc) - (set(extra or ()) if extra_nonfinite == "error" else set())
+    write_json_atomic(Path(path), doc, default=default, null_keys=frozenset(null_keys))
     return Path(path)
 
 
@@ -273,3 +284,66 @@ def load_calibration(path: Path) -> Calibration:
     except json.JSONDecodeError as exc:
         raise CalibrationFileError(f"{path}: not valid JSON ({exc})") from exc
     return calibration_from_dict(doc, source=str(path))
+
+
+# --- QA status --------------------------------------------------------------------------------
+# A calibration file produced by a fleet run carries ``qa``: the status its unit was judged
+# with in its lot (``pass``, ``flagged`` with every reason, ``limits`` with the failed limits)
+# and the lot context (lot, reference the robust z used, thresholds, configuration, date).
+# A later re-flag that changes the status rewrites the file atomically; the statuses it had
+# before are kept, oldest first, in ``qa_history``. A file without ``qa`` was not judged
+# (written by ``mimucal calibrate``, or by a fleet run that did not reach its flags).
+QA_STATUSES = ("pass", "flagged", "limits")
+
+
+def read_calibration_document(path: Path) -> dict[str, Any]:
+    """The JSON document of a calibration file (CalibrationFileError when unreadable)."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationFileError(f"{path}: no such calibration file") from None
+    except json.JSONDecodeError as exc:
+        raise CalibrationFileError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(doc, dict):
+        raise CalibrationFileError(f"{path}: not a mimucal calibration file")
+    return doc
+
+
+def qa_of(doc: dict[str, Any]) -> dict[str, Any] | None:
+    """The ``qa`` block of a calibration document, None when it was never judged."""
+    qa = doc.get("qa")
+    return qa if isinstance(qa, dict) and qa.get("status") in QA_STATUSES else None
+
+
+def set_qa_status(path: Path, qa: dict[str, Any]) -> bool:
+    """Set the file's QA status (atomic rewrite); the previous one goes to ``qa_history``.
+    Returns False (file untouched) when the status and reasons are already these."""
+    if qa.get("status") not in QA_STATUSES:
+        raise ValueError(f"QA status must be one of {QA_STATUSES}, got {qa.get('status')!r}")
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise CalibrationFileError(f"{path}: no such calibration file") from None
+    if '"qa"' not in text and text.endswith("\n}\n") and _FORMAT_LINE in text[:200]:
+        # a file never judged (every file a fleet run writes, once): the block is appended
+        # as the last key, without parsing and re-encoding the ~30 kB document (3 ms a unit
+        # at the first re-flag of a fleet); the same document as the rewrite below
+        out: list[str] = []
+        _layout(qa, 1, out, True, None)
+        _write_text_atomic(path, text[:-3] + ',\n  "qa": ' + "".join(out) + "\n}\n")
+        return True
+    doc = read_calibration_document(path)
+    if doc.get("format") != FORMAT:
+        raise CalibrationFileError(f"{path}: not a mimucal calibration file "
+                                   f"(format={doc.get('format')!r})")
+    old = qa_of(doc)
+    if old is not None and old.get("status") == qa["status"] \
+            and old.get("reasons") == qa.get("reasons"):
+        return False
+    if old is not None:
+        doc["qa_history"] = [*(doc.get("qa_history") or []), old]
+    doc["qa"] = qa
+    write_json_atomic(Path(path), doc, nonfinite="null")
+    return True

@@ -18,8 +18,34 @@ from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_FILE, STEPS_FILE
 from schemas.errors import E_BAD_PATH, SessionError
 
-ID_PATTERN = re.compile(r"^[A-Za-z0-9_.-]+$")
-REP_PATTERN = re.compile(r"^[1-9][0-9]*$")
+# Lot and unit ids are directory and file names in the results store (calibrations/<unit>/,
+# reports/units/<unit>.html): full-string matches (\A...\Z: a trailing newline does not pass,
+# as it would with ``$``), a letter or digit first (no ``.``, ``..``, hidden or option-like
+# names), no ``.`` last (dropped by some file systems), at most 128 characters, and none of
+# the names Windows reserves. Control characters, separators and spaces never match.
+ID_RULE = "[A-Za-z0-9][A-Za-z0-9_.-]* (at most 128 characters, not ending with '.')"
+ID_PATTERN = re.compile(r"\A[A-Za-z0-9](?:[A-Za-z0-9_.-]{0,126}[A-Za-z0-9_-])?\Z")
+REP_PATTERN = re.compile(r"\A[1-9][0-9]{0,8}\Z")
+_RESERVED_NAMES = frozenset({"CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)),
+                             *(f"LPT{i}" for i in range(1, 10))})
+
+
+def id_problem(value: str, field: str) -> str | None:
+    """Why ``value`` is not a valid ``field`` (lot/unit) id, or None when it is."""
+    if not isinstance(value, str) or not ID_PATTERN.match(value):
+        return f"{field} id {value!r} must match {ID_RULE}"
+    if value.split(".")[0].upper() in _RESERVED_NAMES:
+        return f"{field} id {value!r} is a name the file system reserves"
+    return None
+
+
+def check_id(value: str, field: str) -> str:
+    """``value`` when it is a valid lot/unit id; ValueError naming the rule otherwise (the
+    check every ``--lot``/``--unit`` argument goes through, as directory names do)."""
+    why = id_problem(value, field)
+    if why:
+        raise ValueError(why)
+    return value
 
 
 @dataclass(frozen=True)
@@ -64,9 +90,9 @@ def _parse_part(name: str, field: str) -> tuple[str | None, str | None]:
             return None, (f"directory name {name!r} does not parse: rep must be an integer "
                           f">= 1 without leading zeros")
         return value, None
-    if not ID_PATTERN.match(value):
-        return None, (f"directory name {name!r} does not parse: {field} id {value!r} must "
-                      f"match [A-Za-z0-9_.-]+")
+    why = id_problem(value, field)
+    if why:
+        return None, f"directory name {name!r} does not parse: {why}"
     return value, None
 
 
@@ -74,15 +100,21 @@ def _bad(path: Path, reason: str) -> SessionError:
     return SessionError(E_BAD_PATH, str(path), path.name, reason)
 
 
-def find_sessions(root: Path | str, lot: str | None = None,
-                  unit: str | None = None) -> tuple[list[SessionRef], list[SessionError]]:
+def find_sessions(root: Path | str, lot: str | None = None, unit: str | None = None,
+                  follow_symlinks: bool = False
+                  ) -> tuple[list[SessionRef], list[SessionError]]:
     """All sessions under ``root`` (optionally of one lot and/or unit), sorted by lot, unit,
     rep, and one E_BAD_PATH error per directory that does not parse or per session of a unit
-    found in more than one lot. A missing root is an E_BAD_PATH error too."""
+    found in more than one lot. A missing root is an E_BAD_PATH error too.
+
+    A session directory reached through a symbolic link (its lot, unit or rep directory is
+    one) is recorded with its resolved path; when that path is outside the dataset root it is
+    an E_BAD_PATH error unless ``follow_symlinks``."""
     root = Path(root)
     errors: list[SessionError] = []
     if not root.is_dir():
         return [], [_bad(root, f"dataset root {str(root)!r} is not a directory")]
+    real_root = root.resolve()
     refs: list[SessionRef] = []
     for lot_dir in _visible_dirs(root):
         lot_id, why = _parse_part(lot_dir.name, "lot")
@@ -103,7 +135,16 @@ def find_sessions(root: Path | str, lot: str | None = None,
                 if why:
                     errors.append(_bad(rep_dir, why))
                     continue
-                refs.append(SessionRef(SessionKey(lot_id, unit_id, int(rep)), rep_dir))
+                path = rep_dir
+                if lot_dir.is_symlink() or unit_dir.is_symlink() or rep_dir.is_symlink():
+                    path = rep_dir.resolve()
+                    if not follow_symlinks and not path.is_relative_to(real_root):
+                        errors.append(_bad(rep_dir, (
+                            f"session directory is reached through a symbolic link to {path}, "
+                            f"outside the dataset root {real_root}; pass --follow-symlinks to "
+                            f"calibrate it")))
+                        continue
+                refs.append(SessionRef(SessionKey(lot_id, unit_id, int(rep)), path))
     # a unit belongs to one lot: when it is found under several, none of its sessions is used
     # (which lot is right is not ours to guess). With a lot filter the other lots were not
     # walked, so look for the unit's directories in them directly.
@@ -140,17 +181,52 @@ def count_unit_dirs(root: Path | str) -> int:
                if lot_dir.name.startswith("lot="))
 
 
-def fingerprint(path: Path | str) -> str:
-    """Cheap identity of a session's content: name, size and mtime_ns of both files (no
-    reading). Modifying, replacing or touching a file changes it; reading does not.
-    Computed once or twice per session per run: string paths, not pathlib (half the cost,
-    ~0.03 ms)."""
+_CHUNK = 1 << 20
+
+
+def file_digest(path: str) -> str:
+    """blake2b (128 bit) of a file's bytes."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        while chunk := fh.read(_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+class DigestCache:
+    """File digests keyed by the file's (size, mtime_ns, ctime_ns, inode): a file whose stat
+    is unchanged is not read again. Any write changes ctime (which no tool can set back), so
+    an entry is only reused for the very bytes it was computed from; a copy (new inode) is
+    read once and gives the same digest. ``entries``: path -> [size, mtime_ns, ctime_ns,
+    inode, digest], JSON-ready (the nightly flow keeps it in the results store)."""
+
+    def __init__(self, entries: dict | None = None) -> None:
+        self.entries: dict[str, list] = dict(entries or {})
+        self.read = 0
+
+    def digest(self, path: str) -> str:
+        st = os.stat(path)
+        key = [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
+        e = self.entries.get(path)
+        if isinstance(e, list) and len(e) == 5 and e[:4] == key:
+            return str(e[4])
+        d = file_digest(path)
+        self.read += 1
+        self.entries[path] = key + [d]
+        return d
+
+
+def fingerprint(path: Path | str, cache: DigestCache | None = None) -> str:
+    """Identity of a session's content: size and blake2b digest of both files. A copy of the
+    dataset, a ``touch`` or a rewrite with the same bytes keep it; any changed byte changes
+    it. ``cache`` saves reading files whose stat is unchanged (:class:`DigestCache`)."""
     base = os.fspath(path)
     h = hashlib.sha256()
     for name in (STEPS_FILE, SAMPLES_FILE):
+        p = os.path.join(base, name)
         try:
-            st = os.stat(os.path.join(base, name))
-            h.update(f"{name}:{st.st_size}:{st.st_mtime_ns};".encode())
+            d = cache.digest(p) if cache is not None else file_digest(p)
+            h.update(f"{name}:{os.stat(p).st_size}:{d};".encode())
         except FileNotFoundError:
             h.update(f"{name}:missing;".encode())
     return h.hexdigest()[:32]

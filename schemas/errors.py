@@ -26,11 +26,15 @@ E_NONINCREASING_TIME = "E_NONINCREASING_TIME"  # samples.t not strictly increasi
 E_NONFINITE_VALUE = "E_NONFINITE_VALUE"  # NaN, infinite or null sensor value or time
 E_EMPTY_SESSION = "E_EMPTY_SESSION"  # no rows, or no usable step left
 E_UNDETERMINED = "E_UNDETERMINED"  # the usable steps cannot determine the model
+E_STEP_NOT_CONTIGUOUS = "E_STEP_NOT_CONTIGUOUS"  # a step id reappears after another step's
+E_TOO_MANY_STEPS_LOST = "E_TOO_MANY_STEPS_LOST"  # more than the allowed share left out
+E_CHECKSUM = "E_CHECKSUM"  # a Parquet page's CRC does not match its bytes
 
 ERROR_CODES = (
     E_MISSING_FILE, E_UNREADABLE_FILE, E_MISSING_COLUMN, E_WRONG_TYPE, E_BAD_METADATA,
     E_UNKNOWN_UNIT, E_BAD_PATH, E_DUPLICATE_STEP, E_UNKNOWN_STEP, E_BAD_STEP_DEFINITION,
     E_NONINCREASING_TIME, E_NONFINITE_VALUE, E_EMPTY_SESSION, E_UNDETERMINED,
+    E_STEP_NOT_CONTIGUOUS, E_TOO_MANY_STEPS_LOST, E_CHECKSUM,
 )
 
 # --- warning codes ------------------------------------------------------------------------

@@ -9,7 +9,7 @@ Order of checks (the first failure is the one reported): files exist -> steps.pa
 readable, columns, types, content -> samples.parquet readable, metadata, columns, types,
 content (step ids, time, finite values).
 
-Speed (docs/benchmarks.md, docs/perf-read.md): a session is read with one ``ParquetFile.read``
+Speed (docs/benchmarks.md): a session is read with one ``ParquetFile.read``
 with column projection and no pandas on the sample path. ``steps.parquet`` is the same small
 table in every session of a fleet, so its validated form (the DataFrame and its columns as
 read-only numpy arrays, :class:`StepColumns`) is cached by the SHA-256 of the file's bytes (an
@@ -46,9 +46,9 @@ from schemas.contract import (
 )
 from schemas.dataset import SessionRef
 from schemas.errors import (
-    E_BAD_STEP_DEFINITION, E_DUPLICATE_STEP, E_EMPTY_SESSION, E_MISSING_FILE,
-    E_NONFINITE_VALUE, E_NONINCREASING_TIME, E_UNKNOWN_STEP, E_UNREADABLE_FILE, E_WRONG_TYPE,
-    SessionError,
+    E_BAD_STEP_DEFINITION, E_CHECKSUM, E_DUPLICATE_STEP, E_EMPTY_SESSION, E_MISSING_FILE,
+    E_NONFINITE_VALUE, E_NONINCREASING_TIME, E_STEP_NOT_CONTIGUOUS, E_UNKNOWN_STEP,
+    E_UNREADABLE_FILE, E_WRONG_TYPE, SessionError,
 )
 
 INT32_MIN, INT32_MAX = -(2 ** 31), 2 ** 31 - 1
@@ -155,7 +155,8 @@ def _open(path: Path, label: str, st: os.stat_result | None = None) -> pq.Parque
     if st.st_size == 0:
         raise SessionError(E_UNREADABLE_FILE, label, file, "file is empty (0 bytes)")
     try:
-        return pq.ParquetFile(path)
+        # page CRCs are verified where the writer stored them (schemas.writer does)
+        return pq.ParquetFile(path, page_checksum_verification=True)
     except (pa.ArrowException, OSError, ValueError) as exc:
         raise SessionError(E_UNREADABLE_FILE, label, file,
                            f"not a readable Parquet file (truncated or corrupt?): {exc}") from exc
@@ -178,6 +179,10 @@ def _read(pf: pq.ParquetFile, columns: list[str], label: str, file: str) -> pa.T
     try:
         return pf.read(columns=columns, use_threads=_arrow_threads)
     except (pa.ArrowException, OSError, ValueError, EOFError) as exc:
+        if "crc" in str(exc).lower() or "checksum" in str(exc).lower():
+            raise SessionError(E_CHECKSUM, label, file,
+                               f"damaged bytes: a data page's checksum does not match its "
+                               f"content ({exc})") from exc
         raise SessionError(E_UNREADABLE_FILE, label, file,
                            f"Parquet data cannot be decoded (truncated or corrupt?): {exc}") from exc
 
@@ -326,7 +331,7 @@ def _read_steps_cached(path: Path, label: str) -> tuple[pd.DataFrame, StepColumn
         raise SessionError(E_UNREADABLE_FILE, label, file, f"cannot read {path}: {exc}") from exc
     digest = hashlib.sha256(raw).digest()
     try:
-        pf = pq.ParquetFile(pa.BufferReader(raw))
+        pf = pq.ParquetFile(pa.BufferReader(raw), page_checksum_verification=True)
     except (pa.ArrowException, OSError, ValueError) as exc:  # changed since _open looked at it
         raise SessionError(E_UNREADABLE_FILE, label, file,
                            f"not a readable Parquet file (truncated or corrupt?): {exc}") from exc
@@ -383,6 +388,7 @@ def _validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta:
                            f"step id {int(unknown[0])} is not in steps.parquet ({len(unknown)} "
                            f"unknown id(s), {n_rows} sample(s))", column="step",
                            step=int(unknown[0]))
+    _check_one_run_per_step(step, run_start, label, file)
     step = np.array(step, dtype=np.int32)  # own, writable copy (the Arrow buffer is read-only)
     step_row = np.repeat(run_row, run_len)
 
@@ -431,6 +437,32 @@ def _validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta:
     return SessionData(key=key, label=label, steps=steps, step=step, t=t,
                        gyro=channels[:3].T, accel=channels[3:].T, temp_c=temp, meta=meta,
                        step_row=step_row, step_columns=step_columns, channels=channels)
+
+
+def _check_one_run_per_step(step: np.ndarray, run_start: np.ndarray, label: str,
+                            file: str) -> None:
+    """E_STEP_NOT_CONTIGUOUS when a step's samples are not one run in time: its id reappears
+    after another step's samples (samples of no step, id -1, between two parts of a step do
+    not count as another step)."""
+    ids = step[run_start]
+    keep = ids != -1
+    ids, starts = ids[keep], run_start[keep]
+    if len(ids) < 2:
+        return
+    new_run = np.concatenate(([True], ids[1:] != ids[:-1]))  # runs split only by -1 joined
+    ids, starts = ids[new_run], starts[new_run]
+    _, first = np.unique(ids, return_index=True)
+    if len(first) == len(ids):
+        return
+    again = np.ones(len(ids), bool)
+    again[first] = False
+    k = int(np.flatnonzero(again)[0])
+    sid = int(ids[k])
+    n_ids = len(ids) - len(first)
+    raise SessionError(E_STEP_NOT_CONTIGUOUS, label, file,
+                       f"the samples of step {sid} are not one run in time: its id reappears "
+                       f"at row {int(starts[k])} after another step's samples ({n_ids} "
+                       f"reappearance(s) in all)", column="step", step=sid)
 
 
 def _raise_nonfinite_sensor(table: pa.Table, channels: np.ndarray, step: np.ndarray,
@@ -541,7 +573,7 @@ def parse_key(key: SessionKey | str) -> SessionKey | None:
     """``"lot=L1/unit=U1/rep=2"`` -> SessionKey; None when a plain label does not parse."""
     if isinstance(key, SessionKey):
         return key
-    m = _KEY_PATTERN.match(str(key))
+    m = _KEY_PATTERN.fullmatch(str(key))
     return SessionKey(m["lot"], m["unit"], int(m["rep"])) if m else None
 
 

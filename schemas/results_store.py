@@ -46,7 +46,7 @@ import tempfile
 import time
 from collections.abc import Iterable
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any, Iterator
@@ -60,29 +60,15 @@ import pyarrow.parquet as pq
 
 from calib_core.results import to_jsonable
 from schemas.calibration_file import write_json_atomic
+from schemas.store_tables import TABLE_SCHEMAS, conform, schema_problem
 
 STORE_FORMAT_VERSION = "2.0"
 LEGACY_FORMAT_VERSION = "1.0"  # flat <name>.parquet at the root; read, and migrated on write
 TIMESTAMP_FORMAT = "%Y%m%dT%H%M%S.%fZ"
 
-# column order of each table (documented in docs/flows.md); extra columns are kept
-TABLE_COLUMNS: dict[str, list[str]] = {
-    "sessions": ["lot", "unit", "rep", "status", "error_code", "message", "warnings",
-                 "fingerprint", "run_id", "path", "calibrated_at"],
-    "parameters": ["lot", "unit", "rep", "model", "parameter", "value", "stderr",
-                   "unit_of_measure", "code_version", "run_id"],
-    "summary": ["lot", "unit", "model", "parameter", "mean", "std", "min", "max", "n_reps",
-                "unit_of_measure", "flagged", "flag_reason", "score", "lot_median", "stale",
-                "stale_reason", "run_id"],
-    "units": ["lot", "unit", "state", "reason", "n_sessions", "n_ok", "n_warned", "n_failed",
-              "calibration_file", "calibrated_at", "run_id", "updated_at", "flagged",
-              "flag_reason"],
-    "residuals": ["lot", "unit", "rep"],
-    "compensation": ["lot", "unit", "rep"],
-    "discovery": ["lot", "unit", "effect"],
-    # zhang2017 navigation drift of a unit's own fitted model (written by reruns)
-    "navigation": ["lot", "unit", "case", "t", "vel_err", "pos_err"],
-}
+# column order of each table: its declared schema's (schemas/store_tables.py, documented in
+# docs/flows.md); extra columns are kept after them
+TABLE_COLUMNS: dict[str, list[str]] = {name: schema.names for name, schema in TABLE_SCHEMAS.items()}
 TABLES = tuple(TABLE_COLUMNS)
 # dtypes of key columns, so that empty tables and concatenations agree
 _KEY_DTYPES = {"lot": "string", "unit": "string", "rep": "Int64"}
@@ -90,6 +76,14 @@ _KEY_DTYPES = {"lot": "string", "unit": "string", "rep": "Int64"}
 
 class StoreLockedError(RuntimeError):
     """Another run holds the results root."""
+
+
+class StoreError(RuntimeError):
+    """The results store cannot be used as it is (a damaged or missing file, a symbolic link
+    where the tool writes): one line naming the file and the fix."""
+
+
+REPAIR_HINT = "run 'mimucal repair --results {root}' to rebuild what can be rebuilt"
 
 
 class CalibrationNotFound(LookupError):
@@ -124,7 +118,7 @@ _UMASK = _current_umask()
 
 # Rows are sorted by lot and unit, so row groups of this size let a reader that filters one
 # unit (the unit report's navigation curves: 60,000 rows per case) skip the rest; pyarrow's
-# default (1M rows) made it decode a whole lot (255 ms vs 73 ms CPU, docs/perf-reports.md)
+# default (1M rows) made it decode a whole lot (255 ms vs 73 ms CPU, docs/benchmarks.md)
 ROW_GROUP_ROWS = 65_536
 
 
@@ -133,9 +127,13 @@ FLAG_STATE_METADATA_KEY = b"mimucal.flag_state"
 
 
 # --- atomic writes ------------------------------------------------------------------------------
-def write_parquet_atomic(df: pd.DataFrame, path: Path) -> None:
-    """Parquet via a temp file in the same directory, fsync, then ``os.replace``."""
-    write_table_atomic(pa.Table.from_pandas(df, preserve_index=False), path)
+def write_parquet_atomic(df: pd.DataFrame, path: Path, table_name: str | None = None) -> None:
+    """Parquet via a temp file in the same directory, fsync, then ``os.replace``;
+    ``table_name``: with that results table's declared schema (schemas.store_tables)."""
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    if table_name is not None:
+        table = conform(table, table_name)
+    write_table_atomic(table, path)
 
 
 def write_table_atomic(table: pa.Table, path: Path) -> None:
@@ -239,9 +237,21 @@ def _normalise(df: pd.DataFrame, name: str) -> pd.DataFrame:
         return df
     cols = TABLE_COLUMNS[name]
     df = df.copy()
+    declared = TABLE_SCHEMAS[name]
     for c in cols:
         if c not in df.columns:
-            df[c] = pd.Series([None] * len(df), dtype=_KEY_DTYPES.get(c, "object"))
+            # as the declared type reads back when the column is all null (float NaN,
+            # pandas' string dtype); the key columns in their dtypes
+            t = declared.field(c).type if c in declared.names else pa.null()
+            if c in _KEY_DTYPES:
+                dtype = _KEY_DTYPES[c]
+            elif pa.types.is_floating(t) or pa.types.is_integer(t):
+                dtype = "float64"  # an all-null int64 column reads back as float64 NaN
+            elif _is_string(t):
+                dtype = "str"
+            else:
+                dtype = "object"
+            df[c] = pd.Series([None] * len(df), dtype=dtype)
     for c, dt in _KEY_DTYPES.items():
         if c in df.columns:
             df[c] = df[c].astype(dt)
@@ -335,6 +345,9 @@ def _lot_set(lots: Iterable[Any]) -> set[str | None]:
 @dataclass
 class ResultsStore:
     root: Path
+    # whether this object's first write has checked every lot file against the declared
+    # schemas (see _migrate)
+    _schemas_checked: bool = field(default=False, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
@@ -510,7 +523,7 @@ class ResultsStore:
                     _normalise(_read_files([current[lot]]), name)
                 if old is not None and _same_frame(old, part):
                     continue
-            write_parquet_atomic(part, path)
+            write_parquet_atomic(part, path, name)
             written.append(lot)
         return written
 
@@ -560,10 +573,10 @@ class ResultsStore:
         if new is not None and len(new) and not set(new["unit"].astype(object)) <= units:
             return False
         schema = pq.read_schema(path)  # the stored Arrow types, with the pandas metadata
-        if "unit" not in schema.names or not _is_string(schema.field("unit").type):
-            return False
+        if schema_problem(schema, name) is not None:
+            return False  # a file of an older layout: rewritten whole, with the declared schema
         if new is not None and len(new):
-            add = pa.Table.from_pandas(new, preserve_index=False, nthreads=1)
+            add = conform(pa.Table.from_pandas(new, preserve_index=False, nthreads=1), name)
             if not add.schema.remove_metadata().equals(schema.remove_metadata()):
                 return False
             add = add.replace_schema_metadata(schema.metadata)
@@ -654,10 +667,12 @@ class ResultsStore:
                 if lot not in by_lot:
                     path.unlink()
             for lot, part in by_lot.items():
-                write_parquet_atomic(part, self.partition_path(name, lot))
+                write_parquet_atomic(part, self.partition_path(name, lot), name)
             _fsync_dir(d)
             legacy.unlink()
             migrated.append(name)
+        if not self._schemas_checked:
+            self._conform_lot_files()
         if migrated or not self.format_path.exists():
             self.root.mkdir(parents=True, exist_ok=True)
             write_json_atomic(self.format_path, {
@@ -666,6 +681,19 @@ class ResultsStore:
                 **({"migrated_from": LEGACY_FORMAT_VERSION, "migrated_tables": migrated,
                     "migrated_at": iso(utc_now())} if migrated else {})})
         return migrated
+
+    def _conform_lot_files(self) -> list[Path]:
+        """Rewrite every lot file whose schema is not its table's declared one (stores
+        written before the schemas were declared); once per store object, on its first
+        write (under the caller's lock). Returns the files rewritten."""
+        rewritten = []
+        for name in TABLES:
+            for path in self.partitions(name).values():
+                if schema_problem(pq.read_schema(path), name) is not None:
+                    write_table_atomic(conform(pq.read_table(path), name), path)
+                    rewritten.append(path)
+        self._schemas_checked = True
+        return rewritten
 
     # fingerprints of the last run: (lot, unit, rep) -> fingerprint
     def fingerprints(self) -> dict[tuple[str, str, int], str]:
@@ -683,8 +711,9 @@ class ResultsStore:
         ``jsonable``: ``extra`` is written as :func:`jsonable` would make it (numpy values as
         Python ones, NaN as null, datetimes and paths as text)."""
         from schemas.calibration_file import save_calibration
+        from schemas.dataset import check_id
         when = when or utc_now()
-        d = self.calibrations_dir / unit
+        d = self.calibrations_dir / check_id(unit, "unit")  # a file name: never '..' etc.
         d.mkdir(parents=True, exist_ok=True)
         for _ in range(1000):
             path = d / f"{when.astimezone(timezone.utc).strftime(TIMESTAMP_FORMAT)}.json"
@@ -751,6 +780,71 @@ class ResultsStore:
                 FLAG_STATE_METADATA_KEY: json.dumps(doc).encode()}
         write_table_atomic(table.replace_schema_metadata(meta), self.flag_state_path)
 
+    # file digests of the sessions, by their stat (schemas.dataset.DigestCache)
+    @property
+    def digest_cache_path(self) -> Path:
+        return self.root / "cache" / "session_digests.json"
+
+    def read_digest_cache(self) -> dict:
+        """A cache: empty when absent or unreadable (the files are hashed again)."""
+        try:
+            doc = json.loads(self.digest_cache_path.read_text())
+        except (OSError, ValueError):
+            return {}
+        return doc.get("entries", {}) if isinstance(doc, dict) and doc.get("version") == 1 \
+            else {}
+
+    def write_digest_cache(self, entries: dict) -> None:
+        write_json_atomic(self.digest_cache_path, {"version": 1, "entries": entries})
+
+    # the QA configuration (outlier options and limits) every later run applies
+    @property
+    def qa_config_path(self) -> Path:
+        return self.root / "qa-config.toml"
+
+    def read_qa_config(self) -> str | None:
+        """The TOML text set by the last ``--config`` (None: the defaults)."""
+        try:
+            return self.qa_config_path.read_text()
+        except FileNotFoundError:
+            return None
+
+    def write_qa_config(self, text: str | None) -> None:
+        """Keep ``text`` as the QA configuration of every later run; None clears it."""
+        if text is None:
+            try:
+                self.qa_config_path.unlink()
+            except FileNotFoundError:
+                pass
+            return
+        path = self.qa_config_path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.chmod(tmp, 0o666 & ~_UMASK)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    # each lot's QA context (reference, thresholds, configuration) as its last re-flag left it
+    def qa_lot_path(self, lot: str) -> Path:
+        return self.root / "qa" / f"{quote(str(lot), safe='')}.json"
+
+    def write_qa_lot(self, lot: str, doc: dict) -> None:
+        write_json_atomic(self.qa_lot_path(lot), _jsonable(doc))
+
+    def read_qa_lot(self, lot: str) -> dict | None:
+        try:
+            return json.loads(self.qa_lot_path(lot).read_text())
+        except (OSError, ValueError):
+            return None
+
     # run logs
     def write_run(self, run_id: str, doc: dict[str, Any]) -> Path:
         path = self.runs_dir / f"{run_id}.json"
@@ -771,7 +865,16 @@ class ResultsStore:
         process dies, so a crashed run never leaves the store locked. A second run is refused
         with :class:`StoreLockedError` naming the holder, or waits (``wait=True``)."""
         self.root.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:  # never through a symbolic link: it would truncate the file it points to
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise StoreError(f"{self.lock_path} is a symbolic link; the results folder "
+                                 f"must hold only the tool's own files: remove it") from None
+            raise
+        if not stat_is_regular(fd):
+            os.close(fd)
+            raise StoreError(f"{self.lock_path} is not a regular file: remove it")
         start = time.monotonic()
         try:
             while True:
@@ -801,6 +904,66 @@ class ResultsStore:
         finally:
             os.close(fd)
 
+    # self-check
+    def symlinks(self) -> list[Path]:
+        """Symbolic links anywhere under the root (the root itself may be one): the tool
+        writes only to its own files and directories, never through a link."""
+        found: list[Path] = []
+        if not self.root.is_dir():
+            return found
+        todo = [os.fspath(self.root)]
+        while todo:  # scandir's entries know their type: no stat per file (~30,000 files)
+            try:
+                with os.scandir(todo.pop()) as it:
+                    for entry in it:
+                        if entry.is_symlink():
+                            found.append(Path(entry.path))
+                        elif entry.is_dir(follow_symlinks=False):
+                            todo.append(entry.path)
+            except OSError:
+                continue
+        return sorted(found)
+
+    def verify(self) -> list[str]:
+        """What is wrong with the store, one line per problem (empty: it can be used). Every
+        run checks this before writing anything (:meth:`check`): no symbolic link under the
+        root, every table file readable (its footer and schema: a truncated or overwritten
+        file has neither) with the declared columns castable, every current calibration file
+        (``units.calibration_file``) present."""
+        problems = []
+        hint = REPAIR_HINT.format(root=self.root)
+        for link in self.symlinks():
+            problems.append(f"{link} is a symbolic link; the results folder must hold only "
+                            f"the tool's own files and directories: replace it by a real "
+                            f"file/directory or remove it")
+        if problems:
+            return problems
+        units_ok = True
+        for name in TABLES:
+            files = ([self.legacy_path(name)] if self.legacy_path(name).exists() else []) + \
+                list(self.partitions(name).values())
+            for path in files:
+                why = _unreadable(path, name)
+                if why:
+                    problems.append(f"table {name}: {path} is damaged ({why}); {hint}")
+                    units_ok = units_ok and name != "units"
+        if units_ok and self.has_table("units"):
+            units = self.read("units", columns=["lot", "unit", "state", "calibration_file"])
+            for r in units.itertuples():
+                f = r.calibration_file
+                if isinstance(f, str) and f and not (self.root / f).is_file():
+                    problems.append(f"unit {r.lot}/{r.unit}: its current calibration file "
+                                    f"{self.root / f} is missing; {hint}")
+        return problems
+
+    def check(self) -> None:
+        """:meth:`verify`, raising :class:`StoreError` with the first problem (and how many
+        more there are)."""
+        problems = self.verify()
+        if problems:
+            more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            raise StoreError(problems[0] + more)
+
     def ensure_unlocked(self) -> None:
         """Refuse early (before any orchestration starts) when another run holds the root.
         Advisory: the run still takes :meth:`lock`, which is what guarantees exclusion."""
@@ -814,7 +977,8 @@ class ResultsStore:
         (SIGKILL, power loss: their ``except`` never ran). Only called while holding the
         lock, so no live writer owns them; the files they were replacing are intact."""
         removed = []
-        for d in (self.root, self.runs_dir, self.root / "cache", *(self.calibrations_dir.glob("*")
+        for d in (self.root, self.runs_dir, self.root / "cache", self.root / "qa",
+                  *(self.calibrations_dir.glob("*")
                                                 if self.calibrations_dir.is_dir() else ()),
                   *(self.tables_dir.glob("*") if self.tables_dir.is_dir() else ())):
             if not d.is_dir():
@@ -838,36 +1002,92 @@ class ResultsStore:
                 f"since {info.get('since')})")
 
 
+def calibration_times(results: Path | str, unit: str
+                      ) -> list[tuple[datetime, datetime, Path, str]]:
+    """Every calibration file of ``unit`` as (time, produced, path, source of the time),
+    sorted by time then production. The time of a calibration is when its unit was measured:
+    ``provenance.acquired_at`` (its sessions' last ``session_start``; source
+    ``"session_start"``), else when it was produced (the file name, source
+    ``"processing time"``: sessions without ``session_start``, or files of older code)."""
+    out = []
+    for produced, path in ResultsStore(Path(results)).calibration_files(unit):
+        when, source = produced, "processing time"
+        try:
+            prov = json.loads(path.read_text()).get("provenance") or {}
+            if isinstance(prov.get("acquired_at"), str):
+                when, source = parse_when(prov["acquired_at"]), "session_start"
+        except (OSError, ValueError, AttributeError):
+            pass
+        out.append((when, produced, path, source))
+    return sorted(out, key=lambda x: (x[0], x[1]))
+
+
+def stat_is_regular(fd: int) -> bool:
+    import stat
+    return stat.S_ISREG(os.fstat(fd).st_mode)
+
+
+def _unreadable(path: Path, name: str) -> str | None:
+    """Why a table file cannot be read with its declared schema (None: it can)."""
+    try:
+        schema = pq.read_schema(path)
+    except (OSError, pa.ArrowException) as exc:
+        return f"{type(exc).__name__}: {exc}".splitlines()[0]
+    declared = TABLE_SCHEMAS[name]
+    for f in declared:
+        if f.name in schema.names:
+            got = schema.field(f.name).type
+            if not (got.equals(f.type) or pa.types.is_null(got) or _castable(got, f.type)):
+                return f"column {f.name!r} has type {got}, not castable to {f.type}"
+    return None
+
+
+def _castable(a: pa.DataType, b: pa.DataType) -> bool:
+    try:
+        pa.array([], type=a).cast(b)
+    except (pa.ArrowException, NotImplementedError):
+        return False
+    return True
+
+
 def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
                      before_after: str = "before") -> Path:
     """The calibration file of ``unit`` valid at ``at`` (default: now).
 
-    ``before`` (default): the latest calibration made at or before ``at``; ``after``: the
-    earliest at or after; ``closest``: the nearest either way (imucal's
-    ``find_closest_calibration_info_to_date`` with ``before_after=None``). The time of a
-    calibration is when it was produced (its file name, UTC)."""
+    ``before`` (default): the latest calibration of a measurement at or before ``at``;
+    ``after``: the earliest at or after; ``closest``: the nearest either way (imucal's
+    ``find_closest_calibration_info_to_date`` with ``before_after=None``). Times are
+    acquisition times (:func:`calibration_times`); of several calibrations of one
+    measurement (recalibrated with newer code) the last produced is given."""
     if before_after not in ("before", "after", "closest"):
         raise ValueError("before_after must be 'before', 'after' or 'closest'")
     at = at or utc_now()
     if at.tzinfo is None:
         at = at.replace(tzinfo=timezone.utc)
-    files = ResultsStore(Path(results)).calibration_files(unit)
+    files = calibration_times(results, unit)
     if not files:
-        raise CalibrationNotFound(f"no calibration of unit {unit!r} under "
-                                  f"{Path(results) / 'calibrations' / unit}")
+        cal_dir = Path(results) / "calibrations"
+        have = sorted(p.name for p in cal_dir.iterdir() if p.is_dir()) if cal_dir.is_dir() else []
+        listed = ", ".join(have[:12]) + (f", ... ({len(have)} in all)" if len(have) > 12 else "")
+        raise CalibrationNotFound(f"no calibration of unit {unit!r} under {cal_dir / unit} "
+                                  f"(units with calibrations: {listed or 'none'})")
+
+    def last_of(when: datetime) -> Path:  # the last produced of one measurement
+        return [f for f in files if f[0] == when][-1][2]
+
     if before_after == "before":
         cands = [f for f in files if f[0] <= at]
         if not cands:
             raise CalibrationNotFound(f"unit {unit!r}: no calibration at or before {iso(at)} "
-                                      f"(first one is {iso(files[0][0])})")
-        return cands[-1][1]
+                                      f"(the first is of {iso(files[0][0])}, {files[0][3]})")
+        return last_of(cands[-1][0])
     if before_after == "after":
         cands = [f for f in files if f[0] >= at]
         if not cands:
             raise CalibrationNotFound(f"unit {unit!r}: no calibration at or after {iso(at)} "
-                                      f"(last one is {iso(files[-1][0])})")
-        return cands[0][1]
-    return min(files, key=lambda f: abs((f[0] - at).total_seconds()))[1]
+                                      f"(the last is of {iso(files[-1][0])}, {files[-1][3]})")
+        return last_of(cands[0][0])
+    return last_of(min(files, key=lambda f: abs((f[0] - at).total_seconds()))[0])
 
 
 def _store_default(obj: Any) -> Any:

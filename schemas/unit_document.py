@@ -1,14 +1,18 @@
-"""The JSON document of one unit's calibration (`mimucal calibrate --json`).
+"""The per-repetition and averaged sections of a unit's calibration file.
 
-Layout (keys are only ever added, never removed)::
+A unit's calibration file (``schemas.calibration_file``: the store's
+``calibrations/<unit>/<time>.json``, ``mimucal calibrate --json``, ``schemas.api``) is the
+applied calibration plus the sections :func:`calibration_file_sections` builds from
+:func:`unit_document`::
 
-    {"lot", "unit", "format_version",
-     "reps": [{"rep", "K_g", "w0", "K_a", "f0", "stderr": {same keys}, "warnings",
-               "accel_static"?, "lever_arm_mm"?, "condition_numbers"}],
-     "mean": {...}, "std": {...}, "units": {...}, "failed": [{"rep", "code", "message"}]}
+    "provenance": {"lot", "unit", run context..., "sessions_used", "sessions_failed",
+                   "extension_terms", "model_discovery"},
+    "averaged": {"mean", "std", "units"},
+    "repetitions": [{"rep", "K_g", "w0", "K_a", "f0", "stderr": {same keys}, "warnings",
+                     "accel_static"?, "lever_arm_mm"?, "condition_numbers"}]
 
 K matrices are 3x3 row-major lists (w = K_g G + w0, f = K_a A + f0); w0 in deg/s and f0 in g
-whatever the raw units (the boundary converts rad/s and m/s^2).
+whatever the raw units (the boundary converts rad/s and m/s^2). Keys are only ever added.
 """
 from __future__ import annotations
 
@@ -84,3 +88,23 @@ def unit_document(lot: str, unit: str, reps: list[RepetitionCalibration],
         units["lever_arm_mm"] = "mm"
     return {"lot": lot, "unit": unit, "format_version": FORMAT_VERSION, "reps": doc_reps,
             "mean": mean, "std": std, "units": units, "failed": list(failed or [])}
+
+
+def calibration_file_sections(lot: str, unit: str, reps: list[RepetitionCalibration],
+                              failed: list[dict[str, Any]], sessions_used: list[dict[str, Any]],
+                              extension_terms: list[str], model_discovery: dict | None,
+                              context: dict[str, Any]) -> dict[str, Any]:
+    """The sections a unit's calibration file holds beside the applied calibration (one
+    format for the results store, ``mimucal calibrate --json`` and ``schemas.api``):
+    ``provenance`` (``context``: run id, code version, time...; the sessions used and failed,
+    the extension terms, model discovery's verdict), ``averaged`` (mean, std and units over
+    the repetitions) and ``repetitions`` (each repetition's fits with standard errors)."""
+    doc = unit_document(lot, unit, reps, failed)
+    provenance = {
+        "lot": lot, "unit": unit, **context, "sessions_used": sessions_used,
+        "sessions_failed": list(failed), "extension_terms": list(extension_terms),
+        "model_discovery": None if model_discovery is None else {
+            k: model_discovery.get(k) for k in ("misfit", "unexplained", "effects")},
+    }
+    return {"provenance": provenance, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
+            "repetitions": doc["reps"]}

@@ -28,10 +28,12 @@ from schemas.dataset import session_dir
 
 
 def _atomic_write(table: pa.Table, path: Path, **kwargs) -> None:
+    """Parquet with a CRC32 per data page (verified by the reader): bytes damaged after the
+    file was written are found even where they still decode."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        pq.write_table(table, tmp, **kwargs)
+        pq.write_table(table, tmp, write_page_checksum=True, **kwargs)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -10,9 +10,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_benchmark_harness_runs_on_a_tiny_fleet(tmp_path):
     out = tmp_path / "bench.md"
     work = tmp_path / "work"

@@ -34,7 +34,7 @@ def test_reproduce_xu2016_fast_prints_three_tables(capsys):
     for title in ("Table 1", "Table 2", "Table 3", "Findings"):
         assert title in text
     # the published average of k_g33 and a reproduced value sit side by side
-    line = next(l for l in text.splitlines() if l.startswith("k_g33"))
+    line = next(row for row in text.splitlines() if row.startswith("k_g33"))
     published, ours = map(float, line.split()[1:3])
     assert published == 1.00579 and abs(ours - published) < 1e-3
 
@@ -45,8 +45,8 @@ def test_reproduce_xu2016_through_samples_and_the_reader_at_a_low_rate(capsys):
     from flows.cli import main
     assert main(["reproduce", "xu2016", "--rate", "10", "--seed", "2"]) == 0
     text = capsys.readouterr().out
-    line = next(l for l in text.splitlines() if l.startswith("k_g11"))
+    line = next(row for row in text.splitlines() if row.startswith("k_g11"))
     published, ours = map(float, line.split()[1:3])
     assert abs(ours - published) < 1e-3
-    z = next(l for l in text.splitlines() if l.startswith("z     proposed       z"))
+    z = next(row for row in text.splitlines() if row.startswith("z     proposed       z"))
     assert "-2.954" in z  # the published range stands beside ours

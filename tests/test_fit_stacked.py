@@ -15,20 +15,13 @@ from dataclasses import fields, is_dataclass, replace
 import numpy as np
 import pytest
 
-from calib_core import protocols, simulator
+from calib_core import protocols
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq, solve_lstsq_stack
 from calib_core.pipeline import _same_layout, calibrate_repetition, calibrate_repetitions
-from calib_core.steps import SessionKey, StepMeans
+from calib_core.steps import StepMeans
 
-STEPS = protocols.default_session(verification=True)
-
-
-def _unit(n: int = 5, seed: int = 7, steps=STEPS, **truth_kw) -> list[StepMeans]:
-    rng = np.random.default_rng(seed)
-    truth = simulator.typical_truth(rng, **truth_kw)
-    return [simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L1", "U1", r))
-            for r in range(1, n + 1)]
+from conftest import STEPS_WITH_VERIFICATION, unit_step_means
 
 
 def _assert_same(a, b, path="") -> None:
@@ -82,7 +75,7 @@ def _check_against_alone(sms: list[StepMeans]) -> list:
 
 
 def test_stacked_group_equals_each_session_alone():
-    sms = _unit()
+    sms = unit_step_means()
     assert _same_layout(sms) == [[0, 1, 2, 3, 4]]
     out = _check_against_alone(sms)
     assert all(not f.calibration.warnings for f in out)
@@ -92,8 +85,28 @@ def test_stacked_group_equals_each_session_alone():
     assert len({f.calibration.fits["lever_arm"].stderr[1, 2] for f in out}) == len(out)
 
 
+def test_each_batched_fit_equals_its_per_session_fit():
+    from calib_core import xu2016, zhang2017
+
+    sms = unit_step_means(n=4, seed=21)
+    pairs = [(xu2016.fit_gyro_multirate_stack, xu2016.fit_gyro_multirate),
+             (xu2016.fit_accel_multiposition_stack, xu2016.fit_accel_multiposition),
+             (xu2016.fit_gyro_traditional_stack, xu2016.fit_gyro_traditional),
+             (xu2016.fit_accel_traditional_stack, xu2016.fit_accel_traditional),
+             (zhang2017.fit_accel_static_stack, zhang2017.fit_accel_static)]
+    for batched, alone in pairs:
+        for together, sm in zip(batched(sms), sms):
+            _assert_same(together, alone(sm))
+    statics = zhang2017.fit_accel_static_stack(sms)
+    inputs = zhang2017.lever_arm_inputs_stack(sms, statics)
+    for projection in zhang2017.PROJECTIONS:
+        for together, sm, st in zip(zhang2017.fit_lever_arm_from_stack(inputs, projection=projection),
+                                    sms, statics):
+            _assert_same(together, zhang2017.fit_lever_arm(sm, st, projection=projection))
+
+
 def test_one_implausible_session_fails_alone_and_the_rest_is_unchanged():
-    sms = _unit(seed=8)
+    sms = unit_step_means(seed=8)
     sms[2] = replace(sms[2], gyro=sms[2].gyro * 2.0)  # K_g diagonal ~0.5: not a sensor
     out = _check_against_alone(sms)
     assert isinstance(out[2], DesignError) and out[2].code == "E_IMPLAUSIBLE"
@@ -102,7 +115,7 @@ def test_one_implausible_session_fails_alone_and_the_rest_is_unchanged():
 
 
 def test_a_session_with_a_step_missing_has_its_own_layout():
-    sms = _unit(seed=9)
+    sms = unit_step_means(seed=9)
     keep = np.ones(len(sms[1]), bool)
     keep[np.flatnonzero(sms[1].test == "dynamic")[3]] = False  # as a saturated step
     sms[1] = sms[1].select(keep)
@@ -113,7 +126,7 @@ def test_a_session_with_a_step_missing_has_its_own_layout():
 def test_undetermined_lever_arms_warn_per_session():
     steps = protocols.to_frame(protocols.xu2016_multirate() + protocols.xu2016_multiposition()
                                + protocols.dynamic_steps(tilted=False))
-    sms = _unit(seed=10, steps=steps)
+    sms = unit_step_means(seed=10, steps=steps)
     out = _check_against_alone(sms)
     for f in out:
         assert any(w.startswith("W_LEVER_ARM_UNDETERMINED") for w in f.calibration.warnings)
@@ -121,8 +134,8 @@ def test_undetermined_lever_arms_warn_per_session():
 
 
 def test_raw_units_and_no_stationary_steps():
-    steps = STEPS[STEPS["test"] != "stationary"].reset_index(drop=True)
-    sms = _unit(seed=12, steps=steps)
+    steps = STEPS_WITH_VERIFICATION[STEPS_WITH_VERIFICATION["test"] != "stationary"].reset_index(drop=True)
+    sms = unit_step_means(seed=12, steps=steps)
     sms = [replace(sm, gyro_unit="LSB") for sm in sms]  # the Table 3 'uncompensated' is NaN
     out = _check_against_alone(sms)
     assert out[0].calibration.fits["gyro"].w0_source == "pair_midpoints"
@@ -143,8 +156,8 @@ def test_solve_lstsq_stack_equals_one_problem_at_a_time():
                                   condition_number=float(st.condition_number[r]),
                                   rank=int(st.rank[r])))
     assert st.rank.tolist() == [4, 4, 3, 4]
-    # a shared design (2-D X) with a stack of right-hand sides, through the design cache
-    shared = solve_lstsq_stack(X[0], Y, reuse_design=True)
+    # a shared design (2-D X) with a stack of right-hand sides, factorised once
+    shared = solve_lstsq_stack(X[0], Y)
     for r in range(4):
         np.testing.assert_array_equal(shared.coef[r], solve_lstsq(X[0], Y[r]).coef)
 
@@ -171,7 +184,7 @@ def test_calibrate_sessions_equals_calibrate_session_with_a_damaged_session(tmp_
 
 
 def test_shared_layout_columns_are_read_only():
-    out = calibrate_repetitions(_unit(n=2, seed=13))
+    out = calibrate_repetitions(unit_step_means(n=2, seed=13))
     step = out[0].residual_table.columns["step"]
     assert step is out[1].residual_table.columns["step"]  # one array for the group
     with pytest.raises(ValueError):

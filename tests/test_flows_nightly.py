@@ -19,7 +19,7 @@ runtime.ensure_environment()
 
 from flows import fleet_sim  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
-from flows.fleet_sim import load_manifest, simulate_fleet  # noqa: E402
+from flows.fleet_sim import simulate_fleet  # noqa: E402
 from flows.nightly import FLOW_PRELOAD, nightly_fleet_calibration, rerun_unit  # noqa: E402
 from schemas.results_store import ResultsStore, StoreLockedError, find_calibration  # noqa: E402
 
@@ -112,7 +112,7 @@ def test_fleet_run_flags_outliers_lists_bad_sessions_calibrates_the_rest(fleet):
 
 
 @pytest.mark.slow
-def test_second_run_recalibrates_nothing_then_one_touched_session_one_unit(fleet):
+def test_second_run_recalibrates_nothing_then_one_changed_session_one_unit(fleet):
     data, results, manifest, first = fleet
     params_before = table(results, "parameters")
     files_before = sorted((results / "calibrations").rglob("*.json"))
@@ -124,6 +124,12 @@ def test_second_run_recalibrates_nothing_then_one_touched_session_one_unit(fleet
     target = data / "lot=L02" / "unit=U0025" / "rep=3" / "samples.parquet"
     st = target.stat()
     os.utime(target, ns=(st.st_atime_ns, st.st_mtime_ns + 10_000_000_000))
+    log = nightly_fleet_calibration(data, results, run_discovery=False, progress=False)
+    assert log["units_calibrated"] == 0  # touched, same content: a content fingerprint
+    # the same samples written again with one more metadata entry: other bytes
+    tab = pq.read_table(target)
+    pq.write_table(tab.replace_schema_metadata({**tab.schema.metadata, b"operator": b"x"}),
+                   target)
     files_before = lot_files(results)
     log = nightly_fleet_calibration(data, results, run_discovery=False, progress=False)
     assert log["units_calibrated"] == 1 and log["units_skipped"] == 59
@@ -198,6 +204,7 @@ def small(tmp_path_factory):
     return data, base, manifest
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_the_same_results(small):
     from distributed import LocalCluster
     data, base, manifest = small
@@ -221,6 +228,7 @@ def test_dask_local_cluster_gives_the_same_results(small):
         [b["session"] for b in manifest["bad_sessions"]]
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_same_results_as_threads(small):
     """runner=processes (flows.compute_pool: a forkserver pool doing the unit work) stores
     exactly what the thread pool stores; the run log says where the work ran."""
@@ -270,12 +278,19 @@ def test_second_concurrent_run_is_refused(small, capsys):
 def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
     data, base, manifest = small
     results = base / "r_cli"
+    # exit code 1: a session failed (README, exit codes)
     assert cli_main(["nightly", str(data), "--results", str(results), "--no-discovery",
-                     "--batch-size", "2"]) == 0
+                     "--batch-size", "2"]) == 1
     out, err = capsys.readouterr()
     bad = manifest["bad_sessions"][0]["session"]
     assert f"failed session {bad}: [" in err
-    assert "progress: units 5/5 done, failed sessions 1" in err
+    # one line per lot as its batches (of 2 units) come back, the last one 5/5 units
+    import re
+    counts = [int(m) for m in re.findall(r"^lot L\w+: (\d)/5 units", err, re.M)]
+    assert counts == sorted(counts) and counts[-1] == 5 and len(counts) == 3
+    assert re.search(r"^lot L\w+: 5/5 units \(1 failed sessions\), [\d.]+ s$", err, re.M)
+    # the summary's time is the wall time since the process started, the flow's in brackets
+    assert re.search(r"; [\d.]+ s wall \([\d.]+ s in the flow\)$", out, re.M)
     summary = [line for line in out.splitlines() if line.startswith("nightly ")]
     assert len(summary) == 1 and "5 units (5 calibrated, 0 unchanged" in summary[0]
     assert "reports: " in out

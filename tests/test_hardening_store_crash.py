@@ -42,6 +42,7 @@ def comparable(results: Path) -> tuple[dict, dict]:
         doc = json.loads((results / r.calibration_file).read_text())
         for k in ("run_id", "calibrated_at", "code_version"):
             doc["provenance"].pop(k)
+        (doc.get("qa") or {}).pop("judged_at", None)  # when the lot was re-flagged
         cals[str(r.unit)] = doc
     return tables, cals
 

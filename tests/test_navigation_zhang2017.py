@@ -9,7 +9,7 @@ from calib_core.navigation import (TurntableTrajectory, integrate_attitude, inte
 from calib_core.simulator import simulate_step_means
 from calib_core.zhang2017 import AccelUnitTruth, fit_accel_static, fit_lever_arm
 
-from test_zhang2017_static import PAPER_NOISE, random_unit
+from conftest import PAPER_NOISE, random_unit
 
 
 def test_trajectory_is_a_rotation_about_the_vertical():

@@ -8,9 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from schemas.limits import config_from_toml
 from calib_core.outliers import (
     KIND_LIMIT, KIND_ROBUST, KIND_SPREAD, OutlierConfig, OutlierConfigError, apply_flags,
-    config_from_toml, flag_lot, flag_lots, robust_scale, robust_z, robust_z_threshold,
+    flag_lot, flag_lots, robust_scale, robust_z, robust_z_threshold,
 )
 
 PARAMS = [("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)] + \

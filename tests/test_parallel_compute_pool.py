@@ -101,7 +101,7 @@ def test_a_batch_that_kills_every_worker_runs_in_the_flows_process(own_cluster):
 
 @pytest.mark.slow
 def test_dask_workers_are_warmed_before_the_first_batch_and_run_no_prefect(cluster):
-    with cp.dask_pool(cluster.scheduler_address) as pool:
+    with cp.dask_pool(cluster.scheduler_address):
         assert cp.active() and cp.dask_active()
         start = dict(cp.last_dask_startup)
         out = [cp.run_in_pool(_where_and_what, i) for i in range(3)]

@@ -19,8 +19,10 @@ from schemas.results_store import ResultsStore  # noqa: E402
 
 LOTS = ["L1", "L2", "L3"]
 PARAMS = [("gyro", "k_g11"), ("gyro", "w0_x"), ("accel", "k_a11"), ("static", "scale_x")]
-# the plain 3.5 rule: no threshold simulation in a unit test
-CFG = OutlierConfig(family_alpha=0.0)
+# the plain 3.5 rule: no threshold simulation in a unit test; lots of 8 units judged by
+# their own lot (the fleet-history reference of small lots re-flags every lot, tested in
+# tests/test_qa_small_lots.py)
+CFG = OutlierConfig(family_alpha=0.0, history_units=0)
 KEY = ("gyro", "k_g11")
 
 
@@ -195,7 +197,8 @@ def test_without_a_usable_state_every_lot_is_reflagged(tmp_path, monkeypatch, da
         store.flag_state_path.unlink()
     elif damage == "broken":
         store.flag_state_path.write_bytes(b"not parquet")
-    cfg = OutlierConfig(family_alpha=0.0, z_threshold=3.0) if damage == "other config" else CFG
+    cfg = OutlierConfig(family_alpha=0.0, z_threshold=3.0, history_units=0) \
+        if damage == "other config" else CFG
     spy = _FullReflags(monkeypatch)
     nightly.reflag_after_update(store, ["L1"], cfg)
     assert spy.calls == 1

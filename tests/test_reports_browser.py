@@ -64,7 +64,8 @@ def test_every_figure_rendered(lot_page, browser):
                 withSvg: figs.filter(function(f){
                     return f.querySelector('.plot-container .main-svg') !== null;}).length,
                 withTraces: figs.filter(function(f){
-                    return f.querySelectorAll('.scatterlayer .trace, .boxlayer .trace, .barlayer .trace').length > 0;}).length,
+                    return f.querySelectorAll(
+                        '.scatterlayer .trace, .boxlayer .trace, .barlayer .trace').length > 0;}).length,
                 attr: document.body.getAttribute('data-figures-rendered')};
     })()""")
     assert facts["total"] == 4 + 1 + 1 + 2 * 12
@@ -77,14 +78,14 @@ def test_every_figure_rendered(lot_page, browser):
 
 def test_outliers_marked_in_table(lot_page, browser, store):
     cells = browser.evaluate("""(function(){
-        return Array.from(document.querySelectorAll('#key-parameters td.flagged')).map(function(td){
+        return Array.from(document.querySelectorAll('.key-parameters td.flagged')).map(function(td){
             var s = getComputedStyle(td);
             return {unit: td.parentElement.getAttribute('data-unit'), param: td.getAttribute('data-param'),
                     bg: s.backgroundColor, color: s.color, text: td.textContent, title: td.title};
         });
     })()""")
     normal = browser.evaluate("""(function(){
-        var td = document.querySelector('#key-parameters td[data-param]:not(.flagged)');
+        var td = document.querySelector('.key-parameters td[data-param]:not(.flagged)');
         var s = getComputedStyle(td); return {bg: s.backgroundColor, color: s.color};
     })()""")
     injected = {(u, p) for u, pairs in store.outliers.items() for _, p in pairs}
@@ -93,7 +94,7 @@ def test_outliers_marked_in_table(lot_page, browser, store):
         assert c["bg"] != normal["bg"] and c["color"] != normal["color"]  # visibly different
         assert "FLAGGED" in c["title"]
     badges = browser.evaluate(
-        "Array.from(document.querySelectorAll('#key-parameters tr.flagged-unit')).map(function(r){"
+        "Array.from(document.querySelectorAll('#key-parameters-gyro tr.flagged-unit')).map(function(r){"
         "return r.getAttribute('data-unit');})")
     assert sorted(badges) == sorted(store.outliers)
 
@@ -111,26 +112,27 @@ def test_outliers_marked_and_labelled_in_strip_plots(lot_page, browser, store):
         return out;
     })()""")
     injected = {(f"strip {m}", u) for u, pairs in store.outliers.items() for m, _ in pairs}
-    got = {(l["fig"], l["text"]) for l in labels}
+    got = {(label["fig"], label["text"]) for label in labels}
     assert got == injected
     # one labelled red marker per flagged (unit, parameter)
     assert len(labels) == sum(len(p) for p in store.outliers.values())
-    assert all(l["fill"] == FLAGGED_RGB for l in labels)
+    assert all(label["fill"] == FLAGGED_RGB for label in labels)
 
 
 def test_sorting_by_a_parameter(lot_page, browser, store):
     # the k_g11 outlier was shifted by +0.012, far above the lot: first when sorted descending
     (unit, _), = [(u, p) for u, pairs in store.outliers.items() for _, p in pairs if p == "k_g11"]
     order = browser.evaluate("""(function(){
-        var th = Array.from(document.querySelectorAll('#key-parameters thead tr:last-child th'))
+        var th = Array.from(document.querySelectorAll('#key-parameters-gyro thead tr:last-child th'))
                  .filter(function(h){return h.textContent.indexOf('g11') >= 0;})[0];
         th.click(); th.click();
         return [th.getAttribute('aria-sort'),
-                Array.from(document.querySelectorAll('#key-parameters tbody tr')).map(
+                Array.from(document.querySelectorAll('#key-parameters-gyro tbody tr')).map(
                     function(r){return r.getAttribute('data-unit');})];
     })()""")
     assert order[0] == "descending"
-    assert order[1][0] == unit and len(order[1]) == 12
+    # the lot median and scatter rows (no unit) stay last
+    assert order[1][0] == unit and len(order[1]) == 12 + 2 and order[1][-2:] == [None, None]
 
 
 def test_screenshot(lot_page, browser, tmp_path):

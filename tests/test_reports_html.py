@@ -31,7 +31,8 @@ def lot_html(lot_store):
 
 
 class KeyTableCells(HTMLParser):
-    """(unit, param, flagged, title) of every parameter cell of the key-parameter table."""
+    """(unit, param, flagged, title) of every parameter cell of the key-parameter tables (one
+    per model)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -41,7 +42,7 @@ class KeyTableCells(HTMLParser):
 
     def handle_starttag(self, tag, attrs):
         a = dict(attrs)
-        if tag == "table" and a.get("id") == "key-parameters":
+        if tag == "table" and "key-parameters" in (a.get("class") or "").split():
             self.in_table = True
         elif self.in_table and tag == "tr":
             self.unit = a.get("data-unit")
@@ -78,14 +79,16 @@ def test_lot_report_marks_exactly_the_injected_outliers(lot_store, lot_html):
     flagged = {(u, prm) for u, prm, f, _ in p.cells if f}
     injected = {(u, prm) for u, pairs in lot_store.outliers.items() for _, prm in pairs}
     assert flagged == injected
-    for u, prm, f, title in p.cells:
+    for _, _, f, title in p.cells:
         if f:
             assert "FLAGGED" in title and "robust z" in title
-    # the flagged units are named in the header and carry a badge in their table row
+    # the flagged units are named in the header and carry a badge in their table rows (one
+    # row per model table)
     for unit in lot_store.outliers:
         assert re.search(rf'<tr class="flagged-unit" data-unit="{unit}">', text)
-    clean_rows = re.findall(r'<tr class="flagged-unit" data-unit="([^"]+)"', text)
-    assert sorted(clean_rows) == sorted(lot_store.outliers)
+    flagged_rows = re.findall(r'<tr class="flagged-unit" data-unit="([^"]+)"', text)
+    assert sorted(set(flagged_rows)) == sorted(lot_store.outliers)
+    assert len(flagged_rows) == 4 * len(lot_store.outliers)
 
 
 def test_lot_report_lists_failed_sessions_with_reasons(lot_store, lot_html):

@@ -142,7 +142,11 @@ def test_residual_figures_hold_the_mean_and_envelope_per_step(store, lot_text):
         d = r[(r["unit"] == unit) & (r["model"] == "baseline") & (r["test"] == "multirate") & (r["channel"] == "gx")]
         g = d.groupby("step").agg(rate=("rate_dps", "first"), mean=("residual", "mean"),
                                   lo=("residual", "min"), hi=("residual", "max")).sort_values(["rate", "step"])
-        x, y = _decode(trace["x"]), _decode(trace["y"])
+        # the rates (6 to 300 deg/s) span more than a decade: a symlog axis, the rate on hover
+        from reports.sections import symlog
+        rate = np.array(trace["customdata"], float)
+        assert np.allclose(_decode(trace["x"]), symlog(rate).astype(np.float32), rtol=1e-6)
+        x, y = rate, _decode(trace["y"])
         plus, minus = _decode(trace["error_y"]["array"]), _decode(trace["error_y"]["arrayminus"])
         assert len(x) == len(g) and np.all(np.diff(x) >= 0)
         # the same set of (rate, mean, envelope) points, whatever the order among equal rates

@@ -111,7 +111,8 @@ def test_corrupted_data_pages(good):
     rng = np.random.default_rng(0)
     data[100:20100] = rng.integers(0, 256, 20000, dtype=np.uint8).tobytes()
     good.samples_path.write_bytes(bytes(data))
-    expect_error(good, E.E_UNREADABLE_FILE, "samples.parquet", "cannot be decoded")
+    # the simulator's files carry page checksums: the damage is named as such
+    expect_error(good, E.E_CHECKSUM, "samples.parquet", "checksum does not match")
 
 
 def test_not_parquet_at_all(good):

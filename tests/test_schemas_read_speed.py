@@ -1,4 +1,4 @@
-"""The speed paths of reading and averaging (docs/perf-read.md) give the answers of an
+"""The speed paths of reading and averaging (docs/benchmarks.md) give the answers of an
 independent computation: per-segment sums (several runs per step), the (6, n) channel array
 and its fallback when gyro / accel are replaced, the cached step columns, the saturation
 pre-check (the exact rules decide whenever it lets them), the one-pass finiteness check, and
@@ -74,17 +74,15 @@ def _assert_matches_naive(sm, naive: pd.DataFrame, rtol: float = 1e-12) -> None:
 
 
 def test_steps_in_several_runs_average_like_pandas():
-    """Steps split into many runs (interleaved with each other and with between-step
-    samples): several segments per step are added up per step."""
+    """Steps split into many runs by between-step samples (id -1) inside them: several
+    segments per step are added up per step. (Steps interleaved with each other are
+    E_STEP_NOT_CONTIGUOUS: tests/test_hardening_round2.py.)"""
     steps, samples, md = _simulate(31, temperature=True)
     s = samples.copy()
     ids = s["step"].to_numpy().copy()
     a, b, c = (int(x) for x in steps["step"].iloc[:3])
     rows = np.flatnonzero(np.isin(ids, [a, b, c]))
-    ids[rows[0::4]] = a
-    ids[rows[1::4]] = b
-    ids[rows[2::4]] = c
-    ids[rows[3::8]] = -1  # some between-steps samples inside the interleaved block
+    ids[rows[3::8]] = -1  # between-steps samples inside each of the three steps
     s["step"] = ids
     temp = s["temp_c"].to_numpy().copy()
     temp[::7] = np.nan  # a temperature not recorded for some samples

@@ -11,10 +11,12 @@ import pytest
 from calib_core import protocols
 from calib_core import simulator as sim
 from flows.cli import main
-from flows.fleet_sim import BAD_KINDS, UNIT_SPREAD, load_manifest, simulate_fleet
+from flows.fleet_sim import BAD_KINDS, UNIT_SPREAD, simulate_fleet
 from schemas.averaging import read_step_means
 from schemas.dataset import find_sessions
 from schemas.errors import SessionError
+
+from conftest import load_manifest
 
 RATE = 20.0  # small rate: file-based tests stay fast
 

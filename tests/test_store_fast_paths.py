@@ -1,4 +1,4 @@
-"""The store's fast paths (docs/perf3-store.md): the JSON layout written with the C encoder,
+"""The store's fast paths (docs/benchmarks.md): the JSON layout written with the C encoder,
 and ``replace_units`` merging a lot file in Arrow. Expected values come from the plain
 computations they replace: ``json.dumps(calib_core.results.to_jsonable(doc))`` and pandas
 (concatenate, drop the replaced units, stable sort by the table's keys)."""

@@ -1,59 +1,95 @@
-"""The unit's work after the step means, fifth round: the new paths give what the old ones
-gave, bit for bit.
-
-- ``summarise`` reads the repetitions' values from the fits' parameter blocks (arrays), not
-  from one ``Param`` per parameter: the same summaries as from the parameter lists (NaN
-  values and standard errors included), the same fallbacks (a repetition without a model, a
-  fit without ``param_blocks``).
-- every fit's ``parameters()`` is built from its blocks: the Params the former per-fit code
-  built (names, values, units, order).
+"""The unit's aggregate: ``summarise`` gives each parameter's statistics over the
+repetitions as their definitions give them (numbers worked by hand, and numpy on each
+parameter's values), NaN values and missing models included; every fit's ``parameters()``
+lists the names, values and units of the paper's parameters.
 """
 from __future__ import annotations
 
 import math
-import struct
 from dataclasses import dataclass, replace
 
 import numpy as np
+import pytest
 
 from calib_core import protocols
 from calib_core.pipeline import calibrate_repetitions
-from calib_core.results import (Param, _block_layout, _summarise_by_key, _summarise_params,
-                                param_list, summarise)
+from calib_core.results import Param, RepetitionCalibration, param_list, summarise
 from calib_core.xu2016 import AXES
 
-from test_fit_stacked import STEPS, _unit  # a simulated unit's step means
+from conftest import STEPS_WITH_VERIFICATION, unit_step_means
 
 
-def _reps(n: int = 5, seed: int = 7, steps=STEPS):
-    return [f.calibration for f in calibrate_repetitions(_unit(n, seed, steps))]
+def _reps(n: int = 5, seed: int = 7, steps=STEPS_WITH_VERIFICATION):
+    return [f.calibration for f in calibrate_repetitions(unit_step_means(n, seed, steps))]
 
 
-def _bits(x):
-    return struct.pack("<d", x) if type(x) is float else x
+@dataclass(frozen=True)
+class _Listed:
+    """A fit that only lists parameters: (name, value, stderr) in unit "u"."""
+
+    params: tuple
+    model: str = "m"
+
+    def parameters(self):
+        return [Param(self.model, n, v, e, "u") for n, v, e in self.params]
 
 
-def _same_summaries(a, b) -> None:
-    assert len(a) == len(b)
-    for x, y in zip(a, b):
-        assert type(x) is type(y)
-        for k, v in vars(x).items():
-            w = vars(y)[k]
-            assert type(v) is type(w), k
-            if isinstance(v, tuple):
-                assert [_bits(e) for e in v] == [_bits(e) for e in w], k
-            else:
-                assert _bits(v) == _bits(w), (k, v, w)
+def _rep(rep: int, *params) -> RepetitionCalibration:
+    return RepetitionCalibration("L", "U", rep, fits={"m": _Listed(params)})
 
 
-def test_summarise_from_blocks_equals_summarise_from_params():
+def test_summarise_known_numbers():
+    nan = float("nan")
+    reps = [_rep(3, ("a", 3.0, nan)), _rep(1, ("a", 1.0, 0.1), ("b", 10.0, nan)),
+            _rep(2, ("a", 2.0, 0.3), ("b", 20.0, nan))]
+    a, b = summarise(reps)  # in the order the parameters first appear, reps in rep order
+    assert (a.model, a.name, a.unit, a.n_reps, a.values) == ("m", "a", "u", 3, (1.0, 2.0, 3.0))
+    assert (a.mean, a.std, a.min, a.max) == (2.0, 1.0, 1.0, 3.0)
+    assert a.mean_stderr == pytest.approx(0.2, rel=1e-15)  # the NaN stderr left out
+    assert (b.n_reps, b.values, b.mean, b.min, b.max) == (2, (10.0, 20.0), 15.0, 10.0, 20.0)
+    assert b.std == pytest.approx(math.sqrt(50.0), rel=1e-15)
+    assert math.isnan(b.mean_stderr)  # no repetition has a standard error
+    one = summarise(reps[:1])[0]
+    assert one.n_reps == 1 and one.mean == 3.0 and math.isnan(one.std)
+    assert summarise([]) == []
+    with pytest.raises(ValueError, match="repetition 4 lists a parameter twice"):
+        summarise([_rep(4, ("a", 1.0, 0.1), ("a", 2.0, 0.1))])
+
+
+def _by_definition(reps):
+    """Each parameter's statistics from its values, one parameter at a time (numpy)."""
+    by_key: dict = {}
+    for rep in sorted(reps, key=lambda r: r.rep):
+        for p in rep.parameters():
+            by_key.setdefault((p.model, p.name), []).append(p)
+    out = {}
+    for key, ps in by_key.items():
+        v, se = np.array([p.value for p in ps]), np.array([p.stderr for p in ps])
+        out[key] = dict(unit=ps[0].unit, n_reps=len(v), values=tuple(v.tolist()),
+                        mean=v.mean(), std=v.std(ddof=1) if len(v) > 1 else np.nan,
+                        min=v.min(), max=v.max(),
+                        mean_stderr=np.nanmean(se) if np.isfinite(se).any() else np.nan)
+    return out
+
+
+def _check(summaries, reps) -> None:
+    expected = _by_definition(reps)
+    assert [(s.model, s.name) for s in summaries] == list(expected)
+    for s in summaries:
+        e = expected[(s.model, s.name)]
+        assert (s.unit, s.n_reps) == (e["unit"], e["n_reps"])
+        np.testing.assert_allclose(s.values, e["values"], rtol=0, atol=0)
+        for stat in ("mean", "std", "min", "max", "mean_stderr"):
+            np.testing.assert_allclose(getattr(s, stat), e[stat], rtol=1e-12, err_msg=stat)
+        assert all(type(getattr(s, k)) is float for k in ("mean", "std", "min", "max"))
+
+
+def test_summarise_fitted_repetitions():
     reps = _reps()
-    fast = summarise(reps)
-    old = _summarise_params([r.parameters() for r in sorted(reps, key=lambda r: r.rep)])
-    _same_summaries(fast, old)
-    assert len(fast) == len(reps[0].parameters()) and fast[0].n_reps == 5
-    # reps given in any order: summarised in rep order
-    _same_summaries(summarise(reps[::-1]), fast)
+    out = summarise(reps)
+    _check(out, reps)
+    assert len(out) == len(reps[0].parameters()) and out[0].n_reps == 5
+    assert summarise(reps[::-1]) == out  # summarised in rep order whatever the given order
 
 
 def test_summarise_with_nan_parameters():
@@ -62,23 +98,21 @@ def test_summarise_with_nan_parameters():
                                + protocols.dynamic_steps(tilted=False))
     reps = _reps(seed=10, steps=steps)
     assert np.isnan(reps[0].fits["lever_arm"].lever_arm_mm).any()
-    fast = summarise(reps)
-    _same_summaries(fast, _summarise_params([r.parameters() for r in reps]))
-    assert any(math.isnan(s.mean) and math.isnan(s.mean_stderr) for s in fast)
-    # one repetition alone: std NaN, as before
-    _same_summaries(summarise(reps[:1]), _summarise_params([reps[0].parameters()]))
+    out = summarise(reps)
+    _check(out, reps)
+    assert any(math.isnan(s.mean) and math.isnan(s.mean_stderr) for s in out)
+    _check(summarise(reps[:1]), reps[:1])
 
 
-def test_summarise_fallbacks():
+def test_summarise_missing_models_and_other_fits():
     reps = _reps(3)
-    # a repetition without the lever-arm model: by key, as before
+    # a repetition without the lever-arm model: those parameters over the other two
     short = replace(reps[0], fits={k: v for k, v in reps[0].fits.items() if k != "lever_arm"})
     mixed = summarise([short] + reps[1:])
-    _same_summaries(mixed, _summarise_by_key([short.parameters()] + [r.parameters()
-                                                                      for r in reps[1:]]))
+    _check(mixed, [short] + reps[1:])
     assert {(x.model, x.name): x.n_reps for x in mixed}[("lever_arm", "r1x")] == 2
 
-    # a fit without param_blocks: summarised from the parameter lists
+    # a fit without param_blocks: summarised from its parameter list
     @dataclass(frozen=True)
     class Other:
         value: float
@@ -89,7 +123,7 @@ def test_summarise_fallbacks():
 
     extra = [replace(r, fits={**r.fits, "other": Other(float(i))}) for i, r in enumerate(reps)]
     out = summarise(extra)
-    _same_summaries(out, _summarise_params([r.parameters() for r in extra]))
+    _check(out, extra)
     assert out[-1].name == "x" and out[-1].mean == 1.0
 
 
@@ -130,13 +164,3 @@ def test_parameters_from_blocks_are_the_former_params():
         got = fit.parameters()
         assert got == expected[name], name
         assert all(type(p.value) is float and type(p.stderr) is float for p in got)
-
-
-def test_block_layout_is_keyed_by_heads():
-    heads = (("m", ("a", "b"), "u"), ("n", ("a",), "v"))
-    keys, units, distinct = _block_layout(heads)
-    assert keys == (("m", "a"), ("m", "b"), ("n", "a")) and units == ("u", "u", "v")
-    assert distinct
-    assert not _block_layout((("m", ("a",), "u"), ("m", ("a",), "v")))[2]
-    # another unit of the same names is another layout (units are not shared by mistake)
-    assert _block_layout((("m", ("a", "b"), "w"), ("n", ("a",), "v")))[1] == ("w", "w", "v")

@@ -13,7 +13,7 @@ from calib_core.zhang2017 import (AccelUnitTruth, SensitiveAxisLeverArm,
                                   compensate_specific_force, fit_accel_static, fit_lever_arm,
                                   paper_lever_arm)
 
-from test_zhang2017_static import PAPER_NOISE, paper_unit, random_unit
+from conftest import PAPER_NOISE, paper_unit, random_unit
 
 G = 9.80665
 

@@ -6,7 +6,7 @@ from calib_core import protocols
 from calib_core.simulator import simulate_step_means
 from calib_core.zhang2017 import fit_accel_static, fit_lever_arm
 
-from test_zhang2017_static import PAPER_NOISE, paper_unit
+from conftest import PAPER_NOISE, paper_unit
 
 N_RUNS = 300  # std of a z-score std over 300 runs ~0.045: the 0.8-1.25 band is > 4 sigma wide
 

@@ -7,31 +7,10 @@ from calib_core import protocols
 from calib_core.errors import DesignError
 from calib_core.results import FitResult
 from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import (AccelUnitTruth, C_from_angles, affine_from_parts,
-                                  affine_to_static, angles_from_C, fit_accel_static,
-                                  static_to_affine)
+from calib_core.zhang2017 import (C_from_angles, affine_from_parts, affine_to_static, angles_from_C,
+                                  fit_accel_static, static_to_affine)
 
-PAPER_ANGLES = np.array([[0.75997, 90.71425, 89.74038],
-                         [89.25516, 0.74486, 90.5630],
-                         [90.52202, 89.17706, 0.97456]])
-PAPER_NOISE = dict(accel_noise_g=1e-3, accel_bias_instability_g=1e-5)
-
-
-def random_unit(rng, tilt_deg=1.0, lever_mm=8.0) -> AccelUnitTruth:
-    """Scale ~0.4 V/g, bias ~2.4 V, each sensitive axis tilted by up to ``tilt_deg``."""
-    c = np.eye(3) + rng.normal(0, np.radians(tilt_deg) / 2, (3, 3)) * (1 - np.eye(3))
-    c /= np.linalg.norm(c, axis=1, keepdims=True)
-    r = -lever_mm * np.eye(3) + rng.normal(0, 1.5, (3, 3)) * (1 - np.eye(3))
-    return AccelUnitTruth(scale=rng.uniform(0.38, 0.42, 3), bias=rng.uniform(2.3, 2.5, 3),
-                          C=c.T, lever_arm_mm=r, unit="V")
-
-
-def paper_unit() -> AccelUnitTruth:
-    return AccelUnitTruth(scale=np.array([0.39496, 0.39808, 0.40024]),
-                          bias=np.array([2.405098, 2.380978, 2.435503]),
-                          C=C_from_angles(PAPER_ANGLES),
-                          lever_arm_mm=np.array([[-8.34, -0.42, -1.32], [-2.56, -8.93, -0.26],
-                                                 [-0.60, -0.50, -8.24]]))
+from conftest import PAPER_ANGLES, PAPER_NOISE, paper_unit, random_unit
 
 
 def test_angles_to_cosines_matches_definition():

@@ -5,12 +5,18 @@ units; ``rad/s`` and ``m/s^2`` are converted to deg/s and g first, with the file
 ``g_local``) or a CSV with columns ``acc_x, acc_y, acc_z, gyr_x, gyr_y, gyr_z`` (units given by
 ``--gyro-unit`` / ``--accel-unit``, default deg/s and m/s^2; other columns are passed through).
 
-Output: Parquet input -> Parquet with ``w_x, w_y, w_z`` in deg/s and ``f_x, f_y, f_z`` in g
-(plus ``t``, ``step``, ``temp_c`` when present); CSV input -> CSV with ``gyr_*`` in deg/s and
-``acc_*`` in m/s^2 (the calibration's ``g_local``), other columns unchanged.
+Output columns: from a Parquet input ``w_x, w_y, w_z`` in deg/s and ``f_x, f_y, f_z`` in g
+(plus ``t``, ``step``, ``temp_c`` when present); from a CSV input ``gyr_*`` in deg/s and
+``acc_*`` in m/s^2 (the calibration's ``g_local``), other columns unchanged. The output's
+format is the one its name says: ``.parquet`` (with the units and the calibration file in its
+metadata) or ``.csv``; any other name is refused before anything is read.
 
 Refuses (exit 2) when the raw units of the data are not the ones the calibration expects
-(its ``raw_units``), e.g. LSB data with a calibration fitted on deg/s."""
+(its ``raw_units``), e.g. LSB data with a calibration fitted on deg/s: the result would be
+meaningless, so ``--force`` does not override this. Refuses (exit 2) a ``samples.parquet``
+whose metadata names another unit than the calibration's (``provenance.unit``), unless
+``--force`` (then a warning on stderr). Warns on stderr when the calibration's QA status is
+``flagged`` or ``limits``."""
 from __future__ import annotations
 
 import argparse
@@ -36,11 +42,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("calibration", metavar="CALIBRATION.json")
     p.add_argument("raw", metavar="RAW", help="samples.parquet of the contract, or a .csv")
-    p.add_argument("out", metavar="OUT", help="output file (.parquet or .csv like RAW)")
+    p.add_argument("out", metavar="OUT", help="output file: .parquet or .csv (the format its name says)")
     p.add_argument("--gyro-unit", default="deg/s", choices=("deg/s", "rad/s", "LSB", "V"),
                    help="CSV only: unit of gyr_* (default deg/s)")
     p.add_argument("--accel-unit", default="m/s^2", choices=("g", "m/s^2", "LSB", "V"),
                    help="CSV only: unit of acc_* (default m/s^2)")
+    p.add_argument("--force", action="store_true",
+                   help="apply even if the raw file's metadata names another unit")
     p.set_defaults(func=run)
 
 
@@ -65,22 +73,79 @@ def _apply(cal, G, A, t=None, temp=None):
     if cal.terms and t is not None and len(t) > 2:
         w_aff, _ = cal.apply_affine(G, A)
         dwdt = np.gradient(w_aff, t, axis=0)
-    return cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t)
+    return cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t, gyro_unit=cal.gyro_unit,
+                     accel_unit=cal.accel_unit)  # units checked and converted by the caller
+
+
+def _check_unit_id(doc: dict, md: dict, src: str, force: bool) -> None:
+    """The unit named by the raw file's metadata against the calibration's unit."""
+    import sys
+    cal_unit = (doc.get("provenance") or {}).get("unit") or (doc.get("metadata") or {}).get("unit")
+    raw_unit = md.get("unit")
+    if cal_unit and raw_unit and str(cal_unit) != str(raw_unit):
+        msg = (f"{src}: the raw file's metadata names unit {raw_unit!r}, the calibration is "
+               f"of unit {cal_unit!r}")
+        if not force:
+            raise CliError(msg + "; pass --force to apply it anyway")
+        print(f"mimucal apply: warning: {msg} (--force)", file=sys.stderr)
+
+
+def _warn_qa(doc: dict, path: str) -> None:
+    import sys
+    from schemas.calibration_file import qa_of
+    qa = qa_of(doc)
+    if qa is not None and qa["status"] != "pass":
+        print(f"mimucal apply: warning: {path} has QA status {qa['status']!r}: "
+              + "; ".join(qa.get("reasons") or []), file=sys.stderr)
+
+
+OUTPUT_FORMATS = {".parquet": "Parquet", ".csv": "CSV"}
+
+
+def write_output(res, out: Path, out_format: str, meta: dict[str, str]) -> None:
+    """Write the calibrated samples atomically (temp file + rename) in ``out_format``;
+    Parquet keeps ``meta`` (units, calibration file, source) as key-value metadata."""
+    import os
+    import tempfile
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    os.close(fd)
+    try:
+        if out_format == "Parquet":
+            tab = pa.Table.from_pandas(res, preserve_index=False)
+            tab = tab.replace_schema_metadata({**(tab.schema.metadata or {}), **meta})
+            pq.write_table(tab, tmp, compression="zstd")
+        else:
+            res.to_csv(tmp, index=False)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, out)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
 
 
 def run(args: argparse.Namespace) -> int:
     import pandas as pd
-    import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from schemas.calibration_file import CalibrationFileError, load_calibration
+    from schemas.calibration_file import (CalibrationFileError, calibration_from_dict,
+                                          read_calibration_document)
     from schemas.contract import G_LOCAL_DEFAULT, decode_metadata
 
     try:
-        cal = load_calibration(Path(args.calibration))
+        doc = read_calibration_document(Path(args.calibration))
+        cal = calibration_from_dict(doc, source=str(args.calibration))
     except CalibrationFileError as exc:
         raise CliError(str(exc)) from None
+    _warn_qa(doc, args.calibration)
     raw, out = Path(args.raw), Path(args.out)
+    out_format = OUTPUT_FORMATS.get(out.suffix.lower())
+    if out_format is None:
+        raise CliError(f"{out}: output name must end in .parquet or .csv (the format written)")
     if not raw.is_file():
         raise CliError(f"{raw}: no such file")
     suffix = raw.suffix.lower()
@@ -95,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"{raw}: missing column(s) {', '.join(missing)} (contract samples.parquet)")
         if "gyro_unit" not in md or "accel_unit" not in md:
             raise CliError(f"{raw}: metadata gyro_unit/accel_unit missing; cannot tell the raw units")
+        _check_unit_id(doc, md, str(raw), args.force)
         g_local = float(md.get("g_local", G_LOCAL_DEFAULT))
         df = table.to_pandas()
         G, gu = _to_inside(df[["gx", "gy", "gz"]].to_numpy(float), md["gyro_unit"], g_local)
@@ -111,10 +177,6 @@ def run(args: argparse.Namespace) -> int:
         meta = {"gyro_unit": "deg/s", "accel_unit": "g", "calibrated": "true",
                 "calibration_file": str(Path(args.calibration).resolve()), "source": str(raw),
                 "g_local": f"{cal.g_local:.5f}"}
-        tab = pa.Table.from_pandas(res, preserve_index=False)
-        tab = tab.replace_schema_metadata({**(tab.schema.metadata or {}), **meta})
-        out.parent.mkdir(parents=True, exist_ok=True)
-        pq.write_table(tab, out, compression="zstd")
         units = "w_* deg/s, f_* g"
     elif suffix == ".csv":
         try:
@@ -133,10 +195,12 @@ def run(args: argparse.Namespace) -> int:
         res = df.copy()
         res[list(CSV_GYRO)] = w
         res[list(CSV_ACCEL)] = f * cal.g_local
-        out.parent.mkdir(parents=True, exist_ok=True)
-        res.to_csv(out, index=False)
+        meta = {"gyro_unit": "deg/s", "accel_unit": "m/s^2", "calibrated": "true",
+                "calibration_file": str(Path(args.calibration).resolve()), "source": str(raw),
+                "g_local": f"{cal.g_local:.5f}"}
         units = "gyr_* deg/s, acc_* m/s^2"
     else:
         raise CliError(f"{raw}: expected a .parquet (contract samples) or .csv file")
-    print(f"{out}: {len(w)} samples calibrated ({units})")
+    write_output(res, out, out_format, meta)
+    print(f"{out}: {len(w)} samples calibrated ({units}, {out_format})")
     return 0

@@ -98,7 +98,9 @@ def run(args) -> int:
     for e in errors:
         print(f"skipped: {e}", file=sys.stderr)
     if not refs:
-        raise CliError(f"no session of unit {args.unit!r} under {args.dataset}")
+        from flows.user_errors import units_under
+        raise CliError(f"no session of unit {args.unit!r} under {args.dataset} "
+                       f"(units: {units_under(args.dataset)})")
     sessions = []
     for ref in refs:
         try:

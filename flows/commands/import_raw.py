@@ -92,7 +92,8 @@ def run(args) -> int:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         if args.out.suffix == ".parquet":
-            rec.samples.to_parquet(args.out, index=False)
+            # page checksums, verified when the file is read (schemas.reader)
+            rec.samples.to_parquet(args.out, index=False, write_page_checksum=True)
         else:
             rec.samples.to_csv(args.out, index=False)
         args.out.with_suffix(args.out.suffix + ".json").write_text(json.dumps(

@@ -15,8 +15,10 @@ EPILOG = """examples:
 
 Sessions whose input fingerprint (size and mtime of both files) is unchanged since the last
 run are skipped; a unit with any new, changed or removed session is recalibrated as a whole.
-Prints a progress line per batch of units and a one-line summary; the run log is
-RESULTS/runs/<run_id>.json and the reports RESULTS/reports/."""
+Prints a progress line per lot as its units come back ("lot L01: 8/16 units, 3.2 s") and a
+one-line summary with the wall time since the command started; the run log is
+RESULTS/runs/<run_id>.json, Prefect's own log RESULTS/logs/prefect.log (--verbose: on the
+terminal) and the reports RESULTS/reports/."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -35,32 +37,59 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(one core), processes (a forkserver pool, both cores, ~3 s start-up), "
                         "prefect-processes (Prefect's process pool), dask (a local Dask "
                         "cluster); default $MIMUCAL_TASK_RUNNER or auto")
-    p.add_argument("--config", metavar="TOML", default=None,
-                   help="outlier options and per-parameter limits (see docs/flows.md)")
+    p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--batch-size", type=int, default=None, metavar="N",
                    help="units per Prefect task (default 8)")
     p.add_argument("--wait", action="store_true",
                    help="wait for another run holding the results store instead of refusing")
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--unit-reports", action="store_true",
+                   help="also write a report per unit of the lots reported (RESULTS/reports/units/; "
+                        "~0.2 s and ~5 MB each)")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
+    p.add_argument("--follow-symlinks", action="store_true",
+                   help="calibrate session directories reached through a symbolic link that "
+                        "leads outside DATASET (refused by default)")
     p.set_defaults(func=run)
+
+
+CONFIG_HELP = ("QA configuration: outlier options and acceptance limits with units (docs/"
+               "flows.md); stored in the results store and applied by every later run; "
+               "'none' clears it")
+
+
+def check_config(path: str | None) -> None:
+    """A ``--config`` refused before any orchestration starts: a missing file, TOML that does
+    not parse, unknown parameters or units (one line naming the valid ones)."""
+    if path is None or path == "none":
+        return
+    from schemas.limits import LimitsError, config_from_toml
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise CliError(f"configuration {path}: {exc.strerror or exc}") from None
+    try:
+        config_from_toml(text, source=str(path))
+    except LimitsError as exc:
+        raise CliError(str(exc)) from None
 
 
 def run(args: argparse.Namespace) -> int:
     dataset = Path(args.dataset)
     if not dataset.is_dir():
         raise CliError(f"dataset {dataset} is not a directory")
-    if args.config and not Path(args.config).is_file():
-        raise CliError(f"configuration {args.config} does not exist")
+    check_config(args.config)
     if args.batch_size is not None and args.batch_size < 1:
         raise CliError("--batch-size must be >= 1")
+    from flows import runtime
+    runtime.ensure_environment(args.results, verbose=args.verbose)  # before Prefect's import
     from flows.task_runners import resolve_kind
     try:
         resolve_kind(args.runner)  # a bad $MIMUCAL_TASK_RUNNER is refused before start-up
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    from flows import runtime
-    runtime.ensure_environment(args.results)
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
@@ -69,16 +98,32 @@ def run(args: argparse.Namespace) -> int:
             dataset, args.results, force=args.force, dask_address=args.dask_address,
             batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
             wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet,
-            runner=args.runner)
+            runner=args.runner, unit_reports=args.unit_reports,
+            follow_symlinks=args.follow_symlinks)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
-    return 0
+    if not log.get("sessions_found") and not log.get("path_errors"):
+        print(f"mimucal nightly: warning: no session under {dataset} (expected "
+              f"lot=<id>/unit=<id>/rep=<n>/ directories); nothing to do", file=sys.stderr)
+        return 3
+    return exit_code(log)
+
+
+def exit_code(log: dict) -> int:
+    """1 when any session, unit or report failed, or a directory did not parse; else 0."""
+    failed = (log.get("failed_sessions") or log.get("units_failed") or log.get("path_errors")
+              or log.get("report_problems") or log.get("unit_errors"))
+    return 1 if failed else 0
 
 
 def print_outcome(log: dict) -> None:
+    """The run's failures, flags and report problems, then its summary with the wall time
+    since the command started (imports and Prefect's start-up included)."""
     for f in log.get("failed_sessions", []):
         print(f"failed session {f['session']}: {f['message']}", file=sys.stderr)
+    for e in log.get("unit_errors", []):
+        print(f"failed unit {e['unit']}: {e['message']}", file=sys.stderr)
     for e in log.get("path_errors", []):
         print(f"bad path: {e.get('message')}", file=sys.stderr)
     for unit, why in (log.get("units_stale") or {}).items():
@@ -88,7 +133,21 @@ def print_outcome(log: dict) -> None:
             print(f"flag {f['lot']}/{f['unit']}: [{f['kind']}] {f['reason']}")
     for p in log.get("report_problems", []):
         print(f"report: {p}", file=sys.stderr)
-    print(log["summary"])
+    print(summary_with_wall_time(log))
     reports = log.get("reports") or []
-    if reports:
-        print("reports: " + ", ".join(reports))
+    units = [r for r in reports if Path(r).parent.name == "units"]
+    others = [r for r in reports if r not in units]
+    if others:
+        print("reports: " + ", ".join(others))
+    if len(units) > 3:
+        print(f"unit reports: {len(units)} in {Path(units[0]).parent}")
+    elif units:
+        print("unit reports: " + ", ".join(units))
+
+
+def summary_with_wall_time(log: dict) -> str:
+    """The run's summary line, its time being the command's wall time (the flow's own time
+    in brackets)."""
+    from flows.clock import since_start
+    from flows.nightly import summary_line
+    return summary_line(log, wall_s=since_start())

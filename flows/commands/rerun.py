@@ -9,7 +9,7 @@ import argparse
 from pathlib import Path
 
 from flows.cli import CliError
-from flows.commands.nightly import print_outcome
+from flows.commands.nightly import CONFIG_HELP, check_config, exit_code, print_outcome
 
 EPILOG = """examples:
   mimucal rerun data/fleet --results results --unit U0042"""
@@ -22,25 +22,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", metavar="DATASET", help="hive dataset root")
     p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
     p.add_argument("--unit", required=True, help="unit id")
-    p.add_argument("--config", metavar="TOML", default=None,
-                   help="outlier options and per-parameter limits")
+    p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
+    p.add_argument("--verbose", action="store_true",
+                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
+    p.add_argument("--follow-symlinks", action="store_true",
+                   help="calibrate session directories reached through a symbolic link that "
+                        "leads outside DATASET (refused by default)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     if not Path(args.dataset).is_dir():
         raise CliError(f"dataset {args.dataset} is not a directory")
+    check_config(args.config)
+    from flows.user_errors import check_unit_in_dataset
+    check_unit_in_dataset(args.dataset, args.unit)  # answered before Prefect starts
     from flows import runtime
-    runtime.ensure_environment(args.results)
+    runtime.ensure_environment(args.results, verbose=args.verbose)
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
     try:
         log = nightly.rerun_unit(args.dataset, args.results, args.unit, args.config, args.wait,
-                                 run_discovery=not args.no_discovery)
+                                 run_discovery=not args.no_discovery,
+                                 follow_symlinks=args.follow_symlinks)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError, LookupError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
-    return 1 if log.get("units_failed") else 0
+    return exit_code(log)

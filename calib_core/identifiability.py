@@ -1,0 +1,224 @@
+"""Which effects a protocol can estimate and tell apart, before any data are fitted.
+
+Model discovery adds catalogue terms to a base model. Whether the data can estimate a term,
+and tell it from another, depends on the steps (and the noise weights), not on the unit:
+
+- a parameter combination ``v`` of term T is **undetermined** when, once the base model is
+  projected out, T's columns leave almost nothing of it: ``||P Z_T v|| < tol ||Z_T v||``
+  (``P`` projects on the complement of the base model's columns);
+- term T is **confounded** with other terms when some determined combination of T's columns
+  lies, up to the base model, in the span of theirs: the smallest principal angle between
+  ``span(P Z_T)`` and ``span(P Z_others)`` has ``sin < tol``. The terms named are those that
+  carry that direction, so a pair (vertical Earth rate vs a diagonal g-sensitivity) and a
+  combination of several terms are both found.
+
+``tol`` (default 0.05: the part of a column not explained by the others is below 5 % of its
+size) is a statement about the design, not about the noise: an effect confounded at 5 %
+needs a signal 20x the noise to show its own part at 1 sigma.
+
+:func:`separating_additions` answers "which steps would separate them": it adds each
+candidate step set of a library to the protocol and keeps those after which the group is
+no longer confounded or undetermined. Everything here is linear algebra on given matrices;
+the caller builds the columns (:mod:`calib_core.discovery` for a unit, ``mimucal plan`` for a
+steps table).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+
+DEFAULT_TOL = 0.05
+
+
+@dataclass(frozen=True)
+class Undetermined:
+    """A parameter combination of one term that the design cannot see."""
+
+    term: str
+    params: tuple[str, ...]  # the parameters the combination involves (largest weights)
+    combination: tuple[float, ...]  # the unit direction over ``params``
+    left: float  # ||P Z v|| / ||Z v||: what is left once the base model is projected out
+
+    def describe(self) -> str:
+        if len(self.params) == 1:
+            return f"{self.term}.{self.params[0]}"
+        return f"{self.term}: a combination of {', '.join(self.params)}"
+
+
+@dataclass(frozen=True)
+class Confounded:
+    """Terms with a common direction once the base model is projected out."""
+
+    terms: tuple[str, ...]
+    sin_angle: float  # sine of the smallest principal angle between their spans
+
+    def describe(self) -> str:
+        return f"confounded: {', '.join(self.terms)} (sin of angle {self.sin_angle:.2g})"
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    terms: tuple[str, ...]
+    undetermined: tuple[Undetermined, ...]
+    confounded: tuple[Confounded, ...]
+    rank: Mapping[str, int]  # determined parameter directions per term
+    n_params: Mapping[str, int]
+    tol: float = DEFAULT_TOL
+
+    def identifiable(self, term: str) -> bool:
+        """Every parameter of ``term`` determined and no direction shared with another term."""
+        return (self.rank[term] == self.n_params[term]
+                and not any(term in c.terms for c in self.confounded))
+
+    def estimable(self, term: str) -> bool:
+        """Some direction of ``term`` is determined and its own."""
+        return self.rank[term] > 0 and not any(
+            term in c.terms and self.rank[term] <= 1 for c in self.confounded)
+
+    def groups(self) -> list[tuple[str, ...]]:
+        """Test groups: confounded terms together (union of overlapping sets), others alone."""
+        parent = {t: t for t in self.terms}
+
+        def find(t: str) -> str:
+            while parent[t] != t:
+                parent[t] = parent[parent[t]]
+                t = parent[t]
+            return t
+
+        for c in self.confounded:
+            for other in c.terms[1:]:
+                parent[find(other)] = find(c.terms[0])
+        out: dict[str, list[str]] = {}
+        for t in self.terms:
+            out.setdefault(find(t), []).append(t)
+        return [tuple(sorted(g)) for g in out.values()]
+
+    def to_dict(self) -> dict:
+        return {
+            "tol": self.tol,
+            "rank": dict(self.rank), "n_params": dict(self.n_params),
+            "undetermined": [{"term": u.term, "params": list(u.params),
+                              "combination": [round(x, 4) for x in u.combination],
+                              "left": u.left} for u in self.undetermined],
+            "confounded": [{"terms": list(c.terms), "sin_angle": c.sin_angle}
+                           for c in self.confounded],
+        }
+
+
+def _orth(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+    if A.size == 0:
+        return np.zeros((A.shape[0], 0))
+    u, s, _ = np.linalg.svd(A, full_matrices=False)
+    keep = s > rcond * max(s.max(initial=0.0), 1e-300)
+    return u[:, keep]
+
+
+def analyse(base: np.ndarray, terms: Mapping[str, np.ndarray],
+            param_names: Mapping[str, tuple[str, ...]], tol: float = DEFAULT_TOL
+            ) -> Identifiability:
+    """Identifiability of each term's columns (``terms[name]``, (N, p)) against the base
+    model's columns ``base`` (N, q) and against each other. Rows must already carry the noise
+    weights the fit would use (1/sigma), so that every row counts as the fit counts it."""
+    Qb = _orth(np.asarray(base, float))
+    names = tuple(terms)
+    undetermined: list[Undetermined] = []
+    spans: dict[str, np.ndarray] = {}
+    rank: dict[str, int] = {}
+    for name in names:
+        Z = np.asarray(terms[name], float)
+        norms = np.linalg.norm(Z, axis=0)
+        Zn = Z / np.where(norms > 0, norms, 1.0)  # scale-free: columns of unit length
+        # directions of parameter space: first those Z itself cannot see (zero or collinear
+        # columns), then, within its range, the ratio ||P Z v|| / ||Z v|| (singular values of
+        # P Z W with W mapping unit vectors of Z's range back to parameters)
+        _, sz, vzt = np.linalg.svd(Zn, full_matrices=True)
+        sz = np.concatenate([sz, np.zeros(Zn.shape[1] - len(sz))])
+        inrange = sz > 1e-8 * max(sz.max(initial=0.0), 1e-300)
+        W = vzt[inrange].T / sz[inrange]
+        X = (Zn - Qb @ (Qb.T @ Zn)) @ W
+        blind = [(v, 0.0) for v in vzt[~inrange]]
+        if X.shape[1]:
+            _, sig, at = np.linalg.svd(X, full_matrices=False)
+            weak = [(W @ a / np.linalg.norm(W @ a), float(r)) for a, r in zip(at, sig) if r < tol]
+            determined = at[sig >= tol]
+        else:
+            weak, determined = [], np.zeros((0, 0))
+        for v, left in blind + weak:
+            order = np.argsort(-np.abs(v))
+            big = [int(i) for i in order if abs(v[i]) >= 0.2] or [int(order[0])]
+            undetermined.append(Undetermined(
+                name, tuple(param_names[name][i] for i in big),
+                tuple(float(v[i]) for i in big), left))
+        spans[name] = (_orth(X @ determined.T) if len(determined)
+                       else np.zeros((len(Zn), 0)))
+        rank[name] = spans[name].shape[1]
+    confounded: list[Confounded] = []
+    seen: set[tuple[str, ...]] = set()
+    for name in names:
+        Q = spans[name]
+        others = [o for o in names if o != name and spans[o].shape[1]]
+        if not Q.shape[1] or not others:
+            continue
+        Qo = _orth(np.hstack([spans[o] for o in others]))
+        if not Qo.shape[1]:
+            continue
+        u, cos, _ = np.linalg.svd(Q.T @ Qo, full_matrices=False)
+        cmax = float(min(cos[0], 1.0))
+        sin = float(np.sqrt(max(1.0 - cmax * cmax, 0.0)))
+        if sin >= tol:
+            continue
+        # the shared direction, in the data space, written in the others' own columns: the
+        # terms that carry it are those with a real part of it (not a chance projection)
+        y = Q @ u[:, 0]
+        H = np.hstack([spans[o] for o in others])
+        coef = np.linalg.lstsq(H, y, rcond=None)[0]
+        share, at = {}, 0
+        for o in others:
+            k = spans[o].shape[1]
+            share[o] = float(np.linalg.norm(spans[o] @ coef[at:at + k]))
+            at += k
+        involved = tuple(sorted({name, *[o for o, w in share.items() if w > 0.1]}))
+        if len(involved) > 1 and involved not in seen:
+            seen.add(involved)
+            confounded.append(Confounded(involved, sin))
+    return Identifiability(names, tuple(undetermined), tuple(confounded), rank,
+                           {n: int(np.asarray(terms[n]).shape[1]) for n in names}, tol)
+
+
+@dataclass(frozen=True)
+class Advice:
+    """For one confounded set or undetermined term: the step sets that would resolve it."""
+
+    issue: str  # e.g. "confounded: earth_rate, gyro_g_sensitivity"
+    terms: tuple[str, ...]
+    separated_by: tuple[str, ...] = field(default_factory=tuple)
+
+    def describe(self) -> str:
+        if not self.separated_by:
+            return f"{self.issue}: no step set of the library separates it"
+        return f"{self.issue}: add {' or '.join(self.separated_by)}"
+
+
+def separating_additions(analyse_protocol: Callable[[object], Identifiability], protocol,
+                         library: Mapping[str, Callable[[object], object]]) -> list[Advice]:
+    """For each confounded set and each term with undetermined parameters of ``protocol``,
+    the labels of ``library`` (label -> function adding steps to a protocol) after whose
+    addition it is resolved (no longer confounded, every parameter determined)."""
+    base = analyse_protocol(protocol)
+    issues: list[tuple[str, tuple[str, ...], Callable[[Identifiability], bool]]] = []
+    for c in base.confounded:
+        issues.append((c.describe(), c.terms,
+                       lambda ident, c=c: not any(set(c.terms) <= set(d.terms) or
+                                                  set(d.terms) <= set(c.terms)
+                                                  for d in ident.confounded)))
+    for term in sorted({u.term for u in base.undetermined}):
+        params = sorted({p for u in base.undetermined if u.term == term for p in u.params})
+        issues.append((f"undetermined: {term} ({', '.join(params)})", (term,),
+                       lambda ident, term=term: ident.rank[term] == ident.n_params[term]))
+    if not issues:
+        return []
+    extended = {label: analyse_protocol(add(protocol)) for label, add in library.items()}
+    return [Advice(text, terms, tuple(label for label, ident in extended.items() if ok(ident)))
+            for text, terms, ok in issues]

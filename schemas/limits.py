@@ -1,0 +1,254 @@
+"""The QA configuration engineers write: outlier options and acceptance limits, as TOML, with
+the unit written next to every dimensional number::
+
+    [outliers]                 # all optional
+    z_threshold = 3.5
+    family_alpha = 0.01
+    history_units = 60         # small lots: judged against the last N good units of earlier lots
+    history_below = 20         # ... when the lot has fewer units than this
+    history_location = "lot"   # "lot": own median, history's spread; "history": both from it
+
+    [limits]                   # parameter names are unique across models
+    f0_y  = {min = "-7 mg", max = "7 mg"}
+    w0_z  = {max = "0.5 deg/s"}
+    k_g11 = {min = 0.995, max = 1.005}   # dimensionless: a plain number or "5000 ppm"
+
+    [limits.lever_arm]         # the model may be named too
+    r1x = {min = "-20 mm", max = "20 mm"}
+
+The numbers are converted to the unit the store keeps (g, deg/s, deg, mm, dimensionless) with
+a small explicit table (:data:`UNITS`): no units library is installed in the venv and the
+quantities are few and linear (a library like pint would add a dependency for seven lines of
+factors, and its own spellings of "deg/h" and "g", the latter being gram). Unknown
+parameters, unknown units and a unit of the wrong kind are errors listing what is valid.
+m/s^2 converts with standard gravity (9.80665): the store keeps g of each session's
+``g_local``, which differs by < 0.1 %.
+
+The numerics of judging are :mod:`calib_core.outliers`; this module only parses.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from typing import Any
+
+from calib_core.outliers import Limit, OutlierConfig, OutlierConfigError
+
+STANDARD_GRAVITY = 9.80665
+_MAT = [f"{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
+_AX = "xyz"
+
+# kind of quantity -> {unit as written: factor to the stored unit}; the stored unit first
+UNITS: dict[str, dict[str, float]] = {
+    "dimensionless": {"": 1.0, "1": 1.0, "%": 1e-2, "ppm": 1e-6},
+    "acceleration": {
+        "g": 1.0,
+        "mg": 1e-3,
+        "ug": 1e-6,
+        "µg": 1e-6,
+        "m/s^2": 1.0 / STANDARD_GRAVITY,
+        "m/s2": 1.0 / STANDARD_GRAVITY,
+    },
+    "angular rate": {
+        "deg/s": 1.0,
+        "mdeg/s": 1e-3,
+        "deg/h": 1.0 / 3600.0,
+        "rad/s": 180.0 / math.pi,
+        "mrad/s": 0.18 / math.pi,
+    },
+    "angle": {
+        "deg": 1.0,
+        "mdeg": 1e-3,
+        "arcmin": 1.0 / 60.0,
+        "arcsec": 1.0 / 3600.0,
+        "rad": 180.0 / math.pi,
+        "mrad": 0.18 / math.pi,
+    },
+    "length": {"mm": 1.0, "um": 1e-3, "cm": 10.0, "m": 1000.0},
+}
+STORED_UNIT = {
+    "dimensionless": "",
+    "acceleration": "g",
+    "angular rate": "deg/s",
+    "angle": "deg",
+    "length": "mm",
+}
+
+# model -> parameter -> kind of quantity (the stored units when the raw units are deg/s and g;
+# a unit fitted on LSB keeps "deg/s per LSB" etc., which a limit may name literally)
+PARAMETERS: dict[str, dict[str, str]] = {
+    "gyro": {**{f"k_g{m}": "dimensionless" for m in _MAT}, **{f"w0_{a}": "angular rate" for a in _AX}},
+    "accel": {**{f"k_a{m}": "dimensionless" for m in _MAT}, **{f"f0_{a}": "acceleration" for a in _AX}},
+    "gyro_traditional": {
+        **{f"s_g{m}": "dimensionless" for m in _MAT},
+        **{f"b_g_{a}": "angular rate" for a in _AX},
+    },
+    "accel_traditional": {
+        **{f"s_a{m}": "dimensionless" for m in _MAT},
+        **{f"b_a_{a}": "acceleration" for a in _AX},
+    },
+    "accel_static": {
+        **{f"k_{a}": "dimensionless" for a in _AX},
+        **{f"u0_{a}": "acceleration" for a in _AX},
+        **{f"theta_{a}{b}": "angle" for a in _AX for b in _AX},
+    },
+    "lever_arm": {f"r{i}{a}": "length" for i in (1, 2, 3) for a in _AX},
+}
+MODEL_OF = {name: model for model, names in PARAMETERS.items() for name in names}
+
+_NUMBER = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")
+
+
+class LimitsError(OutlierConfigError):
+    """A QA configuration that cannot be used, naming the file, the entry and the reason."""
+
+
+def parse_quantity(value: Any, kind: str, where: str) -> tuple[float, str]:
+    """(value in the stored unit, the stored unit) of ``"-7 mg"`` / ``0.995`` for a parameter
+    of ``kind``. A bare number is only accepted for dimensionless parameters."""
+    if isinstance(value, bool):
+        raise LimitsError(f"{where}: {value!r} is not a quantity")
+    if isinstance(value, (int, float)):
+        if kind != "dimensionless":
+            raise LimitsError(
+                f"{where}: {value!r} has no unit; write it with one, e.g. "
+                f'"{value} {next(iter(UNITS[kind]))}" (units for {kind}: '
+                f"{', '.join(UNITS[kind])})"
+            )
+        return float(value), ""
+    if not isinstance(value, str):
+        raise LimitsError(f"{where}: {value!r} is not a number with a unit")
+    m = _NUMBER.match(value)
+    if not m:
+        raise LimitsError(f"{where}: {value!r} is not a number followed by a unit")
+    number, unit = float(m.group(1)), m.group(2)
+    factors = UNITS[kind]
+    if unit in factors:
+        return number * factors[unit], STORED_UNIT[kind]
+    if " per " in unit:  # a unit fitted on raw LSB/V: "deg/s per LSB", kept as written
+        return number, unit
+    other = next((k for k, f in UNITS.items() if unit in f), None)
+    why = f"a unit of {other}, not {kind}" if other else "an unknown unit"
+    raise LimitsError(
+        f"{where}: {unit!r} is {why}; valid units for {kind}: "
+        f"{', '.join(repr(u) for u in factors if u) or 'none'}"
+        + (" or a plain number" if kind == "dimensionless" else "")
+    )
+
+
+def _limit(model: str, name: str, spec: Any, source: str) -> Limit:
+    where = f"{source}: limit of {model}.{name}"
+    if not isinstance(spec, dict) or not spec or not set(spec) <= {"min", "max"}:
+        raise LimitsError(f"{where} must be {{min = ..., max = ...}} (either or both), got {spec!r}")
+    kind = PARAMETERS[model][name]
+    lo = hi = None
+    units = set()
+    if "min" in spec:
+        lo, u = parse_quantity(spec["min"], kind, f"{where}, min")
+        units.add(u)
+    if "max" in spec:
+        hi, u = parse_quantity(spec["max"], kind, f"{where}, max")
+        units.add(u)
+    if len(units) > 1:
+        raise LimitsError(f"{where}: min and max in units of different kinds {sorted(units)}")
+    if lo is not None and hi is not None and lo > hi:
+        raise LimitsError(f"{where}: min {spec['min']!r} > max {spec['max']!r}")
+    return Limit(
+        model,
+        name,
+        lo,
+        hi,
+        unit=units.pop(),
+        written=" .. ".join(str(spec.get(k, "")) for k in ("min", "max")),
+    )
+
+
+def _unknown_parameter(name: str, model: str | None, source: str) -> LimitsError:
+    if model is not None:
+        return LimitsError(
+            f"{source}: unknown parameter {name!r} of model {model!r}; valid: {', '.join(PARAMETERS[model])}"
+        )
+    return LimitsError(
+        f"{source}: unknown parameter or model {name!r} in [limits]; models: "
+        f"{', '.join(PARAMETERS)}; parameters: "
+        + "; ".join(f"{m}: {', '.join(p)}" for m, p in PARAMETERS.items())
+    )
+
+
+def parse_limits(doc: Any, source: str) -> tuple[Limit, ...]:
+    if not isinstance(doc, dict):
+        raise LimitsError(f"{source}: [limits] must be a table")
+    out: list[Limit] = []
+    for key, value in doc.items():
+        if key in PARAMETERS:
+            if not isinstance(value, dict):
+                raise LimitsError(
+                    f"{source}: [limits.{key}] must hold <parameter> = {{min = ..., max = ...}}"
+                )
+            for name, spec in value.items():
+                if name not in PARAMETERS[key]:
+                    raise _unknown_parameter(name, key, source)
+                out.append(_limit(key, name, spec, source))
+        elif key in MODEL_OF:
+            out.append(_limit(MODEL_OF[key], key, value, source))
+        else:
+            raise _unknown_parameter(key, None, source)
+    seen = set()
+    for lim in out:
+        if (lim.model, lim.parameter) in seen:
+            raise LimitsError(f"{source}: two limits for {lim.model}.{lim.parameter}")
+        seen.add((lim.model, lim.parameter))
+    return tuple(out)
+
+
+OUTLIER_KEYS = {
+    "z_threshold": float,
+    "family_alpha": float,
+    "spread_factor": float,
+    "min_units": int,
+    "robust_models": list,
+    "scale_pool": str,
+    "history_units": int,
+    "history_below": int,
+    "history_location": str,
+}
+
+
+def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
+    """The :class:`calib_core.outliers.OutlierConfig` of a TOML text (module docstring)."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise LimitsError(f"{source}: not valid TOML ({exc})") from exc
+    unknown = set(doc) - {"outliers", "limits"}
+    if unknown:
+        raise LimitsError(f"{source}: unknown section(s) {sorted(unknown)}; expected [outliers] and [limits]")
+    opts = doc.get("outliers", {})
+    if not isinstance(opts, dict) or set(opts) - set(OUTLIER_KEYS):
+        bad = sorted(set(opts) - set(OUTLIER_KEYS)) if isinstance(opts, dict) else opts
+        raise LimitsError(
+            f"{source}: unknown key(s) {bad} in [outliers]; allowed: {', '.join(sorted(OUTLIER_KEYS))}"
+        )
+    kwargs: dict[str, Any] = {}
+    for key, value in opts.items():
+        want = OUTLIER_KEYS[key]
+        try:
+            if want is list:
+                if not isinstance(value, list):
+                    raise TypeError
+                kwargs[key] = tuple(str(m) for m in value)
+            elif want is str:
+                kwargs[key] = str(value)
+            elif isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError
+            else:
+                kwargs[key] = want(value)
+        except (TypeError, ValueError):
+            raise LimitsError(f"{source}: [outliers] {key} = {value!r} is not a {want.__name__}") from None
+    kwargs["limits"] = parse_limits(doc.get("limits", {}), source)
+    try:
+        return OutlierConfig(**kwargs)
+    except OutlierConfigError as exc:
+        raise LimitsError(f"{source}: {exc}") from None
