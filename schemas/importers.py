@@ -18,18 +18,27 @@ name: these recordings have no lot/unit/rep).
 """
 from __future__ import annotations
 
+import io
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from schemas.errors import (E_MISSING_COLUMN, E_MISSING_FILE, E_NONFINITE_VALUE,
-                            E_NONINCREASING_TIME, E_UNKNOWN_UNIT, E_UNREADABLE_FILE,
-                            E_WRONG_TYPE, SessionError)
+from schemas.errors import (
+    E_MISSING_COLUMN,
+    E_MISSING_FILE,
+    E_NONFINITE_VALUE,
+    E_NONINCREASING_TIME,
+    E_UNKNOWN_UNIT,
+    E_UNREADABLE_FILE,
+    E_WRONG_TYPE,
+    SessionError,
+)
 
 CHANNELS = ("gx", "gy", "gz", "ax", "ay", "az")
 GYRO_CHANNELS = CHANNELS[:3]
@@ -104,6 +113,41 @@ def convert_accel(values: np.ndarray, unit: str, g_local: float,
     raise _err(E_UNKNOWN_UNIT, path, f"accel unit {unit!r} is not one of {', '.join(ACCEL_INPUT_UNITS)}")
 
 
+FULL_SCALE_COUNTS = 32768.0  # a signed 16-bit output: +/- full scale is +/- 32768 counts
+
+
+def parse_range(text: str, kind: str) -> float:
+    """Full-scale range of a sensor, ``"2g"``/``"16g"`` (accel, in g) or ``"250dps"``/
+    ``"250deg/s"`` (gyro, in deg/s). The starting scale of an int16 output is
+    ``range / 32768`` per count (e.g. 2 g -> 16384 counts per g, 250 deg/s -> 131.07)."""
+    t = text.strip().lower().replace(" ", "")
+    suffixes = {"accel": ("g",), "gyro": ("dps", "deg/s", "°/s")}[kind]
+    for suf in suffixes:
+        if t.endswith(suf):
+            try:
+                value = float(t[: -len(suf)])
+            except ValueError:
+                break
+            if value > 0:
+                return value
+    unit = "g, e.g. 2g" if kind == "accel" else "deg/s, e.g. 250dps"
+    raise ValueError(f"{kind} range {text!r} is not a positive full scale in {unit}")
+
+
+def auto_column_mapping(columns) -> dict[str, str] | None:
+    """{channel: column} when the header names the six channels itself (``ax,ay,az,gx,gy,gz``
+    in any order and case, optionally a time column ``t``/``time``), else None."""
+    lower = {str(c).strip().lower(): str(c) for c in columns}
+    if not all(ch in lower for ch in CHANNELS):
+        return None
+    mapping = {ch: lower[ch] for ch in CHANNELS}
+    for name in ("t", "time", "timestamp"):
+        if name in lower:
+            mapping["t"] = lower[name]
+            break
+    return mapping
+
+
 def parse_column_mapping(text: str) -> dict[str, str]:
     """``"gx=gyr_x,gy=gyr_y,...,t=time"`` -> {channel: source column}. Source columns of a
     header-less whitespace file are their 0-based positions (``gx=1``)."""
@@ -118,28 +162,128 @@ def parse_column_mapping(text: str) -> dict[str, str]:
     return mapping
 
 
+COMMENT_PREFIXES = ("#", "//", "%")
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+        return True
+    except ValueError:
+        return False
+
+
+def _split(line: str, sep: str | None) -> list[str]:
+    return [x.strip() for x in (line.split(sep) if sep else line.split())]
+
+
+@dataclass(frozen=True)
+class TableLayout:
+    """Where the data of a text log start: separator (``None`` = whitespace), 1-based line of
+    the header (0 when there is none), 1-based line of the first data row, the column names,
+    and the ``key,value`` preamble lines before the header (e.g. ``Fs,100``)."""
+
+    sep: str | None
+    header_line: int
+    data_line: int
+    columns: list[str]
+    preamble: dict[str, str]
+
+
+def sniff_table(path: Path, max_lines: int = 200) -> TableLayout:
+    """Find the layout of a text log from its first lines: blank and comment lines (``#``,
+    ``//``, ``%``) are skipped; the first line whose fields are all numbers, followed by a
+    line with as many numeric fields, starts the data; the non-numeric line just before it
+    with the same field count is the header; anything earlier is the preamble (``key,value``
+    pairs are kept)."""
+    lines: list[tuple[int, str]] = []
+    with path.open() as fh:
+        for no, raw in enumerate(fh, start=1):
+            line = raw.strip()
+            if line and not line.startswith(COMMENT_PREFIXES):
+                lines.append((no, line))
+            if len(lines) >= max_lines:
+                break
+    if not lines:
+        raise _err(E_UNREADABLE_FILE, path, "no data lines (empty or only comments)")
+
+    def sep_of(line: str) -> str | None:
+        for sep in (",", ";", "\t"):
+            if sep in line:
+                return sep
+        return None
+
+    for i in range(len(lines)):
+        no, line = lines[i]
+        sep = sep_of(line)
+        fields = _split(line, sep)
+        if not all(_is_number(x) for x in fields):
+            continue
+        if i + 1 < len(lines):
+            nxt = _split(lines[i + 1][1], sep)
+            if len(nxt) != len(fields) or not all(_is_number(x) for x in nxt):
+                continue
+        header_line, columns = 0, [str(k) for k in range(len(fields))]
+        first_pre = i
+        if i > 0:
+            hno, hline = lines[i - 1]
+            hfields = _split(hline, sep)
+            if len(hfields) == len(fields):
+                header_line, columns, first_pre = hno, hfields, i - 1
+        preamble = {}
+        for _, pline in lines[:first_pre]:
+            kv = _split(pline, sep_of(pline))
+            if len(kv) == 2:
+                preamble[kv[0]] = kv[1]
+        return TableLayout(sep, header_line, no, columns, preamble)
+    no, line = lines[-1]
+    raise _err(E_UNREADABLE_FILE, path, f"line {no}: no two consecutive lines of numbers found "
+               f"in the first {max_lines} lines (last read: {line[:60]!r})")
+
+
+def _first_bad_line(path: Path, layout: TableLayout) -> str:
+    """Reason naming the first data line that does not have the layout's number of numeric
+    fields (only run when parsing failed, so a plain Python scan is fine)."""
+    n = len(layout.columns)
+    with path.open() as fh:
+        for no, raw in enumerate(fh, start=1):
+            line = raw.strip()
+            if no < layout.data_line or not line or line.startswith(COMMENT_PREFIXES):
+                continue
+            fields = _split(line, layout.sep)
+            if len(fields) != n:
+                return f"line {no}: {len(fields)} fields, expected {n} ({line[:60]!r})"
+            bad = [x for x in fields if not _is_number(x)]
+            if bad:
+                return f"line {no}: {bad[0][:30]!r} is not a number"
+    return "no bad line found"
+
+
 def _read_table(path: Path) -> pd.DataFrame:
-    """CSV with a header, or whitespace-separated numbers with or without a header."""
+    """A text log: optional preamble, comments, optional header, then rows of numbers
+    separated by commas, semicolons, tabs or whitespace (:func:`sniff_table`). The preamble
+    is in ``df.attrs["preamble"]``; a line that does not parse is named in the error."""
     if not path.exists():
         raise _err(E_MISSING_FILE, path, "no such file")
     try:
-        with path.open() as fh:
-            first = fh.readline()
-        if "," in first or ";" in first:
-            sep = "," if "," in first else ";"
-            return pd.read_csv(path, sep=sep)
-        tokens = first.split()
-        try:
-            [float(x) for x in tokens]
-            header = None
-        except ValueError:
-            header = 0
-        df = pd.read_csv(path, sep=r"\s+", header=header, engine="c")
-        if header is None:
-            df.columns = [str(i) for i in range(df.shape[1])]
-        return df
-    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
-        raise _err(E_UNREADABLE_FILE, path, f"cannot parse as CSV or whitespace text ({exc})") from exc
+        layout = sniff_table(path)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise _err(E_UNREADABLE_FILE, path, f"cannot read as text ({exc})") from exc
+    try:
+        with path.open() as fh:  # drop comment lines anywhere (pandas knows only one prefix)
+            body = [ln for no, ln in enumerate(fh, start=1) if no >= layout.data_line
+                    and ln.strip() and not ln.lstrip().startswith(COMMENT_PREFIXES)]
+        df = pd.read_csv(io.StringIO("".join(body)), sep=layout.sep if layout.sep else r"\s+",
+                         header=None, names=layout.columns, engine="c", dtype=float)
+    except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise _err(E_UNREADABLE_FILE, path, _first_bad_line(path, layout)) from exc
+    if df.isna().any().any():  # a short row is padded with NaN by the parser
+        reason = _first_bad_line(path, layout)
+        if reason != "no bad line found":  # else a literal nan: named by _numeric_column
+            raise _err(E_UNREADABLE_FILE, path, reason)
+    df.attrs["preamble"] = layout.preamble
+    df.attrs["data_line"] = layout.data_line
+    return df
 
 
 def _numeric_column(df: pd.DataFrame, src: str, path: Path, channel: str) -> np.ndarray:
@@ -171,18 +315,44 @@ def _time_axis(values: np.ndarray | None, n: int, rate_hz: float | None, path: P
     return t, float(rate_hz) if rate_hz else est
 
 
-def read_table_recording(path: Path | str, columns: Mapping[str, str], gyro_unit: str,
+PREAMBLE_RATE_KEYS = ("fs", "sample rate", "sampling rate", "rate", "rate_hz")
+
+
+def preamble_rate(preamble: Mapping[str, str]) -> float | None:
+    """The sample rate a logger wrote in its preamble (``Fs,100``), if any."""
+    for key, value in preamble.items():
+        if key.strip().lower() in PREAMBLE_RATE_KEYS:
+            try:
+                rate = float(value)
+            except ValueError:
+                return None
+            return rate if rate > 0 else None
+    return None
+
+
+def read_table_recording(path: Path | str, columns: Mapping[str, str] | None, gyro_unit: str,
                          accel_unit: str, rate_hz: float | None = None,
                          g_local: float = 9.80665, time_scale: float = 1.0) -> RawRecording:
-    """Generic importer: any CSV/whitespace table with a column mapping {channel: column}.
+    """Generic importer: any CSV/whitespace text log (preamble, comments and header found by
+    :func:`sniff_table`) with a column mapping {channel: column}.
 
-    ``columns`` must map gx..az; ``t`` is optional (then ``rate_hz`` is required and
-    ``t = row / rate``). ``time_scale`` multiplies the time column (e.g. 1e-3 for ms)."""
+    ``columns`` must map gx..az, or be None when the header names them (``ax,...,gz``);
+    ``t`` is optional (then the rate is ``rate_hz``, else the preamble's ``Fs``, and
+    ``t = row / rate``). ``time_scale`` multiplies the time column (e.g. 1e-3 for ms). The
+    preamble's ``key,value`` pairs are kept in ``metadata["preamble"]``."""
     path = Path(path)
+    df = _read_table(path)
+    if columns is None:
+        columns = auto_column_mapping(df.columns)
+        if columns is None:
+            raise _err(E_MISSING_COLUMN, path, "the header does not name ax,ay,az,gx,gy,gz: give "
+                       f"--columns (columns are {', '.join(map(str, df.columns))})")
     missing = [c for c in CHANNELS if c not in columns]
     if missing:
         raise _err(E_MISSING_COLUMN, path, f"column mapping lacks {', '.join(missing)}")
-    df = _read_table(path)
+    preamble = dict(df.attrs.get("preamble", {}))
+    if rate_hz is None and "t" not in columns:
+        rate_hz = preamble_rate(preamble)
     data = {ch: _numeric_column(df, str(columns[ch]), path, ch) for ch in CHANNELS}
     t_raw = _numeric_column(df, str(columns["t"]), path, "t") * time_scale if "t" in columns else None
     t, rate = _time_axis(t_raw, len(df), rate_hz, path)
@@ -190,7 +360,8 @@ def read_table_recording(path: Path | str, columns: Mapping[str, str], gyro_unit
     A, au = convert_accel(np.column_stack([data[c] for c in ACCEL_CHANNELS]), accel_unit, g_local, path)
     samples = _frame(t, G, A)
     return RawRecording(samples, gu, au, float(g_local), rate, path.name,
-                        {"columns": dict(columns), "input_units": {"gyro": gyro_unit, "accel": accel_unit}})
+                        {"columns": dict(columns), "input_units": {"gyro": gyro_unit, "accel": accel_unit},
+                         "preamble": preamble})
 
 
 def _frame(t: np.ndarray, G: np.ndarray, A: np.ndarray) -> pd.DataFrame:

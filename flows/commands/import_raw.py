@@ -26,22 +26,24 @@ def add_table_options(p, default_columns: str | None = None) -> None:
     p.add_argument("--columns", default=default_columns, metavar="MAP",
                    help="column mapping CHANNEL=SOURCE for gx,gy,gz,ax,ay,az (and optional t), "
                         "e.g. gx=gyr_x,gy=gyr_y,gz=gyr_z,ax=acc_x,ay=acc_y,az=acc_z; for a "
-                        "header-less whitespace file SOURCE is the 0-based column position"
+                        "header-less whitespace file SOURCE is the 0-based column position; "
+                        "optional when the header names the channels ax,ay,az,gx,gy,gz"
                         + (f" (default {default_columns})" if default_columns else ""))
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
-                   help="sample rate (required when no time column t is mapped)")
+                   help="sample rate (when no time column t is mapped and the file's preamble "
+                        "has no Fs line)")
     p.add_argument("--time-scale", type=float, default=1.0, metavar="F",
                    help="multiply the time column by F to get seconds (default 1)")
 
 
 def read_table_args(args, path: Path, default_gyro: str, default_accel: str, g_local: float):
+    """The table named on the command line; without --columns the header must name the
+    channels (ax,ay,az,gx,gy,gz)."""
     from schemas.errors import SessionError
     from schemas.importers import parse_column_mapping, read_table_recording
 
-    if not args.columns:
-        raise CliError("--columns is required for this file")
     try:
-        mapping = parse_column_mapping(args.columns)
+        mapping = parse_column_mapping(args.columns) if args.columns else None
     except ValueError as exc:
         raise CliError(str(exc)) from exc
     if args.rate is not None and args.rate <= 0:
