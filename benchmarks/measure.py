@@ -35,6 +35,7 @@ Kinds:
 - ``prefect``: Prefect start-up: ``import prefect`` and a trivial flow run with mimucal's
   settings (a fresh ``PREFECT_HOME`` gives the first-run cost, an existing one the usual).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -45,6 +46,10 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # imports are measured: pandas only where a child needs it
+    import pandas as pd
 
 SENSOR_COLUMNS = ["gx", "gy", "gz", "ax", "ay", "az"]
 
@@ -87,6 +92,7 @@ class TreeRss(_SamplerThread):
 
     def _sample(self) -> None:
         import psutil
+
         try:
             me = psutil.Process()
             procs = [me] + me.children(recursive=True)
@@ -101,7 +107,6 @@ class TreeRss(_SamplerThread):
             except psutil.Error:
                 pass
         self.peak = max(self.peak, total)
-
 
 
 class CpuByRole(_SamplerThread):
@@ -119,12 +124,12 @@ class CpuByRole(_SamplerThread):
 
     def _sample(self) -> None:
         import psutil
+
         now = time.time()
         try:
             me = psutil.Process()
             kids = me.children(recursive=True)
-            writer_tids = {t.native_id for t in threading.enumerate()
-                           if t.name.startswith("mimucal-store")}
+            writer_tids = {t.native_id for t in threading.enumerate() if t.name.startswith("mimucal-store")}
             t = me.cpu_times()
             self._last[me.pid] = ("flow", t.user + t.system)
             for th in me.threads():
@@ -135,8 +140,7 @@ class CpuByRole(_SamplerThread):
         for p in kids:
             try:
                 if p.pid not in self._roles:  # cmdline once per process: sampling stays cheap
-                    self._roles[p.pid] = ("api" if "prefect.server" in " ".join(p.cmdline())
-                                          else "workers")
+                    self._roles[p.pid] = "api" if "prefect.server" in " ".join(p.cmdline()) else "workers"
                 role = self._roles[p.pid]
                 t = p.cpu_times()
                 self._last[p.pid] = (role, t.user + t.system)
@@ -167,6 +171,7 @@ def cpu_s() -> float:
 
 def _units(dataset: str):
     from schemas.dataset import find_sessions
+
     refs, errors = find_sessions(dataset)
     by_unit: dict[tuple[str, str], list] = {}
     for r in refs:
@@ -182,20 +187,30 @@ def _sample_files(dataset: str) -> list[str]:
 def do_simulate(a) -> dict:
     from calib_core import protocols
     from flows.fleet_sim import simulate_fleet
+
     lots = max(1, -(-a.units // a.units_per_lot))
     per_lot = a.units // lots
     steps = protocols.default_session(duration_s=a.step_s)
     t0 = time.perf_counter()
-    m = simulate_fleet(a.out, lots=lots, units=per_lot, reps=a.reps, seed=a.seed,
-                       sample_rate_hz=a.rate, protocol=steps)
+    m = simulate_fleet(
+        a.out, lots=lots, units=per_lot, reps=a.reps, seed=a.seed, sample_rate_hz=a.rate, protocol=steps
+    )
     elapsed = time.perf_counter() - t0
     files = _sample_files(a.out)
     size = sum(os.path.getsize(p) for p in Path(a.out).rglob("*.parquet"))
     import pyarrow.parquet as pq
+
     rows = pq.ParquetFile(files[0]).metadata.num_rows
-    return {"elapsed_s": elapsed, "lots": lots, "units": lots * per_lot, "reps": a.reps,
-            "sessions": len(files), "n_steps": m["n_steps"], "samples_per_session": rows,
-            "disk_mb": size / 1e6}
+    return {
+        "elapsed_s": elapsed,
+        "lots": lots,
+        "units": lots * per_lot,
+        "reps": a.reps,
+        "sessions": len(files),
+        "n_steps": m["n_steps"],
+        "samples_per_session": rows,
+        "disk_mb": size / 1e6,
+    }
 
 
 def floor_scan(dataset: str) -> tuple[int, int]:
@@ -203,6 +218,7 @@ def floor_scan(dataset: str) -> tuple[int, int]:
     bounded by a file). Returns (files, steps averaged)."""
     import pyarrow as pa
     import pyarrow.dataset as ds
+
     files = _sample_files(dataset)
     d = ds.dataset(files, format="parquet")
     n_steps = 0
@@ -211,8 +227,9 @@ def floor_scan(dataset: str) -> tuple[int, int]:
     # in one or more batches tagged with their file, grouped when the file is complete
     pending: list = []
     current = None
-    for tagged in d.scanner(columns=["step"] + SENSOR_COLUMNS, use_threads=True,
-                            batch_size=1 << 20).scan_batches():
+    for tagged in d.scanner(
+        columns=["step"] + SENSOR_COLUMNS, use_threads=True, batch_size=1 << 20
+    ).scan_batches():
         path = tagged.fragment.path
         if current is not None and path != current:
             n_steps += pa.Table.from_batches(pending).group_by("step").aggregate(aggs).num_rows
@@ -227,21 +244,28 @@ def floor_scan(dataset: str) -> tuple[int, int]:
 def do_floor(a) -> dict:
     import pyarrow  # noqa: F401  (import cost is not part of the floor)
     import pyarrow.dataset  # noqa: F401
+
     t0, c0 = time.perf_counter(), cpu_s()
     n_files, n_steps = floor_scan(a.dataset)
-    return {"elapsed_s": time.perf_counter() - t0, "cpu_s": cpu_s() - c0, "sessions": n_files,
-            "steps": n_steps}
+    return {
+        "elapsed_s": time.perf_counter() - t0,
+        "cpu_s": cpu_s() - c0,
+        "sessions": n_files,
+        "steps": n_steps,
+    }
 
 
 SUMMARY_COLUMNS = ("lot", "unit", "model", "parameter", "mean", "std", "n_reps")
 
 
-def _fit_units(batch: list, run_discovery: bool = True) -> tuple["pd.DataFrame", int, int, float]:
+def _fit_units(batch: list, run_discovery: bool = True) -> tuple[pd.DataFrame, int, int, float]:
     """One batch of units as a nightly task calibrates them (read, validate, average, fit,
     model discovery, aggregate): :func:`flows.unit_pipeline.calibrate_batch`. Returns the
     units' summary rows (what flagging reads), sessions ok / failed, and CPU seconds."""
     import pandas as pd
+
     from flows.unit_pipeline import UnitJob, calibrate_batch
+
     c0 = time.process_time()
     jobs = [UnitJob(refs[0].key.lot, refs[0].key.unit, refs, "benchmark") for refs in batch]
     ok = failed = 0
@@ -251,8 +275,9 @@ def _fit_units(batch: list, run_discovery: bool = True) -> tuple["pd.DataFrame",
         failed += sum(not s.succeeded for s in ur.outcome.sessions)
         if ur.calibrated:
             for ps in ur.outcome.calibration.summary:
-                for k, v in zip(SUMMARY_COLUMNS, (ur.lot, ur.unit, ps.model, ps.name, ps.mean,
-                                                  ps.std, ps.n_reps)):
+                for k, v in zip(
+                    SUMMARY_COLUMNS, (ur.lot, ur.unit, ps.model, ps.name, ps.mean, ps.std, ps.n_reps)
+                ):
                     cols[k].append(v)
     # one small frame per batch, as the flow holds the summary (a table read from the store),
     # not ~70 dicts per unit (30 KB per unit, which made the harness's peak grow with the fleet)
@@ -262,8 +287,12 @@ def _fit_units(batch: list, run_discovery: bool = True) -> tuple["pd.DataFrame",
 def _timed_floor(dataset: str) -> dict:
     t0, c0 = time.perf_counter(), cpu_s()
     n_files, n_steps = floor_scan(dataset)
-    return {"elapsed_s": time.perf_counter() - t0, "cpu_s": cpu_s() - c0, "sessions": n_files,
-            "steps": n_steps}
+    return {
+        "elapsed_s": time.perf_counter() - t0,
+        "cpu_s": cpu_s() - c0,
+        "sessions": n_files,
+        "steps": n_steps,
+    }
 
 
 def do_fit(a) -> dict:
@@ -272,9 +301,11 @@ def do_fit(a) -> dict:
     and just after it, so that the ratio holds on a noisy machine."""
     import pandas as pd
     import pyarrow.dataset  # noqa: F401  (imports are part of neither)
+
     import calib_core.discovery  # noqa: F401
     import flows.unit_pipeline  # noqa: F401
     from calib_core.outliers import OutlierConfig, flag_lots
+
     units, _ = _units(a.dataset)
     # --no-floor: the floor's scan (pyarrow's threaded read-ahead and memory pool) raises this
     # process's peak RSS with the fleet size; the fit phase's own peak needs a run without it
@@ -289,7 +320,7 @@ def do_fit(a) -> dict:
         # and the peak would grow with the fleet for the harness's sake, not the pipeline's
         c = 0.0
         for i in range(0, len(units), a.batch):
-            b_summary, b_ok, b_failed, b_c = _fit_units(units[i:i + a.batch], a.discovery)
+            b_summary, b_ok, b_failed, b_c = _fit_units(units[i : i + a.batch], a.discovery)
             frames.append(b_summary)
             ok, failed, c = ok + b_ok, failed + b_failed, c + b_c
         worker_cpu.append(c)
@@ -297,7 +328,8 @@ def do_fit(a) -> dict:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
         from functools import partial
-        batches = [units[i:i + a.batch] for i in range(0, len(units), a.batch)]
+
+        batches = [units[i : i + a.batch] for i in range(0, len(units), a.batch)]
         with ProcessPoolExecutor(a.workers, mp_context=mp.get_context("fork")) as pool:
             for r, o, f, c in pool.map(partial(_fit_units, run_discovery=a.discovery), batches):
                 frames.append(r)
@@ -312,20 +344,34 @@ def do_fit(a) -> dict:
     t_flag, c_flag = time.perf_counter() - t1, cpu_s() - c1
     elapsed, cpu = time.perf_counter() - t0, cpu_s() - c0
     floor_after = _timed_floor(a.dataset) if a.floor else None
-    floor = (min((floor_before, floor_after), key=lambda f: f["cpu_s"]) if a.floor
-             else {"cpu_s": None, "elapsed_s": None})
+    floor = (
+        min((floor_before, floor_after), key=lambda f: f["cpu_s"])
+        if a.floor
+        else {"cpu_s": None, "elapsed_s": None}
+    )
     n = max(1, len(units))
-    return {"elapsed_s": elapsed, "cpu_s": cpu, "per_unit_cpu_ms": 1e3 * cpu / n,
-            "per_unit_ms": 1e3 * elapsed / n, "units": len(units),
-            "sessions_ok": ok, "sessions_failed": failed, "workers": a.workers,
-            "discovery": a.discovery, "calibrate_s": t_cal, "calibrate_cpu_s": c_cal,
-            "flag_s": t_flag, "flag_cpu_s": c_flag, "worker_cpu_s": sum(worker_cpu),
-            "flagged_units": len({(f.lot, f.unit) for lf in flags for f in lf.flags}),
-            "floor_before": floor_before, "floor_after": floor_after,
-            "floor_cpu_s": floor["cpu_s"], "floor_s": min(floor_before["elapsed_s"],
-                                                           floor_after["elapsed_s"])
-            if a.floor else None,
-            "fit_vs_floor_cpu": cpu / floor["cpu_s"] if floor["cpu_s"] else None}
+    return {
+        "elapsed_s": elapsed,
+        "cpu_s": cpu,
+        "per_unit_cpu_ms": 1e3 * cpu / n,
+        "per_unit_ms": 1e3 * elapsed / n,
+        "units": len(units),
+        "sessions_ok": ok,
+        "sessions_failed": failed,
+        "workers": a.workers,
+        "discovery": a.discovery,
+        "calibrate_s": t_cal,
+        "calibrate_cpu_s": c_cal,
+        "flag_s": t_flag,
+        "flag_cpu_s": c_flag,
+        "worker_cpu_s": sum(worker_cpu),
+        "flagged_units": len({(f.lot, f.unit) for lf in flags for f in lf.flags}),
+        "floor_before": floor_before,
+        "floor_after": floor_after,
+        "floor_cpu_s": floor["cpu_s"],
+        "floor_s": min(floor_before["elapsed_s"], floor_after["elapsed_s"]) if a.floor else None,
+        "fit_vs_floor_cpu": cpu / floor["cpu_s"] if floor["cpu_s"] else None,
+    }
 
 
 def do_stages(a) -> dict:
@@ -333,11 +379,13 @@ def do_stages(a) -> dict:
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     from schemas.averaging import average_session
     from schemas.reader import read_session
+
     units, _ = _units(a.dataset)
     units = units[: a.units]
     t = {"read_validate": 0.0, "average": 0.0, "fit": 0.0, "aggregate": 0.0, "floor": 0.0}
     n = 0
     import pyarrow.dataset as ds
+
     aggs = [(c, "mean") for c in SENSOR_COLUMNS]
     if units:  # one untimed pass first: the numerics' first-call imports are not a stage's
         calibrate_sessions(units[0], keep_step_means=False)
@@ -346,7 +394,8 @@ def do_stages(a) -> dict:
         for ref in refs:
             t0 = time.perf_counter()
             ds.dataset(str(ref.samples_path), format="parquet").to_table(
-                columns=["step"] + SENSOR_COLUMNS).group_by("step").aggregate(aggs)
+                columns=["step"] + SENSOR_COLUMNS
+            ).group_by("step").aggregate(aggs)
             t1 = time.perf_counter()
             data = read_session(ref)
             t2 = time.perf_counter()
@@ -372,6 +421,7 @@ def do_stages(a) -> dict:
 
 def _prefect_env(results: str) -> None:
     from flows import runtime
+
     runtime.ensure_environment(results)
 
 
@@ -380,38 +430,52 @@ def do_nightly(a) -> dict:
     os.environ["MIMUCAL_TASK_RUNNER"] = a.runner  # read by flows.task_runners.make_task_runner
     t_imp = time.perf_counter()
     from flows import nightly
+
     import_s = time.perf_counter() - t_imp
     if a.dask_workers > 0:
         # the dask runner as a nightly run uses it: its LocalCluster of N workers is started,
         # and warmed, by the flow's task runner before the flow's body (outside the fit phase;
         # its times are reported below, from flows.compute_pool.last_dask_startup)
         import logging
+
         logging.getLogger("distributed").setLevel(logging.WARNING)
         os.environ["MIMUCAL_TASK_RUNNER"] = "dask"
         os.environ["MIMUCAL_DASK_WORKERS"] = str(a.dask_workers)
     with CpuByRole() as roles:
         t0 = time.perf_counter()
-        log = nightly.nightly_fleet_calibration(a.dataset, a.results, force=True,
-                                                batch_size=a.batch, progress=False)
+        log = nightly.nightly_fleet_calibration(
+            a.dataset, a.results, force=True, batch_size=a.batch, progress=False
+        )
         wall = time.perf_counter() - t0
     fit = float(log.get("calibration_s") or 0.0)
     inflow = float(log.get("elapsed_s") or 0.0)
-    out = {"wall_s": wall, "import_s": import_s, "cluster_start_s": 0.0,
-           "flow_elapsed_s": inflow, "fit_phase_s": fit, "report_phase_s": inflow - fit,
-           "outside_flow_s": wall - inflow, "units_calibrated": log.get("units_calibrated"),
-           "sessions_calibrated": log.get("sessions_calibrated"),
-           "failed_sessions": len(log.get("failed_sessions") or []),
-           "reports": len(log.get("reports") or []),
-           "report_problems": log.get("report_problems") or [],
-           "dask_workers": a.dask_workers, "runner": "dask" if a.dask_workers else a.runner,
-           "unit_work": log.get("unit_work"), "store_s": log.get("store_s"),
-           "batch_size": a.batch}
+    out = {
+        "wall_s": wall,
+        "import_s": import_s,
+        "cluster_start_s": 0.0,
+        "flow_elapsed_s": inflow,
+        "fit_phase_s": fit,
+        "report_phase_s": inflow - fit,
+        "outside_flow_s": wall - inflow,
+        "units_calibrated": log.get("units_calibrated"),
+        "sessions_calibrated": log.get("sessions_calibrated"),
+        "failed_sessions": len(log.get("failed_sessions") or []),
+        "reports": len(log.get("reports") or []),
+        "report_problems": log.get("report_problems") or [],
+        "dask_workers": a.dask_workers,
+        "runner": "dask" if a.dask_workers else a.runner,
+        "unit_work": log.get("unit_work"),
+        "store_s": log.get("store_s"),
+        "batch_size": a.batch,
+    }
     if log.get("start"):  # CPU by role during the fit phase (wall-clock window of the log)
         from datetime import datetime
+
         t_start = datetime.fromisoformat(str(log["start"]).replace("Z", "+00:00")).timestamp()
         out["fit_phase_cpu_s"] = roles.window(t_start, t_start + fit)
     if a.dask_workers > 0:
         from flows.compute_pool import last_dask_startup
+
         out["cluster_start_s"] = last_dask_startup.get("cluster_start_s") or 0.0
         out["dask_warmup_s"] = last_dask_startup.get("warmup_s")
         out["dask_workers_seen"] = last_dask_startup.get("workers")
@@ -422,34 +486,45 @@ def do_rerun(a) -> dict:
     _prefect_env(a.results)
     t_imp = time.perf_counter()
     from flows import nightly
+
     import_s = time.perf_counter() - t_imp
     t0 = time.perf_counter()
     log = nightly.rerun_unit(a.dataset, a.results, a.unit)
     wall = time.perf_counter() - t0
-    return {"wall_s": wall, "import_s": import_s, "flow_elapsed_s": float(log["elapsed_s"]),
-            "outside_flow_s": wall - float(log["elapsed_s"]),
-            "units_calibrated": log.get("units_calibrated"),
-            "phases_s": log.get("phases_s"),
-            "report_problems": log.get("report_problems") or []}
+    return {
+        "wall_s": wall,
+        "import_s": import_s,
+        "flow_elapsed_s": float(log["elapsed_s"]),
+        "outside_flow_s": wall - float(log["elapsed_s"]),
+        "units_calibrated": log.get("units_calibrated"),
+        "phases_s": log.get("phases_s"),
+        "report_problems": log.get("report_problems") or [],
+    }
 
 
 def do_unit(a) -> dict:
     t_imp = time.perf_counter()
     from flows.unit_pipeline import calibrate_unit
     from schemas.dataset import find_sessions
+
     import_s = time.perf_counter() - t_imp
     t0 = time.perf_counter()
     refs, _ = find_sessions(a.dataset, unit=a.unit)
     u = calibrate_unit(refs)
-    return {"elapsed_s": time.perf_counter() - t0, "import_s": import_s,
-            "sessions_ok": sum(s.succeeded for s in u.sessions)}
+    return {
+        "elapsed_s": time.perf_counter() - t0,
+        "import_s": import_s,
+        "sessions_ok": sum(s.succeeded for s in u.sessions),
+    }
 
 
 def do_prefect(a) -> dict:
     _prefect_env(a.results)
     t0 = time.perf_counter()
     from prefect import flow
+
     from flows import runtime
+
     import_s = time.perf_counter() - t0
 
     @flow(name="mimucal-bench-noop", persist_result=False)
@@ -464,12 +539,24 @@ def do_prefect(a) -> dict:
     with runtime.run_settings():
         noop()
     second = time.perf_counter() - t2
-    return {"import_s": import_s, "first_flow_s": first, "second_flow_s": second,
-            "startup_s": import_s + first}
+    return {
+        "import_s": import_s,
+        "first_flow_s": first,
+        "second_flow_s": second,
+        "startup_s": import_s + first,
+    }
 
 
-KINDS = {"simulate": do_simulate, "floor": do_floor, "fit": do_fit, "stages": do_stages,
-         "nightly": do_nightly, "rerun": do_rerun, "unit": do_unit, "prefect": do_prefect}
+KINDS = {
+    "simulate": do_simulate,
+    "floor": do_floor,
+    "fit": do_fit,
+    "stages": do_stages,
+    "nightly": do_nightly,
+    "rerun": do_rerun,
+    "unit": do_unit,
+    "prefect": do_prefect,
+}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -488,16 +575,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--dask-workers", type=int, default=0)
-    ap.add_argument("--runner", default="threads", choices=["auto", "threads", "processes", "prefect-processes"],
-                    help="nightly: the local task runner (flows.task_runners) when no Dask")
-    ap.add_argument("--no-floor", dest="floor", action="store_false",
-                    help="fit: do not measure the floor in the same process (its peak RSS)")
-    ap.add_argument("--no-discovery", dest="discovery", action="store_false",
-                    help="fit: leave model discovery out (the fit phase before issue 7)")
+    ap.add_argument(
+        "--runner",
+        default="threads",
+        choices=["auto", "threads", "processes", "prefect-processes"],
+        help="nightly: the local task runner (flows.task_runners) when no Dask",
+    )
+    ap.add_argument(
+        "--no-floor",
+        dest="floor",
+        action="store_false",
+        help="fit: do not measure the floor in the same process (its peak RSS)",
+    )
+    ap.add_argument(
+        "--no-discovery",
+        dest="discovery",
+        action="store_false",
+        help="fit: leave model discovery out (the fit phase before issue 7)",
+    )
     a = ap.parse_args(argv)
     with TreeRss() as tree:
         out = KINDS[a.kind](a)
-    out["tree_peak_rss_mb"] = tree.peak / 2 ** 20
+    out["tree_peak_rss_mb"] = tree.peak / 2**20
     out["tree_cpu_s"] = sum(tree.cpu.values())  # children sampled every 0.1 s: a lower bound
     out["process_cpu_s"] = cpu_s()
     out["self_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -10,6 +10,7 @@ Prints one Markdown table row per report (the header with --header). "write" is 
 the CPU time (``time.process_time``, the figure to compare on a shared machine) of writing the
 report from a fresh read of the store, the smallest of ``--repeat`` runs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,10 @@ from reports.lot import write_lot_report  # noqa: E402
 from reports.synthetic import build_synthetic_store  # noqa: E402
 from reports.unit import write_unit_report  # noqa: E402
 
-HEADER = ("| report | units | file size [MB] | write [s] | write CPU [s] | open, first time [s] | open again [s] "
-          "| all units opened, every figure drawn [s] | figures |\n|---|---|---|---|---|---|---|---|---|")
+HEADER = (
+    "| report | units | file size [MB] | write [s] | write CPU [s] | open, first time [s] | open again [s] "
+    "| all units opened, every figure drawn [s] | figures |\n|---|---|---|---|---|---|---|---|---|"
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -45,13 +48,16 @@ def main(argv: list[str] | None = None) -> int:
         tmp = tempfile.TemporaryDirectory(prefix="mimucal-report-bench-")
         root = Path(tmp.name)
     t0 = time.perf_counter()
-    truth = build_synthetic_store(root, n_units=args.units, n_reps=args.reps, n_outliers=2,
-                                  n_failed=1, seed=50, nav_samples=60_000)
+    truth = build_synthetic_store(
+        root, n_units=args.units, n_reps=args.reps, n_outliers=2, n_failed=1, seed=50, nav_samples=60_000
+    )
     t_store = time.perf_counter() - t0
     rows = []
-    for kind, write in (("lot", lambda: write_lot_report(root, truth.lot)),
-                        ("unit", lambda: write_unit_report(root, truth.units[0])),
-                        ("fleet index", lambda: write_fleet_index(root))):
+    for kind, write in (
+        ("lot", lambda: write_lot_report(root, truth.lot)),
+        ("unit", lambda: write_unit_report(root, truth.units[0])),
+        ("fleet index", lambda: write_fleet_index(root)),
+    ):
         t_write = t_cpu = float("inf")
         for _ in range(max(1, args.repeat)):
             t0, c0 = time.perf_counter(), time.process_time()
@@ -78,10 +84,17 @@ def main(argv: list[str] | None = None) -> int:
                 n = b.evaluate("document.body.getAttribute('data-figures-rendered')")
                 if b.log.errors:
                     print(f"{kind}: JavaScript errors: {b.log.errors}", file=sys.stderr)
-        print(f"| {kind} | {args.units} | {size_mb:.2f} | {t_write:.2f} | {t_cpu:.2f} | {cold:.2f} | {warm:.2f} "
-              f"| {every:.2f} | {n} |", flush=True)
-    print(f"(synthetic store of {args.units} units x {args.reps} reps built in {t_store:.1f} s; "
-          f"navigation traces 60,000 samples per case, downsampled in the unit report)", file=sys.stderr)
+        print(
+            f"| {kind} | {args.units} | {size_mb:.2f} | {t_write:.2f} | {t_cpu:.2f} "
+            f"| {cold:.2f} | {warm:.2f} "
+            f"| {every:.2f} | {n} |",
+            flush=True,
+        )
+    print(
+        f"(synthetic store of {args.units} units x {args.reps} reps built in {t_store:.1f} s; "
+        f"navigation traces 60,000 samples per case, downsampled in the unit report)",
+        file=sys.stderr,
+    )
     if tmp:
         tmp.cleanup()
     return 0

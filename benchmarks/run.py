@@ -22,6 +22,7 @@ the work directory (``--keep`` keeps it). Options::
     python -m benchmarks.run --quick [--rate 10]                                  # development
     python -m benchmarks.run --sizes 2 --rate 10 --no-nightly --output /tmp/b.md   # smoke
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,8 +54,14 @@ def measure(kind: str, *args: str, timeout_s: float = 7200.0, env: dict | None =
     peak RSS (``ru_maxrss`` from wait4), CPU time and wall time as seen from here."""
     cmd = [sys.executable, "-m", "benchmarks.measure", kind, *map(str, args)]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            env={**os.environ, **(env or {})}, text=True)
+    proc = subprocess.Popen(
+        cmd,
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env={**os.environ, **(env or {})},
+        text=True,
+    )
     try:
         out, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -68,9 +75,8 @@ def measure(kind: str, *args: str, timeout_s: float = 7200.0, env: dict | None =
     if proc.returncode != 0 or line is None:
         tail = "\n".join(err.strip().splitlines()[-15:])
         print(f"  {kind} FAILED (exit {proc.returncode}):\n{tail}", file=sys.stderr)
-        return {"error": f"exit {proc.returncode}: {tail.splitlines()[-1] if tail else ''}",
-                "kind": kind}
-    res = json.loads(line[len("BENCH_RESULT "):])
+        return {"error": f"exit {proc.returncode}: {tail.splitlines()[-1] if tail else ''}", "kind": kind}
+    res = json.loads(line[len("BENCH_RESULT ") :])
     res["process_wall_s"] = wall
     return res
 
@@ -89,27 +95,41 @@ def machine() -> dict:
     try:
         for ln in Path("/proc/meminfo").read_text().splitlines():
             if ln.startswith("MemTotal"):
-                ram_gb = int(ln.split()[1]) / 2 ** 20
+                ram_gb = int(ln.split()[1]) / 2**20
     except OSError:
         pass
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                                capture_output=True, text=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=REPO, capture_output=True, text=True, timeout=10).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         commit, dirty = "unknown", ""
     versions = {}
     for mod in ("numpy", "pandas", "pyarrow", "prefect", "dask"):
         try:
             from importlib.metadata import version
+
             versions[mod] = version(mod)
         except Exception:
             versions[mod] = "?"
-    return {"cpu": cpu, "nproc": os.cpu_count(), "ram_gb": ram_gb,
-            "python": platform.python_version(), "commit": commit or "unknown",
-            "dirty": bool(dirty), "date": _dt.datetime.now(_dt.timezone.utc).strftime(
-                "%Y-%m-%d %H:%M UTC"), "load_start": os.getloadavg(), "versions": versions}
+    return {
+        "cpu": cpu,
+        "nproc": os.cpu_count(),
+        "ram_gb": ram_gb,
+        "python": platform.python_version(),
+        "commit": commit or "unknown",
+        "dirty": bool(dirty),
+        "date": _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "load_start": os.getloadavg(),
+        "versions": versions,
+    }
 
 
 def parallel_batch(args: argparse.Namespace, n_units: int) -> int:
@@ -135,25 +155,41 @@ def run(args: argparse.Namespace) -> dict:
     # 50 units: the comparison of earlier records; 200: enough tasks (25 of 8 units) that the
     # fit phase (~4-7 s) measures throughput, not the first batch's latency and the last
     # one's tail (at 50 units it is ~1-1.5 s with the fifth round's per-unit cost)
-    dask_sizes = (sorted({int(s) for s in args.dask_sizes.split(",") if s.strip()})
-                  if args.dask_sizes else
-                  [n for n in (50, 200) if n in sizes] or [max(sizes)])
+    dask_sizes = (
+        sorted({int(s) for s in args.dask_sizes.split(",") if s.strip()})
+        if args.dask_sizes
+        else [n for n in (50, 200) if n in sizes] or [max(sizes)]
+    )
     work = Path(args.workdir) if args.workdir else Path(tempfile.mkdtemp(prefix="mimucal-bench-"))
     work.mkdir(parents=True, exist_ok=True)
-    doc: dict = {"machine": machine(), "config": {
-        "sizes": sizes, "rate_hz": args.rate, "step_s": args.step_s, "reps": args.reps,
-        "dask_sizes": dask_sizes if args.nightly else [], "batch": args.batch,
-        "parallel_batch": args.parallel_batch, "quick": bool(args.quick),
-        "workdir": str(work)}, "sizes": {}, "prefect": {}}
-    print(f"benchmark: sizes {sizes}, {args.rate:g} Hz, {args.step_s:g} s steps, "
-          f"{args.reps} reps, workdir {work}", file=sys.stderr)
+    doc: dict = {
+        "machine": machine(),
+        "config": {
+            "sizes": sizes,
+            "rate_hz": args.rate,
+            "step_s": args.step_s,
+            "reps": args.reps,
+            "dask_sizes": dask_sizes if args.nightly else [],
+            "batch": args.batch,
+            "parallel_batch": args.parallel_batch,
+            "quick": bool(args.quick),
+            "workdir": str(work),
+        },
+        "sizes": {},
+        "prefect": {},
+    }
+    print(
+        f"benchmark: sizes {sizes}, {args.rate:g} Hz, {args.step_s:g} s steps, "
+        f"{args.reps} reps, workdir {work}",
+        file=sys.stderr,
+    )
     try:
         for n in sizes:
             ds = work / f"fleet-{n}"
             r: dict = {}
             doc["sizes"][str(n)] = r
 
-            def step(name: str, kind: str, *a: str, **kw) -> dict:
+            def step(name: str, kind: str, *a: str, n: int = n, r: dict = r, **kw) -> dict:
                 if args.only and name not in args.only and kind not in args.only:
                     return {}
                 print(f"[{n} units] {name} ...", file=sys.stderr, flush=True)
@@ -161,12 +197,29 @@ def run(args: argparse.Namespace) -> dict:
                 r[name] = res
                 t = res.get("elapsed_s", res.get("wall_s"))
                 if t is not None:
-                    print(f"[{n} units] {name}: {t:.2f} s, peak RSS "
-                          f"{res.get('self_peak_rss_mb', 0):.0f} MB", file=sys.stderr, flush=True)
+                    print(
+                        f"[{n} units] {name}: {t:.2f} s, peak RSS {res.get('self_peak_rss_mb', 0):.0f} MB",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                 return res
 
-            step("simulate", "simulate", "--out", ds, "--units", n, "--rate", args.rate,
-                 "--step-s", args.step_s, "--reps", args.reps, "--seed", 7)
+            step(
+                "simulate",
+                "simulate",
+                "--out",
+                ds,
+                "--units",
+                n,
+                "--rate",
+                args.rate,
+                "--step-s",
+                args.step_s,
+                "--reps",
+                args.reps,
+                "--seed",
+                7,
+            )
             # page-cache state is the same for every reader: all read the files just written;
             # the fit phase measures the floor again in its own process, before and after
             step("floor", "floor", "--dataset", ds)
@@ -180,24 +233,62 @@ def run(args: argparse.Namespace) -> dict:
             step("unit", "unit", "--dataset", ds, "--unit", "U0001")
             if args.nightly:
                 res_dir = work / f"results-{n}"
-                step("nightly_threads", "nightly", "--dataset", ds, "--results", res_dir,
-                     "--batch", args.batch, timeout_s=args.timeout)
-                step("rerun", "rerun", "--dataset", ds, "--results", res_dir,
-                     "--unit", "U0001", timeout_s=args.timeout)
+                step(
+                    "nightly_threads",
+                    "nightly",
+                    "--dataset",
+                    ds,
+                    "--results",
+                    res_dir,
+                    "--batch",
+                    args.batch,
+                    timeout_s=args.timeout,
+                )
+                step(
+                    "rerun",
+                    "rerun",
+                    "--dataset",
+                    ds,
+                    "--results",
+                    res_dir,
+                    "--unit",
+                    "U0001",
+                    timeout_s=args.timeout,
+                )
                 shutil.rmtree(res_dir, ignore_errors=True)
                 # the worker-process pool (the default runner from 24 units), every size, with
                 # a batch size that gives each of 2 workers several tasks
                 rd = work / f"results-{n}-processes"
-                step("nightly_processes", "nightly", "--dataset", ds, "--results", rd,
-                     "--runner", "processes", "--batch", parallel_batch(args, n),
-                     timeout_s=args.timeout)
+                step(
+                    "nightly_processes",
+                    "nightly",
+                    "--dataset",
+                    ds,
+                    "--results",
+                    rd,
+                    "--runner",
+                    "processes",
+                    "--batch",
+                    parallel_batch(args, n),
+                    timeout_s=args.timeout,
+                )
                 shutil.rmtree(rd, ignore_errors=True)
                 if n in dask_sizes:
                     for k in (1, 2):
                         rd = work / f"results-{n}-dask{k}"
-                        step(f"nightly_dask{k}", "nightly", "--dataset", ds, "--results", rd,
-                             "--dask-workers", k, "--batch", parallel_batch(args, n),
-                             timeout_s=args.timeout)
+                        step(
+                            f"nightly_dask{k}",
+                            "nightly",
+                            "--dataset",
+                            ds,
+                            "--results",
+                            rd,
+                            "--dask-workers",
+                            k,
+                            "--batch",
+                            parallel_batch(args, n),
+                            timeout_s=args.timeout,
+                        )
                         shutil.rmtree(rd, ignore_errors=True)
             if not args.keep:
                 shutil.rmtree(ds, ignore_errors=True)
@@ -224,8 +315,13 @@ def report_size(units: int) -> dict:
     if not script.exists():
         return {"error": "benchmarks/report_size.py not found"}
     try:
-        p = subprocess.run([sys.executable, str(script), "--units", str(units), "--header"],
-                           cwd=REPO, capture_output=True, text=True, timeout=900)
+        p = subprocess.run(
+            [sys.executable, str(script), "--units", str(units), "--header"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
     except subprocess.TimeoutExpired:
         return {"error": "timed out after 900 s"}
     if p.returncode != 0:
@@ -267,23 +363,28 @@ def _fit_vs_floor_row(r: dict, n: int) -> tuple[str, str, str] | None:
     # CPU seconds in one process (floor just before and after the fit phase): the work done,
     # robust on a shared machine; wall beside it
     ratios = {"CPU, 1 process": fit["cpu_s"] / fit["floor_cpu_s"]}
-    meas = (f"CPU, same process: {ratios['CPU, 1 process']:.2f}x ({fit['cpu_s']:.1f} s vs "
-            f"floor {fit['floor_cpu_s']:.1f} s); wall {fit['elapsed_s'] / fit['floor_s']:.2f}x "
-            f"({fit['elapsed_s']:.1f} s vs {fit['floor_s']:.1f} s)")
+    meas = (
+        f"CPU, same process: {ratios['CPU, 1 process']:.2f}x ({fit['cpu_s']:.1f} s vs "
+        f"floor {fit['floor_cpu_s']:.1f} s); wall {fit['elapsed_s'] / fit['floor_s']:.2f}x "
+        f"({fit['elapsed_s']:.1f} s vs {fit['floor_s']:.1f} s)"
+    )
     if fit2.get("elapsed_s") and fit2.get("floor_s"):
         # both use the 2 cores: the floor's Arrow scan is multithreaded, the fit phase runs in 2
         # worker processes
         ratios["wall, 2 processes"] = fit2["elapsed_s"] / fit2["floor_s"]
-        meas += (f"; 2 processes, wall {ratios['wall, 2 processes']:.2f}x "
-                 f"({fit2['elapsed_s']:.1f} s vs floor {fit2['floor_s']:.1f} s)")
+        meas += (
+            f"; 2 processes, wall {ratios['wall, 2 processes']:.2f}x "
+            f"({fit2['elapsed_s']:.1f} s vs floor {fit2['floor_s']:.1f} s)"
+        )
     npr = r.get("nightly_processes") or {}
-    fl_wall = min((x for x in (fit.get("floor_s"), _g(r, "floor", "elapsed_s")) if x),
-                  default=None)
+    fl_wall = min((x for x in (fit.get("floor_s"), _g(r, "floor", "elapsed_s")) if x), default=None)
     if npr.get("fit_phase_s") and fl_wall:
         ratios["Prefect nightly, worker processes, wall"] = npr["fit_phase_s"] / fl_wall
-        meas += (f"; nightly flow with worker processes, fit phase wall "
-                 f"{ratios['Prefect nightly, worker processes, wall']:.2f}x "
-                 f"({npr['fit_phase_s']:.1f} s, Prefect and the store writer included)")
+        meas += (
+            f"; nightly flow with worker processes, fit phase wall "
+            f"{ratios['Prefect nightly, worker processes, wall']:.2f}x "
+            f"({npr['fit_phase_s']:.1f} s, Prefect and the store writer included)"
+        )
     lim = TARGETS["fit_vs_floor"]
     met = [k for k, v in ratios.items() if v <= lim]
     missed = [f"{k} by {v / lim:.2f}x" for k, v in ratios.items() if v > lim]
@@ -305,16 +406,17 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
     R = lambda n: doc["sizes"][str(n)]  # noqa: E731
     rows = []
     # the least disturbed stages measurement (smallest total) explains where the time goes
-    st_all = [(sum(v.values()), n, v) for n in sizes
-              if (v := _g(R(n), "stages", "per_session_ms"))]
+    st_all = [(sum(v.values()), n, v) for n in sizes if (v := _g(R(n), "stages", "per_session_ms"))]
     st = min(st_all)[2] if st_all else {}
     why_st = ""
     if st:
-        why_st = (f"wall per session ({min(st_all)[1]}-unit fleet, the least disturbed "
-                  f"stages run): read+validate {st.get('read_validate', 0):.1f} ms, average "
-                  f"{st.get('average', 0):.1f} ms, fit (calib_core) {st.get('fit', 0):.1f} ms, "
-                  f"aggregate {st.get('aggregate', 0):.1f} ms, vs floor "
-                  f"{st.get('floor', 0):.1f} ms per file")
+        why_st = (
+            f"wall per session ({min(st_all)[1]}-unit fleet, the least disturbed "
+            f"stages run): read+validate {st.get('read_validate', 0):.1f} ms, average "
+            f"{st.get('average', 0):.1f} ms, fit (calib_core) {st.get('fit', 0):.1f} ms, "
+            f"aggregate {st.get('aggregate', 0):.1f} ms, vs floor "
+            f"{st.get('floor', 0):.1f} ms per file"
+        )
     # The issue's size (200 units) and the largest measured: each with every way of measuring
     # the ratio, and a verdict naming which of them meet the target and which do not (the
     # best one alone would hide that the Prefect flow is further from the floor).
@@ -325,23 +427,33 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
         fit = _g(R(n), "fit_1proc") or {}
         why = []
         if fit.get("calibrate_cpu_s") is not None:
-            why.append(f"CPU of the fit phase: calibrate (read ... discovery, aggregate) "
-                       f"{fit['calibrate_cpu_s']:.1f} s, flag {fit['flag_cpu_s']:.2f} s")
+            why.append(
+                f"CPU of the fit phase: calibrate (read ... discovery, aggregate) "
+                f"{fit['calibrate_cpu_s']:.1f} s, flag {fit['flag_cpu_s']:.2f} s"
+            )
         why += [why_st] if why_st else []
         roles = _g(R(n), "nightly_processes", "fit_phase_cpu_s") or {}
         if roles:
             cores = doc["machine"].get("nproc") or 2
             least = sum(roles.values()) / cores
-            fl = min((x for x in (fit.get("floor_s"), _g(R(n), "floor", "elapsed_s")) if x),
-                     default=None)
-            why.append("Prefect nightly's fit phase, CPU on the 2 cores by role: " + ", ".join(
-                f"{k} {v:.1f} s" for k, v in roles.items())
-                + (f" (on {cores} cores at least {least:.1f} s: {least / fl:.2f}x the floor "
-                   f"whatever the scheduling)" if fl else ""))
+            fl = min((x for x in (fit.get("floor_s"), _g(R(n), "floor", "elapsed_s")) if x), default=None)
+            why.append(
+                "Prefect nightly's fit phase, CPU on the 2 cores by role: "
+                + ", ".join(f"{k} {v:.1f} s" for k, v in roles.items())
+                + (
+                    f" (on {cores} cores at least {least:.1f} s: {least / fl:.2f}x the floor "
+                    f"whatever the scheduling)"
+                    if fl
+                    else ""
+                )
+            )
         rows.append((row[0], row[1], row[2], "; ".join(why)))
     tot, basis = {}, ""
-    for key, field, b in (("fit_1proc_pass2", "cpu_s", "CPU, pass 2"),
-                          ("fit_1proc", "cpu_s", "CPU"), ("fit_1proc", "elapsed_s", "wall")):
+    for key, field, b in (
+        ("fit_1proc_pass2", "cpu_s", "CPU, pass 2"),
+        ("fit_1proc", "cpu_s", "CPU"),
+        ("fit_1proc", "elapsed_s", "wall"),
+    ):
         cand = {n: _g(R(n), key, field) for n in sizes}
         if all(cand.values()):
             tot, basis = cand, b
@@ -357,23 +469,29 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
         mv = [marg[k] for k in sorted(marg)]
         spread = max((b_ / a_ for a_, b_ in zip(mv, mv[1:])), default=1.0)
         ok = spread <= TARGETS["per_unit_flat"] and pu[big] <= pu[small] * TARGETS["per_unit_flat"]
-        rows.append((f"per-unit time flat {small} -> {big} units",
-                     f"{basis} ms per unit (average): " + ", ".join(
-                         f"{n}: {v:.0f}" for n, v in sorted(pu.items()))
-                     + "; marginal per added unit: " + ", ".join(
-                         f"{a}->{b_}: {v:.0f}" for (a, b_), v in marg.items()),
-                     "met" if ok else f"missed: marginal cost rises {spread:.2f}x, "
-                     f"average {pu[big] / pu[small]:.2f}x",
-                     f"flat = the marginal cost of a unit rises at most "
-                     f"{TARGETS['per_unit_flat']:.1f}x from one interval to the next and the "
-                     f"{big}-unit average is not above the {small}-unit one; the small fleet's "
-                     f"average carries the one-off start-up"))
+        rows.append(
+            (
+                f"per-unit time flat {small} -> {big} units",
+                f"{basis} ms per unit (average): "
+                + ", ".join(f"{n}: {v:.0f}" for n, v in sorted(pu.items()))
+                + "; marginal per added unit: "
+                + ", ".join(f"{a}->{b_}: {v:.0f}" for (a, b_), v in marg.items()),
+                "met"
+                if ok
+                else f"missed: marginal cost rises {spread:.2f}x, average {pu[big] / pu[small]:.2f}x",
+                f"flat = the marginal cost of a unit rises at most "
+                f"{TARGETS['per_unit_flat']:.1f}x from one interval to the next and the "
+                f"{big}-unit average is not above the {small}-unit one; the small fleet's "
+                f"average carries the one-off start-up",
+            )
+        )
     fit_rss_key = "fit_rss" if any(R(n).get("fit_rss") for n in sizes) else "fit_1proc"
-    for label, key, tree in (("fit phase process", fit_rss_key, False),
-                             ("nightly flow process", "nightly_threads", False),
-                             ("nightly process tree (+ Prefect server)", "nightly_threads", True)):
-        rss = {n: (_g(R(n), key, "tree_peak_rss_mb") if tree else _rss(R(n).get(key)))
-               for n in sizes}
+    for label, key, tree in (
+        ("fit phase process", fit_rss_key, False),
+        ("nightly flow process", "nightly_threads", False),
+        ("nightly process tree (+ Prefect server)", "nightly_threads", True),
+    ):
+        rss = {n: (_g(R(n), key, "tree_peak_rss_mb") if tree else _rss(R(n).get(key))) for n in sizes}
         rss = {n: v for n, v in rss.items() if v}
         if not rss:
             continue
@@ -383,8 +501,7 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
         # have smaller lots. Flatness in *fleet* size is judged from the smallest fleet with
         # the largest fleet's lot size; the growth from the smallest fleet is shown as well.
         lot_of = {n: _lot_size(R(n)) for n in rss}
-        base = min((n for n in rss if lot_of[n] and lot_of[n] == lot_of.get(big)),
-                   default=small)
+        base = min((n for n in rss if lot_of[n] and lot_of[n] == lot_of.get(big)), default=small)
         growth = rss[big] / rss[base] if len(rss) >= 2 else 1.0
         slope = ((rss[big] - rss[base]) / (big - base)) if big != base else 0.0
         ok = worst <= TARGETS["rss_mb"] and growth <= 1.25 and big != base
@@ -394,33 +511,53 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
             verdict = "under 1.5 GB; flatness not judged (one fleet size)"
         else:
             verdict = "met" if ok else f"missed: grows {growth:.2f}x"
-        rows.append((f"peak RSS flat in fleet size, < 1.5 GB: {label}",
-                     ", ".join(f"{n}: {v:.0f} MB" for n, v in sorted(rss.items())), verdict,
-                     f"{big}/{base} units (lots of {lot_of.get(big)}) {growth:.2f}x, "
-                     f"{slope:.2f} MB per unit"
-                     + (f"; {big}/{small} units {rss[big] / rss[small]:.2f}x (the {small}-unit "
-                        f"fleet is one lot of {lot_of[small]})" if base != small else "")
-                     + (f" (extrapolated to 1,000 units: {rss[big] + slope * (1000 - big):.0f} MB)"
-                        if slope > 0.05 and big < 1000 else "")))
+        rows.append(
+            (
+                f"peak RSS flat in fleet size, < 1.5 GB: {label}",
+                ", ".join(f"{n}: {v:.0f} MB" for n, v in sorted(rss.items())),
+                verdict,
+                f"{big}/{base} units (lots of {lot_of.get(big)}) {growth:.2f}x, "
+                f"{slope:.2f} MB per unit"
+                + (
+                    f"; {big}/{small} units {rss[big] / rss[small]:.2f}x (the {small}-unit "
+                    f"fleet is one lot of {lot_of[small]})"
+                    if base != small
+                    else ""
+                )
+                + (
+                    f" (extrapolated to 1,000 units: {rss[big] + slope * (1000 - big):.0f} MB)"
+                    if slope > 0.05 and big < 1000
+                    else ""
+                ),
+            )
+        )
     rerun = _g(R(big), "rerun")
     pf = _g(doc, "prefect", "existing")
     if rerun and "error" not in rerun:
         inside = rerun["flow_elapsed_s"]
         start = pf.get("startup_s") if pf and "error" not in pf else None
-        rows.append((f"single-unit rerun < 2 s + Prefect start-up ({big}-unit store)",
-                     f"{rerun['wall_s']:.1f} s wall = {inside:.2f} s in the flow + "
-                     f"{rerun['outside_flow_s']:.1f} s Prefect start-up/teardown"
-                     + (f" (+{rerun['import_s']:.1f} s imports)" if rerun.get("import_s") else ""),
-                     "met" if inside <= TARGETS["rerun_s"] else
-                     f"missed by {inside - TARGETS['rerun_s']:.1f} s",
-                     "Prefect start-up alone: " + (f"{start:.1f} s (import + first flow on an "
-                                                   f"existing database)" if start else "n/a")
-                     + (f"; the unit's calibration without Prefect: "
-                        f"{_g(R(big), 'unit', 'elapsed_s'):.2f} s" if _g(R(big), 'unit', 'elapsed_s')
-                        else "")
-                     + "; inside the flow by store size: " + ", ".join(
-                         f"{n}: {_g(R(n), 'rerun', 'flow_elapsed_s'):.1f} s" for n in sizes
-                         if _g(R(n), 'rerun', 'flow_elapsed_s'))))
+        rows.append(
+            (
+                f"single-unit rerun < 2 s + Prefect start-up ({big}-unit store)",
+                f"{rerun['wall_s']:.1f} s wall = {inside:.2f} s in the flow + "
+                f"{rerun['outside_flow_s']:.1f} s Prefect start-up/teardown"
+                + (f" (+{rerun['import_s']:.1f} s imports)" if rerun.get("import_s") else ""),
+                "met" if inside <= TARGETS["rerun_s"] else f"missed by {inside - TARGETS['rerun_s']:.1f} s",
+                "Prefect start-up alone: "
+                + (f"{start:.1f} s (import + first flow on an existing database)" if start else "n/a")
+                + (
+                    f"; the unit's calibration without Prefect: {_g(R(big), 'unit', 'elapsed_s'):.2f} s"
+                    if _g(R(big), "unit", "elapsed_s")
+                    else ""
+                )
+                + "; inside the flow by store size: "
+                + ", ".join(
+                    f"{n}: {_g(R(n), 'rerun', 'flow_elapsed_s'):.1f} s"
+                    for n in sizes
+                    if _g(R(n), "rerun", "flow_elapsed_s")
+                ),
+            )
+        )
     for n in sizes:
         d1, d2 = _g(R(n), "nightly_dask1"), _g(R(n), "nightly_dask2")
         if d1 and d2 and "error" not in d1 and "error" not in d2:
@@ -435,46 +572,64 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
             ideal = n / max(loads)
             nt = _g(R(n), "nightly_threads") or {}
             load = doc["machine"].get("load_start", (float("nan"),))[0]
-            why = (f"{doc['machine']['nproc']} cores, load average {load:.1f} at the start; "
-                   f"{n_batches} tasks of {batch} units: 2 workers can at best reach "
-                   f"{ideal:.2f}x; " + (
-                       f"workers warmed before the fit phase (warm-up "
-                       f"{d2['dask_warmup_s']:.1f} s, outside it)"
-                       if d2.get("dask_warmup_s") is not None else  # results before round 3
-                       "each worker process pays its imports and its first Prefect client "
-                       "once"))
+            why = (
+                f"{doc['machine']['nproc']} cores, load average {load:.1f} at the start; "
+                f"{n_batches} tasks of {batch} units: 2 workers can at best reach "
+                f"{ideal:.2f}x; "
+                + (
+                    f"workers warmed before the fit phase (warm-up {d2['dask_warmup_s']:.1f} s, outside it)"
+                    if d2.get("dask_warmup_s") is not None
+                    # results before round 3
+                    else "each worker process pays its imports and its first Prefect client once"
+                )
+            )
             cpu1, cpu2 = d1.get("fit_phase_cpu_s") or {}, d2.get("fit_phase_cpu_s") or {}
             if cpu1.get("workers") and cpu2.get("workers"):
                 # what the 2 cores also had to run during the fit phase: the flow's process
                 # (Prefect, results, the scheduler) and the API server
                 other = sum(v for k, v in cpu2.items() if k != "workers")
-                why += (f"; fit-phase CPU, workers {cpu1['workers']:.1f} s -> "
-                        f"{cpu2['workers']:.1f} s, flow + API {other:.1f} s with 2 workers")
+                why += (
+                    f"; fit-phase CPU, workers {cpu1['workers']:.1f} s -> "
+                    f"{cpu2['workers']:.1f} s, flow + API {other:.1f} s with 2 workers"
+                )
                 # all of that on the machine's cores: the 2-worker fit phase cannot be shorter
                 # than its CPU spread over them, whatever the scheduling
                 cores = doc["machine"].get("nproc") or 2
                 floor_2 = (cpu2["workers"] + other) / cores
-                why += (f"; that CPU on {cores} cores takes at least {floor_2:.1f} s, so 2 "
-                        f"workers can at best reach {d1['fit_phase_s'] / floor_2:.2f}x here")
+                why += (
+                    f"; that CPU on {cores} cores takes at least {floor_2:.1f} s, so 2 "
+                    f"workers can at best reach {d1['fit_phase_s'] / floor_2:.2f}x here"
+                )
             if nt.get("fit_phase_s"):
-                why += (f"; thread pool fit phase {nt['fit_phase_s']:.1f} s "
-                        f"(1 Dask worker {d1['fit_phase_s'] / nt['fit_phase_s']:.2f}x of it)")
-            rows.append((f"Dask 2 workers >= 1.6x 1 worker ({n} units, fit phase)",
-                         f"{d1['fit_phase_s']:.1f} s -> {d2['fit_phase_s']:.1f} s: {s:.2f}x",
-                         "met" if s >= TARGETS["dask_speedup"] else
-                         f"missed: {s:.2f}x ({TARGETS['dask_speedup'] - s:.2f} short)", why))
+                why += (
+                    f"; thread pool fit phase {nt['fit_phase_s']:.1f} s "
+                    f"(1 Dask worker {d1['fit_phase_s'] / nt['fit_phase_s']:.2f}x of it)"
+                )
+            rows.append(
+                (
+                    f"Dask 2 workers >= 1.6x 1 worker ({n} units, fit phase)",
+                    f"{d1['fit_phase_s']:.1f} s -> {d2['fit_phase_s']:.1f} s: {s:.2f}x",
+                    "met"
+                    if s >= TARGETS["dask_speedup"]
+                    else f"missed: {s:.2f}x ({TARGETS['dask_speedup'] - s:.2f} short)",
+                    why,
+                )
+            )
         nt, npp = _g(R(n), "nightly_threads"), _g(R(n), "nightly_processes")
         if nt and npp and "error" not in nt and "error" not in npp:
             s = nt["fit_phase_s"] / npp["fit_phase_s"]
-            rows.append((f"(not a target) process pool (2) vs thread pool (2), {n} units, fit "
-                         f"phase", f"{nt['fit_phase_s']:.1f} s -> {npp['fit_phase_s']:.1f} s: "
-                         f"{s:.2f}x", "process pool faster" if s > 1.05 else
-                         "no gain" if s >= 0.95 else "process pool slower",
-                         "the thread pool runs the Python work on one core (GIL); the worker "
-                         "processes (flows.compute_pool, their forkserver started while "
-                         "Prefect starts) use both but pickle every result back, and share "
-                         "the 2 cores with the flow's threads, the API server and the store "
-                         f"writer (store {npp.get('store_s') or 0:.1f} s here)"))
+            rows.append(
+                (
+                    f"(not a target) process pool (2) vs thread pool (2), {n} units, fit phase",
+                    f"{nt['fit_phase_s']:.1f} s -> {npp['fit_phase_s']:.1f} s: {s:.2f}x",
+                    "process pool faster" if s > 1.05 else "no gain" if s >= 0.95 else "process pool slower",
+                    "the thread pool runs the Python work on one core (GIL); the worker "
+                    "processes (flows.compute_pool, their forkserver started while "
+                    "Prefect starts) use both but pickle every result back, and share "
+                    "the 2 cores with the flow's threads, the API server and the store "
+                    f"writer (store {npp.get('store_s') or 0:.1f} s here)",
+                )
+            )
     return rows
 
 
@@ -492,15 +647,20 @@ def pass2_table(doc: dict) -> list[str]:
     if not p:
         return []
     m = p["machine"]
-    out = ["### Second pass: floor and fit phase with CPU time", "",
-           f"Run {m['date']} on the same machine (load average at start "
-           f"{', '.join(f'{x:.1f}' for x in m['load_start'])}, at end "
-           f"{', '.join(f'{x:.1f}' for x in m.get('load_end', (float('nan'),) * 3))}), fleets "
-           "simulated afresh with the same seed; only the floor and the 1-process fit phase, with "
-           "their CPU seconds.", "",
-           "| units | floor wall [s] | floor CPU [s] | fit wall [s] | fit CPU [s] "
-           "| fit / floor (wall) | fit / floor (CPU) | per unit wall [ms] | per unit CPU [ms] "
-           "| fit RSS [MB] |", "|---|---|---|---|---|---|---|---|---|---|"]
+    out = [
+        "### Second pass: floor and fit phase with CPU time",
+        "",
+        f"Run {m['date']} on the same machine (load average at start "
+        f"{', '.join(f'{x:.1f}' for x in m['load_start'])}, at end "
+        f"{', '.join(f'{x:.1f}' for x in m.get('load_end', (float('nan'),) * 3))}), fleets "
+        "simulated afresh with the same seed; only the floor and the 1-process fit phase, with "
+        "their CPU seconds.",
+        "",
+        "| units | floor wall [s] | floor CPU [s] | fit wall [s] | fit CPU [s] "
+        "| fit / floor (wall) | fit / floor (CPU) | per unit wall [ms] | per unit CPU [ms] "
+        "| fit RSS [MB] |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
         fl = [x for x in (r.get("floor_pass2"), r.get("floor_again_pass2")) if x and "error" not in x]
         fit = r.get("fit_1proc_pass2")
@@ -508,10 +668,12 @@ def pass2_table(doc: dict) -> list[str]:
             continue
         best = min(fl, key=lambda x: x["elapsed_s"])
         fcpu = min(x.get("cpu_s", float("inf")) for x in fl)
-        out.append(f"| {n} | {best['elapsed_s']:.2f} | {fcpu:.2f} | {fit['elapsed_s']:.2f} "
-                   f"| {fit['cpu_s']:.2f} | {fit['elapsed_s'] / best['elapsed_s']:.2f}x "
-                   f"| {fit['cpu_s'] / fcpu:.2f}x | {fit['per_unit_ms']:.0f} "
-                   f"| {fit['per_unit_cpu_ms']:.0f} | {_f(_rss(fit), '{:.0f}')} |")
+        out.append(
+            f"| {n} | {best['elapsed_s']:.2f} | {fcpu:.2f} | {fit['elapsed_s']:.2f} "
+            f"| {fit['cpu_s']:.2f} | {fit['elapsed_s'] / best['elapsed_s']:.2f}x "
+            f"| {fit['cpu_s'] / fcpu:.2f}x | {fit['per_unit_ms']:.0f} "
+            f"| {fit['per_unit_cpu_ms']:.0f} | {_f(_rss(fit), '{:.0f}')} |"
+        )
     return out + [""]
 
 
@@ -524,30 +686,37 @@ def _lot_size(r: dict) -> int | None:
 
 def markdown(doc: dict) -> str:
     m, c = doc["machine"], doc["config"]
-    out = ["# mimucal benchmarks", "",
-           "Written by `python -m benchmarks.run` (`make bench`); method, profile and limitations "
-           "in [docs/benchmarks.md](docs/benchmarks.md). Every measurement ran in its own process; "
-           "peak RSS is that process's `ru_maxrss` (tree = sum over the process and its children: "
-           "Prefect's temporary API server, Dask workers, the process pool, sampled every 0.1 s).",
-           "",
-           f"- machine: {m['cpu']}, {m['nproc']} cores (`nproc`), {m['ram_gb']:.1f} GiB RAM, "
-           f"Python {m['python']}; " + ", ".join(f"{k} {v}" for k, v in m["versions"].items()),
-           f"- date: {m['date']}; commit `{m['commit']}`"
-           + (" + uncommitted changes in the working tree" if m.get("dirty") else ""),
-           f"- load average (1/5/15 min) at start {', '.join(f'{x:.1f}' for x in m['load_start'])}, "
-           f"at end {', '.join(f'{x:.1f}' for x in m.get('load_end', (float('nan'),) * 3))} "
-           "(a load above the core count means other work shared the machine; compare ratios "
-           "within this run, not absolute times across runs)",
-           f"- acquisition: {c['rate_hz']:g} Hz, {c['step_s']:g} s steps, default protocol, "
-           f"{c['reps']} repetitions per unit; nightly batch size {c['batch']} units per task",
-           ""]
-    out += ["## Results", "",
-            "### Fit phase vs floor (one process per row: floor, fit phase, floor again)", "",
-            "| units | sessions | disk [MB] | floor CPU [s] | fit phase CPU [s] | fit / floor, CPU "
-            "| per unit CPU [ms] | floor wall [s] | fit phase wall [s] | fit / floor, wall "
-            "| fit phase, 2 processes, wall [s] | fit phase peak RSS, alone [MB] "
-            "| peak RSS with the floor's scans [MB] | one unit, no Prefect [s] |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    out = [
+        "# mimucal benchmarks",
+        "",
+        "Written by `python -m benchmarks.run` (`make bench`); method, profile and limitations "
+        "in [docs/benchmarks.md](docs/benchmarks.md). Every measurement ran in its own process; "
+        "peak RSS is that process's `ru_maxrss` (tree = sum over the process and its children: "
+        "Prefect's temporary API server, Dask workers, the process pool, sampled every 0.1 s).",
+        "",
+        f"- machine: {m['cpu']}, {m['nproc']} cores (`nproc`), {m['ram_gb']:.1f} GiB RAM, "
+        f"Python {m['python']}; " + ", ".join(f"{k} {v}" for k, v in m["versions"].items()),
+        f"- date: {m['date']}; commit `{m['commit']}`"
+        + (" + uncommitted changes in the working tree" if m.get("dirty") else ""),
+        f"- load average (1/5/15 min) at start {', '.join(f'{x:.1f}' for x in m['load_start'])}, "
+        f"at end {', '.join(f'{x:.1f}' for x in m.get('load_end', (float('nan'),) * 3))} "
+        "(a load above the core count means other work shared the machine; compare ratios "
+        "within this run, not absolute times across runs)",
+        f"- acquisition: {c['rate_hz']:g} Hz, {c['step_s']:g} s steps, default protocol, "
+        f"{c['reps']} repetitions per unit; nightly batch size {c['batch']} units per task",
+        "",
+    ]
+    out += [
+        "## Results",
+        "",
+        "### Fit phase vs floor (one process per row: floor, fit phase, floor again)",
+        "",
+        "| units | sessions | disk [MB] | floor CPU [s] | fit phase CPU [s] | fit / floor, CPU "
+        "| per unit CPU [ms] | floor wall [s] | fit phase wall [s] | fit / floor, wall "
+        "| fit phase, 2 processes, wall [s] | fit phase peak RSS, alone [MB] "
+        "| peak RSS with the floor's scans [MB] | one unit, no Prefect [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
         fit = r.get("fit_1proc") or {}
         fit2 = r.get("fit_2proc") or {}
@@ -559,25 +728,33 @@ def markdown(doc: dict) -> str:
             f"| {_f(fit.get('per_unit_cpu_ms'), '{:.0f}')} | {_f(flw)} | {_f(fw)} "
             f"| {_f(fw / flw if fw and flw else None)}x | {_f(fit2.get('elapsed_s'))} "
             f"| {_f(_rss(r.get('fit_rss')), '{:.0f}')} | {_f(_rss(fit), '{:.0f}')} "
-            f"| {_f(_g(r, 'unit', 'elapsed_s'))} |")
-    out += ["", "Fit phase = the nightly fit phase without Prefect: read, validate, average, fit, "
-            "model discovery, aggregate (`flows.unit_pipeline.calibrate_batch`, what a nightly "
-            "task runs) for every unit, then flag every lot. Floor = `pyarrow.dataset` scan + "
-            "group-by-step mean of the same files, measured in the same process just before and "
-            "just after the fit phase (the smaller used). CPU = user + system seconds of the "
-            "process and its pool workers. Peak RSS alone = the fit phase run in a process of "
-            "its own without the floor (`fit_rss`, the figure the memory target judges); with "
-            "the floor's scans = the process above, whose peak is mostly `pyarrow.dataset`'s "
-            "read-ahead and memory pool over the whole fleet, not the pipeline's.", "",
-            "### Nightly flow (Prefect)", "",
-            "| units | runner | tasks of [units] | fit phase [s] | report phase [s] | outside the "
-            "flow [s] | wall [s] | peak RSS self / tree [MB] | tree CPU [s] |",
-            "|---|---|---|---|---|---|---|---|---|"]
+            f"| {_f(_g(r, 'unit', 'elapsed_s'))} |"
+        )
+    out += [
+        "",
+        "Fit phase = the nightly fit phase without Prefect: read, validate, average, fit, "
+        "model discovery, aggregate (`flows.unit_pipeline.calibrate_batch`, what a nightly "
+        "task runs) for every unit, then flag every lot. Floor = `pyarrow.dataset` scan + "
+        "group-by-step mean of the same files, measured in the same process just before and "
+        "just after the fit phase (the smaller used). CPU = user + system seconds of the "
+        "process and its pool workers. Peak RSS alone = the fit phase run in a process of "
+        "its own without the floor (`fit_rss`, the figure the memory target judges); with "
+        "the floor's scans = the process above, whose peak is mostly `pyarrow.dataset`'s "
+        "read-ahead and memory pool over the whole fleet, not the pipeline's.",
+        "",
+        "### Nightly flow (Prefect)",
+        "",
+        "| units | runner | tasks of [units] | fit phase [s] | report phase [s] | outside the "
+        "flow [s] | wall [s] | peak RSS self / tree [MB] | tree CPU [s] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
-        for key, label in (("nightly_threads", "thread pool (2)"),
-                           ("nightly_processes", "process pool (2)"),
-                           ("nightly_dask1", "Dask LocalCluster, 1 worker"),
-                           ("nightly_dask2", "Dask LocalCluster, 2 workers")):
+        for key, label in (
+            ("nightly_threads", "thread pool (2)"),
+            ("nightly_processes", "process pool (2)"),
+            ("nightly_dask1", "Dask LocalCluster, 1 worker"),
+            ("nightly_dask2", "Dask LocalCluster, 2 workers"),
+        ):
             d = r.get(key)
             if not d:
                 continue
@@ -585,70 +762,97 @@ def markdown(doc: dict) -> str:
                 out.append(f"| {n} | {label} | | failed: {d['error']} | | | | | |")
                 continue
             if d.get("dask_warmup_s") is not None:  # started by the flow's runner: inside
-                start = (f" (of which cluster start {d.get('cluster_start_s') or 0:.1f}, "
-                         f"warm-up {d['dask_warmup_s']:.1f})")
+                start = (
+                    f" (of which cluster start {d.get('cluster_start_s') or 0:.1f}, "
+                    f"warm-up {d['dask_warmup_s']:.1f})"
+                )
             else:  # older results: a cluster started before the flow
-                start = (f" (+ cluster start {d['cluster_start_s']:.1f})"
-                         if d.get("cluster_start_s") else "")
-            out.append(f"| {n} | {label} | {d.get('batch_size', '')} | {d['fit_phase_s']:.2f} "
-                       f"| {d['report_phase_s']:.2f} | {d['outside_flow_s']:.2f}{start} "
-                       f"| {d['wall_s']:.2f} | {_f(_rss(d), '{:.0f}')} / "
-                       f"{d['tree_peak_rss_mb']:.0f} | {_f(d.get('tree_cpu_s'), '{:.1f}')} |")
-    out += ["", "`nightly_fleet_calibration(force=True)`; fit phase = the run log's "
-            "`calibration_s` (read, validate, average, fit, discovery, aggregate); report phase = "
-            "the rest of the flow (results store, flags, lot reports and fleet index); outside = "
-            "Prefect start-up and teardown in that process.", ""]
+                start = f" (+ cluster start {d['cluster_start_s']:.1f})" if d.get("cluster_start_s") else ""
+            out.append(
+                f"| {n} | {label} | {d.get('batch_size', '')} | {d['fit_phase_s']:.2f} "
+                f"| {d['report_phase_s']:.2f} | {d['outside_flow_s']:.2f}{start} "
+                f"| {d['wall_s']:.2f} | {_f(_rss(d), '{:.0f}')} / "
+                f"{d['tree_peak_rss_mb']:.0f} | {_f(d.get('tree_cpu_s'), '{:.1f}')} |"
+            )
+    out += [
+        "",
+        "`nightly_fleet_calibration(force=True)`; fit phase = the run log's "
+        "`calibration_s` (read, validate, average, fit, discovery, aggregate); report phase = "
+        "the rest of the flow (results store, flags, lot reports and fleet index); outside = "
+        "Prefect start-up and teardown in that process.",
+        "",
+    ]
     out += pass2_table(doc)
     # per-stage
     if any(_g(r, "stages", "per_session_ms") for r in doc["sizes"].values()):
-        out += ["### Where the fit phase goes (per session, first 10 units)", "",
-                "| units | floor: scan + group-by of one file [ms] | read + validate [ms] "
-                "| average [ms] | fit, calib_core [ms] | aggregate [ms] |",
-                "|---|---|---|---|---|---|"]
-        tail = ["", "After one untimed pass over the first unit (first-call imports). Fit = a "
-                "unit's repetitions fitted together (`calibrate_repetitions`, as the nightly), "
-                "with the compensation-error and residual tables; fit and aggregate are per "
-                "unit, spread over its sessions. Model discovery is not in this split."]
+        out += [
+            "### Where the fit phase goes (per session, first 10 units)",
+            "",
+            "| units | floor: scan + group-by of one file [ms] | read + validate [ms] "
+            "| average [ms] | fit, calib_core [ms] | aggregate [ms] |",
+            "|---|---|---|---|---|---|",
+        ]
+        tail = [
+            "",
+            "After one untimed pass over the first unit (first-call imports). Fit = a "
+            "unit's repetitions fitted together (`calibrate_repetitions`, as the nightly), "
+            "with the compensation-error and residual tables; fit and aggregate are per "
+            "unit, spread over its sessions. Model discovery is not in this split.",
+        ]
         for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
             st = _g(r, "stages", "per_session_ms") or {}
-            out.append(f"| {n} | {_f(st.get('floor'), '{:.1f}')} "
-                       f"| {_f(st.get('read_validate'), '{:.1f}')} "
-                       f"| {_f(st.get('average'), '{:.1f}')} | {_f(st.get('fit'), '{:.1f}')} "
-                       f"| {_f(st.get('aggregate'), '{:.1f}')} |")
+            out.append(
+                f"| {n} | {_f(st.get('floor'), '{:.1f}')} "
+                f"| {_f(st.get('read_validate'), '{:.1f}')} "
+                f"| {_f(st.get('average'), '{:.1f}')} | {_f(st.get('fit'), '{:.1f}')} "
+                f"| {_f(st.get('aggregate'), '{:.1f}')} |"
+            )
         out += tail + [""]
     # rerun, prefect, dask
     rows = []
     for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
         rr = r.get("rerun")
         if rr and "error" not in rr:
-            rows.append(f"| rerun one unit ({n}-unit store) | {rr['wall_s']:.2f} "
-                        f"| {rr['flow_elapsed_s']:.2f} | {rr['outside_flow_s']:.2f} "
-                        f"| {_f(_rss(rr), '{:.0f}')} / {rr['tree_peak_rss_mb']:.0f} |")
+            rows.append(
+                f"| rerun one unit ({n}-unit store) | {rr['wall_s']:.2f} "
+                f"| {rr['flow_elapsed_s']:.2f} | {rr['outside_flow_s']:.2f} "
+                f"| {_f(_rss(rr), '{:.0f}')} / {rr['tree_peak_rss_mb']:.0f} |"
+            )
         elif rr:
             rows.append(f"| rerun one unit ({n}-unit store) | failed: {rr['error']} | | | |")
-    for name, key in (("Prefect start-up, new database", "fresh"),
-                      ("Prefect start-up, existing database", "existing")):
+    for name, key in (
+        ("Prefect start-up, new database", "fresh"),
+        ("Prefect start-up, existing database", "existing"),
+    ):
         p = _g(doc, "prefect", key)
         if p and "error" not in p:
-            rows.append(f"| {name} (import {p['import_s']:.2f} s + first trivial flow "
-                        f"{p['first_flow_s']:.2f} s; a second flow {p['second_flow_s']:.2f} s) "
-                        f"| {p['startup_s']:.2f} | | | {_f(_rss(p), '{:.0f}')} / "
-                        f"{p['tree_peak_rss_mb']:.0f} |")
+            rows.append(
+                f"| {name} (import {p['import_s']:.2f} s + first trivial flow "
+                f"{p['first_flow_s']:.2f} s; a second flow {p['second_flow_s']:.2f} s) "
+                f"| {p['startup_s']:.2f} | | | {_f(_rss(p), '{:.0f}')} / "
+                f"{p['tree_peak_rss_mb']:.0f} |"
+            )
     if rows:
-        out += ["### Rerun, Prefect start-up", "",
+        out += (
+            [
+                "### Rerun, Prefect start-up",
+                "",
                 "| what | wall [s] | inside the flow [s] | outside the flow [s] "
-                "| peak RSS self / tree [MB] |", "|---|---|---|---|---|"] + rows + [""]
+                "| peak RSS self / tree [MB] |",
+                "|---|---|---|---|---|",
+            ]
+            + rows
+            + [""]
+        )
     # targets
-    out += ["## Targets (issue 7)", "", "| target | measured | verdict | why |",
-            "|---|---|---|---|"]
+    out += ["## Targets (issue 7)", "", "| target | measured | verdict | why |", "|---|---|---|---|"]
     for t, meas, v, why in verdicts(doc):
         out.append(f"| {t} | {meas} | {v} | {why} |")
     out.append("")
     rs = doc.get("report_size")
     if rs:
         out += ["## Report size (benchmarks/report_size.py, reports engineer's)", ""]
-        out += [rs["table"], "", rs.get("note", "")] if "table" in rs else [
-            f"not measured: {rs['error']}"]
+        out += [rs["table"], "", rs.get("note", "")] if "table" in rs else [f"not measured: {rs['error']}"]
         out.append("")
     notes = [n for n in doc.get("notes") or [] if isinstance(n, str)]
     if notes:  # facts about how this record was assembled (e.g. a measurement re-run)
@@ -656,21 +860,28 @@ def markdown(doc: dict) -> str:
     # Only generated text here: a hand-written analysis belongs to one run and goes to
     # docs/benchmarks.md (pasting benchmarks/notes.md into every output repeated a stale
     # "why" section next to the generated one).
-    out += ["The analysis of these numbers (profiles, what was changed, what is left) is in "
-            "[docs/benchmarks.md](docs/benchmarks.md).", ""]
+    out += [
+        "The analysis of these numbers (profiles, what was changed, what is left) is in "
+        "[docs/benchmarks.md](docs/benchmarks.md).",
+        "",
+    ]
     return "\n".join(out)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m benchmarks.run",
-                                 description=__doc__.splitlines()[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="\n".join(__doc__.splitlines()[2:]))
-    ap.add_argument("--sizes", default=None, help="fleet sizes in units (default 10,50,200; "
-                    "--quick: 10,50)")
-    ap.add_argument("--quick", action="store_true",
-                    help="development run: 10 and 50 units, the runner comparisons (process "
-                         "pool, Dask 1 and 2 workers) at 10 units, no per-stage split")
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmarks.run",
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="\n".join(__doc__.splitlines()[2:]),
+    )
+    ap.add_argument("--sizes", default=None, help="fleet sizes in units (default 10,50,200; --quick: 10,50)")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="development run: 10 and 50 units, the runner comparisons (process "
+        "pool, Dask 1 and 2 workers) at 10 units, no per-stage split",
+    )
     ap.add_argument("--with-1000", action="store_true", help="add a 1,000-unit fleet (~4 GB)")
     ap.add_argument("--workdir", help="where fleets are written (default: a temp directory)")
     ap.add_argument("--keep", action="store_true", help="keep the fleets and results")
@@ -678,26 +889,47 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--step-s", type=float, default=3.0, help="step duration [s] (default 3)")
     ap.add_argument("--reps", type=int, default=5, help="repetitions per unit (default 5)")
     ap.add_argument("--batch", type=int, default=8, help="units per task / pool batch")
-    ap.add_argument("--parallel-batch", type=int, default=None,
-                    help="units per task for the process-pool and Dask nightly runs (default: 4 "
-                         "below 200 units, several tasks per worker; --batch from 200; "
-                         "--quick: 2)")
-    ap.add_argument("--dask-sizes", default=None,
-                    help="sizes at which to compare Dask 1 vs 2 workers (default: 50 and 200 "
-                         "where measured, else the largest)")
-    ap.add_argument("--no-nightly", dest="nightly", action="store_false",
-                    help="skip the Prefect measurements (nightly, rerun, Dask, start-up)")
-    ap.add_argument("--report-size", type=int, default=0, metavar="UNITS",
-                    help="also run benchmarks/report_size.py --units UNITS")
+    ap.add_argument(
+        "--parallel-batch",
+        type=int,
+        default=None,
+        help="units per task for the process-pool and Dask nightly runs (default: 4 "
+        "below 200 units, several tasks per worker; --batch from 200; "
+        "--quick: 2)",
+    )
+    ap.add_argument(
+        "--dask-sizes",
+        default=None,
+        help="sizes at which to compare Dask 1 vs 2 workers (default: 50 and 200 "
+        "where measured, else the largest)",
+    )
+    ap.add_argument(
+        "--no-nightly",
+        dest="nightly",
+        action="store_false",
+        help="skip the Prefect measurements (nightly, rerun, Dask, start-up)",
+    )
+    ap.add_argument(
+        "--report-size",
+        type=int,
+        default=0,
+        metavar="UNITS",
+        help="also run benchmarks/report_size.py --units UNITS",
+    )
     ap.add_argument("--timeout", type=float, default=3600.0, help="per measurement [s]")
     ap.add_argument("--output", default=str(REPO / "BENCHMARKS.md"))
-    ap.add_argument("--only", default="",
-                    help="comma-separated measurements to run (e.g. simulate,floor,fit)")
-    ap.add_argument("--merge", metavar="JSON",
-                    help="add a second pass's measurements (e.g. --no-nightly --only "
-                         "simulate,floor,fit_1proc,floor_again) as '<name>_pass2'")
-    ap.add_argument("--from-json", metavar="JSON",
-                    help="only re-render the Markdown from a previous run's JSON")
+    ap.add_argument(
+        "--only", default="", help="comma-separated measurements to run (e.g. simulate,floor,fit)"
+    )
+    ap.add_argument(
+        "--merge",
+        metavar="JSON",
+        help="add a second pass's measurements (e.g. --no-nightly --only "
+        "simulate,floor,fit_1proc,floor_again) as '<name>_pass2'",
+    )
+    ap.add_argument(
+        "--from-json", metavar="JSON", help="only re-render the Markdown from a previous run's JSON"
+    )
     args = ap.parse_args(argv)
     args.only = {x.strip() for x in args.only.split(",") if x.strip()}
     if args.from_json:
@@ -711,8 +943,11 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(doc)
     out = Path(args.output)
     out.write_text(text + "\n")
-    raw = (REPO / "benchmarks" / "results.json" if out.resolve() == REPO / "BENCHMARKS.md"
-           else out.with_suffix(".json"))
+    raw = (
+        REPO / "benchmarks" / "results.json"
+        if out.resolve() == REPO / "BENCHMARKS.md"
+        else out.with_suffix(".json")
+    )
     if not args.from_json or raw.resolve() != Path(args.from_json).resolve():
         raw.write_text(json.dumps(doc, indent=1, default=str) + "\n")
     print(text)

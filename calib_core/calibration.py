@@ -9,6 +9,7 @@ calibration type mimucal produces (turntable, Ferraris, reference-free field cal
 expressed in this one form, so one ``apply`` serves them all. Serialisation lives in
 ``schemas.calibration_file``; this module is pure.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -40,8 +41,9 @@ class TermValue:
         out = {
             "name": self.name,
             "params": {n: number(n, v) for n, v in zip(term.param_names, self.params)},
-            "stderr": None if self.stderr is None else
-            {n: number(n, v) for n, v in zip(term.param_names, self.stderr)},
+            "stderr": None
+            if self.stderr is None
+            else {n: number(n, v) for n, v in zip(term.param_names, self.stderr)},
             "units": dict(zip(term.param_names, term.param_units)),
         }
         if self.undetermined:
@@ -79,8 +81,9 @@ class Calibration:
         A = np.atleast_2d(A)
         return G @ self.K_g.T + self.w0, A @ self.K_a.T + self.f0
 
-    def raw_inputs(self, G: np.ndarray, A: np.ndarray, gyro_unit: str | None = None,
-                   accel_unit: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def raw_inputs(
+        self, G: np.ndarray, A: np.ndarray, gyro_unit: str | None = None, accel_unit: str | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``G``, ``A`` in the raw units this calibration expects (:class:`RawUnitError`
         when they cannot be). ``gyro_unit`` / ``accel_unit``: the units of the data;
         rad/s -> deg/s and m/s^2 -> g (this calibration's ``g_local``) are converted when the
@@ -94,27 +97,35 @@ class Calibration:
             if gyro_unit == "rad/s" and self.gyro_unit == "deg/s":
                 G = G * (180.0 / np.pi)
             else:
-                raise RawUnitError(f"gyro data in {gyro_unit!r}, calibration expects "
-                                   f"{self.gyro_unit!r}")
+                raise RawUnitError(f"gyro data in {gyro_unit!r}, calibration expects {self.gyro_unit!r}")
         if accel_unit is not None and accel_unit != self.accel_unit:
             if accel_unit == "m/s^2" and self.accel_unit == "g":
                 A = A / self.g_local
             else:
-                raise RawUnitError(f"accelerometer data in {accel_unit!r}, calibration "
-                                   f"expects {self.accel_unit!r}")
+                raise RawUnitError(
+                    f"accelerometer data in {accel_unit!r}, calibration expects {self.accel_unit!r}"
+                )
         elif accel_unit is None and self.accel_unit == "g" and A.size:
             norm = float(np.nanmedian(np.linalg.norm(A, axis=1)))
             if 0.8 * self.g_local <= norm <= 1.25 * self.g_local:
                 raise RawUnitError(
                     f"accelerometer data have a median norm of {norm:.3g}: that is gravity "
                     f"in m/s^2, and this calibration expects g; pass accel_unit='m/s^2' (or "
-                    f"'g' if the data really are in g)")
+                    f"'g' if the data really are in g)"
+                )
         return G, A
 
-    def apply(self, G: np.ndarray, A: np.ndarray, dwdt: np.ndarray | None = None,
-              temp_c: np.ndarray | None = None, t: np.ndarray | None = None,
-              iterations: int = 2, gyro_unit: str | None = None,
-              accel_unit: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def apply(
+        self,
+        G: np.ndarray,
+        A: np.ndarray,
+        dwdt: np.ndarray | None = None,
+        temp_c: np.ndarray | None = None,
+        t: np.ndarray | None = None,
+        iterations: int = 2,
+        gyro_unit: str | None = None,
+        accel_unit: str | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Calibrated rate (deg/s) and specific force (g), rows of raw samples or step means.
 
         ``gyro_unit`` / ``accel_unit``: the units of ``G`` and ``A``, checked against the
@@ -137,8 +148,9 @@ class Calibration:
             w, f = w_aff - err[:, :3], f_aff - err[:, 3:]
         return w, f
 
-    def predict_raw(self, w: np.ndarray, f: np.ndarray, dwdt=None, temp_c=None, t=None
-                    ) -> tuple[np.ndarray, np.ndarray]:
+    def predict_raw(
+        self, w: np.ndarray, f: np.ndarray, dwdt=None, temp_c=None, t=None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The calibration run as a simulation: raw outputs it expects for a motion."""
         w = np.atleast_2d(w)
         f = np.atleast_2d(f)

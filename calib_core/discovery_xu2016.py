@@ -18,6 +18,7 @@ and *other* published numbers, not used in that fit, test the explanation.
 ``python docs/model_discovery_figures.py xu2016`` regenerates the numbers of
 docs/model-discovery.md. Pure numerics.
 """
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -40,13 +41,20 @@ def _steps():
 
 
 def _quiet(truth):
-    return replace(truth, gyro_noise_dps=1e-9, gyro_bias_instability_dps=0.0,
-                   gyro_bias_repeatability_dps=0.0, accel_noise_g=1e-9,
-                   accel_bias_instability_g=0.0, accel_bias_repeatability_g=0.0)
+    return replace(
+        truth,
+        gyro_noise_dps=1e-9,
+        gyro_bias_instability_dps=0.0,
+        gyro_bias_repeatability_dps=0.0,
+        accel_noise_g=1e-9,
+        accel_bias_instability_g=0.0,
+        accel_bias_repeatability_g=0.0,
+    )
 
 
-def table3(truth, rng: np.random.Generator | None = None, reps: int = 1
-           ) -> dict[tuple[str, str, str], tuple[float, float]]:
+def table3(
+    truth, rng: np.random.Generator | None = None, reps: int = 1
+) -> dict[tuple[str, str, str], tuple[float, float]]:
     """(input axis, method, output axis) -> (min, max) error over the verification sweep and
     the repetitions, with the xu2016 fit of each repetition applied to its own sweep."""
     rng = rng or np.random.default_rng(0)
@@ -54,8 +62,7 @@ def table3(truth, rng: np.random.Generator | None = None, reps: int = 1
     out: dict[tuple[str, str, str], list[float]] = {}
     for r in range(reps):
         tr = simulator.draw_repetition_truth(truth, rng)
-        sm = simulator.simulate_step_means(tr, steps, rng, RATE_HZ,
-                                           key=SessionKey("xu2016", "MIMU", r + 1))
+        sm = simulator.simulate_step_means(tr, steps, rng, RATE_HZ, key=SessionKey("xu2016", "MIMU", r + 1))
         g = xu2016.fit_gyro_multirate(sm)
         df = xu2016.compensation_errors(sm, g, None, tests=("verification",))
         for row in df.itertuples():
@@ -105,7 +112,7 @@ def fit_axis_nonlinearity(axis: str, c_sign: float) -> dict[str, Any]:
         return _range(t3, axis, "proposed") - target
 
     even, odd = target.mean(), (target[1] - target[0]) / 2
-    start = [even / fs ** 2, c_sign * odd / (0.3 * fs ** 3)]
+    start = [even / fs**2, c_sign * odd / (0.3 * fs**3)]
     sol = optimize.least_squares(resid, start, diff_step=1e-3, xtol=1e-12, ftol=1e-12)
     return {"q": float(sol.x[0]), "c": float(sol.x[1]), "misfit_deg_s": sol.fun.tolist()}
 
@@ -121,11 +128,18 @@ def axis_hypotheses(axis: str) -> list[dict[str, Any]]:
         unc = _range(t3, axis, "uncompensated")
         gap_lin = float(np.abs(lin - pub_unc).sum())
         gap_ext = float(np.abs(unc - pub_unc).sum())
-        h.update({"axis": axis, "compensated": _range(t3, axis, "proposed").tolist(),
-                  "uncompensated": unc.tolist(), "uncompensated_linear": lin.tolist(),
-                  "uncompensated_published": pub_unc.tolist(),
-                  "gap_linear": gap_lin, "gap_extended": gap_ext,
-                  "gap_closed": 1.0 - gap_ext / gap_lin if gap_lin > 0 else float("nan")})
+        h.update(
+            {
+                "axis": axis,
+                "compensated": _range(t3, axis, "proposed").tolist(),
+                "uncompensated": unc.tolist(),
+                "uncompensated_linear": lin.tolist(),
+                "uncompensated_published": pub_unc.tolist(),
+                "gap_linear": gap_lin,
+                "gap_extended": gap_ext,
+                "gap_closed": 1.0 - gap_ext / gap_lin if gap_lin > 0 else float("nan"),
+            }
+        )
         out.append(h)
     return out
 
@@ -140,8 +154,11 @@ def step_noise_from_table3() -> dict[str, float]:
     x/y input (+/-300 deg/s, where no scale effect of that axis is excited): range / d2."""
     t = PUBLISHED_TABLE3
     rng_of = lambda inp, j: t[inp]["proposed"][j][1] - t[inp]["proposed"][j][0]  # noqa: E731
-    return {"x": rng_of("y", 0) / D2_15, "y": rng_of("x", 1) / D2_15,
-            "z": min(rng_of("x", 2), rng_of("y", 2)) / D2_15}
+    return {
+        "x": rng_of("y", 0) / D2_15,
+        "y": rng_of("x", 1) / D2_15,
+        "z": min(rng_of("x", 2), rng_of("y", 2)) / D2_15,
+    }
 
 
 def bias_spreads() -> list[dict[str, Any]]:
@@ -160,16 +177,30 @@ def bias_spreads() -> list[dict[str, Any]]:
         detr = v - X @ coef
         sd_detr = float(np.sqrt(detr @ detr / 3))
         r2 = float(1 - (detr @ detr) / ((v - v.mean()) @ (v - v.mean())))
-        rows.append({"axis": a, "published_sd": sd, "step_noise": sigma[a],
-                     "noise_sd_of_w0": white, "ratio": sd / white,
-                     "drift_per_rep": float(coef[1]), "drift_r2": r2, "sd_after_drift": sd_detr,
-                     "ratio_after_drift": sd_detr / white,
-                     "repeatability": float(np.sqrt(max(min(sd, sd_detr) ** 2 - white ** 2, 0)))})
+        rows.append(
+            {
+                "axis": a,
+                "published_sd": sd,
+                "step_noise": sigma[a],
+                "noise_sd_of_w0": white,
+                "ratio": sd / white,
+                "drift_per_rep": float(coef[1]),
+                "drift_r2": r2,
+                "sd_after_drift": sd_detr,
+                "ratio_after_drift": sd_detr / white,
+                "repeatability": float(np.sqrt(max(min(sd, sd_detr) ** 2 - white**2, 0))),
+            }
+        )
     k33 = np.array(PUBLISHED_TABLE1["k_g33"][:5])
     w0y = np.array(PUBLISHED_TABLE1["w0_y"][:5])
-    rows.append({"axis": "k_g33", "published_sd": float(k33.std(ddof=1)),
-                 "drift_per_rep": float(np.polyfit(rep, k33, 1)[0]),
-                 "correlation_with_w0_y": float(np.corrcoef(k33, w0y)[0, 1])})
+    rows.append(
+        {
+            "axis": "k_g33",
+            "published_sd": float(k33.std(ddof=1)),
+            "drift_per_rep": float(np.polyfit(rep, k33, 1)[0]),
+            "correlation_with_w0_y": float(np.corrcoef(k33, w0y)[0, 1]),
+        }
+    )
     return rows
 
 
@@ -193,10 +224,23 @@ def gap_analysis() -> dict[str, Any]:
                 k = (inp, method, out)
                 lin, ex = np.array(t_lin[k]), np.array(t_ext[k])
                 gl, ge = float(np.abs(lin - pub).sum()), float(np.abs(ex - pub).sum())
-                rows.append({"input": inp, "method": method, "output": out,
-                             "published": pub.tolist(), "linear": lin.tolist(),
-                             "extended": ex.tolist(), "gap_linear": gl, "gap_extended": ge,
-                             "closed": (1 - ge / gl) if gl > 0 else float("nan")})
-    return {"hypotheses": hyps, "theta": dict(zip(get_effect("gyro_scale_nonlinearity").param_names,
-                                                  theta.tolist())),
-            "K_g_linear_truth": ext.K_g.tolist(), "table3": rows, "bias": bias_spreads()}
+                rows.append(
+                    {
+                        "input": inp,
+                        "method": method,
+                        "output": out,
+                        "published": pub.tolist(),
+                        "linear": lin.tolist(),
+                        "extended": ex.tolist(),
+                        "gap_linear": gl,
+                        "gap_extended": ge,
+                        "closed": (1 - ge / gl) if gl > 0 else float("nan"),
+                    }
+                )
+    return {
+        "hypotheses": hyps,
+        "theta": dict(zip(get_effect("gyro_scale_nonlinearity").param_names, theta.tolist())),
+        "K_g_linear_truth": ext.K_g.tolist(),
+        "table3": rows,
+        "bias": bias_spreads(),
+    }

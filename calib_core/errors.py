@@ -1,4 +1,5 @@
 """Numerical failures of the estimators. The caller (schemas/flows) attaches the session."""
+
 from __future__ import annotations
 
 

@@ -26,10 +26,11 @@ m/s^2 input by the same value, so ``K_a`` here equals imucal's ``inv(R_a) inv(K_
 ``9.81 * f0`` its ``-inv(R_a) inv(K_a) b_a``: the calibrated outputs agree to rounding.
 Inverses are solves (``np.linalg.solve``) on 3x3 systems.
 """
+
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 
@@ -63,27 +64,38 @@ class FerrarisFit:
         for name, v in self.pose_f.items():
             i = "xyz".index(name[0])
             off.append(np.abs(np.delete(v, i)).max())
-        return {"static_norm_err_max_mg": float(1e3 * np.abs(norms - 1).max()),
-                "static_offaxis_max_mg": float(1e3 * max(off)),
-                "static_rate_max_dps": float(max(np.abs(v).max() for v in self.pose_w.values()))}
+        return {
+            "static_norm_err_max_mg": float(1e3 * np.abs(norms - 1).max()),
+            "static_offaxis_max_mg": float(1e3 * max(off)),
+            "static_rate_max_dps": float(max(np.abs(v).max() for v in self.pose_w.values())),
+        }
 
 
 def _check_sections(sections: Mapping[str, tuple[int, int]], n: int) -> None:
     missing = [s for s in FERRARIS_SECTIONS if s not in sections]
     if missing:
-        raise DesignError("E_FERRARIS_SECTIONS", f"section list lacks {', '.join(missing)}",
-                          undetermined=tuple(missing))
+        raise DesignError(
+            "E_FERRARIS_SECTIONS", f"section list lacks {', '.join(missing)}", undetermined=tuple(missing)
+        )
     for name in FERRARIS_SECTIONS:
         a, b = sections[name]
         if not (0 <= a < b <= n):
-            raise DesignError("E_FERRARIS_SECTIONS",
-                              f"section {name} = [{a}, {b}) is empty or outside 0..{n}")
+            raise DesignError(
+                "E_FERRARIS_SECTIONS", f"section {name} = [{a}, {b}) is empty or outside 0..{n}"
+            )
 
 
-def ferraris_calibration(G: np.ndarray, A: np.ndarray, sections: Mapping[str, tuple[int, int]],
-                         rate_hz: float, expected_angle_deg: float = -360.0,
-                         gyro_unit: str = "deg/s", accel_unit: str = "g",
-                         g_local: float = 9.81, metadata: dict | None = None) -> FerrarisFit:
+def ferraris_calibration(
+    G: np.ndarray,
+    A: np.ndarray,
+    sections: Mapping[str, tuple[int, int]],
+    rate_hz: float,
+    expected_angle_deg: float = -360.0,
+    gyro_unit: str = "deg/s",
+    accel_unit: str = "g",
+    g_local: float = 9.81,
+    metadata: dict | None = None,
+) -> FerrarisFit:
     """Ferraris calibration of raw gyro ``G`` (n, 3) and raw accel ``A`` (n, 3, in ``g`` or a
     raw unit) from the section list; returns a :class:`FerrarisFit` whose ``calibration`` has
     ``kind="ferraris"``. ``g_local`` is only stored (for m/s^2 output); the fit is in g."""
@@ -99,15 +111,20 @@ def ferraris_calibration(G: np.ndarray, A: np.ndarray, sections: Mapping[str, tu
     U_d = U_p - U_n
     cond = np.linalg.cond(U_d)
     if not np.isfinite(cond) or cond > 1e8:
-        raise DesignError("E_FERRARIS_POSES", f"static poses do not span three axes (cond {cond:.3g})",
-                          undetermined=("K_a",))
+        raise DesignError(
+            "E_FERRARIS_POSES",
+            f"static poses do not span three axes (cond {cond:.3g})",
+            undetermined=("K_a",),
+        )
     K_a = np.linalg.solve(U_d.T, 2.0 * np.eye(3)).T  # K_a U_d = 2 I
     b_a = np.diag(U_p + U_n) / 2.0
     f0 = -K_a @ b_a
 
     b_g = np.vstack([G[sl[k]] for k in STATIC_SECTIONS]).mean(axis=0)
-    S = (np.column_stack([mean_g[f"{ax}_p"] for ax in "xyz"])
-         - np.column_stack([mean_g[f"{ax}_a"] for ax in "xyz"])) / 2.0
+    S = (
+        np.column_stack([mean_g[f"{ax}_p"] for ax in "xyz"])
+        - np.column_stack([mean_g[f"{ax}_a"] for ax in "xyz"])
+    ) / 2.0
 
     W = np.zeros((3, 3))
     for j, name in enumerate(ROTATION_SECTIONS):
@@ -121,12 +138,24 @@ def ferraris_calibration(G: np.ndarray, A: np.ndarray, sections: Mapping[str, tu
     # A_g); the body-frame rate error K_g S f is A_g^-1 (A_g K_g S) f
     A_g = SensingGeometry.from_gains(K_g, K_a).gyro_axes
     term = TermValue("gyro_g_sensitivity", (A_g @ K_g @ S).reshape(-1))
-    cal = Calibration(K_g=K_g, w0=w0, K_a=K_a, f0=f0, gyro_unit=gyro_unit, accel_unit=accel_unit,
-                      terms=(term,), g_local=g_local, kind="ferraris",
-                      metadata={"method": "Ferraris et al. 1995 (imucal's equations)",
-                                "expected_angle_deg": expected_angle_deg, "rate_hz": rate_hz,
-                                "sections": {k: list(map(int, v)) for k, v in sections.items()},
-                                **(metadata or {})})
+    cal = Calibration(
+        K_g=K_g,
+        w0=w0,
+        K_a=K_a,
+        f0=f0,
+        gyro_unit=gyro_unit,
+        accel_unit=accel_unit,
+        terms=(term,),
+        g_local=g_local,
+        kind="ferraris",
+        metadata={
+            "method": "Ferraris et al. 1995 (imucal's equations)",
+            "expected_angle_deg": expected_angle_deg,
+            "rate_hz": rate_hz,
+            "sections": {k: list(map(int, v)) for k, v in sections.items()},
+            **(metadata or {}),
+        },
+    )
 
     pose_f, pose_w = {}, {}
     for k in STATIC_SECTIONS:
@@ -139,8 +168,9 @@ def ferraris_calibration(G: np.ndarray, A: np.ndarray, sections: Mapping[str, tu
     return FerrarisFit(cal, b_a, b_g, S, W, pose_f, pose_w, angles)
 
 
-def section_pose_means(t: np.ndarray, G: np.ndarray, A: np.ndarray,
-                       sections: Mapping[str, tuple[int, int]], trim: int = 0):
+def section_pose_means(
+    t: np.ndarray, G: np.ndarray, A: np.ndarray, sections: Mapping[str, tuple[int, int]], trim: int = 0
+):
     """Raw means per static section of a Ferraris session (name, start, end, count, t_mid,
     gx..az and their std), for model discovery on real data; see
     :func:`calib_core.static_detection.static_pose_means`."""

@@ -29,6 +29,7 @@ The result is expressed in the affine form of :class:`calib_core.calibration.Cal
 Differences from IMU-TK: rotations are integrated with the exact exponential of each sample's
 rate over its own time step (IMU-TK uses Runge-Kutta 4 on quaternions with a fixed dt).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -40,8 +41,13 @@ from scipy.optimize import least_squares
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import SensingGeometry
 from calib_core.errors import DesignError
-from calib_core.static_detection import (StaticDetection, central_samples, detect_static, runs_of,
-                                         static_pose_means)
+from calib_core.static_detection import (
+    StaticDetection,
+    central_samples,
+    detect_static,
+    runs_of,
+    static_pose_means,
+)
 
 ACCEL_PARAM_NAMES = ("a_yz", "a_zy", "a_zx", "s_ax", "s_ay", "s_az", "b_ax", "b_ay", "b_az")
 GYRO_PARAM_NAMES = ("g_yz", "g_zy", "g_zx", "g_xz", "g_xy", "g_yx", "s_gx", "s_gy", "s_gz")
@@ -111,9 +117,17 @@ def _initial_accel_guess(A, init_bias, init_scale, g_local, intervals):
     return np.concatenate([np.zeros(3), s, b])
 
 
-def calibrate_accel_field(A: np.ndarray, g_local: float, init_samples: int, window: int = 101,
-                          multipliers=range(2, 11), interval_samples: int = 100,
-                          min_intervals: int = 12, init_bias=None, init_scale=None) -> AccelFieldFit:
+def calibrate_accel_field(
+    A: np.ndarray,
+    g_local: float,
+    init_samples: int,
+    window: int = 101,
+    multipliers=range(2, 11),
+    interval_samples: int = 100,
+    min_intervals: int = 12,
+    init_bias=None,
+    init_scale=None,
+) -> AccelFieldFit:
     """IMU-TK's ``calibrateAcc``: scan threshold multipliers, keep the lowest-cost fit."""
     A = np.asarray(A, float)
     best = None
@@ -127,12 +141,14 @@ def calibrate_accel_field(A: np.ndarray, g_local: float, init_samples: int, wind
         p, cost, r = fit_accel_field(A, ext, g_local, x0)
         costs[int(k)] = cost
         if best is None or cost < best[1]:
-            best = (p, cost, int(k), det, tuple(ext), float(np.sqrt(np.mean(r ** 2))))
+            best = (p, cost, int(k), det, tuple(ext), float(np.sqrt(np.mean(r**2))))
     if best is None:
-        raise DesignError("E_FIELD_TOO_FEW_POSES",
-                          f"fewer than {min_intervals} static poses of >= {interval_samples} samples "
-                          f"found with threshold multipliers {list(multipliers)}",
-                          undetermined=ACCEL_PARAM_NAMES)
+        raise DesignError(
+            "E_FIELD_TOO_FEW_POSES",
+            f"fewer than {min_intervals} static poses of >= {interval_samples} samples "
+            f"found with threshold multipliers {list(multipliers)}",
+            undetermined=ACCEL_PARAM_NAMES,
+        )
     return AccelFieldFit(best[0], best[1], best[2], best[3], best[4], best[5], costs)
 
 
@@ -140,10 +156,15 @@ def calibrate_accel_field(A: np.ndarray, g_local: float, init_samples: int, wind
 def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
 
 
 def _quat_from_rotvec(v: np.ndarray) -> np.ndarray:
@@ -173,7 +194,7 @@ class SegmentIntegrator:
             for c in range(a, max(b, a + 1), chunk):
                 r = np.full(chunk, -1)
                 stop = min(c + chunk, b)
-                r[:max(stop - c, 0)] = np.arange(c, stop)
+                r[: max(stop - c, 0)] = np.arange(c, stop)
                 rows.append(r)
                 owner.append(i)
         self.idx = np.array(rows)
@@ -184,7 +205,7 @@ class SegmentIntegrator:
         width = 1 << int(np.ceil(np.log2(max(per_seg.max(), 1))))
         self.chunk_pos = np.full((n_seg, width), -1)
         for i in range(n_seg):
-            self.chunk_pos[i, :per_seg[i]] = np.flatnonzero(owner == i)
+            self.chunk_pos[i, : per_seg[i]] = np.flatnonzero(owner == i)
 
     @staticmethod
     def _reduce(q: np.ndarray) -> np.ndarray:
@@ -212,8 +233,9 @@ def gravity_directions(A: np.ndarray, accel_params: np.ndarray, extracted) -> np
     return u / np.linalg.norm(u, axis=1, keepdims=True)
 
 
-def transition_angles_deg(gyro_params: np.ndarray, G_unbiased: np.ndarray, integ: SegmentIntegrator,
-                          u: np.ndarray) -> np.ndarray:
+def transition_angles_deg(
+    gyro_params: np.ndarray, G_unbiased: np.ndarray, integ: SegmentIntegrator, u: np.ndarray
+) -> np.ndarray:
     """Angle between the gravity direction predicted by the gyro and the one measured, per
     transition (deg)."""
     q = integ.rotations(G_unbiased @ gyro_matrix(gyro_params).T)
@@ -236,20 +258,25 @@ class GyroFieldFit:
         return gyro_matrix(self.params)
 
 
-def fit_gyro_field(t, G, A, accel_params, extracted, bias, init_scale=None,
-                   use: np.ndarray | None = None) -> GyroFieldFit:
+def fit_gyro_field(
+    t, G, A, accel_params, extracted, bias, init_scale=None, use: np.ndarray | None = None
+) -> GyroFieldFit:
     """Fit the 9 gyro parameters on the transitions selected by ``use`` (default all)."""
     G0 = np.asarray(G, float) - bias
     u = gravity_directions(np.asarray(A, float), accel_params, extracted)
     segs = transition_segments(extracted)
     if len(segs) < 3:
-        raise DesignError("E_FIELD_TOO_FEW_POSES", f"{len(segs)} transitions: need at least 3",
-                          undetermined=GYRO_PARAM_NAMES)
+        raise DesignError(
+            "E_FIELD_TOO_FEW_POSES",
+            f"{len(segs)} transitions: need at least 3",
+            undetermined=GYRO_PARAM_NAMES,
+        )
     integ = SegmentIntegrator(t, segs)
     use = np.ones(len(segs), bool) if use is None else np.asarray(use, bool)
     if 3 * use.sum() < 9:
-        raise DesignError("E_FIELD_TOO_FEW_POSES", "fewer than 3 transitions selected",
-                          undetermined=GYRO_PARAM_NAMES)
+        raise DesignError(
+            "E_FIELD_TOO_FEW_POSES", "fewer than 3 transitions selected", undetermined=GYRO_PARAM_NAMES
+        )
 
     def resid(p):
         q = integ.rotations(G0 @ gyro_matrix(p).T)
@@ -261,9 +288,14 @@ def fit_gyro_field(t, G, A, accel_params, extracted, bias, init_scale=None,
         init_scale = grid[int(np.argmin(costs))]
     x0 = np.r_[np.zeros(6), np.broadcast_to(np.asarray(init_scale, float), (3,))]
     sol = least_squares(resid, x0, method="lm", x_scale="jac")
-    return GyroFieldFit(sol.x, np.asarray(bias, float), float(sol.cost), use,
-                        transition_angles_deg(x0, G0, integ, u),
-                        transition_angles_deg(sol.x, G0, integ, u))
+    return GyroFieldFit(
+        sol.x,
+        np.asarray(bias, float),
+        float(sol.cost),
+        use,
+        transition_angles_deg(x0, G0, integ, u),
+        transition_angles_deg(sol.x, G0, integ, u),
+    )
 
 
 # --- the whole calibration ----------------------------------------------------------------
@@ -286,16 +318,30 @@ def static_norm_stats(A, accel_M, accel_b, extracted, g_local) -> dict[str, floa
     """|f| of the static samples used: RMS error vs g (mg) and relative spread (std/mean)."""
     X = np.asarray(A, float)[_samples_of(extracted)]
     n = np.linalg.norm((X - accel_b) @ np.asarray(accel_M).T, axis=1)
-    return {"norm_rms_err_mg": float(1e3 * np.sqrt(np.mean((n / g_local - 1) ** 2))),
-            "norm_rel_std": float(np.std(n) / np.mean(n))}
+    return {
+        "norm_rms_err_mg": float(1e3 * np.sqrt(np.mean((n / g_local - 1) ** 2))),
+        "norm_rel_std": float(np.std(n) / np.mean(n)),
+    }
 
 
-def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, window: int = 101,
-                      interval_samples: int = 100, min_intervals: int = 12,
-                      multipliers=range(2, 11), init_acc_bias=None, init_acc_scale=None,
-                      init_gyro_scale=None, gyro_unit: str = "LSB", accel_unit: str = "LSB",
-                      gyro_g_sensitivity: bool = False,
-                      metadata: dict | None = None) -> FieldCalibrationResult:
+def field_calibration(
+    t,
+    G,
+    A,
+    g_local: float,
+    init_static_s: float = 50.0,
+    window: int = 101,
+    interval_samples: int = 100,
+    min_intervals: int = 12,
+    multipliers=range(2, 11),
+    init_acc_bias=None,
+    init_acc_scale=None,
+    init_gyro_scale=None,
+    gyro_unit: str = "LSB",
+    accel_unit: str = "LSB",
+    gyro_g_sensitivity: bool = False,
+    metadata: dict | None = None,
+) -> FieldCalibrationResult:
     """Tedaldi 2014 / IMU-TK calibration of a hand-moved multi-pose recording.
 
     ``A`` raw accel (any unit; the fit outputs m/s^2 with ``g_local``), ``G`` raw gyro;
@@ -314,18 +360,29 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
     A = np.asarray(A, float)
     init_samples = int(np.searchsorted(t, t[0] + init_static_s))
     if init_samples < window:
-        raise DesignError("E_FIELD_INIT_PERIOD", f"initial static period of {init_static_s} s has "
-                          f"{init_samples} samples, fewer than the window ({window})")
-    acc = calibrate_accel_field(A, g_local, init_samples, window, multipliers, interval_samples,
-                                min_intervals, init_acc_bias, init_acc_scale)
+        raise DesignError(
+            "E_FIELD_INIT_PERIOD",
+            f"initial static period of {init_static_s} s has "
+            f"{init_samples} samples, fewer than the window ({window})",
+        )
+    acc = calibrate_accel_field(
+        A,
+        g_local,
+        init_samples,
+        window,
+        multipliers,
+        interval_samples,
+        min_intervals,
+        init_acc_bias,
+        init_acc_scale,
+    )
     M_a, b_a = accel_matrix(acc.params)
     K_a = M_a / g_local
     f_all = (A - b_a) @ K_a.T  # calibrated specific force, g, every sample
     S_raw = None
     # where the gyro is quiet too: a slow turn about the vertical leaves the accelerometer
     # static but would put rotation rate into a pose's gyro mean
-    gyro_quiet = detect_static(G, window=window, multiplier=acc.multiplier,
-                               init_samples=init_samples).mask
+    gyro_quiet = detect_static(G, window=window, multiplier=acc.multiplier, init_samples=init_samples).mask
     quiet = [(a, b) for a, b in runs_of(acc.detection.mask & gyro_quiet) if b - a >= window]
     if gyro_g_sensitivity:
         bias_g, S_raw = fit_static_gyro_g_sensitivity(G, f_all, quiet)
@@ -338,24 +395,37 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
     # the catalogue's g-sensitivity is per gyro (own sensing direction, rows of A_g): the
     # body-frame rate error K_g S_raw f is A_g^-1 (A_g K_g S_raw) f
     A_g = SensingGeometry.from_gains(K_g, K_a).gyro_axes
-    terms = () if S_raw is None else (
-        TermValue("gyro_g_sensitivity", (A_g @ K_g @ S_raw).reshape(-1)),)
-    cal = Calibration(K_g=K_g, w0=-K_g @ bias_g, K_a=K_a, f0=-K_a @ b_a, gyro_unit=gyro_unit,
-                      accel_unit=accel_unit, g_local=g_local, kind="field", terms=terms,
-                      metadata={"method": "Tedaldi, Pretto, Menegatti 2014 (IMU-TK)",
-                                "threshold_multiplier": acc.multiplier,
-                                "n_static_poses": len(acc.extracted),
-                                "init_static_s": init_static_s,
-                                "gyro_bias_from": ("static poses, with g-sensitivity" if gyro_g_sensitivity
-                                                   else "initial static period"),
-                                **(metadata or {})})
+    terms = () if S_raw is None else (TermValue("gyro_g_sensitivity", (A_g @ K_g @ S_raw).reshape(-1)),)
+    cal = Calibration(
+        K_g=K_g,
+        w0=-K_g @ bias_g,
+        K_a=K_a,
+        f0=-K_a @ b_a,
+        gyro_unit=gyro_unit,
+        accel_unit=accel_unit,
+        g_local=g_local,
+        kind="field",
+        terms=terms,
+        metadata={
+            "method": "Tedaldi, Pretto, Menegatti 2014 (IMU-TK)",
+            "threshold_multiplier": acc.multiplier,
+            "n_static_poses": len(acc.extracted),
+            "init_static_s": init_static_s,
+            "gyro_bias_from": (
+                "static poses, with g-sensitivity" if gyro_g_sensitivity else "initial static period"
+            ),
+            **(metadata or {}),
+        },
+    )
     # initial-guess reference for the |f| spread: isotropic, no misalignment
     x0 = _initial_accel_guess(A, init_acc_bias, init_acc_scale, g_local, acc.extracted)
     before = static_norm_stats(A, accel_matrix(x0)[0], x0[6:9], acc.extracted, g_local)
     after = static_norm_stats(A, M_a, b_a, acc.extracted, g_local)
     stats = {
-        "n_static_poses": len(acc.extracted), "threshold_multiplier": acc.multiplier,
-        "threshold": acc.detection.threshold, "noise_floor": acc.detection.noise_floor,
+        "n_static_poses": len(acc.extracted),
+        "threshold_multiplier": acc.multiplier,
+        "threshold": acc.detection.threshold,
+        "noise_floor": acc.detection.noise_floor,
         "accel_norm_rms_err_mg_initial": before["norm_rms_err_mg"],
         "accel_norm_rms_err_mg": after["norm_rms_err_mg"],
         "accel_norm_rel_std_initial": before["norm_rel_std"],
@@ -369,7 +439,7 @@ def field_calibration(t, G, A, g_local: float, init_static_s: float = 50.0, wind
     means = static_pose_means(t, G, A, quiet)
     if len(means):
         w_pose, _ = cal.apply(means[["gx", "gy", "gz"]].to_numpy(), means[["ax", "ay", "az"]].to_numpy())
-        stats["gyro_static_rate_rms_dps"] = float(np.sqrt(np.mean(w_pose ** 2)))
+        stats["gyro_static_rate_rms_dps"] = float(np.sqrt(np.mean(w_pose**2)))
     stats["n_quiet_poses"] = int(len(means))
     return FieldCalibrationResult(cal, acc, gyro, means, stats)
 
@@ -382,8 +452,11 @@ def fit_static_gyro_g_sensitivity(G: np.ndarray, f: np.ndarray, intervals) -> tu
     fm = np.array([np.asarray(f)[a:b].mean(axis=0) for a, b in intervals])
     X = np.column_stack([np.ones(len(fm)), fm])
     if len(fm) < 5 or np.linalg.matrix_rank(X, tol=1e-3 * np.sqrt(len(fm))) < 4:
-        raise DesignError("E_FIELD_G_SENSITIVITY", f"{len(fm)} static poses do not determine a "
-                          "gyro g-sensitivity (need >= 5 with gravity directions spanning 3-D)",
-                          undetermined=("gyro_g_sensitivity",))
+        raise DesignError(
+            "E_FIELD_G_SENSITIVITY",
+            f"{len(fm)} static poses do not determine a "
+            "gyro g-sensitivity (need >= 5 with gravity directions spanning 3-D)",
+            undetermined=("gyro_g_sensitivity",),
+        )
     coef, *_ = np.linalg.lstsq(X, Gm, rcond=None)
     return coef[0], coef[1:].T

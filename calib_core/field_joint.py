@@ -39,6 +39,7 @@ per move the angle between the gravity direction the gyro predicts and the one m
 (deg). :func:`held_out_figures` recomputes them on poses/moves left out of the fit
 (k-fold over poses for the accelerometer, over moves for the gyro).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -92,20 +93,25 @@ def pose_means(t, G, A, poses: tuple[Pose, ...] | list[Pose], corr_samples: int 
     samples closer than ``corr_samples`` (the detector's window) are not counted as
     independent; a long rest gets a small error, a wobbly hold a large one."""
     t, G, A = (np.asarray(x, float) for x in (t, G, A))
+
     def se_of(X):
-        return np.array([X[p.start:p.end].std(axis=0, ddof=1) / np.sqrt(max(len(p) / corr_samples, 1.0))
-                         for p in poses]).reshape(-1, 3)
+        return np.array(
+            [X[p.start : p.end].std(axis=0, ddof=1) / np.sqrt(max(len(p) / corr_samples, 1.0)) for p in poses]
+        ).reshape(-1, 3)
+
     se = se_of(G)
     return PoseMeans(
-        accel=np.array([A[p.start:p.end].mean(axis=0) for p in poses]).reshape(-1, 3),
-        gyro=np.array([G[p.start:p.end].mean(axis=0) for p in poses]).reshape(-1, 3),
-        t_mean=np.array([t[p.start:p.end].mean() for p in poses]),
+        accel=np.array([A[p.start : p.end].mean(axis=0) for p in poses]).reshape(-1, 3),
+        gyro=np.array([G[p.start : p.end].mean(axis=0) for p in poses]).reshape(-1, 3),
+        t_mean=np.array([t[p.start : p.end].mean() for p in poses]),
         mid=np.array([p.mid for p in poses], int),
         start=np.array([p.start for p in poses], int),
         end=np.array([p.end for p in poses], int),
         count=np.array([len(p) for p in poses], int),
         gyro_quiet=np.array([p.gyro_quiet for p in poses], bool),
-        gyro_se=np.maximum(se, 1e-12), accel_se=np.maximum(se_of(A), 1e-12))
+        gyro_se=np.maximum(se, 1e-12),
+        accel_se=np.maximum(se_of(A), 1e-12),
+    )
 
 
 def _covariance(sol, n_params: int) -> np.ndarray:
@@ -113,14 +119,11 @@ def _covariance(sol, n_params: int) -> np.ndarray:
     m = sol.fun.size
     if m <= n_params:
         return np.full((n_params, n_params), np.nan)
-    s2 = float(np.sum(sol.fun ** 2)) / (m - n_params)
+    s2 = float(np.sum(sol.fun**2)) / (m - n_params)
     try:
         return np.linalg.inv(sol.jac.T @ sol.jac) * s2
     except np.linalg.LinAlgError:
         return np.full((n_params, n_params), np.nan)
-
-
-
 
 
 # --- accelerometer ------------------------------------------------------------------------
@@ -133,13 +136,17 @@ class AccelPoseFit:
     cov: np.ndarray | None = None
 
 
-def initial_accel_params(accel_means: np.ndarray, g_local: float, scale: float | None = None,
-                         bias=None) -> np.ndarray:
+def initial_accel_params(
+    accel_means: np.ndarray, g_local: float, scale: float | None = None, bias=None
+) -> np.ndarray:
     """Starting point: no misalignment; bias the centre of the poses' range per axis (or
     given); scale given (m/s^2 per count, e.g. from the full-scale range) or from the median
     radius of the poses around that centre."""
-    b = 0.5 * (accel_means.max(axis=0) + accel_means.min(axis=0)) if bias is None else \
-        np.broadcast_to(np.asarray(bias, float), (3,)).copy()
+    b = (
+        0.5 * (accel_means.max(axis=0) + accel_means.min(axis=0))
+        if bias is None
+        else np.broadcast_to(np.asarray(bias, float), (3,)).copy()
+    )
     if scale is None:
         scale = g_local / np.median(np.linalg.norm(accel_means - b, axis=1))
     return np.concatenate([np.zeros(3), np.full(3, float(scale)), b])
@@ -162,8 +169,9 @@ def _pose_norm_se_mg(pm: PoseMeans, scale_g_per_unit: float) -> np.ndarray:
     return 1e3 * np.linalg.norm(pm.accel_se, axis=1) / np.sqrt(3) * scale_g_per_unit
 
 
-def fit_accel_poses(pm: PoseMeans, g_local: float, x0: np.ndarray, use=None,
-                    priors: Priors = Priors()) -> AccelPoseFit:
+def fit_accel_poses(
+    pm: PoseMeans, g_local: float, x0: np.ndarray, use=None, priors: Priors = Priors()
+) -> AccelPoseFit:
     """9 accel parameters from the poses' |mean f|, each residual divided by its standard
     error (mg), plus the misalignment prior in the same normalised units; standard errors
     scaled by the residual variance."""
@@ -171,8 +179,11 @@ def fit_accel_poses(pm: PoseMeans, g_local: float, x0: np.ndarray, use=None,
     X = pm.accel[use]
     need = MIN_ACCEL_POSES_WITH_PRIOR if priors.misalignment else MIN_ACCEL_POSES
     if len(X) < need:
-        raise DesignError("E_FIELD_TOO_FEW_POSES", f"{len(X)} static poses: the accelerometer's 9 "
-                          f"parameters need at least {need}", undetermined=ACCEL_PARAM_NAMES)
+        raise DesignError(
+            "E_FIELD_TOO_FEW_POSES",
+            f"{len(X)} static poses: the accelerometer's 9 parameters need at least {need}",
+            undetermined=ACCEL_PARAM_NAMES,
+        )
     se = np.maximum(_pose_norm_se_mg(pm, float(np.mean(x0[3:6])) / g_local)[use], 1e-6)
     mis_sig = priors.misalignment
 
@@ -187,8 +198,7 @@ def fit_accel_poses(pm: PoseMeans, g_local: float, x0: np.ndarray, use=None,
     M, b = accel_matrix(sol.x)
     res_mg = 1e3 * (np.linalg.norm((X - b) @ M.T, axis=1) / g_local - 1)
     cov = _covariance(sol, 9)
-    return AccelPoseFit(sol.x, np.sqrt(np.clip(np.diag(cov), 0, None)), np.asarray(x0, float),
-                        res_mg, cov)
+    return AccelPoseFit(sol.x, np.sqrt(np.clip(np.diag(cov), 0, None)), np.asarray(x0, float), res_mg, cov)
 
 
 def gravity_directions(accel_params: np.ndarray, accel_means: np.ndarray) -> np.ndarray:
@@ -233,7 +243,7 @@ class GyroJointFit:
         if not self.g_sensitivity:
             return np.zeros((3, 3))
         k = 15 if self.drift else 12
-        return self.params[k:k + 9].reshape(3, 3)
+        return self.params[k : k + 9].reshape(3, 3)
 
 
 def moves_of(mid: np.ndarray) -> list[tuple[int, int]]:
@@ -241,8 +251,7 @@ def moves_of(mid: np.ndarray) -> list[tuple[int, int]]:
     return [(int(mid[j]), int(mid[j + 1])) for j in range(len(mid) - 1)]
 
 
-def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, drift: bool,
-                      g_sens: bool):
+def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, drift: bool, g_sens: bool):
     """Residual groups (moves, quiet poses) of the gyro model; ``F`` calibrated specific
     force (g) per sample, used by the g-sensitivity block. ``parts(p, u, F)`` takes other
     gravity directions / specific forces (the accelerometer's uncertainty propagation)."""
@@ -257,14 +266,17 @@ def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, dri
         M = gyro_matrix(p[:9])
         b0 = p[9:12]
         b1 = p[12:15] if drift else np.zeros(3)
-        S = p[k_s:k_s + 9].reshape(3, 3) if g_sens else np.zeros((3, 3))
+        S = p[k_s : k_s + 9].reshape(3, 3) if g_sens else np.zeros((3, 3))
         w = np.zeros((len(G), 3))
         corr = F_[samples] @ S.T if g_sens else 0.0
         w[samples] = (G_s - b0 - t_s[:, None] * b1 - corr) @ M.T
         q = integ.rotations(w)
         r_move = (_rotate_by_conjugate(q[j0], u_[j0]) - u_[j1]).ravel()
-        Fq = (np.array([F_[a:b].mean(axis=0) for a, b in zip(starts, ends)]).reshape(-1, 3)
-              if g_sens else np.zeros((len(Gq), 3)))
+        Fq = (
+            np.array([F_[a:b].mean(axis=0) for a, b in zip(starts, ends)]).reshape(-1, 3)
+            if g_sens
+            else np.zeros((len(Gq), 3))
+        )
         r_quiet = ((Gq - b0 - tq[:, None] * b1 - Fq @ S.T) / se_q).ravel()
         return r_move, r_quiet
 
@@ -274,9 +286,19 @@ def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, dri
 WALD_P = 1e-3  # an optional block is kept when its Wald test rejects "zero" at this level
 
 
-def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: bool | str = "auto",
-                   init_scale: float | None = None, init_bias=None, priors: Priors = Priors(),
-                   g_sensitivity: bool | str = False, F: np.ndarray | None = None) -> GyroJointFit:
+def fit_gyro_joint(
+    t,
+    G,
+    pm: PoseMeans,
+    u: np.ndarray,
+    move_use=None,
+    drift: bool | str = "auto",
+    init_scale: float | None = None,
+    init_bias=None,
+    priors: Priors = Priors(),
+    g_sensitivity: bool | str = False,
+    F: np.ndarray | None = None,
+) -> GyroJointFit:
     """Joint fit of the gyro (see the module docstring). ``move_use`` selects the moves
     fitted (default all). Optional blocks, each True/False or ``"auto"`` (fitted, then kept
     only if its Wald statistic ``x^T Cov^-1 x`` exceeds the chi-square quantile at
@@ -291,12 +313,18 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
     moves = moves_of(pm.mid)
     move_use = np.ones(len(moves), bool) if move_use is None else np.asarray(move_use, bool)
     if move_use.sum() < MIN_MOVES:
-        raise DesignError("E_FIELD_TOO_FEW_POSES", f"{int(move_use.sum())} moves between static poses: "
-                          f"the gyro needs at least {MIN_MOVES}", undetermined=GYRO_PARAM_NAMES)
+        raise DesignError(
+            "E_FIELD_TOO_FEW_POSES",
+            f"{int(move_use.sum())} moves between static poses: the gyro needs at least {MIN_MOVES}",
+            undetermined=GYRO_PARAM_NAMES,
+        )
     quiet_use = pm.gyro_quiet.copy()
     if not quiet_use.any():
-        raise DesignError("E_FIELD_NO_QUIET_POSE", "no pose where the gyro is at rest: the gyro "
-                          "bias is not determined", undetermined=GYRO_BIAS_NAMES)
+        raise DesignError(
+            "E_FIELD_NO_QUIET_POSE",
+            "no pose where the gyro is at rest: the gyro bias is not determined",
+            undetermined=GYRO_BIAS_NAMES,
+        )
     if init_bias is None:
         init_bias = np.average(pm.gyro[quiet_use], axis=0, weights=pm.count[quiet_use])
     b0 = np.broadcast_to(np.asarray(init_bias, float), (3,)).copy()
@@ -333,8 +361,9 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
         return GyroJointFit(**{**fit.__dict__, "wald": wald})
     drift, g_sensitivity = bool(drift), bool(g_sensitivity)
     if drift and n_quiet_times < 2:
-        raise DesignError("E_FIELD_DRIFT", "a bias drift needs at least two gyro-quiet poses",
-                          undetermined=GYRO_DRIFT_NAMES)
+        raise DesignError(
+            "E_FIELD_DRIFT", "a bias drift needs at least two gyro-quiet poses", undetermined=GYRO_DRIFT_NAMES
+        )
     if g_sensitivity and F is None:
         raise ValueError("g_sensitivity needs the calibrated specific force F")
     F = np.zeros((len(G), 3)) if F is None else np.asarray(F, float)
@@ -350,20 +379,26 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
     x = x0
     mis_sig = priors.misalignment
     for _ in range(3):  # variance components: weight each group by its own RMS
+
         def resid(p, sm=sig_m, sq=sig_q):
             rm, rq = parts(p)
             r = [rm / sm, rq / sq]
             if mis_sig:
                 r.append(p[:6] / mis_sig)
             return np.concatenate(r)
+
         sol = least_squares(resid, x, method="lm", x_scale="jac")
         sig_m_used, sig_q_used = sig_m, sig_q
         x = sol.x
         rm, rq = parts(x)
-        sig_m = max(float(np.sqrt(np.mean(rm ** 2))), 1e-9)
-        sig_q = max(float(np.sqrt(np.mean(rq ** 2))), 1e-12)
-    names = (GYRO_PARAM_NAMES + GYRO_BIAS_NAMES + (GYRO_DRIFT_NAMES if drift else ())
-             + (GYRO_G_SENS_NAMES if g_sensitivity else ()))
+        sig_m = max(float(np.sqrt(np.mean(rm**2))), 1e-9)
+        sig_q = max(float(np.sqrt(np.mean(rq**2))), 1e-12)
+    names = (
+        GYRO_PARAM_NAMES
+        + GYRO_BIAS_NAMES
+        + (GYRO_DRIFT_NAMES if drift else ())
+        + (GYRO_G_SENS_NAMES if g_sensitivity else ())
+    )
     cov = _covariance(sol, len(x0))
     sm_final, sq_final = sig_m_used, sig_q_used
 
@@ -371,13 +406,26 @@ def fit_gyro_joint(t, G, pm: PoseMeans, u: np.ndarray, move_use=None, drift: boo
         rm, rq = parts(p, u_, F_)
         return np.concatenate([rm / sm_final, rq / sq_final])
 
-    return GyroJointFit(sol.x, np.sqrt(np.clip(np.diag(cov), 0, None)), names, drift, g_sensitivity,
-                        x0, sig_m, sig_q, int(move_use.sum()), int(quiet_use.sum()), cov=cov,
-                        jac=sol.jac, weighted=weighted)
+    return GyroJointFit(
+        sol.x,
+        np.sqrt(np.clip(np.diag(cov), 0, None)),
+        names,
+        drift,
+        g_sensitivity,
+        x0,
+        sig_m,
+        sig_q,
+        int(move_use.sum()),
+        int(quiet_use.sum()),
+        cov=cov,
+        jac=sol.jac,
+        weighted=weighted,
+    )
 
 
-def _with_accel_uncertainty(gyr: GyroJointFit, acc: AccelPoseFit, A, pm: PoseMeans,
-                            g_local: float) -> GyroJointFit:
+def _with_accel_uncertainty(
+    gyr: GyroJointFit, acc: AccelPoseFit, A, pm: PoseMeans, g_local: float
+) -> GyroJointFit:
     """Gyro covariance including the accelerometer's: the gravity directions (and the
     specific force of the g-sensitivity) come from the accel parameters, so to first order
     ``dx_g = D dx_a`` with ``D = -(J_g^T J_g)^-1 J_g^T J_a`` (``J_a`` by central differences
@@ -399,7 +447,7 @@ def _with_accel_uncertainty(gyr: GyroJointFit, acc: AccelPoseFit, A, pm: PoseMea
         cols.append((r[0] - r[1]) / (2 * h))
     J_g = gyr.jac
     J_a = np.zeros((len(J_g), 9))  # prior rows do not depend on the accel
-    J_a[:len(cols[0])] = np.column_stack(cols)
+    J_a[: len(cols[0])] = np.column_stack(cols)
     try:
         D = -np.linalg.solve(J_g.T @ J_g, J_g.T @ J_a)
     except np.linalg.LinAlgError:
@@ -409,13 +457,21 @@ def _with_accel_uncertainty(gyr: GyroJointFit, acc: AccelPoseFit, A, pm: PoseMea
 
 
 def _covariance_from_stderr(acc: AccelPoseFit) -> np.ndarray:
-    return acc.cov if acc.cov is not None else np.diag(acc.stderr ** 2)
+    return acc.cov if acc.cov is not None else np.diag(acc.stderr**2)
 
 
 # --- the calibration -----------------------------------------------------------------------
-def to_calibration(accel_params, gyro_matrix_rad, bias, drift_per_s, g_local: float,
-                   gyro_unit: str, accel_unit: str, metadata: dict | None = None,
-                   g_sensitivity_raw=None) -> Calibration:
+def to_calibration(
+    accel_params,
+    gyro_matrix_rad,
+    bias,
+    drift_per_s,
+    g_local: float,
+    gyro_unit: str,
+    accel_unit: str,
+    metadata: dict | None = None,
+    g_sensitivity_raw=None,
+) -> Calibration:
     """IMU-TK parameters -> the affine form (deg/s, g) with the drift as the catalogue term
     ``thermal_bias_drift`` (time form: deg/s per hour, ``t`` in s since the first sample) and
     the g-sensitivity as ``gyro_g_sensitivity`` (deg/s per g)."""
@@ -429,9 +485,18 @@ def to_calibration(accel_params, gyro_matrix_rad, bias, drift_per_s, g_local: fl
     if g_sensitivity_raw is not None and np.any(np.asarray(g_sensitivity_raw) != 0):
         terms.append(TermValue("gyro_g_sensitivity", (K_g @ np.asarray(g_sensitivity_raw)).reshape(-1)))
     terms = tuple(terms)
-    return Calibration(K_g=K_g, w0=-K_g @ np.asarray(bias, float), K_a=K_a, f0=-K_a @ b_a,
-                       gyro_unit=gyro_unit, accel_unit=accel_unit, g_local=g_local, kind="field",
-                       terms=terms, metadata=dict(metadata or {}))
+    return Calibration(
+        K_g=K_g,
+        w0=-K_g @ np.asarray(bias, float),
+        K_a=K_a,
+        f0=-K_a @ b_a,
+        gyro_unit=gyro_unit,
+        accel_unit=accel_unit,
+        g_local=g_local,
+        kind="field",
+        terms=terms,
+        metadata=dict(metadata or {}),
+    )
 
 
 @dataclass(frozen=True)
@@ -455,11 +520,24 @@ class FieldJointFit:
         return out
 
 
-def fit_field(t, G, A, poses, g_local: float, accel_scale: float | None = None,
-              gyro_scale: float | None = None, accel_bias=None, drift: bool | str = "auto",
-              pose_use=None, move_use=None, gyro_unit: str = "LSB", accel_unit: str = "LSB",
-              priors: Priors = Priors(), g_sensitivity: bool | str = "auto",
-              metadata: dict | None = None) -> FieldJointFit:
+def fit_field(
+    t,
+    G,
+    A,
+    poses,
+    g_local: float,
+    accel_scale: float | None = None,
+    gyro_scale: float | None = None,
+    accel_bias=None,
+    drift: bool | str = "auto",
+    pose_use=None,
+    move_use=None,
+    gyro_unit: str = "LSB",
+    accel_unit: str = "LSB",
+    priors: Priors = Priors(),
+    g_sensitivity: bool | str = "auto",
+    metadata: dict | None = None,
+) -> FieldJointFit:
     """Field calibration: the accel on the |f| of the poses in ``pose_use`` (default all),
     then the gyro on the moves in ``move_use`` (default all) and the quiet poses with the
     accel's gravity directions, deciding the bias drift and the gyro g-sensitivity
@@ -475,20 +553,42 @@ def fit_field(t, G, A, poses, g_local: float, accel_scale: float | None = None,
     u = gravity_directions(acc.params, pm.accel)
     M_a, b_a = accel_matrix(acc.params)
     F = (A - b_a) @ (M_a / g_local).T  # calibrated specific force, g
-    gyr = fit_gyro_joint(t, G, pm, u, move_use, drift, gyro_scale, priors=priors,
-                         g_sensitivity=g_sensitivity, F=F)
+    gyr = fit_gyro_joint(
+        t, G, pm, u, move_use, drift, gyro_scale, priors=priors, g_sensitivity=g_sensitivity, F=F
+    )
     gyr = _with_accel_uncertainty(gyr, acc, A, pm, g_local)
-    meta = {"method": "hand-held poses: accel |f| per pose mean; gyro scale, misalignment, bias "
-                      "(and drift) jointly over the moves and the quiet poses",
-            "n_poses": int(pose_use.sum()), "n_moves": int(move_use.sum()),
-            "n_quiet_poses": gyr.n_quiet, "gyro_bias_drift": gyr.drift,
-            "gyro_g_sensitivity": gyr.g_sensitivity,
-            "misalignment_prior_rad": priors.misalignment,
-            **(metadata or {})}
-    cal = to_calibration(acc.params, gyr.matrix, gyr.bias, gyr.drift_per_s, g_local, gyro_unit,
-                         accel_unit, meta, gyr.g_sensitivity_raw)
-    start = to_calibration(acc.x0, gyro_matrix(gyr.x0[:9]), gyr.x0[9:12], np.zeros(3), g_local,
-                           gyro_unit, accel_unit, {"method": "starting point"})
+    meta = {
+        "method": "hand-held poses: accel |f| per pose mean; gyro scale, misalignment, bias "
+        "(and drift) jointly over the moves and the quiet poses",
+        "n_poses": int(pose_use.sum()),
+        "n_moves": int(move_use.sum()),
+        "n_quiet_poses": gyr.n_quiet,
+        "gyro_bias_drift": gyr.drift,
+        "gyro_g_sensitivity": gyr.g_sensitivity,
+        "misalignment_prior_rad": priors.misalignment,
+        **(metadata or {}),
+    }
+    cal = to_calibration(
+        acc.params,
+        gyr.matrix,
+        gyr.bias,
+        gyr.drift_per_s,
+        g_local,
+        gyro_unit,
+        accel_unit,
+        meta,
+        gyr.g_sensitivity_raw,
+    )
+    start = to_calibration(
+        acc.x0,
+        gyro_matrix(gyr.x0[:9]),
+        gyr.x0[9:12],
+        np.zeros(3),
+        g_local,
+        gyro_unit,
+        accel_unit,
+        {"method": "starting point"},
+    )
     return FieldJointFit(cal, start, acc, gyr, pm, pose_use, move_use)
 
 
@@ -502,11 +602,14 @@ class FieldFigures:
         e, a = self.norm_err_mg, self.angle_deg
         if move_ok is not None:
             a = a[np.asarray(move_ok, bool)]
-        return {f"{prefix}norm_rms_mg": float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan"),
-                f"{prefix}norm_std_mg": float(np.std(e)) if e.size else float("nan"),
-                f"{prefix}angle_rms_deg": float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan"),
-                f"{prefix}angle_max_deg": float(np.max(a)) if a.size else float("nan"),
-                f"{prefix}n_poses": int(e.size), f"{prefix}n_moves": int(a.size)}
+        return {
+            f"{prefix}norm_rms_mg": float(np.sqrt(np.mean(e**2))) if e.size else float("nan"),
+            f"{prefix}norm_std_mg": float(np.std(e)) if e.size else float("nan"),
+            f"{prefix}angle_rms_deg": float(np.sqrt(np.mean(a**2))) if a.size else float("nan"),
+            f"{prefix}angle_max_deg": float(np.max(a)) if a.size else float("nan"),
+            f"{prefix}n_poses": int(e.size),
+            f"{prefix}n_moves": int(a.size),
+        }
 
 
 def field_figures(cal: Calibration, t, G, A, poses) -> FieldFigures:
@@ -558,8 +661,11 @@ class HeldOut:
 
     def summary(self) -> dict[str, float]:
         e, a = self.norm_err_mg[np.isfinite(self.norm_err_mg)], self.angle_deg[np.isfinite(self.angle_deg)]
-        return {**FieldFigures(e, a).summary("held_out_"), "held_out_pose_folds": self.pose_folds,
-                "held_out_move_folds": self.move_folds}
+        return {
+            **FieldFigures(e, a).summary("held_out_"),
+            "held_out_pose_folds": self.pose_folds,
+            "held_out_move_folds": self.move_folds,
+        }
 
 
 def default_folds(n: int) -> int:
@@ -568,8 +674,9 @@ def default_folds(n: int) -> int:
     return n if n <= 15 else 5
 
 
-def held_out_figures(t, G, A, poses, g_local: float, move_ok=None, n_folds: int | None = None,
-                     **fit_kwargs) -> HeldOut:
+def held_out_figures(
+    t, G, A, poses, g_local: float, move_ok=None, n_folds: int | None = None, **fit_kwargs
+) -> HeldOut:
     """k-fold held-out figures of :func:`fit_field` (see :class:`HeldOut`); ``move_ok`` the
     usable moves (:func:`usable_moves`). Optional gyro blocks left on ``"auto"`` are decided
     on all data first and then fixed in every fold."""

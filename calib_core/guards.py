@@ -7,6 +7,7 @@ axis, a rate table in rad/s written as deg/s, ...). These checks name the parame
 and the limit; the pipeline fails the session with ``E_IMPLAUSIBLE`` so the unit's last good
 calibration stays in force.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -33,8 +34,9 @@ class Implausible:
         return f"{self.model} {self.parameter} = {self.value:.6g} outside {self.limit}"
 
 
-def check_affine(model: str, prefix: str, K: np.ndarray, x0: np.ndarray, raw_unit: str,
-                 full_scale: np.ndarray) -> list[Implausible]:
+def check_affine(
+    model: str, prefix: str, K: np.ndarray, x0: np.ndarray, raw_unit: str, full_scale: np.ndarray
+) -> list[Implausible]:
     out: list[Implausible] = []
     for name, arr in (("K", K), ("bias", x0)):
         if not np.isfinite(arr).all():
@@ -44,17 +46,32 @@ def check_affine(model: str, prefix: str, K: np.ndarray, x0: np.ndarray, raw_uni
     if raw_unit == PHYSICAL_UNITS[model]:
         for i in range(3):
             if not SCALE_LIMITS[0] <= K[i, i] <= SCALE_LIMITS[1]:
-                out.append(Implausible(model, f"{prefix}{i + 1}{i + 1}", float(K[i, i]),
-                                       f"[{SCALE_LIMITS[0]}, {SCALE_LIMITS[1]}] for raw {raw_unit}"))
+                out.append(
+                    Implausible(
+                        model,
+                        f"{prefix}{i + 1}{i + 1}",
+                        float(K[i, i]),
+                        f"[{SCALE_LIMITS[0]}, {SCALE_LIMITS[1]}] for raw {raw_unit}",
+                    )
+                )
             for j in range(3):
                 if i != j and abs(K[i, j]) > CROSS_AXIS_LIMIT:
-                    out.append(Implausible(model, f"{prefix}{i + 1}{j + 1}", float(K[i, j]),
-                                           f"+/-{CROSS_AXIS_LIMIT}"))
+                    out.append(
+                        Implausible(
+                            model, f"{prefix}{i + 1}{j + 1}", float(K[i, j]), f"+/-{CROSS_AXIS_LIMIT}"
+                        )
+                    )
     bias_name = "w0" if model == "gyro" else "f0"
     for i, axis in enumerate("xyz"):
         if abs(x0[i]) > full_scale[i]:
-            out.append(Implausible(model, f"{bias_name}_{axis}", float(x0[i]),
-                                   f"the declared full scale +/-{full_scale[i]:g}"))
+            out.append(
+                Implausible(
+                    model,
+                    f"{bias_name}_{axis}",
+                    float(x0[i]),
+                    f"the declared full scale +/-{full_scale[i]:g}",
+                )
+            )
     return out
 
 

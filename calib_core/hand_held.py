@@ -18,6 +18,7 @@ Orientation is propagated on a fine time grid (``oversample`` sub-steps per samp
 exponential of the piecewise constant rate), so the truth does not share the estimator's
 per-sample integration.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -74,11 +75,20 @@ class HandHeldSession:
     truth: HandHeldTruth
 
 
-def simulate_hand_held(truth: HandHeldTruth, rng: np.random.Generator, n_poses: int = 20,
-                       rate_hz: float = 100.0, init_s: float = 10.0, hold_s: float = 3.0,
-                       move_s: float = 1.5, hold_rate_dps: float = 0.0,
-                       acc_noise: float = 60.0, gyro_noise: float = 12.0,
-                       jitter: float = 0.05, oversample: int = 4) -> HandHeldSession:
+def simulate_hand_held(
+    truth: HandHeldTruth,
+    rng: np.random.Generator,
+    n_poses: int = 20,
+    rate_hz: float = 100.0,
+    init_s: float = 10.0,
+    hold_s: float = 3.0,
+    move_s: float = 1.5,
+    hold_rate_dps: float = 0.0,
+    acc_noise: float = 60.0,
+    gyro_noise: float = 12.0,
+    jitter: float = 0.05,
+    oversample: int = 4,
+) -> HandHeldSession:
     """A hand-held session of ``truth``. Noise in counts (white), ``jitter`` the relative
     spread of the sample intervals (uniform), ``hold_rate_dps`` the RMS rate of the hand's
     wobble during the holds (not during the initial rest)."""
@@ -92,8 +102,13 @@ def simulate_hand_held(truth: HandHeldTruth, rng: np.random.Generator, n_poses: 
         segments.append((int(move_s * rate_hz), (axis, total), False))
         wobble_axis = rng.normal(0, 1, 3)
         wobble_axis *= np.radians(hold_rate_dps) * np.sqrt(2) / np.linalg.norm(wobble_axis)
-        segments.append((int(hold_s * rate_hz), ("hold", wobble_axis, rng.uniform(0.5, 1.5),
-                                                 rng.uniform(0, 2 * np.pi)), True))
+        segments.append(
+            (
+                int(hold_s * rate_hz),
+                ("hold", wobble_axis, rng.uniform(0.5, 1.5), rng.uniform(0, 2 * np.pi)),
+                True,
+            )
+        )
     n = sum(s[0] for s in segments)
     dt = dt_nom * (1 + rng.uniform(-jitter, jitter, n))
     t = np.concatenate([[0.0], np.cumsum(dt)[:-1]])

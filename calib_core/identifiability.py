@@ -22,10 +22,11 @@ no longer confounded or undetermined. Everything here is linear algebra on given
 the caller builds the columns (:mod:`calib_core.discovery` for a unit, ``mimucal plan`` for a
 steps table).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
 
 import numpy as np
 
@@ -69,13 +70,13 @@ class Identifiability:
 
     def identifiable(self, term: str) -> bool:
         """Every parameter of ``term`` determined and no direction shared with another term."""
-        return (self.rank[term] == self.n_params[term]
-                and not any(term in c.terms for c in self.confounded))
+        return self.rank[term] == self.n_params[term] and not any(term in c.terms for c in self.confounded)
 
     def estimable(self, term: str) -> bool:
         """Some direction of ``term`` is determined and its own."""
         return self.rank[term] > 0 and not any(
-            term in c.terms and self.rank[term] <= 1 for c in self.confounded)
+            term in c.terms and self.rank[term] <= 1 for c in self.confounded
+        )
 
     def groups(self) -> list[tuple[str, ...]]:
         """Test groups: confounded terms together (union of overlapping sets), others alone."""
@@ -98,12 +99,18 @@ class Identifiability:
     def to_dict(self) -> dict:
         return {
             "tol": self.tol,
-            "rank": dict(self.rank), "n_params": dict(self.n_params),
-            "undetermined": [{"term": u.term, "params": list(u.params),
-                              "combination": [round(x, 4) for x in u.combination],
-                              "left": u.left} for u in self.undetermined],
-            "confounded": [{"terms": list(c.terms), "sin_angle": c.sin_angle}
-                           for c in self.confounded],
+            "rank": dict(self.rank),
+            "n_params": dict(self.n_params),
+            "undetermined": [
+                {
+                    "term": u.term,
+                    "params": list(u.params),
+                    "combination": [round(x, 4) for x in u.combination],
+                    "left": u.left,
+                }
+                for u in self.undetermined
+            ],
+            "confounded": [{"terms": list(c.terms), "sin_angle": c.sin_angle} for c in self.confounded],
         }
 
 
@@ -115,9 +122,12 @@ def _orth(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
     return u[:, keep]
 
 
-def analyse(base: np.ndarray, terms: Mapping[str, np.ndarray],
-            param_names: Mapping[str, tuple[str, ...]], tol: float = DEFAULT_TOL
-            ) -> Identifiability:
+def analyse(
+    base: np.ndarray,
+    terms: Mapping[str, np.ndarray],
+    param_names: Mapping[str, tuple[str, ...]],
+    tol: float = DEFAULT_TOL,
+) -> Identifiability:
     """Identifiability of each term's columns (``terms[name]``, (N, p)) against the base
     model's columns ``base`` (N, q) and against each other. Rows must already carry the noise
     weights the fit would use (1/sigma), so that every row counts as the fit counts it."""
@@ -148,11 +158,12 @@ def analyse(base: np.ndarray, terms: Mapping[str, np.ndarray],
         for v, left in blind + weak:
             order = np.argsort(-np.abs(v))
             big = [int(i) for i in order if abs(v[i]) >= 0.2] or [int(order[0])]
-            undetermined.append(Undetermined(
-                name, tuple(param_names[name][i] for i in big),
-                tuple(float(v[i]) for i in big), left))
-        spans[name] = (_orth(X @ determined.T) if len(determined)
-                       else np.zeros((len(Zn), 0)))
+            undetermined.append(
+                Undetermined(
+                    name, tuple(param_names[name][i] for i in big), tuple(float(v[i]) for i in big), left
+                )
+            )
+        spans[name] = _orth(X @ determined.T) if len(determined) else np.zeros((len(Zn), 0))
         rank[name] = spans[name].shape[1]
     confounded: list[Confounded] = []
     seen: set[tuple[str, ...]] = set()
@@ -177,14 +188,20 @@ def analyse(base: np.ndarray, terms: Mapping[str, np.ndarray],
         share, at = {}, 0
         for o in others:
             k = spans[o].shape[1]
-            share[o] = float(np.linalg.norm(spans[o] @ coef[at:at + k]))
+            share[o] = float(np.linalg.norm(spans[o] @ coef[at : at + k]))
             at += k
         involved = tuple(sorted({name, *[o for o, w in share.items() if w > 0.1]}))
         if len(involved) > 1 and involved not in seen:
             seen.add(involved)
             confounded.append(Confounded(involved, sin))
-    return Identifiability(names, tuple(undetermined), tuple(confounded), rank,
-                           {n: int(np.asarray(terms[n]).shape[1]) for n in names}, tol)
+    return Identifiability(
+        names,
+        tuple(undetermined),
+        tuple(confounded),
+        rank,
+        {n: int(np.asarray(terms[n]).shape[1]) for n in names},
+        tol,
+    )
 
 
 @dataclass(frozen=True)
@@ -201,24 +218,41 @@ class Advice:
         return f"{self.issue}: add {' or '.join(self.separated_by)}"
 
 
-def separating_additions(analyse_protocol: Callable[[object], Identifiability], protocol,
-                         library: Mapping[str, Callable[[object], object]]) -> list[Advice]:
+def separating_additions(
+    analyse_protocol: Callable[[object], Identifiability],
+    protocol,
+    library: Mapping[str, Callable[[object], object]],
+) -> list[Advice]:
     """For each confounded set and each term with undetermined parameters of ``protocol``,
     the labels of ``library`` (label -> function adding steps to a protocol) after whose
     addition it is resolved (no longer confounded, every parameter determined)."""
     base = analyse_protocol(protocol)
     issues: list[tuple[str, tuple[str, ...], Callable[[Identifiability], bool]]] = []
     for c in base.confounded:
-        issues.append((c.describe(), c.terms,
-                       lambda ident, c=c: not any(set(c.terms) <= set(d.terms) or
-                                                  set(d.terms) <= set(c.terms)
-                                                  for d in ident.confounded)))
+        issues.append(
+            (
+                c.describe(),
+                c.terms,
+                lambda ident, c=c: (
+                    not any(
+                        set(c.terms) <= set(d.terms) or set(d.terms) <= set(c.terms) for d in ident.confounded
+                    )
+                ),
+            )
+        )
     for term in sorted({u.term for u in base.undetermined}):
         params = sorted({p for u in base.undetermined if u.term == term for p in u.params})
-        issues.append((f"undetermined: {term} ({', '.join(params)})", (term,),
-                       lambda ident, term=term: ident.rank[term] == ident.n_params[term]))
+        issues.append(
+            (
+                f"undetermined: {term} ({', '.join(params)})",
+                (term,),
+                lambda ident, term=term: ident.rank[term] == ident.n_params[term],
+            )
+        )
     if not issues:
         return []
     extended = {label: analyse_protocol(add(protocol)) for label, add in library.items()}
-    return [Advice(text, terms, tuple(label for label, ident in extended.items() if ok(ident)))
-            for text, terms, ok in issues]
+    return [
+        Advice(text, terms, tuple(label for label, ident in extended.items() if ok(ident)))
+        for text, terms, ok in issues
+    ]

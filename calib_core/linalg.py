@@ -1,4 +1,5 @@
 """Least squares with standard errors, the one solver every estimator uses."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -86,8 +87,16 @@ def solve_lstsq(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> LstsqResu
     coef, resid, stderr = ls.coef[0], ls.residuals[0], ls.stderr[0]
     if squeeze:
         coef, resid, stderr = coef[:, 0], resid[:, 0], stderr[:, 0]
-    return LstsqResult(coef, ls.cov_unscaled[0], ls.sigma2[0], stderr, resid, int(ls.dof[0]),
-                       float(ls.condition_number[0]), int(ls.rank[0]))
+    return LstsqResult(
+        coef,
+        ls.cov_unscaled[0],
+        ls.sigma2[0],
+        stderr,
+        resid,
+        int(ls.dof[0]),
+        float(ls.condition_number[0]),
+        int(ls.rank[0]),
+    )
 
 
 def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> LstsqStack:
@@ -98,19 +107,24 @@ def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> Lst
     X = np.asarray(X, dtype=float)
     Y = np.asarray(Y, dtype=float)
     fac = _factorise(X, rcond)
-    coef_s = np.swapaxes(fac.Vt, -1, -2) @ (
-        fac.s_inv[..., :, None] * (np.swapaxes(fac.U, -1, -2) @ Y))
+    coef_s = np.swapaxes(fac.Vt, -1, -2) @ (fac.s_inv[..., :, None] * (np.swapaxes(fac.U, -1, -2) @ Y))
     coef = coef_s / fac.norms[..., :, None]
     resid = Y - X @ coef
     n_problems = coef.shape[0]
     dof = np.broadcast_to(X.shape[-2] - fac.rank, (n_problems,))
-    sum_sq = (resid ** 2).sum(axis=-2)
+    sum_sq = (resid**2).sum(axis=-2)
     sigma2 = np.full(sum_sq.shape, np.nan)
     np.divide(sum_sq, dof[:, None], out=sigma2, where=dof[:, None] > 0)
-    cov_unscaled = np.broadcast_to(fac.cov_unscaled, (n_problems,) + fac.cov_unscaled.shape[-2:]
-                                   ).copy()
+    cov_unscaled = np.broadcast_to(fac.cov_unscaled, (n_problems,) + fac.cov_unscaled.shape[-2:]).copy()
     variance = np.diagonal(cov_unscaled, axis1=-2, axis2=-1)
     stderr = np.sqrt(variance[:, :, None] * sigma2[:, None, :])
-    return LstsqStack(coef, cov_unscaled, sigma2, stderr, resid, dof,
-                      np.broadcast_to(fac.cond, (n_problems,)),
-                      np.broadcast_to(fac.rank, (n_problems,)))
+    return LstsqStack(
+        coef,
+        cov_unscaled,
+        sigma2,
+        stderr,
+        resid,
+        dof,
+        np.broadcast_to(fac.cond, (n_problems,)),
+        np.broadcast_to(fac.rank, (n_problems,)),
+    )

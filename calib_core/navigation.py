@@ -18,15 +18,18 @@ Three accelerometer compensations are compared:
   gyros).
 Pure numerics: the report helper plots the returned time series.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calib_core.zhang2017 import (AccelStaticFit, AccelUnitTruth, LeverArmFit,
-                                  compensate_specific_force)
+from calib_core.zhang2017 import AccelStaticFit, AccelUnitTruth, LeverArmFit, compensate_specific_force
+
+if TYPE_CHECKING:  # pandas is imported where the store's table is built
+    import pandas as pd
 
 CASES = ("none", "static", "static+dynamic")
 
@@ -61,8 +64,7 @@ class TurntableTrajectory:
         Rz[:, 2, 2] = 1.0
         C_nb = Rz @ C0
         f_b = np.einsum("nji,j->ni", C_nb, np.array([0.0, 0.0, 1.0]))  # C_bn (0,0,1 g)
-        return {"t": t, "w": rate[:, None] * u, "dwdt": drate[:, None] * u, "f": f_b,
-                "C_nb": C_nb}
+        return {"t": t, "w": rate[:, None] * u, "dwdt": drate[:, None] * u, "f": f_b, "C_nb": C_nb}
 
 
 def _align(u: np.ndarray) -> np.ndarray:
@@ -81,25 +83,35 @@ def _quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product of quaternions (scalar first) along the last axis: (4,) or (n, 4)."""
     a1, b1, c1, d1 = np.moveaxis(p, -1, 0)
     a2, b2, c2, d2 = np.moveaxis(q, -1, 0)
-    return np.stack([a1 * a2 - b1 * b2 - c1 * c2 - d1 * d2,
-                     a1 * b2 + b1 * a2 + c1 * d2 - d1 * c2,
-                     a1 * c2 - b1 * d2 + c1 * a2 + d1 * b2,
-                     a1 * d2 + b1 * c2 - c1 * b2 + d1 * a2], axis=-1)
+    return np.stack(
+        [
+            a1 * a2 - b1 * b2 - c1 * c2 - d1 * d2,
+            a1 * b2 + b1 * a2 + c1 * d2 - d1 * c2,
+            a1 * c2 - b1 * d2 + c1 * a2 + d1 * b2,
+            a1 * d2 + b1 * c2 - c1 * b2 + d1 * a2,
+        ],
+        axis=-1,
+    )
 
 
 def _quat_to_dcm(q: np.ndarray) -> np.ndarray:
     """Direction cosine matrix of unit quaternions: (4,) -> (3, 3), (n, 4) -> (n, 3, 3)."""
     a, b, c, d = np.moveaxis(q, -1, 0)
-    return np.stack([np.stack([a*a + b*b - c*c - d*d, 2*(b*c - a*d), 2*(b*d + a*c)], axis=-1),
-                     np.stack([2*(b*c + a*d), a*a - b*b + c*c - d*d, 2*(c*d - a*b)], axis=-1),
-                     np.stack([2*(b*d - a*c), 2*(c*d + a*b), a*a - b*b - c*c + d*d], axis=-1)],
-                    axis=-2)
+    return np.stack(
+        [
+            np.stack([a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)], axis=-1),
+            np.stack([2 * (b * c + a * d), a * a - b * b + c * c - d * d, 2 * (c * d - a * b)], axis=-1),
+            np.stack([2 * (b * d - a * c), 2 * (c * d + a * b), a * a - b * b - c * c + d * d], axis=-1),
+        ],
+        axis=-2,
+    )
 
 
 def _dcm_to_quat(C: np.ndarray) -> np.ndarray:
     w = np.sqrt(max(1.0 + np.trace(C), 1e-12)) / 2.0
-    return np.array([w, (C[2, 1] - C[1, 2]) / (4 * w), (C[0, 2] - C[2, 0]) / (4 * w),
-                     (C[1, 0] - C[0, 1]) / (4 * w)])
+    return np.array(
+        [w, (C[2, 1] - C[1, 2]) / (4 * w), (C[0, 2] - C[2, 0]) / (4 * w), (C[1, 0] - C[0, 1]) / (4 * w)]
+    )
 
 
 def _prefix_products(dq: np.ndarray) -> np.ndarray:
@@ -127,16 +139,16 @@ def integrate_attitude(C0: np.ndarray, w_dps: np.ndarray, dt: float) -> np.ndarr
         return out
     inc = 0.5 * (w_dps[1:] + w_dps[:-1]) * np.radians(dt)
     ang = np.linalg.norm(inc, axis=1)
-    dq = np.concatenate([np.cos(ang / 2)[:, None],
-                         np.sinc(ang / (2 * np.pi))[:, None] * inc / 2], axis=1)
+    dq = np.concatenate([np.cos(ang / 2)[:, None], np.sinc(ang / (2 * np.pi))[:, None] * inc / 2], axis=1)
     q = _quat_mul(_dcm_to_quat(C0), _prefix_products(dq))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     out[1:] = _quat_to_dcm(q)
     return out
 
 
-def integrate_navigation(C_nb: np.ndarray, f_g: np.ndarray, dt: float, g_local: float
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def integrate_navigation(
+    C_nb: np.ndarray, f_g: np.ndarray, dt: float, g_local: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Velocity (m/s) and position (m) in the navigation frame from zero initial state,
     trapezoidal integration of C_nb f - g."""
     a = np.einsum("nij,nj->ni", C_nb, f_g) * g_local
@@ -159,20 +171,33 @@ class NavigationResult:
 
     def final(self) -> dict[str, dict[str, float]]:
         """|v| and |p| at the end (the 'after 100 s' values)."""
-        return {c: {"velocity_mps": float(np.linalg.norm(self.velocity_error[c][-1])),
-                    "position_m": float(np.linalg.norm(self.position_error[c][-1]))}
-                for c in self.velocity_error}
+        return {
+            c: {
+                "velocity_mps": float(np.linalg.norm(self.velocity_error[c][-1])),
+                "position_m": float(np.linalg.norm(self.position_error[c][-1])),
+            }
+            for c in self.velocity_error
+        }
 
     def to_dict(self) -> dict[str, Any]:
-        return {"duration_s": float(self.t[-1]), "final": self.final(),
-                "trajectory": {k: (list(v) if isinstance(v, tuple) else v)
-                               for k, v in self.trajectory.__dict__.items()}}
+        return {
+            "duration_s": float(self.t[-1]),
+            "final": self.final(),
+            "trajectory": {
+                k: (list(v) if isinstance(v, tuple) else v) for k, v in self.trajectory.__dict__.items()
+            },
+        }
 
 
-def simulate_navigation(truth: AccelUnitTruth, static: AccelStaticFit, lever: LeverArmFit | None,
-                        trajectory: TurntableTrajectory = TurntableTrajectory(),
-                        rng: np.random.Generator | None = None, accel_noise_g: float = 1e-3,
-                        gyro_noise_dps: float = 0.0) -> NavigationResult:
+def simulate_navigation(
+    truth: AccelUnitTruth,
+    static: AccelStaticFit,
+    lever: LeverArmFit | None,
+    trajectory: TurntableTrajectory = TurntableTrajectory(),
+    rng: np.random.Generator | None = None,
+    accel_noise_g: float = 1e-3,
+    gyro_noise_dps: float = 0.0,
+) -> NavigationResult:
     """Navigation errors of ``truth`` on ``trajectory`` under the three compensations.
 
     Accelerometer white noise is in g per sample (raw = k x noise); the gyros are the
@@ -195,26 +220,34 @@ def simulate_navigation(truth: AccelUnitTruth, static: AccelStaticFit, lever: Le
     vel, pos = {}, {}
     for case, f in fs.items():
         vel[case], pos[case] = integrate_navigation(C_nb, f, dt, truth.g_local)
-    return NavigationResult(t=m["t"], velocity_error=vel, position_error=pos,
-                            trajectory=trajectory)
+    return NavigationResult(t=m["t"], velocity_error=vel, position_error=pos, trajectory=trajectory)
 
 
-def navigation_impact(static: AccelStaticFit, lever: LeverArmFit,
-                      trajectory: TurntableTrajectory = TurntableTrajectory(),
-                      rng: np.random.Generator | None = None, accel_noise_g: float = 0.0
-                      ) -> NavigationResult:
+def navigation_impact(
+    static: AccelStaticFit,
+    lever: LeverArmFit,
+    trajectory: TurntableTrajectory = TurntableTrajectory(),
+    rng: np.random.Generator | None = None,
+    accel_noise_g: float = 0.0,
+) -> NavigationResult:
     """The three curves for a calibrated unit's report: its own fitted model (static
     parameters and lever arms, undetermined components as 0) replayed as the truth on
     ``trajectory``. ``none`` and ``static`` then show the error the unit's size effect and
     misalignment would cause; ``static+dynamic`` is ~0 by construction (noise only)."""
-    truth = AccelUnitTruth(scale=static.scale, bias=static.bias, C=static.C,
-                           lever_arm_mm=lever.r_for_compensation, unit=static.unit,
-                           g_local=static.g_local)
+    truth = AccelUnitTruth(
+        scale=static.scale,
+        bias=static.bias,
+        C=static.C,
+        lever_arm_mm=lever.r_for_compensation,
+        unit=static.unit,
+        g_local=static.g_local,
+    )
     return simulate_navigation(truth, static, lever, trajectory, rng, accel_noise_g=accel_noise_g)
 
 
-def navigation_table(static: AccelStaticFit, lever: LeverArmFit,
-                     sample_rate_hz: float = 10.0) -> "pd.DataFrame":
+def navigation_table(
+    static: AccelStaticFit, lever: LeverArmFit, sample_rate_hz: float = 10.0
+) -> pd.DataFrame:
     """The three drift curves of :func:`navigation_impact` as a tidy table for the results
     store: case, t (s), vel_err (|v|, m/s), pos_err (|p|, m). 10 Hz keeps it to ~0.3 s per
     unit; the attitude integrator is the same for the three cases, so their difference is
@@ -222,8 +255,15 @@ def navigation_table(static: AccelStaticFit, lever: LeverArmFit,
     import pandas as pd
 
     res = navigation_impact(static, lever, TurntableTrajectory(sample_rate_hz=sample_rate_hz))
-    frames = [pd.DataFrame({"case": case, "t": res.t,
-                            "vel_err": np.linalg.norm(res.velocity_error[case], axis=1),
-                            "pos_err": np.linalg.norm(res.position_error[case], axis=1)})
-              for case in res.velocity_error]
+    frames = [
+        pd.DataFrame(
+            {
+                "case": case,
+                "t": res.t,
+                "vel_err": np.linalg.norm(res.velocity_error[case], axis=1),
+                "pos_err": np.linalg.norm(res.position_error[case], axis=1),
+            }
+        )
+        for case in res.velocity_error
+    ]
     return pd.concat(frames, ignore_index=True)

@@ -40,6 +40,7 @@ flags (a median of four units says little about what is typical); ``note`` says 
 
 Pure: inputs are a summary table (pandas), outputs dataclasses and a table.
 """
+
 from __future__ import annotations
 
 import math
@@ -161,11 +162,17 @@ class LotFlags:
         return sorted({f.unit for f in self.flags})
 
     def to_dict(self) -> dict[str, Any]:
-        return {"lot": self.lot, "n_units": self.n_units, "robust": self.robust,
-                "z_threshold_used": self.z_threshold_used, "note": self.note,
-                "reference": self.reference, "reference_detail": self.reference_detail,
-                "flagged_units": self.flagged_units,
-                "flags": [f.__dict__ for f in self.flags]}
+        return {
+            "lot": self.lot,
+            "n_units": self.n_units,
+            "robust": self.robust,
+            "z_threshold_used": self.z_threshold_used,
+            "note": self.note,
+            "reference": self.reference,
+            "reference_detail": self.reference_detail,
+            "flagged_units": self.flagged_units,
+            "flags": [f.__dict__ for f in self.flags],
+        }
 
 
 # --- robust statistics ------------------------------------------------------------------------
@@ -199,17 +206,27 @@ THRESHOLD_SIMULATION_VERSION = 1
 _KNOWN_THRESHOLDS: dict[tuple, float] = {}
 
 
-def _threshold_key(sizes: tuple[int, ...], n_parameters: int, z_threshold: float,
-                   family_alpha: float) -> tuple:
+def _threshold_key(
+    sizes: tuple[int, ...], n_parameters: int, z_threshold: float, family_alpha: float
+) -> tuple:
     return (tuple(sizes), int(n_parameters), float(z_threshold), float(family_alpha))
 
 
 def known_thresholds() -> dict:
     """The simulated thresholds of this process, as a JSON-ready document."""
-    return {"version": THRESHOLD_SIMULATION_VERSION,
-            "thresholds": [{"group_sizes": list(k[0]), "n_parameters": k[1],
-                            "z_threshold": k[2], "family_alpha": k[3], "q": v}
-                           for k, v in sorted(_KNOWN_THRESHOLDS.items())]}
+    return {
+        "version": THRESHOLD_SIMULATION_VERSION,
+        "thresholds": [
+            {
+                "group_sizes": list(k[0]),
+                "n_parameters": k[1],
+                "z_threshold": k[2],
+                "family_alpha": k[3],
+                "q": v,
+            }
+            for k, v in sorted(_KNOWN_THRESHOLDS.items())
+        ],
+    }
 
 
 def remember_thresholds(doc: dict | None) -> int:
@@ -221,8 +238,12 @@ def remember_thresholds(doc: dict | None) -> int:
     n = 0
     for e in doc.get("thresholds") or []:
         try:
-            key = _threshold_key(tuple(int(x) for x in e["group_sizes"]), e["n_parameters"],
-                                 e["z_threshold"], e["family_alpha"])
+            key = _threshold_key(
+                tuple(int(x) for x in e["group_sizes"]),
+                e["n_parameters"],
+                e["z_threshold"],
+                e["family_alpha"],
+            )
             q = float(e["q"])
         except (KeyError, TypeError, ValueError):
             continue
@@ -233,8 +254,12 @@ def remember_thresholds(doc: dict | None) -> int:
 
 
 @lru_cache(maxsize=256)
-def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
-                       z_threshold: float = 3.5, family_alpha: float = 0.01) -> float:
+def robust_z_threshold(
+    group_sizes: int | tuple[int, ...],
+    n_parameters: int,
+    z_threshold: float = 3.5,
+    family_alpha: float = 0.01,
+) -> float:
     """Threshold on |robust z| for one parameter: ``max(z_threshold, q)`` where ``q`` is
     exceeded by the largest |z| over all units with probability ``family_alpha /
     n_parameters`` when every unit is clean and Gaussian.
@@ -243,8 +268,11 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     lot with its own MAD). ``q`` comes from a seeded simulation of exactly that statistic:
     centring on each lot's own median shrinks the deviations and the MAD, which raises the
     tail (3 lots of 20 need 5.99 where one group of 60 needs 5.72, at 0.01/24)."""
-    sizes = (int(group_sizes),) if isinstance(group_sizes, (int, np.integer)) else \
-        tuple(sorted(int(n) for n in group_sizes))
+    sizes = (
+        (int(group_sizes),)
+        if isinstance(group_sizes, (int, np.integer))
+        else tuple(sorted(int(n) for n in group_sizes))
+    )
     total = sum(sizes)
     if family_alpha <= 0 or total < 3:
         return float(z_threshold)
@@ -256,8 +284,7 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
     rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
     chunk = max(1, 2_000_000 // total)
     rng = np.random.default_rng(20261121 + 7919 * total + len(sizes))
-    zmax_parts = [_simulated_zmax(rng, min(chunk, rows - start), sizes)
-                  for start in range(0, rows, chunk)]
+    zmax_parts = [_simulated_zmax(rng, min(chunk, rows - start), sizes) for start in range(0, rows, chunk)]
     zmax = np.concatenate(zmax_parts)
     if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
@@ -271,9 +298,14 @@ def robust_z_threshold(group_sizes: int | tuple[int, ...], n_parameters: int,
 
 
 @lru_cache(maxsize=256)
-def history_z_threshold(history_groups: tuple[int, ...], n_lot: int, n_parameters: int,
-                        z_threshold: float = 3.5, family_alpha: float = 0.01,
-                        location: str = "lot") -> float:
+def history_z_threshold(
+    history_groups: tuple[int, ...],
+    n_lot: int,
+    n_parameters: int,
+    z_threshold: float = 3.5,
+    family_alpha: float = 0.01,
+    location: str = "lot",
+) -> float:
     """Threshold on the robust z of the ``n_lot`` units of a small lot judged against a
     history of earlier units (``history_groups``: how many of them per earlier lot):
     ``max(z_threshold, q)``, ``q`` exceeded by the largest of the ``n_lot`` |z| with
@@ -313,7 +345,7 @@ def history_z_threshold(history_groups: tuple[int, ...], n_lot: int, n_parameter
             for g in groups:  # each earlier lot centred on its own median
                 block = rng.standard_normal((m, g))
                 block.sort(axis=1)
-                dev[:, col:col + g] = np.abs(block - _sorted_median(block)[:, None])
+                dev[:, col : col + g] = np.abs(block - _sorted_median(block)[:, None])
                 col += g
             lot_sorted = np.sort(lot, axis=1)
             centre = _sorted_median(lot_sorted)
@@ -324,8 +356,7 @@ def history_z_threshold(history_groups: tuple[int, ...], n_lot: int, n_parameter
             dev = np.abs(hist - centre[:, None])
         dev.sort(axis=1)
         scale = MAD_TO_SIGMA * _sorted_median(dev)
-        parts.append(np.abs(lot - centre[:, None]).max(axis=1)
-                     / np.where(scale > 0, scale, np.inf))
+        parts.append(np.abs(lot - centre[:, None]).max(axis=1) / np.where(scale > 0, scale, np.inf))
     zmax = np.concatenate(parts)
     if p * rows >= 20:
         q = float(np.quantile(zmax, 1.0 - p))
@@ -360,7 +391,7 @@ def _simulated_zmax(rng: np.random.Generator, m: int, sizes: tuple[int, ...]) ->
         np.subtract(block, _sorted_median(block)[..., None], out=block)
         np.abs(block, out=block)
         if block is not dev:
-            dev[:, col:col + n] = block
+            dev[:, col : col + n] = block
         col += n
     dev.sort(axis=1)
     scale = MAD_TO_SIGMA * _sorted_median(dev)
@@ -411,8 +442,9 @@ def _key_groups(*cols: np.ndarray) -> list[tuple[tuple, np.ndarray]]:
     return out
 
 
-def _lot_centred_scales(df: pd.DataFrame, min_units: int
-                        ) -> dict[tuple[str, str], tuple[float, tuple[int, ...]]]:
+def _lot_centred_scales(
+    df: pd.DataFrame, min_units: int
+) -> dict[tuple[str, str], tuple[float, tuple[int, ...]]]:
     """Per (model, parameter): robust scale of the lot-centred unit means, pooled over every
     lot with at least ``min_units`` units, and the number of units pooled."""
     out: dict[tuple[str, str], tuple[float, tuple[int, ...]]] = {}
@@ -465,9 +497,9 @@ def _limit_failures(df: pd.DataFrame, cfg: OutlierConfig) -> set[tuple[str, str]
     return out
 
 
-def history_references(summary: pd.DataFrame, config: OutlierConfig,
-                       unit_times: dict[tuple[str, str], float], lots: list[str]
-                       ) -> dict[str, HistoryReference]:
+def history_references(
+    summary: pd.DataFrame, config: OutlierConfig, unit_times: dict[tuple[str, str], float], lots: list[str]
+) -> dict[str, HistoryReference]:
     """The history reference of each lot of ``lots`` with fewer than ``history_below`` units
     that has one: the last ``history_units`` good units (by acquisition time,
     ``unit_times[(lot, unit)]`` in seconds) of the lots acquired before it (a lot's time is
@@ -486,20 +518,25 @@ def history_references(summary: pd.DataFrame, config: OutlierConfig,
     if not small:
         return {}
     robust = df[df["model"].isin(cfg.robust_models)] if cfg.robust_models else df
-    wide = robust.pivot_table(index=["lot", "unit"], columns=["model", "parameter"],
-                              values="mean", aggfunc="first")
+    wide = robust.pivot_table(
+        index=["lot", "unit"], columns=["model", "parameter"], values="mean", aggfunc="first"
+    )
     if not len(wide):
         return {}
     X = wide.to_numpy(float)
     med = np.nanmedian(X, axis=0)
-    scale = np.array([robust_scale(c[np.isfinite(c)]) if np.isfinite(c).any() else 0.0
-                      for c in X.T])
+    scale = np.array([robust_scale(c[np.isfinite(c)]) if np.isfinite(c).any() else 0.0 for c in X.T])
     with np.errstate(invalid="ignore", divide="ignore"):
         z = np.abs(X - med) / np.where(scale > 0, scale, np.inf)
     keys = list(wide.index)
     failing = _limit_failures(df, cfg)
-    good = np.array([not (np.nan_to_num(z[i]) > HISTORY_CLEAN_Z).any() and keys[i] not in failing
-                     for i in range(len(keys))], bool)
+    good = np.array(
+        [
+            not (np.nan_to_num(z[i]) > HISTORY_CLEAN_Z).any() and keys[i] not in failing
+            for i in range(len(keys))
+        ],
+        bool,
+    )
     t_unit = np.array([unit_times.get(k, np.nan) for k in keys], float)
     lot_time: dict[str, float] = {}
     for (lot, _), t in zip(keys, t_unit):
@@ -518,7 +555,7 @@ def history_references(summary: pd.DataFrame, config: OutlierConfig,
             continue
         # newest first; ties by (lot, unit) for a deterministic choice
         order = sorted(cand.tolist(), key=lambda i: (-t_unit[i], keys[i]))
-        chosen = np.array(order[:cfg.history_units])
+        chosen = np.array(order[: cfg.history_units])
         stats, centred = {}, {}
         chosen_lots = lot_of[chosen]
         for j, col in enumerate(wide.columns):
@@ -542,17 +579,25 @@ def history_references(summary: pd.DataFrame, config: OutlierConfig,
             scale = MAD_TO_SIGMA * mad if mad > 0 else MEANAD_TO_SIGMA * float(np.mean(c))
             centred[key] = (scale, tuple(sorted(groups)))
         used_lots = tuple(sorted({str(lot_of[i]) for i in chosen}))
-        how = ("the lot's own median and the spread of" if cfg.history_location == "lot"
-               else "the median and spread of")
-        detail = (f"{how} the fleet history: {len(chosen)} good units, the last of lots "
-                  f"acquired before this one ({', '.join(used_lots)})")
+        how = (
+            "the lot's own median and the spread of"
+            if cfg.history_location == "lot"
+            else "the median and spread of"
+        )
+        detail = (
+            f"{how} the fleet history: {len(chosen)} good units, the last of lots "
+            f"acquired before this one ({', '.join(used_lots)})"
+        )
         out[lot] = HistoryReference(stats, centred, len(chosen), used_lots, detail)
     return out
 
 
-def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
-              lots: list[str] | None = None,
-              unit_times: dict[tuple[str, str], float] | None = None) -> list[LotFlags]:
+def flag_lots(
+    summary: pd.DataFrame,
+    config: OutlierConfig | None = None,
+    lots: list[str] | None = None,
+    unit_times: dict[tuple[str, str], float] | None = None,
+) -> list[LotFlags]:
     """Flags of each lot (all lots in ``summary`` unless ``lots`` is given). ``summary`` has
     one row per lot, unit, model and parameter with columns lot, unit, model, parameter,
     mean, std, n_reps.
@@ -573,10 +618,10 @@ def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
     df = summary.reset_index(drop=True).copy()
     df["lot"] = df["lot"].astype(str)
     df["unit"] = df["unit"].astype(str)
-    robust_rows = df["model"].isin(cfg.robust_models) if cfg.robust_models else \
-        pd.Series(True, index=df.index)
-    pooled = _lot_centred_scales(df[robust_rows], cfg.min_units) if cfg.scale_pool == "fleet" \
-        else {}
+    robust_rows = (
+        df["model"].isin(cfg.robust_models) if cfg.robust_models else pd.Series(True, index=df.index)
+    )
+    pooled = _lot_centred_scales(df[robust_rows], cfg.min_units) if cfg.scale_pool == "fleet" else {}
     robust = robust_rows.to_numpy(bool)
     todo = sorted(df["lot"].unique()) if lots is None else [str(x) for x in lots]
     # the columns as numpy arrays once (not a frame per lot and per parameter)
@@ -588,16 +633,17 @@ def flag_lots(summary: pd.DataFrame, config: OutlierConfig | None = None,
     out = []
     for lot in todo:
         in_lot = cols["lot"] == lot
-        n_params = len(set(zip(cols["model"][in_lot & robust].tolist(),
-                               cols["parameter"][in_lot & robust].tolist())))
+        n_params = len(
+            set(zip(cols["model"][in_lot & robust].tolist(), cols["parameter"][in_lot & robust].tolist()))
+        )
         rows = np.flatnonzero(in_lot)
-        out.append(_flag_one_lot({c: v[rows] for c, v in cols.items()}, n_params, lot, cfg,
-                                 pooled, history.get(lot)))
+        out.append(
+            _flag_one_lot({c: v[rows] for c, v in cols.items()}, n_params, lot, cfg, pooled, history.get(lot))
+        )
     return out
 
 
-def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
-             lot: str | None = None) -> LotFlags:
+def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None, lot: str | None = None) -> LotFlags:
     """Flags of one lot using that lot's rows only (its own scale)."""
     cfg = config or OutlierConfig()
     if lot is None:
@@ -613,8 +659,7 @@ def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None,
 def _same_unit(stored: Any, limit_unit: str) -> bool:
     """Whether a row's ``unit_of_measure`` is the unit a limit is in ("A per A" and "A/A"
     are dimensionless, "")."""
-    u = "" if stored is None or (isinstance(stored, float) and math.isnan(stored)) \
-        else str(stored).strip()
+    u = "" if stored is None or (isinstance(stored, float) and math.isnan(stored)) else str(stored).strip()
     for sep in (" per ", "/"):
         parts = u.split(sep)
         if len(parts) == 2 and parts[0].strip() == parts[1].strip():
@@ -622,9 +667,14 @@ def _same_unit(stored: Any, limit_unit: str) -> bool:
     return u in ("", "1") if limit_unit == "" else u == limit_unit
 
 
-def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: OutlierConfig,
-                  pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]],
-                  history: HistoryReference | None = None) -> LotFlags:
+def _flag_one_lot(
+    cols: dict[str, np.ndarray],
+    n_params: int,
+    lot: str,
+    cfg: OutlierConfig,
+    pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]],
+    history: HistoryReference | None = None,
+) -> LotFlags:
     """Flags of one lot: ``cols`` its rows' columns (unit, model, parameter, mean, std,
     n_reps, optionally unit_of_measure), ``n_params`` its number of distinct (model,
     parameter) in the robust models; ``history``: judge the robust z against it."""
@@ -658,18 +708,28 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
             else:
                 ref_med = med
                 scale, groups = history.centred[(model, name)]
-                where = (f"lot median {_fmt(med)}, scale of the fleet history "
-                         f"({sum(groups)} units)")
-            thr = history_z_threshold(groups, int(ok.sum()), n_params, cfg.z_threshold,
-                                      cfg.family_alpha, cfg.history_location)
+                where = f"lot median {_fmt(med)}, scale of the fleet history ({sum(groups)} units)"
+            thr = history_z_threshold(
+                groups, int(ok.sum()), n_params, cfg.z_threshold, cfg.family_alpha, cfg.history_location
+            )
             thresholds.append(thr)
             z = np.where(ok, (x - ref_med) / scale, np.nan) if scale > 0 else np.zeros(len(x))
             score[idx] = z
             for i in np.flatnonzero(np.abs(np.nan_to_num(z)) > thr):
-                flags.append(Flag(lot, str(grp_units[i]), model, name, KIND_ROBUST, float(x[i]),
-                                  ref_med, float(z[i]), thr,
-                                  f"{model}.{name} = {_fmt(x[i])}, {where}, robust z "
-                                  f"{z[i]:+.1f} (|z| > {thr:.2f})"))
+                flags.append(
+                    Flag(
+                        lot,
+                        str(grp_units[i]),
+                        model,
+                        name,
+                        KIND_ROBUST,
+                        float(x[i]),
+                        ref_med,
+                        float(z[i]),
+                        thr,
+                        f"{model}.{name} = {_fmt(x[i])}, {where}, robust z {z[i]:+.1f} (|z| > {thr:.2f})",
+                    )
+                )
         elif robust and in_robust and ok.sum() >= cfg.min_units:
             if (model, name) in pooled:
                 scale, n_pool = pooled[(model, name)]
@@ -681,10 +741,21 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
             score[idx] = z
             for i in np.flatnonzero(np.abs(np.nan_to_num(z)) > thr):
                 u = str(grp_units[i])
-                flags.append(Flag(lot, u, model, name, KIND_ROBUST, float(x[i]), med,
-                                  float(z[i]), thr,
-                                  f"{model}.{name} = {_fmt(x[i])}, lot median {_fmt(med)}, "
-                                  f"robust z {z[i]:+.1f} (|z| > {thr:.2f})"))
+                flags.append(
+                    Flag(
+                        lot,
+                        u,
+                        model,
+                        name,
+                        KIND_ROBUST,
+                        float(x[i]),
+                        med,
+                        float(z[i]),
+                        thr,
+                        f"{model}.{name} = {_fmt(x[i])}, lot median {_fmt(med)}, "
+                        f"robust z {z[i]:+.1f} (|z| > {thr:.2f})",
+                    )
+                )
         if robust and in_robust and ok.sum() >= cfg.min_units:
             s = std_col[idx]
             nr = nreps_col[idx]
@@ -695,73 +766,119 @@ def _flag_one_lot(cols: dict[str, np.ndarray], n_params: int, lot: str, cfg: Out
                     ratio = np.where(use, s / med_s, np.nan)
                     for i in np.flatnonzero(np.nan_to_num(ratio) > cfg.spread_factor):
                         u = str(grp_units[i])
-                        flags.append(Flag(
-                            lot, u, model, name, KIND_SPREAD, float(s[i]), med_s,
-                            float(ratio[i]), cfg.spread_factor,
-                            f"{model}.{name} repetition std {_fmt(s[i])}, lot median std "
-                            f"{_fmt(med_s)}, ratio {ratio[i]:.1f} (> {cfg.spread_factor:g})"))
+                        flags.append(
+                            Flag(
+                                lot,
+                                u,
+                                model,
+                                name,
+                                KIND_SPREAD,
+                                float(s[i]),
+                                med_s,
+                                float(ratio[i]),
+                                cfg.spread_factor,
+                                f"{model}.{name} repetition std {_fmt(s[i])}, lot median std "
+                                f"{_fmt(med_s)}, ratio {ratio[i]:.1f} (> {cfg.spread_factor:g})",
+                            )
+                        )
         lim = cfg.limit_of(model, name)
         if lim is not None:
             if lim.unit is not None and uom_col is not None:
                 stored = uom_col[idx]
                 wrong = {str(u) for u in stored if not _same_unit(u, lim.unit)}
                 if wrong:
-                    limit_notes.append(f"limit of {model}.{name} not applied: it is in "
-                                       f"{lim.unit or 'dimensionless'!r}, the values in "
-                                       f"{', '.join(sorted(wrong))}")
+                    limit_notes.append(
+                        f"limit of {model}.{name} not applied: it is in "
+                        f"{lim.unit or 'dimensionless'!r}, the values in "
+                        f"{', '.join(sorted(wrong))}"
+                    )
                     continue
             u_txt = f" {lim.unit}" if lim.unit else ""
             for i in range(len(x)):
                 v = x[i]
                 u = str(grp_units[i])
                 if lim.min is not None and not v >= lim.min:
-                    flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), med,
-                                      float(v - lim.min), lim.min,
-                                      f"{model}.{name} = {_fmt(v)}{u_txt} below limit min "
-                                      f"{_fmt(lim.min)}{u_txt}"
-                                      + (f" (limit {lim.written})" if lim.written else "")))
+                    flags.append(
+                        Flag(
+                            lot,
+                            u,
+                            model,
+                            name,
+                            KIND_LIMIT,
+                            float(v),
+                            med,
+                            float(v - lim.min),
+                            lim.min,
+                            f"{model}.{name} = {_fmt(v)}{u_txt} below limit min "
+                            f"{_fmt(lim.min)}{u_txt}" + (f" (limit {lim.written})" if lim.written else ""),
+                        )
+                    )
                 if lim.max is not None and not v <= lim.max:
-                    flags.append(Flag(lot, u, model, name, KIND_LIMIT, float(v), med,
-                                      float(v - lim.max), lim.max,
-                                      f"{model}.{name} = {_fmt(v)}{u_txt} above limit max "
-                                      f"{_fmt(lim.max)}{u_txt}"
-                                      + (f" (limit {lim.written})" if lim.written else "")))
+                    flags.append(
+                        Flag(
+                            lot,
+                            u,
+                            model,
+                            name,
+                            KIND_LIMIT,
+                            float(v),
+                            med,
+                            float(v - lim.max),
+                            lim.max,
+                            f"{model}.{name} = {_fmt(v)}{u_txt} above limit max "
+                            f"{_fmt(lim.max)}{u_txt}" + (f" (limit {lim.written})" if lim.written else ""),
+                        )
+                    )
     thr_used = float(np.median(thresholds)) if thresholds else float("nan")
     if history is not None:
         reference, detail = "fleet history", history.detail
-        note = (f"{n_units} units in lot {lot} (fewer than {cfg.history_below}): judged "
-                f"with {detail}; |robust z| threshold {thr_used:.2f} (max of "
-                f"{cfg.z_threshold:g} and the family-wise level for alpha="
-                f"{cfg.family_alpha:g})")
+        note = (
+            f"{n_units} units in lot {lot} (fewer than {cfg.history_below}): judged "
+            f"with {detail}; |robust z| threshold {thr_used:.2f} (max of "
+            f"{cfg.z_threshold:g} and the family-wise level for alpha="
+            f"{cfg.family_alpha:g})"
+        )
         if robust:
             note += f"; spread factor {cfg.spread_factor:g} within the lot"
     elif robust:
         reference, detail = "lot", f"lot {lot}'s own median, scale {cfg.scale_pool}"
-        note = (f"{n_units} units, {n_params} parameters in robust models "
-                f"{', '.join(cfg.robust_models) or 'all'}: |robust z| threshold "
-                f"{thr_used:.2f} (max of {cfg.z_threshold:g} and the family-wise level for "
-                f"alpha={cfg.family_alpha:g}; scale {cfg.scale_pool}); spread factor "
-                f"{cfg.spread_factor:g}")
+        note = (
+            f"{n_units} units, {n_params} parameters in robust models "
+            f"{', '.join(cfg.robust_models) or 'all'}: |robust z| threshold "
+            f"{thr_used:.2f} (max of {cfg.z_threshold:g} and the family-wise level for "
+            f"alpha={cfg.family_alpha:g}; scale {cfg.scale_pool}); spread factor "
+            f"{cfg.spread_factor:g}"
+        )
         if cfg.uses_history() and n_units < cfg.history_below:
             note += "; no fleet history of earlier lots to judge this small lot against"
     else:
         reference, detail = "none", "too few units and no fleet history of earlier lots"
-        note = (f"{n_units} unit(s) in lot {lot}: fewer than {cfg.min_units} and no fleet "
-                f"history of earlier lots, no robust z or spread flags (only configured limits)")
+        note = (
+            f"{n_units} unit(s) in lot {lot}: fewer than {cfg.min_units} and no fleet "
+            f"history of earlier lots, no robust z or spread flags (only configured limits)"
+        )
     if limit_notes:
         note += "; " + "; ".join(limit_notes)
-    scores = pd.DataFrame({"lot": lot, "unit": unit_col, "model": cols["model"],
-                           "parameter": cols["parameter"], "score": score, "lot_median": median})
-    return LotFlags(lot, n_units, robust or history is not None, thr_used, note, flags, scores,
-                    reference, detail)
+    scores = pd.DataFrame(
+        {
+            "lot": lot,
+            "unit": unit_col,
+            "model": cols["model"],
+            "parameter": cols["parameter"],
+            "score": score,
+            "lot_median": median,
+        }
+    )
+    return LotFlags(
+        lot, n_units, robust or history is not None, thr_used, note, flags, scores, reference, detail
+    )
 
 
 def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFrame:
     """The summary with ``flagged``, ``flag_reason``, ``score`` and ``lot_median`` set from
     the flags (rows of lots not in ``lot_flags`` keep their values)."""
     out = summary.copy()
-    for col, default in (("flagged", False), ("flag_reason", ""), ("score", np.nan),
-                         ("lot_median", np.nan)):
+    for col, default in (("flagged", False), ("flag_reason", ""), ("score", np.nan), ("lot_median", np.nan)):
         if col not in out:
             out[col] = default
     out["flagged"] = out["flagged"].astype(bool)
@@ -777,8 +894,7 @@ def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFram
             out.loc[in_lot, "lot_median"] = sc["lot_median"].to_numpy(float)
         reasons: dict[tuple, list[str]] = {}
         for f in lf.flags:
-            reasons.setdefault((f.lot, f.unit, f.model, f.parameter), []).append(
-                f"[{f.kind}] {f.reason}")
+            reasons.setdefault((f.lot, f.unit, f.model, f.parameter), []).append(f"[{f.kind}] {f.reason}")
         if reasons:
             ks = list(zip(*(out[c] for c in key)))
             hit = np.array([k in reasons for k in ks]) & in_lot
@@ -796,13 +912,17 @@ def pooling_rows(summary: pd.DataFrame, config: OutlierConfig | None = None) -> 
     cols = ["lot", "unit", "model", "parameter", "mean"]
     if cfg.scale_pool != "fleet":
         return summary.loc[[], cols].reset_index(drop=True)
-    rows = summary["model"].isin(cfg.robust_models).to_numpy(bool) if cfg.robust_models \
+    rows = (
+        summary["model"].isin(cfg.robust_models).to_numpy(bool)
+        if cfg.robust_models
         else np.ones(len(summary), bool)
+    )
     return summary.loc[rows, cols].reset_index(drop=True)
 
 
-def pooled_scales(summary: pd.DataFrame, config: OutlierConfig | None = None
-                  ) -> dict[tuple[str, str], tuple[float, tuple[int, ...]]]:
+def pooled_scales(
+    summary: pd.DataFrame, config: OutlierConfig | None = None
+) -> dict[tuple[str, str], tuple[float, tuple[int, ...]]]:
     """(model, parameter) -> (pooled robust scale, sorted sizes of the lots pooled), the
     values :func:`flag_lots` uses for ``summary`` (empty with ``scale_pool="lot"``). A lot's
     flags and scores depend on the other lots only through these: a lot whose own rows are

@@ -6,6 +6,7 @@ traditional inverse model, and the zhang2017 static and lever-arm fits where the
 ``calibration_from_unit`` averages the repetitions into the :class:`Calibration` that is saved
 and applied (xu2016 section 3.1 averages the five repetitions the same way).
 """
+
 from __future__ import annotations
 
 import time
@@ -43,8 +44,7 @@ class SessionFit:
         return self.residual_table.to_frame()
 
 
-def calibrate_repetition(sm: StepMeans, cpu_by_stage: dict[str, float] | None = None
-                         ) -> SessionFit:
+def calibrate_repetition(sm: StepMeans, cpu_by_stage: dict[str, float] | None = None) -> SessionFit:
     """Fit every applicable model to one session. Raises DesignError when the xu2016 base
     model cannot be determined; optional models that cannot be fitted become warnings.
 
@@ -96,9 +96,10 @@ def _same_layout(sms: list[StepMeans]) -> list[list[int]]:
 
 def _share_layout(a: StepMeans, b: StepMeans) -> bool:
     """Same units, gravity, steps, tests and references, to the bit."""
-    return ((a.gyro_unit, a.accel_unit, a.g_local) == (b.gyro_unit, b.accel_unit, b.g_local)
-            and all(_identical(getattr(a, name), getattr(b, name)) for name in (
-                "step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref")))
+    return (a.gyro_unit, a.accel_unit, a.g_local) == (b.gyro_unit, b.accel_unit, b.g_local) and all(
+        _identical(getattr(a, name), getattr(b, name))
+        for name in ("step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref")
+    )
 
 
 def _identical(x: np.ndarray, y: np.ndarray) -> bool:
@@ -107,8 +108,9 @@ def _identical(x: np.ndarray, y: np.ndarray) -> bool:
     return x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
 
 
-def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | None = None
-                        ) -> list[SessionFit]:
+def _calibrate_together(
+    sms: list[StepMeans], cpu_by_stage: dict[str, float] | None = None
+) -> list[SessionFit]:
     """The fits of sessions that share a step layout, the stacked parts solved together.
 
     One session: exactly :func:`calibrate_repetition`. Several: whatever one of them would
@@ -117,17 +119,22 @@ def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | N
     alone = len(sms) == 1
     fits: list[dict] = [{} for _ in sms]
     warnings: list[list[str]] = [[] for _ in sms]
-    for f, gyro, accel in zip(fits, xu2016.fit_gyro_multirate_stack(sms),
-                              xu2016.fit_accel_multiposition_stack(sms)):
+    for f, gyro, accel in zip(
+        fits, xu2016.fit_gyro_multirate_stack(sms), xu2016.fit_accel_multiposition_stack(sms)
+    ):
         f["gyro"], f["accel"] = gyro, accel
     for f, sm in zip(fits, sms):
         implausible = check_fits(f, sm)
         if implausible:
-            raise DesignError("E_IMPLAUSIBLE", "estimates are not those of a working sensor: "
-                              + "; ".join(str(i) for i in implausible),
-                              undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible))
-    for name, fitter in (("gyro_traditional", xu2016.fit_gyro_traditional_stack),
-                         ("accel_traditional", xu2016.fit_accel_traditional_stack)):
+            raise DesignError(
+                "E_IMPLAUSIBLE",
+                "estimates are not those of a working sensor: " + "; ".join(str(i) for i in implausible),
+                undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible),
+            )
+    for name, fitter in (
+        ("gyro_traditional", xu2016.fit_gyro_traditional_stack),
+        ("accel_traditional", xu2016.fit_accel_traditional_stack),
+    ):
         try:
             for f, trad in zip(fits, fitter(sms)):
                 f[name] = trad
@@ -140,15 +147,22 @@ def _calibrate_together(sms: list[StepMeans], cpu_by_stage: dict[str, float] | N
     _fit_zhang2017(sms, fits, warnings, derived, lap)
     sm = sms[0]
     source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
-    comps = xu2016.compensation_error_tables(sms, [f["gyro"] for f in fits],
-                                             [f.get("gyro_traditional") for f in fits],
-                                             tests=source)
+    comps = xu2016.compensation_error_tables(
+        sms, [f["gyro"] for f in fits], [f.get("gyro_traditional") for f in fits], tests=source
+    )
     residuals = residual_tables(sms, [calibration_from_fits(f, s) for f, s in zip(fits, sms)])
     out = []
     for sm, f, w, d, comp, res in zip(sms, fits, warnings, derived, comps, residuals):
         key = sm.key
-        rep = RepetitionCalibration(lot=key.lot, unit=key.unit, rep=key.rep, fits=f,
-                                    warnings=w, provenance=dict(sm.metadata), derived=d)
+        rep = RepetitionCalibration(
+            lot=key.lot,
+            unit=key.unit,
+            rep=key.rep,
+            fits=f,
+            warnings=w,
+            provenance=dict(sm.metadata),
+            derived=d,
+        )
         out.append(SessionFit(rep, comp, res))
     lap("tables")
     return out
@@ -171,11 +185,17 @@ class _Lap:
             self.t = now
 
 
-def _fit_zhang2017(sms: list[StepMeans], fits: list[dict], warnings: list[list[str]],
-                   derived: list[dict], lap: _Lap = _Lap(None)) -> None:
+def _fit_zhang2017(
+    sms: list[StepMeans],
+    fits: list[dict],
+    warnings: list[list[str]],
+    derived: list[dict],
+    lap: _Lap | None = None,
+) -> None:
     """The 15-parameter static model and, with dynamic steps, the lever arms, of sessions
     that share a step layout (as :func:`_calibrate_together`: with several sessions, a
     DesignError raises instead of becoming the sessions' warning)."""
+    lap = lap if lap is not None else _Lap(None)
     try:
         from calib_core import zhang2017
     except ImportError:  # pragma: no cover - module always present in a full install
@@ -201,13 +221,16 @@ def _fit_zhang2017(sms: list[StepMeans], fits: list[dict], warnings: list[list[s
             # on the same physics-simulator units; discovery's joint fit, when it names the
             # lever arm, replaces it)
             inputs = zhang2017.lever_arm_inputs_stack(
-                sms, statics, gyro_Ks=[f["gyro"].K for f in fits],
-                gyro_w0s=[f["gyro"].w0 for f in fits])
+                sms, statics, gyro_Ks=[f["gyro"].K for f in fits], gyro_w0s=[f["gyro"].w0 for f in fits]
+            )
             for f, w, lever in zip(fits, warnings, zhang2017.fit_lever_arm_from_stack(inputs)):
                 f["lever_arm"] = lever
                 if lever.undetermined:  # stored as NaN; say why in the session's warnings
-                    w.append("W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
-                             + ", ".join(lever.undetermined) + " (add tilted steps)")
+                    w.append(
+                        "W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
+                        + ", ".join(lever.undetermined)
+                        + " (add tilted steps)"
+                    )
             for d, f in zip(derived, fits):
                 d["lever_arm_mm"] = f["lever_arm"].lever_arm_mm
         except DesignError as exc:
@@ -217,15 +240,21 @@ def _fit_zhang2017(sms: list[StepMeans], fits: list[dict], warnings: list[list[s
         lap("lever_arm")
 
 
-def calibration_from_fits(fits: dict, sm: StepMeans, terms: tuple[TermValue, ...] = ()
-                          ) -> Calibration:
+def calibration_from_fits(fits: dict, sm: StepMeans, terms: tuple[TermValue, ...] = ()) -> Calibration:
     g, a = fits["gyro"], fits["accel"]
-    return Calibration(K_g=g.K, w0=g.w0, K_a=a.K, f0=a.f0, gyro_unit=sm.gyro_unit,
-                       accel_unit=sm.accel_unit, terms=terms, g_local=sm.g_local)
+    return Calibration(
+        K_g=g.K,
+        w0=g.w0,
+        K_a=a.K,
+        f0=a.f0,
+        gyro_unit=sm.gyro_unit,
+        accel_unit=sm.accel_unit,
+        terms=terms,
+        g_local=sm.g_local,
+    )
 
 
-def calibration_from_unit(unit: UnitCalibration, terms: tuple[TermValue, ...] = ()
-                          ) -> Calibration:
+def calibration_from_unit(unit: UnitCalibration, terms: tuple[TermValue, ...] = ()) -> Calibration:
     """Average of the repetitions' K_g, w0, K_a, f0 (+ extension terms): what is applied."""
     reps = unit.reps
     if not reps:
@@ -234,21 +263,38 @@ def calibration_from_unit(unit: UnitCalibration, terms: tuple[TermValue, ...] = 
     first = reps[0].fits
     g_local = float(reps[0].provenance.get("g_local", 9.80665)) if reps[0].provenance else 9.80665
     terms = tuple(terms)
-    if not any(t.name == "lever_arm" for t in terms) and all(
-            "lever_arm_mm" in r.derived for r in reps):
+    if not any(t.name == "lever_arm" for t in terms) and all("lever_arm_mm" in r.derived for r in reps):
         r_mm = np.mean([r.derived["lever_arm_mm"] for r in reps], axis=0)
         if np.isfinite(r_mm).all():  # only a fully determined lever arm is applied
             terms = terms + (TermValue("lever_arm", r_mm.ravel()),)
     return Calibration(
-        K_g=mean("gyro", "K"), w0=mean("gyro", "w0"), K_a=mean("accel", "K"),
-        f0=mean("accel", "f0"), gyro_unit=first["gyro"].raw_unit,
-        accel_unit=first["accel"].raw_unit, terms=terms, g_local=g_local,
+        K_g=mean("gyro", "K"),
+        w0=mean("gyro", "w0"),
+        K_a=mean("accel", "K"),
+        f0=mean("accel", "f0"),
+        gyro_unit=first["gyro"].raw_unit,
+        accel_unit=first["accel"].raw_unit,
+        terms=terms,
+        g_local=g_local,
         metadata={"lot": unit.lot, "unit": unit.unit, "reps": [r.rep for r in reps]},
     )
 
 
-RESIDUAL_COLUMNS = ["lot", "unit", "rep", "step", "test", "up_axis", "rate_dps", "angle_deg",
-                    "channel", "reference", "residual", "sigma", "model"]
+RESIDUAL_COLUMNS = [
+    "lot",
+    "unit",
+    "rep",
+    "step",
+    "test",
+    "up_axis",
+    "rate_dps",
+    "angle_deg",
+    "channel",
+    "reference",
+    "residual",
+    "sigma",
+    "model",
+]
 
 
 def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline") -> pd.DataFrame:
@@ -267,8 +313,9 @@ def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> 
     return residual_tables([sm], [cal], model)[0]
 
 
-def residual_tables(sms: list[StepMeans], cals: list[Calibration], model: str = "baseline"
-                    ) -> list[ColumnTable]:
+def residual_tables(
+    sms: list[StepMeans], cals: list[Calibration], model: str = "baseline"
+) -> list[ColumnTable]:
     """:func:`residual_table` of sessions that share a step layout, each with its own
     calibration, computed together (table r is ``residual_table(sms[r], cals[r])``). The
     columns that come from the layout alone (step, test, references, ...) are built once and
@@ -286,8 +333,10 @@ def residual_tables(sms: list[StepMeans], cals: list[Calibration], model: str = 
     sa = np.sqrt(stack_field(sms, "accel_std") ** 2 @ K_a2) / n
     sig = np.concatenate([sg, sa], axis=2)
     layout = {
-        "step": np.repeat(sm.step, 6), "test": CodedStrings.of(sm.test).repeat(6),
-        "up_axis": CodedStrings.of(sm.up_axis).repeat(6), "rate_dps": np.repeat(sm.rate_dps, 6),
+        "step": np.repeat(sm.step, 6),
+        "test": CodedStrings.of(sm.test).repeat(6),
+        "up_axis": CodedStrings.of(sm.up_axis).repeat(6),
+        "rate_dps": np.repeat(sm.rate_dps, 6),
         "angle_deg": np.repeat(sm.angle_deg, 6),
         "channel": CodedStrings(CHANNELS, np.tile(np.arange(6), k)),
         "reference": np.hstack([sm.w_ref, sm.f_ref]).ravel(),
@@ -295,9 +344,21 @@ def residual_tables(sms: list[StepMeans], cals: list[Calibration], model: str = 
     if len(sms) > 1:
         for v in layout.values():
             (v.codes if isinstance(v, CodedStrings) else v).setflags(write=False)
-    return [ColumnTable({
-        "lot": s.key.lot, "unit": s.key.unit, "rep": s.key.rep,
-        **{c: layout[c] for c in ("step", "test", "up_axis", "rate_dps", "angle_deg", "channel",
-                                  "reference")},
-        "residual": res[r].ravel(), "sigma": sig[r].ravel(), "model": model,
-    }, 6 * k) for r, s in enumerate(sms)]
+    return [
+        ColumnTable(
+            {
+                "lot": s.key.lot,
+                "unit": s.key.unit,
+                "rep": s.key.rep,
+                **{
+                    c: layout[c]
+                    for c in ("step", "test", "up_axis", "rate_dps", "angle_deg", "channel", "reference")
+                },
+                "residual": res[r].ravel(),
+                "sigma": sig[r].ravel(),
+                "model": model,
+            },
+            6 * k,
+        )
+        for r, s in enumerate(sms)
+    ]

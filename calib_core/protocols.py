@@ -4,14 +4,25 @@ A protocol is a ``pandas.DataFrame`` with the contract columns plus ``duration_s
 the table holds the step; an optional column the contract allows us to add). References are
 nominal: rate about the vertical table axis, gravity along the body axis that points up.
 """
+
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 
 STEP_COLUMNS = (
-    "step", "test", "up_axis", "rate_dps", "angle_deg",
-    "w_ref_x", "w_ref_y", "w_ref_z", "f_ref_x", "f_ref_y", "f_ref_z", "settle_s",
+    "step",
+    "test",
+    "up_axis",
+    "rate_dps",
+    "angle_deg",
+    "w_ref_x",
+    "w_ref_y",
+    "w_ref_z",
+    "f_ref_x",
+    "f_ref_y",
+    "f_ref_z",
+    "settle_s",
 )
 
 # xu2016 section 2.2.1: x-up and y-up rates (deg/s), z-up rates (deg/s)
@@ -22,8 +33,14 @@ XU2016_ANGLES = (0, 15, 30, 45, 60, 90, 120, 135, 150, 165, 180)
 # zhang2017 section 3.2: constant rates of the dynamic test
 ZHANG2017_DYNAMIC_RATES = (100, 150, 200)
 
-_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0),
-         "+z": (0, 0, 1), "-z": (0, 0, -1)}
+_AXES = {
+    "+x": (1, 0, 0),
+    "-x": (-1, 0, 0),
+    "+y": (0, 1, 0),
+    "-y": (0, -1, 0),
+    "+z": (0, 0, 1),
+    "-z": (0, 0, -1),
+}
 
 
 def up_axis_of(f: np.ndarray) -> str:
@@ -32,17 +49,25 @@ def up_axis_of(f: np.ndarray) -> str:
     return ("+" if f[i] >= 0 else "-") + "xyz"[i]
 
 
-def _row(test: str, up: np.ndarray, rate: float, angle: float | None, duration_s: float,
-         settle_s: float) -> dict:
+def _row(
+    test: str, up: np.ndarray, rate: float, angle: float | None, duration_s: float, settle_s: float
+) -> dict:
     up = np.asarray(up, dtype=float)
     up = up / np.linalg.norm(up)
     w = rate * up
     return {
-        "test": test, "up_axis": up_axis_of(up), "rate_dps": float(rate),
+        "test": test,
+        "up_axis": up_axis_of(up),
+        "rate_dps": float(rate),
         "angle_deg": np.nan if angle is None else float(angle),
-        "w_ref_x": w[0] + 0.0, "w_ref_y": w[1] + 0.0, "w_ref_z": w[2] + 0.0,
-        "f_ref_x": up[0] + 0.0, "f_ref_y": up[1] + 0.0, "f_ref_z": up[2] + 0.0,
-        "settle_s": float(settle_s), "duration_s": float(duration_s),
+        "w_ref_x": w[0] + 0.0,
+        "w_ref_y": w[1] + 0.0,
+        "w_ref_z": w[2] + 0.0,
+        "f_ref_x": up[0] + 0.0,
+        "f_ref_y": up[1] + 0.0,
+        "f_ref_z": up[2] + 0.0,
+        "settle_s": float(settle_s),
+        "duration_s": float(duration_s),
     }
 
 
@@ -74,13 +99,20 @@ def xu2016_multiposition(duration_s: float = 3.0, settle_s: float = 0.5) -> list
     rows = []
     for orientation in ("z", "x", "y"):
         for ang in XU2016_ANGLES:
-            rows.append(_row("multiposition", multiposition_f(orientation, ang), 0.0, ang,
-                             duration_s, settle_s))
+            rows.append(
+                _row("multiposition", multiposition_f(orientation, ang), 0.0, ang, duration_s, settle_s)
+            )
     return rows
 
 
-def dynamic_steps(rates=ZHANG2017_DYNAMIC_RATES, duration_s: float = 3.0, settle_s: float = 0.5,
-                  tilted: bool = True, tilted_rates=(200,), stationary: bool = False) -> list[dict]:
+def dynamic_steps(
+    rates=ZHANG2017_DYNAMIC_RATES,
+    duration_s: float = 3.0,
+    settle_s: float = 0.5,
+    tilted: bool = True,
+    tilted_rates=(200,),
+    stationary: bool = False,
+) -> list[dict]:
     """Constant-rate rotation about the vertical with x-, y- and z-up, +/- each rate.
 
     With only principal axes up, accelerometer i sees nothing but the i-th component of its
@@ -110,8 +142,7 @@ def verification_sweep(duration_s: float = 3.0, settle_s: float = 0.5) -> list[d
     for the compensation errors of xu2016 Table 3."""
     rows = []
     xy = (-300, -270, -210, -150, -90, -50, -20, 0, 20, 50, 90, 150, 210, 270, 300)
-    z = (-3600, -3000, -2500, -1500, -900, -500, -200, -50, 0, 50, 200, 500, 900, 1500,
-         2500, 3000, 3600)
+    z = (-3600, -3000, -2500, -1500, -900, -500, -200, -50, 0, 50, 200, 500, 900, 1500, 2500, 3000, 3600)
     for axis, rates in (("+x", xy), ("+y", xy), ("+z", z)):
         for r in rates:
             rows.append(_row("verification", _AXES[axis], r, None, duration_s, settle_s))
@@ -122,8 +153,9 @@ def zhang2017_six_position(duration_s: float = 60.0, settle_s: float = 1.0) -> l
     """Static +/-1 g on each axis, one minute each (zhang2017 section 3.1)."""
     rows = []
     for axis in ("+x", "-x", "+y", "-y", "+z", "-z"):
-        rows.append(_row("multiposition", _AXES[axis], 0.0, 0.0 if axis[0] == "+" else 180.0,
-                         duration_s, settle_s))
+        rows.append(
+            _row("multiposition", _AXES[axis], 0.0, 0.0 if axis[0] == "+" else 180.0, duration_s, settle_s)
+        )
     return rows
 
 
@@ -134,8 +166,9 @@ def to_frame(rows: list[dict]) -> pd.DataFrame:
     return df.astype({"step": "int32", "test": "string", "up_axis": "string"})
 
 
-def default_session(duration_s: float = 3.0, settle_s: float = 0.5, dynamic: bool = True,
-                    verification: bool = False) -> pd.DataFrame:
+def default_session(
+    duration_s: float = 3.0, settle_s: float = 0.5, dynamic: bool = True, verification: bool = False
+) -> pd.DataFrame:
     """The full production protocol: xu2016 multirate + multiposition, zhang2017 dynamic
     (+ the verification sweep on request)."""
     rows = xu2016_multirate(duration_s, settle_s) + xu2016_multiposition(duration_s, settle_s)
@@ -146,12 +179,10 @@ def default_session(duration_s: float = 3.0, settle_s: float = 0.5, dynamic: boo
     return to_frame(rows)
 
 
-def zhang2017_session(duration_s: float = 60.0, settle_s: float = 1.0,
-                      tilted: bool = True) -> pd.DataFrame:
+def zhang2017_session(duration_s: float = 60.0, settle_s: float = 1.0, tilted: bool = True) -> pd.DataFrame:
     """zhang2017 protocol: six-position static, then stationary + constant-rate dynamic steps."""
     rows = zhang2017_six_position(duration_s, settle_s)
-    rows += dynamic_steps(duration_s=duration_s, settle_s=settle_s, tilted=tilted,
-                          stationary=True)
+    rows += dynamic_steps(duration_s=duration_s, settle_s=settle_s, tilted=tilted, stationary=True)
     return to_frame(rows)
 
 
@@ -171,15 +202,17 @@ def two_heading_stationary(duration_s: float = 3.0, settle_s: float = 0.5) -> li
 def diagonal_dynamic(duration_s: float = 3.0, settle_s: float = 0.5) -> list[dict]:
     """Constant-rate rotation about the vertical with the unit's up on the 45-degree
     diagonals: the lever arm's components off the rotation axis."""
-    return dynamic_steps(rates=(), duration_s=duration_s, settle_s=settle_s, tilted=True,
-                         tilted_rates=(200, 400))
+    return dynamic_steps(
+        rates=(), duration_s=duration_s, settle_s=settle_s, tilted=True, tilted_rates=(200, 400)
+    )
 
 
 WHOLE_TURN_RATES = (90, 120, 180, 240)  # deg/s, within a 300 deg/s gyro range about x and y
 
 
-def whole_turn_session(min_duration_s: float = 3.0, settle_s: float = 0.5,
-                       rates=WHOLE_TURN_RATES) -> pd.DataFrame:
+def whole_turn_session(
+    min_duration_s: float = 3.0, settle_s: float = 0.5, rates=WHOLE_TURN_RATES
+) -> pd.DataFrame:
     """Every step turns about the vertical, +/- each rate with x, y, z and the three
     45-degree diagonals up, and averages over whole turns (the step lasts its settling time
     plus the fewest whole turns that fill ``min_duration_s``): the horizontal Earth rate

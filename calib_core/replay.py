@@ -22,6 +22,7 @@ With a single repetition there is no repetition scatter: ``sigma`` falls back to
 ``sigma_white`` and :attr:`NoiseEstimate.from_repetitions` is False (a test on that alone
 would cry wolf on any unit with bias instability; :mod:`calib_core.discovery` refuses it).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,13 +36,33 @@ CHANNEL_UNITS = ("deg/s",) * 3 + ("g",) * 3
 
 # Steps whose noise is pooled together. Stationary steps are too few to pool on their own
 # and have the same noise as slow multirate steps.
-TEST_GROUP = {"stationary": "rate", "multirate": "rate", "multiposition": "position",
-              "dynamic": "dynamic", "verification": "verification"}
+TEST_GROUP = {
+    "stationary": "rate",
+    "multirate": "rate",
+    "multiposition": "position",
+    "dynamic": "dynamic",
+    "verification": "verification",
+}
 MIN_POOL_DOF = 8  # groups with fewer degrees of freedom borrow the channel's pooled value
 
-REPLAY_COLUMNS = ("lot", "unit", "rep", "step", "test", "up_axis", "rate_dps", "angle_deg",
-                  "channel", "quantity_unit", "reference", "measured_raw", "predicted_raw",
-                  "residual", "sigma_white", "sigma")
+REPLAY_COLUMNS = (
+    "lot",
+    "unit",
+    "rep",
+    "step",
+    "test",
+    "up_axis",
+    "rate_dps",
+    "angle_deg",
+    "channel",
+    "quantity_unit",
+    "reference",
+    "measured_raw",
+    "predicted_raw",
+    "residual",
+    "sigma_white",
+    "sigma",
+)
 
 
 def test_group(test: str) -> str:
@@ -59,8 +80,8 @@ def physical_residuals(cal: Calibration, sm: StepMeans) -> tuple[np.ndarray, np.
 def white_sigma(cal: Calibration, sm: StepMeans) -> np.ndarray:
     """Within-step scatter of the step mean through K, (n, 6), channel noise independent."""
     n = np.maximum(np.asarray(sm.count, float), 1.0)[:, None]
-    sg = np.sqrt((sm.gyro_std ** 2) @ (cal.K_g.T ** 2))
-    sa = np.sqrt((sm.accel_std ** 2) @ (cal.K_a.T ** 2))
+    sg = np.sqrt((sm.gyro_std**2) @ (cal.K_g.T**2))
+    sa = np.sqrt((sm.accel_std**2) @ (cal.K_a.T**2))
     return np.hstack([sg, sa]) / np.sqrt(n)
 
 
@@ -73,7 +94,8 @@ def replay_session(cal: Calibration, sm: StepMeans) -> pd.DataFrame:
     ref = np.hstack([sm.w_ref, sm.f_ref])
     n = len(sm)
     rows = {
-        "lot": np.repeat(sm.key.lot, 6 * n), "unit": np.repeat(sm.key.unit, 6 * n),
+        "lot": np.repeat(sm.key.lot, 6 * n),
+        "unit": np.repeat(sm.key.unit, 6 * n),
         "rep": np.repeat(int(sm.key.rep), 6 * n),
         "step": np.repeat(sm.step.astype(np.int64), 6),
         "test": np.repeat(np.asarray(sm.test, str), 6),
@@ -82,8 +104,12 @@ def replay_session(cal: Calibration, sm: StepMeans) -> pd.DataFrame:
         "angle_deg": np.repeat(sm.angle_deg.astype(float), 6),
         "channel": np.tile(np.array(CHANNELS), n),
         "quantity_unit": np.tile(np.array(CHANNEL_UNITS), n),
-        "reference": ref.ravel(), "measured_raw": meas.ravel(), "predicted_raw": pred.ravel(),
-        "residual": res.ravel(), "sigma_white": sw.ravel(), "sigma": sw.ravel(),
+        "reference": ref.ravel(),
+        "measured_raw": meas.ravel(),
+        "predicted_raw": pred.ravel(),
+        "residual": res.ravel(),
+        "sigma_white": sw.ravel(),
+        "sigma": sw.ravel(),
     }
     return pd.DataFrame(rows, columns=list(REPLAY_COLUMNS))
 
@@ -103,8 +129,7 @@ class NoiseEstimate:
     cost ~2 ms per unit.
     """
 
-    def __init__(self, table: pd.DataFrame | None, from_repetitions: bool,
-                 records: list[dict] | None = None):
+    def __init__(self, table: pd.DataFrame | None, from_repetitions: bool, records: list[dict] | None = None):
         if table is None and records is None:
             raise ValueError("NoiseEstimate needs a table or its records")
         self._table = table
@@ -112,7 +137,7 @@ class NoiseEstimate:
         self.from_repetitions = bool(from_repetitions)
 
     @classmethod
-    def from_records(cls, records: list[dict], from_repetitions: bool) -> "NoiseEstimate":
+    def from_records(cls, records: list[dict], from_repetitions: bool) -> NoiseEstimate:
         return cls(None, from_repetitions, records)
 
     @property
@@ -131,9 +156,7 @@ class NoiseEstimate:
         return f"NoiseEstimate(from_repetitions={self.from_repetitions}, rows={len(self.records())})"
 
 
-
-def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray
-                     ) -> tuple[np.ndarray, int]:
+def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray) -> tuple[np.ndarray, int]:
     """Residual of ``value = cell effect + repetition effect + e`` and its degrees of freedom.
 
     Removing a value per cell (step) takes out any systematic model error, identical in
@@ -150,8 +173,12 @@ def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray
         # balanced (every step in every repetition once): double centring is the fit
         table = np.zeros((len(ci), len(ri), X.shape[1]))
         table[cell_idx, rep_idx] = X
-        e = (table - table.mean(axis=1, keepdims=True) - table.mean(axis=0, keepdims=True)
-             + table.mean(axis=(0, 1), keepdims=True))
+        e = (
+            table
+            - table.mean(axis=1, keepdims=True)
+            - table.mean(axis=0, keepdims=True)
+            + table.mean(axis=(0, 1), keepdims=True)
+        )
         e, dof = e[cell_idx, rep_idx], int((len(ci) - 1) * (len(ri) - 1))
     else:
         D = np.zeros((n, len(ci) + len(ri)))
@@ -167,14 +194,23 @@ def estimate_noise(table: pd.DataFrame) -> NoiseEstimate:
 
     ``table`` is one or more replayed sessions of the same unit (:func:`replay_session`)."""
     return estimate_noise_arrays(
-        table["channel"].to_numpy(str), table["test"].map(test_group).to_numpy(str),
-        table["rep"].to_numpy(), table["step"].to_numpy(), table["residual"].to_numpy(float),
-        table["sigma_white"].to_numpy(float))
+        table["channel"].to_numpy(str),
+        table["test"].map(test_group).to_numpy(str),
+        table["rep"].to_numpy(),
+        table["step"].to_numpy(),
+        table["residual"].to_numpy(float),
+        table["sigma_white"].to_numpy(float),
+    )
 
 
-def estimate_noise_arrays(channel: np.ndarray, group: np.ndarray, rep: np.ndarray,
-                          step: np.ndarray, residual: np.ndarray, white: np.ndarray
-                          ) -> NoiseEstimate:
+def estimate_noise_arrays(
+    channel: np.ndarray,
+    group: np.ndarray,
+    rep: np.ndarray,
+    step: np.ndarray,
+    residual: np.ndarray,
+    white: np.ndarray,
+) -> NoiseEstimate:
     """:func:`estimate_noise` on aligned arrays (one entry per step, repetition, channel)."""
     multi = len(np.unique(rep)) > 1
     out = []
@@ -196,14 +232,23 @@ def estimate_noise_arrays(channel: np.ndarray, group: np.ndarray, rep: np.ndarra
         for g, dof, ss, w in rows:
             var = ss / dof if dof >= MIN_POOL_DOF else pooled_var
             step_sd = float(np.sqrt(var)) if np.isfinite(var) else w
-            inst = float(np.sqrt(max(step_sd ** 2 - w ** 2, 0.0)))
-            out.append({"channel": ch, "group": g, "dof": dof, "step_sd": step_sd,
-                        "white_sd": w, "instability_sd": inst})
+            inst = float(np.sqrt(max(step_sd**2 - w**2, 0.0)))
+            out.append(
+                {
+                    "channel": ch,
+                    "group": g,
+                    "dof": dof,
+                    "step_sd": step_sd,
+                    "white_sd": w,
+                    "instability_sd": inst,
+                }
+            )
     return NoiseEstimate(pd.DataFrame(out), from_repetitions=multi)
 
 
-def noise_sigma(noise: NoiseEstimate, channel: np.ndarray, group: np.ndarray,
-                white: np.ndarray) -> np.ndarray:
+def noise_sigma(
+    noise: NoiseEstimate, channel: np.ndarray, group: np.ndarray, white: np.ndarray
+) -> np.ndarray:
     """sigma = sqrt(white**2 + instability**2) per entry (instability 0 where unknown)."""
     tab = noise.table
     lut = {(c, g): v for c, g, v in zip(tab["channel"], tab["group"], tab["instability_sd"])}
@@ -212,39 +257,48 @@ def noise_sigma(noise: NoiseEstimate, channel: np.ndarray, group: np.ndarray,
     gr_names, gr_idx = np.unique(np.asarray(group, str), return_inverse=True)
     per_pair = np.array([[lut.get((c, g), 0.0) for g in gr_names] for c in ch_names], float)
     inst = per_pair[ch_idx.reshape(-1), gr_idx.reshape(-1)] if len(ch_names) else np.zeros(0)
-    return np.sqrt(white ** 2 + np.nan_to_num(inst) ** 2)
+    return np.sqrt(white**2 + np.nan_to_num(inst) ** 2)
 
 
 def attach_noise(table: pd.DataFrame, noise: NoiseEstimate | None = None) -> pd.DataFrame:
     """Set ``sigma`` = sqrt(sigma_white**2 + instability**2) from the data's own scatter."""
     noise = noise or estimate_noise(table)
     out = table.copy()
-    out["sigma"] = noise_sigma(noise, table["channel"].to_numpy(str),
-                               table["test"].map(test_group).to_numpy(str),
-                               table["sigma_white"].to_numpy(float))
+    out["sigma"] = noise_sigma(
+        noise,
+        table["channel"].to_numpy(str),
+        table["test"].map(test_group).to_numpy(str),
+        table["sigma_white"].to_numpy(float),
+    )
     return out
 
 
-def replay_unit(cals: Calibration | list[Calibration], sessions: list[StepMeans],
-                noise: NoiseEstimate | None = None) -> pd.DataFrame:
+def replay_unit(
+    cals: Calibration | list[Calibration], sessions: list[StepMeans], noise: NoiseEstimate | None = None
+) -> pd.DataFrame:
     """Replay every repetition of a unit (one calibration for all, or one per repetition,
     e.g. with each repetition's own turn-on biases) and attach the data-estimated noise."""
     if isinstance(cals, Calibration):
         cals = [cals] * len(sessions)
     if len(cals) != len(sessions):
         raise ValueError(f"{len(cals)} calibrations for {len(sessions)} sessions")
-    table = pd.concat([replay_session(c, sm) for c, sm in zip(cals, sessions)],
-                      ignore_index=True)
+    table = pd.concat([replay_session(c, sm) for c, sm in zip(cals, sessions)], ignore_index=True)
     return attach_noise(table, noise)
 
 
 def summarise_residuals(table: pd.DataFrame) -> pd.DataFrame:
     """Normalised rms residual per channel and test: where the replay is wrong."""
     z = table["residual"] / table["sigma"]
-    return (table.assign(z2=z ** 2).groupby(["channel", "test"], sort=False)
-            .agg(n=("z2", "size"), rms_z=("z2", lambda v: float(np.sqrt(v.mean()))),
-                 rms_residual=("residual", lambda v: float(np.sqrt((v ** 2).mean()))))
-            .reset_index())
+    return (
+        table.assign(z2=z**2)
+        .groupby(["channel", "test"], sort=False)
+        .agg(
+            n=("z2", "size"),
+            rms_z=("z2", lambda v: float(np.sqrt(v.mean()))),
+            rms_residual=("residual", lambda v: float(np.sqrt((v**2).mean()))),
+        )
+        .reset_index()
+    )
 
 
 def xu2016_calibration(sm: StepMeans) -> Calibration:
@@ -254,8 +308,15 @@ def xu2016_calibration(sm: StepMeans) -> Calibration:
 
     g = xu2016.fit_gyro_multirate(sm)
     a = xu2016.fit_accel_multiposition(sm)
-    return Calibration(K_g=g.K, w0=g.w0, K_a=a.K, f0=a.f0, gyro_unit=sm.gyro_unit,
-                       accel_unit=sm.accel_unit, g_local=sm.g_local)
+    return Calibration(
+        K_g=g.K,
+        w0=g.w0,
+        K_a=a.K,
+        f0=a.f0,
+        gyro_unit=sm.gyro_unit,
+        accel_unit=sm.accel_unit,
+        g_local=sm.g_local,
+    )
 
 
 def replay_xu2016(sessions: list[StepMeans], noise: NoiseEstimate | None = None) -> pd.DataFrame:

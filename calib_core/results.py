@@ -1,10 +1,12 @@
 """Result types shared by every estimator: named parameters with units and standard errors,
 per-repetition calibrations and their aggregate over repetitions (xu2016 Tables 1 and 2)."""
+
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -60,12 +62,15 @@ class FitResult(Protocol):
     def to_dict(self) -> dict[str, Any]: ...
 
 
-def param_list(model: str, names: Iterable[str], values: Iterable[float],
-               stderrs: Iterable[float], unit: str) -> list[Param]:
+def param_list(
+    model: str, names: Iterable[str], values: Iterable[float], stderrs: Iterable[float], unit: str
+) -> list[Param]:
     """Params of one model and unit, built without the frozen dataclass's per-field
     ``object.__setattr__`` (a session lists ~70 parameters; the objects are identical)."""
-    return [_built(Param, model=model, name=name, value=v, stderr=e, unit=unit)
-            for name, v, e in zip(names, values, stderrs)]
+    return [
+        _built(Param, model=model, name=name, value=v, stderr=e, unit=unit)
+        for name, v, e in zip(names, values, stderrs)
+    ]
 
 
 def _built(cls: type, **fields: Any) -> Any:
@@ -96,8 +101,13 @@ def params_of_blocks(blocks: Iterable[ParamBlock]) -> list[Param]:
     for model, names, values, stderrs, unit in blocks:
         # tolist() converts to Python floats in one call (float(M[i, j]) is one numpy scalar
         # each)
-        out += param_list(model, names, np.asarray(values, dtype=float).ravel().tolist(),
-                          np.asarray(stderrs, dtype=float).ravel().tolist(), unit)
+        out += param_list(
+            model,
+            names,
+            np.asarray(values, dtype=float).ravel().tolist(),
+            np.asarray(stderrs, dtype=float).ravel().tolist(),
+            unit,
+        )
     return out
 
 
@@ -125,8 +135,11 @@ class RepetitionCalibration:
         # the same (immutable) fit objects are in ``fits``
         current = tuple(self.fits.items())
         cached = self.__dict__.get("_parameters")
-        if cached is not None and len(cached[0]) == len(current) and all(
-                a == c and f is g for (a, f), (c, g) in zip(cached[0], current)):
+        if (
+            cached is not None
+            and len(cached[0]) == len(current)
+            and all(a == c and f is g for (a, f), (c, g) in zip(cached[0], current))
+        ):
             return list(cached[1])
         params = [p for fit in self.fits.values() for p in fit.parameters()]
         if all(_is_frozen(f) for f in self.fits.values()):
@@ -193,13 +206,35 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     mean_se[~(has & np.isfinite(s)).any(axis=0)] = np.nan
     vmin = np.where(has, v, np.inf).min(axis=0)
     vmax = np.where(has, v, -np.inf).max(axis=0)
-    values = [tuple(x for x, h in zip(col, col_has) if h)
-              for col, col_has in zip(v.T.tolist(), has.T.tolist())]
-    return [_built(ParamSummary, model=model, name=name, unit=unit, mean=m, std=sd, min=lo,
-                   max=hi, n_reps=k, values=vals, mean_stderr=se)
-            for (model, name), unit, m, sd, lo, hi, k, vals, se in zip(
-                column, units, mean.tolist(), std.tolist(), vmin.tolist(), vmax.tolist(),
-                n.tolist(), values, mean_se.tolist())]
+    values = [
+        tuple(x for x, h in zip(col, col_has) if h) for col, col_has in zip(v.T.tolist(), has.T.tolist())
+    ]
+    return [
+        _built(
+            ParamSummary,
+            model=model,
+            name=name,
+            unit=unit,
+            mean=m,
+            std=sd,
+            min=lo,
+            max=hi,
+            n_reps=k,
+            values=vals,
+            mean_stderr=se,
+        )
+        for (model, name), unit, m, sd, lo, hi, k, vals, se in zip(
+            column,
+            units,
+            mean.tolist(),
+            std.tolist(),
+            vmin.tolist(),
+            vmax.tolist(),
+            n.tolist(),
+            values,
+            mean_se.tolist(),
+        )
+    ]
 
 
 @dataclass
@@ -212,6 +247,6 @@ class UnitCalibration:
     summary: list[ParamSummary] = field(default_factory=list)
 
     @classmethod
-    def from_reps(cls, lot: str, unit: str, reps: list[RepetitionCalibration]) -> "UnitCalibration":
+    def from_reps(cls, lot: str, unit: str, reps: list[RepetitionCalibration]) -> UnitCalibration:
         reps = sorted(reps, key=lambda r: r.rep)
         return cls(lot=lot, unit=unit, reps=reps, summary=summarise(reps))

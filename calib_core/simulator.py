@@ -16,6 +16,7 @@ Noise model, per channel, in physical units:
 
 Pure numerics: returns arrays and DataFrames; writing Parquet lives in ``schemas.writer``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -67,9 +68,10 @@ class MimuTruth:
     temperature: TemperatureProfile | None = None
     g_local: float = 9.80665
 
-    def with_effects(self, *effects: tuple[EffectTerm, np.ndarray]) -> "MimuTruth":
-        return replace(self, effects=tuple(self.effects) + tuple(
-            (t, np.asarray(p, float)) for t, p in effects))
+    def with_effects(self, *effects: tuple[EffectTerm, np.ndarray]) -> MimuTruth:
+        return replace(
+            self, effects=tuple(self.effects) + tuple((t, np.asarray(p, float)) for t, p in effects)
+        )
 
     # -- forward model ---------------------------------------------------------------
     def effect_error(self, ctx: MotionContext) -> np.ndarray:
@@ -77,8 +79,7 @@ class MimuTruth:
         geometry (the rows of K^-1), (n, 6)."""
         if not self.effects:
             return np.zeros((len(ctx), 6))
-        return total_error(ctx, list(self.effects),
-                           SensingGeometry.from_gains(self.K_g, self.K_a))
+        return total_error(ctx, list(self.effects), SensingGeometry.from_gains(self.K_g, self.K_a))
 
     def raw_outputs(self, ctx: MotionContext) -> tuple[np.ndarray, np.ndarray]:
         """Noise-free raw gyro and accel outputs, (n, 3) each."""
@@ -91,25 +92,37 @@ class MimuTruth:
         """Declared full scale in raw units, (low, high) per sensor: the raw output at
         -range and +range on its own axis. Raw outputs need not be centred on zero (a V output
         with a 2.4 V zero bias saturates at 2.4 -/+ k range)."""
+
         def bounds(K, x0, rng):
             zero = np.linalg.solve(K, -x0)  # raw output at zero input
             half = np.asarray(rng, float) / np.abs(np.diag(K))
             return zero - half, zero + half
+
         return bounds(self.K_g, self.w0, self.gyro_range_dps), bounds(self.K_a, self.f0, self.accel_range_g)
 
 
-def typical_truth(rng: np.random.Generator, misalignment: float = 0.01, scale: float = 0.01,
-                  gyro_bias_dps: float = 0.5, accel_bias_g: float = 5e-3, **kw) -> MimuTruth:
+def typical_truth(
+    rng: np.random.Generator,
+    misalignment: float = 0.01,
+    scale: float = 0.01,
+    gyro_bias_dps: float = 0.5,
+    accel_bias_g: float = 5e-3,
+    **kw,
+) -> MimuTruth:
     """A random unit with K near identity: scale errors and cross-axis terms of the given
     size (standard deviations), biases of the given size."""
+
     def k(size_scale, size_mis):
         m = np.eye(3) + rng.normal(0, size_mis, (3, 3))
         m[np.diag_indices(3)] = 1.0 + rng.normal(0, size_scale, 3)
         return m
 
     return MimuTruth(
-        K_g=k(scale, misalignment), w0=rng.normal(0, gyro_bias_dps, 3),
-        K_a=k(scale, misalignment), f0=rng.normal(0, accel_bias_g, 3), **kw,
+        K_g=k(scale, misalignment),
+        w0=rng.normal(0, gyro_bias_dps, 3),
+        K_a=k(scale, misalignment),
+        f0=rng.normal(0, accel_bias_g, 3),
+        **kw,
     )
 
 
@@ -120,16 +133,20 @@ def xu2016_truth(**kw) -> MimuTruth:
     -3.5..2.8 deg/s for x input, not the -20 deg/s a -0.35 rad/s bias would give) only fits
     deg/s; we read them as deg/s. Table 2 biases are in mg.
     """
-    K_g = np.array([[0.99972, -0.01199, -0.00059],
-                    [0.02394, 1.00046, 0.01053],
-                    [0.01087, 0.01490, 1.00579]])
+    K_g = np.array([[0.99972, -0.01199, -0.00059], [0.02394, 1.00046, 0.01053], [0.01087, 0.01490, 1.00579]])
     w0 = np.array([-0.04317, -0.12395, -0.35153])
-    K_a = np.array([[0.96667, 0.01434, -0.00180],
-                    [-0.01760, 0.96965, -0.00851],
-                    [0.01476, -0.01494, 0.99326]])
+    K_a = np.array(
+        [[0.96667, 0.01434, -0.00180], [-0.01760, 0.96965, -0.00851], [0.01476, -0.01494, 0.99326]]
+    )
     f0 = np.array([-0.16417, 0.10724, 0.26508]) * 1e-3
-    base = dict(K_g=K_g, w0=w0, K_a=K_a, f0=f0, gyro_range_dps=(350.0, 350.0, 4000.0),
-                accel_range_g=(50.0, 50.0, 50.0))
+    base = dict(
+        K_g=K_g,
+        w0=w0,
+        K_a=K_a,
+        f0=f0,
+        gyro_range_dps=(350.0, 350.0, 4000.0),
+        accel_range_g=(50.0, 50.0, 50.0),
+    )
     base.update(kw)
     return MimuTruth(**base)
 
@@ -186,9 +203,14 @@ def _to_raw(truth: MimuTruth, phys: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return G, A
 
 
-def simulate_session(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Generator,
-                     sample_rate_hz: float = 100.0, gap_s: float = 0.04,
-                     dtype=np.float32) -> pd.DataFrame:
+def simulate_session(
+    truth: MimuTruth,
+    steps: pd.DataFrame,
+    rng: np.random.Generator,
+    sample_rate_hz: float = 100.0,
+    gap_s: float = 0.04,
+    dtype=np.float32,
+) -> pd.DataFrame:
     """Raw samples of one session (the columns of the contract's samples.parquet).
 
     Between steps (``step == -1``) the outputs ramp linearly from one step to the next, as
@@ -222,35 +244,50 @@ def simulate_session(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Gener
         G = np.round(G / truth.gyro_quantum) * truth.gyro_quantum
     if truth.accel_quantum:
         A = np.round(A / truth.accel_quantum) * truth.accel_quantum
-    out = pd.DataFrame({
-        "step": step_of, "t": t,
-        "gx": G[:, 0].astype(dtype), "gy": G[:, 1].astype(dtype), "gz": G[:, 2].astype(dtype),
-        "ax": A[:, 0].astype(dtype), "ay": A[:, 1].astype(dtype), "az": A[:, 2].astype(dtype),
-    })
+    out = pd.DataFrame(
+        {
+            "step": step_of,
+            "t": t,
+            "gx": G[:, 0].astype(dtype),
+            "gy": G[:, 1].astype(dtype),
+            "gz": G[:, 2].astype(dtype),
+            "ax": A[:, 0].astype(dtype),
+            "ay": A[:, 1].astype(dtype),
+            "az": A[:, 2].astype(dtype),
+        }
+    )
     if truth.temperature is not None:
         temp = truth.temperature.at(t) + rng.normal(0, truth.temperature.noise_c, total)
         out["temp_c"] = temp.astype(np.float32)
     return out
 
 
-def session_metadata(truth: MimuTruth, sample_rate_hz: float = 100.0,
-                     session_start: str = "2026-11-20T02:00:00Z", **extra: str) -> dict[str, str]:
+def session_metadata(
+    truth: MimuTruth, sample_rate_hz: float = 100.0, session_start: str = "2026-11-20T02:00:00Z", **extra: str
+) -> dict[str, str]:
     """Key-value metadata of samples.parquet for a simulated session."""
     md = {
-        "gyro_unit": truth.gyro_unit, "accel_unit": truth.accel_unit,
+        "gyro_unit": truth.gyro_unit,
+        "accel_unit": truth.accel_unit,
         "sample_rate_hz": f"{sample_rate_hz:g}",
         "gyro_range_dps": ",".join(f"{v:g}" for v in truth.gyro_range_dps),
         "accel_range_g": ",".join(f"{v:g}" for v in truth.accel_range_g),
-        "g_local": f"{truth.g_local:.5f}", "session_start": session_start,
+        "g_local": f"{truth.g_local:.5f}",
+        "session_start": session_start,
         "source": "mimucal simulator",
     }
     md.update(extra)
     return md
 
 
-def simulate_step_means(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Generator,
-                        sample_rate_hz: float = 100.0, gap_s: float = 0.04,
-                        key: SessionKey = SessionKey("SIM", "U000", 1)) -> StepMeans:
+def simulate_step_means(
+    truth: MimuTruth,
+    steps: pd.DataFrame,
+    rng: np.random.Generator,
+    sample_rate_hz: float = 100.0,
+    gap_s: float = 0.04,
+    key: SessionKey = SessionKey("SIM", "U000", 1),
+) -> StepMeans:
     """Step means drawn directly from their distribution (no samples): the fast path for
     Monte Carlo. Same truth, same noise model as :func:`simulate_session` followed by step
     averaging; steps whose noise-free output reaches full scale are left out, as the reader
@@ -263,7 +300,7 @@ def simulate_step_means(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Ge
     phys = np.hstack([ctx.w, ctx.f]) + truth.effect_error(ctx)
     G0, A0 = _to_raw(truth, phys)
     (g_lo, g_hi), (a_lo, a_hi) = truth.full_scale_raw()
-    ok = (((G0 > g_lo) & (G0 < g_hi)).all(axis=1) & ((A0 > a_lo) & (A0 < a_hi)).all(axis=1))
+    ok = ((G0 > g_lo) & (G0 < g_hi)).all(axis=1) & ((A0 > a_lo) & (A0 < a_hi)).all(axis=1)
     phys = phys + _step_offsets(truth, len(steps), rng)
     phys = phys + rng.normal(0.0, 1.0, phys.shape) * _white_sd(truth) / np.sqrt(count)[:, None]
     G, A = _to_raw(truth, phys)
@@ -272,20 +309,39 @@ def simulate_step_means(truth: MimuTruth, steps: pd.DataFrame, rng: np.random.Ge
     a_std = np.sqrt((np.linalg.inv(truth.K_a) ** 2) @ _vec3(truth.accel_noise_g) ** 2)
     w, f = _refs(steps)
     sm = StepMeans(
-        key=key, step=steps["step"].to_numpy(np.int64), test=steps["test"].to_numpy(str),
-        up_axis=steps["up_axis"].to_numpy(str), rate_dps=steps["rate_dps"].to_numpy(float),
-        angle_deg=steps["angle_deg"].to_numpy(float), w_ref=w, f_ref=f, gyro=G, accel=A,
-        gyro_std=np.tile(g_std, (len(steps), 1)), accel_std=np.tile(a_std, (len(steps), 1)),
-        count=count, t_mid=t_mid, temp_c=ctx.temp_c, gyro_unit=truth.gyro_unit,
-        accel_unit=truth.accel_unit, g_local=truth.g_local, sample_rate_hz=sample_rate_hz,
-        gyro_range_dps=tuple(truth.gyro_range_dps), accel_range_g=tuple(truth.accel_range_g),
+        key=key,
+        step=steps["step"].to_numpy(np.int64),
+        test=steps["test"].to_numpy(str),
+        up_axis=steps["up_axis"].to_numpy(str),
+        rate_dps=steps["rate_dps"].to_numpy(float),
+        angle_deg=steps["angle_deg"].to_numpy(float),
+        w_ref=w,
+        f_ref=f,
+        gyro=G,
+        accel=A,
+        gyro_std=np.tile(g_std, (len(steps), 1)),
+        accel_std=np.tile(a_std, (len(steps), 1)),
+        count=count,
+        t_mid=t_mid,
+        temp_c=ctx.temp_c,
+        gyro_unit=truth.gyro_unit,
+        accel_unit=truth.accel_unit,
+        g_local=truth.g_local,
+        sample_rate_hz=sample_rate_hz,
+        gyro_range_dps=tuple(truth.gyro_range_dps),
+        accel_range_g=tuple(truth.accel_range_g),
     )
     return sm.select(ok)
 
 
-def simulate_repetition_step_means(truth: MimuTruth, steps: pd.DataFrame,
-                                   rng: np.random.Generator, sample_rate_hz: float,
-                                   key: SessionKey, averager=None) -> StepMeans:
+def simulate_repetition_step_means(
+    truth: MimuTruth,
+    steps: pd.DataFrame,
+    rng: np.random.Generator,
+    sample_rate_hz: float,
+    key: SessionKey,
+    averager=None,
+) -> StepMeans:
     """One repetition's step means: drawn directly (``averager=None``, fast path) or by
     simulating raw samples and averaging them with ``averager(key, steps, samples,
     metadata)`` (the reader's own averaging, so the whole path runs)."""
@@ -298,12 +354,23 @@ def simulate_repetition_step_means(truth: MimuTruth, steps: pd.DataFrame,
 # Noise of a MEMS unit as the validation lots use it: white noise per sample, bias
 # instability between steps (3x the white noise of a 2.5 s step mean), turn-on repeatability.
 REALISTIC_NOISE = dict(
-    gyro_noise_dps=0.05, gyro_bias_instability_dps=0.01, gyro_bias_repeatability_dps=0.05,
-    accel_noise_g=1e-3, accel_bias_instability_g=1e-4, accel_bias_repeatability_g=1e-3)
+    gyro_noise_dps=0.05,
+    gyro_bias_instability_dps=0.01,
+    gyro_bias_repeatability_dps=0.05,
+    accel_noise_g=1e-3,
+    accel_bias_instability_g=1e-4,
+    accel_bias_repeatability_g=1e-3,
+)
 
 
-def simulate_unit(truth, steps: pd.DataFrame, rng: np.random.Generator, n_reps: int = 5,
-                  lot: str = "SIM", unit: str = "U000") -> tuple[list[StepMeans], list]:
+def simulate_unit(
+    truth,
+    steps: pd.DataFrame,
+    rng: np.random.Generator,
+    n_reps: int = 5,
+    lot: str = "SIM",
+    unit: str = "U000",
+) -> tuple[list[StepMeans], list]:
     """Step means of ``n_reps`` repetitions of one unit (each with its own turn-on biases),
     and the per-repetition truths."""
     sessions, truths = [], []

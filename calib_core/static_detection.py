@@ -15,6 +15,7 @@ the noise floor is taken from the data, never tuned per file:
 
 Everything is returned (statistic, floor, threshold, intervals) so a report can plot it.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -58,12 +59,12 @@ def moving_variance_magnitude(x: np.ndarray, window: int = 101) -> np.ndarray:
         return out
     xc = x - x.mean(axis=0)
     c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(xc, axis=0)])
-    c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(xc ** 2, axis=0)])
+    c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(xc**2, axis=0)])
     w = 2 * h + 1
     s1 = c1[w:] - c1[:-w]
     s2 = c2[w:] - c2[:-w]
     var = np.maximum(s2 / w - (s1 / w) ** 2, 0.0) * w / (w - 1)  # unbiased, as IMU-TK
-    out[h:n - h] = np.sqrt((var ** 2).sum(axis=1))
+    out[h : n - h] = np.sqrt((var**2).sum(axis=1))
     return out
 
 
@@ -72,9 +73,15 @@ def runs_of(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
 
 
-def detect_static(x: np.ndarray, window: int = 101, multiplier: float = 6.0,
-                  init_samples: int | None = None, quantile: float = 0.05,
-                  min_samples: int | None = None, unit: str = "") -> StaticDetection:
+def detect_static(
+    x: np.ndarray,
+    window: int = 101,
+    multiplier: float = 6.0,
+    init_samples: int | None = None,
+    quantile: float = 0.05,
+    min_samples: int | None = None,
+    unit: str = "",
+) -> StaticDetection:
     """Static intervals of a 3-axis signal (normally the accelerometer).
 
     ``init_samples`` given: noise floor = variance magnitude of ``x[:init_samples]`` (Tedaldi);
@@ -99,8 +106,9 @@ def detect_static(x: np.ndarray, window: int = 101, multiplier: float = 6.0,
     min_samples = window if min_samples is None else min_samples
     static = np.isfinite(stat) & (stat < threshold)
     intervals = tuple((a, b) for a, b in runs_of(static) if b - a >= min_samples)
-    return StaticDetection(stat, threshold, floor, float(multiplier), int(window), floor_from,
-                           intervals, unit)
+    return StaticDetection(
+        stat, threshold, floor, float(multiplier), int(window), floor_from, intervals, unit
+    )
 
 
 def central_samples(intervals, n_samples: int) -> list[tuple[int, int]]:
@@ -115,8 +123,9 @@ def central_samples(intervals, n_samples: int) -> list[tuple[int, int]]:
     return out
 
 
-def static_pose_means(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, intervals,
-                      names=None, trim: int = 0) -> pd.DataFrame:
+def static_pose_means(
+    t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, intervals, names=None, trim: int = 0
+) -> pd.DataFrame:
     """One row per static pose: name, start, end (sample indices, end exclusive), count,
     t_mid [s], mean and sample std of the raw gyro (gx..gz) and accel (ax..az).
 
@@ -132,8 +141,13 @@ def static_pose_means(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, interv
         if b2 - a2 < 2:
             continue
         g, f = G[a2:b2], A[a2:b2]
-        row = {"pose": names[k] if names is not None else k, "start": a2, "end": b2,
-               "count": b2 - a2, "t_mid": float(0.5 * (t[a2] + t[b2 - 1]))}
+        row = {
+            "pose": names[k] if names is not None else k,
+            "start": a2,
+            "end": b2,
+            "count": b2 - a2,
+            "t_mid": float(0.5 * (t[a2] + t[b2 - 1])),
+        }
         for i, c in enumerate(("gx", "gy", "gz")):
             row[c] = g[:, i].mean()
             row[f"{c}_std"] = g[:, i].std(ddof=1)
@@ -203,11 +217,19 @@ def odd_window(rate_hz: float, window_s: float) -> int:
     return max(5, n if n % 2 else n + 1)
 
 
-def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: float | None = None,
-                 window_s: float = 0.25, min_pose_s: float = 1.0, multiplier: float = 3.0,
-                 loose_multiplier: float = 10.0, quiet_multiplier: float = 2.0,
-                 turn_multiplier: float = 1000.0,
-                 quantile: float = 0.05) -> PoseDetection:
+def detect_poses(
+    t: np.ndarray,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    init_s: float | None = None,
+    window_s: float = 0.25,
+    min_pose_s: float = 1.0,
+    multiplier: float = 3.0,
+    loose_multiplier: float = 10.0,
+    quiet_multiplier: float = 2.0,
+    turn_multiplier: float = 1000.0,
+    quantile: float = 0.05,
+) -> PoseDetection:
     """Static poses of a recording moved by hand, with every threshold from the data.
 
     The window (``window_s``) and the shortest pose (``min_pose_s``) are in seconds and
@@ -221,7 +243,8 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
     observation) when the 90th percentile of its gyro statistic is below ``quiet_multiplier``
     x the gyro floor: stricter than the accelerometer's test, because a hand's slow wobble
     moves a pose's mean rate by tens of counts while its variance grows only 2-3x, and a turn
-    about the vertical, invisible to the accelerometer, must not enter a bias. Rejected and listed: runs below ``loose_multiplier`` x floor that
+    about the vertical, invisible to the accelerometer, must not enter a bias. Rejected and listed:
+    runs below ``loose_multiplier`` x floor that
     hold no pose (residual motion), and quiet runs shorter than ``min_pose_s``."""
     t = np.asarray(t, float)
     G = np.asarray(gyro, float)
@@ -245,7 +268,11 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
         fa, fg = s_a[np.isfinite(s_a)], s_g[np.isfinite(s_g)]
         if fa.size == 0:
             raise ValueError(f"recording shorter than the window ({len(t)} < {window} samples)")
-        floor_a, floor_g, floor_from = float(np.quantile(fa, quantile)), float(np.quantile(fg, quantile)), "quantile"
+        floor_a, floor_g, floor_from = (
+            float(np.quantile(fa, quantile)),
+            float(np.quantile(fg, quantile)),
+            "quantile",
+        )
     floor_a, floor_g = max(floor_a, 1e-300), max(floor_g, 1e-300)
     finite = np.isfinite(s_a)
     # a turn about the vertical leaves the accelerometer at rest: the gyro cuts the pose there
@@ -255,8 +282,11 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
         # a twitch of the hand inside one pose does not split it: a disturbance of d samples
         # lifts the windowed statistic for d + window - 1 samples, so gaps up to two windows
         # are twitches shorter than a window
-        if strict and a - strict[-1][1] <= 2 * window and \
-                np.all(s_a[strict[-1][1]:a] < loose_multiplier * floor_a):
+        if (
+            strict
+            and a - strict[-1][1] <= 2 * window
+            and np.all(s_a[strict[-1][1] : a] < loose_multiplier * floor_a)
+        ):
             strict[-1] = (strict[-1][0], b)
         else:
             strict.append((a, b))
@@ -270,14 +300,28 @@ def detect_poses(t: np.ndarray, gyro: np.ndarray, accel: np.ndarray, init_s: flo
     for a, b in runs_of(finite & (s_a < loose_multiplier * floor_a)):
         if b - a < min_samples or any(p.start < b and p.end > a for p in poses):
             continue
-        rejected.append(RejectedPose(a, b, f"residual motion: accel variance "
-                                           f"{np.median(s_a[a:b]) / floor_a:.1f} x noise floor"))
+        rejected.append(
+            RejectedPose(
+                a, b, f"residual motion: accel variance {np.median(s_a[a:b]) / floor_a:.1f} x noise floor"
+            )
+        )
     for a, b in strict:
         if window <= b - a < min_samples:
             rejected.append(RejectedPose(a, b, f"too short: {(b - a) / rate:.2f} s < {min_pose_s:g} s"))
     rejected.sort(key=lambda r: r.start)
-    return PoseDetection(tuple(poses), tuple(rejected), window, min_samples, rate, floor_a, floor_g,
-                         float(multiplier), floor_from, s_a, s_g)
+    return PoseDetection(
+        tuple(poses),
+        tuple(rejected),
+        window,
+        min_samples,
+        rate,
+        floor_a,
+        floor_g,
+        float(multiplier),
+        floor_from,
+        s_a,
+        s_g,
+    )
 
 
 def clipped_samples(x: np.ndarray, full_scale: float | None = None, min_repeats: int = 2) -> np.ndarray:

@@ -9,10 +9,12 @@ Units inside: gyro channels are either ``deg/s`` (rad/s is converted at the boun
 unit (``LSB``, ``V``) that the fitted matrices absorb; accelerometer channels are ``g``
 (m/s^2 converted with the session's local gravity) or raw. References are always deg/s and g.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -34,8 +36,22 @@ class SessionKey:
         return f"lot={self.lot}/unit={self.unit}/rep={self.rep}"
 
 
-_ROW_FIELDS = ("step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref", "f_ref", "gyro",
-               "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c")
+_ROW_FIELDS = (
+    "step",
+    "test",
+    "up_axis",
+    "rate_dps",
+    "angle_deg",
+    "w_ref",
+    "f_ref",
+    "gyro",
+    "accel",
+    "gyro_std",
+    "accel_std",
+    "count",
+    "t_mid",
+    "temp_c",
+)
 
 
 @dataclass(frozen=True)
@@ -90,11 +106,10 @@ class StepMeans:
     def __len__(self) -> int:
         return len(self.step)
 
-    def select(self, mask: np.ndarray) -> "StepMeans":
+    def select(self, mask: np.ndarray) -> StepMeans:
         """Rows where ``mask`` is true (boolean array or index array)."""
         idx = np.asarray(mask)
-        rows = _ROW_FIELDS + tuple(f for f in ("heading_deg", "settle_s")
-                                   if getattr(self, f) is not None)
+        rows = _ROW_FIELDS + tuple(f for f in ("heading_deg", "settle_s") if getattr(self, f) is not None)
         if idx.ndim != 1:  # not a row mask or index list: let __init__ check the result
             return replace(self, **{name: getattr(self, name)[idx] for name in rows})
         state = {name: v for name, v in self.__dict__.items() if name != "_subsets"}
@@ -106,7 +121,7 @@ class StepMeans:
         out.__dict__.update(state)
         return out
 
-    def of_test(self, *tests: str) -> "StepMeans":
+    def of_test(self, *tests: str) -> StepMeans:
         """Rows of the given tests (the same object on every call with the same tests)."""
         # every fit of a session asks for the same few subsets: each is built once and kept
         # on the instance (the arrays are never modified after construction)
@@ -131,8 +146,7 @@ class StepMeans:
     @property
     def headings(self) -> np.ndarray:
         """Each step's heading, degrees (0 where the steps table has no heading_deg)."""
-        return (np.zeros(len(self)) if self.heading_deg is None
-                else np.asarray(self.heading_deg, float))
+        return np.zeros(len(self)) if self.heading_deg is None else np.asarray(self.heading_deg, float)
 
     def turned_deg(self) -> np.ndarray:
         """(n, 2) angle the table has turned since the step started, at the start and the end
@@ -148,7 +162,6 @@ class StepMeans:
         out[:, 0] = 0.75 * settle * rate
         out[:, 1] = out[:, 0] + window * rate
         return out
-
 
 
 def stack_field(sms: Sequence[StepMeans], name: str) -> np.ndarray:

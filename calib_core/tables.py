@@ -8,6 +8,7 @@ Arrow-backed ``str``. Per-session residual and compensation tables are therefore
 turned into ONE DataFrame, equal (columns, order, dtypes, values) to concatenating
 per-session DataFrames built the plain way.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -25,19 +26,19 @@ class CodedStrings:
     codes: np.ndarray  # (n,) int, index into categories
 
     @classmethod
-    def of(cls, values: np.ndarray) -> "CodedStrings":
+    def of(cls, values: np.ndarray) -> CodedStrings:
         """Codes of a string array (np.unique: fine for a session's ~100 steps)."""
         cats, codes = np.unique(np.asarray(values), return_inverse=True)
         return cls(cats, codes.ravel())
 
     @classmethod
-    def constant(cls, value: str, n: int) -> "CodedStrings":
+    def constant(cls, value: str, n: int) -> CodedStrings:
         return cls(np.array([value]), np.zeros(n, dtype=np.intp))
 
     def __len__(self) -> int:
         return len(self.codes)
 
-    def repeat(self, k: int) -> "CodedStrings":
+    def repeat(self, k: int) -> CodedStrings:
         """Each row k times (np.repeat)."""
         return CodedStrings(self.categories, np.repeat(self.codes, k))
 
@@ -45,13 +46,14 @@ class CodedStrings:
         return self.categories[self.codes]
 
     @staticmethod
-    def concat(parts: list["CodedStrings"]) -> "CodedStrings":
+    def concat(parts: list[CodedStrings]) -> CodedStrings:
         cats = parts[0].categories
         if all(np.array_equal(p.categories, cats) for p in parts[1:]):
             return CodedStrings(cats, np.concatenate([p.codes for p in parts]))
         cats = np.unique(np.concatenate([p.categories for p in parts]))
-        return CodedStrings(cats, np.concatenate(
-            [np.searchsorted(cats, p.categories)[p.codes] for p in parts]))
+        return CodedStrings(
+            cats, np.concatenate([np.searchsorted(cats, p.categories)[p.codes] for p in parts])
+        )
 
     def to_pandas(self):
         """The column as pandas would build it from the strings (its default string dtype),
@@ -62,8 +64,7 @@ class CodedStrings:
         import pyarrow as pa
 
         array_type, dt, typ = arrow
-        return array_type(pa.array(self.categories.tolist(), type=typ).take(self.codes),
-                          dtype=dt)
+        return array_type(pa.array(self.categories.tolist(), type=typ).take(self.codes), dtype=dt)
 
 
 @lru_cache(maxsize=1)
@@ -120,12 +121,12 @@ class ColumnTable:
             return v.strings()
         return v if isinstance(v, np.ndarray) else np.full(self.n_rows, v)
 
-    def with_leading(self, name: str, value: Any) -> "ColumnTable":
+    def with_leading(self, name: str, value: Any) -> ColumnTable:
         """A copy with a constant column ``name`` inserted first (DataFrame.insert(0, ...))."""
         return ColumnTable({name: value, **self.columns}, self.n_rows)
 
     @staticmethod
-    def concat(tables: list["ColumnTable"]) -> "ColumnTable":
+    def concat(tables: list[ColumnTable]) -> ColumnTable:
         """Rows of every table in order (pd.concat(..., ignore_index=True)); the tables must
         have the same columns in the same order. A column that is the same scalar in every
         table stays a scalar; string columns stay coded."""
@@ -140,12 +141,16 @@ class ColumnTable:
             vals = [t.columns[name] for t in tables]
             first = vals[0]
             if not isinstance(first, (np.ndarray, CodedStrings)) and all(
-                    type(v) is type(first) and v == first for v in vals[1:]):
+                type(v) is type(first) and v == first for v in vals[1:]
+            ):
                 out[name] = first
             elif all(isinstance(v, CodedStrings) or _is_str_scalar(v) for v in vals):
-                out[name] = CodedStrings.concat([
-                    v if isinstance(v, CodedStrings) else CodedStrings.constant(v, t.n_rows)
-                    for v, t in zip(vals, tables)])
+                out[name] = CodedStrings.concat(
+                    [
+                        v if isinstance(v, CodedStrings) else CodedStrings.constant(v, t.n_rows)
+                        for v, t in zip(vals, tables)
+                    ]
+                )
             else:
                 out[name] = np.concatenate([t.column(name) for t in tables])
         return ColumnTable(out, sum(t.n_rows for t in tables))

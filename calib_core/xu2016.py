@@ -21,10 +21,12 @@ differences reveal (white noise averaged over the step plus step-to-step bias in
 also the noise of each stationary step, which is what makes an honest standard error of w0
 possible from only three stationary steps.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -115,15 +117,20 @@ class GyroMultirateFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        return [(self.model, K_G_NAMES, self.K, self.K_stderr, f"deg/s per {self.raw_unit}"),
-                (self.model, W0_NAMES, self.w0, self.w0_stderr, "deg/s")]
+        return [
+            (self.model, K_G_NAMES, self.K, self.K_stderr, f"deg/s per {self.raw_unit}"),
+            (self.model, W0_NAMES, self.w0, self.w0_stderr, "deg/s"),
+        ]
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "K_g": self.K.tolist(), "w0": self.w0.tolist(),
+            "K_g": self.K.tolist(),
+            "w0": self.w0.tolist(),
             "stderr": {"K_g": self.K_stderr.tolist(), "w0": self.w0_stderr.tolist()},
-            "condition_number": self.condition_number, "n_pairs": self.n_pairs,
-            "n_stationary": self.n_stationary, "w0_source": self.w0_source,
+            "condition_number": self.condition_number,
+            "n_pairs": self.n_pairs,
+            "n_stationary": self.n_stationary,
+            "w0_source": self.w0_source,
             "step_sigma_dps": self.step_sigma.tolist(),
             "units": {"K_g": f"deg/s per {self.raw_unit}", "w0": "deg/s"},
         }
@@ -141,9 +148,11 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
     sm = sms[0]  # the layout every session shares
     pairs = _pair_indices(sm)
     if len(pairs) < 4:
-        raise DesignError("E_UNDETERMINED",
-                          f"gyro: {len(pairs)} complete +/- multirate pairs, at least 4 needed "
-                          "to determine the 9 elements of K_g with a residual")
+        raise DesignError(
+            "E_UNDETERMINED",
+            f"gyro: {len(pairs)} complete +/- multirate pairs, at least 4 needed "
+            "to determine the 9 elements of K_g with a residual",
+        )
     plus, minus = pairs[:, 0], pairs[:, 1]
     G = stack_field(sms, "gyro")  # (R, n, 3) raw outputs, one row per step
 
@@ -158,9 +167,11 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
     singular = (ls.rank < 3) | (ls.condition_number > MAX_CONDITION)
     if singular.any():
         cond = float(ls.condition_number[np.argmax(singular)])
-        raise DesignError("E_UNDETERMINED",
-                          f"gyro: multirate design is singular (condition number "
-                          f"{cond:.3g}): the rotation axes do not span 3-D")
+        raise DesignError(
+            "E_UNDETERMINED",
+            f"gyro: multirate design is singular (condition number "
+            f"{cond:.3g}): the rotation axes do not span 3-D",
+        )
     K = np.swapaxes(ls.coef, 1, 2)
     K_se = np.swapaxes(ls.stderr, 1, 2)
     # a difference holds the noise of two steps: the step-level variance is half the residual's
@@ -176,15 +187,27 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
         n0, source = 2 * len(pairs), "pair_midpoints"
     w0 = (-K @ G0[:, :, None])[:, :, 0]
     # var(w0_i) = step noise / n0  +  G0^T cov(K_i) G0   (independent steps)
-    var_k = np.array([[g0 @ (cov * s2[i]) @ g0 for i in range(3)]
-                      for g0, cov, s2 in zip(G0, ls.cov_unscaled, ls.sigma2)])
-    w0_se = np.sqrt(step_sigma ** 2 / n0 + var_k)
-    residual_rms = np.sqrt((ls.residuals ** 2).mean(axis=1))
-    return [GyroMultirateFit(
-        K=K[r], w0=w0[r], K_stderr=K_se[r], w0_stderr=w0_se[r], step_sigma=step_sigma[r],
-        residual_rms=residual_rms[r], condition_number=float(ls.condition_number[r]),
-        n_pairs=len(pairs), n_stationary=len(stat), w0_source=source, raw_unit=sm.gyro_unit,
-    ) for r in range(len(sms))]
+    var_k = np.array(
+        [[g0 @ (cov * s2[i]) @ g0 for i in range(3)] for g0, cov, s2 in zip(G0, ls.cov_unscaled, ls.sigma2)]
+    )
+    w0_se = np.sqrt(step_sigma**2 / n0 + var_k)
+    residual_rms = np.sqrt((ls.residuals**2).mean(axis=1))
+    return [
+        GyroMultirateFit(
+            K=K[r],
+            w0=w0[r],
+            K_stderr=K_se[r],
+            w0_stderr=w0_se[r],
+            step_sigma=step_sigma[r],
+            residual_rms=residual_rms[r],
+            condition_number=float(ls.condition_number[r]),
+            n_pairs=len(pairs),
+            n_stationary=len(stat),
+            w0_source=source,
+            raw_unit=sm.gyro_unit,
+        )
+        for r in range(len(sms))
+    ]
 
 
 # --------------------------------------------------------------------------- accel
@@ -209,14 +232,18 @@ class AccelMultipositionFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        return [(self.model, K_A_NAMES, self.K, self.K_stderr, f"g per {self.raw_unit}"),
-                (self.model, F0_NAMES, self.f0, self.f0_stderr, "g")]
+        return [
+            (self.model, K_A_NAMES, self.K, self.K_stderr, f"g per {self.raw_unit}"),
+            (self.model, F0_NAMES, self.f0, self.f0_stderr, "g"),
+        ]
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "K_a": self.K.tolist(), "f0": self.f0.tolist(),
+            "K_a": self.K.tolist(),
+            "f0": self.f0.tolist(),
             "stderr": {"K_a": self.K_stderr.tolist(), "f0": self.f0_stderr.tolist()},
-            "condition_number": self.condition_number, "n_steps": self.n_steps,
+            "condition_number": self.condition_number,
+            "n_steps": self.n_steps,
             "units": {"K_a": f"g per {self.raw_unit}", "f0": "g"},
         }
 
@@ -233,31 +260,44 @@ def fit_accel_multiposition_stack(sms: Sequence[StepMeans]) -> list[AccelMultipo
     rows = sm.rows_of_test("multiposition")
     n = len(rows)
     if n < 5:
-        raise DesignError("E_UNDETERMINED",
-                          f"accel: {n} multiposition steps, at least 5 needed for the "
-                          "12 parameters of K_a and f0 with a residual")
+        raise DesignError(
+            "E_UNDETERMINED",
+            f"accel: {n} multiposition steps, at least 5 needed for the "
+            "12 parameters of K_a and f0 with a residual",
+        )
     # eq. 12-13: at one position, f = K_a A + f0 is linear in (K_a, f0): f_i = [A 1] . row i
     F = sm.f_ref[rows]  # (n, 3) the known specific force of each position
     _check_determined(sm, F, "accel", "multiposition specific force")
-    A1 = np.concatenate([stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))],
-                        axis=2)  # (R, n, 4): [A 1]
+    A1 = np.concatenate(
+        [stack_field(sms, "accel")[:, rows], np.ones((len(sms), n, 1))], axis=2
+    )  # (R, n, 4): [A 1]
 
     # eq. 14-16: K_A = (A^T A)^-1 A^T F over all positions, the three rows at once
     ls = solve_lstsq_stack(A1, F)
     singular = (ls.rank < 4) | (ls.condition_number > MAX_CONDITION)
     if singular.any():
         cond = float(ls.condition_number[np.argmax(singular)])
-        raise DesignError("E_UNDETERMINED",
-                          f"accel: multiposition design is singular (condition number "
-                          f"{cond:.3g}): orientations do not span 3-D")
+        raise DesignError(
+            "E_UNDETERMINED",
+            f"accel: multiposition design is singular (condition number "
+            f"{cond:.3g}): orientations do not span 3-D",
+        )
     K = np.swapaxes(ls.coef[:, :3], 1, 2)
     K_se = np.swapaxes(ls.stderr[:, :3], 1, 2)
-    residual_rms = np.sqrt((ls.residuals ** 2).mean(axis=1))
-    return [AccelMultipositionFit(
-        K=K[r], f0=ls.coef[r, 3], K_stderr=K_se[r], f0_stderr=ls.stderr[r, 3],
-        residual_rms=residual_rms[r], condition_number=float(ls.condition_number[r]),
-        n_steps=n, raw_unit=sm.accel_unit,
-    ) for r in range(len(sms))]
+    residual_rms = np.sqrt((ls.residuals**2).mean(axis=1))
+    return [
+        AccelMultipositionFit(
+            K=K[r],
+            f0=ls.coef[r, 3],
+            K_stderr=K_se[r],
+            f0_stderr=ls.stderr[r, 3],
+            residual_rms=residual_rms[r],
+            condition_number=float(ls.condition_number[r]),
+            n_steps=n,
+            raw_unit=sm.accel_unit,
+        )
+        for r in range(len(sms))
+    ]
 
 
 # --------------------------------------------------------------------------- traditional
@@ -288,17 +328,21 @@ class TraditionalFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        s_names, b_names = ((S_G_NAMES, B_G_NAMES) if self.model.startswith("gyro")
-                            else (S_A_NAMES, B_A_NAMES))
-        return [(self.model, s_names, self.S, self.S_stderr,
-                 f"{self.raw_unit} per {self.physical_unit}"),
-                (self.model, b_names, self.b, self.b_stderr, self.raw_unit)]
+        s_names, b_names = (S_G_NAMES, B_G_NAMES) if self.model.startswith("gyro") else (S_A_NAMES, B_A_NAMES)
+        return [
+            (self.model, s_names, self.S, self.S_stderr, f"{self.raw_unit} per {self.physical_unit}"),
+            (self.model, b_names, self.b, self.b_stderr, self.raw_unit),
+        ]
 
     def to_dict(self) -> dict[str, Any]:
-        return {"S": self.S.tolist(), "b": self.b.tolist(),
-                "stderr": {"S": self.S_stderr.tolist(), "b": self.b_stderr.tolist()},
-                "condition_number": self.condition_number, "n_steps": self.n_steps,
-                "units": {"S": f"{self.raw_unit} per {self.physical_unit}", "b": self.raw_unit}}
+        return {
+            "S": self.S.tolist(),
+            "b": self.b.tolist(),
+            "stderr": {"S": self.S_stderr.tolist(), "b": self.b_stderr.tolist()},
+            "condition_number": self.condition_number,
+            "n_steps": self.n_steps,
+            "units": {"S": f"{self.raw_unit} per {self.physical_unit}", "b": self.raw_unit},
+        }
 
 
 def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> list[TraditionalFit]:
@@ -307,14 +351,23 @@ def _fit_traditional(model, ref, raw, raw_unit, phys_unit) -> list[TraditionalFi
     ls = solve_lstsq_stack(X, raw)  # one design [references, 1], shared by the sessions
     rank, cond = int(ls.rank[0]), float(ls.condition_number[0])
     if rank < 4 or cond > MAX_CONDITION:
-        raise DesignError("E_UNDETERMINED", f"{model}: design is singular "
-                          f"(condition number {cond:.3g})")
+        raise DesignError("E_UNDETERMINED", f"{model}: design is singular (condition number {cond:.3g})")
     S = np.swapaxes(ls.coef[:, :3], 1, 2)
     S_se = np.swapaxes(ls.stderr[:, :3], 1, 2)
-    return [TraditionalFit(model=model, S=S[r], b=ls.coef[r, 3], S_stderr=S_se[r],
-                           b_stderr=ls.stderr[r, 3], condition_number=cond, n_steps=len(ref),
-                           raw_unit=raw_unit, physical_unit=phys_unit)
-            for r in range(len(raw))]
+    return [
+        TraditionalFit(
+            model=model,
+            S=S[r],
+            b=ls.coef[r, 3],
+            S_stderr=S_se[r],
+            b_stderr=ls.stderr[r, 3],
+            condition_number=cond,
+            n_steps=len(ref),
+            raw_unit=raw_unit,
+            physical_unit=phys_unit,
+        )
+        for r in range(len(raw))
+    ]
 
 
 def fit_gyro_traditional(sm: StepMeans) -> TraditionalFit:
@@ -328,8 +381,9 @@ def fit_gyro_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit]
     rows = sm.rows_of_test("multirate", "stationary")
     w_ref = sm.w_ref[rows]
     _check_determined(sm, w_ref, "gyro_traditional", "multirate rotation")
-    return _fit_traditional("gyro_traditional", w_ref, stack_field(sms, "gyro")[:, rows],
-                            sm.gyro_unit, "deg/s")
+    return _fit_traditional(
+        "gyro_traditional", w_ref, stack_field(sms, "gyro")[:, rows], sm.gyro_unit, "deg/s"
+    )
 
 
 def fit_accel_traditional(sm: StepMeans) -> TraditionalFit:
@@ -343,18 +397,30 @@ def fit_accel_traditional_stack(sms: Sequence[StepMeans]) -> list[TraditionalFit
     rows = sm.rows_of_test("multiposition")
     f_ref = sm.f_ref[rows]
     _check_determined(sm, f_ref, "accel_traditional", "multiposition specific force")
-    return _fit_traditional("accel_traditional", f_ref, stack_field(sms, "accel")[:, rows],
-                            sm.accel_unit, "g")
+    return _fit_traditional(
+        "accel_traditional", f_ref, stack_field(sms, "accel")[:, rows], sm.accel_unit, "g"
+    )
 
 
 # --------------------------------------------------------------------------- Table 3
-COMPENSATION_COLUMNS = ["input_axis", "output_axis", "method", "err_min", "err_max",
-                        "unit_of_measure", "source", "n_steps"]
+COMPENSATION_COLUMNS = [
+    "input_axis",
+    "output_axis",
+    "method",
+    "err_min",
+    "err_max",
+    "unit_of_measure",
+    "source",
+    "n_steps",
+]
 
 
-def compensation_errors(sm: StepMeans, proposed: GyroMultirateFit,
-                        traditional: TraditionalFit | None = None,
-                        tests: tuple[str, ...] = ("verification",)) -> pd.DataFrame:
+def compensation_errors(
+    sm: StepMeans,
+    proposed: GyroMultirateFit,
+    traditional: TraditionalFit | None = None,
+    tests: tuple[str, ...] = ("verification",),
+) -> pd.DataFrame:
     """xu2016 Table 3: range (min, max) of output error per input axis and output axis,
     uncompensated / proposed / traditional, on rotation steps of the given tests.
 
@@ -365,22 +431,27 @@ def compensation_errors(sm: StepMeans, proposed: GyroMultirateFit,
     return table.to_frame()
 
 
-def compensation_error_table(sm: StepMeans, proposed: GyroMultirateFit,
-                             traditional: TraditionalFit | None = None,
-                             tests: tuple[str, ...] = ("verification",)) -> ColumnTable:
+def compensation_error_table(
+    sm: StepMeans,
+    proposed: GyroMultirateFit,
+    traditional: TraditionalFit | None = None,
+    tests: tuple[str, ...] = ("verification",),
+) -> ColumnTable:
     """The rows of :func:`compensation_errors` as numpy columns (no DataFrame)."""
     return compensation_error_tables([sm], [proposed], [traditional], tests)[0]
 
 
-def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroMultirateFit],
-                              traditional: Sequence[TraditionalFit | None],
-                              tests: tuple[str, ...] = ("verification",)) -> list[ColumnTable]:
+def compensation_error_tables(
+    sms: Sequence[StepMeans],
+    proposed: Sequence[GyroMultirateFit],
+    traditional: Sequence[TraditionalFit | None],
+    tests: tuple[str, ...] = ("verification",),
+) -> list[ColumnTable]:
     """:func:`compensation_error_table` of sessions that share a step layout, each with its
     own fits, computed together (table r is ``compensation_error_table(sms[r], ...[r])``).
     The columns that come from the layout alone are built once and shared, read-only."""
     if len({t is None for t in traditional}) > 1:  # not one set of methods: each alone
-        return [compensation_error_table(sm, p, t, tests)
-                for sm, p, t in zip(sms, proposed, traditional)]
+        return [compensation_error_table(sm, p, t, tests) for sm, p, t in zip(sms, proposed, traditional)]
     sm = sms[0]
     rows = _rotation_groups(sm, tests)
     if rows is None:
@@ -389,35 +460,46 @@ def compensation_error_tables(sms: Sequence[StepMeans], proposed: Sequence[GyroM
     G, w_ref = stack_field(sms, "gyro")[:, idx], sm.w_ref[idx]  # (R, steps, 3)
     # GyroMultirateFit.compensate and TraditionalFit.compensate of every session at once
     w0 = np.stack([p.w0 for p in proposed])[:, None]
-    outputs = [G if sm.gyro_unit == "deg/s" else np.full_like(G, np.nan),
-               G @ np.stack([p.K.T for p in proposed]) + w0]
+    outputs = [
+        G if sm.gyro_unit == "deg/s" else np.full_like(G, np.nan),
+        G @ np.stack([p.K.T for p in proposed]) + w0,
+    ]
     methods = ["uncompensated", "proposed"]  # row order of xu2016 Table 3
     if traditional[0] is not None:
         b = np.stack([t.b for t in traditional])[:, None]
-        outputs.append(np.swapaxes(np.linalg.solve(np.stack([t.S for t in traditional]),
-                                                   np.swapaxes(G - b, 1, 2)), 1, 2))
+        outputs.append(
+            np.swapaxes(np.linalg.solve(np.stack([t.S for t in traditional]), np.swapaxes(G - b, 1, 2)), 1, 2)
+        )
         methods.append("traditional")
     err = np.stack(outputs, axis=1) - w_ref  # (R, methods, steps, 3)
     lo = np.minimum.reduceat(err, starts, axis=2)  # (R, methods, input axes, 3)
     hi = np.maximum.reduceat(err, starts, axis=2)
     n_rows = len(methods) * len(present) * 3
     layout = {
-        "input_axis": CodedStrings(present, np.tile(
-            np.repeat(np.arange(len(present)), 3), len(methods))),
-        "output_axis": CodedStrings(np.array(list(AXES)), np.tile(
-            np.arange(3), len(methods) * len(present))),
-        "method": CodedStrings(np.array(methods), np.repeat(
-            np.arange(len(methods)), len(present) * 3)),
+        "input_axis": CodedStrings(present, np.tile(np.repeat(np.arange(len(present)), 3), len(methods))),
+        "output_axis": CodedStrings(np.array(list(AXES)), np.tile(np.arange(3), len(methods) * len(present))),
+        "method": CodedStrings(np.array(methods), np.repeat(np.arange(len(methods)), len(present) * 3)),
         "n_steps": np.tile(np.repeat(n_steps, 3), len(methods)),
     }
     if len(sms) > 1:
         for v in layout.values():
             (v.codes if isinstance(v, CodedStrings) else v).setflags(write=False)
-    return [ColumnTable({
-        "input_axis": layout["input_axis"], "output_axis": layout["output_axis"],
-        "method": layout["method"], "err_min": lo[r].ravel(), "err_max": hi[r].ravel(),
-        "unit_of_measure": "deg/s", "source": "+".join(tests), "n_steps": layout["n_steps"],
-    }, n_rows) for r in range(len(sms))]
+    return [
+        ColumnTable(
+            {
+                "input_axis": layout["input_axis"],
+                "output_axis": layout["output_axis"],
+                "method": layout["method"],
+                "err_min": lo[r].ravel(),
+                "err_max": hi[r].ravel(),
+                "unit_of_measure": "deg/s",
+                "source": "+".join(tests),
+                "n_steps": layout["n_steps"],
+            },
+            n_rows,
+        )
+        for r in range(len(sms))
+    ]
 
 
 def _rotation_groups(sm: StepMeans, tests: tuple[str, ...]):

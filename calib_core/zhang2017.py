@@ -18,14 +18,17 @@ and senses its own axis' component of the specific force at r_i:
     u_i = k_i (c_i . (f + W r_i) + B_i),    W = [w x]^2 + [dw/dt x]      (eq. 11-13)
 
 With the static model known, y_i = (u_i - u0_i) / k_i - c_i . f = c_i^T W r_i (eq. 12, the
-lever term f_iL) is linear in r_i; :func:`fit_lever_arm` solves it for all nine components in one least squares over every
+lever term f_iL) is linear in r_i; :func:`fit_lever_arm` solves it for all nine components in one
+least squares over every
 dynamic step and rate. The paper's closed form (its eq. 24, :func:`paper_lever_arm`) divides by
 the direction cosines, which are near zero for the off-diagonal components: kept for contrast.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy.linalg.lapack import dgeqp3 as _geqp3
@@ -77,7 +80,7 @@ def C_from_angles(angles_deg: np.ndarray, normalise: bool = True) -> np.ndarray:
     return c.T
 
 
-def static_to_affine(fit: "AccelStaticFit") -> tuple[np.ndarray, np.ndarray]:
+def static_to_affine(fit: AccelStaticFit) -> tuple[np.ndarray, np.ndarray]:
     """(K_a, f0) of f = K_a A + f0 from the 15 parameters."""
     return affine_from_parts(fit.scale, fit.bias, fit.C)
 
@@ -139,17 +142,22 @@ class AccelStaticFit:
         return params_of_blocks(self.param_blocks())
 
     def param_blocks(self) -> list[ParamBlock]:
-        return [(self.model, SCALE_NAMES, self.scale, self.scale_stderr, f"{self.unit}/g"),
-                (self.model, BIAS_NAMES, self.bias, self.bias_stderr, self.unit),
-                (self.model, ANGLE_NAMES, self.angles_deg, self.angles_stderr, "deg")]
+        return [
+            (self.model, SCALE_NAMES, self.scale, self.scale_stderr, f"{self.unit}/g"),
+            (self.model, BIAS_NAMES, self.bias, self.bias_stderr, self.unit),
+            (self.model, ANGLE_NAMES, self.angles_deg, self.angles_stderr, "deg"),
+        ]
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "scale": self.scale.tolist(),
             "bias": self.bias.tolist(),
             "angles_deg": self.angles_deg.tolist(),
-            "stderr": {"scale": self.scale_stderr.tolist(), "bias": self.bias_stderr.tolist(),
-                       "angles_deg": self.angles_stderr.tolist()},
+            "stderr": {
+                "scale": self.scale_stderr.tolist(),
+                "bias": self.bias_stderr.tolist(),
+                "angles_deg": self.angles_stderr.tolist(),
+            },
             "units": {"scale": f"{self.unit}/g", "bias": self.unit, "angles_deg": "deg"},
             "condition_number": float(self.condition_number),
             "residual_rms_g": float(self.residual_rms_g),
@@ -168,8 +176,9 @@ def fit_accel_static(sm: StepMeans, tests: tuple[str, ...] = STATIC_TESTS) -> Ac
     return fit_accel_static_stack([sm], tests)[0]
 
 
-def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = STATIC_TESTS
-                           ) -> list[AccelStaticFit]:
+def fit_accel_static_stack(
+    sms: Sequence[StepMeans], tests: tuple[str, ...] = STATIC_TESTS
+) -> list[AccelStaticFit]:
     """:func:`fit_accel_static` of sessions that share one step layout (the repetitions of a
     unit), together: session r's fit is the one ``fit_accel_static(sms[r])`` returns, bit for
     bit. Raises the DesignError of the first session that has one."""
@@ -177,16 +186,22 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
     rows = sm.rows_of_test(*tests)
     n = len(rows)
     if n < 5:
-        raise DesignError("E_TOO_FEW_STATIC_STEPS",
-                          f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
-                          "at least 5 to estimate its noise", ("accel_static",))
+        raise DesignError(
+            "E_TOO_FEW_STATIC_STEPS",
+            f"{n} static steps ({', '.join(tests)}); the 12-parameter fit needs "
+            "at least 5 to estimate its noise",
+            ("accel_static",),
+        )
     # eq. 5: A = M f + u0, per channel i A_i = [f 1] . (M_i, u0_i): one design X = [f_ref 1]
     X = np.hstack([sm.f_ref[rows], np.ones((n, 1))])
     _, sv, Vt = np.linalg.svd(X, full_matrices=False)
     if sv[-1] <= 1e-9 * sv[0]:
-        raise DesignError("E_STATIC_RANK", "static steps do not span three specific-force "
-                          "directions and a constant: M and u0 are not determined",
-                          ("accel_static",))
+        raise DesignError(
+            "E_STATIC_RANK",
+            "static steps do not span three specific-force "
+            "directions and a constant: M and u0 are not determined",
+            ("accel_static",),
+        )
     A = stack_field(sms, "accel")[:, rows]  # (R, n, 3)
     # lstsq per session (not a cached pseudo-inverse): the lever arms are fitted on this
     # model's residuals, where a last-bit change of M shows as 1e-8 of a zero lever arm;
@@ -200,8 +215,8 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
     resid = A - X @ beta
     dof_ch = n - 4
     var_g = ((resid / k[:, None, :]) ** 2).reshape(len(sms), -1).sum(axis=1) / (3 * dof_ch)
-    unscaled = (Vt.T / sv ** 2) @ Vt  # (X^T X)^-1 from the SVD, never inverting X^T X
-    channel_cov = unscaled * (var_g[:, None] * k ** 2)[:, :, None, None]  # (R,3,4,4)
+    unscaled = (Vt.T / sv**2) @ Vt  # (X^T X)^-1 from the SVD, never inverting X^T X
+    channel_cov = unscaled * (var_g[:, None] * k**2)[:, :, None, None]  # (R,3,4,4)
     cov_m = channel_cov[:, :, :3, :3]
     u0_se = np.sqrt(channel_cov[:, :, 3, 3])
     # standard errors through the Jacobian of the decomposition: dk_i/dM_i = c_i
@@ -209,15 +224,27 @@ def fit_accel_static_stack(sms: Sequence[StepMeans], tests: tuple[str, ...] = ST
     # dc_i/dM_i = (I - c_i c_i^T) / k_i; d theta_ij / d M_i = -(row j of it) / sin theta_ij
     Ct = np.swapaxes(C, 1, 2)  # row i = c_i
     dc = (np.eye(3) - Ct[:, :, :, None] * Ct[:, :, None, :]) / k[:, :, None, None]
-    sin_t = np.sqrt(np.maximum(1.0 - Ct ** 2, 1e-300))
+    sin_t = np.sqrt(np.maximum(1.0 - Ct**2, 1e-300))
     g = -dc / sin_t[:, :, :, None]
     ang_se = np.degrees(np.sqrt(np.einsum("rijk,rikl,rijl->rij", g, cov_m, g)))
-    return [AccelStaticFit(
-        scale=k[r], bias=u0[r], C=C[r], scale_stderr=k_se[r], bias_stderr=u0_se[r],
-        angles_stderr=ang_se[r], channel_cov=channel_cov[r],
-        condition_number=float(sv[0] / sv[-1]), residual_rms_g=float(np.sqrt(var_g[r])),
-        dof=3 * dof_ch, n_steps=n, unit=sm.accel_unit, g_local=sm.g_local,
-    ) for r in range(len(sms))]
+    return [
+        AccelStaticFit(
+            scale=k[r],
+            bias=u0[r],
+            C=C[r],
+            scale_stderr=k_se[r],
+            bias_stderr=u0_se[r],
+            angles_stderr=ang_se[r],
+            channel_cov=channel_cov[r],
+            condition_number=float(sv[0] / sv[-1]),
+            residual_rms_g=float(np.sqrt(var_g[r])),
+            dof=3 * dof_ch,
+            n_steps=n,
+            unit=sm.accel_unit,
+            g_local=sm.g_local,
+        )
+        for r in range(len(sms))
+    ]
 
 
 # -- lever arms ----------------------------------------------------------------------------------
@@ -278,8 +305,9 @@ class LeverArmFit:
             "lever_arm_mm": lst(self.lever_arm_mm),
             "stderr": lst(self.stderr),
             "condition_number": float(self.condition_number),
-            "condition_number_full": (float(self.condition_number_full)
-                                      if np.isfinite(self.condition_number_full) else None),
+            "condition_number_full": (
+                float(self.condition_number_full) if np.isfinite(self.condition_number_full) else None
+            ),
             "undetermined": list(self.undetermined),
             "reasons": dict(self.reasons),
             "residual_rms_g": float(self.residual_rms_g),
@@ -300,9 +328,14 @@ def _step_rates(sm: StepMeans, gyro_K, gyro_w0) -> tuple[np.ndarray, str]:
 PROJECTIONS = ("sensitive_axis", "body_axis")
 
 
-def fit_lever_arm(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None,
-                  rcond: float = UNDETERMINED_RCOND,
-                  projection: str = "sensitive_axis") -> LeverArmFit:
+def fit_lever_arm(
+    sm: StepMeans,
+    static: AccelStaticFit,
+    gyro_K=None,
+    gyro_w0=None,
+    rcond: float = UNDETERMINED_RCOND,
+    projection: str = "sensitive_axis",
+) -> LeverArmFit:
     """r_1, r_2, r_3 (mm) from the ``dynamic`` steps by one joint least squares.
 
     ``projection="sensitive_axis"`` (the paper, eq. 12-13): row (i, s) is
@@ -335,24 +368,28 @@ class LeverArmInputs:
     source: str  # "w_ref" or "gyro"
 
 
-def lever_arm_inputs(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None
-                     ) -> LeverArmInputs:
+def lever_arm_inputs(sm: StepMeans, static: AccelStaticFit, gyro_K=None, gyro_w0=None) -> LeverArmInputs:
     """The shared part of the lever-arm fit (compute once, fit both projections from it)."""
-    return lever_arm_inputs_stack([sm], [static], None if gyro_K is None else [gyro_K],
-                                  None if gyro_w0 is None else [gyro_w0])[0]
+    return lever_arm_inputs_stack(
+        [sm], [static], None if gyro_K is None else [gyro_K], None if gyro_w0 is None else [gyro_w0]
+    )[0]
 
 
-def lever_arm_inputs_stack(sms: Sequence[StepMeans], statics: Sequence[AccelStaticFit],
-                           gyro_Ks=None, gyro_w0s=None) -> list[LeverArmInputs]:
+def lever_arm_inputs_stack(
+    sms: Sequence[StepMeans], statics: Sequence[AccelStaticFit], gyro_Ks=None, gyro_w0s=None
+) -> list[LeverArmInputs]:
     """:func:`lever_arm_inputs` of sessions that share one step layout (with their static
     fits and, optionally, gyro calibrations), computed together; item r is bit for bit
     ``lever_arm_inputs(sms[r], statics[r], gyro_Ks[r], gyro_w0s[r])``."""
     ds = [sm.of_test("dynamic") for sm in sms]
     if len(ds[0]) == 0:
-        raise DesignError("E_NO_DYNAMIC_STEPS", "no dynamic steps: lever arms need constant-rate "
-                          "rotation", LEVER_NAMES)
-    rates = [_step_rates(d, None if gyro_Ks is None else gyro_Ks[r],
-                         None if gyro_w0s is None else gyro_w0s[r]) for r, d in enumerate(ds)]
+        raise DesignError(
+            "E_NO_DYNAMIC_STEPS", "no dynamic steps: lever arms need constant-rate rotation", LEVER_NAMES
+        )
+    rates = [
+        _step_rates(d, None if gyro_Ks is None else gyro_Ks[r], None if gyro_w0s is None else gyro_w0s[r])
+        for r, d in enumerate(ds)
+    ]
     w = np.stack([w for w, _ in rates])  # (R, n, 3)
     R, n = w.shape[:2]
     g_per_mm = 1e-3 / np.array([static.g_local for static in statics])
@@ -361,28 +398,33 @@ def lever_arm_inputs_stack(sms: Sequence[StepMeans], statics: Sequence[AccelStat
     bias = np.stack([static.bias for static in statics])
     # statically compensated specific force, body frame
     f_hat = (stack_field(ds, "accel") - bias[:, None, :]) @ np.swapaxes(K_a, 1, 2)
-    return [LeverArmInputs(statics[r], ds[r], W[r], K_a[r], f_hat[r], rates[r][1])
-            for r in range(R)]
+    return [LeverArmInputs(statics[r], ds[r], W[r], K_a[r], f_hat[r], rates[r][1]) for r in range(R)]
 
 
-def lever_arm_estimate(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
-                       projection: str = "sensitive_axis") -> np.ndarray:
+def lever_arm_estimate(
+    inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND, projection: str = "sensitive_axis"
+) -> np.ndarray:
     """``fit_lever_arm_from(...).r_mm`` (the same numbers) without the standard errors, for
     callers that only apply the lever arms (the pipeline's body-axis fit)."""
     return fit_lever_arm_from(inputs, rcond, projection, _estimate_only=True)
 
 
-def fit_lever_arm_from(inputs: LeverArmInputs, rcond: float = UNDETERMINED_RCOND,
-                       projection: str = "sensitive_axis", _estimate_only: bool = False
-                       ) -> LeverArmFit:
+def fit_lever_arm_from(
+    inputs: LeverArmInputs,
+    rcond: float = UNDETERMINED_RCOND,
+    projection: str = "sensitive_axis",
+    _estimate_only: bool = False,
+) -> LeverArmFit:
     """:func:`fit_lever_arm` on precomputed :func:`lever_arm_inputs`."""
     return fit_lever_arm_from_stack([inputs], rcond, projection, _estimate_only)[0]
 
 
-def fit_lever_arm_from_stack(inputs: Sequence[LeverArmInputs],
-                             rcond: float = UNDETERMINED_RCOND,
-                             projection: str = "sensitive_axis", estimate_only: bool = False
-                             ) -> list:
+def fit_lever_arm_from_stack(
+    inputs: Sequence[LeverArmInputs],
+    rcond: float = UNDETERMINED_RCOND,
+    projection: str = "sensitive_axis",
+    estimate_only: bool = False,
+) -> list:
     """:func:`fit_lever_arm_from` of sessions that share one step layout (their
     :func:`lever_arm_inputs_stack`): item r is bit for bit ``fit_lever_arm_from(inputs[r])``
     (with ``estimate_only``, its ``r_mm`` as :func:`lever_arm_estimate` gives it). The
@@ -395,16 +437,19 @@ def fit_lever_arm_from_stack(inputs: Sequence[LeverArmInputs],
     designs = [_lever_design(x, projection) for x in inputs]
     certified = _certify_determined(designs, rcond)
     if certified is not None:
-        return _fit_all_determined(inputs, [_all_kept(Xb, yb) for Xb, yb in designs],
-                                   projection, estimate_only, certified)
-    blocks = [_lever_blocks(x, rcond, projection, design)
-              for x, design in zip(inputs, designs)]
+        return _fit_all_determined(
+            inputs, [_all_kept(Xb, yb) for Xb, yb in designs], projection, estimate_only, certified
+        )
+    blocks = [_lever_blocks(x, rcond, projection, design) for x, design in zip(inputs, designs)]
     determined = [len(b.cols) == 9 for b in blocks]
     if all(determined):
         return _fit_all_determined(inputs, blocks, projection, estimate_only)
-    return [_fit_all_determined([x], [b], projection, estimate_only)[0] if all_determined
-            else _fit_joint(x, b, projection, estimate_only)
-            for x, b, all_determined in zip(inputs, blocks, determined)]
+    return [
+        _fit_all_determined([x], [b], projection, estimate_only)[0]
+        if all_determined
+        else _fit_joint(x, b, projection, estimate_only)
+        for x, b, all_determined in zip(inputs, blocks, determined)
+    ]
 
 
 # How far above ``rcond`` a block's sigma_min / sigma_max must be for the pivoted QR to keep
@@ -433,7 +478,8 @@ def _certify_determined(designs: Sequence[tuple[np.ndarray, np.ndarray]], rcond:
     s = svd[1]  # (R, 3, 3) descending
     with np.errstate(invalid="ignore"):
         sure = np.isfinite(s).all() and bool(
-            ((s[..., 0] > 0) & (s[..., -1] >= CERTIFY_MARGIN * rcond * s[..., 0])).all())
+            ((s[..., 0] > 0) & (s[..., -1] >= CERTIFY_MARGIN * rcond * s[..., 0])).all()
+        )
     if not sure:
         return None
     return Xb, _stack_blocks([y for _, y in designs]), svd
@@ -453,11 +499,12 @@ def _stack_blocks(per_session: list[np.ndarray]) -> np.ndarray:
     return np.stack([np.stack([X[i] for i in range(3)]) for X in per_session])
 
 
-def _all_kept(Xb: np.ndarray, yb: np.ndarray) -> "_LeverBlocks":
+def _all_kept(Xb: np.ndarray, yb: np.ndarray) -> _LeverBlocks:
     """The _LeverBlocks of a session whose every component is determined (certified)."""
     keep = np.arange(3)
-    return _LeverBlocks([(i, Xb[i], yb[i], keep) for i in range(3)],
-                        [(i, j) for i in range(3) for j in range(3)], [], {})
+    return _LeverBlocks(
+        [(i, Xb[i], yb[i], keep) for i in range(3)], [(i, j) for i in range(3) for j in range(3)], [], {}
+    )
 
 
 @dataclass(frozen=True)
@@ -489,8 +536,9 @@ def _lever_design(inputs: LeverArmInputs, projection: str) -> tuple[np.ndarray, 
     return Xb, yb
 
 
-def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str,
-                  design: tuple[np.ndarray, np.ndarray] | None = None) -> _LeverBlocks:
+def _lever_blocks(
+    inputs: LeverArmInputs, rcond: float, projection: str, design: tuple[np.ndarray, np.ndarray] | None = None
+) -> _LeverBlocks:
     """The blocks of :func:`_lever_design` (given, or built here) and the components each
     block's rank-revealing QR keeps."""
     Xb, yb = design if design is not None else _lever_design(inputs, projection)
@@ -517,20 +565,20 @@ def _lever_blocks(inputs: LeverArmInputs, rcond: float, projection: str,
             # columns: a component pivoted past them has no pivot (relative pivot 0)
             pos = piv.index(j)
             rel = diag[pos] / diag[0] if pos < len(diag) and diag[0] > 0 else 0.0
-            reasons[name] = (f"not observable from these dynamic steps (relative pivot "
-                             f"{rel:.2g} < {rcond:g}); add steps with the rate off the body "
-                             "axes (protocols.dynamic_steps(tilted=True))")
+            reasons[name] = (
+                f"not observable from these dynamic steps (relative pivot "
+                f"{rel:.2g} < {rcond:g}); add steps with the rate off the body "
+                "axes (protocols.dynamic_steps(tilted=True))"
+            )
         blocks.append((i, X, y, np.asarray(keep, int)))
     # joint design (block-diagonal), determined columns only
     cols = [(i, j) for i, _, _, keep in blocks for j in keep]
     if not cols:
-        raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal",
-                          LEVER_NAMES)
+        raise DesignError("E_LEVER_RANK", "dynamic steps carry no centripetal signal", LEVER_NAMES)
     return _LeverBlocks(blocks, cols, undetermined, reasons)
 
 
-def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
-               estimate_only: bool = False):
+def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str, estimate_only: bool = False):
     """The joint least squares of one session over its determined components (some
     component is undetermined: the blocks no longer have three columns each)."""
     static, d, K_a, f_hat = inputs.static, inputs.d, inputs.K_a, inputs.f_hat
@@ -542,7 +590,7 @@ def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
     A = np.zeros((3 * n, len(cols)))
     Y = np.concatenate([b[2] for b in blocks])
     for c, (i, j) in enumerate(cols):
-        A[i * n:(i + 1) * n, c] = blocks[i][1][:, j]
+        A[i * n : (i + 1) * n, c] = blocks[i][1][:, j]
     theta, *_ = np.linalg.lstsq(A, Y, rcond=None)
     if estimate_only:
         for c, (i, j) in enumerate(cols):
@@ -553,42 +601,52 @@ def _fit_joint(inputs: LeverArmInputs, lb: _LeverBlocks, projection: str,
     var_g = float(resid @ resid / dof) if dof > 0 else float("nan")
     # one SVD of A gives (A^T A)^-1, the pseudo-inverse and the condition number
     U, sva, Vt = np.linalg.svd(A, full_matrices=False)
-    cov = ((Vt.T / sva ** 2) @ Vt) * var_g
+    cov = ((Vt.T / sva**2) @ Vt) * var_g
     s_inv = np.divide(1.0, sva, where=sva > 1e-15 * sva.max(), out=np.zeros_like(sva))
     pinv = Vt.T @ (s_inv[:, None] * U.T)
-    # propagate the static uncertainty, channel by channel (theta_l = (M_l, u0_l)):
-    # sensitive axis: dy_l/dtheta_l = -(f_s + e_ls M_l / k_l^2, 1) / k_l (own block only);
-    # body axis: y = K_a (A - u0) - f_ref, dy_i/dtheta_l = -K_a[i, l] (f_hat_s, 1)
+    # propagate the static uncertainty, channel by channel (theta_ch = (M_ch, u0_ch)):
+    # sensitive axis: dy_ch/dtheta_ch = -(f_s + e_ch,s M_ch / k_ch^2, 1) / k_ch (own block only);
+    # body axis: y = K_a (A - u0) - f_ref, dy_i/dtheta_ch = -K_a[i, ch] (f_hat_s, 1)
     ones = np.ones((n, 1))
-    for l in range(3):
+    for ch in range(3):
         dY = np.zeros((3 * n, 4))
         if projection == "sensitive_axis":
-            e = blocks[l][2] * k[l]  # raw residual of the static model on these steps
-            dY[l * n:(l + 1) * n] = -np.hstack([d.f_ref + np.outer(e, M[l]) / k[l] ** 2,
-                                                ones]) / k[l]
+            e = blocks[ch][2] * k[ch]  # raw residual of the static model on these steps
+            dY[ch * n : (ch + 1) * n] = -np.hstack([d.f_ref + np.outer(e, M[ch]) / k[ch] ** 2, ones]) / k[ch]
         else:
             for i in range(3):
-                dY[i * n:(i + 1) * n] = -K_a[i, l] * np.hstack([f_hat, ones])
+                dY[i * n : (i + 1) * n] = -K_a[i, ch] * np.hstack([f_hat, ones])
         J = pinv @ dY
-        cov = cov + J @ static.channel_cov[l] @ J.T
+        cov = cov + J @ static.channel_cov[ch] @ J.T
     for c, (i, j) in enumerate(cols):
         r[i, j] = theta[c]
         se[i, j] = np.sqrt(cov[c, c])
     full = np.zeros((3 * n, 9))  # the design with all nine components
     for i, X, _, _ in blocks:
-        full[i * n:(i + 1) * n, 3 * i:3 * i + 3] = X
+        full[i * n : (i + 1) * n, 3 * i : 3 * i + 3] = X
     svf = np.linalg.svd(full, compute_uv=False)
     return LeverArmFit(
-        lever_arm_mm=r, stderr=se, condition_number=float(sva[0] / sva[-1]),
+        lever_arm_mm=r,
+        stderr=se,
+        condition_number=float(sva[0] / sva[-1]),
         condition_number_full=float(svf[0] / svf[-1]) if svf[-1] > 0 else float("inf"),
-        undetermined=tuple(undetermined), reasons=reasons,
-        residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"), dof=dof,
-        n_steps=n, rate_source=inputs.source, projection=projection,
+        undetermined=tuple(undetermined),
+        reasons=reasons,
+        residual_rms_g=float(np.sqrt(var_g)) if dof > 0 else float("nan"),
+        dof=dof,
+        n_steps=n,
+        rate_source=inputs.source,
+        projection=projection,
     )
 
 
-def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_LeverBlocks],
-                        projection: str, estimate_only: bool = False, stacked=None) -> list:
+def _fit_all_determined(
+    inputs: Sequence[LeverArmInputs],
+    blocks: Sequence[_LeverBlocks],
+    projection: str,
+    estimate_only: bool = False,
+    stacked=None,
+) -> list:
     """The joint fits of sessions whose every component is determined (the usual case,
     tilted steps), all sessions together.
 
@@ -612,8 +670,7 @@ def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_Leve
         return list(theta)
     resid = yb - np.einsum("rink,rik->rin", Xb, theta)
     dof = 3 * n - 9
-    var_g = ((resid ** 2).reshape(R, -1).sum(axis=1) / dof if dof > 0
-             else np.full(R, np.nan))
+    var_g = (resid**2).reshape(R, -1).sum(axis=1) / dof if dof > 0 else np.full(R, np.nan)
     cov4 = np.zeros((R, 3, 3, 3, 3))  # (r, i, j, i', j'): component (i,j) against (i',j')
     cov_blocks = ((V / sb[..., None, :] ** 2) @ Vt) * var_g[:, None, None, None]
     for i in range(3):
@@ -625,8 +682,16 @@ def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_Leve
     if projection == "sensitive_axis":
         M = np.stack([x.static.M for x in inputs])
         e = yb * k[:, :, None]  # raw residuals of the static model, (R,3,n)
-        dY = np.concatenate([d.f_ref + e[..., None] * M[:, :, None, :] / k[..., None, None] ** 2,
-                             np.broadcast_to(ones, (R, 3, n, 1))], axis=3) / -k[..., None, None]
+        dY = (
+            np.concatenate(
+                [
+                    d.f_ref + e[..., None] * M[:, :, None, :] / k[..., None, None] ** 2,
+                    np.broadcast_to(ones, (R, 3, n, 1)),
+                ],
+                axis=3,
+            )
+            / -k[..., None, None]
+        )
         J = pinv @ dY  # (R,3,3,4): block l, channel l
         diag_blocks = np.einsum("rlai,rlij,rlbj->rlab", J, channel_cov, J)
         for i in range(3):
@@ -643,12 +708,21 @@ def _fit_all_determined(inputs: Sequence[LeverArmInputs], blocks: Sequence[_Leve
     for r, (x, lb) in enumerate(zip(inputs, blocks)):
         sv = sb[r].ravel()
         cond = float(sv.max() / sv.min()) if sv.min() > 0 else float("inf")
-        out.append(LeverArmFit(
-            lever_arm_mm=theta[r], stderr=stderr[r], condition_number=cond,
-            condition_number_full=cond, undetermined=(), reasons=lb.reasons,
-            residual_rms_g=float(np.sqrt(var_g[r])) if dof > 0 else float("nan"), dof=dof,
-            n_steps=n, rate_source=x.source, projection=projection,
-        ))
+        out.append(
+            LeverArmFit(
+                lever_arm_mm=theta[r],
+                stderr=stderr[r],
+                condition_number=cond,
+                condition_number_full=cond,
+                undetermined=(),
+                reasons=lb.reasons,
+                residual_rms_g=float(np.sqrt(var_g[r])) if dof > 0 else float("nan"),
+                dof=dof,
+                n_steps=n,
+                rate_source=x.source,
+                projection=projection,
+            )
+        )
     return out
 
 
@@ -675,8 +749,12 @@ def paper_lever_arm(sm: StepMeans, static: AccelStaticFit) -> np.ndarray:
     for rate in np.unique(np.abs(sm.rate_dps[dyn])):
         D = {}
         for u in ("+x", "+y", "+z"):
-            m = dyn & (sm.up_axis == u) & np.isclose(np.abs(sm.rate_dps), rate) & \
-                np.isclose(np.abs(sm.w_ref @ np.eye(3)["xyz".index(u[1])]), rate)
+            m = (
+                dyn
+                & (sm.up_axis == u)
+                & np.isclose(np.abs(sm.rate_dps), rate)
+                & np.isclose(np.abs(sm.w_ref @ np.eye(3)["xyz".index(u[1])]), rate)
+            )
             if not m.any():
                 break
             D[u] = y_all[m].mean(axis=0) - rest[u]
@@ -693,15 +771,20 @@ def paper_lever_arm(sm: StepMeans, static: AccelStaticFit) -> np.ndarray:
             est[i, 2] = (Dz - Dx - Dy) * scale / c[2]
         estimates.append(est)
     if not estimates:
-        raise DesignError("E_NO_AXIS_RATES", "the paper's formula needs the same rate with "
-                          "x-, y- and z-up", LEVER_NAMES)
+        raise DesignError(
+            "E_NO_AXIS_RATES", "the paper's formula needs the same rate with x-, y- and z-up", LEVER_NAMES
+        )
     return np.mean(estimates, axis=0)
 
 
 # -- compensation --------------------------------------------------------------------------------
-def compensate_specific_force(static: AccelStaticFit, lever: LeverArmFit | None,
-                              A_raw: np.ndarray, w_dps: np.ndarray | None = None,
-                              dwdt_dps2: np.ndarray | None = None) -> np.ndarray:
+def compensate_specific_force(
+    static: AccelStaticFit,
+    lever: LeverArmFit | None,
+    A_raw: np.ndarray,
+    w_dps: np.ndarray | None = None,
+    dwdt_dps2: np.ndarray | None = None,
+) -> np.ndarray:
     """Calibrated specific force at the rotation centre (g), (n,3): paper eq. 16-17.
 
     a_i = (u_i - u0_i)/k_i - c_i^T W r_i, f = (C^T)^-1 a, W = [w x]^2 + [dw/dt x] from the
@@ -737,12 +820,12 @@ class SensitiveAxisLeverArm:
         self.C = np.asarray(C, float)
         self._geometry = SensingGeometry(np.eye(3), (self.C / np.linalg.norm(self.C, axis=0)).T)
 
-    def regressors(self, ctx: MotionContext, geometry: SensingGeometry | None = None
-                   ) -> np.ndarray:
+    def regressors(self, ctx: MotionContext, geometry: SensingGeometry | None = None) -> np.ndarray:
         return get_effect("lever_arm").regressors(ctx, self._geometry)
 
-    def error(self, ctx: MotionContext, theta: np.ndarray,
-              geometry: SensingGeometry | None = None) -> np.ndarray:
+    def error(
+        self, ctx: MotionContext, theta: np.ndarray, geometry: SensingGeometry | None = None
+    ) -> np.ndarray:
         return self.regressors(ctx) @ np.asarray(theta, dtype=float)
 
 
@@ -761,27 +844,33 @@ class AccelUnitTruth:
     def angles_deg(self) -> np.ndarray:
         return angles_from_C(self.C)
 
-    def raw(self, f_g: np.ndarray, w_dps: np.ndarray, dwdt_dps2: np.ndarray | None = None
-            ) -> np.ndarray:
+    def raw(self, f_g: np.ndarray, w_dps: np.ndarray, dwdt_dps2: np.ndarray | None = None) -> np.ndarray:
         """Noise-free raw outputs u_i = k_i (c_i . (f + W r_i)) + u0_i, (n,3)."""
         f = np.atleast_2d(f_g)
-        W = lever_matrix(np.broadcast_to(np.atleast_2d(w_dps), f.shape),
-                         None if dwdt_dps2 is None
-                         else np.broadcast_to(np.atleast_2d(dwdt_dps2), f.shape))
+        W = lever_matrix(
+            np.broadcast_to(np.atleast_2d(w_dps), f.shape),
+            None if dwdt_dps2 is None else np.broadcast_to(np.atleast_2d(dwdt_dps2), f.shape),
+        )
         at_r = f[:, None, :] + np.einsum("nab,ib->nia", W, self.lever_arm_mm) * (
-            1e-3 / self.g_local)  # (n, i, 3): specific force at accelerometer i
+            1e-3 / self.g_local
+        )  # (n, i, 3): specific force at accelerometer i
         along = np.einsum("ai,nia->ni", self.C, at_r)
         return self.scale * along + self.bias
 
-    def to_mimu_truth(self, **kw) -> "Any":
+    def to_mimu_truth(self, **kw) -> Any:
         """The same unit as a :class:`calib_core.simulator.MimuTruth` (affine K_a, f0 and the
         sensitive-axis lever-arm effect). Gyros ideal unless given; gyro full scale widened so
         that constant-rate steps are not dropped."""
         from calib_core.simulator import MimuTruth
 
         K_a, f0 = affine_from_parts(self.scale, self.bias, self.C)
-        base = dict(K_a=K_a, f0=f0, accel_unit=self.unit, g_local=self.g_local,
-                    gyro_range_dps=(2000.0, 2000.0, 4000.0),
-                    effects=((SensitiveAxisLeverArm(self.C), self.lever_arm_mm.ravel()),))
+        base = dict(
+            K_a=K_a,
+            f0=f0,
+            accel_unit=self.unit,
+            g_local=self.g_local,
+            gyro_range_dps=(2000.0, 2000.0, 4000.0),
+            effects=((SensitiveAxisLeverArm(self.C), self.lever_arm_mm.ravel()),),
+        )
         base.update(kw)
         return MimuTruth(**base)

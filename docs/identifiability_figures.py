@@ -6,6 +6,7 @@
 
 Seeded: the same numbers every run.
 """
+
 from __future__ import annotations
 
 import sys
@@ -21,51 +22,64 @@ def main(n_units: int = 40, sections: str = "") -> None:
     from schemas.physics_sessions import physics_unit_step_means
 
     def step_means_of(unit, steps, rng, unit_id, table):
-        return physics_unit_step_means(unit, steps, rng, n_reps=5, unit_id=unit_id,
-                                       table=table or Turntable())
+        return physics_unit_step_means(
+            unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable()
+        )
 
     default = protocols.default_session()
     whole = protocols.whole_turn_session()
     two = protocols.extended(whole, protocols.two_heading_stationary())
-    earth = [] if sections and sections != "earth" else [
-        ("whole turns about the vertical only", whole, False, True, 11),
-        ("whole turns + stationary steps at two headings", two, False, True, 12),
-        ("default protocol, latitude/heading not given", default, False, True, 13),
-        ("default protocol, latitude_deg/table_heading_deg given", default, True, True, 14),
-        ("default protocol, typical MEMS gyro (36 deg/h instability)", default, False,
-         False, 15)]
-    print("| Earth rate, 45 deg latitude | units | named alone | confounded with "
-          "gyro_g_sensitivity (applied) | confounded, set aside as negligible | other effect "
-          "named | estimate within 2 SE of 10.64 deg/h |")
+    earth = (
+        []
+        if sections and sections != "earth"
+        else [
+            ("whole turns about the vertical only", whole, False, True, 11),
+            ("whole turns + stationary steps at two headings", two, False, True, 12),
+            ("default protocol, latitude/heading not given", default, False, True, 13),
+            ("default protocol, latitude_deg/table_heading_deg given", default, True, True, 14),
+            ("default protocol, typical MEMS gyro (36 deg/h instability)", default, False, False, 15),
+        ]
+    )
+    print(
+        "| Earth rate, 45 deg latitude | units | named alone | confounded with "
+        "gyro_g_sensitivity (applied) | confounded, set aside as negligible | other effect "
+        "named | estimate within 2 SE of 10.64 deg/h |"
+    )
     print("|---|---|---|---|---|---|---|")
     for label, steps, declare, quiet, seed in earth:
         t0 = time.perf_counter()
-        o = earth_rate_scenario(step_means_of, steps, n_units, seed, declare=declare,
-                                quiet=quiet)
-        within = (f"{o.within_2se}/{o.named} ({100 * o.within_2se / o.named:.0f} %)"
-                  if o.named else "-")
-        print(f"| {label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.confounded):.0f} % | "
-              f"{o.pct(o.confounded_set_aside):.0f} % | {o.pct(o.other_named):.0f} % | {within} |"
-              f"  <!-- {time.perf_counter() - t0:.0f} s -->",
-              flush=True)
+        o = earth_rate_scenario(step_means_of, steps, n_units, seed, declare=declare, quiet=quiet)
+        within = f"{o.within_2se}/{o.named} ({100 * o.within_2se / o.named:.0f} %)" if o.named else "-"
+        print(
+            f"| {label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.confounded):.0f} % | "
+            f"{o.pct(o.confounded_set_aside):.0f} % | {o.pct(o.other_named):.0f} % | {within} |"
+            f"  <!-- {time.perf_counter() - t0:.0f} s -->",
+            flush=True,
+        )
         for note in o.notes[:5]:
             print(f"<!--   {note} -->")
     print()
-    print("| hidden effect (default protocol, warm-up ramp) | units | named alone | named | "
-          "right parameter largest | other effect named |")
+    print(
+        "| hidden effect (default protocol, warm-up ramp) | units | named alone | named | "
+        "right parameter largest | other effect named |"
+    )
     print("|---|---|---|---|---|---|")
     fast = WarmUp(rise_c=10.0, tau_s=150.0)
     for name, seed, warm, label in (
-            ("thermal_scale_drift", 21, WarmUp(), ""),
-            ("thermal_bias_drift", 22, WarmUp(), ""),
-            ("bias_time_drift", 23, WarmUp(), ""),
-            ("thermal_bias_drift", 24, fast, ", warm-up time constant 150 s"),
-            ("bias_time_drift", 25, fast, ", warm-up time constant 150 s")):
+        ("thermal_scale_drift", 21, WarmUp(), ""),
+        ("thermal_bias_drift", 22, WarmUp(), ""),
+        ("bias_time_drift", 23, WarmUp(), ""),
+        ("thermal_bias_drift", 24, fast, ", warm-up time constant 150 s"),
+        ("bias_time_drift", 25, fast, ", warm-up time constant 150 s"),
+    ):
         if sections and name not in sections.split(","):
             continue
         o = sensor_effect_scenario(step_means_of, default, name, n_units, seed, warm_up=warm)
-        print(f"| {name}{label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.named):.0f} % | "
-              f"{o.right_axis}/{o.named} | {o.pct(o.other_named):.0f} % |", flush=True)
+        print(
+            f"| {name}{label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.named):.0f} % | "
+            f"{o.right_axis}/{o.named} | {o.pct(o.other_named):.0f} % |",
+            flush=True,
+        )
         for note in o.notes[:5]:
             print(f"<!--   {note} -->")
 

@@ -6,6 +6,7 @@ itself failed unexpectedly), 2 a usage error or a store that cannot be used (dam
 read-only, full, locked), 3 nothing to do (e.g. an empty dataset; a warning says so).
 ``--debug`` (anywhere on the line) shows the traceback and the numerical warnings instead.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,10 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="mimucal",
         description="Calibrate fleets of MEMS IMUs from turntable acquisitions.",
         epilog="exit codes: 0 all good, 1 some sessions/units/reports failed, 2 usage or "
-               "store error, 3 nothing to do. --debug (anywhere) shows tracebacks.",
+        "store error, 3 nothing to do. --debug (anywhere) shows tracebacks.",
     )
-    parser.add_argument("--debug", action="store_true",
-                        help="show tracebacks and numerical warnings")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and numerical warnings")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
         if hasattr(module, "register"):
             module.register(sub)
     from flows.help_text import clean_help
+
     clean_help(parser)
     return parser
 
@@ -50,6 +51,7 @@ def check_id_arguments(args: argparse.Namespace) -> None:
     """Every ``--unit``/``--lot`` goes through the check directory names go through
     (schemas.dataset.check_id): a name the store uses as a path must be one."""
     from schemas.dataset import check_id
+
     for attr, field in _ID_ARGUMENTS:
         value = getattr(args, attr, None)
         if isinstance(value, str):
@@ -63,13 +65,17 @@ def describe_os_error(exc: OSError) -> str:
     """One line for a file-system failure: what, where, and the errno's name."""
     name = errno.errorcode.get(exc.errno or 0, "")
     where = f" {exc.filename}" if exc.filename else ""
-    hint = {errno.ENOSPC: "free space on that file system and run again",
-            errno.EDQUOT: "free space (quota) and run again",
-            errno.EROFS: "the file system is read-only; use a writable --results folder",
-            errno.EACCES: "check the folder's permissions",
-            errno.EPERM: "check the folder's permissions"}.get(exc.errno or 0)
-    return (f"cannot write or read{where}: {exc.strerror or exc}"
-            f"{f' ({name})' if name else ''}{f'; {hint}' if hint else ''}")
+    hint = {
+        errno.ENOSPC: "free space on that file system and run again",
+        errno.EDQUOT: "free space (quota) and run again",
+        errno.EROFS: "the file system is read-only; use a writable --results folder",
+        errno.EACCES: "check the folder's permissions",
+        errno.EPERM: "check the folder's permissions",
+    }.get(exc.errno or 0)
+    return (
+        f"cannot write or read{where}: {exc.strerror or exc}"
+        f"{f' ({name})' if name else ''}{f'; {hint}' if hint else ''}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         return _run(argv)
     except BrokenPipeError:  # the reader went away (``mimucal ... | head``): end quietly
         from flows.pipes import closed_pipe_exit
+
         return closed_pipe_exit()
 
 
@@ -93,6 +100,7 @@ def _run(argv: list[str] | None) -> int:
     args = parser.parse_args(argv)
     args.debug = debug
     from schemas.results_store import StoreError, StoreLockedError
+
     try:
         check_id_arguments(args)
         return int(args.func(args) or 0)
@@ -115,8 +123,11 @@ def _run(argv: list[str] | None) -> int:
         if debug:
             raise
         cause = f"{type(exc).__name__}: {exc}".splitlines()[0]
-        print(f"mimucal {args.command}: error: the run failed: {cause} (the store keeps its "
-              f"last good state; --debug shows the traceback)", file=sys.stderr)
+        print(
+            f"mimucal {args.command}: error: the run failed: {cause} (the store keeps its "
+            f"last good state; --debug shows the traceback)",
+            file=sys.stderr,
+        )
         return EXIT_FAILURES
 
 

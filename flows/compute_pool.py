@@ -28,24 +28,25 @@ A Dask worker that dies is replaced (nanny) and the scheduler runs its batch aga
 a batch that keeps killing workers (``KilledWorker``) or a lost scheduler runs in the flow's
 process instead, as above.
 """
+
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
 import threading
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 import time
-from concurrent.futures import CancelledError
+from collections.abc import Callable, Iterator
+from concurrent.futures import CancelledError, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any
 
 # imported once by the forkserver; every worker is a fork of it
 PRELOAD = ("__main__", "flows.unit_pipeline", "calib_core.discovery", "calib_core.outliers")
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
-_pool: "ProcessPoolExecutor | DaskPool | None" = None
+_pool: ProcessPoolExecutor | DaskPool | None = None
 _broken = False
 # how long the last dask_pool took to start (cluster_start_s: a LocalCluster; connect_s: the
 # client; warmup_s: the workers' imports) and how many workers it had
@@ -58,16 +59,18 @@ def _init_worker() -> None:
     # every worker import that module and with it Prefect, which these workers never need)
     try:
         from threadpoolctl import threadpool_limits
+
         threadpool_limits(1)
     except Exception:  # pragma: no cover - threadpoolctl is a dependency
         pass
     # nor Arrow's decoding threads (the forkserver imported the reader already)
     from schemas.reader import use_arrow_threads
+
     use_arrow_threads(False)
 
 
 @contextmanager
-def _active(pool: "ProcessPoolExecutor | DaskPool") -> Iterator[None]:
+def _active(pool: ProcessPoolExecutor | DaskPool) -> Iterator[None]:
     """Make ``pool`` the one :func:`run_in_pool` uses while the block runs (and not broken);
     the previous one is active again afterwards."""
     global _pool, _broken
@@ -93,6 +96,7 @@ def start_forkserver() -> None:
     starts, so that the imports run while Prefect starts its API server, not in the fit
     phase before the first batch (flows.task_runners.prestart_unit_work_pool)."""
     from multiprocessing import forkserver
+
     _forkserver_context()
     forkserver.ensure_running()
 
@@ -100,8 +104,9 @@ def start_forkserver() -> None:
 @contextmanager
 def compute_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
     """A pool of ``workers`` processes that :func:`run_in_pool` uses while the block runs."""
-    pool = ProcessPoolExecutor(max_workers=max(1, int(workers)), mp_context=_forkserver_context(),
-                               initializer=_init_worker)
+    pool = ProcessPoolExecutor(
+        max_workers=max(1, int(workers)), mp_context=_forkserver_context(), initializer=_init_worker
+    )
     try:
         with _active(pool):
             yield pool
@@ -111,6 +116,7 @@ def compute_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
 
 def _import_numerics() -> None:
     import importlib
+
     for name in PRELOAD:
         if name != "__main__":
             importlib.import_module(name)
@@ -120,6 +126,7 @@ def _warm_worker() -> int:
     """Run once on every Dask worker before the fit phase: import the numerics (what
     unpickling the first batch would otherwise do inside the fit phase) and one BLAS thread."""
     import os
+
     _import_numerics()
     _init_worker()
     return os.getpid()
@@ -140,12 +147,14 @@ class DaskPool:
         # against 24 ms for one pickle), each read separately by this process, which also runs
         # Prefect and the store (docs/benchmarks.md)
         import pickle
+
         blob = self.client.submit(_call_pickled, fn, *args, pure=False).result()
         return pickle.loads(blob)
 
 
 def _call_pickled(fn: Callable[..., Any], *args: Any) -> bytes:
     import pickle
+
     return pickle.dumps(fn(*args), protocol=pickle.HIGHEST_PROTOCOL)
 
 
@@ -158,6 +167,7 @@ def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool
 
     import dask
     from distributed import Client, LocalCluster
+
     startup: dict[str, Any] = {"address": address, "cluster_start_s": 0.0}
     cluster = None
     t0 = time.perf_counter()
@@ -168,20 +178,31 @@ def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool
         # monitor (psutil, for a dashboard this cluster does not have) 0.5 -> 10 s, event-loop
         # health tick 20 -> 500 ms, nanny memory check 0.1 -> 1 s (still well before a
         # worker could fill this machine's memory)
-        with dask.config.set({"distributed.admin.system-monitor.interval": "10s",
-                              "distributed.admin.tick.interval": "500ms",
-                              "distributed.worker.memory.monitor-interval": "1s"}):
-            cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1,
-                                   processes=True, dashboard_address=None,
-                                   silence_logs=_logging.WARNING)
+        with dask.config.set(
+            {
+                "distributed.admin.system-monitor.interval": "10s",
+                "distributed.admin.tick.interval": "500ms",
+                "distributed.worker.memory.monitor-interval": "1s",
+            }
+        ):
+            cluster = LocalCluster(
+                n_workers=max(1, int(workers)),
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=_logging.WARNING,
+            )
         startup["cluster_start_s"] = time.perf_counter() - t0
     try:
         t1 = time.perf_counter()
         # results straight from the worker to this client: through the scheduler they would
         # be read and written once more (in this process, for a local cluster); workers at a
         # remote scheduler may not be reachable from here, so only for local ones
-        client = Client(cluster if cluster is not None else address, set_as_default=False,
-                        direct_to_workers=_is_local_address(address))
+        client = Client(
+            cluster if cluster is not None else address,
+            set_as_default=False,
+            direct_to_workers=_is_local_address(address),
+        )
         startup["connect_s"] = time.perf_counter() - t1
         try:
             t2 = time.perf_counter()
@@ -197,9 +218,13 @@ def dask_pool(address: str | None = None, workers: int = 2) -> Iterator[DaskPool
             startup["total_s"] = time.perf_counter() - t0
             last_dask_startup.clear()
             last_dask_startup.update(startup)
-            _log.info("Dask pool ready: %d workers, %.1f s (cluster %.1f s, warm-up %.1f s)",
-                      len(pids), startup["total_s"], startup["cluster_start_s"],
-                      startup["warmup_s"])
+            _log.info(
+                "Dask pool ready: %d workers, %.1f s (cluster %.1f s, warm-up %.1f s)",
+                len(pids),
+                startup["total_s"],
+                startup["cluster_start_s"],
+                startup["warmup_s"],
+            )
             pool = DaskPool(client)
             with _active(pool):
                 yield pool
@@ -214,6 +239,7 @@ def _is_local_address(address: str | None) -> bool:
     """Whether a scheduler address (None: a LocalCluster of ours) is on this machine."""
     import ipaddress
     from urllib.parse import urlparse
+
     if address is None:
         return True
     host = urlparse(address if "://" in address else "tcp://" + address).hostname
@@ -248,8 +274,7 @@ def run_in_pool(fn: Callable[..., Any], *args: Any) -> Any:
     except BrokenProcessPool as exc:
         with _lock:
             _broken = True
-        _log.warning("compute pool broken (%s); running the remaining batches in the flow's "
-                     "process", exc)
+        _log.warning("compute pool broken (%s); running the remaining batches in the flow's process", exc)
         return fn(*args)
 
 
@@ -257,17 +282,20 @@ def _run_on_dask(pool: DaskPool, fn: Callable[..., Any], *args: Any) -> Any:
     global _broken
     from distributed import KilledWorker
     from distributed.comm.core import CommClosedError
+
     try:
         return pool.run(fn, *args)
     except KilledWorker as exc:
         # the scheduler already ran it again on other workers and each died: run it here once
-        _log.warning("Dask workers died running a batch (%s); running it in the flow's process",
-                     exc)
+        _log.warning("Dask workers died running a batch (%s); running it in the flow's process", exc)
         return fn(*args)
     except (CancelledError, CommClosedError) as exc:
         # the scheduler is gone (its futures are cancelled): the rest runs here
         with _lock:
             _broken = True
-        _log.warning("Dask cluster lost (%s: %s); running the remaining batches in the flow's "
-                     "process", type(exc).__name__, exc)
+        _log.warning(
+            "Dask cluster lost (%s: %s); running the remaining batches in the flow's process",
+            type(exc).__name__,
+            exc,
+        )
         return fn(*args)

@@ -18,15 +18,16 @@ writing, cycling through ``BAD_KINDS``, each with the error code the reader must
 The truth in the manifest is in mimucal's inside units (w = K_g G + w0 in deg/s, f = K_a A +
 f0 in g) whatever units the files are written in: the reader converts rad/s and m/s^2 back.
 """
+
 from __future__ import annotations
 
 import json
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import replace
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pandas as pd
@@ -35,12 +36,20 @@ import pyarrow.parquet as pq
 
 from calib_core import protocols
 from calib_core.simulator import (
-    MimuTruth, draw_repetition_truth, session_metadata, simulate_session, typical_truth,
+    MimuTruth,
+    draw_repetition_truth,
+    session_metadata,
+    simulate_session,
+    typical_truth,
 )
 from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_FILE, STEPS_FILE
 from schemas.errors import (
-    E_MISSING_FILE, E_NONFINITE_VALUE, E_NONINCREASING_TIME, E_UNKNOWN_UNIT, E_UNREADABLE_FILE,
+    E_MISSING_FILE,
+    E_NONFINITE_VALUE,
+    E_NONINCREASING_TIME,
+    E_UNKNOWN_UNIT,
+    E_UNREADABLE_FILE,
 )
 from schemas.writer import write_session
 
@@ -79,9 +88,12 @@ def _spread(M: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def unit_truth(lot_truth: MimuTruth, rng: np.random.Generator) -> MimuTruth:
     """One unit scattered around its lot mean (see module docstring)."""
     return replace(
-        lot_truth, K_g=_spread(lot_truth.K_g, rng), K_a=_spread(lot_truth.K_a, rng),
+        lot_truth,
+        K_g=_spread(lot_truth.K_g, rng),
+        K_a=_spread(lot_truth.K_a, rng),
         w0=lot_truth.w0 + rng.normal(0.0, UNIT_SPREAD["w0_dps"], 3),
-        f0=lot_truth.f0 + rng.normal(0.0, UNIT_SPREAD["f0_g"], 3), **REPEATABILITY,
+        f0=lot_truth.f0 + rng.normal(0.0, UNIT_SPREAD["f0_g"], 3),
+        **REPEATABILITY,
     )
 
 
@@ -93,8 +105,12 @@ def _inject_outlier(truth: MimuTruth, kind: tuple) -> MimuTruth:
 
 
 def _truth_doc(truth: MimuTruth) -> dict:
-    return {"K_g": np.asarray(truth.K_g).tolist(), "w0": np.asarray(truth.w0).tolist(),
-            "K_a": np.asarray(truth.K_a).tolist(), "f0": np.asarray(truth.f0).tolist()}
+    return {
+        "K_g": np.asarray(truth.K_g).tolist(),
+        "w0": np.asarray(truth.w0).tolist(),
+        "K_a": np.asarray(truth.K_a).tolist(),
+        "f0": np.asarray(truth.f0).tolist(),
+    }
 
 
 def _write_json_atomic(path: Path, doc: dict) -> None:
@@ -127,7 +143,7 @@ def damage_session(path: Path, kind: str, steps: pd.DataFrame, rng: np.random.Ge
             target = int(rng.choice(multirate))
             rows = np.flatnonzero(df["step"].to_numpy() == target)
             start = rows[len(rows) // 2]
-            df.loc[start:start + 19, "gx"] = np.nan
+            df.loc[start : start + 19, "gx"] = np.nan
         elif kind == "nonincreasing_time":
             i = int(rng.integers(1, len(df) - 1))
             t = df["t"].to_numpy(copy=True)
@@ -136,21 +152,34 @@ def damage_session(path: Path, kind: str, steps: pd.DataFrame, rng: np.random.Ge
         else:
             md[b"gyro_unit"] = b"dps"
         # numpy arrays, not from_pandas: a NaN must stay a NaN in the file, not become null
-        out = pa.Table.from_arrays([pa.array(df[f.name].to_numpy(), type=f.type)
-                                    for f in table.schema], schema=table.schema.with_metadata(md))
+        out = pa.Table.from_arrays(
+            [pa.array(df[f.name].to_numpy(), type=f.type) for f in table.schema],
+            schema=table.schema.with_metadata(md),
+        )
         pq.write_table(out, samples, compression="zstd", use_dictionary=False)
     else:
         raise ValueError(f"unknown bad-session kind {kind!r} (known: {', '.join(BAD_KINDS)})")
     return BAD_KINDS[kind][1]
 
 
-SIM_FIRST_SESSION = datetime(2026, 11, 20, 2, 0, tzinfo=timezone.utc)
+SIM_FIRST_SESSION = datetime(2026, 11, 20, 2, 0, tzinfo=UTC)
 
-def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
-                   sample_rate_hz: float = 100.0, outliers: int = 0, bad_sessions: int = 0,
-                   verification: bool = False, gyro_unit: str | None = None,
-                   accel_unit: str | None = None, protocol: pd.DataFrame | None = None,
-                   truth_factory: TruthFactory | None = None) -> dict:
+
+def simulate_fleet(
+    out: Path | str,
+    lots: int,
+    units: int,
+    reps: int,
+    seed: int,
+    sample_rate_hz: float = 100.0,
+    outliers: int = 0,
+    bad_sessions: int = 0,
+    verification: bool = False,
+    gyro_unit: str | None = None,
+    accel_unit: str | None = None,
+    protocol: pd.DataFrame | None = None,
+    truth_factory: TruthFactory | None = None,
+) -> dict:
     """Write ``lots`` lots x ``units`` units per lot x ``reps`` repetitions under ``out`` and
     the manifest ``out/fleet.json``; return the manifest.
 
@@ -165,12 +194,10 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
     if not 0 <= outliers <= n_units:
         raise ValueError(f"outliers={outliers} must be between 0 and the {n_units} units")
     if not 0 <= bad_sessions <= n_units * reps:
-        raise ValueError(f"bad_sessions={bad_sessions} must be between 0 and the "
-                         f"{n_units * reps} sessions")
+        raise ValueError(f"bad_sessions={bad_sessions} must be between 0 and the {n_units * reps} sessions")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    steps = protocol if protocol is not None else protocols.default_session(
-        verification=verification)
+    steps = protocol if protocol is not None else protocols.default_session(verification=verification)
     root_seq = np.random.SeedSequence(seed)
     lot_seqs = root_seq.spawn(lots)
     pick_rng = np.random.default_rng(root_seq.spawn(1)[0])  # which units/sessions are special
@@ -181,13 +208,23 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
     bad_of = {int(s): bad_kinds[i % len(bad_kinds)] for i, s in enumerate(sorted(bad_flat))}
 
     manifest: dict = {
-        "format": MANIFEST_FORMAT, "format_version": MANIFEST_VERSION, "seed": seed,
-        "lots": lots, "units_per_lot": units, "reps": reps, "sample_rate_hz": sample_rate_hz,
-        "n_steps": int(len(steps)), "verification": bool(verification),
+        "format": MANIFEST_FORMAT,
+        "format_version": MANIFEST_VERSION,
+        "seed": seed,
+        "lots": lots,
+        "units_per_lot": units,
+        "reps": reps,
+        "sample_rate_hz": sample_rate_hz,
+        "n_steps": int(len(steps)),
+        "verification": bool(verification),
         "file_units": {"gyro": gyro_unit or "deg/s", "accel": accel_unit or "g"},
         "truth_units": {"K_g": "deg/s per deg/s", "w0": "deg/s", "K_a": "g per g", "f0": "g"},
-        "unit_spread": UNIT_SPREAD, "repeatability": REPEATABILITY,
-        "lot_truth": {}, "units": [], "outliers": [], "bad_sessions": [],
+        "unit_spread": UNIT_SPREAD,
+        "repeatability": REPEATABILITY,
+        "lot_truth": {},
+        "units": [],
+        "outliers": [],
+        "bad_sessions": [],
     }
     for li, lot_seq in enumerate(lot_seqs):
         lot = f"L{li + 1:02d}"
@@ -197,16 +234,14 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
         for ui, unit_rng in enumerate(unit_seqs):
             flat_unit = li * units + ui
             unit = f"U{flat_unit + 1:04d}"
-            truth = (truth_factory(unit_rng, lot, unit) if truth_factory
-                     else unit_truth(lot_truth, unit_rng))
+            truth = truth_factory(unit_rng, lot, unit) if truth_factory else unit_truth(lot_truth, unit_rng)
             outlier = None
             if flat_unit in outlier_units:
                 kind = OUTLIER_KINDS[outlier_order.index(flat_unit) % len(OUTLIER_KINDS)]
                 truth = _inject_outlier(truth, kind)
                 outlier = {"param": kind[0], "shift": kind[3]}
                 manifest["outliers"].append({"lot": lot, "unit": unit, **outlier})
-            unit_doc = {"lot": lot, "unit": unit, "truth": _truth_doc(truth),
-                        "outlier": outlier, "reps": []}
+            unit_doc = {"lot": lot, "unit": unit, "truth": _truth_doc(truth), "outlier": outlier, "reps": []}
             for rep in range(1, reps + 1):
                 key = SessionKey(lot, unit, rep)
                 rep_truth = draw_repetition_truth(truth, unit_rng)
@@ -214,34 +249,51 @@ def simulate_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
                 # lot k is acquired on day k from 2026-11-20 02:00 UTC, its units one after
                 # the other, a minute per repetition (acquisition order: trends, history)
                 start = SIM_FIRST_SESSION + timedelta(days=li, minutes=ui * reps + rep - 1)
-                md = session_metadata(rep_truth, sample_rate_hz,
-                                      session_start=start.strftime("%Y-%m-%dT%H:%M:%SZ"),
-                                      lot=lot, unit=unit, rep=str(rep), seed=str(seed))
+                md = session_metadata(
+                    rep_truth,
+                    sample_rate_hz,
+                    session_start=start.strftime("%Y-%m-%dT%H:%M:%SZ"),
+                    lot=lot,
+                    unit=unit,
+                    rep=str(rep),
+                    seed=str(seed),
+                )
                 path = write_session(out, key, steps, samples, md, gyro_unit, accel_unit)
-                rep_doc = {"rep": rep, "path": str(path.relative_to(out)),
-                           "w0": np.asarray(rep_truth.w0).tolist(),
-                           "f0": np.asarray(rep_truth.f0).tolist(), "bad": None}
+                rep_doc = {
+                    "rep": rep,
+                    "path": str(path.relative_to(out)),
+                    "w0": np.asarray(rep_truth.w0).tolist(),
+                    "f0": np.asarray(rep_truth.f0).tolist(),
+                    "bad": None,
+                }
                 flat_session = flat_unit * reps + (rep - 1)
                 if flat_session in bad_of:
                     kind = bad_of[flat_session]
                     # its own generator: damaging a session does not change the next ones
-                    detail = damage_session(path, kind, steps,
-                                            np.random.default_rng([seed, flat_session]))
+                    detail = damage_session(path, kind, steps, np.random.default_rng([seed, flat_session]))
                     bad = {"kind": kind, "expected_code": BAD_KINDS[kind][0], "detail": detail}
                     rep_doc["bad"] = bad
-                    manifest["bad_sessions"].append({"session": str(key), "lot": lot,
-                                                     "unit": unit, "rep": rep, **bad})
+                    manifest["bad_sessions"].append(
+                        {"session": str(key), "lot": lot, "unit": unit, "rep": rep, **bad}
+                    )
                 unit_doc["reps"].append(rep_doc)
             manifest["units"].append(unit_doc)
     _write_json_atomic(out / MANIFEST, manifest)
     return manifest
 
 
-
-def simulate_physics_fleet(out: Path | str, lots: int, units: int, reps: int, seed: int,
-                           sample_rate_hz: float = 50.0, hide: tuple[tuple[str, float], ...] = (),
-                           tilted: bool = True, latitude_deg: float | None = None,
-                           declare_location: bool = False) -> dict:
+def simulate_physics_fleet(
+    out: Path | str,
+    lots: int,
+    units: int,
+    reps: int,
+    seed: int,
+    sample_rate_hz: float = 50.0,
+    hide: tuple[tuple[str, float], ...] = (),
+    tilted: bool = True,
+    latitude_deg: float | None = None,
+    declare_location: bool = False,
+) -> dict:
     """A fleet of :mod:`calib_core.sim.physics` units (each sensor its own misaligned axis,
     noise processes, warm-up ramp) with the catalogue effects ``hide`` = ((name, scale), ...)
     hidden in every unit at ``scale`` times a realistic size, written in the contract with
@@ -262,13 +314,23 @@ def simulate_physics_fleet(out: Path | str, lots: int, units: int, reps: int, se
     steps = protocols.to_frame(rows)
     table = Turntable(latitude_deg=latitude_deg, declare_location=declare_location)
     manifest: dict = {
-        "format": MANIFEST_FORMAT, "format_version": MANIFEST_VERSION, "seed": seed,
-        "simulator": "physics", "lots": lots, "units_per_lot": units, "reps": reps,
-        "sample_rate_hz": sample_rate_hz, "n_steps": int(len(steps)), "tilted_steps": tilted,
-        "latitude_deg": latitude_deg, "declare_location": declare_location,
+        "format": MANIFEST_FORMAT,
+        "format_version": MANIFEST_VERSION,
+        "seed": seed,
+        "simulator": "physics",
+        "lots": lots,
+        "units_per_lot": units,
+        "reps": reps,
+        "sample_rate_hz": sample_rate_hz,
+        "n_steps": int(len(steps)),
+        "tilted_steps": tilted,
+        "latitude_deg": latitude_deg,
+        "declare_location": declare_location,
         "file_units": {"gyro": "deg/s", "accel": "g"},
         "hidden": [{"effect": t.name, "scale": s} for t, s in terms],
-        "units": [], "outliers": [], "bad_sessions": [],
+        "units": [],
+        "outliers": [],
+        "bad_sessions": [],
     }
     seqs = np.random.SeedSequence(seed).spawn(lots * units)
     for flat, seq in enumerate(seqs):
@@ -278,11 +340,18 @@ def simulate_physics_fleet(out: Path | str, lots: int, units: int, reps: int, se
         effects = []
         for term, scale in terms:
             unit, theta, what = term.hide(unit, rng, scale)
-            effects.append({"effect": term.name, "scale": scale, "where": what,
-                            "params": dict(zip(term.param_names, np.asarray(theta).tolist())),
-                            "units": dict(zip(term.param_names, term.param_units))})
-        write_physics_unit(out, unit, steps, rng, n_reps=reps, rate_hz=sample_rate_hz,
-                           table=table, lot=lot, unit_id=unit_id)
+            effects.append(
+                {
+                    "effect": term.name,
+                    "scale": scale,
+                    "where": what,
+                    "params": dict(zip(term.param_names, np.asarray(theta).tolist())),
+                    "units": dict(zip(term.param_names, term.param_units)),
+                }
+            )
+        write_physics_unit(
+            out, unit, steps, rng, n_reps=reps, rate_hz=sample_rate_hz, table=table, lot=lot, unit_id=unit_id
+        )
         manifest["units"].append({"lot": lot, "unit": unit_id, "hidden": effects})
     _write_json_atomic(out / MANIFEST, manifest)
     return manifest

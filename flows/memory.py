@@ -11,11 +11,12 @@ the live data stayed flat. ``malloc_trim(0)`` releases the free pages inside eve
 (``MADV_DONTNEED``), ``release_unused`` those of Arrow's pool: called between lots, the
 peak no longer depends on how many lots came before.
 """
+
 from __future__ import annotations
 
 import ctypes
-import gc
 import ctypes.util
+import gc
 from functools import lru_cache
 
 
@@ -40,6 +41,7 @@ def release_memory() -> None:
     gc.collect()
     try:
         import pyarrow as pa
+
         pa.default_memory_pool().release_unused()
     except Exception:  # pragma: no cover - a pool without the call
         pass

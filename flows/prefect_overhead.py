@@ -10,6 +10,7 @@ a 2-task flow minus an empty flow, the *per task* cost = the slope between the 2
 an N-task flow, CPU seconds of the whole process tree (this process, workers, API servers)
 and how many Prefect API servers ran in the tree. The task does nothing (``x + 1``), so every
 second measured is orchestration."""
+
 from __future__ import annotations
 
 import argparse
@@ -59,6 +60,7 @@ class TreeWatch:
 
     def _sample(self) -> None:
         import psutil
+
         me = psutil.Process()
         try:
             procs = [me] + me.children(recursive=True)
@@ -102,26 +104,49 @@ def timed(fn, *a, **k) -> float:
 
 def runners(quick: bool):
     from flows.task_runners import SharedApiProcessPoolTaskRunner, make_task_runner
-    out = [("thread pool (2)", lambda: ThreadPoolTaskRunner(max_workers=2), 400 if not quick else 100),
-           ("process pool (2), shared API (mimucal)", lambda: SharedApiProcessPoolTaskRunner(2),
-            60 if not quick else 20),
-           ("process pool (2), Prefect default (own API per worker)",
-            lambda: ProcessPoolTaskRunner(max_workers=2), 60 if not quick else 20)]
+
+    out = [
+        ("thread pool (2)", lambda: ThreadPoolTaskRunner(max_workers=2), 400 if not quick else 100),
+        (
+            "process pool (2), shared API (mimucal)",
+            lambda: SharedApiProcessPoolTaskRunner(2),
+            60 if not quick else 20,
+        ),
+        (
+            "process pool (2), Prefect default (own API per worker)",
+            lambda: ProcessPoolTaskRunner(max_workers=2),
+            60 if not quick else 20,
+        ),
+    ]
     try:
         from distributed import LocalCluster  # noqa: F401
         from prefect_dask import DaskTaskRunner
 
         def dask_plain():
-            return DaskTaskRunner(cluster_class="distributed.LocalCluster", cluster_kwargs={
-                "n_workers": 2, "threads_per_worker": 1, "processes": True,
-                "dashboard_address": None})
+            return DaskTaskRunner(
+                cluster_class="distributed.LocalCluster",
+                cluster_kwargs={
+                    "n_workers": 2,
+                    "threads_per_worker": 1,
+                    "processes": True,
+                    "dashboard_address": None,
+                },
+            )
 
         # mimucal's dask runner is a thread pool that hands batch numerics to the cluster:
         # a trivial task never reaches the cluster, so this row is the cluster's start cost
-        out += [("mimucal dask runner (thread pool + 2-worker LocalCluster, start included)",
-                 lambda: make_task_runner(kind="dask"), 60 if not quick else 20),
-                ("Dask LocalCluster (2 worker processes), prefect-dask default (own API per worker)",
-                 dask_plain, 60 if not quick else 20)]
+        out += [
+            (
+                "mimucal dask runner (thread pool + 2-worker LocalCluster, start included)",
+                lambda: make_task_runner(kind="dask"),
+                60 if not quick else 20,
+            ),
+            (
+                "Dask LocalCluster (2 worker processes), prefect-dask default (own API per worker)",
+                dask_plain,
+                60 if not quick else 20,
+            ),
+        ]
     except ImportError:
         pass
     return out
@@ -133,6 +158,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--only", default="", help="substring of the runner names to measure")
     a = ap.parse_args(argv)
     import logging
+
     logging.getLogger("distributed").setLevel(logging.WARNING)
     rows = []
     t_first = timed(empty_flow)
@@ -150,17 +176,27 @@ def main(argv: list[str] | None = None) -> None:
                 tn = timed(many_tasks.with_options(task_runner=make()), n)
             per_task = (tn - t2) / (n - 2)
             per_task_cpu = (wn.cpu_s - w2.cpu_s) / (n - 2)
-            rows.append((label, f"{(t2 - base):.2f} s (CPU {w2.cpu_s:.1f} s)",
-                         f"{per_task * 1000:.1f} ms (CPU {per_task_cpu * 1000:.1f} ms)",
-                         str(len(wn.servers)), f"2, {n}"))
+            rows.append(
+                (
+                    label,
+                    f"{(t2 - base):.2f} s (CPU {w2.cpu_s:.1f} s)",
+                    f"{per_task * 1000:.1f} ms (CPU {per_task_cpu * 1000:.1f} ms)",
+                    str(len(wn.servers)),
+                    f"2, {n}",
+                )
+            )
             print(f"  {rows[-1]}", flush=True)
     load = os.getloadavg()
-    print("| runner | fixed cost per flow run, wall (tree CPU) | per task, wall (tree CPU) "
-          "| API servers started in the tree | tasks |\n|---|---|---|---|---|")
+    print(
+        "| runner | fixed cost per flow run, wall (tree CPU) | per task, wall (tree CPU) "
+        "| API servers started in the tree | tasks |\n|---|---|---|---|---|"
+    )
     for r in rows:
         print("| " + " | ".join(r) + " |")
-    print(f"\nload average during the run: {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} on "
-          f"{os.cpu_count()} cores")
+    print(
+        f"\nload average during the run: {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} on "
+        f"{os.cpu_count()} cores"
+    )
 
 
 if __name__ == "__main__":

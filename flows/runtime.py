@@ -19,13 +19,14 @@ results directory). Values the user already set in the environment win.
 - the flow-run heartbeat is switched off with :func:`run_settings` (the environment cannot
   say "off"); it costs ~1 s per flow run when on.
 """
+
 from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 _DEFAULTS = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
@@ -68,17 +69,23 @@ def route_prefect_logs(log_file: Path) -> Path | None:
     set one."""
     if "PREFECT_LOGGING_SETTINGS_PATH" in os.environ:
         return None
+    from importlib.util import find_spec
+
     import yaml  # a dependency of Prefect's
 
-    from importlib.util import find_spec
     spec = find_spec("prefect")
     if spec is None or not spec.submodule_search_locations:
         return None
     default = Path(list(spec.submodule_search_locations)[0]) / "logging" / "logging.yml"
     config = yaml.safe_load(default.read_text())
     log_file.parent.mkdir(parents=True, exist_ok=True)
-    to_file = {"level": 0, "class": "logging.FileHandler", "filename": str(log_file),
-               "encoding": "utf-8", "delay": True}
+    to_file = {
+        "level": 0,
+        "class": "logging.FileHandler",
+        "filename": str(log_file),
+        "encoding": "utf-8",
+        "delay": True,
+    }
     handlers = config.setdefault("handlers", {})
     handlers["console"] = {**to_file, "formatter": "standard"}
     handlers["debug"] = {**to_file, "formatter": "debug"}
@@ -96,8 +103,8 @@ def run_settings(api_url: str | None = None) -> Iterator[None]:
     """Settings that cannot be set through the environment (heartbeat off) and, optionally,
     the API of a real server."""
     ensure_environment()
-    from prefect.settings import (PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY,
-                                  temporary_settings)
+    from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
+
     updates = {PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}
     if api_url:
         updates[PREFECT_API_URL] = api_url
@@ -110,6 +117,7 @@ def code_version() -> str:
     from .git, no subprocess)."""
     try:
         from importlib.metadata import version
+
         v = version("mimucal")
     except Exception:
         v = "0.1.0"
@@ -122,8 +130,14 @@ def code_version() -> str:
             if p.exists():
                 sha = p.read_text().strip()
             else:
-                sha = next((line.split()[0] for line in (git / "packed-refs").read_text().splitlines()
-                            if line.endswith(ref)), "")
+                sha = next(
+                    (
+                        line.split()[0]
+                        for line in (git / "packed-refs").read_text().splitlines()
+                        if line.endswith(ref)
+                    ),
+                    "",
+                )
         else:
             sha = head
         if sha:

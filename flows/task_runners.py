@@ -23,7 +23,8 @@ at an address always wins):
   ``MIMUCAL_DASK_ADDRESS`` / ``--dask-address``. No Prefect in the workers.
 
 Why the process-pool runner below is a subclass: a task that runs in another process builds
-its own Prefect client from the settings shipped with the task. Without ``PREFECT_API_URL`` set, that client starts *its own* temporary API server (a uvicorn
+its own Prefect client from the settings shipped with the task. Without ``PREFECT_API_URL`` set,
+that client starts *its own* temporary API server (a uvicorn
 subprocess on the same SQLite database) in every worker: 15-30 s of start-up per worker on a
 loaded machine, SQLite contention with the flow's server for every task-run state, and a
 worker that hangs at shutdown. This was most of the 4.5x gap between Dask and the thread pool
@@ -32,6 +33,7 @@ carries, so every worker talks to the one server the flow already runs. (The ``d
 used prefect-dask's ``DaskTaskRunner`` the same way until the third round; it now keeps the
 task runs in the flow's process, docs/benchmarks.md.)
 """
+
 from __future__ import annotations
 
 import ipaddress
@@ -75,6 +77,7 @@ def flow_api_url() -> str | None:
     """The API URL the current flow run's client talks to (its temporary local server, or a
     real server), or None outside a flow run."""
     from prefect.context import FlowRunContext, TaskRunContext
+
     ctx = FlowRunContext.get() or TaskRunContext.get()
     url = getattr(getattr(ctx, "client", None), "api_url", None)
     return str(url).rstrip("/") if url else None
@@ -89,13 +92,17 @@ def shared_api_settings(worker_address: str | None = None):
     the workers are on another machine (``worker_address`` not local: they could not reach
     it; such a deployment needs a real server, see docs/flows.md)."""
     from prefect.settings import PREFECT_API_URL, temporary_settings
+
     if PREFECT_API_URL.value():
         return nullcontext()
     url = flow_api_url()
     if not url:
         return nullcontext()
-    if worker_address is not None and not _is_local_host(urlparse(worker_address).hostname) \
-            and _is_local_host(urlparse(url).hostname):
+    if (
+        worker_address is not None
+        and not _is_local_host(urlparse(worker_address).hostname)
+        and _is_local_host(urlparse(url).hostname)
+    ):
         return nullcontext()
     return temporary_settings(updates={PREFECT_API_URL: url})
 
@@ -107,6 +114,7 @@ def limit_worker_threads() -> None:
         os.environ[k] = v
     try:
         from threadpoolctl import threadpool_limits
+
         threadpool_limits(limits=1)
     except Exception:  # threadpoolctl missing or no pool loaded yet: the env vars do it
         pass
@@ -139,8 +147,9 @@ class DaskPoolTaskRunner(ThreadPoolTaskRunner):
     enough to keep every worker fed; each thread builds its own Prefect client on its first task
     (~20-40 ms of CPU, mostly an SSL context), so idle extra threads are not free."""
 
-    def __init__(self, address: str | None = None, n_workers: int = LOCAL_WORKERS,
-                 max_workers: int | None = None):
+    def __init__(
+        self, address: str | None = None, n_workers: int = LOCAL_WORKERS, max_workers: int | None = None
+    ):
         super().__init__(max_workers=max_workers or DASK_TASK_THREADS)
         self.address = address
         self.n_workers = n_workers
@@ -148,16 +157,19 @@ class DaskPoolTaskRunner(ThreadPoolTaskRunner):
         self._dask_pool = None
 
     def duplicate(self):
-        return type(self)(address=self.address, n_workers=self.n_workers,
-                          max_workers=self._threads_given)
+        return type(self)(address=self.address, n_workers=self.n_workers, max_workers=self._threads_given)
 
     def __eq__(self, value: object) -> bool:
-        return (isinstance(value, DaskPoolTaskRunner) and value.address == self.address
-                and value.n_workers == self.n_workers
-                and value._threads_given == self._threads_given)
+        return (
+            isinstance(value, DaskPoolTaskRunner)
+            and value.address == self.address
+            and value.n_workers == self.n_workers
+            and value._threads_given == self._threads_given
+        )
 
     def __enter__(self):
         from flows.compute_pool import dask_pool, last_dask_startup
+
         pool = dask_pool(self.address, self.n_workers)
         pool.__enter__()  # may raise (no scheduler at the address): nothing to undo then
         self._dask_pool = pool
@@ -184,13 +196,15 @@ def resolve_kind(kind: str | None = None) -> str:
     """``kind``, else ``$MIMUCAL_TASK_RUNNER``, else ``auto``; checked against RUNNER_KINDS."""
     kind = (kind or os.environ.get(RUNNER_ENV) or DEFAULT_KIND).strip().lower()
     if kind not in RUNNER_KINDS:
-        raise ValueError(f"unknown task runner {kind!r} (${RUNNER_ENV}): choose one of "
-                         + ", ".join(RUNNER_KINDS))
+        raise ValueError(
+            f"unknown task runner {kind!r} (${RUNNER_ENV}): choose one of " + ", ".join(RUNNER_KINDS)
+        )
     return kind
 
 
-def make_task_runner(dask_address: str | None = None, max_workers: int = LOCAL_WORKERS,
-                     kind: str | None = None):
+def make_task_runner(
+    dask_address: str | None = None, max_workers: int = LOCAL_WORKERS, kind: str | None = None
+):
     """The Prefect task runner for a flow: Dask at ``dask_address`` when given, else ``kind``
     (see module doc) with ``max_workers`` workers. ``auto`` and ``processes`` run their
     Prefect tasks in a thread pool; :func:`unit_work_pool` adds the worker processes."""
@@ -208,6 +222,7 @@ def uses_unit_work_pool(kind: str | None, n_units: int) -> bool:
     """Whether a run of ``n_units`` units with runner ``kind`` hands its batches to
     :mod:`flows.compute_pool` worker processes."""
     from flows.compute_pool import dask_active
+
     if dask_active():  # the flow's task runner already sends the work to a Dask cluster
         return False
     kind = resolve_kind(kind)
@@ -219,6 +234,7 @@ def unit_work_pool(kind: str | None, n_units: int, workers: int = LOCAL_WORKERS)
     of ``workers`` processes when :func:`uses_unit_work_pool`, else nothing."""
     if workers > 1 and uses_unit_work_pool(kind, n_units):
         from flows.compute_pool import compute_pool
+
         return compute_pool(workers)
     return nullcontext()
 
@@ -229,9 +245,11 @@ def prestart_unit_work_pool(kind: str | None, dataset: str | Path) -> bool:
     bound of the units to calibrate), start their forkserver now, so that its imports overlap
     Prefect's start-up. Returns whether it was started."""
     from schemas.dataset import count_unit_dirs
+
     if LOCAL_WORKERS < 2 or not uses_unit_work_pool(kind, count_unit_dirs(dataset)):
         return False
     from flows.compute_pool import start_forkserver
+
     start_forkserver()
     return True
 

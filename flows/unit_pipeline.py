@@ -1,6 +1,7 @@
 """One session and one unit, from files to results: the plain-Python work that Prefect tasks
 and the CLI both call. Never raises on bad data: a bad session becomes a failed outcome that
 names its session, file, code and reason, and the rest of the unit goes on."""
+
 from __future__ import annotations
 
 import time
@@ -59,8 +60,7 @@ def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionO
     return calibrate_sessions([ref], keep_step_means)[0]
 
 
-def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True
-                       ) -> list[SessionOutcome]:
+def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> list[SessionOutcome]:
     """:func:`calibrate_session` of each session (the repetitions of a unit): every session
     read first, then the fits of those read together (``calibrate_repetitions`` stacks the
     sessions that share a step layout); each outcome is the one its session gives alone."""
@@ -85,9 +85,19 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True
         fit.calibration.warnings = warning_texts
         fit.calibration.provenance.update({"path": str(ref.path), "fingerprint": fp})
         status = STATUS_WARNED if warning_texts else STATUS_OK
-        outcomes[i] = SessionOutcome(ref.key, ref.path, status, None, None, warning_texts, fp,
-                                     fit.calibration, fit.residual_table,
-                                     fit.compensation_table, sm if keep_step_means else None)
+        outcomes[i] = SessionOutcome(
+            ref.key,
+            ref.path,
+            status,
+            None,
+            None,
+            warning_texts,
+            fp,
+            fit.calibration,
+            fit.residual_table,
+            fit.compensation_table,
+            sm if keep_step_means else None,
+        )
     return outcomes
 
 
@@ -96,8 +106,11 @@ def _failed(ref: SessionRef, fp: str, exc: Exception) -> SessionOutcome:
     if isinstance(exc, SessionError):
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, exc.code, str(exc), [], fp)
     if isinstance(exc, DesignError):
-        err = (from_design_error(exc, str(ref.key)) if exc.code == "E_UNDETERMINED"
-               else SessionError(exc.code, str(ref.key), "samples.parquet", exc.reason))
+        err = (
+            from_design_error(exc, str(ref.key))
+            if exc.code == "E_UNDETERMINED"
+            else SessionError(exc.code, str(ref.key), "samples.parquet", exc.reason)
+        )
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, err.code, str(err), [], fp)
     # a bug must not stop the fleet; it is reported with its trace
     tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
@@ -154,9 +167,13 @@ class UnitOutcome:
         return tables
 
 
-def aggregate_unit(lot: str, unit: str, outcomes: list[SessionOutcome],
-                   terms: tuple[TermValue, ...] = (), extended: Calibration | None = None
-                   ) -> UnitOutcome:
+def aggregate_unit(
+    lot: str,
+    unit: str,
+    outcomes: list[SessionOutcome],
+    terms: tuple[TermValue, ...] = (),
+    extended: Calibration | None = None,
+) -> UnitOutcome:
     """Average the unit's successful repetitions into its calibration.
 
     ``extended`` is model discovery's calibration (K and biases re-estimated jointly with the
@@ -168,8 +185,13 @@ def aggregate_unit(lot: str, unit: str, outcomes: list[SessionOutcome],
     if good:
         out.calibration = UnitCalibration.from_reps(lot, unit, good)
         if extended is not None and terms:
-            out.applied = replace(extended, metadata={
-                **calibration_from_unit(out.calibration).metadata, "model": "discovery (joint fit)"})
+            out.applied = replace(
+                extended,
+                metadata={
+                    **calibration_from_unit(out.calibration).metadata,
+                    "model": "discovery (joint fit)",
+                },
+            )
         else:
             out.applied = calibration_from_unit(out.calibration, terms)
     else:
@@ -228,25 +250,42 @@ def calibration_file_extra(ur: UnitResult, context: dict[str, Any]) -> dict[str,
     model discovery's verdict), ``averaged`` (mean, std and units over the repetitions) and
     ``repetitions`` (each repetition's fits with standard errors)."""
     from schemas.unit_document import calibration_file_sections
+
     out = ur.outcome
-    failed = [{"rep": s.key.rep, "code": s.code, "message": s.message}
-              for s in out.sessions if not s.succeeded]
-    used = [{"rep": s.key.rep, "path": str(s.path), "fingerprint": s.fingerprint,
-             "status": s.status,
-             "session_start": (s.calibration.provenance or {}).get("session_start")
-             if s.calibration else None}
-            for s in out.sessions if s.succeeded]
+    failed = [
+        {"rep": s.key.rep, "code": s.code, "message": s.message} for s in out.sessions if not s.succeeded
+    ]
+    used = [
+        {
+            "rep": s.key.rep,
+            "path": str(s.path),
+            "fingerprint": s.fingerprint,
+            "status": s.status,
+            "session_start": (s.calibration.provenance or {}).get("session_start") if s.calibration else None,
+        }
+        for s in out.sessions
+        if s.succeeded
+    ]
     # when the unit was measured (its sessions' last session_start; None when no session
     # says it: then the time of the calibration is when it was produced)
     context = {**context, "acquired_at": acquisition_time(u["session_start"] for u in used)}
-    return calibration_file_sections(ur.lot, ur.unit, out.calibration.reps, failed, used,
-                                     [t.name for t in out.applied.terms], ur.diagnosis, context)
+    return calibration_file_sections(
+        ur.lot,
+        ur.unit,
+        out.calibration.reps,
+        failed,
+        used,
+        [t.name for t in out.applied.terms],
+        ur.diagnosis,
+        context,
+    )
 
 
 def acquisition_time(session_starts) -> str | None:
     """The last of the sessions' ``session_start`` values (ISO 8601, UTC), None when none is
     readable: a calibration describes the unit as measured once its sessions are done."""
     from schemas.results_store import iso, parse_when
+
     times = []
     for v in session_starts:
         if isinstance(v, str) and v.strip():
@@ -260,6 +299,7 @@ def acquisition_time(session_starts) -> str | None:
 def _discovery_available() -> bool:
     try:
         import calib_core.discovery  # noqa: F401
+
         return True
     except ImportError:
         return False
@@ -270,12 +310,14 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
     from calib_core.pipeline import residual_table
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
+
     t0 = time.perf_counter()
     outcomes = calibrate_sessions(sorted(job.refs, key=lambda r: r.key.rep))
     diag_doc, note, terms, extended, evidence = None, None, (), None, None
     good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
     if run_discovery and _discovery_available() and len(good_sm) >= 2:
         from calib_core.discovery import diagnose_unit
+
         try:
             from calib_core.discovery.presentation import finding_rows
 
@@ -300,14 +342,15 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
         unit_out = aggregate_unit(job.lot, job.unit, outcomes, terms=terms, extended=extended)
     except Exception as exc:  # a bug in aggregation must not stop the fleet
         from flows.unit_pipeline import UnitOutcome
+
         unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
-        unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: "
-                              f"{type(exc).__name__}: {exc}")
+        unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: {type(exc).__name__}: {exc}")
         note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
     for o in unit_out.sessions:  # step means are not kept past this point
         o.step_means = None
-    return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0,
-                      discovery_evidence=evidence)
+    return UnitResult(
+        job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0, discovery_evidence=evidence
+    )
 
 
 def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
@@ -323,8 +366,9 @@ def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
         return failed_unit_result(job.lot, job.unit, "calibrating", exc)
 
 
-def failed_unit_result(lot: str, unit: str, doing: str, exc: BaseException,
-                       outcome: UnitOutcome | None = None) -> UnitResult:
+def failed_unit_result(
+    lot: str, unit: str, doing: str, exc: BaseException, outcome: UnitOutcome | None = None
+) -> UnitResult:
     """The E_INTERNAL result of a unit whose work raised ``exc`` while ``doing`` it; its
     sessions (when known) are kept, its calibration is not."""
     why = traceback.format_exception_only(type(exc), exc)[-1].strip()
@@ -332,5 +376,3 @@ def failed_unit_result(lot: str, unit: str, doing: str, exc: BaseException,
     sessions = outcome.sessions if outcome is not None else []
     out = UnitOutcome(lot, unit, sessions, notes=[msg])
     return UnitResult(lot, unit, out, error_code="E_INTERNAL", error=msg)
-
-

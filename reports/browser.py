@@ -4,6 +4,7 @@ exceptions and every network request, wait until all figures are drawn, evaluate
 expressions in the page and take screenshots. Used by the report tests, the size/render
 benchmark and the documentation screenshot; never downloads a browser.
 """
+
 from __future__ import annotations
 
 import base64
@@ -20,11 +21,23 @@ from typing import Any
 
 CHROMIUM_CANDIDATES = ("/usr/bin/chromium", "/usr/bin/chromium-browser")
 
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-         "--disable-background-networking", "--disable-component-update", "--disable-sync",
-         "--no-default-browser-check", "--disable-dev-shm-usage", "--hide-scrollbars",
-         "--mute-audio", "--disable-extensions", "--force-device-scale-factor=1",
-         "--disable-features=Translate,MediaRouter,OptimizationHints")
+FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-default-browser-check",
+    "--disable-dev-shm-usage",
+    "--hide-scrollbars",
+    "--mute-audio",
+    "--disable-extensions",
+    "--force-device-scale-factor=1",
+    "--disable-features=Translate,MediaRouter,OptimizationHints",
+)
 
 
 class BrowserError(RuntimeError):
@@ -71,8 +84,9 @@ class PageLog:
 class Chromium:
     """One headless browser with one page. Use as a context manager."""
 
-    def __init__(self, executable: str | None = None, width: int = 1400, height: int = 900,
-                 timeout_s: float = 60.0) -> None:
+    def __init__(
+        self, executable: str | None = None, width: int = 1400, height: int = 900, timeout_s: float = 60.0
+    ) -> None:
         self.executable = executable or find_chromium()
         if not self.executable:
             raise BrowserError("chromium not found (install Debian's package: scripts/install-browser.sh)")
@@ -83,7 +97,7 @@ class Chromium:
         self._events: list[dict] = []
 
     # -- process and pipe
-    def __enter__(self) -> "Chromium":
+    def __enter__(self) -> Chromium:
         self._profile = tempfile.mkdtemp(prefix="mimucal-chromium-")
         to_child_r, self._to_child = (_high_fd(fd) for fd in os.pipe())
         self._from_child, from_child_w = (_high_fd(fd) for fd in os.pipe())
@@ -92,11 +106,23 @@ class Chromium:
             os.dup2(to_child_r, 3)
             os.dup2(from_child_w, 4)
 
-        cmd = [self.executable, *FLAGS, f"--user-data-dir={self._profile}",
-               f"--window-size={self.width},{self.height}", "--remote-debugging-pipe", "about:blank"]
+        cmd = [
+            self.executable,
+            *FLAGS,
+            f"--user-data-dir={self._profile}",
+            f"--window-size={self.width},{self.height}",
+            "--remote-debugging-pipe",
+            "about:blank",
+        ]
         self._stderr = tempfile.TemporaryFile()
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=self._stderr, preexec_fn=wire, close_fds=False)
+        self.proc = subprocess.Popen(
+            cmd,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=self._stderr,
+            preexec_fn=wire,
+            close_fds=False,
+        )
         os.close(to_child_r)
         os.close(from_child_w)
         try:
@@ -104,11 +130,19 @@ class Chromium:
             page = next((t for t in targets if t["type"] == "page"), None)
             if page is None:
                 page = {"targetId": self.send("Target.createTarget", url="about:blank")["targetId"]}
-            self.session = self.send("Target.attachToTarget", targetId=page["targetId"], flatten=True)["sessionId"]
+            self.session = self.send("Target.attachToTarget", targetId=page["targetId"], flatten=True)[
+                "sessionId"
+            ]
             for domain in ("Page", "Runtime", "Log", "Network"):
                 self.send(f"{domain}.enable", session=True)
-            self.send("Emulation.setDeviceMetricsOverride", session=True, width=self.width,
-                      height=self.height, deviceScaleFactor=1, mobile=False)
+            self.send(
+                "Emulation.setDeviceMetricsOverride",
+                session=True,
+                width=self.width,
+                height=self.height,
+                deviceScaleFactor=1,
+                mobile=False,
+            )
         except BaseException:
             self.__exit__(None, None, None)
             raise
@@ -177,7 +211,9 @@ class Chromium:
                 self.log.console_warnings.append(text)
         elif method == "Runtime.exceptionThrown":
             d = p.get("exceptionDetails", {})
-            self.log.exceptions.append(d.get("exception", {}).get("description") or d.get("text", "exception"))
+            self.log.exceptions.append(
+                d.get("exception", {}).get("description") or d.get("text", "exception")
+            )
         elif method == "Log.entryAdded":
             e = p.get("entry", {})
             if e.get("level") == "error":
@@ -210,11 +246,18 @@ class Chromium:
         return time.monotonic() - t0
 
     def evaluate(self, expression: str, await_promise: bool = False) -> Any:
-        r = self.send("Runtime.evaluate", session=True, expression=expression, returnByValue=True,
-                      awaitPromise=await_promise)
+        r = self.send(
+            "Runtime.evaluate",
+            session=True,
+            expression=expression,
+            returnByValue=True,
+            awaitPromise=await_promise,
+        )
         if "exceptionDetails" in r:
-            raise BrowserError(f"evaluate failed: {r['exceptionDetails'].get('text')}: "
-                               f"{r['exceptionDetails'].get('exception', {}).get('description')}")
+            raise BrowserError(
+                f"evaluate failed: {r['exceptionDetails'].get('text')}: "
+                f"{r['exceptionDetails'].get('exception', {}).get('description')}"
+            )
         return r.get("result", {}).get("value")
 
     def wait_for(self, expression: str, timeout_s: float | None = None, poll_s: float = 0.05) -> float:
@@ -233,21 +276,40 @@ class Chromium:
             "document.querySelectorAll('.figure[data-state=drawing]').length === 0 && "
             "document.querySelectorAll('.figure:not([data-state])').length === "
             "Array.from(document.querySelectorAll('.figure:not([data-state])'))"
-            ".filter(function(e){return e.closest('details:not([open])');}).length", timeout_s)
+            ".filter(function(e){return e.closest('details:not([open])');}).length",
+            timeout_s,
+        )
 
-    def screenshot(self, path: str | Path, full_page: bool = False, max_height: int = 16000,
-                   clip_selector: str | None = None) -> Path:
+    def screenshot(
+        self,
+        path: str | Path,
+        full_page: bool = False,
+        max_height: int = 16000,
+        clip_selector: str | None = None,
+    ) -> Path:
         params: dict[str, Any] = {"format": "png"}
         if clip_selector:
             box = self.evaluate(
-                f"(function(){{var r=document.querySelector({json.dumps(clip_selector)}).getBoundingClientRect();"
-                "return [r.left + window.scrollX, r.top + window.scrollY, r.width, r.height];})()")
-            params.update(clip={"x": box[0], "y": box[1], "width": box[2], "height": min(box[3], max_height),
-                                "scale": 1}, captureBeyondViewport=True)
+                f"(function(){{var r=document.querySelector({json.dumps(clip_selector)})"
+                ".getBoundingClientRect();"
+                "return [r.left + window.scrollX, r.top + window.scrollY, r.width, r.height];})()"
+            )
+            params.update(
+                clip={
+                    "x": box[0],
+                    "y": box[1],
+                    "width": box[2],
+                    "height": min(box[3], max_height),
+                    "scale": 1,
+                },
+                captureBeyondViewport=True,
+            )
         elif full_page:
             h = int(self.evaluate("document.documentElement.scrollHeight"))
-            params.update(clip={"x": 0, "y": 0, "width": self.width, "height": min(h, max_height), "scale": 1},
-                          captureBeyondViewport=True)
+            params.update(
+                clip={"x": 0, "y": 0, "width": self.width, "height": min(h, max_height), "scale": 1},
+                captureBeyondViewport=True,
+            )
         data = self.send("Page.captureScreenshot", session=True, **params)["data"]
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,12 +1,13 @@
 """Calibration history read from ``calibrations/<unit>/<timestamp>.json`` (every calibration
 ever produced): the key parameters of each file as one row, for the unit report's history
 and the fleet index's trends."""
+
 from __future__ import annotations
 
 import json
 import os
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -23,8 +24,12 @@ KEY_ELEMENTS: list[tuple[str, str, str, int, int | None, float, str]] = (
     + [("K_a", f"k_a{i + 1}{j + 1}", "K_a", i, j, 1.0, "") for i in range(3) for j in range(3)]
     + [("f0", f"f0_{a}", "f0", i, None, 1e3, "mg") for i, a in enumerate("xyz")]
 )
-GROUP_TITLES = {"K_g": "Gyroscope K<sub>g</sub>", "w0": "Gyroscope bias ω<sub>0</sub> [deg/s]",
-                "K_a": "Accelerometer K<sub>a</sub>", "f0": "Accelerometer bias f<sub>0</sub> [mg]"}
+GROUP_TITLES = {
+    "K_g": "Gyroscope K<sub>g</sub>",
+    "w0": "Gyroscope bias ω<sub>0</sub> [deg/s]",
+    "K_a": "Accelerometer K<sub>a</sub>",
+    "f0": "Accelerometer bias f<sub>0</sub> [mg]",
+}
 
 
 def _element(doc: dict[str, Any], key: str, i: int, j: int | None) -> float:
@@ -57,8 +62,11 @@ def _read_cache(view: StoreView) -> tuple[dict[str, Any], dict[str, Any]]:
         doc = json.loads(history_cache_path(view).read_text())
     except (OSError, ValueError):
         return {}, {}
-    if not isinstance(doc, dict) or doc.get("version") != HISTORY_CACHE_VERSION \
-            or not isinstance(doc.get("files"), dict):
+    if (
+        not isinstance(doc, dict)
+        or doc.get("version") != HISTORY_CACHE_VERSION
+        or not isinstance(doc.get("files"), dict)
+    ):
         return {}, {}
     dirs = doc.get("dirs")
     return doc["files"], dirs if isinstance(dirs, dict) else {}
@@ -66,10 +74,12 @@ def _read_cache(view: StoreView) -> tuple[dict[str, Any], dict[str, Any]]:
 
 def _write_cache(view: StoreView, files: dict[str, Any], dirs: dict[str, Any]) -> None:
     from reports.html import write_atomic
+
     try:  # a cache: a store we may not write to (or a full disk) only costs the parsing
-        write_atomic(history_cache_path(view),
-                     json.dumps({"version": HISTORY_CACHE_VERSION, "files": files,
-                                 "dirs": dirs}))
+        write_atomic(
+            history_cache_path(view),
+            json.dumps({"version": HISTORY_CACHE_VERSION, "files": files, "dirs": dirs}),
+        )
     except OSError:
         pass
 
@@ -82,15 +92,21 @@ def _parse_entry(path: Path, stat: os.stat_result) -> dict[str, Any] | None:
         return None
     prov = provenance(doc)
     qa = doc.get("qa") if isinstance(doc.get("qa"), dict) else {}
-    return {"size": stat.st_size, "mtime_ns": stat.st_mtime_ns, "lot": prov.get("lot"),
-            "run_id": prov.get("run_id"), "code_version": prov.get("code_version"),
-            "acquired_at": prov.get("acquired_at") if isinstance(prov.get("acquired_at"), str)
-            else None, "qa_status": qa.get("status"),
-            "values": [_element(doc, key, i, j) * scale for _, _, key, i, j, scale, _ in KEY_ELEMENTS]}
+    return {
+        "size": stat.st_size,
+        "mtime_ns": stat.st_mtime_ns,
+        "lot": prov.get("lot"),
+        "run_id": prov.get("run_id"),
+        "code_version": prov.get("code_version"),
+        "acquired_at": prov.get("acquired_at") if isinstance(prov.get("acquired_at"), str) else None,
+        "qa_status": qa.get("status"),
+        "values": [_element(doc, key, i, j) * scale for _, _, key, i, j, scale, _ in KEY_ELEMENTS],
+    }
 
 
-def _unit_entries(view: StoreView, unit: str, cache: dict[str, Any], dirs: dict[str, Any]
-                  ) -> tuple[list[tuple[Any, Path, dict[str, Any]]], Any, bool]:
+def _unit_entries(
+    view: StoreView, unit: str, cache: dict[str, Any], dirs: dict[str, Any]
+) -> tuple[list[tuple[Any, Path, dict[str, Any]]], Any, bool]:
     """(time, path, entry) of each readable calibration file of ``unit``, oldest first; the
     unit directory's cache entry (None: not cacheable); whether a file was parsed."""
     d = view.store.calibrations_dir / unit
@@ -100,11 +116,17 @@ def _unit_entries(view: StoreView, unit: str, cache: dict[str, Any], dirs: dict[
     except OSError:
         dir_key = None
     known = dirs.get(unit)
-    if dir_key is not None and isinstance(known, dict) and known.get("stat") == dir_key \
-            and isinstance(known.get("files"), list):
+    if (
+        dir_key is not None
+        and isinstance(known, dict)
+        and known.get("stat") == dir_key
+        and isinstance(known.get("files"), list)
+    ):
         # no file added, removed or renamed since: the cached names, oldest first
-        files = [(datetime.strptime(name[:-len(".json")], TIMESTAMP_FORMAT)
-                  .replace(tzinfo=timezone.utc), d / name) for name in known["files"]]
+        files = [
+            (datetime.strptime(name[: -len(".json")], TIMESTAMP_FORMAT).replace(tzinfo=UTC), d / name)
+            for name in known["files"]
+        ]
     else:
         files = view.store.calibration_files(unit)
     out, parsed = [], False
@@ -115,8 +137,11 @@ def _unit_entries(view: StoreView, unit: str, cache: dict[str, Any], dirs: dict[
         except OSError:  # removed meanwhile: the directory is listed again next time
             continue
         entry = cache.get(key)
-        if not (isinstance(entry, dict) and entry.get("size") == fst.st_size
-                and entry.get("mtime_ns") == fst.st_mtime_ns):
+        if not (
+            isinstance(entry, dict)
+            and entry.get("size") == fst.st_size
+            and entry.get("mtime_ns") == fst.st_mtime_ns
+        ):
             entry = _parse_entry(path, fst)
             if entry is None:
                 continue
@@ -125,10 +150,10 @@ def _unit_entries(view: StoreView, unit: str, cache: dict[str, Any], dirs: dict[
     # a directory is cached with its readable files only when all were (an unreadable file
     # is tried again next time, as before), and only once its mtime is a few seconds old: a
     # file added within the same timestamp tick as the listing would not change the mtime
-    cacheable = dir_key is not None and len(out) == len(files) \
-        and dir_key[0] < time.time_ns() - DIR_SETTLED_NS
-    return out, ({"stat": dir_key, "files": [p.name for _, p, _ in out]} if cacheable
-                 else None), parsed
+    cacheable = (
+        dir_key is not None and len(out) == len(files) and dir_key[0] < time.time_ns() - DIR_SETTLED_NS
+    )
+    return out, ({"stat": dir_key, "files": [p.name for _, p, _ in out]} if cacheable else None), parsed
 
 
 def _when(text: Any) -> datetime | None:
@@ -136,6 +161,7 @@ def _when(text: Any) -> datetime | None:
         return None
     try:
         from schemas.results_store import parse_when
+
         return parse_when(text)
     except ValueError:
         return None
@@ -166,11 +192,17 @@ def history_frame(view: StoreView, units: list[str] | None = None) -> pd.DataFra
                 lot_default = lot_default or view.lot_of_unit(unit)
                 lot = lot_default
             acquired = _when(entry.get("acquired_at"))
-            row = {"unit": unit, "lot": lot, "time": acquired or ts, "produced": ts,
-                   "time_source": "session_start" if acquired else "processing time",
-                   "qa_status": entry.get("qa_status"),
-                   "run_id": entry["run_id"], "code_version": entry["code_version"],
-                   "file": path.name}
+            row = {
+                "unit": unit,
+                "lot": lot,
+                "time": acquired or ts,
+                "produced": ts,
+                "time_source": "session_start" if acquired else "processing time",
+                "qa_status": entry.get("qa_status"),
+                "run_id": entry["run_id"],
+                "code_version": entry["code_version"],
+                "file": path.name,
+            }
             row.update(zip(names, entry["values"]))
             rows.append(row)
     # a pass over every unit also forgets the files and directories that are gone
@@ -182,6 +214,15 @@ def history_frame(view: StoreView, units: list[str] | None = None) -> pd.DataFra
         files, dirs_out = {**cache, **seen}, {**dirs, **seen_dirs}
     if parsed or changed:
         _write_cache(view, files, dirs_out)
-    cols = ["unit", "lot", "time", "produced", "time_source", "qa_status", "run_id",
-            "code_version", "file"] + names
+    cols = [
+        "unit",
+        "lot",
+        "time",
+        "produced",
+        "time_source",
+        "qa_status",
+        "run_id",
+        "code_version",
+        "file",
+    ] + names
     return pd.DataFrame(rows, columns=cols)

@@ -9,6 +9,7 @@ plotly layout template is shared once per page instead of repeated in every figu
 (plotly.py writes ~7 kB of template per figure). Nothing refers to a URL: the file works
 from ``file://`` with no network.
 """
+
 from __future__ import annotations
 
 import base64
@@ -16,8 +17,9 @@ import functools
 import html
 import json
 import math
-from datetime import datetime, timezone
-from typing import Any, Iterable, Sequence
+from collections.abc import Iterable, Sequence
+from datetime import UTC, datetime
+from typing import Any
 
 import numpy as np
 import plotly.graph_objects as go
@@ -38,16 +40,37 @@ DASH = "\u2013"
 
 _TEMPLATE = {
     "layout": {
-        "font": {"family": "system-ui, -apple-system, 'Segoe UI', 'DejaVu Sans', sans-serif",
-                 "size": 12, "color": "#1f2933"},
+        "font": {
+            "family": "system-ui, -apple-system, 'Segoe UI', 'DejaVu Sans', sans-serif",
+            "size": 12,
+            "color": "#1f2933",
+        },
         "paper_bgcolor": "#ffffff",
         "plot_bgcolor": "#f8fafc",
-        "colorway": ["#4c78a8", "#f58518", "#54a24b", "#b279a2", "#e45756", "#72b7b2",
-                     "#eeca3b", "#9d755d", "#bab0ac", "#ff9da6"],
-        "xaxis": {"gridcolor": "#e2e8f0", "zerolinecolor": "#94a3b8", "linecolor": "#cbd5e1",
-                  "automargin": True},
-        "yaxis": {"gridcolor": "#e2e8f0", "zerolinecolor": "#94a3b8", "linecolor": "#cbd5e1",
-                  "automargin": True},
+        "colorway": [
+            "#4c78a8",
+            "#f58518",
+            "#54a24b",
+            "#b279a2",
+            "#e45756",
+            "#72b7b2",
+            "#eeca3b",
+            "#9d755d",
+            "#bab0ac",
+            "#ff9da6",
+        ],
+        "xaxis": {
+            "gridcolor": "#e2e8f0",
+            "zerolinecolor": "#94a3b8",
+            "linecolor": "#cbd5e1",
+            "automargin": True,
+        },
+        "yaxis": {
+            "gridcolor": "#e2e8f0",
+            "zerolinecolor": "#94a3b8",
+            "linecolor": "#cbd5e1",
+            "automargin": True,
+        },
         "hoverlabel": {"font": {"size": 12}},
         "margin": {"l": 60, "r": 20, "t": 40, "b": 45},
         "legend": {"orientation": "h", "y": -0.18},
@@ -262,6 +285,7 @@ def esc(x: Any) -> str:
 
 # ---------------------------------------------------------------------------- numbers/units
 
+
 def display_unit(uom: str | None) -> tuple[str, float]:
     """(label shown, factor applied to values) for a stored unit of measure: the values'
     display of :mod:`schemas.display` (dimensionless ratios bare, biases in g as mg)."""
@@ -286,7 +310,7 @@ def fmt_spread(v: Any, factor: float, label: str, sig: int = 2) -> str:
         return DASH
     if not math.isfinite(x):
         return DASH
-    text = fmt(x, sig=sig) if abs(x) < 10 ** sig else fmt(x, decimals=0)
+    text = fmt(x, sig=sig) if abs(x) < 10**sig else fmt(x, decimals=0)
     return f"{text}\u00a0{esc(label)}" if label else text
 
 
@@ -303,13 +327,16 @@ def fmt(v: Any, decimals: int | None = None, sig: int = 5) -> str:
     return s
 
 
-def td_numbers(values: Sequence[float], finite: Sequence[bool], decimals: int | None = None,
-               sig: int = 5) -> str:
+def td_numbers(
+    values: Sequence[float], finite: Sequence[bool], decimals: int | None = None, sig: int = 5
+) -> str:
     """``"".join(f"<td>{fmt(v, decimals, sig)}</td>")`` over a row of Python floats and
     their finiteness (from ``ndarray.tolist()``), the format specification built once."""
     if decimals is not None and all(finite):
         # fixed-point text holds no '-' but a leading sign: one replace for the whole row
-        return ("<td>" + "</td><td>".join(map(f"{{:.{decimals}f}}".format, values)) + "</td>").replace("-", MINUS)
+        return ("<td>" + "</td><td>".join(map(f"{{:.{decimals}f}}".format, values)) + "</td>").replace(
+            "-", MINUS
+        )
     spec = f".{decimals}f" if decimals is not None else f".{sig}g"
     out = []
     for v, ok in zip(values, finite):
@@ -330,22 +357,35 @@ def fmt_time(value: Any) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return ""
     try:
-        t = value if isinstance(value, datetime) else datetime.fromisoformat(str(value).replace("Z", "+00:00"))
+        t = (
+            value
+            if isinstance(value, datetime)
+            else datetime.fromisoformat(str(value).replace("Z", "+00:00"))
+        )
     except ValueError:
         return str(value)
     if t.tzinfo is None:
-        t = t.replace(tzinfo=timezone.utc)
-    return t.astimezone(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        t = t.replace(tzinfo=UTC)
+    return t.astimezone(UTC).strftime("%Y-%m-%d %H:%M UTC")
 
 
 # ---------------------------------------------------------------------------- HTML pieces
 
-def table(headers: Sequence[str], rows: Iterable[Sequence[str]], cls: str = "",
-          group_row: str = "", text_cols: int = 1, wrap: bool = True, attrs: str = "") -> str:
+
+def table(
+    headers: Sequence[str],
+    rows: Iterable[Sequence[str]],
+    cls: str = "",
+    group_row: str = "",
+    text_cols: int = 1,
+    wrap: bool = True,
+    attrs: str = "",
+) -> str:
     """An HTML table; ``rows`` hold ready-made cell HTML (``<td>`` included when a string
     starts with '<td'), the first ``text_cols`` columns left-aligned."""
-    head = "".join(f'<th class="text">{h}</th>' if i < text_cols else f"<th>{h}</th>"
-                   for i, h in enumerate(headers))
+    head = "".join(
+        f'<th class="text">{h}</th>' if i < text_cols else f"<th>{h}</th>" for i, h in enumerate(headers)
+    )
     body = []
     for r in rows:
         if isinstance(r, str):  # a ready-made <tr>...</tr>
@@ -365,8 +405,10 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[str]], cls: str = "",
             else:
                 cells.append(f"<td>{c}</td>")
         body.append(f"<tr{row_attr}>{''.join(cells)}</tr>")
-    t = (f'<table class="{cls}"{attrs}><thead>{group_row}<tr>{head}</tr></thead>'
-         f"<tbody>{''.join(body)}</tbody></table>")
+    t = (
+        f'<table class="{cls}"{attrs}><thead>{group_row}<tr>{head}</tr></thead>'
+        f"<tbody>{''.join(body)}</tbody></table>"
+    )
     return f'<div class="tablewrap">{t}</div>' if wrap else t
 
 
@@ -378,19 +420,21 @@ def kpi(label: str, value: str, cls: str = "") -> str:
     return f'<div class="kpi {cls}"><div class="k">{esc(label)}</div><div class="v">{value}</div></div>'
 
 
-def decimate(x: np.ndarray, y_list: Sequence[np.ndarray], max_points: int) -> tuple[np.ndarray, list[np.ndarray]]:
+def decimate(
+    x: np.ndarray, y_list: Sequence[np.ndarray], max_points: int
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """Keep at most ~max_points of a trace: per bucket the first sample plus the samples at
     the min and max of each y (peaks survive, unlike plain striding). Sorted by index."""
     n = len(x)
     if n <= max_points:
         return np.asarray(x), [np.asarray(y) for y in y_list]
     n_buckets = max(1, max_points // (1 + 2 * len(y_list)))
-    size = -(-n // n_buckets)                      # ceil: equal buckets, the last one padded
+    size = -(-n // n_buckets)  # ceil: equal buckets, the last one padded
     starts = np.arange(0, n, size)
     keep = [starts, np.array([n - 1])]
     for y in y_list:
         y = np.asarray(y, dtype=float)
-        n_pad = len(starts) * size - n   # < size: every bucket holds a real sample
+        n_pad = len(starts) * size - n  # < size: every bucket holds a real sample
         yy = np.concatenate([np.where(np.isnan(y), np.inf, y), np.full(n_pad, np.inf)]).reshape(-1, size)
         keep.append(starts + np.argmin(yy, axis=1))
         yy = np.concatenate([np.where(np.isnan(y), -np.inf, y), np.full(n_pad, -np.inf)]).reshape(-1, size)
@@ -405,11 +449,20 @@ def arr(a: Any) -> dict[str, str] | list:
     x = np.asarray(a)
     if x.dtype.kind not in "fiub":
         return x.tolist()
-    return {"dtype": "f4", "bdata": base64.b64encode(np.ascontiguousarray(x, dtype="<f4").tobytes()).decode("ascii")}
+    return {
+        "dtype": "f4",
+        "bdata": base64.b64encode(np.ascontiguousarray(x, dtype="<f4").tobytes()).decode("ascii"),
+    }
 
 
-def grid(nrows: int, ncols: int, titles: Sequence[str] = (), hspace: float = 0.05,
-         vspace: float = 0.12, shared_y: bool = False) -> tuple[dict, list[tuple[str, str]]]:
+def grid(
+    nrows: int,
+    ncols: int,
+    titles: Sequence[str] = (),
+    hspace: float = 0.05,
+    vspace: float = 0.12,
+    shared_y: bool = False,
+) -> tuple[dict, list[tuple[str, str]]]:
     """Layout of an nrows x ncols grid of subplots for a dict figure spec (plotly.py's
     make_subplots costs ~0.2 s per call through its validators; this costs nothing).
     Returns (layout, [(xref, yref) per cell, row-major])."""
@@ -429,9 +482,19 @@ def grid(nrows: int, ncols: int, titles: Sequence[str] = (), hspace: float = 0.0
             layout[f"yaxis{n}"]["showticklabels"] = False
         refs.append((f"x{n}", f"y{n}"))
         if k < len(titles):
-            layout["annotations"].append({
-                "text": titles[k], "x": x0 + w / 2, "y": y1, "xref": "paper", "yref": "paper",
-                "xanchor": "center", "yanchor": "bottom", "showarrow": False, "font": {"size": 12}})
+            layout["annotations"].append(
+                {
+                    "text": titles[k],
+                    "x": x0 + w / 2,
+                    "y": y1,
+                    "xref": "paper",
+                    "yref": "paper",
+                    "xanchor": "center",
+                    "yanchor": "bottom",
+                    "showarrow": False,
+                    "font": {"size": 12},
+                }
+            )
     return layout, refs
 
 
@@ -463,23 +526,29 @@ class Page:
         layout = dict(spec.get("layout", {}))
         layout.pop("template", None)
         layout.update(height=height, autosize=True)
-        text = json.dumps({"data": spec.get("data", []), "layout": layout},
-                          separators=(",", ":"), allow_nan=False, default=_json_default)
+        text = json.dumps(
+            {"data": spec.get("data", []), "layout": layout},
+            separators=(",", ":"),
+            allow_nan=False,
+            default=_json_default,
+        )
         text = text.replace("<", "\\u003c").replace(">", "\\u003e")
         cap = f'<p class="note">{caption}</p>' if caption else ""
-        return (f'<div class="figure" id="{fid}" data-spec="{fid}-spec" data-name="{esc(name)}" '
-                f'style="height:{height}px"></div>'
-                f'<script type="application/json" id="{fid}-spec">{text}</script>{cap}')
+        return (
+            f'<div class="figure" id="{fid}" data-spec="{fid}-spec" data-name="{esc(name)}" '
+            f'style="height:{height}px"></div>'
+            f'<script type="application/json" id="{fid}-spec">{text}</script>{cap}'
+        )
 
     def render(self, header_html: str, body_html: str) -> str:
         runtime = _RUNTIME % {"template": json.dumps(_TEMPLATE, separators=(",", ":"))}
-        generated = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+        generated = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
         return (
-            "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
+            '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+            '<meta name="viewport" content="width=device-width, initial-scale=1">'
             f"<title>{esc(self.title)}</title><style>{_CSS}</style>"
             f"<script>{plotly_js()}</script></head>"
-            f"<body data-figures-total=\"{self.n_figures}\">{header_html}<main>{body_html}</main>"
+            f'<body data-figures-total="{self.n_figures}">{header_html}<main>{body_html}</main>'
             f"<footer>mimucal report · generated {generated} · {self.n_figures} figures · "
             "self-contained (plotly.js embedded), works offline</footer>"
             f"<script>{runtime}</script></body></html>\n"

@@ -3,6 +3,7 @@ run log, and the trend of each key parameter's lot median and spread over the ru
 
 ``write_fleet_index(results_root)`` writes ``results_root/reports/index.html``.
 """
+
 from __future__ import annotations
 
 import json
@@ -16,8 +17,18 @@ from reports.html import DASH, Page, arr, esc, fmt_time, grid, kpi, missing, tab
 from reports.lot import lot_report_path
 from reports.store import StoreView
 
-LOT_COLOURS = ["#4c78a8", "#f58518", "#54a24b", "#e45756", "#72b7b2", "#b279a2", "#eeca3b",
-               "#9d755d", "#ff9da6", "#bab0ac"]
+LOT_COLOURS = [
+    "#4c78a8",
+    "#f58518",
+    "#54a24b",
+    "#e45756",
+    "#72b7b2",
+    "#b279a2",
+    "#eeca3b",
+    "#9d755d",
+    "#ff9da6",
+    "#bab0ac",
+]
 
 
 def lot_trends(h: pd.DataFrame) -> pd.DataFrame:
@@ -28,14 +39,17 @@ def lot_trends(h: pd.DataFrame) -> pd.DataFrame:
     unit replaces that unit's value in its lot's median; it never makes a point of its own."""
     if not len(h):
         return pd.DataFrame()
-    cur = h.sort_values("produced", kind="stable").groupby(["lot", "unit"], sort=False,
-                                                            dropna=False).tail(1)
+    cur = h.sort_values("produced", kind="stable").groupby(["lot", "unit"], sort=False, dropna=False).tail(1)
     names = [e[1] for e in KEY_ELEMENTS]
     rows = []
     for lot, g in cur.groupby("lot", sort=False, dropna=False):
         t = g["time"].sort_values()
-        row = {"lot": lot, "time": t.iloc[(len(t) - 1) // 2], "n_units": g["unit"].nunique(),
-               "time_source": ", ".join(sorted(set(g["time_source"].astype(str))))}
+        row = {
+            "lot": lot,
+            "time": t.iloc[(len(t) - 1) // 2],
+            "n_units": g["unit"].nunique(),
+            "time_source": ", ".join(sorted(set(g["time_source"].astype(str)))),
+        }
         values = g[names].to_numpy(float)  # one block per group, not a column at a time
         for k, n in enumerate(names):
             v = values[:, k]
@@ -59,9 +73,14 @@ def trend_figure(tr: pd.DataFrame, group: str) -> dict:
     for lot in lots:
         d = tr[tr["lot"] == lot]
         cols = {c: d[c].to_numpy(float) for e in elems for c in (e[1], e[1] + "_spread")}
-        by_lot[lot] = (cols, [t.isoformat() for t in d["time"]],
-                       [f"{lot} · acquired {t:%Y-%m-%d %H:%M} UTC ({src}) · {u} units"
-                        for t, src, u in zip(d["time"], d["time_source"], d["n_units"])])
+        by_lot[lot] = (
+            cols,
+            [t.isoformat() for t in d["time"]],
+            [
+                f"{lot} · acquired {t:%Y-%m-%d %H:%M} UTC ({src}) · {u} units"
+                for t, src, u in zip(d["time"], d["time_source"], d["n_units"])
+            ],
+        )
     data = []
     for k, e in enumerate(elems):
         xr, yr = refs[k]
@@ -70,17 +89,37 @@ def trend_figure(tr: pd.DataFrame, group: str) -> dict:
             cols, times, texts = by_lot[lot]
             spread = cols[n + "_spread"]
             c = LOT_COLOURS[li % len(LOT_COLOURS)]
-            data.append({"type": "scatter", "x": list(times),
-                         "y": arr(cols[n]), "mode": "lines+markers", "name": lot,
-                         "marker": {"color": c, "size": 6}, "line": {"color": c, "width": 1.5},
-                         "error_y": {"type": "data", "array": arr(np.where(np.isnan(spread), 0.0, spread)),
-                                     "color": c, "thickness": 1, "width": 3},
-                         "legendgroup": lot, "showlegend": k == 0, "xaxis": xr, "yaxis": yr,
-                         "text": list(texts),
-                         "hovertemplate": f"{n}: median %{{y:.6g}} ± %{{error_y.array:.2g}}<br>%{{text}}<extra></extra>"})
+            data.append(
+                {
+                    "type": "scatter",
+                    "x": list(times),
+                    "y": arr(cols[n]),
+                    "mode": "lines+markers",
+                    "name": lot,
+                    "marker": {"color": c, "size": 6},
+                    "line": {"color": c, "width": 1.5},
+                    "error_y": {
+                        "type": "data",
+                        "array": arr(np.where(np.isnan(spread), 0.0, spread)),
+                        "color": c,
+                        "thickness": 1,
+                        "width": 3,
+                    },
+                    "legendgroup": lot,
+                    "showlegend": k == 0,
+                    "xaxis": xr,
+                    "yaxis": yr,
+                    "text": list(texts),
+                    "hovertemplate": (
+                        f"{n}: median %{{y:.6g}} ± %{{error_y.array:.2g}}<br>%{{text}}<extra></extra>"
+                    ),
+                }
+            )
         layout["xaxis" + xr[1:]].update(type="date", nticks=4)
-    layout.update(legend={"orientation": "h", "y": 1.0 + 0.3 / nrows, "x": 1, "xanchor": "right",
-                          "yanchor": "bottom"}, margin={"t": 60, "b": 35, "l": 70, "r": 15})
+    layout.update(
+        legend={"orientation": "h", "y": 1.0 + 0.3 / nrows, "x": 1, "xanchor": "right", "yanchor": "bottom"},
+        margin={"t": 60, "b": 35, "l": 70, "r": 15},
+    )
     return {"data": data, "layout": layout}
 
 
@@ -94,14 +133,22 @@ def _lot_row(sessions: pd.DataFrame | None, summary: pd.DataFrame | None) -> dic
     if summary is not None:
         units |= set(summary["unit"].astype(str))
         if "flagged" in summary:
-            flagged = sorted(set(summary.loc[summary["flagged"].fillna(False).astype(bool), "unit"].astype(str)))
+            flagged = sorted(
+                set(summary.loc[summary["flagged"].fillna(False).astype(bool), "unit"].astype(str))
+            )
     if sessions is not None:
         units |= set(sessions["unit"].astype(str))
-    last = sessions["calibrated_at"].dropna().astype(str).max() \
-        if sessions is not None and "calibrated_at" in sessions and len(sessions) else None
-    return {"sessions": {k: int(c.get(k, 0)) for k in ("ok", "warned", "failed")},
-            "n_units": len(units), "flagged": flagged,
-            "last": None if last is None or (isinstance(last, float) and np.isnan(last)) else str(last)}
+    last = (
+        sessions["calibrated_at"].dropna().astype(str).max()
+        if sessions is not None and "calibrated_at" in sessions and len(sessions)
+        else None
+    )
+    return {
+        "sessions": {k: int(c.get(k, 0)) for k in ("ok", "warned", "failed")},
+        "n_units": len(units),
+        "flagged": flagged,
+        "last": None if last is None or (isinstance(last, float) and np.isnan(last)) else str(last),
+    }
 
 
 # The lots table's rows, kept in cache/fleet_index.json: a lot's row is valid while its
@@ -119,12 +166,16 @@ def fleet_index_cache_path(view: StoreView) -> Path:
 
 def lot_rows(view: StoreView, lots: list[str]) -> dict[str, dict]:
     """:func:`_lot_row` of each lot, from the cache where its files are unchanged."""
-    stats = {name: view.store.partition_stats(name) if view.store.has_table(name) else {}
-             for name in _LOT_ROW_TABLES}
+    stats = {
+        name: view.store.partition_stats(name) if view.store.has_table(name) else {}
+        for name in _LOT_ROW_TABLES
+    }
     if any(st is None for st in stats.values()):  # format 1.0: the whole tables, as read
         tables = {name: view.table(name) for name in _LOT_ROW_TABLES}
-        return {lot: _lot_row(*(None if t is None else t[t["lot"] == lot]
-                                for t in tables.values())) for lot in lots}
+        return {
+            lot: _lot_row(*(None if t is None else t[t["lot"] == lot] for t in tables.values()))
+            for lot in lots
+        }
     try:
         doc = json.loads(fleet_index_cache_path(view).read_text())
         cached = doc["lots"] if doc.get("version") == FLEET_INDEX_CACHE_VERSION else {}
@@ -142,8 +193,10 @@ def lot_rows(view: StoreView, lots: list[str]) -> dict[str, dict]:
         entries[lot] = {"files": files, "row": row}
     if entries != cached:
         try:  # a cache: a store we may not write to only costs the reading
-            write_atomic(fleet_index_cache_path(view),
-                         json.dumps({"version": FLEET_INDEX_CACHE_VERSION, "lots": entries}))
+            write_atomic(
+                fleet_index_cache_path(view),
+                json.dumps({"version": FLEET_INDEX_CACHE_VERSION, "lots": entries}),
+            )
         except OSError:
             pass
     return out
@@ -166,42 +219,82 @@ def render_fleet_index(results_root: str | Path, view: StoreView | None = None) 
             tot[k] += r["sessions"][k]
         flagged_total += len(r["flagged"])
         path = lot_report_path(view.root, lot)
-        link = (f'<a href="{esc(path.name)}">{esc(lot)}</a>' if path.exists()
-                else f'{esc(lot)} <span class="note">(report not written)</span>')
-        flag_html = (" ".join(f'<a href="{esc(path.name)}#unit-{esc(u)}"><span class="badge flag">⚑ {esc(u)}</span></a>'
-                              for u in r["flagged"]) or "none")
-        rows.append(({"data-lot": lot}, [link, str(r["n_units"]), str(r["sessions"]["ok"]), str(r["sessions"]["warned"]),
-                                         str(r["sessions"]["failed"]), flag_html, esc(fmt_time(r["last"]) or DASH)]))
-    kpis = [kpi("Lots", str(len(lots))), kpi("Sessions ok", str(tot["ok"]), "good"),
-            kpi("Warned", str(tot["warned"]), "warn" if tot["warned"] else ""),
-            kpi("Failed", str(tot["failed"]), "bad" if tot["failed"] else ""),
-            kpi("Units flagged", str(flagged_total), "bad" if flagged_total else "good")]
-    lots_html = (table(["Lot report", "Units", "Sessions ok", "Warned", "Failed", "Flagged units", "Last calibrated"],
-                       rows, cls="sortable lots", text_cols=1, attrs=' id="lots"')
-                 if lots else missing("Lots", "the results store holds no lot yet"))
-    body.append(f'<section id="summary"><h2>Lots</h2><div class="kpis">{"".join(kpis)}</div>'
-                f"<h3>Lot reports</h3>{lots_html}</section>")
+        link = (
+            f'<a href="{esc(path.name)}">{esc(lot)}</a>'
+            if path.exists()
+            else f'{esc(lot)} <span class="note">(report not written)</span>'
+        )
+        flag_html = (
+            " ".join(
+                f'<a href="{esc(path.name)}#unit-{esc(u)}"><span class="badge flag">⚑ {esc(u)}</span></a>'
+                for u in r["flagged"]
+            )
+            or "none"
+        )
+        rows.append(
+            (
+                {"data-lot": lot},
+                [
+                    link,
+                    str(r["n_units"]),
+                    str(r["sessions"]["ok"]),
+                    str(r["sessions"]["warned"]),
+                    str(r["sessions"]["failed"]),
+                    flag_html,
+                    esc(fmt_time(r["last"]) or DASH),
+                ],
+            )
+        )
+    kpis = [
+        kpi("Lots", str(len(lots))),
+        kpi("Sessions ok", str(tot["ok"]), "good"),
+        kpi("Warned", str(tot["warned"]), "warn" if tot["warned"] else ""),
+        kpi("Failed", str(tot["failed"]), "bad" if tot["failed"] else ""),
+        kpi("Units flagged", str(flagged_total), "bad" if flagged_total else "good"),
+    ]
+    lots_html = (
+        table(
+            ["Lot report", "Units", "Sessions ok", "Warned", "Failed", "Flagged units", "Last calibrated"],
+            rows,
+            cls="sortable lots",
+            text_cols=1,
+            attrs=' id="lots"',
+        )
+        if lots
+        else missing("Lots", "the results store holds no lot yet")
+    )
+    body.append(
+        f'<section id="summary"><h2>Lots</h2><div class="kpis">{"".join(kpis)}</div>'
+        f"<h3>Lot reports</h3>{lots_html}</section>"
+    )
 
     # unit reports present
     udir = view.reports_dir / "units"
     unit_files = sorted(udir.glob("*.html")) if udir.is_dir() else []
     if unit_files:
         links = " ".join(f'<a href="units/{esc(p.name)}">{esc(p.stem)}</a>' for p in unit_files)
-        body.append(f'<section id="unit-reports"><h2>Unit reports ({len(unit_files)})</h2><p>{links}</p></section>')
+        body.append(
+            f'<section id="unit-reports"><h2>Unit reports ({len(unit_files)})</h2><p>{links}</p></section>'
+        )
 
     # trends
     h = history_frame(view)
     tr = lot_trends(h)
     if len(tr):
-        figs = "".join(f"<h3>{GROUP_TITLES[g]}</h3>" + page.figure(trend_figure(tr, g),
-                                                                   height=200 + 190 * (3 if g.startswith("K") else 1),
-                                                                   name=f"trend {g}")
-                       for g in ("K_g", "w0", "K_a", "f0"))
+        figs = "".join(
+            f"<h3>{GROUP_TITLES[g]}</h3>"
+            + page.figure(
+                trend_figure(tr, g), height=200 + 190 * (3 if g.startswith("K") else 1), name=f"trend {g}"
+            )
+            for g in ("K_g", "w0", "K_a", "f0")
+        )
         src = ", ".join(sorted(set(", ".join(tr["time_source"]).split(", "))))
-        trend_html = ('<p class="note">Per lot: median over all the lot\'s units of each key parameter '
-                      '(points; each unit\'s current calibration) and its spread (error bars: '
-                      '1.4826 × MAD across units), at the time the lot was acquired (median of its '
-                      f'units\' acquisition times; from: {esc(src)}).</p>' + figs)
+        trend_html = (
+            '<p class="note">Per lot: median over all the lot\'s units of each key parameter '
+            "(points; each unit's current calibration) and its spread (error bars: "
+            "1.4826 × MAD across units), at the time the lot was acquired (median of its "
+            f"units' acquisition times; from: {esc(src)}).</p>" + figs
+        )
     else:
         trend_html = missing("Parameter trends", "no calibration files under calibrations/")
     body.append(f'<section id="trends"><h2>Trends by acquisition date</h2>{trend_html}</section>')
@@ -212,16 +305,25 @@ def render_fleet_index(results_root: str | Path, view: StoreView | None = None) 
         rrows = []
         for r in reversed(runs[-50:]):
             lots_r = r.get("lots")
-            rrows.append([f'<span class="mono">{esc(r.get("run_id"))}</span>', esc(fmt_time(r["_time"]) or DASH),
-                          esc(r.get("kind") or r.get("flow") or DASH), esc(r.get("code_version") or DASH),
-                          esc(", ".join(map(str, lots_r)) if isinstance(lots_r, list) else (lots_r or DASH))])
+            rrows.append(
+                [
+                    f'<span class="mono">{esc(r.get("run_id"))}</span>',
+                    esc(fmt_time(r["_time"]) or DASH),
+                    esc(r.get("kind") or r.get("flow") or DASH),
+                    esc(r.get("code_version") or DASH),
+                    esc(", ".join(map(str, lots_r)) if isinstance(lots_r, list) else (lots_r or DASH)),
+                ]
+            )
         runs_html = table(["Run id", "Time", "Kind", "Code version", "Lots"], rrows, text_cols=5)
     else:
         runs_html = missing("Run log", "no runs/*.json")
     body.append(f'<section id="runs"><h2>Runs</h2>{runs_html}</section>')
 
-    header = ('<header class="report"><h1>mimucal · fleet calibration index</h1>'
-              f'<div class="sub">{len(lots)} lots · results store <span class="mono">{esc(view.root)}</span></div></header>')
+    header = (
+        '<header class="report"><h1>mimucal · fleet calibration index</h1>'
+        f'<div class="sub">{len(lots)} lots · results store '
+        f'<span class="mono">{esc(view.root)}</span></div></header>'
+    )
     return page.render(header, "".join(body))
 
 

@@ -6,6 +6,7 @@
 Writes the lot report if needed, opens it in headless Chromium, opens the first flagged
 unit's section below the lot overview and captures the top of the page.
 """
+
 from __future__ import annotations
 
 import argparse

@@ -2,6 +2,7 @@
 strip plots across units, per-unit xu2016 Tables 1-3, residual plots, model discovery,
 sessions. Every builder takes the rows of the results store it needs and returns HTML;
 a missing table gives a visible "not available" note, never an exception."""
+
 from __future__ import annotations
 
 import math
@@ -12,9 +13,29 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from reports.html import (CHANNEL_COLOURS, CLEAN, DASH, FLAGGED, LIMIT, Page, arr, decimals_for,
-                          display_unit, MINUS, esc, fmt, fmt_spread, fmt_time, grid, kpi, missing,
-                          spread_display, table, td_numbers, with_unit)
+from reports.html import (
+    CHANNEL_COLOURS,
+    CLEAN,
+    DASH,
+    FLAGGED,
+    LIMIT,
+    MINUS,
+    Page,
+    arr,
+    decimals_for,
+    display_unit,
+    esc,
+    fmt,
+    fmt_spread,
+    fmt_time,
+    grid,
+    kpi,
+    missing,
+    spread_display,
+    table,
+    td_numbers,
+    with_unit,
+)
 from reports.store import StoreView
 
 # Models in the key-parameter table and strip plots, with their headings.
@@ -38,12 +59,16 @@ PARAM_ORDER = {
     "accel": [f"k_a{m}" for m in _MAT] + ["f0_x", "f0_y", "f0_z"],
     "lever_arm": [f"r{i}{a}" for i in (1, 2, 3) for a in "xyz"],
     # zhang2017: zero biases, scale factors, installation angles
-    "accel_static": ([f"{b}_{a}" for b in ("u0", "b") for a in "xyz"]
-                     + [f"{k}_{a}" for k in ("k", "s") for a in "xyz"]
-                     + [f"theta_{a}{b}" for a in "xyz" for b in "xyz"]),
+    "accel_static": (
+        [f"{b}_{a}" for b in ("u0", "b") for a in "xyz"]
+        + [f"{k}_{a}" for k in ("k", "s") for a in "xyz"]
+        + [f"theta_{a}{b}" for a in "xyz" for b in "xyz"]
+    ),
     "gyro_traditional": [f"s_g{m}" for m in _MAT] + [f"b_g_{a}" for a in "xyz"],
     "accel_traditional": [f"s_a{m}" for m in _MAT] + [f"b_a_{a}" for a in "xyz"],
 }
+
+
 def py_values(x: pd.Series | pd.Index) -> list:
     """The elements of a Series or Index as Python objects, as ``list(x)`` gives them, without
     iterating an Arrow-backed string array element by element (~4 us an element)."""
@@ -54,10 +79,10 @@ def pretty_param(name: str) -> str:
     n = str(name)
     for pre in ("k_g", "k_a", "s_g", "s_a"):
         if n.startswith(pre) and len(n) == len(pre) + 2:
-            return f"{pre[0]}<sub>{pre[2]}{n[len(pre):]}</sub>"
+            return f"{pre[0]}<sub>{pre[2]}{n[len(pre) :]}</sub>"
     for pre, html in (("w0_", "ω<sub>0"), ("f0_", "f<sub>0")):
         if n.startswith(pre):
-            return f"{html}{n[len(pre):]}</sub>"
+            return f"{html}{n[len(pre) :]}</sub>"
     if len(n) == 3 and n[0] == "r" and n[1] in "123" and n[2] in "xyz":
         return f"r<sub>{n[1]}{n[2]}</sub>"
     return esc(n)
@@ -125,6 +150,7 @@ def stored_limits(view: StoreView) -> tuple[dict[tuple[str, str], Any], str]:
         if text is None:
             return {}, ""
         from schemas.limits import config_from_toml
+
         cfg = config_from_toml(text, source=str(view.store.qa_config_path))
     except Exception as exc:  # noqa: BLE001 (shown in the report)
         return {}, f"limits not drawn: {exc}"
@@ -133,6 +159,7 @@ def stored_limits(view: StoreView) -> tuple[dict[tuple[str, str], Any], str]:
 
 # ----------------------------------------------------------------------------- lot context
 
+
 @dataclass
 class ParamInfo:
     """Display facts of one (model, parameter) across a lot."""
@@ -140,10 +167,10 @@ class ParamInfo:
     model: str
     name: str
     uom: str
-    label: str          # display unit of values
-    scale: float        # display factor of values (g -> mg)
+    label: str  # display unit of values
+    scale: float  # display factor of values (g -> mg)
     decimals: int | None
-    spread_label: str = ""    # display unit of spreads (ppm, deg/h, mg...: schemas.display)
+    spread_label: str = ""  # display unit of spreads (ppm, deg/h, mg...: schemas.display)
     spread_scale: float = 1.0
 
     def spread(self, v: Any, sig: int = 2) -> str:
@@ -166,7 +193,7 @@ class LotContext:
     discovery: pd.DataFrame | None
     units: list[str] = field(default_factory=list)
     params: dict[tuple[str, str], ParamInfo] = field(default_factory=dict)
-    flags: pd.DataFrame | None = None                     # flagged summary rows
+    flags: pd.DataFrame | None = None  # flagged summary rows
     flagged_units: list[str] = field(default_factory=list)
     residual_agg: pd.DataFrame | None = None
     unit_level_flags: dict[str, str] = field(default_factory=dict)
@@ -177,11 +204,17 @@ class LotContext:
 
     @classmethod
     def load(cls, view: StoreView, lot: str, unit: str | None = None) -> LotContext:
-        ctx = cls(view=view, lot=lot,
-                  sessions=view.of("sessions", lot, unit), parameters=view.of("parameters", lot, unit),
-                  summary=view.of("summary", lot), units_table=view.of("units", lot),
-                  residuals=view.of("residuals", lot, unit), compensation=view.of("compensation", lot, unit),
-                  discovery=view.of("discovery", lot, unit))
+        ctx = cls(
+            view=view,
+            lot=lot,
+            sessions=view.of("sessions", lot, unit),
+            parameters=view.of("parameters", lot, unit),
+            summary=view.of("summary", lot),
+            units_table=view.of("units", lot),
+            residuals=view.of("residuals", lot, unit),
+            compensation=view.of("compensation", lot, unit),
+            discovery=view.of("discovery", lot, unit),
+        )
         units: set[str] = set()
         for df in (ctx.sessions, ctx.summary, ctx.units_table):
             if df is not None and len(df):
@@ -198,17 +231,25 @@ class LotContext:
         if ut is not None and len(ut) and "flagged" in ut:
             # unit-level flags (e.g. repetition spread) that name no single parameter
             uf = ut[ut["flagged"].fillna(False).astype(bool)]
-            ctx.unit_level_flags = {str(r.unit): as_text(getattr(r, "flag_reason", "")) for r in uf.itertuples()
-                                    if str(r.unit) not in ctx.flagged_units}
+            ctx.unit_level_flags = {
+                str(r.unit): as_text(getattr(r, "flag_reason", ""))
+                for r in uf.itertuples()
+                if str(r.unit) not in ctx.flagged_units
+            }
             ctx.flagged_units = sorted(set(ctx.flagged_units) | set(ctx.unit_level_flags))
         if ut is not None and len(ut) and "flag_reason" in ut:
-            for u, r, fl in zip(py_values(ut["unit"]), py_values(ut["flag_reason"]),
-                                py_values(ut["flagged"]) if "flagged" in ut else [None] * len(ut)):
+            for u, r, fl in zip(
+                py_values(ut["unit"]),
+                py_values(ut["flag_reason"]),
+                py_values(ut["flagged"]) if "flagged" in ut else [None] * len(ut),
+            ):
                 if fl is not None and not pd.isna(fl) and bool(fl):
                     ctx.unit_kinds[str(u)] = flag_kinds(r) or {KIND_OUTLIER}
         if ctx.flags is not None:
-            for u, r in zip(py_values(ctx.flags["unit"]), py_values(ctx.flags["flag_reason"])
-                            if "flag_reason" in ctx.flags else [""] * len(ctx.flags)):
+            for u, r in zip(
+                py_values(ctx.flags["unit"]),
+                py_values(ctx.flags["flag_reason"]) if "flag_reason" in ctx.flags else [""] * len(ctx.flags),
+            ):
                 ctx.unit_kinds.setdefault(str(u), set()).update(flag_kinds(r) or {KIND_OUTLIER})
         ctx.limits, ctx.limits_problem = stored_limits(view)
         ctx.qa_lot = view.store.read_qa_lot(lot)
@@ -241,8 +282,9 @@ class LotContext:
                 spread = float(np.nanmedian(np.abs(m - np.nanmedian(m)))) * 1.4826 if len(m) > 1 else np.nan
             dec = decimals_for(spread * scale, extra=1)
             slabel, sscale = spread_display(uom)
-            self.params[(str(model), str(name))] = ParamInfo(str(model), str(name), uom, label, scale, dec,
-                                                             slabel, sscale)
+            self.params[(str(model), str(name))] = ParamInfo(
+                str(model), str(name), uom, label, scale, dec, slabel, sscale
+            )
 
     def unit_rows(self, name: str, unit: str) -> pd.DataFrame | None:
         """Rows of one unit from a table, grouped once per table (filtering a 50-unit lot's
@@ -265,8 +307,12 @@ class LotContext:
             cache = {}
             p = self.parameters
             if p is not None and len(p):
-                p = p.assign(rep=p["rep"].astype("int64"), unit=p["unit"].astype(str),
-                             model=p["model"].astype(str), parameter=p["parameter"].astype(str))
+                p = p.assign(
+                    rep=p["rep"].astype("int64"),
+                    unit=p["unit"].astype(str),
+                    model=p["model"].astype(str),
+                    parameter=p["parameter"].astype(str),
+                )
                 if "stderr" not in p:
                     p = p.assign(stderr=np.nan)
                 w = p.groupby(["unit", "model", "parameter", "rep"], sort=True)[["value", "stderr"]].last()
@@ -283,8 +329,12 @@ class LotContext:
                     if k == len(keys) or keys[k] != keys[start]:
                         sl = slice(start, k)
                         have = have_all[sl].any(axis=0)  # repetitions this unit has
-                        cache[keys[start]] = (names[sl], [r for r, h in zip(reps, have) if h],
-                                              V[sl][:, have], S[sl][:, have])
+                        cache[keys[start]] = (
+                            names[sl],
+                            [r for r, h in zip(reps, have) if h],
+                            V[sl][:, have],
+                            S[sl][:, have],
+                        )
                         offsets[keys[start]] = start
                         start = k
                 # average, spread and mean stderr of every row of the lot at once, in display
@@ -384,13 +434,20 @@ def aggregate_residuals(res: pd.DataFrame | None) -> pd.DataFrame | None:
             res[c] = d
     keys = ["unit", "model", "test", "step", "channel"]
     g = res.groupby(keys, sort=True, dropna=False)
-    agg = g.agg(residual=("residual", "mean"), rmin=("residual", "min"), rmax=("residual", "max"),
-                rate_dps=("rate_dps", "first"), angle_deg=("angle_deg", "first"),
-                up_axis=("up_axis", "first"), n=("residual", "size")).reset_index()
+    agg = g.agg(
+        residual=("residual", "mean"),
+        rmin=("residual", "min"),
+        rmax=("residual", "max"),
+        rate_dps=("rate_dps", "first"),
+        angle_deg=("angle_deg", "first"),
+        up_axis=("up_axis", "first"),
+        n=("residual", "size"),
+    ).reset_index()
     return agg
 
 
 # ----------------------------------------------------------------------------- header
+
 
 def run_facts(ctx: LotContext) -> tuple[str, str, list[str]]:
     """(run time, run id(s), code version(s)) of the lot's current results."""
@@ -402,7 +459,11 @@ def run_facts(ctx: LotContext) -> tuple[str, str, list[str]]:
     times = [ctx.view.run(r)["_time"] for r in run_ids if ctx.view.run(r) and ctx.view.run(r)["_time"]]
     if times:
         when = fmt_time(max(times))
-    elif ctx.sessions is not None and "calibrated_at" in ctx.sessions and ctx.sessions["calibrated_at"].notna().any():
+    elif (
+        ctx.sessions is not None
+        and "calibrated_at" in ctx.sessions
+        and ctx.sessions["calibrated_at"].notna().any()
+    ):
         when = fmt_time(str(ctx.sessions["calibrated_at"].dropna().astype(str).max()))
     else:
         when = "unknown"
@@ -422,15 +483,19 @@ def kpi_block(ctx: LotContext, unit: str | None = None) -> str:
     counts = ctx.session_counts(unit)
     items = [kpi("Run time", esc(when)), kpi("Code version", esc(", ".join(versions) or "unknown"))]
     if counts:
-        items += [kpi("Sessions ok", str(counts["ok"]), "good"),
-                  kpi("Warned", str(counts["warned"]), "warn" if counts["warned"] else ""),
-                  kpi("Failed", str(counts["failed"]), "bad" if counts["failed"] else "")]
+        items += [
+            kpi("Sessions ok", str(counts["ok"]), "good"),
+            kpi("Warned", str(counts["warned"]), "warn" if counts["warned"] else ""),
+            kpi("Failed", str(counts["failed"]), "bad" if counts["failed"] else ""),
+        ]
     else:
         items.append(kpi("Sessions", "no sessions table"))
     if unit is None:
         n_flag = len(ctx.flagged_units)
-        items += [kpi("Units", str(len(ctx.units))),
-                  kpi("Units flagged", f"{n_flag}", "bad" if n_flag else "good")]
+        items += [
+            kpi("Units", str(len(ctx.units))),
+            kpi("Units flagged", f"{n_flag}", "bad" if n_flag else "good"),
+        ]
     else:
         n = ctx.n_param_flags(unit)
         items.append(kpi("Flagged parameters", str(n), "bad" if n else "good"))
@@ -446,8 +511,10 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
     for u, reason in sorted(ctx.unit_level_flags.items()):
         if unit is None or u == unit:
             ul = f'<a href="#unit-{esc(u)}">{esc(u)}</a>' if link else esc(u)
-            items.append(f'<li data-unit="{esc(u)}">{kind_badges(flag_kinds(reason) or {KIND_OUTLIER})} '
-                         f'<b>{ul}</b> · {esc(reason)}</li>')
+            items.append(
+                f'<li data-unit="{esc(u)}">{kind_badges(flag_kinds(reason) or {KIND_OUTLIER})} '
+                f"<b>{ul}</b> · {esc(reason)}</li>"
+            )
     if (f is None or not len(f)) and not items:
         return '<p class="note">No parameter flagged.</p>'
     f = f if f is not None else ctx.summary.iloc[0:0]
@@ -463,7 +530,8 @@ def flags_list(ctx: LotContext, unit: str | None = None, link: bool = True) -> s
             f"<b>{u}</b> · {esc(r.model)} {pretty_param(r.parameter)} = "
             f"<b>{ctx.value(r.model, r.parameter, r.mean)}</b>{with_unit(p.label)} "
             f"(lot median {ctx.value(r.model, r.parameter, med)}, score {fmt(score, 1)}) · "
-            f"{esc(getattr(r, 'flag_reason', '') or '')}</li>")
+            f"{esc(getattr(r, 'flag_reason', '') or '')}</li>"
+        )
     return f'<ul class="flags">{"".join(items)}</ul>'
 
 
@@ -471,6 +539,7 @@ def unit_qa_note(ctx: LotContext, unit: str) -> str:
     """The QA status of the unit's current calibration file (what ``mimucal calibration``
     hands out or refuses) with its reasons and the lot context it was judged in."""
     import json
+
     ut = ctx.unit_rows("units_table", unit) if ctx.units_table is not None else None
     rel = None if ut is None or not len(ut) else ut["calibration_file"].iloc[0]
     if not isinstance(rel, str) or not rel:
@@ -481,14 +550,19 @@ def unit_qa_note(ctx: LotContext, unit: str) -> str:
         return f'<p class="note">QA status unreadable: {esc(exc)}</p>'
     qa = doc.get("qa") if isinstance(doc.get("qa"), dict) else None
     if qa is None:
-        return (f'<p class="note qa-status">{qa_badge(None)} the current calibration '
-                f'<span class="mono">{esc(rel)}</span> was not judged in a lot.</p>')
+        return (
+            f'<p class="note qa-status">{qa_badge(None)} the current calibration '
+            f'<span class="mono">{esc(rel)}</span> was not judged in a lot.</p>'
+        )
     reasons = "".join(f"<li>{esc(r)}</li>" for r in qa.get("reasons") or [])
-    return (f'<div class="qa-status"><p>{qa_badge(qa.get("status"))} QA status of the current '
-            f'calibration <span class="mono">{esc(rel)}</span> in lot {esc(qa.get("lot"))} '
-            f'({esc(qa.get("reference_detail") or qa.get("reference"))}; judged '
-            f'{esc(fmt_time(qa.get("judged_at")) or DASH)})</p>'
-            + (f'<ul class="flags">{reasons}</ul>' if reasons else "") + "</div>")
+    return (
+        f'<div class="qa-status"><p>{qa_badge(qa.get("status"))} QA status of the current '
+        f'calibration <span class="mono">{esc(rel)}</span> in lot {esc(qa.get("lot"))} '
+        f"({esc(qa.get('reference_detail') or qa.get('reference'))}; judged "
+        f"{esc(fmt_time(qa.get('judged_at')) or DASH)})</p>"
+        + (f'<ul class="flags">{reasons}</ul>' if reasons else "")
+        + "</div>"
+    )
 
 
 def qa_reference_note(ctx: LotContext) -> str:
@@ -497,19 +571,27 @@ def qa_reference_note(ctx: LotContext) -> str:
     qa = ctx.qa_lot or {}
     parts = []
     if qa:
-        ref = {"lot": "the lot itself", "fleet history": "the fleet history",
-               "none": "no reference (too few units, no fleet history)"}.get(
-            qa.get("reference"), str(qa.get("reference")))
-        parts.append(f"<b>Reference:</b> {esc(ref)}"
-                     + (f" ({esc(qa.get('reference_detail'))})" if qa.get("reference_detail") else "")
-                     + f"; |robust z| threshold {fmt(qa.get('z_threshold'), 2)}; judged "
-                     f"{esc(fmt_time(qa.get('judged_at')) or DASH)}.")
+        ref = {
+            "lot": "the lot itself",
+            "fleet history": "the fleet history",
+            "none": "no reference (too few units, no fleet history)",
+        }.get(qa.get("reference"), str(qa.get("reference")))
+        parts.append(
+            f"<b>Reference:</b> {esc(ref)}"
+            + (f" ({esc(qa.get('reference_detail'))})" if qa.get("reference_detail") else "")
+            + f"; |robust z| threshold {fmt(qa.get('z_threshold'), 2)}; judged "
+            f"{esc(fmt_time(qa.get('judged_at')) or DASH)}."
+        )
     else:
         parts.append("<b>Reference:</b> not recorded (the lot was not re-flagged by this version).")
     if ctx.limits:
-        parts.append(f"<b>Limits:</b> {len(ctx.limits)} parameter(s) "
-                     + ", ".join(f"{esc(m)}.{esc(n)} ({esc(lim.written)})"
-                                 for (m, n), lim in sorted(ctx.limits.items())) + ".")
+        parts.append(
+            f"<b>Limits:</b> {len(ctx.limits)} parameter(s) "
+            + ", ".join(
+                f"{esc(m)}.{esc(n)} ({esc(lim.written)})" for (m, n), lim in sorted(ctx.limits.items())
+            )
+            + "."
+        )
     else:
         parts.append("<b>Limits:</b> none configured.")
     if ctx.limits_problem:
@@ -518,6 +600,7 @@ def qa_reference_note(ctx: LotContext) -> str:
 
 
 # ----------------------------------------------------------------------------- key table
+
 
 def key_models(ctx: LotContext) -> list[str]:
     present = {m for m, _ in ctx.params}
@@ -546,7 +629,10 @@ def key_parameter_table(ctx: LotContext) -> str:
         return missing("Key parameters", "no gyro/accel/accel_static/lever_arm rows in summary.parquet")
     # the summary's columns as Python lists once (itertuples over ~3,000 rows costs ~40 ms)
     col = {c: py_values(s[c]) for c in ("mean", "std", "n_reps", "flagged", "flag_reason") if c in s}
-    by_key = {k: i for i, k in enumerate(zip(py_values(s["unit"]), py_values(s["model"]), py_values(s["parameter"])))}
+    by_key = {
+        k: i
+        for i, k in enumerate(zip(py_values(s["unit"]), py_values(s["model"]), py_values(s["parameter"])))
+    }
     no_flags = [False] * len(s)
     flag_cells = _flagged_cells(ctx)
     n_flags = {u: ctx.n_param_flags(u) + (u in ctx.unit_level_flags) for u in ctx.units}
@@ -560,18 +646,21 @@ def key_parameter_table(ctx: LotContext) -> str:
         headers = ["Unit", "Sessions used/all", "Flags"]
         for n in names:
             p = ctx.info(m, n)
-            headers.append(f'{pretty_param(n)}<br><small>{esc(p.label) or "&nbsp;"}</small>')
+            headers.append(f"{pretty_param(n)}<br><small>{esc(p.label) or '&nbsp;'}</small>")
         rows = []
         for unit in units:
             c = counts[unit]
             n_all = sum(c.values()) if c else 0
             used = c.get("ok", 0) + c.get("warned", 0)
-            cells = [f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
-                     + (" " + kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER})) if n_flags[unit] else "")
-                     + "</td>",
-                     f'<td data-sort="{used}">{used}/{n_all}'
-                     + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "") + "</td>",
-                     f'<td data-sort="{n_flags[unit]}">{n_flags[unit] or ""}</td>']
+            cells = [
+                f'<td class="text" data-sort="{esc(unit)}"><a href="#unit-{esc(unit)}">{esc(unit)}</a>'
+                + (" " + kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER})) if n_flags[unit] else "")
+                + "</td>",
+                f'<td data-sort="{used}">{used}/{n_all}'
+                + (f' <span class="badge failed">{c["failed"]} failed</span>' if c.get("failed") else "")
+                + "</td>",
+                f'<td data-sort="{n_flags[unit]}">{n_flags[unit] or ""}</td>',
+            ]
             for n in names:
                 i = by_key.get((unit, m, n))
                 if i is None:
@@ -580,41 +669,61 @@ def key_parameter_table(ctx: LotContext) -> str:
                 p = ctx.info(m, n)
                 mean, r_std = col["mean"][i], col["std"][i]
                 val = ctx.value(m, n, mean)
-                tip = (f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: "
-                       f"{p.spread(r_std).replace(chr(160), ' ')})")
+                tip = (
+                    f"{m} {n} = {val} {p.label} (spread over {col['n_reps'][i]} reps: "
+                    f"{p.spread(r_std).replace(chr(160), ' ')})"
+                )
                 if bool(col.get("flagged", no_flags)[i]):
                     why = col["flag_reason"][i] if "flag_reason" in col else ""
                     kinds = flag_kinds(why) or {KIND_OUTLIER}
                     cls = "limit" if KIND_LIMITS in kinds else "flagged"
                     tip += f" — FLAGGED ({'limit failed' if cls == 'limit' else 'outlier'}): {why}"
-                    cells.append(f'<td class="{cls}" data-flagged="1" data-kind="{esc(" ".join(sorted(kinds)))}" '
-                                 f'data-param="{esc(n)}" data-sort="{float(mean)!r}" '
-                                 f'title="{esc(tip)}">{val}</td>')
+                    cells.append(
+                        f'<td class="{cls}" data-flagged="1" data-kind="{esc(" ".join(sorted(kinds)))}" '
+                        f'data-param="{esc(n)}" data-sort="{float(mean)!r}" '
+                        f'title="{esc(tip)}">{val}</td>'
+                    )
                 else:
-                    cells.append(f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>')
+                    cells.append(
+                        f'<td data-param="{esc(n)}" data-sort="{float(mean)!r}" title="{esc(tip)}">{val}</td>'
+                    )
             rows.append(({"class": "flagged-unit" if n_flags[unit] else "", "data-unit": unit}, cells))
         foot = _lot_rows(ctx, s, m, names)
         title = dict(KEY_MODELS).get(m, m)
         n_cells = sum(len(v) for v in in_model.values())
         badge = f' <span class="badge flag">{n_cells} ⚑</span>' if n_cells else ""
         tid = f"kp-{m}"
-        tabs.append(f'<button type="button" role="tab" class="tab" id="{tid}-tab" aria-controls="{tid}" '
-                    f'aria-selected="{"true" if k == 0 else "false"}" data-tab="{tid}">{title}{badge}</button>')
-        panels.append(f'<div class="tabpanel" role="tabpanel" id="{tid}" data-model="{esc(m)}" '
-                      f'aria-labelledby="{tid}-tab"{"" if k == 0 else " hidden"}>'
-                      f'<h3 class="print-only">{title}</h3>'
-                      + table(headers, rows + foot, cls="sortable params key-parameters", text_cols=1,
-                              attrs=f' id="key-parameters-{esc(m)}"')
-                      + "</div>")
-    note = ('<p class="note">Mean over repetitions per unit; one table per model (choose above). '
-            'Flagged units come first; click a column heading to sort. Red cells (⚑) are statistical '
-            'outliers, orange cells (✖) failed an acceptance limit; hover a cell for its spread over '
-            'repetitions and the reason. '
-            'Values: biases stored in g in mg, a blank unit means dimensionless. The last two rows: '
-            'the lot median and its scatter (1.4826 × MAD), spreads in ppm (ratios), deg/h (gyro '
-            'biases) or mg (accelerometer biases).</p>')
-    return (note + f'<div class="tabs" role="tablist" id="key-parameter-tabs">{"".join(tabs)}</div>'
-            + "".join(panels))
+        tabs.append(
+            f'<button type="button" role="tab" class="tab" id="{tid}-tab" aria-controls="{tid}" '
+            f'aria-selected="{"true" if k == 0 else "false"}" data-tab="{tid}">{title}{badge}</button>'
+        )
+        panels.append(
+            f'<div class="tabpanel" role="tabpanel" id="{tid}" data-model="{esc(m)}" '
+            f'aria-labelledby="{tid}-tab"{"" if k == 0 else " hidden"}>'
+            f'<h3 class="print-only">{title}</h3>'
+            + table(
+                headers,
+                rows + foot,
+                cls="sortable params key-parameters",
+                text_cols=1,
+                attrs=f' id="key-parameters-{esc(m)}"',
+            )
+            + "</div>"
+        )
+    note = (
+        '<p class="note">Mean over repetitions per unit; one table per model (choose above). '
+        "Flagged units come first; click a column heading to sort. Red cells (⚑) are statistical "
+        "outliers, orange cells (✖) failed an acceptance limit; hover a cell for its spread over "
+        "repetitions and the reason. "
+        "Values: biases stored in g in mg, a blank unit means dimensionless. The last two rows: "
+        "the lot median and its scatter (1.4826 × MAD), spreads in ppm (ratios), deg/h (gyro "
+        "biases) or mg (accelerometer biases).</p>"
+    )
+    return (
+        note
+        + f'<div class="tabs" role="tablist" id="key-parameter-tabs">{"".join(tabs)}</div>'
+        + "".join(panels)
+    )
 
 
 def _lot_rows(ctx: LotContext, s: pd.DataFrame, model: str, names: list[str]) -> list[str]:
@@ -629,16 +738,22 @@ def _lot_rows(ctx: LotContext, s: pd.DataFrame, model: str, names: list[str]) ->
         if len(v):
             m = float(np.median(v))
             med.append(f"<td>{ctx.value(model, n, m)}</td>")
-            mad.append(f"<td>{p.spread(1.4826 * float(np.median(np.abs(v - m))))}</td>"
-                       if len(v) > 2 else f"<td>{DASH}</td>")
+            mad.append(
+                f"<td>{p.spread(1.4826 * float(np.median(np.abs(v - m))))}</td>"
+                if len(v) > 2
+                else f"<td>{DASH}</td>"
+            )
         else:
             med.append(f"<td>{DASH}</td>")
             mad.append(f"<td>{DASH}</td>")
-    return [f'<tr class="lotstat"><td class="text">lot median</td><td></td><td></td>{"".join(med)}</tr>',
-            f'<tr class="lotstat"><td class="text">lot scatter</td><td></td><td></td>{"".join(mad)}</tr>']
+    return [
+        f'<tr class="lotstat"><td class="text">lot median</td><td></td><td></td>{"".join(med)}</tr>',
+        f'<tr class="lotstat"><td class="text">lot scatter</td><td></td><td></td>{"".join(mad)}</tr>',
+    ]
 
 
 # ----------------------------------------------------------------------------- strip plots
+
 
 def _jitter(i: int) -> float:
     # deterministic spread of points around the box (golden-ratio sequence)
@@ -675,11 +790,13 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
     # costs ~1 ms a panel, 45 panels a lot)
     by_name = {str(k): pos for k, pos in sm.groupby("parameter", sort=False).indices.items()}
     mean_all = sm["mean"].to_numpy(dtype=float)
-    flagged_all = (sm["flagged"].fillna(False).astype(bool).to_numpy() if "flagged" in sm
-                   else np.zeros(len(sm), bool))
+    flagged_all = (
+        sm["flagged"].fillna(False).astype(bool).to_numpy() if "flagged" in sm else np.zeros(len(sm), bool)
+    )
     units_all = sm["unit"].astype(str).to_numpy()
-    reasons_all = sm["flag_reason"].astype(str).to_numpy() if "flag_reason" in sm else \
-        np.array([""] * len(sm), object)
+    reasons_all = (
+        sm["flag_reason"].astype(str).to_numpy() if "flag_reason" in sm else np.array([""] * len(sm), object)
+    )
     limit_all = np.array(["[limit]" in r for r in reasons_all], bool) & flagged_all
     any_limit_line = False
     for k, n in enumerate(names):
@@ -693,28 +810,71 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
         units = units_all[pos]
         x = np.array([_jitter(unit_index.get(u, i)) for i, u in enumerate(units)])
         hover = np.array([f"{u}<br>{n} = {fmt(v, p.decimals)} {p.label}" for u, v in zip(units, vals)])
-        data.append({"type": "box", "y": arr(vals), "x0": 0, "name": "lot (all units)", "boxpoints": False,
-                     "marker": {"color": "#9fb3c8"}, "fillcolor": "rgba(159,179,200,0.25)",
-                     "line": {"width": 1}, "width": 0.8, "hoverinfo": "skip", "showlegend": False,
-                     "xaxis": xr, "yaxis": yr})
-        data.append({"type": "scatter", "x": arr(x[~flagged]), "y": arr(vals[~flagged]), "mode": "markers",
-                     "marker": {"color": CLEAN, "size": 6, "opacity": 0.85}, "name": "unit (in family)",
-                     "text": list(hover[~flagged]), "hoverinfo": "text", "showlegend": k == 0,
-                     "legendgroup": "clean", "xaxis": xr, "yaxis": yr})
-        for sel, name, colour, symbol, edge in ((outlier, "outlier", FLAGGED, "diamond", "#7f1d1d"),
-                                                (at_limit, "limit failed", LIMIT, "x", "#7c2d12")):
+        data.append(
+            {
+                "type": "box",
+                "y": arr(vals),
+                "x0": 0,
+                "name": "lot (all units)",
+                "boxpoints": False,
+                "marker": {"color": "#9fb3c8"},
+                "fillcolor": "rgba(159,179,200,0.25)",
+                "line": {"width": 1},
+                "width": 0.8,
+                "hoverinfo": "skip",
+                "showlegend": False,
+                "xaxis": xr,
+                "yaxis": yr,
+            }
+        )
+        data.append(
+            {
+                "type": "scatter",
+                "x": arr(x[~flagged]),
+                "y": arr(vals[~flagged]),
+                "mode": "markers",
+                "marker": {"color": CLEAN, "size": 6, "opacity": 0.85},
+                "name": "unit (in family)",
+                "text": list(hover[~flagged]),
+                "hoverinfo": "text",
+                "showlegend": k == 0,
+                "legendgroup": "clean",
+                "xaxis": xr,
+                "yaxis": yr,
+            }
+        )
+        for sel, name, colour, symbol, edge in (
+            (outlier, "outlier", FLAGGED, "diamond", "#7f1d1d"),
+            (at_limit, "limit failed", LIMIT, "x", "#7c2d12"),
+        ):
             if not sel.any():
                 continue
             reasons = reasons_all[pos][sel]
-            data.append({"type": "scatter", "x": arr(x[sel]), "y": arr(vals[sel]),
-                         "mode": "markers+text", "name": name,
-                         "marker": {"color": colour, "size": 12, "symbol": symbol,
-                                    "line": {"color": edge, "width": 1}},
-                         "text": list(units[sel]), "textposition": "middle right",
-                         "textfont": {"color": colour, "size": 12},
-                         "hovertext": [f"{h}<br><b>{name}</b>: {r}" for h, r in zip(hover[sel], reasons)],
-                         "hoverinfo": "text", "showlegend": False, "legendgroup": name,
-                         "cliponaxis": False, "xaxis": xr, "yaxis": yr})
+            data.append(
+                {
+                    "type": "scatter",
+                    "x": arr(x[sel]),
+                    "y": arr(vals[sel]),
+                    "mode": "markers+text",
+                    "name": name,
+                    "marker": {
+                        "color": colour,
+                        "size": 12,
+                        "symbol": symbol,
+                        "line": {"color": edge, "width": 1},
+                    },
+                    "text": list(units[sel]),
+                    "textposition": "middle right",
+                    "textfont": {"color": colour, "size": 12},
+                    "hovertext": [f"{h}<br><b>{name}</b>: {r}" for h, r in zip(hover[sel], reasons)],
+                    "hoverinfo": "text",
+                    "showlegend": False,
+                    "legendgroup": name,
+                    "cliponaxis": False,
+                    "xaxis": xr,
+                    "yaxis": yr,
+                }
+            )
         lim = ctx.limits.get((model, n))
         if lim is not None:
             for bound in (lim.min, lim.max):
@@ -722,37 +882,93 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
                     continue
                 any_limit_line = True
                 y = float(bound) * p.scale
-                shapes.append({"type": "line", "xref": xr, "yref": yr, "x0": -0.6, "x1": 1.0,
-                               "y0": y, "y1": y, "line": {"color": LIMIT, "width": 1.5, "dash": "dash"}})
+                shapes.append(
+                    {
+                        "type": "line",
+                        "xref": xr,
+                        "yref": yr,
+                        "x0": -0.6,
+                        "x1": 1.0,
+                        "y0": y,
+                        "y1": y,
+                        "line": {"color": LIMIT, "width": 1.5, "dash": "dash"},
+                    }
+                )
                 # an invisible point at the limit keeps it inside the autoranged axis
-                data.append({"type": "scatter", "x": [0.95], "y": [y], "mode": "markers",
-                             "marker": {"opacity": 0}, "hoverinfo": "text",
-                             "text": [f"limit {'min' if bound is lim.min else 'max'} "
-                                      f"{fmt(y, p.decimals)} {p.label}"],
-                             "showlegend": False, "xaxis": xr, "yaxis": yr})
+                data.append(
+                    {
+                        "type": "scatter",
+                        "x": [0.95],
+                        "y": [y],
+                        "mode": "markers",
+                        "marker": {"opacity": 0},
+                        "hoverinfo": "text",
+                        "text": [
+                            f"limit {'min' if bound is lim.min else 'max'} {fmt(y, p.decimals)} {p.label}"
+                        ],
+                        "showlegend": False,
+                        "xaxis": xr,
+                        "yaxis": yr,
+                    }
+                )
         ax = "xaxis" + xr[1:]
         layout[ax].update(range=[-0.6, 1.0], showticklabels=False, showgrid=False, zeroline=False)
         layout["yaxis" + yr[1:]].update(
-            tickformat=f".{max(p.decimals - 1, 0)}~f" if p.decimals is not None else "", nticks=5)
+            tickformat=f".{max(p.decimals - 1, 0)}~f" if p.decimals is not None else "", nticks=5
+        )
     # one legend entry per category even if the first panel has none
-    data.append({"type": "scatter", "x": [None], "y": [None], "mode": "markers",
-                 "name": "outlier (labelled)", "xaxis": "x", "yaxis": "y",
-                 "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond"}, "showlegend": True})
-    data.append({"type": "scatter", "x": [None], "y": [None], "mode": "markers",
-                 "name": "limit failed (labelled)", "xaxis": "x", "yaxis": "y",
-                 "marker": {"color": LIMIT, "size": 12, "symbol": "x"}, "showlegend": True})
+    data.append(
+        {
+            "type": "scatter",
+            "x": [None],
+            "y": [None],
+            "mode": "markers",
+            "name": "outlier (labelled)",
+            "xaxis": "x",
+            "yaxis": "y",
+            "marker": {"color": FLAGGED, "size": 12, "symbol": "diamond"},
+            "showlegend": True,
+        }
+    )
+    data.append(
+        {
+            "type": "scatter",
+            "x": [None],
+            "y": [None],
+            "mode": "markers",
+            "name": "limit failed (labelled)",
+            "xaxis": "x",
+            "yaxis": "y",
+            "marker": {"color": LIMIT, "size": 12, "symbol": "x"},
+            "showlegend": True,
+        }
+    )
     if any_limit_line:
-        data.append({"type": "scatter", "x": [None], "y": [None], "mode": "lines",
-                     "name": "acceptance limit", "xaxis": "x", "yaxis": "y",
-                     "line": {"color": LIMIT, "dash": "dash"}, "showlegend": True})
-    layout.update(margin={"l": 60, "r": 20, "t": 50, "b": 20}, hovermode="closest",
-                  legend={**_legend_top(), "y": 1.0 + 0.25 / nrows / 1.5})
+        data.append(
+            {
+                "type": "scatter",
+                "x": [None],
+                "y": [None],
+                "mode": "lines",
+                "name": "acceptance limit",
+                "xaxis": "x",
+                "yaxis": "y",
+                "line": {"color": LIMIT, "dash": "dash"},
+                "showlegend": True,
+            }
+        )
+    layout.update(
+        margin={"l": 60, "r": 20, "t": 50, "b": 20},
+        hovermode="closest",
+        legend={**_legend_top(), "y": 1.0 + 0.25 / nrows / 1.5},
+    )
     if shapes:
         layout["shapes"] = [*layout.get("shapes", []), *shapes]
     return {"data": data, "layout": layout}
 
 
 # ----------------------------------------------------------------------------- per unit tables
+
 
 def _rep_stats(V: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per row (parameter) of repetition values V and their stderrs S: average and spread
@@ -774,7 +990,7 @@ def _rep_stats(V: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
         spread[k] = float(np.std(vals, ddof=1)) if len(vals) > 1 else np.nan
     for k in np.flatnonzero(~full_s):
         se = S[k][np.isfinite(S[k])]
-        mean_se[k] = float(np.sqrt(np.sum(se ** 2)) / len(se)) if len(se) else np.nan
+        mean_se[k] = float(np.sqrt(np.sum(se**2)) / len(se)) if len(se) else np.nan
     return avg, spread, mean_se
 
 
@@ -795,13 +1011,22 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
         names = ordered_params(model, pnames)
         row_of = {n: i for i, n in enumerate(pnames)}
         infos = [ctx.info(model, n) for n in names]
-        heads = [f'<tr><td class="text">{pretty_param(n)}</td><td class="text">{esc(info.label) or DASH}</td>'
-                 for n, info in zip(names, infos)]
+        heads = [
+            f'<tr><td class="text">{pretty_param(n)}</td><td class="text">{esc(info.label) or DASH}</td>'
+            for n, info in zip(names, infos)
+        ]
         layout = layouts[(model, tuple(pnames))] = (
-            names, [row_of[n] for n in names], infos, heads, np.array([info.scale for info in infos])[:, None])
+            names,
+            [row_of[n] for n in names],
+            infos,
+            heads,
+            np.array([info.scale for info in infos])[:, None],
+        )
     names, order, infos, heads, scale = layout
     flagged = ctx.flagged_params(unit, model)
-    headers = ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Stderr of average"]
+    headers = (
+        ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Stderr of average"]
+    )
     Vs = V[order] * scale
     avg, spread, mean_se = ctx.rep_stats(unit, model, order)
     rows = []
@@ -809,14 +1034,17 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
     for k, (n, info) in enumerate(zip(names, infos)):
         # the row as html.table would write it (two text cells, numbers right-aligned)
         cls = "avg flagged" if n in flagged else "avg"
-        rows.append(heads[k]
-                    + td_numbers(values[k], finite[k], info.decimals)
-                    + f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>'
-                    # spreads in their own units (ppm, deg/h, mg): avg etc. are in the value unit
-                    f'<td class="spread">{info.spread(spread[k] / info.scale)}</td>'
-                    f'<td class="spread">{info.spread(mean_se[k] / info.scale)}</td></tr>')
-    return (f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>"
-            + table(headers, rows, cls="paper", text_cols=2, wrap=False))
+        rows.append(
+            heads[k]
+            + td_numbers(values[k], finite[k], info.decimals)
+            + f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>'
+            # spreads in their own units (ppm, deg/h, mg): avg etc. are in the value unit
+            f'<td class="spread">{info.spread(spread[k] / info.scale)}</td>'
+            f'<td class="spread">{info.spread(mean_se[k] / info.scale)}</td></tr>'
+        )
+    return f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>" + table(
+        headers, rows, cls="paper", text_cols=2, wrap=False
+    )
 
 
 def compensation_table(ctx: LotContext, unit: str) -> str:
@@ -826,11 +1054,19 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
         return missing("Table 3 (compensation errors)", "compensation.parquet is absent")
     cache = ctx.__dict__.get("_comp")
     if cache is None:
-        cc = c.assign(input_axis=c["input_axis"].astype(str), output_axis=c["output_axis"].astype(str),
-                      method=c["method"].astype(str))
+        cc = c.assign(
+            input_axis=c["input_axis"].astype(str),
+            output_axis=c["output_axis"].astype(str),
+            method=c["method"].astype(str),
+        )
         agg = cc.groupby(["unit", "input_axis", "method", "output_axis"], sort=True).agg(
-            lo=("err_min", "min"), hi=("err_max", "max"), n_reps=("rep", "nunique"))
-        uom = cc.groupby("unit")["unit_of_measure"].first() if "unit_of_measure" in cc else pd.Series(dtype=object)
+            lo=("err_min", "min"), hi=("err_max", "max"), n_reps=("rep", "nunique")
+        )
+        uom = (
+            cc.groupby("unit")["unit_of_measure"].first()
+            if "unit_of_measure" in cc
+            else pd.Series(dtype=object)
+        )
         # per unit: its distinct sources, sorted and joined
         src_sets: dict[Any, set[str]] = {}
         if "source" in cc:
@@ -842,12 +1078,20 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
         lookups: dict[str, dict] = {}
         n_reps_of: dict[str, int] = {}
         idx = agg.index
-        for u, inp, m, o, lo, hi, n in zip(*(py_values(idx.get_level_values(k)) for k in range(4)),
-                                           agg["lo"].tolist(), agg["hi"].tolist(), agg["n_reps"].tolist()):
+        for u, inp, m, o, lo, hi, n in zip(
+            *(py_values(idx.get_level_values(k)) for k in range(4)),
+            agg["lo"].tolist(),
+            agg["hi"].tolist(),
+            agg["n_reps"].tolist(),
+        ):
             lookups.setdefault(str(u), {})[(inp, m, o)] = (lo, hi)
             n_reps_of[str(u)] = max(n_reps_of.get(str(u), n), n)
-        cache = {"lookup": lookups, "n_reps": n_reps_of, "uom": uom.to_dict(),
-                 "src": {u: ", ".join(sorted(v)) for u, v in src_sets.items()}}
+        cache = {
+            "lookup": lookups,
+            "n_reps": n_reps_of,
+            "uom": uom.to_dict(),
+            "src": {u: ", ".join(sorted(v)) for u, v in src_sets.items()},
+        }
         ctx.__dict__["_comp"] = cache
     lookup = cache["lookup"].get(unit)
     if not lookup:
@@ -870,10 +1114,20 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
                 else:
                     cells.append(DASH)
             rows.append(({"class": "sep"} if k == 0 else {}, cells))
-    return ("<h4>Table 3 · output errors of the angular rates [" + esc(uom) + "]</h4>"
-            + table(["Input axis", "Method"] + [f"{esc(o)}-axis output" for o in outs], rows,
-                    cls="paper", text_cols=2, wrap=False)
-            + f'<p class="note">Envelope (min ~ max) over {n_reps} repetition(s){"; source: " + esc(src) if src else ""}.</p>')
+    return (
+        "<h4>Table 3 · output errors of the angular rates ["
+        + esc(uom)
+        + "]</h4>"
+        + table(
+            ["Input axis", "Method"] + [f"{esc(o)}-axis output" for o in outs],
+            rows,
+            cls="paper",
+            text_cols=2,
+            wrap=False,
+        )
+        + f'<p class="note">Envelope (min ~ max) over {n_reps} repetition(s)'
+        + f"{'; source: ' + esc(src) if src else ''}.</p>"
+    )
 
 
 def other_models_tables(ctx: LotContext, unit: str) -> str:
@@ -886,6 +1140,7 @@ def other_models_tables(ctx: LotContext, unit: str) -> str:
 
 # ----------------------------------------------------------------------------- residual plots
 
+
 class ResidualIndex:
     """The aggregated residuals of a lot as numpy columns plus each unit's row positions,
     built once per report: per-unit figures then cost a few array takes instead of pandas
@@ -893,10 +1148,14 @@ class ResidualIndex:
 
     def __init__(self, a: pd.DataFrame) -> None:
         self.rows = {str(u): pos for u, pos in a.groupby("unit", sort=False).indices.items()}
-        self.is_gyro = (((a["test"] == "multirate") & a["channel"].isin(["gx", "gy", "gz"]))
-                        .fillna(False).to_numpy(bool))
-        self.is_accel = (((a["test"] == "multiposition") & a["channel"].isin(["ax", "ay", "az"]))
-                         .fillna(False).to_numpy(bool))
+        self.is_gyro = (
+            ((a["test"] == "multirate") & a["channel"].isin(["gx", "gy", "gz"])).fillna(False).to_numpy(bool)
+        )
+        self.is_accel = (
+            ((a["test"] == "multiposition") & a["channel"].isin(["ax", "ay", "az"]))
+            .fillna(False)
+            .to_numpy(bool)
+        )
         self.model = a["model"].astype(str).to_numpy(object)
         self.channel = a["channel"].to_numpy(object)
         self.up_axis = a["up_axis"].astype(str).to_numpy(object)
@@ -931,9 +1190,19 @@ def residual_index(ctx: LotContext) -> ResidualIndex | None:
     return ri
 
 
-def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...], x_of, scale: float,
-                     unit: str, x_title: str, symbol: str, categorical: bool,
-                     x_axis: dict | None = None, hover_x_of=None) -> dict:
+def _residual_figure(
+    ri: ResidualIndex,
+    d: np.ndarray,
+    channels: tuple[str, ...],
+    x_of,
+    scale: float,
+    unit: str,
+    x_title: str,
+    symbol: str,
+    categorical: bool,
+    x_axis: dict | None = None,
+    hover_x_of=None,
+) -> dict:
     """``d``: row positions in ``ri`` of one unit's points, in drawing order. ``x_axis``:
     settings of every x axis (e.g. symlog ticks); ``hover_x_of``: the x shown on hover when
     the drawn x is transformed."""
@@ -953,16 +1222,31 @@ def _residual_figure(ri: ResidualIndex, d: np.ndarray, channels: tuple[str, ...]
             y = ri.residual[dc] * scale
             extra = {} if hover_x_of is None else {"customdata": hover_x_of(dc)}
             at = "%{x}" if hover_x_of is None else "%{customdata:.4g}"
-            data.append({
-                **extra,
-                "type": "scatter", "x": x_of(dc), "y": arr(y), "mode": "markers", "name": f"{ch} error",
-                "marker": {"color": CHANNEL_COLOURS[ch[1]], "size": 6, "symbol": symbol},
-                "error_y": {"type": "data", "symmetric": False,
-                            "array": arr(ri.rmax[dc] * scale - y),
-                            "arrayminus": arr(y - ri.rmin[dc] * scale),
-                            "thickness": 1, "width": 0, "color": CHANNEL_COLOURS[ch[1]]},
-                "legendgroup": ch, "showlegend": j == 0, "xaxis": xr, "yaxis": yr,
-                "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at {at}<extra>{m} model</extra>"})
+            data.append(
+                {
+                    **extra,
+                    "type": "scatter",
+                    "x": x_of(dc),
+                    "y": arr(y),
+                    "mode": "markers",
+                    "name": f"{ch} error",
+                    "marker": {"color": CHANNEL_COLOURS[ch[1]], "size": 6, "symbol": symbol},
+                    "error_y": {
+                        "type": "data",
+                        "symmetric": False,
+                        "array": arr(ri.rmax[dc] * scale - y),
+                        "arrayminus": arr(y - ri.rmin[dc] * scale),
+                        "thickness": 1,
+                        "width": 0,
+                        "color": CHANNEL_COLOURS[ch[1]],
+                    },
+                    "legendgroup": ch,
+                    "showlegend": j == 0,
+                    "xaxis": xr,
+                    "yaxis": yr,
+                    "hovertemplate": f"{ch}: %{{y:.4g}} {unit} at {at}<extra>{m} model</extra>",
+                }
+            )
         layout["xaxis" + xr[1:]].update(title={"text": x_title}, **(x_axis or {}))
         if categorical:
             layout["xaxis" + xr[1:]].update(type="category", tickangle=-60, tickfont={"size": 10})
@@ -982,10 +1266,14 @@ def symlog(x: np.ndarray, c: float = SYMLOG_LINEAR_DPS) -> np.ndarray:
 
 def symlog_axis(max_abs: float, c: float = SYMLOG_LINEAR_DPS) -> dict:
     """Tick values and labels of a symlog axis up to ``max_abs``: 0, +/-1, 10, 100... c."""
-    decades = [c * 10 ** k for k in range(0, int(np.ceil(np.log10(max(max_abs, c) / c))) + 1)]
+    decades = [c * 10**k for k in range(0, int(np.ceil(np.log10(max(max_abs, c) / c))) + 1)]
     vals = sorted({0.0, *decades, *(-d for d in decades)})
-    return {"tickmode": "array", "tickvals": symlog(np.array(vals), c).tolist(),
-            "ticktext": [f"{v:g}".replace("-", MINUS) for v in vals], "zeroline": True}
+    return {
+        "tickmode": "array",
+        "tickvals": symlog(np.array(vals), c).tolist(),
+        "ticktext": [f"{v:g}".replace("-", MINUS) for v in vals],
+        "zeroline": True,
+    }
 
 
 def rates_span_decades(rates: np.ndarray, decades: float = 1.0) -> bool:
@@ -993,7 +1281,7 @@ def rates_span_decades(rates: np.ndarray, decades: float = 1.0) -> bool:
     pile the low rates together)."""
     r = np.abs(np.asarray(rates, dtype=float))
     r = r[np.isfinite(r) & (r > 0)]
-    return len(r) > 1 and r.max() / r.min() >= 10 ** decades
+    return len(r) > 1 and r.max() / r.min() >= 10**decades
 
 
 def gyro_residual_figure(ctx: LotContext, unit: str) -> dict | None:
@@ -1008,12 +1296,30 @@ def gyro_residual_figure(ctx: LotContext, unit: str) -> dict | None:
         return None
     rates = ri.rate_dps[d]
     if rates_span_decades(rates):
-        return _residual_figure(ri, d, ("gx", "gy", "gz"), lambda dc: arr(symlog(ri.rate_dps[dc])),
-                                1.0, "deg/s", "table rate [deg/s] (symmetric log scale)", "circle", False,
-                                x_axis=symlog_axis(float(np.nanmax(np.abs(rates)))),
-                                hover_x_of=lambda dc: ri.rate_dps[dc].tolist())
-    return _residual_figure(ri, d, ("gx", "gy", "gz"), lambda dc: arr(ri.rate_dps[dc]),
-                            1.0, "deg/s", "table rate [deg/s]", "circle", False)
+        return _residual_figure(
+            ri,
+            d,
+            ("gx", "gy", "gz"),
+            lambda dc: arr(symlog(ri.rate_dps[dc])),
+            1.0,
+            "deg/s",
+            "table rate [deg/s] (symmetric log scale)",
+            "circle",
+            False,
+            x_axis=symlog_axis(float(np.nanmax(np.abs(rates)))),
+            hover_x_of=lambda dc: ri.rate_dps[dc].tolist(),
+        )
+    return _residual_figure(
+        ri,
+        d,
+        ("gx", "gy", "gz"),
+        lambda dc: arr(ri.rate_dps[dc]),
+        1.0,
+        "deg/s",
+        "table rate [deg/s]",
+        "circle",
+        False,
+    )
 
 
 def accel_residual_figure(ctx: LotContext, unit: str) -> dict | None:
@@ -1025,16 +1331,21 @@ def accel_residual_figure(ctx: LotContext, unit: str) -> dict | None:
         return None
 
     def labels(dc: np.ndarray) -> list[str]:
-        return [f"{u} up {h:g}°" if h == h else f"{u} up, step {int(st)}"
-                for u, h, st in zip(ri.up_axis[dc], ri.angle_deg[dc].tolist(), ri.step[dc].tolist())]
+        return [
+            f"{u} up {h:g}°" if h == h else f"{u} up, step {int(st)}"
+            for u, h, st in zip(ri.up_axis[dc], ri.angle_deg[dc].tolist(), ri.step[dc].tolist())
+        ]
 
-    return _residual_figure(ri, d, ("ax", "ay", "az"), labels, 1e3, "mg",
-                            "orientation (axis up, heading)", "square", True)
+    return _residual_figure(
+        ri, d, ("ax", "ay", "az"), labels, 1e3, "mg", "orientation (axis up, heading)", "square", True
+    )
 
 
 def _unit_ticks(ctx: LotContext) -> list[str]:
-    return [f"<span style='color:{FLAGGED}'><b>{u} ⚑</b></span>" if u in ctx.flagged_units else u
-            for u in ctx.units]
+    return [
+        f"<span style='color:{FLAGGED}'><b>{u} ⚑</b></span>" if u in ctx.flagged_units else u
+        for u in ctx.units
+    ]
 
 
 def residual_overview_figure(ctx: LotContext) -> dict | None:
@@ -1042,25 +1353,40 @@ def residual_overview_figure(ctx: LotContext) -> dict | None:
     a = ctx.residual_agg
     if a is None or not len(a):
         return None
-    a = a.assign(sensor=np.where(a["channel"].astype(str).str.startswith("g"), "gyro", "accel"),
-                 sq=a["residual"].astype(float) ** 2)
+    a = a.assign(
+        sensor=np.where(a["channel"].astype(str).str.startswith("g"), "gyro", "accel"),
+        sq=a["residual"].astype(float) ** 2,
+    )
     rms = (a.groupby(["unit", "sensor", "model"])["sq"].mean() ** 0.5).reset_index()
     units = ctx.units
     layout, refs = grid(1, 2, ["gyro RMS error [deg/s]", "accelerometer RMS error [mg]"], hspace=0.08)
-    styles = {"baseline": {"color": "#f58518", "symbol": "circle"},
-              "extended": {"color": "#4c78a8", "symbol": "x"}}
+    styles = {
+        "baseline": {"color": "#f58518", "symbol": "circle"},
+        "extended": {"color": "#4c78a8", "symbol": "x"},
+    }
     data = []
     for j, sensor in enumerate(("gyro", "accel")):
         scale = 1.0 if sensor == "gyro" else 1e3
         xr, yr = refs[j]
         for m in sorted(rms["model"].astype(str).unique()):
             d = rms[(rms["sensor"] == sensor) & (rms["model"] == m)].set_index("unit").reindex(units)
-            data.append({"type": "scatter", "x": units, "y": arr(d["sq"].to_numpy(float) * scale),
-                         "mode": "markers", "name": f"{m} model",
-                         "marker": {"size": 8, **styles.get(m, {"color": "#54a24b", "symbol": "diamond"})},
-                         "legendgroup": m, "showlegend": j == 0, "xaxis": xr, "yaxis": yr})
-        layout["xaxis" + xr[1:]].update(type="category", tickvals=units, ticktext=_unit_ticks(ctx),
-                                        tickangle=-60)
+            data.append(
+                {
+                    "type": "scatter",
+                    "x": units,
+                    "y": arr(d["sq"].to_numpy(float) * scale),
+                    "mode": "markers",
+                    "name": f"{m} model",
+                    "marker": {"size": 8, **styles.get(m, {"color": "#54a24b", "symbol": "diamond"})},
+                    "legendgroup": m,
+                    "showlegend": j == 0,
+                    "xaxis": xr,
+                    "yaxis": yr,
+                }
+            )
+        layout["xaxis" + xr[1:]].update(
+            type="category", tickvals=units, ticktext=_unit_ticks(ctx), tickangle=-60
+        )
         layout["yaxis" + yr[1:]].update(rangemode="tozero")
     layout.update(legend=_legend_top(1.1), margin={"t": 70, "b": 70, "l": 60, "r": 15})
     return {"data": data, "layout": layout}
@@ -1104,24 +1430,40 @@ def _lines(v, sep: str = "; ") -> str:
 
 def _kind_table(rows: pd.DataFrame, kind: str, with_unit_col: bool) -> str:
     headers = (["Unit"] if with_unit_col else []) + [
-        "Effects" if kind == "confounded" else "Effect", "Channels", "Estimate ± standard error", "Evidence",
-        "Held-out rms before", "after (σ)", "gain"]
+        "Effects" if kind == "confounded" else "Effect",
+        "Channels",
+        "Estimate ± standard error",
+        "Evidence",
+        "Held-out rms before",
+        "after (σ)",
+        "gain",
+    ]
     if kind == "confounded":
         headers.append("Steps that would separate them")
     body = []
     for r in rows.itertuples():
-        cells = ([f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>'] if with_unit_col else [])
+        cells = [f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>'] if with_unit_col else []
         effect = str(r.effect).removeprefix("confounded: ") if kind == "confounded" else r.effect
-        cells += [_lines(effect, ", "), _cell(r.channels), _lines(r.estimates), _cell(r.evidence),
-                  _cell(r.heldout_rms_before, 3), _cell(r.heldout_rms_after, 3), _cell(r.gain, 3)]
+        cells += [
+            _lines(effect, ", "),
+            _cell(r.channels),
+            _lines(r.estimates),
+            _cell(r.evidence),
+            _cell(r.heldout_rms_before, 3),
+            _cell(r.heldout_rms_after, 3),
+            _cell(r.gain, 3),
+        ]
         if kind == "confounded":
             # the step sets (the row's effects say what they separate)
             text = str(r.separated_by or "")
-            cells.append(_lines(text.split("; add ", 1)[1] if "; add " in text else text,
-                                " or "))
+            cells.append(_lines(text.split("; add ", 1)[1] if "; add " in text else text, " or "))
         body.append(cells)
-    return table(headers, body, cls=f"discovery {kind}", text_cols=len(headers) - 3
-                 if kind != "confounded" else len(headers))
+    return table(
+        headers,
+        body,
+        cls=f"discovery {kind}",
+        text_cols=len(headers) - 3 if kind != "confounded" else len(headers),
+    )
 
 
 def discovery_tables(df: pd.DataFrame | None, with_unit_col: bool) -> str:
@@ -1140,14 +1482,20 @@ def discovery_tables(df: pd.DataFrame | None, with_unit_col: bool) -> str:
         items = "".join(
             f"<li>{(esc(r.unit) + ': ') if with_unit_col else ''}{esc(r.effect)} "
             f"({esc(r.estimates)}; held-out gain {_cell(r.gain, 3)})</li>"
-            for r in neg.itertuples())
-        out.append(f'<details class="negligible"><summary>Negligible terms ({len(neg)}): '
-                   f'significant, but the unit fits without them or their held-out gain is '
-                   f'too small; not applied</summary><ul>{items}</ul></details>')
+            for r in neg.itertuples()
+        )
+        out.append(
+            f'<details class="negligible"><summary>Negligible terms ({len(neg)}): '
+            f"significant, but the unit fits without them or their held-out gain is "
+            f"too small; not applied</summary><ul>{items}</ul></details>"
+        )
     advice = sorted({a for a in d.get("advice", pd.Series(dtype=object)).dropna() if a})
     if advice:
-        out.append("<h4>Protocol advisor</h4><ul class=\"advice\">" + "".join(
-            f"<li>{esc(line)}</li>" for a in advice for line in a.split(" | ")) + "</ul>")
+        out.append(
+            '<h4>Protocol advisor</h4><ul class="advice">'
+            + "".join(f"<li>{esc(line)}</li>" for a in advice for line in a.split(" | "))
+            + "</ul>"
+        )
     return "".join(out)
 
 
@@ -1184,28 +1532,55 @@ def evidence_figures(ctx: LotContext, page: Page, unit: str) -> str:
         first = g.iloc[0]
         xt = f"{first['x_label']}" + (f" ({first['x_unit']})" if first["x_unit"] else "")
         data = [
-            {"type": "scatter", "mode": "markers", "x": arr(x), "y": arr(g["before"].to_numpy(float)),
-             "name": "residual, affine model", "marker": {"color": "#f58518", "size": 5, "opacity": 0.7}},
-            {"type": "scatter", "mode": "markers", "x": arr(x), "y": arr(g["after"].to_numpy(float)),
-             "name": "residual after", "marker": {"color": "#4c78a8", "size": 5, "opacity": 0.7}},
+            {
+                "type": "scatter",
+                "mode": "markers",
+                "x": arr(x),
+                "y": arr(g["before"].to_numpy(float)),
+                "name": "residual, affine model",
+                "marker": {"color": "#f58518", "size": 5, "opacity": 0.7},
+            },
+            {
+                "type": "scatter",
+                "mode": "markers",
+                "x": arr(x),
+                "y": arr(g["after"].to_numpy(float)),
+                "name": "residual after",
+                "marker": {"color": "#4c78a8", "size": 5, "opacity": 0.7},
+            },
         ]
         fitted = g["fitted"].to_numpy(float)
         if np.isfinite(fitted).any():
-            data.insert(1, {"type": "scatter", "mode": "lines", "x": arr(x[order]),
-                            "y": arr(fitted[order]), "name": "fitted effect",
-                            "line": {"color": "#222", "width": 2}})
-        layout = {"legend": _legend_top(), "margin": {"t": 40, "b": 50, "l": 70, "r": 15},
-                  "xaxis": {"title": {"text": xt}},
-                  "yaxis": {"title": {"text": f"{channel} residual ({first['y_unit']})"}}}
-        out.append(f"<h5>{esc(effect)} · {esc(channel)}</h5>"
-                   + page.figure({"data": data, "layout": layout}, height=300,
-                                 name=f"{unit} {effect} {channel} evidence"))
+            data.insert(
+                1,
+                {
+                    "type": "scatter",
+                    "mode": "lines",
+                    "x": arr(x[order]),
+                    "y": arr(fitted[order]),
+                    "name": "fitted effect",
+                    "line": {"color": "#222", "width": 2},
+                },
+            )
+        layout = {
+            "legend": _legend_top(),
+            "margin": {"t": 40, "b": 50, "l": 70, "r": 15},
+            "xaxis": {"title": {"text": xt}},
+            "yaxis": {"title": {"text": f"{channel} residual ({first['y_unit']})"}},
+        }
+        out.append(
+            f"<h5>{esc(effect)} · {esc(channel)}</h5>"
+            + page.figure(
+                {"data": data, "layout": layout}, height=300, name=f"{unit} {effect} {channel} evidence"
+            )
+        )
     if not out:
         return ""
     return '<div class="evidence">' + "".join(out) + "</div>"
 
 
 # ----------------------------------------------------------------------------- sessions
+
 
 def as_text(v) -> str:
     """A store cell as text: lists/arrays of warnings joined, missing values empty."""
@@ -1228,29 +1603,49 @@ def sessions_section(ctx: LotContext, link_units: bool = True) -> str:
         rows = []
         for r in failed.itertuples():
             u = f'<a href="#unit-{esc(r.unit)}">{esc(r.unit)}</a>' if link_units else esc(r.unit)
-            rows.append(({"data-unit": r.unit}, [u, str(r.rep), f'<span class="mono">{esc(as_text(r.error_code))}</span>',
-                                                 esc(as_text(r.message)), f'<span class="mono">{esc(getattr(r, "path", ""))}</span>']))
-        out.append(f"<h3>Failed sessions ({len(failed)})</h3>"
-                   + table(["Unit", "Rep", "Error code", "Reason", "Session"], rows, cls="failed-sessions",
-                           text_cols=5))
+            rows.append(
+                (
+                    {"data-unit": r.unit},
+                    [
+                        u,
+                        str(r.rep),
+                        f'<span class="mono">{esc(as_text(r.error_code))}</span>',
+                        esc(as_text(r.message)),
+                        f'<span class="mono">{esc(getattr(r, "path", ""))}</span>',
+                    ],
+                )
+            )
+        out.append(
+            f"<h3>Failed sessions ({len(failed)})</h3>"
+            + table(
+                ["Unit", "Rep", "Error code", "Reason", "Session"], rows, cls="failed-sessions", text_cols=5
+            )
+        )
     else:
         out.append('<p class="note">No failed session.</p>')
     warned = s[s["status"] == "warned"].sort_values(["unit", "rep"])
     if len(warned):
-        rows = [[esc(r.unit), str(r.rep), esc(as_text(getattr(r, "warnings", "")))] for r in warned.itertuples()]
-        out.append(f"<h3>Sessions with warnings ({len(warned)})</h3>"
-                   + table(["Unit", "Rep", "Warnings"], rows, cls="wrap", text_cols=3))
+        rows = [
+            [esc(r.unit), str(r.rep), esc(as_text(getattr(r, "warnings", "")))] for r in warned.itertuples()
+        ]
+        out.append(
+            f"<h3>Sessions with warnings ({len(warned)})</h3>"
+            + table(["Unit", "Rep", "Warnings"], rows, cls="wrap", text_cols=3)
+        )
     u = ctx.units_table
     if u is not None and len(u) and "state" in u:
         stale = u[u["state"].astype(str) != "calibrated"]
         if len(stale):
             rows = [[esc(r.unit), esc(r.state), esc(getattr(r, "reason", ""))] for r in stale.itertuples()]
-            out.append(f"<h3>Units not freshly calibrated ({len(stale)})</h3>"
-                       + table(["Unit", "State", "Why"], rows, cls="wrap", text_cols=3))
+            out.append(
+                f"<h3>Units not freshly calibrated ({len(stale)})</h3>"
+                + table(["Unit", "State", "Why"], rows, cls="wrap", text_cols=3)
+            )
     return "".join(out)
 
 
 # ----------------------------------------------------------------------------- unit section
+
 
 def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) -> str:
     """The per-unit block of the lot report (and the body of the unit report)."""
@@ -1259,25 +1654,37 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     meta = []
     if c:
         meta.append(f"sessions ok {c['ok']}, warned {c['warned']}, failed {c['failed']}")
-    badge = (kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER}), n_flags) if n_flags
-             else '<span class="badge ok">in family</span>')
+    badge = (
+        kind_badges(ctx.unit_kinds.get(unit, {KIND_OUTLIER}), n_flags)
+        if n_flags
+        else '<span class="badge ok">in family</span>'
+    )
     if c.get("failed"):
         badge += f' <span class="badge failed">{c["failed"]} failed session(s)</span>'
     parts = []
     if n_flags:
         parts.append(flags_list(ctx, unit, link=False))
-    parts.append('<div class="grid2"><div>' + repetition_table(ctx, unit, "gyro") + "</div><div>"
-                 + repetition_table(ctx, unit, "accel") + "</div></div>")
+    parts.append(
+        '<div class="grid2"><div>'
+        + repetition_table(ctx, unit, "gyro")
+        + "</div><div>"
+        + repetition_table(ctx, unit, "accel")
+        + "</div></div>"
+    )
     parts.append(compensation_table(ctx, unit))
     figs = []
     gf = gyro_residual_figure(ctx, unit)
     af = accel_residual_figure(ctx, unit)
     if gf is not None:
-        figs.append("<h4>Gyro error vs table rate (mean over repetitions, bars: min..max)</h4>"
-                    + page.figure(gf, height=330, name=f"{unit} gyro residuals"))
+        figs.append(
+            "<h4>Gyro error vs table rate (mean over repetitions, bars: min..max)</h4>"
+            + page.figure(gf, height=330, name=f"{unit} gyro residuals")
+        )
     if af is not None:
-        figs.append("<h4>Accelerometer error vs orientation (mean over repetitions, bars: min..max)</h4>"
-                    + page.figure(af, height=360, name=f"{unit} accel residuals"))
+        figs.append(
+            "<h4>Accelerometer error vs orientation (mean over repetitions, bars: min..max)</h4>"
+            + page.figure(af, height=360, name=f"{unit} accel residuals")
+        )
     if figs:
         parts.append("".join(figs))
     elif ctx.residuals is None:
@@ -1293,9 +1700,16 @@ def unit_section(ctx: LotContext, page: Page, unit: str, open_: bool = False) ->
     if c.get("failed") and ctx.sessions is not None:
         f = ctx.unit_rows("sessions", unit)
         f = f[f["status"] == "failed"]
-        parts.append("<h4>Failed sessions</h4><ul class=\"flags\">" + "".join(
-            f"<li>rep {r.rep}: <span class=\"mono\">{esc(r.error_code)}</span> {esc(r.message)}</li>"
-            for r in f.itertuples()) + "</ul>")
-    return (f'<details class="unit" id="unit-{esc(unit)}" data-unit="{esc(unit)}"{" open" if open_ else ""}>'
-            f'<summary>{esc(unit)} {badge}<span class="meta">{"; ".join(meta)}</span></summary>'
-            f'<div class="body">{"".join(parts)}</div></details>')
+        parts.append(
+            '<h4>Failed sessions</h4><ul class="flags">'
+            + "".join(
+                f'<li>rep {r.rep}: <span class="mono">{esc(r.error_code)}</span> {esc(r.message)}</li>'
+                for r in f.itertuples()
+            )
+            + "</ul>"
+        )
+    return (
+        f'<details class="unit" id="unit-{esc(unit)}" data-unit="{esc(unit)}"{" open" if open_ else ""}>'
+        f'<summary>{esc(unit)} {badge}<span class="meta">{"; ".join(meta)}</span></summary>'
+        f'<div class="body">{"".join(parts)}</div></details>'
+    )

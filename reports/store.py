@@ -5,10 +5,11 @@ dtypes, either store format); a table that was never written is ``None`` so a re
 so and still render. The store is partitioned by lot: a report of one lot or unit reads only
 that lot's files (:meth:`StoreView.of`); only the fleet index reads whole tables.
 """
+
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -19,8 +20,17 @@ import pandas as pd
 from schemas.results_store import ResultsStore
 
 # Tables a report may use; missing ones are reported as missing, not an error.
-REPORT_TABLES = ("sessions", "parameters", "summary", "units", "residuals", "compensation",
-                 "discovery", "navigation", "discovery_evidence")
+REPORT_TABLES = (
+    "sessions",
+    "parameters",
+    "summary",
+    "units",
+    "residuals",
+    "compensation",
+    "discovery",
+    "navigation",
+    "discovery_evidence",
+)
 
 
 def _keys_as_objects(df: pd.DataFrame) -> pd.DataFrame:
@@ -71,8 +81,7 @@ class StoreView:
 
     def of(self, name: str, lot: str | None = None, unit: str | None = None) -> pd.DataFrame | None:
         """Rows of a table for a lot and/or unit; None when the table does not exist."""
-        if name == "navigation" and unit is not None and lot is not None \
-                and name not in self._cache:
+        if name == "navigation" and unit is not None and lot is not None and name not in self._cache:
             # raw-rate traces can be millions of rows: read only this unit's row groups
             return self._unit_rows(name, lot, unit)
         df = self.table(name) if lot is None else self._lot_table(name, lot)
@@ -136,7 +145,7 @@ class StoreView:
             doc.setdefault("run_id", p.stem)
             doc["_time"] = run_time(doc)
             out.append(doc)
-        out.sort(key=lambda d: (d["_time"] is None, d["_time"] or datetime.min.replace(tzinfo=timezone.utc)))
+        out.sort(key=lambda d: (d["_time"] is None, d["_time"] or datetime.min.replace(tzinfo=UTC)))
         return out
 
     def run(self, run_id: str | None) -> dict[str, Any] | None:
@@ -169,7 +178,7 @@ def run_time(doc: dict[str, Any]) -> datetime | None:
                 t = datetime.fromisoformat(str(v).replace("Z", "+00:00"))
             except ValueError:
                 continue
-            return t if t.tzinfo else t.replace(tzinfo=timezone.utc)
+            return t if t.tzinfo else t.replace(tzinfo=UTC)
     return None
 
 

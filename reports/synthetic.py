@@ -7,11 +7,12 @@ the lot and flagged in ``summary.parquet``, and failed sessions. Values follow t
 of magnitude of xu2016 Tables 1-3 (deg/s, g). It is not a calibration: no raw data and no
 fit are involved, only the store layout, so reports can be exercised without the pipeline.
 """
+
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -23,13 +24,13 @@ AXES = "xyz"
 CHANNELS = ("gx", "gy", "gz", "ax", "ay", "az")
 
 # xu2016 Table 1 / Table 2 averages: the lot centre of the synthetic units.
-KG_CENTRE = np.array([[0.99972, -0.01199, -0.00059],
-                      [0.02394, 1.00046, 0.01053],
-                      [0.01087, 0.01490, 1.00579]])
-KA_CENTRE = np.array([[0.96667, 0.01434, -0.00180],
-                      [-0.01760, 0.96965, -0.00851],
-                      [0.01476, -0.01494, 0.99326]])
-W0_CENTRE = np.array([-0.25, -0.71, -2.01])      # deg/s
+KG_CENTRE = np.array(
+    [[0.99972, -0.01199, -0.00059], [0.02394, 1.00046, 0.01053], [0.01087, 0.01490, 1.00579]]
+)
+KA_CENTRE = np.array(
+    [[0.96667, 0.01434, -0.00180], [-0.01760, 0.96965, -0.00851], [0.01476, -0.01494, 0.99326]]
+)
+W0_CENTRE = np.array([-0.25, -0.71, -2.01])  # deg/s
 F0_CENTRE = np.array([-0.0016, 0.0011, 0.0027])  # g
 RATES_DPS = (6, 12, 24, 30, 60, 120, 180, 240, 300)
 
@@ -42,7 +43,7 @@ class SyntheticLot:
     lot: str
     units: list[str]
     outliers: dict[str, list[tuple[str, str]]]  # unit -> [(model, parameter)]
-    failed: list[tuple[str, int]]               # (unit, rep)
+    failed: list[tuple[str, int]]  # (unit, rep)
     warned: list[tuple[str, int]]
     run_ids: list[str] = field(default_factory=list)
 
@@ -54,24 +55,38 @@ def _unit_truth(rng: np.random.Generator) -> dict[str, tuple[list[str], np.ndarr
     w0 = W0_CENTRE + rng.normal(0, 0.08, 3)
     f0 = F0_CENTRE + rng.normal(0, 4e-4, 3)
     mat = [f"{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
-    static_names = ([f"b_{a}" for a in AXES] + [f"s_{a}" for a in AXES]
-                    + [f"theta_{a}{b}" for a in AXES for b in AXES])
-    static_vals = np.concatenate([f0 + rng.normal(0, 1e-4, 3), np.diag(ka) + rng.normal(0, 2e-4, 3),
-                                  rng.normal(0, 0.4, 9)])
+    static_names = (
+        [f"b_{a}" for a in AXES] + [f"s_{a}" for a in AXES] + [f"theta_{a}{b}" for a in AXES for b in AXES]
+    )
+    static_vals = np.concatenate(
+        [f0 + rng.normal(0, 1e-4, 3), np.diag(ka) + rng.normal(0, 2e-4, 3), rng.normal(0, 0.4, 9)]
+    )
     lever = np.array([6.0, 0.0, 0.0, 0.0, 6.0, 0.0, 0.0, 0.0, 6.0]) + rng.normal(0, 0.3, 9)
     return {
-        "gyro": ([f"k_g{m}" for m in mat] + [f"w0_{a}" for a in AXES],
-                 np.concatenate([kg.ravel(), w0]), np.r_[np.full(9, 3e-5), np.full(3, 0.012)],
-                 "deg/s per deg/s|deg/s"),
-        "accel": ([f"k_a{m}" for m in mat] + [f"f0_{a}" for a in AXES],
-                  np.concatenate([ka.ravel(), f0]), np.r_[np.full(9, 2e-4), np.full(3, 5e-5)],
-                  "g per g|g"),
-        "gyro_traditional": ([f"s_g{m}" for m in mat] + [f"b_g{a}" for a in AXES],
-                             np.concatenate([np.linalg.inv(kg).ravel(), -np.linalg.inv(kg) @ w0]),
-                             np.r_[np.full(9, 3e-5), np.full(3, 0.012)], "deg/s per deg/s|deg/s"),
-        "accel_static": (static_names, static_vals,
-                         np.r_[np.full(3, 5e-5), np.full(3, 2e-4), np.full(9, 0.02)],
-                         "g|1|deg"),
+        "gyro": (
+            [f"k_g{m}" for m in mat] + [f"w0_{a}" for a in AXES],
+            np.concatenate([kg.ravel(), w0]),
+            np.r_[np.full(9, 3e-5), np.full(3, 0.012)],
+            "deg/s per deg/s|deg/s",
+        ),
+        "accel": (
+            [f"k_a{m}" for m in mat] + [f"f0_{a}" for a in AXES],
+            np.concatenate([ka.ravel(), f0]),
+            np.r_[np.full(9, 2e-4), np.full(3, 5e-5)],
+            "g per g|g",
+        ),
+        "gyro_traditional": (
+            [f"s_g{m}" for m in mat] + [f"b_g{a}" for a in AXES],
+            np.concatenate([np.linalg.inv(kg).ravel(), -np.linalg.inv(kg) @ w0]),
+            np.r_[np.full(9, 3e-5), np.full(3, 0.012)],
+            "deg/s per deg/s|deg/s",
+        ),
+        "accel_static": (
+            static_names,
+            static_vals,
+            np.r_[np.full(3, 5e-5), np.full(3, 2e-4), np.full(9, 0.02)],
+            "g|1|deg",
+        ),
         "lever_arm": ([f"r{i}{a}" for i in (1, 2, 3) for a in AXES], lever, np.full(9, 0.15), "mm"),
     }
 
@@ -92,21 +107,33 @@ OUTLIER_SHIFTS = [
 ]
 
 
-def build_synthetic_store(root: str | Path, lot: str = "LOT-2026-11A", n_units: int = 12,
-                          n_reps: int = 5, n_outliers: int = 2, n_failed: int = 1,
-                          n_runs: int = 3, seed: int = 20261121, discovery: bool = True,
-                          navigation: bool = True, nav_samples: int = 3000,
-                          code_version: str = "0.1.0+g94590e6", unit_prefix: str = "U") -> SyntheticLot:
+def build_synthetic_store(
+    root: str | Path,
+    lot: str = "LOT-2026-11A",
+    n_units: int = 12,
+    n_reps: int = 5,
+    n_outliers: int = 2,
+    n_failed: int = 1,
+    n_runs: int = 3,
+    seed: int = 20261121,
+    discovery: bool = True,
+    navigation: bool = True,
+    nav_samples: int = 3000,
+    code_version: str = "0.1.0+g94590e6",
+    unit_prefix: str = "U",
+) -> SyntheticLot:
     """Write a synthetic results store for one lot under ``root`` and return its truth."""
     rng = np.random.default_rng(seed)
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     units = [f"{unit_prefix}{i:03d}" for i in range(1, n_units + 1)]
-    outlier_units = [units[i] for i in np.linspace(2, n_units - 3, n_outliers).astype(int)] if n_outliers else []
-    failed_units = [u for u in units if u not in outlier_units][1:1 + n_failed]
+    outlier_units = (
+        [units[i] for i in np.linspace(2, n_units - 3, n_outliers).astype(int)] if n_outliers else []
+    )
+    failed_units = [u for u in units if u not in outlier_units][1 : 1 + n_failed]
     failed = [(u, 3) for u in failed_units]
     warned = [(units[-1], 2)]
-    t_run = datetime(2026, 11, 21, 2, 0, tzinfo=timezone.utc)
+    t_run = datetime(2026, 11, 21, 2, 0, tzinfo=UTC)
     run_ids = [f"run-{(t_run - timedelta(days=d)):%Y%m%dT%H%M%SZ}" for d in range(n_runs - 1, -1, -1)]
     run_id = run_ids[-1]
 
@@ -128,24 +155,44 @@ def build_synthetic_store(root: str | Path, lot: str = "LOT-2026-11A", n_units: 
             status, code, msg, warn = "ok", "", "", ""
             if (unit, rep) in failed:
                 status, code = "failed", "E_MISSING_COLUMN"
-                msg = (f"lot={lot}/unit={unit}/rep={rep}: samples.parquet: required column "
-                       f"'gz' is missing")
+                msg = f"lot={lot}/unit={unit}/rep={rep}: samples.parquet: required column 'gz' is missing"
             elif (unit, rep) in warned:
                 status, warn = "warned", "W_SATURATION: 3 of 118 steps near the gyro range, dropped"
             when = t_run + timedelta(minutes=2 * ui + rep * 0.3)
-            sessions.append(dict(lot=lot, unit=unit, rep=rep, status=status, error_code=code,
-                                 message=msg, warnings=warn,
-                                 fingerprint=f"{rng.integers(2**63):016x}", run_id=run_id,
-                                 path=f"lot={lot}/unit={unit}/rep={rep}",
-                                 calibrated_at=when.isoformat()))
+            sessions.append(
+                dict(
+                    lot=lot,
+                    unit=unit,
+                    rep=rep,
+                    status=status,
+                    error_code=code,
+                    message=msg,
+                    warnings=warn,
+                    fingerprint=f"{rng.integers(2**63):016x}",
+                    run_id=run_id,
+                    path=f"lot={lot}/unit={unit}/rep={rep}",
+                    calibrated_at=when.isoformat(),
+                )
+            )
             if status == "failed":
                 continue
             for model, (names, vals, sc, spec) in truth.items():
                 rep_vals = vals + rng.normal(0, sc)
                 for n, v, s, uom in zip(names, rep_vals, sc * 0.4, _units_of(model, names, spec)):
-                    params.append(dict(lot=lot, unit=unit, rep=rep, model=model, parameter=n, value=v,
-                                       stderr=s, unit_of_measure=uom, code_version=code_version,
-                                       run_id=run_id))
+                    params.append(
+                        dict(
+                            lot=lot,
+                            unit=unit,
+                            rep=rep,
+                            model=model,
+                            parameter=n,
+                            value=v,
+                            stderr=s,
+                            unit_of_measure=uom,
+                            code_version=code_version,
+                            run_id=run_id,
+                        )
+                    )
             bad = unit in outlier_units
             resid.extend(_residual_rows(rng, lot, unit, rep, bad))
             comp.extend(_compensation_rows(rng, lot, unit, rep))
@@ -170,9 +217,14 @@ def build_synthetic_store(root: str | Path, lot: str = "LOT-2026-11A", n_units: 
     _write_history(root, lot, units, truths, run_ids, rng, code_version)
     for i, rid in enumerate(run_ids):
         when = t_run - timedelta(days=n_runs - 1 - i)
-        doc = dict(run_id=rid, started_at=when.isoformat(),
-                   finished_at=(when + timedelta(minutes=31)).isoformat(),
-                   code_version=code_version, lots=[lot], kind="nightly")
+        doc = dict(
+            run_id=rid,
+            started_at=when.isoformat(),
+            finished_at=(when + timedelta(minutes=31)).isoformat(),
+            code_version=code_version,
+            lots=[lot],
+            kind="nightly",
+        )
         (root / "runs").mkdir(exist_ok=True)
         path = root / "runs" / f"{rid}.json"
         if path.exists():  # several lots calibrated by the same run
@@ -202,7 +254,8 @@ def _summary(params: pd.DataFrame, outliers: dict[str, list[tuple[str, str]]]) -
     s["unit_of_measure"] = g["unit_of_measure"].first().to_numpy()
     med = s.groupby(["lot", "model", "parameter"])["mean"].transform("median")
     mad = s.groupby(["lot", "model", "parameter"])["mean"].transform(
-        lambda x: (x - x.median()).abs().median())
+        lambda x: (x - x.median()).abs().median()
+    )
     s["lot_median"] = med
     s["score"] = 0.6745 * (s["mean"] - med) / mad.where(mad > 0)
     s["flagged"] = False
@@ -224,10 +277,22 @@ def _units_table(sessions: pd.DataFrame, lot: str, run_id: str) -> pd.DataFrame:
         n_ok = int((g.status == "ok").sum())
         n_w = int((g.status == "warned").sum())
         n_f = int((g.status == "failed").sum())
-        rows.append(dict(lot=lot, unit=unit, state="calibrated", reason="", n_sessions=len(g),
-                         n_ok=n_ok, n_warned=n_w, n_failed=n_f,
-                         calibration_file=f"calibrations/{unit}/", calibrated_at=g.calibrated_at.max(),
-                         run_id=run_id, updated_at=g.calibrated_at.max()))
+        rows.append(
+            dict(
+                lot=lot,
+                unit=unit,
+                state="calibrated",
+                reason="",
+                n_sessions=len(g),
+                n_ok=n_ok,
+                n_warned=n_w,
+                n_failed=n_f,
+                calibration_file=f"calibrations/{unit}/",
+                calibrated_at=g.calibrated_at.max(),
+                run_id=run_id,
+                updated_at=g.calibrated_at.max(),
+            )
+        )
     return pd.DataFrame(rows)
 
 
@@ -245,10 +310,23 @@ def _residual_rows(rng, lot, unit, rep, bad: bool) -> list[dict]:
                     noise = rng.normal(0, 0.01)
                     base = k2[ci] * w * w * (ci == axis) + noise
                     for model, r in (("baseline", base), ("extended", noise * 1.1)):
-                        rows.append(dict(lot=lot, unit=unit, rep=rep, step=step, test="multirate",
-                                         up_axis="+z", rate_dps=float(w), angle_deg=0.0, channel=ch,
-                                         reference=float(w if ci == axis else 0.0),
-                                         residual=float(r), sigma=0.01, model=model))
+                        rows.append(
+                            dict(
+                                lot=lot,
+                                unit=unit,
+                                rep=rep,
+                                step=step,
+                                test="multirate",
+                                up_axis="+z",
+                                rate_dps=float(w),
+                                angle_deg=0.0,
+                                channel=ch,
+                                reference=float(w if ci == axis else 0.0),
+                                residual=float(r),
+                                sigma=0.01,
+                                model=model,
+                            )
+                        )
                 step += 1
     # Accel multiposition: 18 orientations (6 faces x 3 headings).
     for up in ("+x", "-x", "+y", "-y", "+z", "-z"):
@@ -257,9 +335,23 @@ def _residual_rows(rng, lot, unit, rep, bad: bool) -> list[dict]:
                 ref = (1.0 if up[1] == "xyz"[ci] else 0.0) * (1 if up[0] == "+" else -1)
                 noise = rng.normal(0, 1.5e-4) * (3 if bad else 1)
                 for model, r in (("baseline", noise + 1e-4 * ref), ("extended", noise)):
-                    rows.append(dict(lot=lot, unit=unit, rep=rep, step=step, test="multiposition",
-                                     up_axis=up, rate_dps=0.0, angle_deg=angle, channel=ch,
-                                     reference=ref, residual=float(r), sigma=1.5e-4, model=model))
+                    rows.append(
+                        dict(
+                            lot=lot,
+                            unit=unit,
+                            rep=rep,
+                            step=step,
+                            test="multiposition",
+                            up_axis=up,
+                            rate_dps=0.0,
+                            angle_deg=angle,
+                            channel=ch,
+                            reference=ref,
+                            residual=float(r),
+                            sigma=1.5e-4,
+                            model=model,
+                        )
+                    )
             step += 1
     return rows
 
@@ -273,12 +365,25 @@ def _compensation_rows(rng, lot, unit, rep) -> list[dict]:
             lo = -abs(rng.normal(big, big * 0.1))
             hi = abs(rng.normal(big, big * 0.1))
             prop = abs(rng.normal(0.12, 0.02))
-            for method, (a, b) in (("uncompensated", (lo, hi)),
-                                   ("proposed", (-prop, prop * 1.05)),
-                                   ("traditional", (-prop * 1.01, prop * 1.04))):
-                rows.append(dict(lot=lot, unit=unit, rep=rep, input_axis=inp, output_axis=out,
-                                 method=method, err_min=float(a), err_max=float(b),
-                                 unit_of_measure="deg/s", source="verification sweep"))
+            for method, (a, b) in (
+                ("uncompensated", (lo, hi)),
+                ("proposed", (-prop, prop * 1.05)),
+                ("traditional", (-prop * 1.01, prop * 1.04)),
+            ):
+                rows.append(
+                    dict(
+                        lot=lot,
+                        unit=unit,
+                        rep=rep,
+                        input_axis=inp,
+                        output_axis=out,
+                        method=method,
+                        err_min=float(a),
+                        err_max=float(b),
+                        unit_of_measure="deg/s",
+                        source="verification sweep",
+                    )
+                )
     return rows
 
 
@@ -286,21 +391,53 @@ def _discovery_rows(rng, lot, unit, bad: bool) -> list[dict]:
     """Rows in the shape of calib_core.discovery.presentation.finding_rows."""
     before = abs(rng.normal(1.30, 0.05)) * (2.5 if bad else 1)
     rows = []
-    effects = [("gyro_scale_nonlinearity", "x", "gx",
-                "q_x = 2.1 ± 0.3 deg/s per (1000 deg/s)^2; 5 others within 2 SE of 0", 41.0, 0.2)]
+    effects = [
+        (
+            "gyro_scale_nonlinearity",
+            "x",
+            "gx",
+            "q_x = 2.1 ± 0.3 deg/s per (1000 deg/s)^2; 5 others within 2 SE of 0",
+            41.0,
+            0.2,
+        )
+    ]
     if bad:
-        effects.append(("gyro_g_sensitivity", "z", "gz",
-                        "Gzx = 0.0040 ± 0.0006 deg/s per g; 8 others within 2 SE of 0", 12.0, 0.2))
+        effects.append(
+            (
+                "gyro_g_sensitivity",
+                "z",
+                "gz",
+                "Gzx = 0.0040 ± 0.0006 deg/s per g; 8 others within 2 SE of 0",
+                12.0,
+                0.2,
+            )
+        )
     after = before
     for name, axes, channels, est, f_stat, frac in effects:
         new_after = after * (1 - frac)
-        rows.append(dict(lot=lot, unit=unit, effect=name, kind="named", axes=axes,
-                         channels=channels, estimates=est,
-                         evidence=f"F = {f_stat * (1 + rng.normal(0, 0.1)):.3g} (3, 480), p = 1e-12",
-                         evidence_p=1e-12, heldout_rms_before=float(after),
-                         heldout_rms_after=float(new_after), gain=float(after / new_after),
-                         separated_by="", misfit=True, unexplained=bad, confounded_groups="",
-                         partial_terms="", negligible_terms="", advice=""))
+        rows.append(
+            dict(
+                lot=lot,
+                unit=unit,
+                effect=name,
+                kind="named",
+                axes=axes,
+                channels=channels,
+                estimates=est,
+                evidence=f"F = {f_stat * (1 + rng.normal(0, 0.1)):.3g} (3, 480), p = 1e-12",
+                evidence_p=1e-12,
+                heldout_rms_before=float(after),
+                heldout_rms_after=float(new_after),
+                gain=float(after / new_after),
+                separated_by="",
+                misfit=True,
+                unexplained=bad,
+                confounded_groups="",
+                partial_terms="",
+                negligible_terms="",
+                advice="",
+            )
+        )
         after = new_after
     return rows
 
@@ -312,33 +449,46 @@ def _navigation_rows(rng, lot, unit, n: int) -> list[pd.DataFrame]:
         acc_err = scale * 9.80665 * 0.01 * (1 + rng.normal(0, 0.1))  # m/s^2
         vel = acc_err * t + np.cumsum(rng.normal(0, 2e-3 * scale, n))
         pos = np.cumsum(vel) * (t[1] - t[0])
-        parts.append(pd.DataFrame({"lot": lot, "unit": unit, "case": case, "t": t, "vel_err": vel,
-                                   "pos_err": pos}))
+        parts.append(
+            pd.DataFrame({"lot": lot, "unit": unit, "case": case, "t": t, "vel_err": vel, "pos_err": pos})
+        )
     return parts
 
 
 def _write_history(root: Path, lot, units, truths, run_ids, rng, code_version) -> None:
-    t_run = datetime(2026, 11, 21, 2, 0, tzinfo=timezone.utc)
+    t_run = datetime(2026, 11, 21, 2, 0, tzinfo=UTC)
     for unit in units:
         names_g, vals_g, _, _ = truths[unit]["gyro"]
         names_a, vals_a, _, _ = truths[unit]["accel"]
         for i, rid in enumerate(run_ids):
             when = t_run - timedelta(days=len(run_ids) - 1 - i) + timedelta(minutes=units.index(unit))
-            drift = (len(run_ids) - 1 - i)
+            drift = len(run_ids) - 1 - i
             kg = vals_g[:9].reshape(3, 3) + rng.normal(0, 2e-5, (3, 3)) + drift * 1e-5
             w0 = vals_g[9:] + rng.normal(0, 0.004, 3) + drift * 0.01
             ka = vals_a[:9].reshape(3, 3) + rng.normal(0, 5e-5, (3, 3))
             f0 = vals_a[9:] + rng.normal(0, 2e-5, 3)
-            doc = {"format": "mimucal-calibration", "format_version": "1.0", "kind": "turntable",
-                   "raw_units": {"gyro": "deg/s", "accel": "g"},
-                   "units": {"K_g": "deg/s per deg/s", "w0": "deg/s", "K_a": "g per g", "f0": "g"},
-                   "K_g": kg.tolist(), "w0": w0.tolist(), "K_a": ka.tolist(), "f0": f0.tolist(),
-                   "g_local": 9.80665, "terms": [],
-                   "metadata": {"lot": lot, "unit": unit},
-                   "provenance": {"lot": lot, "unit": unit, "run_id": rid,
-                                  "code_version": code_version,
-                                  "calibrated_at": when.isoformat(),
-                                  "sessions": [f"lot={lot}/unit={unit}/rep={r}" for r in range(1, 6)]}}
+            doc = {
+                "format": "mimucal-calibration",
+                "format_version": "1.0",
+                "kind": "turntable",
+                "raw_units": {"gyro": "deg/s", "accel": "g"},
+                "units": {"K_g": "deg/s per deg/s", "w0": "deg/s", "K_a": "g per g", "f0": "g"},
+                "K_g": kg.tolist(),
+                "w0": w0.tolist(),
+                "K_a": ka.tolist(),
+                "f0": f0.tolist(),
+                "g_local": 9.80665,
+                "terms": [],
+                "metadata": {"lot": lot, "unit": unit},
+                "provenance": {
+                    "lot": lot,
+                    "unit": unit,
+                    "run_id": rid,
+                    "code_version": code_version,
+                    "calibrated_at": when.isoformat(),
+                    "sessions": [f"lot={lot}/unit={unit}/rep={r}" for r in range(1, 6)],
+                },
+            }
             d = root / "calibrations" / unit
             d.mkdir(parents=True, exist_ok=True)
             (d / f"{when.strftime(TIMESTAMP_FORMAT)}.json").write_text(json.dumps(doc, indent=1))

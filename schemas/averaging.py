@@ -50,11 +50,12 @@ extremes per channel (reduced over the kept segments when that sample was left o
 comparison per channel show (:func:`_may_saturate`). The boolean mask of kept samples is built
 only when the exact rules run.
 """
+
 from __future__ import annotations
 
 import os
 from collections import Counter
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 import pandas as pd
@@ -64,8 +65,13 @@ from calib_core.steps import SessionKey, StepMeans
 from schemas.contract import ACCEL_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE
 from schemas.dataset import SessionRef
 from schemas.errors import (
-    E_EMPTY_SESSION, E_TOO_MANY_STEPS_LOST, W_EMPTY_STEP, W_SATURATED, W_TOO_SHORT,
-    SessionError, SessionWarning,
+    E_EMPTY_SESSION,
+    E_TOO_MANY_STEPS_LOST,
+    W_EMPTY_STEP,
+    W_SATURATED,
+    W_TOO_SHORT,
+    SessionError,
+    SessionWarning,
 )
 from schemas.reader import SessionData, StepColumns, read_session, session_from_tables
 
@@ -99,24 +105,33 @@ def _columns(data: SessionData) -> StepColumns:
 
 def _same_view(a: np.ndarray, b: np.ndarray) -> bool:
     """Same memory, shape, strides and dtype: ``a`` is (still) the view ``b``."""
-    return (a.shape == b.shape and a.strides == b.strides and a.dtype == b.dtype
-            and a.__array_interface__["data"][0] == b.__array_interface__["data"][0])
+    return (
+        a.shape == b.shape
+        and a.strides == b.strides
+        and a.dtype == b.dtype
+        and a.__array_interface__["data"][0] == b.__array_interface__["data"][0]
+    )
 
 
 def _channels(data: SessionData) -> np.ndarray:
     """(6, n) float64, rows gx gy gz ax ay az: the reader's array when ``gyro`` and ``accel``
     are still views of it, else a copy."""
     x = data.channels
-    if (x is not None and x.dtype == np.float64 and x.shape == (6, len(data.t))
-            and _same_view(data.gyro, x[:3].T) and _same_view(data.accel, x[3:].T)):
+    if (
+        x is not None
+        and x.dtype == np.float64
+        and x.shape == (6, len(data.t))
+        and _same_view(data.gyro, x[:3].T)
+        and _same_view(data.accel, x[3:].T)
+    ):
         return x
-    return np.concatenate((np.asarray(data.gyro, np.float64).T,
-                           np.asarray(data.accel, np.float64).T))
+    return np.concatenate((np.asarray(data.gyro, np.float64).T, np.asarray(data.accel, np.float64).T))
 
 
 def _describe(cols: StepColumns, i: int) -> str:
-    return (f"step {int(cols.step[i])} ({cols.test[i]}, {cols.up_axis[i]} up, "
-            f"{float(cols.rate_dps[i]):g} deg/s)")
+    return (
+        f"step {int(cols.step[i])} ({cols.test[i]}, {cols.up_axis[i]} up, {float(cols.rate_dps[i]):g} deg/s)"
+    )
 
 
 def _runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -141,9 +156,15 @@ def _per_step(values: np.ndarray, rows: np.ndarray, n_steps: int, unique: bool) 
     return out
 
 
-def _saturation(columns: list[np.ndarray], idx: np.ndarray, count: np.ndarray, n_steps: int,
-                full_scale: np.ndarray | None, names: tuple[str, ...], unit: str
-                ) -> tuple[np.ndarray, list[dict]]:
+def _saturation(
+    columns: list[np.ndarray],
+    idx: np.ndarray,
+    count: np.ndarray,
+    n_steps: int,
+    full_scale: np.ndarray | None,
+    names: tuple[str, ...],
+    unit: str,
+) -> tuple[np.ndarray, list[dict]]:
     """Per step: saturated? and, for each saturated step, the first channel and why.
 
     ``columns`` three (m,) arrays of kept samples, ``idx`` (m,) their step row,
@@ -160,9 +181,13 @@ def _saturation(columns: list[np.ndarray], idx: np.ndarray, count: np.ndarray, n
         if full_scale is not None:
             hits = np.bincount(idx[np.abs(x) >= full_scale[j]], minlength=n_steps)
             for i in np.flatnonzero((hits > 0) & ~saturated):
-                why[i] = dict(column=name, text=(
-                    f"{name} reaches the declared full scale {full_scale[j]:g} {unit} "
-                    f"({int(hits[i])} sample(s))"))
+                why[i] = dict(
+                    column=name,
+                    text=(
+                        f"{name} reaches the declared full scale {full_scale[j]:g} {unit} "
+                        f"({int(hits[i])} sample(s))"
+                    ),
+                )
             saturated |= hits > 0
         for sign in (1.0, -1.0):
             value = x.max() if sign > 0 else x.min()  # the session's extreme, this sign
@@ -191,15 +216,20 @@ def _saturation(columns: list[np.ndarray], idx: np.ndarray, count: np.ndarray, n
                 n_next = np.bincount(idx[at_next], minlength=n_steps)
                 candidate &= (repeats >= QUANTISED_MIN_FRACTION * count) & (repeats > 2 * n_next)
             for i in np.flatnonzero(candidate & ~saturated):
-                why[i] = dict(column=name, text=(
-                    f"{name} clipped at {value:g} {unit} (the session's extreme value, "
-                    f"repeated in {int(repeats[i])} of {int(count[i])} samples)"))
+                why[i] = dict(
+                    column=name,
+                    text=(
+                        f"{name} clipped at {value:g} {unit} (the session's extreme value, "
+                        f"repeated in {int(repeats[i])} of {int(count[i])} samples)"
+                    ),
+                )
             saturated |= candidate
     return saturated, why
 
 
-def _settled_from(t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray,
-                  threshold: np.ndarray) -> np.ndarray:
+def _settled_from(
+    t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray, threshold: np.ndarray
+) -> np.ndarray:
     """First sample of each run ``[start, end)`` that the settling rule keeps (``end`` when
     none): the first ``i`` with ``t[i] - t0 >= threshold``, evaluated exactly as per sample.
 
@@ -228,8 +258,9 @@ def _settled_from(t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndar
     return None
 
 
-def _settled_per_sample(t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray,
-                        threshold: np.ndarray) -> np.ndarray:
+def _settled_per_sample(
+    t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray, threshold: np.ndarray
+) -> np.ndarray:
     """:func:`_settled_from` by evaluating the rule on every sample of every run."""
     n_runs = len(start)
     lengths = end - start
@@ -251,8 +282,7 @@ def _kept_mask(n: int, s_start: np.ndarray, s_end: np.ndarray) -> np.ndarray:
     return np.repeat(on, np.diff(edges, append=n))
 
 
-def average_session(data: SessionData, min_samples: int = 10
-                    ) -> tuple[StepMeans, list[SessionWarning]]:
+def average_session(data: SessionData, min_samples: int = 10) -> tuple[StepMeans, list[SessionWarning]]:
     """Average a validated session (see module docstring). Raises E_EMPTY_SESSION when no
     step is usable."""
     cols = _columns(data)
@@ -304,8 +334,7 @@ def average_session(data: SessionData, min_samples: int = 10
         bounds[1::2] = s_end
         if bounds[-1] == n:
             bounds = bounds[:-1]
-        mean = _per_step(np.add.reduceat(x, bounds, axis=1)[:, 0::2], s_row, n_steps,
-                         unique) / safe
+        mean = _per_step(np.add.reduceat(x, bounds, axis=1)[:, 0::2], s_row, n_steps, unique) / safe
         # two-pass: deviations from the step's mean (no cancellation on large means); the
         # mean is spread over the pieces [0, b0), [b0, b1), ... that reduceat sums
         piece_mean = np.zeros((6, len(bounds) + 1))
@@ -334,14 +363,22 @@ def average_session(data: SessionData, min_samples: int = 10
             n_t = _per_step(n_t, s_row, n_steps, unique)
             temp = np.where(n_t > 0, s_t / np.maximum(n_t, 1), np.nan)
 
-    g_fs = np.asarray(meta.gyro_range_dps, float) if meta.gyro_is_physical else (
-        None if meta.gyro_full_scale_raw is None else np.asarray(meta.gyro_full_scale_raw, float))
-    a_fs = np.asarray(meta.accel_range_g, float) if meta.accel_is_physical else (
-        None if meta.accel_full_scale_raw is None else np.asarray(meta.accel_full_scale_raw, float))
+    g_fs = (
+        np.asarray(meta.gyro_range_dps, float)
+        if meta.gyro_is_physical
+        else (None if meta.gyro_full_scale_raw is None else np.asarray(meta.gyro_full_scale_raw, float))
+    )
+    a_fs = (
+        np.asarray(meta.accel_range_g, float)
+        if meta.accel_is_physical
+        else (None if meta.accel_full_scale_raw is None else np.asarray(meta.accel_full_scale_raw, float))
+    )
     sat = {}
     keep = kept_idx = None
-    for rows, fs, names, unit in ((slice(0, 3), g_fs, GYRO_COLUMNS, meta.gyro_unit),
-                                  (slice(3, 6), a_fs, ACCEL_COLUMNS, meta.accel_unit)):
+    for rows, fs, names, unit in (
+        (slice(0, 3), g_fs, GYRO_COLUMNS, meta.gyro_unit),
+        (slice(3, 6), a_fs, ACCEL_COLUMNS, meta.accel_unit),
+    ):
         if n_seg and _may_saturate(x[rows], bounds, fs):
             # the exact rules on the kept samples (rare: clipping or full scale in sight)
             if kept_idx is None:
@@ -360,34 +397,66 @@ def average_session(data: SessionData, min_samples: int = 10
     for i in np.flatnonzero(short | sat_g | sat_a):  # per left-out step, not per sample
         what = _describe(cols, i)
         if n_any[i] == 0:
-            warnings.append(SessionWarning(W_EMPTY_STEP, f"{data.label}: {what} has no samples; "
-                                           f"left out", step=int(ids[i])))
+            warnings.append(
+                SessionWarning(
+                    W_EMPTY_STEP, f"{data.label}: {what} has no samples; left out", step=int(ids[i])
+                )
+            )
         elif count[i] < min_samples:
-            warnings.append(SessionWarning(
-                W_TOO_SHORT, f"{data.label}: {what} has {int(count[i])} sample(s) after "
-                f"settling {settle[i]:g} s (of {int(n_any[i])}), fewer than {min_samples}; "
-                f"left out", step=int(ids[i])))
+            warnings.append(
+                SessionWarning(
+                    W_TOO_SHORT,
+                    f"{data.label}: {what} has {int(count[i])} sample(s) after "
+                    f"settling {settle[i]:g} s (of {int(n_any[i])}), fewer than {min_samples}; "
+                    f"left out",
+                    step=int(ids[i]),
+                )
+            )
         elif sat_g[i] or sat_a[i]:
             reasons = [w for w in (why_g[i], why_a[i]) if w]
-            warnings.append(SessionWarning(
-                W_SATURATED, f"{data.label}: {what}: " + "; ".join(r["text"] for r in reasons)
-                + "; left out", step=int(ids[i]), column=reasons[0]["column"]))
+            warnings.append(
+                SessionWarning(
+                    W_SATURATED,
+                    f"{data.label}: {what}: " + "; ".join(r["text"] for r in reasons) + "; left out",
+                    step=int(ids[i]),
+                    column=reasons[0]["column"],
+                )
+            )
         usable[i] = False
     if not usable.any():
         counts = {c: sum(w.code == c for w in warnings) for c in (W_EMPTY_STEP, W_TOO_SHORT, W_SATURATED)}
-        raise SessionError(E_EMPTY_SESSION, data.label, SAMPLES_FILE,
-                           "no usable step left (" + ", ".join(f"{v} {k}" for k, v in counts.items() if v)
-                           + ")")
+        raise SessionError(
+            E_EMPTY_SESSION,
+            data.label,
+            SAMPLES_FILE,
+            "no usable step left (" + ", ".join(f"{v} {k}" for k, v in counts.items() if v) + ")",
+        )
     sm = StepMeans(
         key=data.key if data.key is not None else SessionKey("", data.label, 0),
-        step=ids, test=cols.test, up_axis=cols.up_axis,
-        rate_dps=cols.rate_dps, angle_deg=cols.angle_deg, w_ref=cols.w_ref, f_ref=cols.f_ref,
-        gyro=mean[:3].T, accel=mean[3:].T, gyro_std=std[:3].T, accel_std=std[3:].T,
-        count=count, t_mid=t_mid, temp_c=temp, gyro_unit=meta.gyro_unit,
-        accel_unit=meta.accel_unit, g_local=meta.g_local, sample_rate_hz=data.sample_rate_hz,
-        gyro_range_dps=tuple(meta.gyro_range_dps), accel_range_g=tuple(meta.accel_range_g),
-        metadata=dict(meta.provenance), heading_deg=cols.heading_deg,
-        latitude_deg=meta.latitude_deg, table_heading_deg=meta.table_heading_deg,
+        step=ids,
+        test=cols.test,
+        up_axis=cols.up_axis,
+        rate_dps=cols.rate_dps,
+        angle_deg=cols.angle_deg,
+        w_ref=cols.w_ref,
+        f_ref=cols.f_ref,
+        gyro=mean[:3].T,
+        accel=mean[3:].T,
+        gyro_std=std[:3].T,
+        accel_std=std[3:].T,
+        count=count,
+        t_mid=t_mid,
+        temp_c=temp,
+        gyro_unit=meta.gyro_unit,
+        accel_unit=meta.accel_unit,
+        g_local=meta.g_local,
+        sample_rate_hz=data.sample_rate_hz,
+        gyro_range_dps=tuple(meta.gyro_range_dps),
+        accel_range_g=tuple(meta.accel_range_g),
+        metadata=dict(meta.provenance),
+        heading_deg=cols.heading_deg,
+        latitude_deg=meta.latitude_deg,
+        table_heading_deg=meta.table_heading_deg,
         settle_s=np.asarray(cols.settle_s, float),
     )
     # select copies every array: the result shares nothing with the reader's cache
@@ -418,8 +487,11 @@ def _may_saturate(x: np.ndarray, bounds: np.ndarray, full_scale: np.ndarray | No
                 extreme = sign * (seg.max() if sign > 0 else seg.min())
             if extreme >= fs:
                 return True
-            if extreme >= min_look and extreme > 0 \
-                    and np.count_nonzero(x[j] == sign * extreme) >= CLIP_MIN_REPEATS:
+            if (
+                extreme >= min_look
+                and extreme > 0
+                and np.count_nonzero(x[j] == sign * extreme) >= CLIP_MIN_REPEATS
+            ):
                 return True
     return False
 
@@ -447,23 +519,28 @@ def max_lost_step_share() -> float:
     return share
 
 
-def check_lost_steps(label: str, n_steps: int, warnings: list[SessionWarning],
-                     max_share: float | None = None) -> None:
+def check_lost_steps(
+    label: str, n_steps: int, warnings: list[SessionWarning], max_share: float | None = None
+) -> None:
     """E_TOO_MANY_STEPS_LOST when the steps left out (one warning each) exceed the share."""
     share = max_lost_step_share() if max_share is None else max_share
     lost = [w for w in warnings if w.step is not None]
     if n_steps and len(lost) > share * n_steps:
         counts = Counter(w.code for w in lost)
-        raise SessionError(E_TOO_MANY_STEPS_LOST, label, SAMPLES_FILE,
-                           f"{len(lost)} of {n_steps} steps left out ("
-                           + ", ".join(f"{v} {k}" for k, v in sorted(counts.items()))
-                           + f"), more than the {share:.0%} allowed; the session is not "
-                           f"calibrated from the rest")
+        raise SessionError(
+            E_TOO_MANY_STEPS_LOST,
+            label,
+            SAMPLES_FILE,
+            f"{len(lost)} of {n_steps} steps left out ("
+            + ", ".join(f"{v} {k}" for k, v in sorted(counts.items()))
+            + f"), more than the {share:.0%} allowed; the session is not "
+            f"calibrated from the rest",
+        )
 
 
-def read_step_means(ref: SessionRef, min_samples: int = 10,
-                    max_lost_share: float | None = None
-                    ) -> tuple[StepMeans, list[SessionWarning]]:
+def read_step_means(
+    ref: SessionRef, min_samples: int = 10, max_lost_share: float | None = None
+) -> tuple[StepMeans, list[SessionWarning]]:
     """Read, validate and average one session directory. Raises :class:`SessionError`,
     also when more than ``max_lost_share`` (default :func:`max_lost_step_share`) of its
     steps are left out."""
@@ -473,10 +550,12 @@ def read_step_means(ref: SessionRef, min_samples: int = 10,
     return sm, warns
 
 
-def step_means_from_tables(key: SessionKey | str, steps_df: pd.DataFrame | pa.Table,
-                           samples_table: pa.Table | pd.DataFrame,
-                           metadata: Mapping | None = None, min_samples: int = 10
-                           ) -> tuple[StepMeans, list[SessionWarning]]:
+def step_means_from_tables(
+    key: SessionKey | str,
+    steps_df: pd.DataFrame | pa.Table,
+    samples_table: pa.Table | pd.DataFrame,
+    metadata: Mapping | None = None,
+    min_samples: int = 10,
+) -> tuple[StepMeans, list[SessionWarning]]:
     """Validate and average in-memory tables (same rules as files)."""
-    return average_session(session_from_tables(key, steps_df, samples_table, metadata),
-                           min_samples)
+    return average_session(session_from_tables(key, steps_df, samples_table, metadata), min_samples)

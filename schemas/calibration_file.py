@@ -4,6 +4,7 @@ One format for every calibration type (turntable, Ferraris, field): the affine f
 ``w = K_g G + w0``, ``f = K_a A + f0`` (deg/s, g), the raw units it expects, optional
 extension terms, and provenance. Written atomically (temp file + rename).
 """
+
 from __future__ import annotations
 
 import json
@@ -16,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from calib_core.calibration import Calibration, TermValue
-from calib_core.results import to_jsonable
 from calib_core.effects import get_effect
+from calib_core.results import to_jsonable
 
 FORMAT = "mimucal-calibration"
 FORMAT_VERSION = "1.0"
@@ -35,8 +36,13 @@ def calibration_to_dict(cal: Calibration, extra: dict[str, Any] | None = None) -
         "kind": cal.kind,
         "model": "w = K_g G + w0 - sum(terms); f = K_a A + f0 - sum(terms)",
         "raw_units": {"gyro": cal.gyro_unit, "accel": cal.accel_unit},
-        "units": {"K_g": f"deg/s per {cal.gyro_unit}", "w0": "deg/s",
-                  "K_a": f"g per {cal.accel_unit}", "f0": "g", "g_local": "m/s^2"},
+        "units": {
+            "K_g": f"deg/s per {cal.gyro_unit}",
+            "w0": "deg/s",
+            "K_a": f"g per {cal.accel_unit}",
+            "f0": "g",
+            "g_local": "m/s^2",
+        },
         "K_g": np.asarray(cal.K_g).tolist(),
         "w0": np.asarray(cal.w0).tolist(),
         "K_a": np.asarray(cal.K_a).tolist(),
@@ -56,7 +62,8 @@ def calibration_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Calibr
     if doc.get("format_version") not in SUPPORTED_VERSIONS:
         raise CalibrationFileError(
             f"{source}: format_version {doc.get('format_version')!r} not supported "
-            f"(supported: {', '.join(SUPPORTED_VERSIONS)})")
+            f"(supported: {', '.join(SUPPORTED_VERSIONS)})"
+        )
     try:
         terms = []
         for t in doc.get("terms", []):
@@ -64,20 +71,31 @@ def calibration_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Calibr
             undetermined = dict(t.get("undetermined") or {})
             # null: an undetermined parameter (the fit fixed it at 0, its reason in
             # "undetermined") is applied as 0; any other null reads back as NaN
-            params = np.array([(0.0 if n in undetermined else np.nan)
-                               if t["params"][n] is None else t["params"][n]
-                               for n in term.param_names], dtype=float)
+            params = np.array(
+                [
+                    (0.0 if n in undetermined else np.nan) if t["params"][n] is None else t["params"][n]
+                    for n in term.param_names
+                ],
+                dtype=float,
+            )
             stderr = None
             if t.get("stderr"):
-                stderr = np.array([np.nan if t["stderr"][n] is None else t["stderr"][n]
-                                   for n in term.param_names], dtype=float)
+                stderr = np.array(
+                    [np.nan if t["stderr"][n] is None else t["stderr"][n] for n in term.param_names],
+                    dtype=float,
+                )
             terms.append(TermValue(t["name"], params, stderr, undetermined))
         cal = Calibration(
-            K_g=np.array(doc["K_g"], dtype=float), w0=np.array(doc["w0"], dtype=float),
-            K_a=np.array(doc["K_a"], dtype=float), f0=np.array(doc["f0"], dtype=float),
-            gyro_unit=doc["raw_units"]["gyro"], accel_unit=doc["raw_units"]["accel"],
-            terms=tuple(terms), g_local=float(doc.get("g_local", 9.80665)),
-            kind=doc.get("kind", "turntable"), metadata=doc.get("metadata", {}),
+            K_g=np.array(doc["K_g"], dtype=float),
+            w0=np.array(doc["w0"], dtype=float),
+            K_a=np.array(doc["K_a"], dtype=float),
+            f0=np.array(doc["f0"], dtype=float),
+            gyro_unit=doc["raw_units"]["gyro"],
+            accel_unit=doc["raw_units"]["accel"],
+            terms=tuple(terms),
+            g_local=float(doc.get("g_local", 9.80665)),
+            kind=doc.get("kind", "turntable"),
+            metadata=doc.get("metadata", {}),
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationFileError(f"{source}: malformed calibration ({exc})") from exc
@@ -104,11 +122,11 @@ def _one_line_encoder(allow_nan: bool, hook):
     """``value -> str`` on one line: the C encoder's iterator made once and reused (what
     ``JSONEncoder.encode`` would rebuild on every call), else json's own."""
     if _c_make_encoder is not None:
-        enc = _c_make_encoder(None, hook, _encode_str, None, ": ", ", ", False, False,
-                              allow_nan)
+        enc = _c_make_encoder(None, hook, _encode_str, None, ": ", ", ", False, False, allow_nan)
         return lambda v: "".join(enc(v, 0))
-    return json.JSONEncoder(ensure_ascii=True, allow_nan=allow_nan, separators=_SEPARATORS,
-                            default=hook).encode
+    return json.JSONEncoder(
+        ensure_ascii=True, allow_nan=allow_nan, separators=_SEPARATORS, default=hook
+    ).encode
 
 
 def _plain(o: Any, default) -> Any:
@@ -208,8 +226,9 @@ def _layout(v: Any, level: int, out: list[str], null: bool, default) -> None:
     out.append("\n" + _INDENT * level + ("}" if items is not None else "]"))
 
 
-def dumps_json(doc: Any, nonfinite: str = "error", default=None,
-               null_keys: frozenset[str] | set[str] = frozenset()) -> str:
+def dumps_json(
+    doc: Any, nonfinite: str = "error", default=None, null_keys: frozenset[str] | set[str] = frozenset()
+) -> str:
     """``doc`` as JSON text in mimucal's layout (see above), ending with a newline.
 
     ``nonfinite``: ``"error"`` (ValueError, as ``json.dump(allow_nan=False)``) or ``"null"``
@@ -236,8 +255,13 @@ def dumps_json(doc: Any, nonfinite: str = "error", default=None,
 _FORMAT_LINE = f'  "format": "{FORMAT}",'
 
 
-def write_json_atomic(path: Path, doc: dict[str, Any], nonfinite: str = "error", default=None,
-                      null_keys: frozenset[str] | set[str] = frozenset()) -> None:
+def write_json_atomic(
+    path: Path,
+    doc: dict[str, Any],
+    nonfinite: str = "error",
+    default=None,
+    null_keys: frozenset[str] | set[str] = frozenset(),
+) -> None:
     """Write JSON (:func:`dumps_json`) to ``path`` via a temp file in the same directory and an
     atomic rename."""
     _write_text_atomic(Path(path), dumps_json(doc, nonfinite, default, null_keys))
@@ -263,10 +287,13 @@ def _write_text_atomic(path: Path, text: str) -> None:
         raise
 
 
-
-
-def save_calibration(cal: Calibration, path: Path, extra: dict[str, Any] | None = None,
-                     extra_nonfinite: str = "null", default=None) -> Path:
+def save_calibration(
+    cal: Calibration,
+    path: Path,
+    extra: dict[str, Any] | None = None,
+    extra_nonfinite: str = "null",
+    default=None,
+) -> Path:
     """Write the calibration file. ``extra`` (top-level keys added to the document) may hold
     numpy values. Non-finite numbers (the standard errors, or values, of components a
     protocol cannot observe) are written as JSON null, in the terms as in ``extra``, and read
@@ -342,11 +369,9 @@ def set_qa_status(path: Path, qa: dict[str, Any]) -> bool:
         return True
     doc = read_calibration_document(path)
     if doc.get("format") != FORMAT:
-        raise CalibrationFileError(f"{path}: not a mimucal calibration file "
-                                   f"(format={doc.get('format')!r})")
+        raise CalibrationFileError(f"{path}: not a mimucal calibration file (format={doc.get('format')!r})")
     old = qa_of(doc)
-    if old is not None and old.get("status") == qa["status"] \
-            and old.get("reasons") == qa.get("reasons"):
+    if old is not None and old.get("status") == qa["status"] and old.get("reasons") == qa.get("reasons"):
         return False
     if old is not None:
         doc["qa_history"] = [*(doc.get("qa_history") or []), old]

@@ -15,11 +15,12 @@ lenient than the schema where nothing can be lost, and says so here, in one plac
 
 Extra columns are allowed in both files and never read (column projection).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
 
 import pyarrow as pa
 
@@ -30,13 +31,22 @@ STEPS_FILE = "steps.parquet"
 SAMPLES_FILE = "samples.parquet"
 
 # --- schemas (what the writer writes) ------------------------------------------------------
-STEPS_SCHEMA = pa.schema([
-    ("step", pa.int32()), ("test", pa.string()), ("up_axis", pa.string()),
-    ("rate_dps", pa.float64()), ("angle_deg", pa.float64()),
-    ("w_ref_x", pa.float64()), ("w_ref_y", pa.float64()), ("w_ref_z", pa.float64()),
-    ("f_ref_x", pa.float64()), ("f_ref_y", pa.float64()), ("f_ref_z", pa.float64()),
-    ("settle_s", pa.float64()),
-])
+STEPS_SCHEMA = pa.schema(
+    [
+        ("step", pa.int32()),
+        ("test", pa.string()),
+        ("up_axis", pa.string()),
+        ("rate_dps", pa.float64()),
+        ("angle_deg", pa.float64()),
+        ("w_ref_x", pa.float64()),
+        ("w_ref_y", pa.float64()),
+        ("w_ref_z", pa.float64()),
+        ("f_ref_x", pa.float64()),
+        ("f_ref_y", pa.float64()),
+        ("f_ref_z", pa.float64()),
+        ("settle_s", pa.float64()),
+    ]
+)
 # optional steps columns, never required: duration_s (written by mimucal), heading_deg (the
 # step's heading, degrees, added to table_heading_deg: docs/data-contract.md)
 STEPS_OPTIONAL = {"duration_s": pa.float64(), "heading_deg": pa.float64()}
@@ -44,8 +54,9 @@ STEPS_OPTIONAL = {"duration_s": pa.float64(), "heading_deg": pa.float64()}
 GYRO_COLUMNS = ("gx", "gy", "gz")
 ACCEL_COLUMNS = ("ax", "ay", "az")
 SENSOR_COLUMNS = GYRO_COLUMNS + ACCEL_COLUMNS
-SAMPLES_SCHEMA = pa.schema([("step", pa.int32()), ("t", pa.float64())]
-                           + [(c, pa.float32()) for c in SENSOR_COLUMNS])
+SAMPLES_SCHEMA = pa.schema(
+    [("step", pa.int32()), ("t", pa.float64())] + [(c, pa.float32()) for c in SENSOR_COLUMNS]
+)
 SAMPLES_OPTIONAL = {"temp_c": pa.float32()}
 
 W_REF_COLUMNS = ("w_ref_x", "w_ref_y", "w_ref_z")
@@ -94,8 +105,10 @@ STEPS_RULES = (
     ColumnRule("step", pa.types.is_integer, "int32"),
     ColumnRule("test", _is_string, "string"),
     ColumnRule("up_axis", _is_string, "string"),
-    *(ColumnRule(c, _is_number, "float64") for c in ("rate_dps",) + W_REF_COLUMNS
-      + F_REF_COLUMNS + ("settle_s",)),
+    *(
+        ColumnRule(c, _is_number, "float64")
+        for c in ("rate_dps",) + W_REF_COLUMNS + F_REF_COLUMNS + ("settle_s",)
+    ),
     ColumnRule("angle_deg", lambda t: _is_number(t) or pa.types.is_null(t), "float64 (nullable)"),
 )
 SAMPLES_RULES = (
@@ -106,28 +119,37 @@ SAMPLES_RULES = (
 )
 
 
-def check_columns(schema: pa.Schema, rules: tuple[ColumnRule, ...], session: str,
-                  file: str) -> list[str]:
+def check_columns(schema: pa.Schema, rules: tuple[ColumnRule, ...], session: str, file: str) -> list[str]:
     """Raise E_MISSING_COLUMN / E_WRONG_TYPE; return the contract columns present (the
     projection to read)."""
     present = set(schema.names)
     for rule in rules:
         if rule.required and rule.name not in present:
-            raise SessionError(E_MISSING_COLUMN, session, file,
-                               f"required column '{rule.name}' is missing (columns present: "
-                               f"{', '.join(schema.names) or 'none'})", column=rule.name)
+            raise SessionError(
+                E_MISSING_COLUMN,
+                session,
+                file,
+                f"required column '{rule.name}' is missing (columns present: "
+                f"{', '.join(schema.names) or 'none'})",
+                column=rule.name,
+            )
     names = []
     for rule in rules:
         if rule.name not in present:
             continue
         if schema.names.count(rule.name) > 1:
-            raise SessionError(E_WRONG_TYPE, session, file,
-                               f"column '{rule.name}' appears more than once", column=rule.name)
+            raise SessionError(
+                E_WRONG_TYPE, session, file, f"column '{rule.name}' appears more than once", column=rule.name
+            )
         dtype = schema.field(rule.name).type
         if not rule.accepts(dtype):
-            raise SessionError(E_WRONG_TYPE, session, file,
-                               f"column '{rule.name}' has type {dtype}, expected {rule.expected}",
-                               column=rule.name)
+            raise SessionError(
+                E_WRONG_TYPE,
+                session,
+                file,
+                f"column '{rule.name}' has type {dtype}, expected {rule.expected}",
+                column=rule.name,
+            )
         names.append(rule.name)
     return names
 
@@ -191,25 +213,34 @@ def decode_metadata(raw: Mapping | None) -> dict[str, str]:
     return out
 
 
-def parse_triple(text: str, key: str, session: str, file: str,
-                 positive: bool = True) -> tuple[float, float, float]:
+def parse_triple(
+    text: str, key: str, session: str, file: str, positive: bool = True
+) -> tuple[float, float, float]:
     """``"300,300,3600"`` -> (300.0, 300.0, 3600.0); one value is used for all three axes."""
     parts = [p.strip() for p in str(text).split(",")]
     try:
         values = [float(p) for p in parts]
     except ValueError:
-        raise SessionError(E_BAD_METADATA, session, file,
-                           f"metadata '{key}' = {text!r} is not a comma-separated list of "
-                           f"numbers (expected e.g. '300,300,3600')") from None
+        raise SessionError(
+            E_BAD_METADATA,
+            session,
+            file,
+            f"metadata '{key}' = {text!r} is not a comma-separated list of "
+            f"numbers (expected e.g. '300,300,3600')",
+        ) from None
     if len(values) == 1:
         values = values * 3
     if len(values) != 3:
-        raise SessionError(E_BAD_METADATA, session, file,
-                           f"metadata '{key}' = {text!r} has {len(values)} values, expected 3 "
-                           f"(x,y,z)")
+        raise SessionError(
+            E_BAD_METADATA,
+            session,
+            file,
+            f"metadata '{key}' = {text!r} has {len(values)} values, expected 3 (x,y,z)",
+        )
     if not all(math.isfinite(v) and (v > 0 or not positive) for v in values):
-        raise SessionError(E_BAD_METADATA, session, file,
-                           f"metadata '{key}' = {text!r} must be finite and positive")
+        raise SessionError(
+            E_BAD_METADATA, session, file, f"metadata '{key}' = {text!r} must be finite and positive"
+        )
     return (values[0], values[1], values[2])
 
 
@@ -217,11 +248,13 @@ def _parse_positive(text: str, key: str, session: str, file: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise SessionError(E_BAD_METADATA, session, file,
-                           f"metadata '{key}' = {text!r} is not a number") from None
+        raise SessionError(
+            E_BAD_METADATA, session, file, f"metadata '{key}' = {text!r} is not a number"
+        ) from None
     if not (math.isfinite(value) and value > 0):
-        raise SessionError(E_BAD_METADATA, session, file,
-                           f"metadata '{key}' = {text!r} must be finite and positive")
+        raise SessionError(
+            E_BAD_METADATA, session, file, f"metadata '{key}' = {text!r} must be finite and positive"
+        )
     return value
 
 
@@ -231,25 +264,40 @@ def parse_metadata(raw: Mapping | None, session: str, file: str = SAMPLES_FILE) 
     md = decode_metadata(raw)
     for key in REQUIRED_METADATA:
         if key not in md or not md[key].strip():
-            raise SessionError(E_BAD_METADATA, session, file,
-                               f"metadata key '{key}' is missing (required: "
-                               f"{', '.join(REQUIRED_METADATA)})")
+            raise SessionError(
+                E_BAD_METADATA,
+                session,
+                file,
+                f"metadata key '{key}' is missing (required: {', '.join(REQUIRED_METADATA)})",
+            )
     gyro_unit = md["gyro_unit"].strip()
     accel_unit = md["accel_unit"].strip()
     if gyro_unit not in GYRO_UNITS:
-        raise SessionError(E_UNKNOWN_UNIT, session, file,
-                           f"gyro_unit {md['gyro_unit']!r} is not one of {', '.join(GYRO_UNITS)}")
+        raise SessionError(
+            E_UNKNOWN_UNIT,
+            session,
+            file,
+            f"gyro_unit {md['gyro_unit']!r} is not one of {', '.join(GYRO_UNITS)}",
+        )
     if accel_unit not in ACCEL_UNITS:
-        raise SessionError(E_UNKNOWN_UNIT, session, file,
-                           f"accel_unit {md['accel_unit']!r} is not one of {', '.join(ACCEL_UNITS)}")
+        raise SessionError(
+            E_UNKNOWN_UNIT,
+            session,
+            file,
+            f"accel_unit {md['accel_unit']!r} is not one of {', '.join(ACCEL_UNITS)}",
+        )
     g_local = G_LOCAL_DEFAULT
     if md.get("g_local", "").strip():
         g_local = _parse_positive(md["g_local"], "g_local", session, file)
         lo, hi = G_LOCAL_PLAUSIBLE
         if not lo <= g_local <= hi:
-            raise SessionError(E_BAD_METADATA, session, file,
-                               f"metadata 'g_local' = {md['g_local']!r} m/s^2 is outside "
-                               f"{lo}-{hi} m/s^2 (local gravity in m/s^2, not g)")
+            raise SessionError(
+                E_BAD_METADATA,
+                session,
+                file,
+                f"metadata 'g_local' = {md['g_local']!r} m/s^2 is outside "
+                f"{lo}-{hi} m/s^2 (local gravity in m/s^2, not g)",
+            )
     rate = None
     if md.get("sample_rate_hz", "").strip():
         rate = _parse_positive(md["sample_rate_hz"], "sample_rate_hz", session, file)
@@ -264,17 +312,27 @@ def parse_metadata(raw: Mapping | None, session: str, file: str = SAMPLES_FILE) 
             try:
                 value = float(md[key])
             except ValueError:
-                raise SessionError(E_BAD_METADATA, session, file,
-                                   f"metadata '{key}' = {md[key]!r} is not a number") from None
+                raise SessionError(
+                    E_BAD_METADATA, session, file, f"metadata '{key}' = {md[key]!r} is not a number"
+                ) from None
             if not (math.isfinite(value) and abs(value) <= bound):
-                raise SessionError(E_BAD_METADATA, session, file,
-                                   f"metadata '{key}' = {md[key]!r} must be within "
-                                   f"+/-{bound:g} degrees")
+                raise SessionError(
+                    E_BAD_METADATA,
+                    session,
+                    file,
+                    f"metadata '{key}' = {md[key]!r} must be within +/-{bound:g} degrees",
+                )
             location[key] = value
     return SessionMeta(
-        gyro_unit_raw=gyro_unit, accel_unit_raw=accel_unit,
+        gyro_unit_raw=gyro_unit,
+        accel_unit_raw=accel_unit,
         gyro_range_dps=parse_triple(md["gyro_range_dps"], "gyro_range_dps", session, file),
         accel_range_g=parse_triple(md["accel_range_g"], "accel_range_g", session, file),
-        g_local=g_local, sample_rate_hz=rate, session_start=md.get("session_start"),
-        gyro_full_scale_raw=fs_g, accel_full_scale_raw=fs_a, provenance=md, **location,
+        g_local=g_local,
+        sample_rate_hz=rate,
+        session_start=md.get("session_start"),
+        gyro_full_scale_raw=fs_g,
+        accel_full_scale_raw=fs_a,
+        provenance=md,
+        **location,
     )

@@ -6,6 +6,7 @@ returned list, and the rest of the fleet is still found. Entries whose name star
 or ``_`` (temp and hidden directories, as pyarrow's dataset discovery treats them) and plain
 files (``fleet.json``) are ignored.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -26,8 +27,9 @@ from schemas.errors import E_BAD_PATH, SessionError
 ID_RULE = "[A-Za-z0-9][A-Za-z0-9_.-]* (at most 128 characters, not ending with '.')"
 ID_PATTERN = re.compile(r"\A[A-Za-z0-9](?:[A-Za-z0-9_.-]{0,126}[A-Za-z0-9_-])?\Z")
 REP_PATTERN = re.compile(r"\A[1-9][0-9]{0,8}\Z")
-_RESERVED_NAMES = frozenset({"CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)),
-                             *(f"LPT{i}" for i in range(1, 10))})
+_RESERVED_NAMES = frozenset(
+    {"CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)), *(f"LPT{i}" for i in range(1, 10))}
+)
 
 
 def id_problem(value: str, field: str) -> str | None:
@@ -84,11 +86,12 @@ def _parse_part(name: str, field: str) -> tuple[str | None, str | None]:
     prefix = f"{field}="
     if not name.startswith(prefix):
         return None, f"directory name {name!r} does not parse: expected '{prefix}<id>'"
-    value = name[len(prefix):]
+    value = name[len(prefix) :]
     if field == "rep":
         if not REP_PATTERN.match(value):
-            return None, (f"directory name {name!r} does not parse: rep must be an integer "
-                          f">= 1 without leading zeros")
+            return None, (
+                f"directory name {name!r} does not parse: rep must be an integer >= 1 without leading zeros"
+            )
         return value, None
     why = id_problem(value, field)
     if why:
@@ -100,9 +103,9 @@ def _bad(path: Path, reason: str) -> SessionError:
     return SessionError(E_BAD_PATH, str(path), path.name, reason)
 
 
-def find_sessions(root: Path | str, lot: str | None = None, unit: str | None = None,
-                  follow_symlinks: bool = False
-                  ) -> tuple[list[SessionRef], list[SessionError]]:
+def find_sessions(
+    root: Path | str, lot: str | None = None, unit: str | None = None, follow_symlinks: bool = False
+) -> tuple[list[SessionRef], list[SessionError]]:
     """All sessions under ``root`` (optionally of one lot and/or unit), sorted by lot, unit,
     rep, and one E_BAD_PATH error per directory that does not parse or per session of a unit
     found in more than one lot. A missing root is an E_BAD_PATH error too.
@@ -139,10 +142,16 @@ def find_sessions(root: Path | str, lot: str | None = None, unit: str | None = N
                 if lot_dir.is_symlink() or unit_dir.is_symlink() or rep_dir.is_symlink():
                     path = rep_dir.resolve()
                     if not follow_symlinks and not path.is_relative_to(real_root):
-                        errors.append(_bad(rep_dir, (
-                            f"session directory is reached through a symbolic link to {path}, "
-                            f"outside the dataset root {real_root}; pass --follow-symlinks to "
-                            f"calibrate it")))
+                        errors.append(
+                            _bad(
+                                rep_dir,
+                                (
+                                    f"session directory is reached through a symbolic link to {path}, "
+                                    f"outside the dataset root {real_root}; pass --follow-symlinks to "
+                                    f"calibrate it"
+                                ),
+                            )
+                        )
                         continue
                 refs.append(SessionRef(SessionKey(lot_id, unit_id, int(rep)), path))
     # a unit belongs to one lot: when it is found under several, none of its sessions is used
@@ -163,10 +172,15 @@ def find_sessions(root: Path | str, lot: str | None = None, unit: str | None = N
     kept = []
     for ref in refs:
         if ref.key.unit in ambiguous:
-            errors.append(SessionError(
-                E_BAD_PATH, str(ref.key), ref.path.name,
-                f"unit {ref.key.unit!r} appears in lots {', '.join(ambiguous[ref.key.unit])}; "
-                f"a unit belongs to one lot"))
+            errors.append(
+                SessionError(
+                    E_BAD_PATH,
+                    str(ref.key),
+                    ref.path.name,
+                    f"unit {ref.key.unit!r} appears in lots {', '.join(ambiguous[ref.key.unit])}; "
+                    f"a unit belongs to one lot",
+                )
+            )
         else:
             kept.append(ref)
     kept.sort(key=lambda r: (r.key.lot, r.key.unit, r.key.rep))
@@ -177,8 +191,11 @@ def count_unit_dirs(root: Path | str) -> int:
     """How many ``lot=*/unit=*`` directories are under ``root`` (no session is looked at, no
     name checked): a quick upper bound on the units a run may calibrate, for deciding before
     the run whether to prepare worker processes."""
-    return sum(len(_visible_dirs(lot_dir)) for lot_dir in _visible_dirs(Path(root))
-               if lot_dir.name.startswith("lot="))
+    return sum(
+        len(_visible_dirs(lot_dir))
+        for lot_dir in _visible_dirs(Path(root))
+        if lot_dir.name.startswith("lot=")
+    )
 
 
 _CHUNK = 1 << 20

@@ -6,6 +6,7 @@ too-short step) while the session is still used. Both name the session (``lot=L/
 or the directory path when the name does not parse), and errors also name the file, the
 column or step when there is one, and the reason.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,10 +32,23 @@ E_TOO_MANY_STEPS_LOST = "E_TOO_MANY_STEPS_LOST"  # more than the allowed share l
 E_CHECKSUM = "E_CHECKSUM"  # a Parquet page's CRC does not match its bytes
 
 ERROR_CODES = (
-    E_MISSING_FILE, E_UNREADABLE_FILE, E_MISSING_COLUMN, E_WRONG_TYPE, E_BAD_METADATA,
-    E_UNKNOWN_UNIT, E_BAD_PATH, E_DUPLICATE_STEP, E_UNKNOWN_STEP, E_BAD_STEP_DEFINITION,
-    E_NONINCREASING_TIME, E_NONFINITE_VALUE, E_EMPTY_SESSION, E_UNDETERMINED,
-    E_STEP_NOT_CONTIGUOUS, E_TOO_MANY_STEPS_LOST, E_CHECKSUM,
+    E_MISSING_FILE,
+    E_UNREADABLE_FILE,
+    E_MISSING_COLUMN,
+    E_WRONG_TYPE,
+    E_BAD_METADATA,
+    E_UNKNOWN_UNIT,
+    E_BAD_PATH,
+    E_DUPLICATE_STEP,
+    E_UNKNOWN_STEP,
+    E_BAD_STEP_DEFINITION,
+    E_NONINCREASING_TIME,
+    E_NONFINITE_VALUE,
+    E_EMPTY_SESSION,
+    E_UNDETERMINED,
+    E_STEP_NOT_CONTIGUOUS,
+    E_TOO_MANY_STEPS_LOST,
+    E_CHECKSUM,
 )
 
 # --- warning codes ------------------------------------------------------------------------
@@ -48,8 +62,15 @@ WARNING_CODES = (W_SATURATED, W_TOO_SHORT, W_EMPTY_STEP)
 class SessionError(Exception):
     """One session cannot be used. ``str(err)`` is the message a user sees."""
 
-    def __init__(self, code: str, session: str, file: str, reason: str,
-                 column: str | None = None, step: int | None = None):
+    def __init__(
+        self,
+        code: str,
+        session: str,
+        file: str,
+        reason: str,
+        column: str | None = None,
+        step: int | None = None,
+    ):
         self.code = code
         self.session = str(session)
         self.file = file
@@ -67,13 +88,18 @@ class SessionError(Exception):
         return f"[{self.code}] {', '.join(where)}: {self.reason}"
 
     def __reduce__(self):  # picklable across process pools (Prefect/Dask task runners)
-        return (SessionError, (self.code, self.session, self.file, self.reason,
-                               self.column, self.step))
+        return (SessionError, (self.code, self.session, self.file, self.reason, self.column, self.step))
 
     def to_dict(self) -> dict[str, Any]:
-        return {"code": self.code, "session": self.session, "file": self.file,
-                "reason": self.reason, "column": self.column, "step": self.step,
-                "message": str(self)}
+        return {
+            "code": self.code,
+            "session": self.session,
+            "file": self.file,
+            "reason": self.reason,
+            "column": self.column,
+            "step": self.step,
+            "message": str(self),
+        }
 
 
 @dataclass(frozen=True)
@@ -89,8 +115,7 @@ class SessionWarning:
         return f"[{self.code}] {self.message}"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"code": self.code, "message": self.message, "step": self.step,
-                "column": self.column}
+        return {"code": self.code, "message": self.message, "step": self.step, "column": self.column}
 
 
 def from_design_error(exc: Exception, session: str, file: str = "steps.parquet") -> SessionError:

@@ -16,6 +16,7 @@ static poses themselves or take a section list.
 Errors are :class:`schemas.errors.SessionError` naming the file (the "session" is the file
 name: these recordings have no lot/unit/rep).
 """
+
 from __future__ import annotations
 
 import io
@@ -46,9 +47,12 @@ ACCEL_CHANNELS = CHANNELS[3:]
 
 # input unit -> (unit after conversion, factor applied)
 GYRO_INPUT_UNITS: dict[str, tuple[str, float]] = {
-    "deg/s": ("deg/s", 1.0), "dps": ("deg/s", 1.0),
+    "deg/s": ("deg/s", 1.0),
+    "dps": ("deg/s", 1.0),
     "rad/s": ("deg/s", 180.0 / math.pi),
-    "LSB": ("LSB", 1.0), "counts": ("LSB", 1.0), "V": ("V", 1.0),
+    "LSB": ("LSB", 1.0),
+    "counts": ("LSB", 1.0),
+    "V": ("V", 1.0),
 }
 ACCEL_INPUT_UNITS = ("g", "mg", "m/s^2", "m/s2", "LSB", "counts", "V")
 
@@ -91,14 +95,14 @@ def _err(code: str, path: Path | str, reason: str, column: str | None = None) ->
 
 def convert_gyro(values: np.ndarray, unit: str, path: Path | str = "<array>") -> tuple[np.ndarray, str]:
     if unit not in GYRO_INPUT_UNITS:
-        raise _err(E_UNKNOWN_UNIT, path, f"gyro unit {unit!r} is not one of "
-                   f"{', '.join(GYRO_INPUT_UNITS)}")
+        raise _err(E_UNKNOWN_UNIT, path, f"gyro unit {unit!r} is not one of {', '.join(GYRO_INPUT_UNITS)}")
     out_unit, factor = GYRO_INPUT_UNITS[unit]
     return np.asarray(values, float) * factor, out_unit
 
 
-def convert_accel(values: np.ndarray, unit: str, g_local: float,
-                  path: Path | str = "<array>") -> tuple[np.ndarray, str]:
+def convert_accel(
+    values: np.ndarray, unit: str, g_local: float, path: Path | str = "<array>"
+) -> tuple[np.ndarray, str]:
     values = np.asarray(values, float)
     if unit == "g":
         return values, "g"
@@ -237,8 +241,12 @@ def sniff_table(path: Path, max_lines: int = 200) -> TableLayout:
                 preamble[kv[0]] = kv[1]
         return TableLayout(sep, header_line, no, columns, preamble)
     no, line = lines[-1]
-    raise _err(E_UNREADABLE_FILE, path, f"line {no}: no two consecutive lines of numbers found "
-               f"in the first {max_lines} lines (last read: {line[:60]!r})")
+    raise _err(
+        E_UNREADABLE_FILE,
+        path,
+        f"line {no}: no two consecutive lines of numbers found "
+        f"in the first {max_lines} lines (last read: {line[:60]!r})",
+    )
 
 
 def _first_bad_line(path: Path, layout: TableLayout) -> str:
@@ -271,10 +279,19 @@ def _read_table(path: Path) -> pd.DataFrame:
         raise _err(E_UNREADABLE_FILE, path, f"cannot read as text ({exc})") from exc
     try:
         with path.open() as fh:  # drop comment lines anywhere (pandas knows only one prefix)
-            body = [ln for no, ln in enumerate(fh, start=1) if no >= layout.data_line
-                    and ln.strip() and not ln.lstrip().startswith(COMMENT_PREFIXES)]
-        df = pd.read_csv(io.StringIO("".join(body)), sep=layout.sep if layout.sep else r"\s+",
-                         header=None, names=layout.columns, engine="c", dtype=float)
+            body = [
+                ln
+                for no, ln in enumerate(fh, start=1)
+                if no >= layout.data_line and ln.strip() and not ln.lstrip().startswith(COMMENT_PREFIXES)
+            ]
+        df = pd.read_csv(
+            io.StringIO("".join(body)),
+            sep=layout.sep if layout.sep else r"\s+",
+            header=None,
+            names=layout.columns,
+            engine="c",
+            dtype=float,
+        )
     except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise _err(E_UNREADABLE_FILE, path, _first_bad_line(path, layout)) from exc
     if df.isna().any().any():  # a short row is padded with NaN by the parser
@@ -288,24 +305,35 @@ def _read_table(path: Path) -> pd.DataFrame:
 
 def _numeric_column(df: pd.DataFrame, src: str, path: Path, channel: str) -> np.ndarray:
     if src not in df.columns:
-        raise _err(E_MISSING_COLUMN, path, f"column {src!r} (for {channel}) not found; "
-                   f"columns are {', '.join(map(str, df.columns))}", column=src)
+        raise _err(
+            E_MISSING_COLUMN,
+            path,
+            f"column {src!r} (for {channel}) not found; columns are {', '.join(map(str, df.columns))}",
+            column=src,
+        )
     try:
         values = pd.to_numeric(df[src], errors="raise").to_numpy(dtype=float)
     except (ValueError, TypeError) as exc:
         raise _err(E_WRONG_TYPE, path, f"column {src!r} is not numeric ({exc})", column=src) from exc
     bad = ~np.isfinite(values)
     if bad.any():
-        raise _err(E_NONFINITE_VALUE, path, f"{int(bad.sum())} non-finite values in column "
-                   f"{src!r}, first at row {int(np.argmax(bad))}", column=src)
+        raise _err(
+            E_NONFINITE_VALUE,
+            path,
+            f"{int(bad.sum())} non-finite values in column {src!r}, first at row {int(np.argmax(bad))}",
+            column=src,
+        )
     return values
 
 
-def _time_axis(values: np.ndarray | None, n: int, rate_hz: float | None, path: Path) -> tuple[np.ndarray, float]:
+def _time_axis(
+    values: np.ndarray | None, n: int, rate_hz: float | None, path: Path
+) -> tuple[np.ndarray, float]:
     if values is None:
         if not rate_hz or rate_hz <= 0:
-            raise _err(E_MISSING_COLUMN, path, "no time column mapped: give the sample rate (--rate)",
-                       column="t")
+            raise _err(
+                E_MISSING_COLUMN, path, "no time column mapped: give the sample rate (--rate)", column="t"
+            )
         return np.arange(n) / float(rate_hz), float(rate_hz)
     if n > 1 and not (np.diff(values) > 0).all():
         i = int(np.argmax(np.diff(values) <= 0))
@@ -330,9 +358,15 @@ def preamble_rate(preamble: Mapping[str, str]) -> float | None:
     return None
 
 
-def read_table_recording(path: Path | str, columns: Mapping[str, str] | None, gyro_unit: str,
-                         accel_unit: str, rate_hz: float | None = None,
-                         g_local: float = 9.80665, time_scale: float = 1.0) -> RawRecording:
+def read_table_recording(
+    path: Path | str,
+    columns: Mapping[str, str] | None,
+    gyro_unit: str,
+    accel_unit: str,
+    rate_hz: float | None = None,
+    g_local: float = 9.80665,
+    time_scale: float = 1.0,
+) -> RawRecording:
     """Generic importer: any CSV/whitespace text log (preamble, comments and header found by
     :func:`sniff_table`) with a column mapping {channel: column}.
 
@@ -345,8 +379,12 @@ def read_table_recording(path: Path | str, columns: Mapping[str, str] | None, gy
     if columns is None:
         columns = auto_column_mapping(df.columns)
         if columns is None:
-            raise _err(E_MISSING_COLUMN, path, "the header does not name ax,ay,az,gx,gy,gz: give "
-                       f"--columns (columns are {', '.join(map(str, df.columns))})")
+            raise _err(
+                E_MISSING_COLUMN,
+                path,
+                "the header does not name ax,ay,az,gx,gy,gz: give "
+                f"--columns (columns are {', '.join(map(str, df.columns))})",
+            )
     missing = [c for c in CHANNELS if c not in columns]
     if missing:
         raise _err(E_MISSING_COLUMN, path, f"column mapping lacks {', '.join(missing)}")
@@ -359,33 +397,63 @@ def read_table_recording(path: Path | str, columns: Mapping[str, str] | None, gy
     G, gu = convert_gyro(np.column_stack([data[c] for c in GYRO_CHANNELS]), gyro_unit, path)
     A, au = convert_accel(np.column_stack([data[c] for c in ACCEL_CHANNELS]), accel_unit, g_local, path)
     samples = _frame(t, G, A)
-    return RawRecording(samples, gu, au, float(g_local), rate, path.name,
-                        {"columns": dict(columns), "input_units": {"gyro": gyro_unit, "accel": accel_unit},
-                         "preamble": preamble})
+    return RawRecording(
+        samples,
+        gu,
+        au,
+        float(g_local),
+        rate,
+        path.name,
+        {
+            "columns": dict(columns),
+            "input_units": {"gyro": gyro_unit, "accel": accel_unit},
+            "preamble": preamble,
+        },
+    )
 
 
 def _frame(t: np.ndarray, G: np.ndarray, A: np.ndarray) -> pd.DataFrame:
-    return pd.DataFrame({"t": t, **{c: G[:, i] for i, c in enumerate(GYRO_CHANNELS)},
-                         **{c: A[:, i] for i, c in enumerate(ACCEL_CHANNELS)}})
+    return pd.DataFrame(
+        {
+            "t": t,
+            **{c: G[:, i] for i, c in enumerate(GYRO_CHANNELS)},
+            **{c: A[:, i] for i, c in enumerate(ACCEL_CHANNELS)},
+        }
+    )
 
 
-IMUCAL_COLUMNS = {"gx": "gyr_x", "gy": "gyr_y", "gz": "gyr_z",
-                  "ax": "acc_x", "ay": "acc_y", "az": "acc_z"}
+IMUCAL_COLUMNS = {"gx": "gyr_x", "gy": "gyr_y", "gz": "gyr_z", "ax": "acc_x", "ay": "acc_y", "az": "acc_z"}
 
 
-def read_imucal_csv(path: Path | str, rate_hz: float = IMUCAL_RATE_HZ, gyro_unit: str = "deg/s",
-                    accel_unit: str = "m/s^2", g_local: float = IMUCAL_G) -> RawRecording:
+def read_imucal_csv(
+    path: Path | str,
+    rate_hz: float = IMUCAL_RATE_HZ,
+    gyro_unit: str = "deg/s",
+    accel_unit: str = "m/s^2",
+    g_local: float = IMUCAL_G,
+) -> RawRecording:
     """imucal's session CSV (``n_samples, gyr_x..gyr_z, acc_x..acc_z``): gyro deg/s and accel
     m/s^2 by default; m/s^2 is converted to g with g = 9.81 m/s^2, imucal's own value, so that
     the Ferraris result maps back onto imucal's exactly. Row i is sample i (``t = i / rate``)."""
-    rec = read_table_recording(path, IMUCAL_COLUMNS, gyro_unit, accel_unit, rate_hz=rate_hz,
-                               g_local=g_local)
-    return RawRecording(rec.samples, rec.gyro_unit, rec.accel_unit, rec.g_local, rate_hz,
-                        rec.source, {**rec.metadata, "format": "imucal-csv"})
+    rec = read_table_recording(path, IMUCAL_COLUMNS, gyro_unit, accel_unit, rate_hz=rate_hz, g_local=g_local)
+    return RawRecording(
+        rec.samples,
+        rec.gyro_unit,
+        rec.accel_unit,
+        rec.g_local,
+        rate_hz,
+        rec.source,
+        {**rec.metadata, "format": "imucal-csv"},
+    )
 
 
-def read_imutk_pair(acc_path: Path | str, gyro_path: Path | str, gyro_unit: str = "LSB",
-                    accel_unit: str = "LSB", g_local: float = IMUTK_G) -> RawRecording:
+def read_imutk_pair(
+    acc_path: Path | str,
+    gyro_path: Path | str,
+    gyro_unit: str = "LSB",
+    accel_unit: str = "LSB",
+    g_local: float = IMUTK_G,
+) -> RawRecording:
     """IMU-TK's two whitespace text files (``t x y z`` per line, raw counts): one for the
     accelerometer, one for the gyro, sampled together. The rows must pair up: same count and
     timestamps within half a sample period."""
@@ -398,23 +466,38 @@ def read_imutk_pair(acc_path: Path | str, gyro_path: Path | str, gyro_unit: str 
     mismatch = np.abs(acc[:, 0] - gyr[:, 0])
     if len(acc) > 1 and mismatch.max() > dt / 2:
         i = int(np.argmax(mismatch))
-        raise _err(E_UNREADABLE_FILE, gyro_path, f"timestamps differ from {acc_path.name} by "
-                   f"{mismatch[i]:.4g} s at row {i}")
+        raise _err(
+            E_UNREADABLE_FILE,
+            gyro_path,
+            f"timestamps differ from {acc_path.name} by {mismatch[i]:.4g} s at row {i}",
+        )
     t, rate = _time_axis(acc[:, 0], len(acc), None, acc_path)
     G, gu = convert_gyro(gyr[:, 1:4], gyro_unit, gyro_path)
     A, au = convert_accel(acc[:, 1:4], accel_unit, g_local, acc_path)
-    return RawRecording(_frame(t, G, A), gu, au, float(g_local), rate,
-                        f"{acc_path.name}+{gyro_path.name}",
-                        {"format": "imu-tk", "t0_s": float(acc[0, 0]),
-                         "input_units": {"gyro": gyro_unit, "accel": accel_unit}})
+    return RawRecording(
+        _frame(t, G, A),
+        gu,
+        au,
+        float(g_local),
+        rate,
+        f"{acc_path.name}+{gyro_path.name}",
+        {
+            "format": "imu-tk",
+            "t0_s": float(acc[0, 0]),
+            "input_units": {"gyro": gyro_unit, "accel": accel_unit},
+        },
+    )
 
 
 def _read_imutk_file(path: Path) -> np.ndarray:
     df = _read_table(path)
     if df.shape[1] < 4:
-        raise _err(E_MISSING_COLUMN, path, f"expected 4 whitespace-separated columns t x y z, got {df.shape[1]}")
-    return np.column_stack([_numeric_column(df, str(df.columns[i]), path, n)
-                            for i, n in enumerate(("t", "x", "y", "z"))])
+        raise _err(
+            E_MISSING_COLUMN, path, f"expected 4 whitespace-separated columns t x y z, got {df.shape[1]}"
+        )
+    return np.column_stack(
+        [_numeric_column(df, str(df.columns[i]), path, n) for i, n in enumerate(("t", "x", "y", "z"))]
+    )
 
 
 def read_section_list(path: Path | str) -> dict[str, tuple[int, int]]:

@@ -4,6 +4,7 @@ path: samples are validated and averaged by the reader's own code, or written as
 Why here and not in calib_core: turning samples into step means is the reader's job
 (:mod:`schemas.averaging`), and calib_core may not import schemas.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -22,29 +23,44 @@ def _session_start(rep: int) -> str:
     return f"2026-11-{min(rep, 28):02d}T02:00:00Z"
 
 
-def physics_unit_step_means(unit: PhysicsUnit, steps: pd.DataFrame, rng: np.random.Generator,
-                            n_reps: int = 5, rate_hz: float = 50.0,
-                            table: Turntable = Turntable(), lot: str = "PHYS",
-                            unit_id: str = "U000") -> list[StepMeans]:
+def physics_unit_step_means(
+    unit: PhysicsUnit,
+    steps: pd.DataFrame,
+    rng: np.random.Generator,
+    n_reps: int = 5,
+    rate_hz: float = 50.0,
+    table: Turntable = Turntable(),
+    lot: str = "PHYS",
+    unit_id: str = "U000",
+) -> list[StepMeans]:
     """Step means of ``n_reps`` repetitions (each a cold start with its own turn-on biases
     and noise), averaged by :func:`schemas.averaging.step_means_from_tables`."""
     out = []
     for rep in range(1, n_reps + 1):
-        samples, md = simulate_physics_session(unit, steps, rng, rate_hz=rate_hz, table=table,
-                                               session_start=_session_start(rep))
+        samples, md = simulate_physics_session(
+            unit, steps, rng, rate_hz=rate_hz, table=table, session_start=_session_start(rep)
+        )
         sm, _warnings = step_means_from_tables(SessionKey(lot, unit_id, rep), steps, samples, md)
         out.append(sm)
     return out
 
 
-def write_physics_unit(root: Path | str, unit: PhysicsUnit, steps: pd.DataFrame,
-                       rng: np.random.Generator, n_reps: int = 5, rate_hz: float = 50.0,
-                       table: Turntable = Turntable(), lot: str = "PHYS",
-                       unit_id: str = "U000") -> list[Path]:
+def write_physics_unit(
+    root: Path | str,
+    unit: PhysicsUnit,
+    steps: pd.DataFrame,
+    rng: np.random.Generator,
+    n_reps: int = 5,
+    rate_hz: float = 50.0,
+    table: Turntable = Turntable(),
+    lot: str = "PHYS",
+    unit_id: str = "U000",
+) -> list[Path]:
     """Write ``n_reps`` repetitions of one unit in the acquisition contract under ``root``."""
     dirs = []
     for rep in range(1, n_reps + 1):
-        samples, md = simulate_physics_session(unit, steps, rng, rate_hz=rate_hz, table=table,
-                                               session_start=_session_start(rep))
+        samples, md = simulate_physics_session(
+            unit, steps, rng, rate_hz=rate_hz, table=table, session_start=_session_start(rep)
+        )
         dirs.append(write_session(root, SessionKey(lot, unit_id, rep), steps, samples, md))
     return dirs

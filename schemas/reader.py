@@ -20,6 +20,7 @@ are converted once into one ``(6, n)`` float64 array (``SessionData.channels``; 
 builds the error message runs only when that check fails. The sample -> step-row index
 computed for the unknown-step check is handed to the averaging (``SessionData.step_row``).
 """
+
 from __future__ import annotations
 
 import errno
@@ -29,9 +30,9 @@ import re
 import stat
 import threading
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import pandas as pd
@@ -40,18 +41,37 @@ import pyarrow.parquet as pq
 
 from calib_core.steps import SessionKey
 from schemas.contract import (
-    ACCEL_COLUMNS, ALLOWED_TESTS, ALLOWED_UP_AXES, F_REF_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE,
-    SAMPLES_RULES, SENSOR_COLUMNS, STEP_FLOAT_COLUMNS, STEPS_FILE, STEPS_RULES, W_REF_COLUMNS,
-    SessionMeta, check_columns, parse_metadata,
+    ALLOWED_TESTS,
+    ALLOWED_UP_AXES,
+    F_REF_COLUMNS,
+    SAMPLES_FILE,
+    SAMPLES_RULES,
+    SENSOR_COLUMNS,
+    STEP_FLOAT_COLUMNS,
+    STEPS_FILE,
+    STEPS_RULES,
+    W_REF_COLUMNS,
+    SessionMeta,
+    check_columns,
+    parse_metadata,
 )
 from schemas.dataset import SessionRef
 from schemas.errors import (
-    E_BAD_STEP_DEFINITION, E_CHECKSUM, E_DUPLICATE_STEP, E_EMPTY_SESSION, E_MISSING_FILE,
-    E_NONFINITE_VALUE, E_NONINCREASING_TIME, E_STEP_NOT_CONTIGUOUS, E_UNKNOWN_STEP,
-    E_UNREADABLE_FILE, E_WRONG_TYPE, SessionError,
+    E_BAD_STEP_DEFINITION,
+    E_CHECKSUM,
+    E_DUPLICATE_STEP,
+    E_EMPTY_SESSION,
+    E_MISSING_FILE,
+    E_NONFINITE_VALUE,
+    E_NONINCREASING_TIME,
+    E_STEP_NOT_CONTIGUOUS,
+    E_UNKNOWN_STEP,
+    E_UNREADABLE_FILE,
+    E_WRONG_TYPE,
+    SessionError,
 )
 
-INT32_MIN, INT32_MAX = -(2 ** 31), 2 ** 31 - 1
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 STEPS_CACHE_SIZE = 16
 LOOKUP_MAX_ID = 1 << 20  # step ids in [-1, this): sample -> step row by a lookup table
 
@@ -74,23 +94,27 @@ class StepColumns:
     heading_deg: np.ndarray | None = None  # (k,) float64, the optional column (None: absent)
 
     @classmethod
-    def from_frame(cls, steps: pd.DataFrame) -> "StepColumns":
+    def from_frame(cls, steps: pd.DataFrame) -> StepColumns:
         """From a validated steps DataFrame (the contract columns)."""
+
         def read_only(a: np.ndarray) -> np.ndarray:
             a = np.array(a)  # own copy: never a view of the caller's frame
             a.setflags(write=False)
             return a
+
         floats = {c: steps[c].to_numpy(float) for c in STEP_FLOAT_COLUMNS}
         return cls(
             step=read_only(steps["step"].to_numpy(np.int64)),
             test=read_only(steps["test"].to_numpy(str)),
             up_axis=read_only(steps["up_axis"].to_numpy(str)),
-            rate_dps=read_only(floats["rate_dps"]), angle_deg=read_only(floats["angle_deg"]),
+            rate_dps=read_only(floats["rate_dps"]),
+            angle_deg=read_only(floats["angle_deg"]),
             settle_s=read_only(floats["settle_s"]),
             w_ref=read_only(np.column_stack([floats[c] for c in W_REF_COLUMNS])),
             f_ref=read_only(np.column_stack([floats[c] for c in F_REF_COLUMNS])),
-            heading_deg=(read_only(steps["heading_deg"].to_numpy(float))
-                         if "heading_deg" in steps.columns else None),
+            heading_deg=(
+                read_only(steps["heading_deg"].to_numpy(float)) if "heading_deg" in steps.columns else None
+            ),
         )
 
 
@@ -161,8 +185,9 @@ def _open(path: Path, label: str, st: os.stat_result | None = None) -> pq.Parque
         # page CRCs are verified where the writer stored them (schemas.writer does)
         return pq.ParquetFile(path, page_checksum_verification=True)
     except (pa.ArrowException, OSError, ValueError) as exc:
-        raise SessionError(E_UNREADABLE_FILE, label, file,
-                           f"not a readable Parquet file (truncated or corrupt?): {exc}") from exc
+        raise SessionError(
+            E_UNREADABLE_FILE, label, file, f"not a readable Parquet file (truncated or corrupt?): {exc}"
+        ) from exc
 
 
 # Arrow's own threads for decoding one file's columns: a lone read of a 36,000-sample session
@@ -183,11 +208,15 @@ def _read(pf: pq.ParquetFile, columns: list[str], label: str, file: str) -> pa.T
         return pf.read(columns=columns, use_threads=_arrow_threads)
     except (pa.ArrowException, OSError, ValueError, EOFError) as exc:
         if "crc" in str(exc).lower() or "checksum" in str(exc).lower():
-            raise SessionError(E_CHECKSUM, label, file,
-                               f"damaged bytes: a data page's checksum does not match its "
-                               f"content ({exc})") from exc
-        raise SessionError(E_UNREADABLE_FILE, label, file,
-                           f"Parquet data cannot be decoded (truncated or corrupt?): {exc}") from exc
+            raise SessionError(
+                E_CHECKSUM,
+                label,
+                file,
+                f"damaged bytes: a data page's checksum does not match its content ({exc})",
+            ) from exc
+        raise SessionError(
+            E_UNREADABLE_FILE, label, file, f"Parquet data cannot be decoded (truncated or corrupt?): {exc}"
+        ) from exc
 
 
 # --- steps --------------------------------------------------------------------------------
@@ -218,28 +247,28 @@ def _int_ids(col: pa.ChunkedArray, label: str, file: str, null_code: str) -> np.
     """Step ids as int32 (zero-copy, possibly read-only) when the column is int32, else int64
     after a range check."""
     if col.null_count:
-        raise SessionError(null_code, label, file,
-                           f"{col.null_count} row(s) have a null step id", column="step")
+        raise SessionError(
+            null_code, label, file, f"{col.null_count} row(s) have a null step id", column="step"
+        )
     ids = col.to_numpy(zero_copy_only=False)
     if ids.dtype == np.int32:  # the contract's type: in range by construction, no copy
         return ids
     ids = ids.astype(np.int64, copy=False)
     if len(ids) and (ids.min() < INT32_MIN or ids.max() > INT32_MAX):
         bad = int(ids[(ids < INT32_MIN) | (ids > INT32_MAX)][0])
-        raise SessionError(E_WRONG_TYPE, label, file,
-                           f"step id {bad} does not fit int32", column="step")
+        raise SessionError(E_WRONG_TYPE, label, file, f"step id {bad} does not fit int32", column="step")
     return ids
 
 
-def validate_steps(table: pa.Table | pd.DataFrame, label: str,
-                   file: str = STEPS_FILE) -> pd.DataFrame:
+def validate_steps(table: pa.Table | pd.DataFrame, label: str, file: str = STEPS_FILE) -> pd.DataFrame:
     """Types and content of steps.parquet -> DataFrame with the contract dtypes (+ duration_s
     when present). Raises SessionError."""
     return _validate_steps_frame(_as_table(table, file, label), label, file)
 
 
-def _validated_steps(table: pa.Table | pd.DataFrame, label: str,
-                     file: str = STEPS_FILE) -> tuple[pd.DataFrame, StepColumns]:
+def _validated_steps(
+    table: pa.Table | pd.DataFrame, label: str, file: str = STEPS_FILE
+) -> tuple[pd.DataFrame, StepColumns]:
     df = validate_steps(table, label, file)
     return df, StepColumns.from_frame(df)
 
@@ -250,30 +279,49 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
         raise SessionError(E_EMPTY_SESSION, label, file, "steps table has no rows")
     ids = _int_ids(table.column("step"), label, file, E_BAD_STEP_DEFINITION)
     if (ids == -1).any():
-        raise SessionError(E_BAD_STEP_DEFINITION, label, file,
-                           "step id -1 is reserved for samples between steps", column="step",
-                           step=-1)
+        raise SessionError(
+            E_BAD_STEP_DEFINITION,
+            label,
+            file,
+            "step id -1 is reserved for samples between steps",
+            column="step",
+            step=-1,
+        )
     uniq, counts = np.unique(ids, return_counts=True)
     if (counts > 1).any():
         dup = uniq[counts > 1]
-        raise SessionError(E_DUPLICATE_STEP, label, file,
-                           f"step id {int(dup[0])} appears {int(counts[counts > 1][0])} times "
-                           f"({len(dup)} duplicated id(s) in total)", column="step",
-                           step=int(dup[0]))
+        raise SessionError(
+            E_DUPLICATE_STEP,
+            label,
+            file,
+            f"step id {int(dup[0])} appears {int(counts[counts > 1][0])} times "
+            f"({len(dup)} duplicated id(s) in total)",
+            column="step",
+            step=int(dup[0]),
+        )
     out = {"step": ids.astype(np.int32)}
     for name, allowed in (("test", ALLOWED_TESTS), ("up_axis", ALLOWED_UP_AXES)):
         try:
             values = _strings(table.column(name))
         except (pa.ArrowException, UnicodeDecodeError) as exc:  # bytes that are not UTF-8
-            raise SessionError(E_UNREADABLE_FILE, label, file,
-                               f"{name} strings cannot be decoded (corrupt file?): {exc}",
-                               column=name) from exc
+            raise SessionError(
+                E_UNREADABLE_FILE,
+                label,
+                file,
+                f"{name} strings cannot be decoded (corrupt file?): {exc}",
+                column=name,
+            ) from exc
         bad = ~np.isin(values, np.array(allowed, dtype=object))
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise SessionError(E_BAD_STEP_DEFINITION, label, file,
-                               f"{name} {values[i]!r} is not one of {', '.join(allowed)} "
-                               f"({int(bad.sum())} step(s))", column=name, step=int(ids[i]))
+            raise SessionError(
+                E_BAD_STEP_DEFINITION,
+                label,
+                file,
+                f"{name} {values[i]!r} is not one of {', '.join(allowed)} ({int(bad.sum())} step(s))",
+                column=name,
+                step=int(ids[i]),
+            )
         # built as the pandas string dtype directly (an astype of the frame costs ~3 ms)
         out[name] = pd.array(values.astype(str).astype(object), dtype="string")
     for name in ("rate_dps", "angle_deg") + W_REF_COLUMNS + F_REF_COLUMNS + ("settle_s",):
@@ -281,15 +329,25 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
         bad = np.isinf(values) if name == "angle_deg" else ~np.isfinite(values)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise SessionError(E_BAD_STEP_DEFINITION, label, file,
-                               f"{name} is {values[i]} (must be a finite number; "
-                               f"{int(bad.sum())} step(s))", column=name, step=int(ids[i]))
+            raise SessionError(
+                E_BAD_STEP_DEFINITION,
+                label,
+                file,
+                f"{name} is {values[i]} (must be a finite number; {int(bad.sum())} step(s))",
+                column=name,
+                step=int(ids[i]),
+            )
         out[name] = values
     if (out["settle_s"] < 0).any():
         i = int(np.flatnonzero(out["settle_s"] < 0)[0])
-        raise SessionError(E_BAD_STEP_DEFINITION, label, file,
-                           f"settle_s is {out['settle_s'][i]} (must be >= 0)", column="settle_s",
-                           step=int(ids[i]))
+        raise SessionError(
+            E_BAD_STEP_DEFINITION,
+            label,
+            file,
+            f"settle_s is {out['settle_s'][i]} (must be >= 0)",
+            column="settle_s",
+            step=int(ids[i]),
+        )
     if "duration_s" in table.schema.names and "duration_s" not in names:
         col = table.column("duration_s")
         if pa.types.is_floating(col.type) or pa.types.is_integer(col.type):
@@ -297,17 +355,25 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
     if "heading_deg" in table.schema.names and "heading_deg" not in names:
         col = table.column("heading_deg")
         if not (pa.types.is_floating(col.type) or pa.types.is_integer(col.type)):
-            raise SessionError(E_BAD_STEP_DEFINITION, label, file,
-                               f"heading_deg has type {col.type} (must be a number of degrees)",
-                               column="heading_deg")
+            raise SessionError(
+                E_BAD_STEP_DEFINITION,
+                label,
+                file,
+                f"heading_deg has type {col.type} (must be a number of degrees)",
+                column="heading_deg",
+            )
         values = _floats(col)
         bad = ~np.isfinite(values)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise SessionError(E_BAD_STEP_DEFINITION, label, file,
-                               f"heading_deg is {values[i]} (must be a finite number; "
-                               f"{int(bad.sum())} step(s))", column="heading_deg",
-                               step=int(ids[i]))
+            raise SessionError(
+                E_BAD_STEP_DEFINITION,
+                label,
+                file,
+                f"heading_deg is {values[i]} (must be a finite number; {int(bad.sum())} step(s))",
+                column="heading_deg",
+                step=int(ids[i]),
+            )
         out["heading_deg"] = values
     return pd.DataFrame(out)
 
@@ -351,8 +417,9 @@ def _read_steps_cached(path: Path, label: str) -> tuple[pd.DataFrame, StepColumn
     try:
         pf = pq.ParquetFile(pa.BufferReader(raw), page_checksum_verification=True)
     except (pa.ArrowException, OSError, ValueError) as exc:  # changed since _open looked at it
-        raise SessionError(E_UNREADABLE_FILE, label, file,
-                           f"not a readable Parquet file (truncated or corrupt?): {exc}") from exc
+        raise SessionError(
+            E_UNREADABLE_FILE, label, file, f"not a readable Parquet file (truncated or corrupt?): {exc}"
+        ) from exc
     schema = pf.schema_arrow
     names = check_columns(schema, STEPS_RULES, label, file)
     names = names + [c for c in ("duration_s", "heading_deg") if c in schema.names]
@@ -370,19 +437,30 @@ def _first_bad(bad: np.ndarray, step: np.ndarray | None) -> tuple[int, int | Non
     return i, (None if step is None else int(step[i]))
 
 
-def validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: SessionMeta,
-                     label: str, file: str = SAMPLES_FILE,
-                     key: SessionKey | None = None,
-                     step_columns: StepColumns | None = None) -> SessionData:
+def validate_samples(
+    table: pa.Table | pd.DataFrame,
+    steps: pd.DataFrame,
+    meta: SessionMeta,
+    label: str,
+    file: str = SAMPLES_FILE,
+    key: SessionKey | None = None,
+    step_columns: StepColumns | None = None,
+) -> SessionData:
     """Types and content of samples.parquet, unit conversion -> :class:`SessionData`.
     ``step_columns``: ``steps`` as numpy arrays when the caller has them (else derived)."""
     return _validate_samples(table, steps, meta, label, file, key, step_columns)
 
 
-def _validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta: SessionMeta,
-                      label: str, file: str, key: SessionKey | None,
-                      step_columns: StepColumns | None,
-                      columns_checked: bool = False) -> SessionData:
+def _validate_samples(
+    table: pa.Table | pd.DataFrame,
+    steps: pd.DataFrame,
+    meta: SessionMeta,
+    label: str,
+    file: str,
+    key: SessionKey | None,
+    step_columns: StepColumns | None,
+    columns_checked: bool = False,
+) -> SessionData:
     """:func:`validate_samples`; ``columns_checked``: the table was read with the projection
     that :func:`check_columns` returned for its file's schema (same columns, same types)."""
     table = _as_table(table, file, label)
@@ -401,10 +479,15 @@ def _validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta:
     if unknown_runs.any():
         unknown = np.unique(step[run_start[unknown_runs]])
         n_rows = int(run_len[unknown_runs].sum())
-        raise SessionError(E_UNKNOWN_STEP, label, file,
-                           f"step id {int(unknown[0])} is not in steps.parquet ({len(unknown)} "
-                           f"unknown id(s), {n_rows} sample(s))", column="step",
-                           step=int(unknown[0]))
+        raise SessionError(
+            E_UNKNOWN_STEP,
+            label,
+            file,
+            f"step id {int(unknown[0])} is not in steps.parquet ({len(unknown)} "
+            f"unknown id(s), {n_rows} sample(s))",
+            column="step",
+            step=int(unknown[0]),
+        )
     _check_one_run_per_step(step, run_start, label, file)
     step = np.array(step, dtype=np.int32)  # own, writable copy (the Arrow buffer is read-only)
     step_row = np.repeat(run_row, run_len)
@@ -415,17 +498,27 @@ def _validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta:
     if bad.any():
         i, s = _first_bad(bad, step)
         what = "null" if t_col.null_count else f"{t[i]}"
-        raise SessionError(E_NONFINITE_VALUE, label, file,
-                           f"time is {what} at row {i} ({int(bad.sum())} row(s))", column="t",
-                           step=s)
+        raise SessionError(
+            E_NONFINITE_VALUE,
+            label,
+            file,
+            f"time is {what} at row {i} ({int(bad.sum())} row(s))",
+            column="t",
+            step=s,
+        )
     # for finite t, t[i+1] - t[i] <= 0 exactly when t[i+1] <= t[i] (no float temporary)
     nonincreasing = t[1:] <= t[:-1]
     if nonincreasing.any():
         i = int(np.flatnonzero(nonincreasing)[0]) + 1
-        raise SessionError(E_NONINCREASING_TIME, label, file,
-                           f"t is not strictly increasing: row {i} has t={float(t[i])!r} s after "
-                           f"t={float(t[i - 1])!r} s ({int(nonincreasing.sum())} such row(s))",
-                           column="t", step=int(step[i]))
+        raise SessionError(
+            E_NONINCREASING_TIME,
+            label,
+            file,
+            f"t is not strictly increasing: row {i} has t={float(t[i])!r} s after "
+            f"t={float(t[i - 1])!r} s ({int(nonincreasing.sum())} such row(s))",
+            column="t",
+            step=int(step[i]),
+        )
 
     # one (6, n) array, one row per channel: each conversion from float32 is one contiguous
     # copy, the finiteness check one pass over all channels, and the averaging reduces all
@@ -449,15 +542,26 @@ def _validate_samples(table: pa.Table | pd.DataFrame, steps: pd.DataFrame, meta:
         temp = _floats(table.column("temp_c"))  # NaN / null = not recorded for that sample
         if np.isinf(temp).any():
             i, s = _first_bad(np.isinf(temp), step)
-            raise SessionError(E_NONFINITE_VALUE, label, file,
-                               f"temperature is infinite at row {i}", column="temp_c", step=s)
-    return SessionData(key=key, label=label, steps=steps, step=step, t=t,
-                       gyro=channels[:3].T, accel=channels[3:].T, temp_c=temp, meta=meta,
-                       step_row=step_row, step_columns=step_columns, channels=channels)
+            raise SessionError(
+                E_NONFINITE_VALUE, label, file, f"temperature is infinite at row {i}", column="temp_c", step=s
+            )
+    return SessionData(
+        key=key,
+        label=label,
+        steps=steps,
+        step=step,
+        t=t,
+        gyro=channels[:3].T,
+        accel=channels[3:].T,
+        temp_c=temp,
+        meta=meta,
+        step_row=step_row,
+        step_columns=step_columns,
+        channels=channels,
+    )
 
 
-def _check_one_run_per_step(step: np.ndarray, run_start: np.ndarray, label: str,
-                            file: str) -> None:
+def _check_one_run_per_step(step: np.ndarray, run_start: np.ndarray, label: str, file: str) -> None:
     """E_STEP_NOT_CONTIGUOUS when a step's samples are not one run in time: its id reappears
     after another step's samples (samples of no step, id -1, between two parts of a step do
     not count as another step)."""
@@ -476,14 +580,21 @@ def _check_one_run_per_step(step: np.ndarray, run_start: np.ndarray, label: str,
     k = int(np.flatnonzero(again)[0])
     sid = int(ids[k])
     n_ids = len(ids) - len(first)
-    raise SessionError(E_STEP_NOT_CONTIGUOUS, label, file,
-                       f"the samples of step {sid} are not one run in time: its id reappears "
-                       f"at row {int(starts[k])} after another step's samples ({n_ids} "
-                       f"reappearance(s) in all)", column="step", step=sid)
+    raise SessionError(
+        E_STEP_NOT_CONTIGUOUS,
+        label,
+        file,
+        f"the samples of step {sid} are not one run in time: its id reappears "
+        f"at row {int(starts[k])} after another step's samples ({n_ids} "
+        f"reappearance(s) in all)",
+        column="step",
+        step=sid,
+    )
 
 
-def _raise_nonfinite_sensor(table: pa.Table, channels: np.ndarray, step: np.ndarray,
-                            t: np.ndarray, label: str, file: str) -> None:
+def _raise_nonfinite_sensor(
+    table: pa.Table, channels: np.ndarray, step: np.ndarray, t: np.ndarray, label: str, file: str
+) -> None:
     """The error for the first sensor column (gx .. az order) with a non-finite value."""
     for j, name in enumerate(SENSOR_COLUMNS):
         values = channels[j]
@@ -500,9 +611,14 @@ def _raise_nonfinite_sensor(table: pa.Table, channels: np.ndarray, step: np.ndar
             kinds.append(f"{n_nan} NaN")
         if np.isinf(values).any():
             kinds.append(f"{int(np.isinf(values).sum())} infinite")
-        raise SessionError(E_NONFINITE_VALUE, label, file,
-                           f"non-finite sensor values ({', '.join(kinds)}), first at "
-                           f"row {i} (t={t[i]:.6g} s)", column=name, step=s)
+        raise SessionError(
+            E_NONFINITE_VALUE,
+            label,
+            file,
+            f"non-finite sensor values ({', '.join(kinds)}), first at row {i} (t={t[i]:.6g} s)",
+            column=name,
+            step=s,
+        )
     # every value finite, the sum overflowed: nothing to report
 
 
@@ -552,12 +668,14 @@ def read_session(ref: SessionRef) -> SessionData:
     samples_path = ref.samples_path
     steps_there = ref.steps_path.exists()
     samples_stat = _stat(samples_path)  # samples_path.exists(), and _open's checks
-    missing = [p for p, there in ((ref.steps_path, steps_there),
-                                  (samples_path, samples_stat is not None)) if not there]
+    missing = [
+        p
+        for p, there in ((ref.steps_path, steps_there), (samples_path, samples_stat is not None))
+        if not there
+    ]
     if missing:
         names = " and ".join(p.name for p in missing)
-        raise SessionError(E_MISSING_FILE, label, missing[0].name,
-                           f"{names} missing in {ref.path}")
+        raise SessionError(E_MISSING_FILE, label, missing[0].name, f"{names} missing in {ref.path}")
     steps, step_columns = _read_steps_cached(ref.steps_path, label)
     pf = _open(samples_path, label, samples_stat)
     file = samples_path.name
@@ -568,13 +686,17 @@ def read_session(ref: SessionRef) -> SessionData:
     # the frame is shared with the cache: a shallow copy is the caller's own under pandas'
     # copy-on-write (writing to it copies), at no cost; the table's columns are the
     # projection of the schema just checked (not checked again)
-    return _validate_samples(table, steps.copy(deep=False), meta, label, file, ref.key,
-                             step_columns, columns_checked=True)
+    return _validate_samples(
+        table, steps.copy(deep=False), meta, label, file, ref.key, step_columns, columns_checked=True
+    )
 
 
-def session_from_tables(key: SessionKey | str, steps: pa.Table | pd.DataFrame,
-                        samples: pa.Table | pd.DataFrame,
-                        metadata: Mapping | None = None) -> SessionData:
+def session_from_tables(
+    key: SessionKey | str,
+    steps: pa.Table | pd.DataFrame,
+    samples: pa.Table | pd.DataFrame,
+    metadata: Mapping | None = None,
+) -> SessionData:
     """Validate in-memory tables exactly as :func:`read_session` validates files. When
     ``metadata`` is None the samples table's schema metadata is used."""
     label = str(key)
@@ -582,8 +704,9 @@ def session_from_tables(key: SessionKey | str, steps: pa.Table | pd.DataFrame,
     if metadata is None:
         metadata = samples.schema.metadata if isinstance(samples, pa.Table) else {}
     meta = parse_metadata(metadata, label, SAMPLES_FILE)
-    return validate_samples(samples, steps_df, meta, label, SAMPLES_FILE, key=parse_key(key),
-                            step_columns=step_columns)
+    return validate_samples(
+        samples, steps_df, meta, label, SAMPLES_FILE, key=parse_key(key), step_columns=step_columns
+    )
 
 
 def parse_key(key: SessionKey | str) -> SessionKey | None:
@@ -594,5 +717,7 @@ def parse_key(key: SessionKey | str) -> SessionKey | None:
     return SessionKey(m["lot"], m["unit"], int(m["rep"])) if m else None
 
 
-_KEY_PATTERN = re.compile(r"^lot=(?P<lot>[A-Za-z0-9_.-]+)/unit=(?P<unit>[A-Za-z0-9_.-]+)"
-                          r"/rep=(?P<rep>[1-9][0-9]*)$")
+_KEY_PATTERN = re.compile(
+    r"^lot=(?P<lot>[A-Za-z0-9_.-]+)/unit=(?P<unit>[A-Za-z0-9_.-]+)"
+    r"/rep=(?P<rep>[1-9][0-9]*)$"
+)

@@ -35,6 +35,7 @@ last good parameters, summary and calibration files; the ``units`` table and the
 ``stale_reason`` columns of ``summary`` say that they are stale and why, and ``sessions``
 holds the failures.
 """
+
 from __future__ import annotations
 
 import errno
@@ -44,12 +45,12 @@ import os
 import socket
 import tempfile
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 from urllib.parse import quote, unquote
 
 import numpy as np
@@ -91,11 +92,11 @@ class CalibrationNotFound(LookupError):
 
 
 def utc_now() -> datetime:
-    return datetime.now(timezone.utc)
+    return datetime.now(UTC)
 
 
 def iso(dt: datetime) -> str:
-    return dt.astimezone(timezone.utc).isoformat().replace("+00:00", "Z")
+    return dt.astimezone(UTC).isoformat().replace("+00:00", "Z")
 
 
 def parse_when(text: str) -> datetime:
@@ -103,8 +104,8 @@ def parse_when(text: str) -> datetime:
     t = text.strip().replace("Z", "+00:00")
     dt = datetime.fromisoformat(t)
     if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=timezone.utc)
-    return dt.astimezone(timezone.utc)
+        dt = dt.replace(tzinfo=UTC)
+    return dt.astimezone(UTC)
 
 
 def _current_umask() -> int:
@@ -143,8 +144,9 @@ def write_table_atomic(table: pa.Table, path: Path) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        pq.write_table(table, tmp, compression="zstd", row_group_size=ROW_GROUP_ROWS,
-                       **_encoding_options(table.schema))
+        pq.write_table(
+            table, tmp, compression="zstd", row_group_size=ROW_GROUP_ROWS, **_encoding_options(table.schema)
+        )
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; the store is read by others
@@ -225,7 +227,7 @@ def _same_frame(a: pd.DataFrame, b: pd.DataFrame) -> bool:
 def _is_normal(df: pd.DataFrame, name: str) -> bool:
     """Whether :func:`_normalise` would return the same frame (columns in place, key dtypes)."""
     cols = TABLE_COLUMNS[name]
-    if list(df.columns[:len(cols)]) != cols:
+    if list(df.columns[: len(cols)]) != cols:
         return False
     return all(str(df[c].dtype) == dt for c, dt in _KEY_DTYPES.items() if c in df.columns)
 
@@ -297,7 +299,7 @@ def lot_of_partition(file_name: str) -> tuple[bool, str | None]:
     if file_name == _NO_LOT_FILE:
         return True, None
     if file_name.startswith(_LOT_PREFIX) and file_name.endswith(".parquet"):
-        return True, unquote(file_name[len(_LOT_PREFIX):-len(".parquet")])
+        return True, unquote(file_name[len(_LOT_PREFIX) : -len(".parquet")])
     return False, None
 
 
@@ -337,8 +339,7 @@ def _lot_set(lots: Iterable[Any]) -> set[str | None]:
     first (it has one value per row)."""
     if isinstance(lots, pd.Series):
         lots = lots.unique()
-    return {None if (x is None or (not isinstance(x, str) and pd.isna(x))) else str(x)
-            for x in lots}
+    return {None if (x is None or (not isinstance(x, str) and pd.isna(x))) else str(x) for x in lots}
 
 
 # --- the store ------------------------------------------------------------------------------------
@@ -449,8 +450,9 @@ class ResultsStore:
         return [lot for lot in self.partitions(name) if lot is not None]
 
     # tables
-    def read(self, name: str, lots: Iterable[Any] | None = None,
-             columns: list[str] | None = None) -> pd.DataFrame:
+    def read(
+        self, name: str, lots: Iterable[Any] | None = None, columns: list[str] | None = None
+    ) -> pd.DataFrame:
         """A table, or the rows of some lots (``lots``; all by default), lots concatenated in
         sorted order; an empty frame with its columns when there is no row. ``columns``
         projects (missing ones come back empty)."""
@@ -470,8 +472,7 @@ class ResultsStore:
         return df if columns is None else df[list(columns)]
 
     @staticmethod
-    def _read_legacy(path: Path, want: set[str | None] | None,
-                     columns: list[str] | None) -> pd.DataFrame:
+    def _read_legacy(path: Path, want: set[str | None] | None, columns: list[str] | None) -> pd.DataFrame:
         cols = None
         if columns is not None:
             names = set(pq.read_schema(path).names)
@@ -480,13 +481,19 @@ class ResultsStore:
         if want is not None:
             lot = table.column("lot").to_pandas().astype(object)
             lot = lot.where(lot.notna(), None)
-            table = table.filter(pa.array(lot.isin(want).to_numpy()
-                                          | (lot.isna().to_numpy() & (None in want))))
+            table = table.filter(
+                pa.array(lot.isin(want).to_numpy() | (lot.isna().to_numpy() & (None in want)))
+            )
         return table.to_pandas()
 
-    def write(self, name: str, df: pd.DataFrame, lots: Iterable[Any] | None = None,
-              skip_unchanged: bool = False, previous: pd.DataFrame | None = None
-              ) -> list[str | None]:
+    def write(
+        self,
+        name: str,
+        df: pd.DataFrame,
+        lots: Iterable[Any] | None = None,
+        skip_unchanged: bool = False,
+        previous: pd.DataFrame | None = None,
+    ) -> list[str | None]:
         """Write ``df`` as the table's rows of ``lots`` (default: the whole table, so lots
         absent from ``df`` lose their file). Only the lots' files are rewritten, each
         atomically; a lot left without rows loses its file. ``skip_unchanged``: leave a lot's
@@ -506,8 +513,10 @@ class ResultsStore:
             targets = _lot_set(lots)
             outside = set(by_lot) - targets
             if outside:
-                raise ValueError(f"table {name}: rows of lots {sorted(map(str, outside))} given "
-                                 f"to a write of lots {sorted(map(str, targets))}")
+                raise ValueError(
+                    f"table {name}: rows of lots {sorted(map(str, outside))} given "
+                    f"to a write of lots {sorted(map(str, targets))}"
+                )
         self.table_dir(name).mkdir(parents=True, exist_ok=True)
         written = []
         for lot in sorted(targets, key=_lot_order):
@@ -519,17 +528,20 @@ class ResultsStore:
                     written.append(lot)
                 continue
             if skip_unchanged and lot in current:
-                old = before.get(lot) if before is not None else \
-                    _normalise(_read_files([current[lot]]), name)
+                old = before.get(lot) if before is not None else _normalise(_read_files([current[lot]]), name)
                 if old is not None and _same_frame(old, part):
                     continue
             write_parquet_atomic(part, path, name)
             written.append(lot)
         return written
 
-    def replace_units(self, name: str, new_rows: pd.DataFrame | None,
-                      units: set[tuple[str, str]],
-                      set_values: dict[tuple[str, str], dict[str, Any]] | None = None) -> None:
+    def replace_units(
+        self,
+        name: str,
+        new_rows: pd.DataFrame | None,
+        units: set[tuple[str, str]],
+        set_values: dict[tuple[str, str], dict[str, Any]] | None = None,
+    ) -> None:
         """Replace every row of the given (lot, unit)s by ``new_rows``; other rows unchanged.
         ``set_values``: columns to set on the kept rows of other units (as
         :meth:`update_rows`), in the same write. Reads and rewrites only the lots of
@@ -559,12 +571,16 @@ class ResultsStore:
                 for unit, values in lot_values.items():
                     _set_columns(kept, kept["unit"].astype(object).eq(unit).to_numpy(), values)
             parts = [p for p in (kept, lot_new) if p is not None and len(p)]
-            df = (pd.concat(parts, ignore_index=True) if len(parts) > 1 else parts[0] if parts
-                  else _normalise(pd.DataFrame(), name))
+            df = (
+                pd.concat(parts, ignore_index=True)
+                if len(parts) > 1
+                else parts[0]
+                if parts
+                else _normalise(pd.DataFrame(), name)
+            )
             self.write(name, df, lots=[lot])
 
-    def _merge_lot_arrow(self, name: str, lot: str | None, units: set[str],
-                         new: pd.DataFrame | None) -> bool:
+    def _merge_lot_arrow(self, name: str, lot: str | None, units: set[str], new: pd.DataFrame | None) -> bool:
         """The Arrow path of :meth:`replace_units` for one lot; False (nothing done) when it
         does not apply: no stored file, new rows of other units, other column types."""
         path = self.partition_path(name, lot)
@@ -584,8 +600,7 @@ class ResultsStore:
             add = None
         # strings read as dictionaries (decoding them is most of a read), back to the stored
         # type for writing
-        old = pq.read_table(path, read_dictionary=[f.name for f in schema
-                                                   if _is_string(f.type)])
+        old = pq.read_table(path, read_dictionary=[f.name for f in schema if _is_string(f.type)])
         unit = old.column("unit").combine_chunks()
         names = unit.dictionary.to_pylist()
         codes = unit.indices.fill_null(len(names)).to_numpy()
@@ -612,8 +627,7 @@ class ResultsStore:
             codes = pc.dictionary_encode(table.column("unit").combine_chunks())
             names = codes.dictionary.to_pylist()
             rank = np.empty(len(names) + 1, dtype=np.int64)
-            rank[np.argsort(np.array(names, dtype=object), kind="stable")] = \
-                np.arange(len(names))
+            rank[np.argsort(np.array(names, dtype=object), kind="stable")] = np.arange(len(names))
             rank[len(names)] = len(names)
             idx = codes.indices.fill_null(len(names)).to_numpy()
             table = table.take(np.argsort(rank[idx], kind="stable"))
@@ -675,11 +689,22 @@ class ResultsStore:
             self._conform_lot_files()
         if migrated or not self.format_path.exists():
             self.root.mkdir(parents=True, exist_ok=True)
-            write_json_atomic(self.format_path, {
-                "format_version": STORE_FORMAT_VERSION,
-                "layout": "tables/<name>/lot=<lot>.parquet",
-                **({"migrated_from": LEGACY_FORMAT_VERSION, "migrated_tables": migrated,
-                    "migrated_at": iso(utc_now())} if migrated else {})})
+            write_json_atomic(
+                self.format_path,
+                {
+                    "format_version": STORE_FORMAT_VERSION,
+                    "layout": "tables/<name>/lot=<lot>.parquet",
+                    **(
+                        {
+                            "migrated_from": LEGACY_FORMAT_VERSION,
+                            "migrated_tables": migrated,
+                            "migrated_at": iso(utc_now()),
+                        }
+                        if migrated
+                        else {}
+                    ),
+                },
+            )
         return migrated
 
     def _conform_lot_files(self) -> list[Path]:
@@ -698,31 +723,35 @@ class ResultsStore:
     # fingerprints of the last run: (lot, unit, rep) -> fingerprint
     def fingerprints(self) -> dict[tuple[str, str, int], str]:
         df = self.read("sessions", columns=["lot", "unit", "rep", "fingerprint"])
-        return {(str(r.lot), str(r.unit), int(r.rep)): str(r.fingerprint)
-                for r in df.itertuples() if pd.notna(r.rep)}
+        return {
+            (str(r.lot), str(r.unit), int(r.rep)): str(r.fingerprint)
+            for r in df.itertuples()
+            if pd.notna(r.rep)
+        }
 
     def lots(self) -> list[str]:
         return self.table_lots("units")
 
     # calibrations
-    def save_calibration(self, cal, unit: str, extra: dict[str, Any],
-                         when: datetime | None = None, jsonable: bool = False) -> Path:
+    def save_calibration(
+        self, cal, unit: str, extra: dict[str, Any], when: datetime | None = None, jsonable: bool = False
+    ) -> Path:
         """A new ``calibrations/<unit>/<timestamp>.json``; never overwrites an existing one.
         ``jsonable``: ``extra`` is written as :func:`jsonable` would make it (numpy values as
         Python ones, NaN as null, datetimes and paths as text)."""
         from schemas.calibration_file import save_calibration
         from schemas.dataset import check_id
+
         when = when or utc_now()
         d = self.calibrations_dir / check_id(unit, "unit")  # a file name: never '..' etc.
         d.mkdir(parents=True, exist_ok=True)
         for _ in range(1000):
-            path = d / f"{when.astimezone(timezone.utc).strftime(TIMESTAMP_FORMAT)}.json"
+            path = d / f"{when.astimezone(UTC).strftime(TIMESTAMP_FORMAT)}.json"
             if not path.exists():
                 break
             when = when + timedelta(microseconds=1)  # same instant twice: keep both
         if jsonable:
-            return save_calibration(cal, path, extra, extra_nonfinite="null",
-                                    default=_store_default)
+            return save_calibration(cal, path, extra, extra_nonfinite="null", default=_store_default)
         return save_calibration(cal, path, extra)
 
     def calibration_files(self, unit: str) -> list[tuple[datetime, Path]]:
@@ -731,14 +760,13 @@ class ResultsStore:
         if d.is_dir():
             for p in d.glob("*.json"):
                 try:
-                    ts = datetime.strptime(p.stem, TIMESTAMP_FORMAT).replace(tzinfo=timezone.utc)
+                    ts = datetime.strptime(p.stem, TIMESTAMP_FORMAT).replace(tzinfo=UTC)
                 except ValueError:
                     continue
                 out.append((ts, p))
         return sorted(out)
 
-    def find_calibration(self, unit: str, at: datetime | None = None,
-                         before_after: str = "before") -> Path:
+    def find_calibration(self, unit: str, at: datetime | None = None, before_after: str = "before") -> Path:
         return find_calibration(self.root, unit, at, before_after)
 
     # derived values worth keeping between processes
@@ -776,8 +804,7 @@ class ResultsStore:
 
     def write_flag_state(self, rows: pd.DataFrame, doc: dict) -> None:
         table = pa.Table.from_pandas(rows, preserve_index=False)
-        meta = {**(table.schema.metadata or {}),
-                FLAG_STATE_METADATA_KEY: json.dumps(doc).encode()}
+        meta = {**(table.schema.metadata or {}), FLAG_STATE_METADATA_KEY: json.dumps(doc).encode()}
         write_table_atomic(table.replace_schema_metadata(meta), self.flag_state_path)
 
     # file digests of the sessions, by their stat (schemas.dataset.DigestCache)
@@ -791,8 +818,7 @@ class ResultsStore:
             doc = json.loads(self.digest_cache_path.read_text())
         except (OSError, ValueError):
             return {}
-        return doc.get("entries", {}) if isinstance(doc, dict) and doc.get("version") == 1 \
-            else {}
+        return doc.get("entries", {}) if isinstance(doc, dict) and doc.get("version") == 1 else {}
 
     def write_digest_cache(self, entries: dict) -> None:
         write_json_atomic(self.digest_cache_path, {"version": 1, "entries": entries})
@@ -859,8 +885,9 @@ class ResultsStore:
 
     # lock
     @contextmanager
-    def lock(self, owner: str, wait: bool = False, timeout: float | None = None,
-             poll_s: float = 0.5) -> Iterator[None]:
+    def lock(
+        self, owner: str, wait: bool = False, timeout: float | None = None, poll_s: float = 0.5
+    ) -> Iterator[None]:
         """Hold the results root for one run. ``flock`` is released by the kernel if the
         process dies, so a crashed run never leaves the store locked. A second run is refused
         with :class:`StoreLockedError` naming the holder, or waits (``wait=True``)."""
@@ -869,8 +896,10 @@ class ResultsStore:
             fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as exc:
             if exc.errno == errno.ELOOP:
-                raise StoreError(f"{self.lock_path} is a symbolic link; the results folder "
-                                 f"must hold only the tool's own files: remove it") from None
+                raise StoreError(
+                    f"{self.lock_path} is a symbolic link; the results folder "
+                    f"must hold only the tool's own files: remove it"
+                ) from None
             raise
         if not stat_is_regular(fd):
             os.close(fd)
@@ -889,10 +918,12 @@ class ResultsStore:
                         raise StoreLockedError(
                             f"results root {self.root} is in use by {holder}; two runs on one "
                             f"results root would corrupt it. Wait for it to finish or pass "
-                            f"--wait") from None
+                            f"--wait"
+                        ) from None
                     time.sleep(poll_s)
-            info = json.dumps({"owner": owner, "pid": os.getpid(), "host": socket.gethostname(),
-                               "since": iso(utc_now())})
+            info = json.dumps(
+                {"owner": owner, "pid": os.getpid(), "host": socket.gethostname(), "since": iso(utc_now())}
+            )
             os.ftruncate(fd, 0)
             os.pwrite(fd, info.encode(), 0)
             self.remove_stale_temp_files()
@@ -933,15 +964,18 @@ class ResultsStore:
         problems = []
         hint = REPAIR_HINT.format(root=self.root)
         for link in self.symlinks():
-            problems.append(f"{link} is a symbolic link; the results folder must hold only "
-                            f"the tool's own files and directories: replace it by a real "
-                            f"file/directory or remove it")
+            problems.append(
+                f"{link} is a symbolic link; the results folder must hold only "
+                f"the tool's own files and directories: replace it by a real "
+                f"file/directory or remove it"
+            )
         if problems:
             return problems
         units_ok = True
         for name in TABLES:
-            files = ([self.legacy_path(name)] if self.legacy_path(name).exists() else []) + \
-                list(self.partitions(name).values())
+            files = ([self.legacy_path(name)] if self.legacy_path(name).exists() else []) + list(
+                self.partitions(name).values()
+            )
             for path in files:
                 why = _unreadable(path, name)
                 if why:
@@ -952,8 +986,10 @@ class ResultsStore:
             for r in units.itertuples():
                 f = r.calibration_file
                 if isinstance(f, str) and f and not (self.root / f).is_file():
-                    problems.append(f"unit {r.lot}/{r.unit}: its current calibration file "
-                                    f"{self.root / f} is missing; {hint}")
+                    problems.append(
+                        f"unit {r.lot}/{r.unit}: its current calibration file "
+                        f"{self.root / f} is missing; {hint}"
+                    )
         return problems
 
     def check(self) -> None:
@@ -977,10 +1013,14 @@ class ResultsStore:
         (SIGKILL, power loss: their ``except`` never ran). Only called while holding the
         lock, so no live writer owns them; the files they were replacing are intact."""
         removed = []
-        for d in (self.root, self.runs_dir, self.root / "cache", self.root / "qa",
-                  *(self.calibrations_dir.glob("*")
-                                                if self.calibrations_dir.is_dir() else ()),
-                  *(self.tables_dir.glob("*") if self.tables_dir.is_dir() else ())):
+        for d in (
+            self.root,
+            self.runs_dir,
+            self.root / "cache",
+            self.root / "qa",
+            *(self.calibrations_dir.glob("*") if self.calibrations_dir.is_dir() else ()),
+            *(self.tables_dir.glob("*") if self.tables_dir.is_dir() else ()),
+        ):
             if not d.is_dir():
                 continue
             for p in d.glob(".*.tmp"):
@@ -998,12 +1038,13 @@ class ResultsStore:
             return None
         if not info:
             return None
-        return (f"run {info.get('owner')} (pid {info.get('pid')} on {info.get('host')}, "
-                f"since {info.get('since')})")
+        return (
+            f"run {info.get('owner')} (pid {info.get('pid')} on {info.get('host')}, "
+            f"since {info.get('since')})"
+        )
 
 
-def calibration_times(results: Path | str, unit: str
-                      ) -> list[tuple[datetime, datetime, Path, str]]:
+def calibration_times(results: Path | str, unit: str) -> list[tuple[datetime, datetime, Path, str]]:
     """Every calibration file of ``unit`` as (time, produced, path, source of the time),
     sorted by time then production. The time of a calibration is when its unit was measured:
     ``provenance.acquired_at`` (its sessions' last ``session_start``; source
@@ -1024,6 +1065,7 @@ def calibration_times(results: Path | str, unit: str
 
 def stat_is_regular(fd: int) -> bool:
     import stat
+
     return stat.S_ISREG(os.fstat(fd).st_mode)
 
 
@@ -1050,8 +1092,9 @@ def _castable(a: pa.DataType, b: pa.DataType) -> bool:
     return True
 
 
-def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
-                     before_after: str = "before") -> Path:
+def find_calibration(
+    results: Path | str, unit: str, at: datetime | None = None, before_after: str = "before"
+) -> Path:
     """The calibration file of ``unit`` valid at ``at`` (default: now).
 
     ``before`` (default): the latest calibration of a measurement at or before ``at``;
@@ -1063,14 +1106,16 @@ def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
         raise ValueError("before_after must be 'before', 'after' or 'closest'")
     at = at or utc_now()
     if at.tzinfo is None:
-        at = at.replace(tzinfo=timezone.utc)
+        at = at.replace(tzinfo=UTC)
     files = calibration_times(results, unit)
     if not files:
         cal_dir = Path(results) / "calibrations"
         have = sorted(p.name for p in cal_dir.iterdir() if p.is_dir()) if cal_dir.is_dir() else []
         listed = ", ".join(have[:12]) + (f", ... ({len(have)} in all)" if len(have) > 12 else "")
-        raise CalibrationNotFound(f"no calibration of unit {unit!r} under {cal_dir / unit} "
-                                  f"(units with calibrations: {listed or 'none'})")
+        raise CalibrationNotFound(
+            f"no calibration of unit {unit!r} under {cal_dir / unit} "
+            f"(units with calibrations: {listed or 'none'})"
+        )
 
     def last_of(when: datetime) -> Path:  # the last produced of one measurement
         return [f for f in files if f[0] == when][-1][2]
@@ -1078,14 +1123,18 @@ def find_calibration(results: Path | str, unit: str, at: datetime | None = None,
     if before_after == "before":
         cands = [f for f in files if f[0] <= at]
         if not cands:
-            raise CalibrationNotFound(f"unit {unit!r}: no calibration at or before {iso(at)} "
-                                      f"(the first is of {iso(files[0][0])}, {files[0][3]})")
+            raise CalibrationNotFound(
+                f"unit {unit!r}: no calibration at or before {iso(at)} "
+                f"(the first is of {iso(files[0][0])}, {files[0][3]})"
+            )
         return last_of(cands[-1][0])
     if before_after == "after":
         cands = [f for f in files if f[0] >= at]
         if not cands:
-            raise CalibrationNotFound(f"unit {unit!r}: no calibration at or after {iso(at)} "
-                                      f"(the last is of {iso(files[-1][0])}, {files[-1][3]})")
+            raise CalibrationNotFound(
+                f"unit {unit!r}: no calibration at or after {iso(at)} "
+                f"(the last is of {iso(files[-1][0])}, {files[-1][3]})"
+            )
         return last_of(cands[0][0])
     return last_of(min(files, key=lambda f: abs((f[0] - at).total_seconds()))[0])
 

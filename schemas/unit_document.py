@@ -14,6 +14,7 @@ applied calibration plus the sections :func:`calibration_file_sections` builds f
 K matrices are 3x3 row-major lists (w = K_g G + w0, f = K_a A + f0); w0 in deg/s and f0 in g
 whatever the raw units (the boundary converts rad/s and m/s^2). Keys are only ever added.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -44,8 +45,13 @@ def _tolist(v):
     if isinstance(v, dict):
         return {k: _tolist(x) for k, x in v.items()}
     arr = np.asarray(v, dtype=float)
-    return [None if not np.isfinite(x) else float(x) for x in arr.ravel()] if arr.ndim == 1 else \
-        [[None if not np.isfinite(x) else float(x) for x in row] for row in arr.reshape(arr.shape[0], -1)]
+    return (
+        [None if not np.isfinite(x) else float(x) for x in arr.ravel()]
+        if arr.ndim == 1
+        else [
+            [None if not np.isfinite(x) else float(x) for x in row] for row in arr.reshape(arr.shape[0], -1)
+        ]
+    )
 
 
 def _stack(reps: list[dict], key: str, fn):
@@ -57,8 +63,9 @@ def _stack(reps: list[dict], key: str, fn):
     return fn(np.array(present, dtype=float))
 
 
-def unit_document(lot: str, unit: str, reps: list[RepetitionCalibration],
-                  failed: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+def unit_document(
+    lot: str, unit: str, reps: list[RepetitionCalibration], failed: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
     reps = sorted(reps, key=lambda r: r.rep)
     per = [_rep_values(r) for r in reps]
     doc_reps = []
@@ -68,32 +75,54 @@ def unit_document(lot: str, unit: str, reps: list[RepetitionCalibration],
         entry["stderr"] = {k: _tolist(v) for k, v in p["stderr"].items()}
         entry["warnings"] = list(r.warnings)
         entry["condition_numbers"] = {
-            m: float(getattr(f, "condition_number")) for m, f in r.fits.items()
-            if hasattr(f, "condition_number")}
+            m: float(f.condition_number) for m, f in r.fits.items() if hasattr(f, "condition_number")
+        }
         doc_reps.append(entry)
-    keys = list(BASE_KEYS) + [k for k in ("accel_static", "lever_arm_mm")
-                              if any(k in p["values"] for p in per)]
+    keys = list(BASE_KEYS) + [
+        k for k in ("accel_static", "lever_arm_mm") if any(k in p["values"] for p in per)
+    ]
     mean = {k: _tolist(_stack(per, k, lambda a: np.nanmean(a, axis=0))) for k in keys}
-    std = {k: _tolist(_stack(per, k, lambda a: np.nanstd(a, axis=0, ddof=1) if len(a) > 1
-                             else np.full(a.shape[1:], np.nan))) for k in keys}
+    std = {
+        k: _tolist(
+            _stack(
+                per, k, lambda a: np.nanstd(a, axis=0, ddof=1) if len(a) > 1 else np.full(a.shape[1:], np.nan)
+            )
+        )
+        for k in keys
+    }
     g, a = (reps[0].fits["gyro"], reps[0].fits["accel"]) if reps else (None, None)
     units = {
-        "K_g": f"deg/s per {g.raw_unit}" if g else None, "w0": "deg/s",
-        "K_a": f"g per {a.raw_unit}" if a else None, "f0": "g",
+        "K_g": f"deg/s per {g.raw_unit}" if g else None,
+        "w0": "deg/s",
+        "K_a": f"g per {a.raw_unit}" if a else None,
+        "f0": "g",
     }
     if "accel_static" in keys:
-        units["accel_static"] = {"scale": f"{a.raw_unit} per g", "bias": a.raw_unit,
-                                 "angles_deg": "deg"}
+        units["accel_static"] = {"scale": f"{a.raw_unit} per g", "bias": a.raw_unit, "angles_deg": "deg"}
     if "lever_arm_mm" in keys:
         units["lever_arm_mm"] = "mm"
-    return {"lot": lot, "unit": unit, "format_version": FORMAT_VERSION, "reps": doc_reps,
-            "mean": mean, "std": std, "units": units, "failed": list(failed or [])}
+    return {
+        "lot": lot,
+        "unit": unit,
+        "format_version": FORMAT_VERSION,
+        "reps": doc_reps,
+        "mean": mean,
+        "std": std,
+        "units": units,
+        "failed": list(failed or []),
+    }
 
 
-def calibration_file_sections(lot: str, unit: str, reps: list[RepetitionCalibration],
-                              failed: list[dict[str, Any]], sessions_used: list[dict[str, Any]],
-                              extension_terms: list[str], model_discovery: dict | None,
-                              context: dict[str, Any]) -> dict[str, Any]:
+def calibration_file_sections(
+    lot: str,
+    unit: str,
+    reps: list[RepetitionCalibration],
+    failed: list[dict[str, Any]],
+    sessions_used: list[dict[str, Any]],
+    extension_terms: list[str],
+    model_discovery: dict | None,
+    context: dict[str, Any],
+) -> dict[str, Any]:
     """The sections a unit's calibration file holds beside the applied calibration (one
     format for the results store, ``mimucal calibrate --json`` and ``schemas.api``):
     ``provenance`` (``context``: run id, code version, time...; the sessions used and failed,
@@ -101,10 +130,18 @@ def calibration_file_sections(lot: str, unit: str, reps: list[RepetitionCalibrat
     the repetitions) and ``repetitions`` (each repetition's fits with standard errors)."""
     doc = unit_document(lot, unit, reps, failed)
     provenance = {
-        "lot": lot, "unit": unit, **context, "sessions_used": sessions_used,
-        "sessions_failed": list(failed), "extension_terms": list(extension_terms),
-        "model_discovery": None if model_discovery is None else {
-            k: model_discovery.get(k) for k in ("misfit", "unexplained", "effects")},
+        "lot": lot,
+        "unit": unit,
+        **context,
+        "sessions_used": sessions_used,
+        "sessions_failed": list(failed),
+        "extension_terms": list(extension_terms),
+        "model_discovery": None
+        if model_discovery is None
+        else {k: model_discovery.get(k) for k in ("misfit", "unexplained", "effects")},
     }
-    return {"provenance": provenance, "averaged": {k: doc[k] for k in ("mean", "std", "units")},
-            "repetitions": doc["reps"]}
+    return {
+        "provenance": provenance,
+        "averaged": {k: doc[k] for k in ("mean", "std", "units")},
+        "repetitions": doc["reps"],
+    }

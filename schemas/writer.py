@@ -7,12 +7,13 @@ same data as an acquisition system that records SI units. Each file is written t
 file in the session directory and renamed into place (``os.replace``), so a reader never sees
 a half-written file.
 """
+
 from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import pandas as pd
@@ -21,8 +22,18 @@ import pyarrow.parquet as pq
 
 from calib_core.steps import SessionKey
 from schemas.contract import (
-    ACCEL_COLUMNS, ACCEL_UNITS, G_LOCAL_DEFAULT, GYRO_COLUMNS, GYRO_UNITS, RAD_TO_DEG,
-    SAMPLES_FILE, SAMPLES_OPTIONAL, SAMPLES_SCHEMA, STEPS_FILE, STEPS_OPTIONAL, STEPS_SCHEMA,
+    ACCEL_COLUMNS,
+    ACCEL_UNITS,
+    G_LOCAL_DEFAULT,
+    GYRO_COLUMNS,
+    GYRO_UNITS,
+    RAD_TO_DEG,
+    SAMPLES_FILE,
+    SAMPLES_OPTIONAL,
+    SAMPLES_SCHEMA,
+    STEPS_FILE,
+    STEPS_OPTIONAL,
+    STEPS_SCHEMA,
 )
 from schemas.dataset import session_dir
 
@@ -56,8 +67,9 @@ def steps_table(steps_df: pd.DataFrame) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
-def samples_table(samples_df: pd.DataFrame, metadata: Mapping[str, str],
-                  gyro_scale: float = 1.0, accel_scale: float = 1.0) -> pa.Table:
+def samples_table(
+    samples_df: pd.DataFrame, metadata: Mapping[str, str], gyro_scale: float = 1.0, accel_scale: float = 1.0
+) -> pa.Table:
     """Samples in the contract; sensor columns keep their float32/float64 dtype; the values
     are multiplied by ``gyro_scale`` / ``accel_scale`` (unit conversion on write)."""
     arrays, fields = [], []
@@ -66,8 +78,11 @@ def samples_table(samples_df: pd.DataFrame, metadata: Mapping[str, str],
         if f.name in GYRO_COLUMNS + ACCEL_COLUMNS:
             dtype = values.dtype if values.dtype in (np.float32, np.float64) else np.float32
             scale = gyro_scale if f.name in GYRO_COLUMNS else accel_scale
-            values = (values.astype(np.float64) * scale).astype(dtype) if scale != 1.0 \
+            values = (
+                (values.astype(np.float64) * scale).astype(dtype)
+                if scale != 1.0
                 else values.astype(dtype, copy=False)
+            )
             f = pa.field(f.name, pa.from_numpy_dtype(dtype))
         else:
             values = values.astype(f.type.to_pandas_dtype(), copy=False)
@@ -80,9 +95,15 @@ def samples_table(samples_df: pd.DataFrame, metadata: Mapping[str, str],
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
-def write_session(root: Path | str, key: SessionKey, steps_df: pd.DataFrame,
-                  samples_df: pd.DataFrame, metadata: Mapping[str, str],
-                  gyro_unit: str | None = None, accel_unit: str | None = None) -> Path:
+def write_session(
+    root: Path | str,
+    key: SessionKey,
+    steps_df: pd.DataFrame,
+    samples_df: pd.DataFrame,
+    metadata: Mapping[str, str],
+    gyro_unit: str | None = None,
+    accel_unit: str | None = None,
+) -> Path:
     """Write ``<root>/lot=/unit=/rep=/{steps,samples}.parquet`` and return the directory.
 
     ``metadata`` describes ``samples_df`` as given (its ``gyro_unit``/``accel_unit``).
@@ -116,6 +137,10 @@ def write_session(root: Path | str, key: SessionKey, steps_df: pd.DataFrame,
     out = session_dir(root, key)
     out.mkdir(parents=True, exist_ok=True)
     _atomic_write(steps_table(steps_df), out / STEPS_FILE, compression="zstd")
-    _atomic_write(samples_table(samples_df, md, gyro_scale, accel_scale), out / SAMPLES_FILE,
-                  compression="zstd", use_dictionary=False)
+    _atomic_write(
+        samples_table(samples_df, md, gyro_scale, accel_scale),
+        out / SAMPLES_FILE,
+        compression="zstd",
+        use_dictionary=False,
+    )
     return out

@@ -3,6 +3,7 @@
 Not a timed test: it only proves that ``python -m benchmarks.run`` simulates, scans, fits,
 and writes its table and raw numbers. The real benchmark is ``make bench`` (BENCHMARKS.md).
 """
+
 from __future__ import annotations
 
 import json
@@ -20,10 +21,29 @@ def test_benchmark_harness_runs_on_a_tiny_fleet(tmp_path):
     out = tmp_path / "bench.md"
     work = tmp_path / "work"
     proc = subprocess.run(
-        [sys.executable, "-m", "benchmarks.run", "--sizes", "2", "--rate", "10", "--reps", "2",
-         "--no-nightly", "--only", "simulate,floor,fit_1proc", "--workdir", str(work),
-         "--output", str(out)],
-        cwd=REPO, capture_output=True, text=True, timeout=120)
+        [
+            sys.executable,
+            "-m",
+            "benchmarks.run",
+            "--sizes",
+            "2",
+            "--rate",
+            "10",
+            "--reps",
+            "2",
+            "--no-nightly",
+            "--only",
+            "simulate,floor,fit_1proc",
+            "--workdir",
+            str(work),
+            "--output",
+            str(out),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     raw = json.loads(out.with_suffix(".json").read_text())
     r = raw["sizes"]["2"]
@@ -47,9 +67,12 @@ def test_fit_vs_floor_verdict_names_every_ratio_that_misses():
     """The verdict may not hide a missed ratio behind the best one (made-up measurements)."""
     sys.path.insert(0, str(REPO))
     from benchmarks.run import _fit_vs_floor_row
-    r = {"fit_1proc": {"cpu_s": 20.0, "floor_cpu_s": 10.0, "elapsed_s": 18.0, "floor_s": 8.0},
-         "fit_2proc": {"elapsed_s": 11.0, "floor_s": 8.0},
-         "nightly_processes": {"fit_phase_s": 24.0}}
+
+    r = {
+        "fit_1proc": {"cpu_s": 20.0, "floor_cpu_s": 10.0, "elapsed_s": 18.0, "floor_s": 8.0},
+        "fit_2proc": {"elapsed_s": 11.0, "floor_s": 8.0},
+        "nightly_processes": {"fit_phase_s": 24.0},
+    }
     target, measured, verdict = _fit_vs_floor_row(r, 200)
     assert "200 units" in target and "2.00x" in measured and "1.38x" in measured
     assert verdict.startswith("met by wall, 2 processes; missed:")
@@ -66,15 +89,28 @@ def test_verdicts_state_the_cpu_bound_of_the_machines_cores():
     least time their measured CPU allows on the machine's cores (made-up measurements)."""
     sys.path.insert(0, str(REPO))
     from benchmarks.run import verdicts
+
     roles = {"api": 1.0, "flow": 1.0, "workers": 6.0, "writer": 2.0}  # 10 s of CPU
-    size = {"fit_1proc": {"cpu_s": 8.0, "floor_cpu_s": 4.0, "elapsed_s": 7.0, "floor_s": 2.5},
-            "nightly_processes": {"fit_phase_s": 5.5, "fit_phase_cpu_s": roles},
-            "nightly_dask1": {"fit_phase_s": 6.0, "batch_size": 8,
-                              "fit_phase_cpu_s": {"workers": 5.5, "flow": 2.0}},
-            "nightly_dask2": {"fit_phase_s": 5.5, "batch_size": 8, "dask_warmup_s": 1.0,
-                              "fit_phase_cpu_s": roles}}
-    doc = {"sizes": {"200": size}, "config": {"batch": 8},
-           "machine": {"nproc": 2, "load_start": (0.0, 0.0, 0.0)}}
+    size = {
+        "fit_1proc": {"cpu_s": 8.0, "floor_cpu_s": 4.0, "elapsed_s": 7.0, "floor_s": 2.5},
+        "nightly_processes": {"fit_phase_s": 5.5, "fit_phase_cpu_s": roles},
+        "nightly_dask1": {
+            "fit_phase_s": 6.0,
+            "batch_size": 8,
+            "fit_phase_cpu_s": {"workers": 5.5, "flow": 2.0},
+        },
+        "nightly_dask2": {
+            "fit_phase_s": 5.5,
+            "batch_size": 8,
+            "dask_warmup_s": 1.0,
+            "fit_phase_cpu_s": roles,
+        },
+    }
+    doc = {
+        "sizes": {"200": size},
+        "config": {"batch": 8},
+        "machine": {"nproc": 2, "load_start": (0.0, 0.0, 0.0)},
+    }
     rows = {target: why for target, _, _, why in verdicts(doc)}
     # 10 s of CPU on 2 cores: at least 5.0 s, 2.00x a 2.5 s floor; 6.0 / 5.0 = 1.20x for Dask
     fit_why = rows["fit phase (read ... flag, discovery) <= 1.5x floor at 200 units"]

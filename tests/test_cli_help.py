@@ -1,4 +1,5 @@
 """Every subcommand answers --help (issue 2 item 1), discovered, not listed by hand."""
+
 from __future__ import annotations
 
 import subprocess
@@ -21,14 +22,16 @@ def test_core_commands_are_registered():
 
 @pytest.mark.parametrize("command", _subcommands())
 def test_every_subcommand_has_help(command):
-    out = subprocess.run([sys.executable, "-m", "flows.cli", command, "--help"],
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "flows.cli", command, "--help"], capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0, out.stderr
     assert "usage: mimucal" in out.stdout and command in out.stdout
 
 
 def test_reproduce_xu2016_fast_prints_three_tables(capsys):
     from flows.cli import main
+
     assert main(["reproduce", "xu2016", "--fast", "--seed", "1"]) == 0
     text = capsys.readouterr().out
     for title in ("Table 1", "Table 2", "Table 3", "Findings"):
@@ -43,6 +46,7 @@ def test_reproduce_xu2016_through_samples_and_the_reader_at_a_low_rate(capsys):
     """The whole path of the README command (simulated samples -> reader's averaging ->
     fits), at 10 Hz to stay fast."""
     from flows.cli import main
+
     assert main(["reproduce", "xu2016", "--rate", "10", "--seed", "2"]) == 0
     text = capsys.readouterr().out
     line = next(row for row in text.splitlines() if row.startswith("k_g11"))

@@ -1,4 +1,5 @@
 """`mimucal diagnose` end to end on a small simulated dataset written to Parquet."""
+
 from __future__ import annotations
 
 import json
@@ -8,8 +9,8 @@ import pandas as pd
 
 from calib_core import protocols
 from calib_core import simulator as sim
-from calib_core.simulator import REALISTIC_NOISE
 from calib_core.effects import get_effect
+from calib_core.simulator import REALISTIC_NOISE
 from calib_core.steps import SessionKey
 from flows.cli import main
 from schemas.writer import write_session
@@ -22,19 +23,18 @@ def write_unit(root, truth, n_reps, rng, unit="U7"):
     for r in range(1, n_reps + 1):
         tr = sim.draw_repetition_truth(truth, rng)
         samples = sim.simulate_session(tr, steps, rng, sample_rate_hz=RATE)
-        write_session(root, SessionKey("L1", unit, r), steps, samples,
-                      sim.session_metadata(tr, RATE))
+        write_session(root, SessionKey("L1", unit, r), steps, samples, sim.session_metadata(tr, RATE))
 
 
 def test_diagnose_names_the_effect_and_writes_json(tmp_path, capsys):
     rng = np.random.default_rng(11)
     truth = sim.typical_truth(rng, **REALISTIC_NOISE).with_effects(
-        (get_effect("gyro_scale_asymmetry"), [0.0, 0.0, 800.0]))
+        (get_effect("gyro_scale_asymmetry"), [0.0, 0.0, 800.0])
+    )
     write_unit(tmp_path / "ds", truth, 3, rng)
     out = tmp_path / "diag.json"
     res = tmp_path / "res.parquet"
-    rc = main(["diagnose", str(tmp_path / "ds"), "--unit", "U7", "--json", str(out),
-               "--residuals", str(res)])
+    rc = main(["diagnose", str(tmp_path / "ds"), "--unit", "U7", "--json", str(out), "--residuals", str(res)])
     assert rc == 0
     text = capsys.readouterr().out
     assert "gyro_scale_asymmetry on z" in text and "MISFIT on gz" in text
@@ -47,8 +47,9 @@ def test_diagnose_names_the_effect_and_writes_json(tmp_path, capsys):
     table = pd.read_parquet(res)
     assert set(table["model"]) == {"affine", "extended", "xu2016"}
     assert "xu2016 calibration replayed" in text
-    assert {"lot", "unit", "rep", "step", "test", "channel", "reference", "residual",
-            "sigma"} <= set(table.columns)
+    assert {"lot", "unit", "rep", "step", "test", "channel", "reference", "residual", "sigma"} <= set(
+        table.columns
+    )
     assert len(table) == 3 * 3 * 6 * 118
 
 

@@ -2,6 +2,7 @@
 needs the exact model: standard errors against the Monte Carlo spread, the diagnosis
 document, the repetitions it needs. Hidden effects, clean lots and effects outside the
 catalogue are tested on the independent physics simulator (test_discovery_physics.py)."""
+
 from __future__ import annotations
 
 import json
@@ -33,7 +34,7 @@ def test_stderr_matches_monte_carlo_spread():
     rng = np.random.default_rng(77)
     truth = base_truth(rng).with_effects((get_effect("gyro_scale_asymmetry"), [0, 0, 400.0]))
     est, se = [], []
-    for u in range(40):
+    for _ in range(40):
         sessions, _ = simulate_unit(truth, STEPS, rng, N_REPS)
         d = diagnose_unit(sessions, tables=False)
         assert [e.name for e in d.effects] == ["gyro_scale_asymmetry"]
@@ -46,16 +47,23 @@ def test_stderr_matches_monte_carlo_spread():
 
 def test_diagnosis_document_and_terms():
     rng = np.random.default_rng(5)
-    truth = base_truth(rng).with_effects((get_effect("gyro_g_sensitivity"),
-                                          [0, 0, 0, 0, 0, 0, 0.04, 0, 0]))
+    truth = base_truth(rng).with_effects((get_effect("gyro_g_sensitivity"), [0, 0, 0, 0, 0, 0, 0.04, 0, 0]))
     sessions, _ = simulate_unit(truth, STEPS, rng, 3, lot="L9", unit="U9")
     d = diagnose_unit(sessions)
     doc = json.loads(json.dumps(d.to_dict(), allow_nan=False))
     assert doc["unit"] == "U9" and doc["misfit"] is True and doc["unexplained"] is False
     (eff,) = doc["effects"]
     assert eff["name"] == "gyro_g_sensitivity" and eff["axes"] == ["z"]
-    assert set(eff) >= {"name", "axes", "estimate", "stderr", "evidence",
-                        "heldout_rms_before", "heldout_rms_after", "gain"}
+    assert set(eff) >= {
+        "name",
+        "axes",
+        "estimate",
+        "stderr",
+        "evidence",
+        "heldout_rms_before",
+        "heldout_rms_after",
+        "gain",
+    }
     assert eff["gain"] == pytest.approx(eff["heldout_rms_before"] / eff["heldout_rms_after"])
     assert abs(eff["estimate"]["Gzx"] - 0.04) < 4 * eff["stderr"]["Gzx"]
     (tv,) = d.terms

@@ -8,6 +8,7 @@
   test (numpy's matrix_rank rule) finds deficient;
 - the covariance of a fit is built on first use, with the formula it had.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -87,7 +88,8 @@ def test_diagnosis_is_the_same_with_a_cold_and_a_warm_layout_cache():
     theta = np.zeros(get_effect("gyro_scale_asymmetry").n_params)
     theta[2] = 800.0  # found: two selection passes over the same grid
     truth = sim.typical_truth(rng, **REALISTIC_NOISE).with_effects(
-        (get_effect("gyro_scale_asymmetry"), theta))
+        (get_effect("gyro_scale_asymmetry"), theta)
+    )
     sessions, _ = simulate_unit(truth, STEPS, rng, 3)
     disc._LAYOUT_CACHE.clear()
     cold = diagnose_unit(sessions, tables=False).to_dict()
@@ -123,14 +125,16 @@ def test_rank_shortcut_never_skips_a_deficient_design():
         if kind == 1:  # a raw column constant within each repetition: a copy of the biases
             raw[:, :, :, 1] = rng.normal(size=(6, R, 1))
         elif kind == 2:  # nearly so
-            raw[:, :, :, 1] = (rng.normal(size=(6, R, 1))
-                               + 10.0 ** rng.uniform(-13, -3) * rng.normal(size=(6, R, n)))
+            raw[:, :, :, 1] = rng.normal(size=(6, R, 1)) + 10.0 ** rng.uniform(-13, -3) * rng.normal(
+                size=(6, R, n)
+            )
         elif kind == 3:  # two raw columns nearly collinear
-            raw[:, :, :, 2] = (3.0 * raw[:, :, :, 0]
-                               + 10.0 ** rng.uniform(-14, -1) * rng.normal(size=(6, R, n)))
+            raw[:, :, :, 2] = 3.0 * raw[:, :, :, 0] + 10.0 ** rng.uniform(-14, -1) * rng.normal(
+                size=(6, R, n)
+            )
         w = 10.0 ** rng.uniform(-1, 1, size=(6, R, n, 1))
         if trial % 3 == 0:
-            w[:, :, rng.integers(1, n):] = 0.0  # padding rows (weight 0)
+            w[:, :, rng.integers(1, n) :] = 0.0  # padding rows (weight 0)
         D = np.concatenate([w * raw, w], axis=-1)
         sure, exact = disc._surely_full_rank(D), _exact_full_rank(D)
         assert not (sure and not exact), trial
@@ -166,9 +170,9 @@ def test_lazy_covariance_is_the_svd_formula():
         live = norms > 1e-12 * norms.max()
         scale = np.where(live, norms, 1.0)
         U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)
-        keep = (s > disc._RCOND ** 0.5 * s[0]) & (s > 0)
+        keep = (s > disc._RCOND**0.5 * s[0]) & (s > 0)
         inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
-        ref = (Vt.T * inv_s ** 2) @ Vt / np.outer(scale, scale)
+        ref = (Vt.T * inv_s**2) @ Vt / np.outer(scale, scale)
         undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
         ref[undetermined, :] = np.nan
         ref[:, undetermined] = np.nan

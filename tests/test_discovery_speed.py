@@ -6,6 +6,7 @@ Here each of its numbers is recomputed the plain way, one dense weighted least s
 every row with explicit bias columns, on balanced units and on units whose repetitions lost
 steps (the general two-way path), and the noise estimate is recomputed with
 :func:`calib_core.replay.estimate_noise_arrays`."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -48,16 +49,23 @@ def _long(d: _Discovery):
     rows = []
     for r, sm in enumerate(d.sessions):
         n = len(sm)
-        ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid,
-                                      g_local=sm.g_local)
-        Z = -np.concatenate([get_effect(nm).regressors(ctx, d.geometry) for nm in d.names],
-                            axis=-1)
+        ctx = MotionContext.from_refs(sm.w_ref, sm.f_ref, temp_c=sm.temp_c, t=sm.t_mid, g_local=sm.g_local)
+        Z = -np.concatenate([get_effect(nm).regressors(ctx, d.geometry) for nm in d.names], axis=-1)
         y = np.hstack([sm.w_ref, sm.f_ref])
         for c in range(6):
             raw = sm.gyro if c < 3 else sm.accel
-            rows.append(dict(rep=np.full(n, r), step=sm.step.astype(int), channel=np.full(n, c),
-                             group=np.array([replay.test_group(t) for t in sm.test]), y=y[:, c],
-                             raw=raw, w=d.weight[r, :n, c], Z=Z[:, c, :]))
+            rows.append(
+                dict(
+                    rep=np.full(n, r),
+                    step=sm.step.astype(int),
+                    channel=np.full(n, c),
+                    group=np.array([replay.test_group(t) for t in sm.test]),
+                    y=y[:, c],
+                    raw=raw,
+                    w=d.weight[r, :n, c],
+                    Z=Z[:, c, :],
+                )
+            )
     return {k: np.concatenate([x[k] for x in rows]) for k in rows[0]}
 
 
@@ -67,30 +75,35 @@ def _dense_fit(L, train: np.ndarray, cols: np.ndarray, R: int):
     X = np.zeros((n, 18 + 6 * R + len(cols)))
     for c in range(6):
         m = L["channel"] == c
-        X[m, 3 * c:3 * c + 3] = L["raw"][m]
+        X[m, 3 * c : 3 * c + 3] = L["raw"][m]
     X[np.arange(n), 18 + 6 * L["rep"] + L["channel"]] = 1.0
-    X[:, 18 + 6 * R:] = L["Z"][:, cols]
+    X[:, 18 + 6 * R :] = L["Z"][:, cols]
     keep_cols = np.flatnonzero(np.abs(X[train]).sum(axis=0) > 0)
     Xw = X[train][:, keep_cols] * L["w"][train, None]
     beta_k, *_ = np.linalg.lstsq(Xw, L["y"][train] * L["w"][train], rcond=None)
     beta = np.zeros(X.shape[1])
     beta[keep_cols] = beta_k
     K = beta[:18].reshape(6, 3)
-    b = beta[18:18 + 6 * R].reshape(R, 6)
-    theta = beta[18 + 6 * R:]
+    b = beta[18 : 18 + 6 * R].reshape(R, 6)
+    theta = beta[18 + 6 * R :]
     return K, b, theta, X, beta
 
 
-@pytest.mark.parametrize("effect,theta,drop", [
-    (None, None, False),
-    ("gyro_g_sensitivity", [0, 0, 0, 0, 0, 0, 0.04, 0, 0], False),
-    ("lever_arm", [0, 0, 0, 4.0, -3.0, 2.0, 0, 0, 0], True),
-])
+@pytest.mark.parametrize(
+    "effect,theta,drop",
+    [
+        (None, None, False),
+        ("gyro_g_sensitivity", [0, 0, 0, 0, 0, 0, 0.04, 0, 0], False),
+        ("lever_arm", [0, 0, 0, 4.0, -3.0, 2.0, 0, 0, 0], True),
+    ],
+)
 def test_fits_equal_the_dense_weighted_least_squares(effect, theta, drop, monkeypatch):
     # the algebra on white rows (prewhitening is a row transform applied before it)
     from calib_core.discovery import turntable
-    monkeypatch.setattr(turntable, "_serial_noise",
-                        lambda z, real, t: turntable._SerialNoise(np.zeros(6), np.ones(6)))
+
+    monkeypatch.setattr(
+        turntable, "_serial_noise", lambda z, real, t: turntable._SerialNoise(np.zeros(6), np.ones(6))
+    )
     sessions = _unit(11, effect, theta, drop=drop)
     d = _Discovery(sessions, 0.01)
     assert d.g.balanced is (not drop)
@@ -121,8 +134,7 @@ def test_fits_equal_the_dense_weighted_least_squares(effect, theta, drop, monkey
         for h in range(R):
             Kh, _, thh, Xh, betah = _dense_fit(L, L["rep"] != h, cols, R)
             rows = L["rep"] == h
-            pred = np.einsum("ij,ij->i", L["raw"][rows], Kh[L["channel"][rows]]) \
-                + L["Z"][rows][:, cols] @ thh
+            pred = np.einsum("ij,ij->i", L["raw"][rows], Kh[L["channel"][rows]]) + L["Z"][rows][:, cols] @ thh
             zh = (L["y"][rows] - pred) * L["w"][rows]
             for c in range(6):
                 m = L["channel"][rows] == c
@@ -153,9 +165,16 @@ def test_noise_estimate_equals_the_replay_module():
 
 
 def test_noise_estimate_records_and_table_agree():
-    table = pd.DataFrame({"channel": ["gx", "ax"], "group": ["rate", "position"], "dof": [8, 9],
-                          "step_sd": [0.1, 0.2], "white_sd": [0.05, 0.1],
-                          "instability_sd": [0.08, 0.17]})
+    table = pd.DataFrame(
+        {
+            "channel": ["gx", "ax"],
+            "group": ["rate", "position"],
+            "dof": [8, 9],
+            "step_sd": [0.1, 0.2],
+            "white_sd": [0.05, 0.1],
+            "instability_sd": [0.08, 0.17],
+        }
+    )
     a = NoiseEstimate(table, from_repetitions=True)
     assert a.records() == table.to_dict(orient="records")
     b = NoiseEstimate.from_records(a.records(), from_repetitions=False)

@@ -10,18 +10,18 @@ the numbers and decisions the former code gave.
   ``np.delete`` gave;
 - ``to_jsonable`` of a numpy float64 is what it was.
 """
+
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from test_discovery_shortcuts import _unit  # a simulated unit's sessions
 
 from calib_core.discovery import turntable as disc
 from calib_core.effects import CHANNELS
 from calib_core.replay import MIN_POOL_DOF
 from calib_core.results import to_jsonable
-
-from test_discovery_shortcuts import _unit  # a simulated unit's sessions
 
 
 def test_term_columns_are_kept_per_grid_and_read_only():
@@ -30,8 +30,7 @@ def test_term_columns_are_kept_per_grid_and_read_only():
     names = tuple(sorted(g.offset))
     for key in ((), names[:1], names[1:3], names):
         cols = g.cols(key)
-        fresh = (np.concatenate([np.arange(*g.offset[n]) for n in key]) if key
-                 else np.zeros(0, np.int64))
+        fresh = np.concatenate([np.arange(*g.offset[n]) for n in key]) if key else np.zeros(0, np.int64)
         assert cols.dtype == fresh.dtype and np.array_equal(cols, fresh)
         assert g.cols(key) is cols and not cols.flags.writeable
 
@@ -84,7 +83,7 @@ def _former_pooling(ss, w2, dof, groups):
             wsd = float(np.sqrt(w2[c, gi]))
             var = float(ss[c, gi]) / int(dof[gi]) if dof[gi] >= MIN_POOL_DOF else pooled_var
             step_sd = float(np.sqrt(var)) if np.isfinite(var) else wsd
-            inst[c, gi] = float(np.sqrt(max(step_sd ** 2 - wsd ** 2, 0.0)))
+            inst[c, gi] = float(np.sqrt(max(step_sd**2 - wsd**2, 0.0)))
             rows.append((ch, gname, int(dof[gi]), step_sd, wsd, inst[c, gi]))
     return rows, inst
 
@@ -102,8 +101,7 @@ def test_noise_pooling_equals_the_former_arithmetic(monkeypatch):
             dof[0] = 3 if dof_override == "small" else 0
             if dof_override == "zero":
                 dof[:] = 0
-            monkeypatch.setattr(disc._UnitGrid, "two_way",
-                                lambda self, X, _r=(e, grp, dof): _r)
+            monkeypatch.setattr(disc._UnitGrid, "two_way", lambda self, X, _r=(e, grp, dof): _r)
         rows, sigma = d._noise(K, resid)
         e, grp, dof = g.two_way(resid)
         white = g.white_sigma(K)
@@ -119,7 +117,7 @@ def test_noise_pooling_equals_the_former_arithmetic(monkeypatch):
             assert [type(x) for x in r] == [type(x) for x in q]
             assert all(x == y or (x != x and y != y) for x, y in zip(r, q))
         inst_row = np.where(g.real[..., None], inst.T[np.maximum(g.gcode, 0)], 0.0)
-        ref_sigma = np.sqrt(white ** 2 + np.nan_to_num(inst_row) ** 2)
+        ref_sigma = np.sqrt(white**2 + np.nan_to_num(inst_row) ** 2)
         ref_sigma[~g.real] = 1.0
         np.testing.assert_array_equal(sigma, ref_sigma)
         monkeypatch.undo()
@@ -149,8 +147,9 @@ def test_rank_shortcut_folds_are_the_deleted_matrices(monkeypatch):
         for r in range(R):
             full[:, :, :3, 3 + r] = full[:, :, 3 + r, :3] = G[:, None, r, :3, 3]
             full[:, :, 3 + r, 3 + r] = G[:, None, r, 3, 3]
-        folds = [np.delete(np.delete(full[:, 1 + h:2 + h], 3 + h, axis=-1), 3 + h, axis=-2)
-                 for h in range(R)]
+        folds = [
+            np.delete(np.delete(full[:, 1 + h : 2 + h], 3 + h, axis=-1), 3 + h, axis=-2) for h in range(R)
+        ]
         held_out = np.concatenate(folds, axis=1)
         tr = np.trace(held_out, axis1=-2, axis2=-1)
         expected = held_out - (disc.RANK_SURE_RATIO * tr)[..., None, None] * np.eye(2 + R)
@@ -159,8 +158,15 @@ def test_rank_shortcut_folds_are_the_deleted_matrices(monkeypatch):
 
 
 def test_to_jsonable_of_numpy_floats():
-    for v in (np.float64(1.5), np.float64(-0.0), np.float64("nan"), np.float64("inf"),
-              np.float32(2.5), 3.25, float("nan")):
+    for v in (
+        np.float64(1.5),
+        np.float64(-0.0),
+        np.float64("nan"),
+        np.float64("inf"),
+        np.float32(2.5),
+        3.25,
+        float("nan"),
+    ):
         got = to_jsonable(v)
         expected = float(v) if math.isfinite(float(v)) else None
         assert type(got) is type(expected) and (got == expected or got is expected)

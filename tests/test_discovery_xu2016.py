@@ -1,6 +1,7 @@
 """Model discovery on xu2016's published tables: the z scale nonlinearity that reproduces the
 compensated z error also moves the *uncompensated* z row (not fitted) towards the published
 one; Table 1's y bias spread is a drift, its z spread is not."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,7 +20,8 @@ def test_bias_spreads_drift_on_y_repeatability_on_z():
     assert rows["y"]["ratio_after_drift"] < 1.5  # the drift explains y
     assert rows["z"]["ratio"] > 4 and rows["z"]["drift_r2"] < 0.3  # z: not a drift
     assert rows["z"]["repeatability"] == pytest.approx(
-        np.sqrt(rows["z"]["published_sd"] ** 2 - rows["z"]["noise_sd_of_w0"] ** 2))
+        np.sqrt(rows["z"]["published_sd"] ** 2 - rows["z"]["noise_sd_of_w0"] ** 2)
+    )
     assert rows["k_g33"]["correlation_with_w0_y"] > 0.8
 
 

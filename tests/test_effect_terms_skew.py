@@ -1,4 +1,5 @@
 """skew() is filled in place now: it must still be the cross-product matrix."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -7,6 +7,7 @@ simulations: a clean group, a group with one implausible session, a session with
 missing (its own layout), untilted dynamic steps (undetermined lever arms, warnings), and a
 unit of files with a damaged session through ``flows.unit_pipeline.calibrate_sessions``.
 """
+
 from __future__ import annotations
 
 import pickle
@@ -89,19 +90,22 @@ def test_each_batched_fit_equals_its_per_session_fit():
     from calib_core import xu2016, zhang2017
 
     sms = unit_step_means(n=4, seed=21)
-    pairs = [(xu2016.fit_gyro_multirate_stack, xu2016.fit_gyro_multirate),
-             (xu2016.fit_accel_multiposition_stack, xu2016.fit_accel_multiposition),
-             (xu2016.fit_gyro_traditional_stack, xu2016.fit_gyro_traditional),
-             (xu2016.fit_accel_traditional_stack, xu2016.fit_accel_traditional),
-             (zhang2017.fit_accel_static_stack, zhang2017.fit_accel_static)]
+    pairs = [
+        (xu2016.fit_gyro_multirate_stack, xu2016.fit_gyro_multirate),
+        (xu2016.fit_accel_multiposition_stack, xu2016.fit_accel_multiposition),
+        (xu2016.fit_gyro_traditional_stack, xu2016.fit_gyro_traditional),
+        (xu2016.fit_accel_traditional_stack, xu2016.fit_accel_traditional),
+        (zhang2017.fit_accel_static_stack, zhang2017.fit_accel_static),
+    ]
     for batched, alone in pairs:
         for together, sm in zip(batched(sms), sms):
             _assert_same(together, alone(sm))
     statics = zhang2017.fit_accel_static_stack(sms)
     inputs = zhang2017.lever_arm_inputs_stack(sms, statics)
     for projection in zhang2017.PROJECTIONS:
-        for together, sm, st in zip(zhang2017.fit_lever_arm_from_stack(inputs, projection=projection),
-                                    sms, statics):
+        for together, sm, st in zip(
+            zhang2017.fit_lever_arm_from_stack(inputs, projection=projection), sms, statics
+        ):
             _assert_same(together, zhang2017.fit_lever_arm(sm, st, projection=projection))
 
 
@@ -124,8 +128,11 @@ def test_a_session_with_a_step_missing_has_its_own_layout():
 
 
 def test_undetermined_lever_arms_warn_per_session():
-    steps = protocols.to_frame(protocols.xu2016_multirate() + protocols.xu2016_multiposition()
-                               + protocols.dynamic_steps(tilted=False))
+    steps = protocols.to_frame(
+        protocols.xu2016_multirate()
+        + protocols.xu2016_multiposition()
+        + protocols.dynamic_steps(tilted=False)
+    )
     sms = unit_step_means(seed=10, steps=steps)
     out = _check_against_alone(sms)
     for f in out:
@@ -150,11 +157,20 @@ def test_solve_lstsq_stack_equals_one_problem_at_a_time():
     st = solve_lstsq_stack(X, Y)
     for r in range(4):
         one = solve_lstsq(X[r], Y[r])
-        _assert_same(one, replace(one, coef=st.coef[r], cov_unscaled=st.cov_unscaled[r],
-                                  sigma2=st.sigma2[r], stderr=st.stderr[r],
-                                  residuals=st.residuals[r], dof=int(st.dof[r]),
-                                  condition_number=float(st.condition_number[r]),
-                                  rank=int(st.rank[r])))
+        _assert_same(
+            one,
+            replace(
+                one,
+                coef=st.coef[r],
+                cov_unscaled=st.cov_unscaled[r],
+                sigma2=st.sigma2[r],
+                stderr=st.stderr[r],
+                residuals=st.residuals[r],
+                dof=int(st.dof[r]),
+                condition_number=float(st.condition_number[r]),
+                rank=int(st.rank[r]),
+            ),
+        )
     assert st.rank.tolist() == [4, 4, 3, 4]
     # a shared design (2-D X) with a stack of right-hand sides, factorised once
     shared = solve_lstsq_stack(X[0], Y)
@@ -167,8 +183,7 @@ def test_calibrate_sessions_equals_calibrate_session_with_a_damaged_session(tmp_
     from flows.unit_pipeline import calibrate_session, calibrate_sessions
     from schemas.dataset import find_sessions
 
-    simulate_fleet(tmp_path / "data", lots=1, units=1, reps=4, seed=5, sample_rate_hz=10.0,
-                   bad_sessions=1)
+    simulate_fleet(tmp_path / "data", lots=1, units=1, reps=4, seed=5, sample_rate_hz=10.0, bad_sessions=1)
     refs, _ = find_sessions(tmp_path / "data")
     refs = sorted(refs, key=lambda r: r.key.rep)
     together = calibrate_sessions(refs)
@@ -176,7 +191,13 @@ def test_calibrate_sessions_equals_calibrate_session_with_a_damaged_session(tmp_
     assert sum(o.status == "failed" for o in together) == 1
     for t, a in zip(together, alone):
         assert (t.key, t.status, t.code, t.message, t.warnings, t.fingerprint) == (
-            a.key, a.status, a.code, a.message, a.warnings, a.fingerprint)
+            a.key,
+            a.status,
+            a.code,
+            a.message,
+            a.warnings,
+            a.fingerprint,
+        )
         if a.calibration is not None:
             _assert_same(t.calibration, a.calibration)
             assert pickle.dumps(t.residuals) == pickle.dumps(a.residuals)

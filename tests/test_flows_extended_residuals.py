@@ -1,5 +1,6 @@
 """A unit with a hidden effect: the nightly unit job keeps discovery's term, applies
 discovery's joint calibration and stores the extended model's residuals beside the baseline."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,11 +16,11 @@ def test_hidden_nonlinearity_is_applied_and_its_residuals_stored(tmp_path):
     def truth_factory(rng, lot, unit):
         t = typical_truth(rng, gyro_noise_dps=0.05, gyro_bias_instability_dps=0.005)
         # z gyro cubic scale error: 0.3 deg/s at 1000 deg/s
-        return t.with_effects((get_effect("gyro_scale_nonlinearity"),
-                               np.array([0, 0, 0, 0, 0, 0.3])))
+        return t.with_effects((get_effect("gyro_scale_nonlinearity"), np.array([0, 0, 0, 0, 0, 0.3])))
 
-    simulate_fleet(tmp_path / "data", lots=1, units=1, reps=3, seed=5, sample_rate_hz=20,
-                   truth_factory=truth_factory)
+    simulate_fleet(
+        tmp_path / "data", lots=1, units=1, reps=3, seed=5, sample_rate_hz=20, truth_factory=truth_factory
+    )
     refs, _ = find_sessions(tmp_path / "data")
     res = calibrate_unit_job(UnitJob("L01", "U0001", refs, "test"))
     names = [e["name"] for e in res.diagnosis["effects"]]
@@ -34,6 +35,8 @@ def test_hidden_nonlinearity_is_applied_and_its_residuals_stored(tmp_path):
     # the extended model's z-gyro residual on fast multirate steps is far below the baseline's
     r = res.outcome.sessions[0].residuals
     fast = (r["channel"] == "gz") & (r["test"] == "multirate") & (r["rate_dps"].abs() >= 1000)
-    rms = {m: float(np.sqrt((r[fast & (r["model"] == m)]["residual"] ** 2).mean()))
-           for m in ("baseline", "extended")}
+    rms = {
+        m: float(np.sqrt((r[fast & (r["model"] == m)]["residual"] ** 2).mean()))
+        for m in ("baseline", "extended")
+    }
     assert rms["extended"] < rms["baseline"] / 3, rms

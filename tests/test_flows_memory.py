@@ -1,4 +1,5 @@
 """flows.memory.release_memory: freed heap pages go back to the OS (glibc)."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -2,6 +2,7 @@
 
 One temporary local Prefect API serves the whole module (PREFECT_HOME in a temp dir, set by
 flows.runtime before Prefect is imported)."""
+
 from __future__ import annotations
 
 import os
@@ -26,8 +27,7 @@ from schemas.results_store import ResultsStore, StoreLockedError, find_calibrati
 RATE_HZ = 20.0
 # outliers far beyond the lot spread (20 lot sd): the flag rule controls the chance of a false
 # flag over the whole fleet at 1 %, which costs power near 6-7 sd (docs/flows.md)
-BIG_OUTLIERS = (("k_g11", "K_g", (0, 0), 0.06), ("w0_z", "w0", (2,), 1.0),
-                ("k_a22", "K_a", (1, 1), 0.06))
+BIG_OUTLIERS = (("k_g11", "K_g", (0, 0), 0.06), ("w0_z", "w0", (2,), 1.0), ("k_a22", "K_a", (1, 1), 0.06))
 
 
 def temp_files(root: Path) -> list[Path]:
@@ -43,8 +43,16 @@ def lot_files(results: Path) -> dict[tuple[str, str], tuple[int, int]]:
     + os.replace) changes the inode."""
     store = ResultsStore(results)
     out = {}
-    for name in ("sessions", "parameters", "summary", "units", "residuals", "compensation",
-                 "discovery", "navigation"):
+    for name in (
+        "sessions",
+        "parameters",
+        "summary",
+        "units",
+        "residuals",
+        "compensation",
+        "discovery",
+        "navigation",
+    ):
         for lot, path in store.partitions(name).items():
             st = path.stat()
             out[(name, lot)] = (st.st_ino, st.st_mtime_ns)
@@ -66,8 +74,9 @@ def fleet(tmp_path_factory):
     data, results = base / "data", base / "results"
     mp = pytest.MonkeyPatch()
     mp.setattr(fleet_sim, "OUTLIER_KINDS", BIG_OUTLIERS)
-    manifest = simulate_fleet(data, lots=3, units=20, reps=5, seed=2026, sample_rate_hz=RATE_HZ,
-                              outliers=2, bad_sessions=3)
+    manifest = simulate_fleet(
+        data, lots=3, units=20, reps=5, seed=2026, sample_rate_hz=RATE_HZ, outliers=2, bad_sessions=3
+    )
     mp.undo()
     log = nightly_fleet_calibration(data, results, run_discovery=False, progress=False)
     return data, results, manifest, log
@@ -128,14 +137,14 @@ def test_second_run_recalibrates_nothing_then_one_changed_session_one_unit(fleet
     assert log["units_calibrated"] == 0  # touched, same content: a content fingerprint
     # the same samples written again with one more metadata entry: other bytes
     tab = pq.read_table(target)
-    pq.write_table(tab.replace_schema_metadata({**tab.schema.metadata, b"operator": b"x"}),
-                   target)
+    pq.write_table(tab.replace_schema_metadata({**tab.schema.metadata, b"operator": b"x"}), target)
     files_before = lot_files(results)
     log = nightly_fleet_calibration(data, results, run_discovery=False, progress=False)
     assert log["units_calibrated"] == 1 and log["units_skipped"] == 59
     files_after = lot_files(results)
-    assert {k: v for k, v in files_after.items() if k[1] != "L02"} == \
-        {k: v for k, v in files_before.items() if k[1] != "L02"}
+    assert {k: v for k, v in files_after.items() if k[1] != "L02"} == {
+        k: v for k, v in files_before.items() if k[1] != "L02"
+    }
     assert files_after[("parameters", "L02")] != files_before[("parameters", "L02")]
     after = table(results, "parameters")
     pd.testing.assert_frame_equal(other_rows(after, "U0025"), other_rows(params_before, "U0025"))
@@ -154,14 +163,16 @@ def test_rerun_changes_only_that_unit_and_a_failed_rerun_keeps_the_last_good(fle
     # the store is partitioned by lot: the rerun of a unit of L01 rewrote L01's files only (the
     # other lots' flags did not move: their values are the same and so is the pooled scale)
     files_after = lot_files(results)
-    assert {k: v for k, v in files_after.items() if k[1] != "L01"} == \
-        {k: v for k, v in files_before.items() if k[1] != "L01"}
+    assert {k: v for k, v in files_after.items() if k[1] != "L01"} == {
+        k: v for k, v in files_before.items() if k[1] != "L01"
+    }
     assert files_after[("residuals", "L01")] != files_before[("residuals", "L01")]
     assert set(log["phases_s"]) == {"calibrate", "store", "reflag", "reports"}
     for name, before in tables.items():
         after = table(results, name)
-        pd.testing.assert_frame_equal(other_rows(after, "U0007"), other_rows(before, "U0007"),
-                                      check_dtype=False)
+        pd.testing.assert_frame_equal(
+            other_rows(after, "U0007"), other_rows(before, "U0007"), check_dtype=False
+        )
     assert set(unit_rows(table(results, "parameters"), "U0007")["run_id"]) == {log["run_id"]}
     cal_new = find_calibration(results, "U0007")
     assert cal_new != cal_before and cal_before.exists()
@@ -177,8 +188,10 @@ def test_rerun_changes_only_that_unit_and_a_failed_rerun_keeps_the_last_good(fle
     for rep in (data / "lot=L01" / "unit=U0007").glob("rep=*"):
         shutil.move(rep / "steps.parquet", rep / "steps.parquet.bak")
     try:
-        assert cli_main(["rerun", str(data), "--results", str(results), "--unit", "U0007",
-                         "--no-discovery"]) == 1
+        assert (
+            cli_main(["rerun", str(data), "--results", str(results), "--unit", "U0007", "--no-discovery"])
+            == 1
+        )
     finally:
         for rep in (data / "lot=L01" / "unit=U0007").glob("rep=*"):
             shutil.move(rep / "steps.parquet.bak", rep / "steps.parquet")
@@ -199,20 +212,20 @@ def test_rerun_changes_only_that_unit_and_a_failed_rerun_keeps_the_last_good(fle
 def small(tmp_path_factory):
     base = tmp_path_factory.mktemp("small")
     data = base / "data"
-    manifest = simulate_fleet(data, lots=1, units=5, reps=2, seed=7, sample_rate_hz=RATE_HZ,
-                              bad_sessions=1)
+    manifest = simulate_fleet(data, lots=1, units=5, reps=2, seed=7, sample_rate_hz=RATE_HZ, bad_sessions=1)
     return data, base, manifest
 
 
 @pytest.mark.slow
 def test_dask_local_cluster_gives_the_same_results(small):
     from distributed import LocalCluster
+
     data, base, manifest = small
     log_t = nightly_fleet_calibration(data, base / "r_threads", progress=False, batch_size=2)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                      dashboard_address=":0") as cluster:
-        log_d = nightly_fleet_calibration(data, base / "r_dask", progress=False, batch_size=2,
-                                          dask_address=cluster.scheduler_address)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        log_d = nightly_fleet_calibration(
+            data, base / "r_dask", progress=False, batch_size=2, dask_address=cluster.scheduler_address
+        )
     assert log_t["units_calibrated"] == log_d["units_calibrated"] == 5
     for name in ("parameters", "summary", "sessions", "discovery"):
         a = table(base / "r_threads", name).drop(columns=["run_id", "calibrated_at"], errors="ignore")
@@ -220,12 +233,13 @@ def test_dask_local_cluster_gives_the_same_results(small):
         pd.testing.assert_frame_equal(a, b)
     # Prefect persisted no task results (no sample data, no fitted arrays) under its home
     home = Path(os.environ["PREFECT_HOME"])
-    stored = [p for p in (home / "storage").rglob("*") if p.is_file()] \
-        if (home / "storage").exists() else []
+    stored = [p for p in (home / "storage").rglob("*") if p.is_file()] if (home / "storage").exists() else []
     assert stored == []
-    assert [f["session"] for f in log_t["failed_sessions"]] == \
-        [f["session"] for f in log_d["failed_sessions"]] == \
-        [b["session"] for b in manifest["bad_sessions"]]
+    assert (
+        [f["session"] for f in log_t["failed_sessions"]]
+        == [f["session"] for f in log_d["failed_sessions"]]
+        == [b["session"] for b in manifest["bad_sessions"]]
+    )
 
 
 @pytest.mark.slow
@@ -233,18 +247,17 @@ def test_worker_processes_give_the_same_results_as_threads(small):
     """runner=processes (flows.compute_pool: a forkserver pool doing the unit work) stores
     exactly what the thread pool stores; the run log says where the work ran."""
     data, base, manifest = small
-    log_t = nightly_fleet_calibration(data, base / "r_threads2", progress=False, batch_size=2,
-                                      runner="threads")
-    log_p = nightly_fleet_calibration(data, base / "r_procs", progress=False, batch_size=2,
-                                      runner="processes")
+    log_t = nightly_fleet_calibration(
+        data, base / "r_threads2", progress=False, batch_size=2, runner="threads"
+    )
+    log_p = nightly_fleet_calibration(
+        data, base / "r_procs", progress=False, batch_size=2, runner="processes"
+    )
     assert log_t["unit_work"] == "task runner" and log_p["unit_work"] == "worker processes"
     assert log_t["units_calibrated"] == log_p["units_calibrated"] == 5
-    for name in ("parameters", "summary", "sessions", "discovery", "residuals",
-                 "compensation"):
-        a = table(base / "r_threads2", name).drop(columns=["run_id", "calibrated_at"],
-                                                  errors="ignore")
-        b = table(base / "r_procs", name).drop(columns=["run_id", "calibrated_at"],
-                                               errors="ignore")
+    for name in ("parameters", "summary", "sessions", "discovery", "residuals", "compensation"):
+        a = table(base / "r_threads2", name).drop(columns=["run_id", "calibrated_at"], errors="ignore")
+        b = table(base / "r_procs", name).drop(columns=["run_id", "calibrated_at"], errors="ignore")
         pd.testing.assert_frame_equal(a, b)
 
 
@@ -253,13 +266,16 @@ def test_a_served_run_starts_the_workers_forkserver_itself(small, monkeypatch):
     started the forkserver while Prefect started: the flow's body asks for it, before its
     first batch."""
     from flows import nightly
+
     data, base, _ = small
     calls: list[tuple] = []
-    monkeypatch.setattr(nightly, "prestart_unit_work_pool",
-                        lambda kind, dataset: calls.append((kind, str(dataset))))
+    monkeypatch.setattr(
+        nightly, "prestart_unit_work_pool", lambda kind, dataset: calls.append((kind, str(dataset)))
+    )
     with runtime.run_settings():
-        log = nightly.nightly_flow(str(data), str(base / "r_served"), progress=False,
-                                   runner="threads", run_discovery=False)
+        log = nightly.nightly_flow(
+            str(data), str(base / "r_served"), progress=False, runner="threads", run_discovery=False
+        )
     assert calls == [("threads", str(data))] and log["units_calibrated"] == 5
 
 
@@ -269,8 +285,7 @@ def test_second_concurrent_run_is_refused(small, capsys):
     with ResultsStore(results).lock(owner="other-run"):
         with pytest.raises(StoreLockedError, match="other-run"):
             nightly_fleet_calibration(data, results, progress=False, run_discovery=False)
-        assert cli_main(["nightly", str(data), "--results", str(results), "--quiet",
-                         "--no-discovery"]) == 2
+        assert cli_main(["nightly", str(data), "--results", str(results), "--quiet", "--no-discovery"]) == 2
         assert "in use by run other-run" in capsys.readouterr().err
     assert not ResultsStore(results).exists() and not (results / "tables").exists()
 
@@ -279,13 +294,16 @@ def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
     data, base, manifest = small
     results = base / "r_cli"
     # exit code 1: a session failed (README, exit codes)
-    assert cli_main(["nightly", str(data), "--results", str(results), "--no-discovery",
-                     "--batch-size", "2"]) == 1
+    assert (
+        cli_main(["nightly", str(data), "--results", str(results), "--no-discovery", "--batch-size", "2"])
+        == 1
+    )
     out, err = capsys.readouterr()
     bad = manifest["bad_sessions"][0]["session"]
     assert f"failed session {bad}: [" in err
     # one line per lot as its batches (of 2 units) come back, the last one 5/5 units
     import re
+
     counts = [int(m) for m in re.findall(r"^lot L\w+: (\d)/5 units", err, re.M)]
     assert counts == sorted(counts) and counts[-1] == 5 and len(counts) == 3
     assert re.search(r"^lot L\w+: 5/5 units \(1 failed sessions\), [\d.]+ s$", err, re.M)
@@ -297,6 +315,7 @@ def test_nightly_command_prints_failures_summary_and_reports(small, capsys):
     run_logs = list((results / "runs").glob("*.json"))
     assert len(run_logs) == 1
     import json
+
     log = json.loads(run_logs[0].read_text())
     assert log["progress"]["units_done"] == 5 and log["end"] >= log["start"]
 
@@ -347,28 +366,42 @@ def test_apply_calibrates_raw_samples_and_refuses_unit_mismatch(small, tmp_path,
     # CSV: acc in m/s^2, gyr in deg/s -> the same numbers
     s = pd.read_parquet(samples)
     g_local = float(pq.read_schema(samples).metadata[b"g_local"])
-    csv = pd.DataFrame({"t": s["t"], "acc_x": s["ax"] * g_local, "acc_y": s["ay"] * g_local,
-                        "acc_z": s["az"] * g_local, "gyr_x": s["gx"], "gyr_y": s["gy"],
-                        "gyr_z": s["gz"]})
+    csv = pd.DataFrame(
+        {
+            "t": s["t"],
+            "acc_x": s["ax"] * g_local,
+            "acc_y": s["ay"] * g_local,
+            "acc_z": s["az"] * g_local,
+            "gyr_x": s["gx"],
+            "gyr_y": s["gy"],
+            "gyr_z": s["gz"],
+        }
+    )
     csv.to_csv(tmp_path / "raw.csv", index=False)
     assert cli_main(["apply", str(cal), str(tmp_path / "raw.csv"), str(tmp_path / "o.csv")]) == 0
     o = pd.read_csv(tmp_path / "o.csv")
     from schemas.calibration_file import load_calibration
+
     gl = load_calibration(cal).g_local
-    np.testing.assert_allclose(o[["gyr_x", "gyr_y", "gyr_z"]].to_numpy(),
-                               df[["w_x", "w_y", "w_z"]].to_numpy(), atol=2e-3)
-    np.testing.assert_allclose(o[["acc_x", "acc_y", "acc_z"]].to_numpy() / gl,
-                               df[["f_x", "f_y", "f_z"]].to_numpy(), atol=2e-4)
+    np.testing.assert_allclose(
+        o[["gyr_x", "gyr_y", "gyr_z"]].to_numpy(), df[["w_x", "w_y", "w_z"]].to_numpy(), atol=2e-3
+    )
+    np.testing.assert_allclose(
+        o[["acc_x", "acc_y", "acc_z"]].to_numpy() / gl, df[["f_x", "f_y", "f_z"]].to_numpy(), atol=2e-4
+    )
     # LSB data with a deg/s calibration: refused
-    assert cli_main(["apply", str(cal), str(tmp_path / "raw.csv"), str(tmp_path / "x.csv"),
-                     "--gyro-unit", "LSB"]) == 2
+    assert (
+        cli_main(
+            ["apply", str(cal), str(tmp_path / "raw.csv"), str(tmp_path / "x.csv"), "--gyro-unit", "LSB"]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "do not match the calibration's raw_units" in err
     assert not (tmp_path / "x.csv").exists()
 
 
-@pytest.mark.parametrize("command", ["nightly", "report", "rerun", "serve", "calibration",
-                                     "apply"])
+@pytest.mark.parametrize("command", ["nightly", "report", "rerun", "serve", "calibration", "apply"])
 def test_every_command_has_help(command, capsys):
     with pytest.raises(SystemExit) as exc:
         cli_main([command, "--help"])

@@ -1,5 +1,6 @@
 """``mimucal serve`` against a real Prefect server: the deployment is registered with its cron
 schedule and time zone, and a triggered run completes and writes the store."""
+
 from __future__ import annotations
 
 import os
@@ -42,10 +43,22 @@ def test_serve_registers_cron_deployment_and_a_triggered_run_completes(tmp_path)
     api = f"http://127.0.0.1:{port}/api"
     env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "PREFECT_HOME")}
     exe = Path(sys.executable).parent / "mimucal"
-    cmd = [str(exe), "serve", str(data), "--results", str(results), "--port", str(port),
-           "--cron", "15 3 * * *", "--timezone", "Europe/Paris"]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, start_new_session=True)
+    cmd = [
+        str(exe),
+        "serve",
+        str(data),
+        "--results",
+        str(results),
+        "--port",
+        str(port),
+        "--cron",
+        "15 3 * * *",
+        "--timezone",
+        "Europe/Paris",
+    ]
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
     try:
         with temporary_settings(updates={PREFECT_API_URL: api}):
             import asyncio

@@ -1,4 +1,5 @@
 """Absurd estimates are refused with E_IMPLAUSIBLE, plausible ones pass (issue 8 item 6)."""
+
 from __future__ import annotations
 
 from dataclasses import replace

@@ -21,6 +21,7 @@ A killed run may have written complete calibration files before it died (they ar
 before the tables): those are kept (every calibration ever produced is kept), are valid
 JSON, and belong to a run whose log has no ``end``; they are checked, not compared.
 """
+
 from __future__ import annotations
 
 import json
@@ -49,8 +50,11 @@ RUN_TIMEOUT_S = 240
 # flows.commands.nightly) escapes main() as a traceback with exit code 1 instead of the
 # one-line message and exit code 2 (reported to the lead).
 _ENTRY = Path(PY).parent / "mimucal"
-MIMUCAL = [str(_ENTRY)] if _ENTRY.exists() else \
-    [PY, "-c", "import sys; from flows.cli import main; sys.exit(main())"]
+MIMUCAL = (
+    [str(_ENTRY)]
+    if _ENTRY.exists()
+    else [PY, "-c", "import sys; from flows.cli import main; sys.exit(main())"]
+)
 
 
 def _free_port() -> int:
@@ -71,16 +75,25 @@ def _healthy(url: str) -> bool:
 def prefect_api(tmp_path_factory):
     home = tmp_path_factory.mktemp("prefect-server")
     port = _free_port()
-    env = {**os.environ, "PREFECT_HOME": str(home),
-           "PREFECT_SERVER_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{home / 'prefect.db'}",
-           "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
-           "PREFECT_UI_ENABLED": "false", "PREFECT_LOGGING_LEVEL": "WARNING"}
+    env = {
+        **os.environ,
+        "PREFECT_HOME": str(home),
+        "PREFECT_SERVER_DATABASE_CONNECTION_URL": f"sqlite+aiosqlite:///{home / 'prefect.db'}",
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        "DO_NOT_TRACK": "1",
+        "PREFECT_UI_ENABLED": "false",
+        "PREFECT_LOGGING_LEVEL": "WARNING",
+    }
     env.pop("PREFECT_API_URL", None)
     exe = Path(PY).parent / "prefect"
     log = open(home / "server.log", "wb")
-    proc = subprocess.Popen([str(exe), "server", "start", "--host", "127.0.0.1", "--port",
-                             str(port)], env=env, stdout=log, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [str(exe), "server", "start", "--host", "127.0.0.1", "--port", str(port)],
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     url = f"http://127.0.0.1:{port}/api"
     try:
         t0 = time.monotonic()
@@ -103,20 +116,22 @@ def prefect_api(tmp_path_factory):
 def dataset(tmp_path_factory):
     base = tmp_path_factory.mktemp("crash")
     data = base / "data"
-    manifest = simulate_fleet(data, lots=1, units=5, reps=2, seed=31, sample_rate_hz=10.0,
-                              bad_sessions=1)
+    manifest = simulate_fleet(data, lots=1, units=5, reps=2, seed=31, sample_rate_hz=10.0, bad_sessions=1)
     return base, data, manifest
 
 
-def start_run(prefect_api: str, data: Path, results: Path, home: Path, *extra: str
-              ) -> subprocess.Popen:
-    env = {**os.environ, "PREFECT_API_URL": prefect_api, "PREFECT_HOME": str(home),
-           "PYTHONPATH": str(REPO)}
+def start_run(prefect_api: str, data: Path, results: Path, home: Path, *extra: str) -> subprocess.Popen:
+    env = {**os.environ, "PREFECT_API_URL": prefect_api, "PREFECT_HOME": str(home), "PYTHONPATH": str(REPO)}
     home.mkdir(parents=True, exist_ok=True)
-    return subprocess.Popen([*MIMUCAL, "nightly", str(data), "--results",
-                             str(results), "--no-discovery", "--quiet", *extra],
-                            cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+    return subprocess.Popen(
+        [*MIMUCAL, "nightly", str(data), "--results", str(results), "--no-discovery", "--quiet", *extra],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
 
 
 def finish(proc: subprocess.Popen) -> tuple[int, str, str]:
@@ -184,14 +199,22 @@ def test_sigkill_at_several_points_then_rerun_equals_an_uninterrupted_run(prefec
     # the uninterrupted run goes alongside the first killed run (2 cores)
     reference = start_run(prefect_api, data, clean, base / "home-clean")
     points = [
-        ("run log written (lock held, nothing stored)",
-         lambda: any((crashed / "runs").glob("*.json")) if (crashed / "runs").is_dir() else False),
-        ("first calibration file written",
-         lambda: any((crashed / "calibrations").rglob("*.json"))
-         if (crashed / "calibrations").is_dir() else False),
-        ("first table written by this run",
-         lambda: any(p.stat().st_mtime > started
-                     for p in (crashed / "tables").rglob("lot=*.parquet"))),
+        (
+            "run log written (lock held, nothing stored)",
+            lambda: any((crashed / "runs").glob("*.json")) if (crashed / "runs").is_dir() else False,
+        ),
+        (
+            "first calibration file written",
+            lambda: (
+                any((crashed / "calibrations").rglob("*.json"))
+                if (crashed / "calibrations").is_dir()
+                else False
+            ),
+        ),
+        (
+            "first table written by this run",
+            lambda: any(p.stat().st_mtime > started for p in (crashed / "tables").rglob("lot=*.parquet")),
+        ),
     ]
     killed = []
     for i, (what, ready) in enumerate(points):
@@ -238,8 +261,10 @@ def test_a_second_process_is_refused_or_waits_for_the_lock(prefect_api, dataset)
         waiting = start_run(prefect_api, data, results, base / "home-lock-2", "--wait")
         rc, out, err = finish(refused)
         assert rc == 2, err
-        assert f"mimucal nightly: error: results root {results} is in use by run " \
-               f"holder-run-in-pytest (pid {os.getpid()} on " in err
+        assert (
+            f"mimucal nightly: error: results root {results} is in use by run "
+            f"holder-run-in-pytest (pid {os.getpid()} on " in err
+        )
         assert "Wait for it to finish or pass --wait" in err
         print(err.strip())
         # the waiting one has written nothing while the lock is held

@@ -4,6 +4,7 @@ through the nightly flow; one nightly run; each bad session has its stable code 
 message naming the session and the reason, and every unit is still calibrated.
 
 Run with ``pytest -s`` to print the messages (copied into docs/hardening.md)."""
+
 from __future__ import annotations
 
 import json
@@ -61,13 +62,13 @@ def zero_byte(path: Path) -> None:
 
 
 def extra_column(path: Path) -> None:
-    _rewrite_samples(path, lambda t: t.append_column(
-        "humidity_pct", pa.array(np.full(t.num_rows, 41.5))))
+    _rewrite_samples(path, lambda t: t.append_column("humidity_pct", pa.array(np.full(t.num_rows, 41.5))))
 
 
 def wrong_type(path: Path) -> None:
-    _rewrite_samples(path, lambda t: _set_column(
-        t, "gx", pa.array([f"{v:.4f}" for v in t.column("gx").to_numpy()])))
+    _rewrite_samples(
+        path, lambda t: _set_column(t, "gx", pa.array([f"{v:.4f}" for v in t.column("gx").to_numpy()]))
+    )
 
 
 def unknown_step(path: Path) -> None:
@@ -76,6 +77,7 @@ def unknown_step(path: Path) -> None:
         rows = np.flatnonzero(step == 3)[:50]
         step[rows] = 999
         return _set_column(t, "step", pa.array(step, pa.int32()))
+
     _rewrite_samples(path, change)
 
 
@@ -98,13 +100,17 @@ def empty_step(path: Path) -> None:
 def saturated_step(path: Path) -> int:
     """The +x-up 300 deg/s multirate step reads exactly the declared +350 deg/s range."""
     steps = _steps(path)
-    target = int(steps.loc[(steps["test"] == "multirate") & (steps["up_axis"] == "+x")
-                           & (steps["rate_dps"] == 300.0), "step"].iloc[0])
+    target = int(
+        steps.loc[
+            (steps["test"] == "multirate") & (steps["up_axis"] == "+x") & (steps["rate_dps"] == 300.0), "step"
+        ].iloc[0]
+    )
 
     def change(t):
         gx = t.column("gx").to_numpy().copy()
         gx[t.column("step").to_numpy() == target] = 350.0
         return _set_column(t, "gx", pa.array(gx, t.schema.field("gx").type))
+
     _rewrite_samples(path, change)
     return target
 
@@ -121,6 +127,7 @@ def no_rotation_about_x(path: Path) -> None:
         step = t.column("step").to_numpy().copy()
         step[np.isin(step, gone)] = -1
         return _set_column(t, "step", pa.array(step, pa.int32()))
+
     _rewrite_samples(path, change)
 
 
@@ -130,13 +137,11 @@ CASES = {
     ("U0001", 2): (extra_column, "ok", None, []),
     ("U0002", 1): (wrong_type, "failed", "E_WRONG_TYPE", ["column gx", "type string"]),
     ("U0002", 2): (empty_step, "warned", "W_EMPTY_STEP", ["step 500", "no samples"]),
-    ("U0003", 1): (unknown_step, "failed", "E_UNKNOWN_STEP",
-                   ["step 999", "not in steps.parquet"]),
+    ("U0003", 1): (unknown_step, "failed", "E_UNKNOWN_STEP", ["step 999", "not in steps.parquet"]),
     ("U0003", 2): (saturated_step, "warned", "W_SATURATED", ["gx", "left out"]),
     ("U0004", 1): (duplicate_step, "failed", "E_DUPLICATE_STEP", ["step 6", "2 times"]),
     ("U0004", 2): (missing_file, "failed", "E_MISSING_FILE", ["steps.parquet missing"]),
-    ("U0005", 1): (no_rotation_about_x, "failed", "E_UNDETERMINED",
-                   ["cannot determine", "axis x"]),
+    ("U0005", 1): (no_rotation_about_x, "failed", "E_UNDETERMINED", ["cannot determine", "axis x"]),
 }
 
 
@@ -161,8 +166,7 @@ def test_every_bad_session_has_its_code_and_names_session_and_reason(corpus_run)
     sessions = ResultsStore(results).read("sessions")
     sessions = sessions.set_index(["unit", "rep"])
     failed_in_log = {f["session"]: f for f in log["failed_sessions"]}
-    expected_failed = {f"lot=L01/unit={u}/rep={r}" for (u, r), c in CASES.items()
-                       if c[1] == "failed"}
+    expected_failed = {f"lot=L01/unit={u}/rep={r}" for (u, r), c in CASES.items() if c[1] == "failed"}
     assert set(failed_in_log) == expected_failed
     for (unit, rep), (damage, status, code, fragments) in CASES.items():
         key = f"lot=L01/unit={unit}/rep={rep}"
@@ -216,8 +220,7 @@ def test_every_unit_is_calibrated_from_its_good_sessions(corpus_run):
     units = store.read("units").set_index("unit")
     assert sorted(units.index) == UNITS
     assert set(units["state"]) == {"calibrated"}
-    n_failed = {u: sum(1 for (uu, _), c in CASES.items() if uu == u and c[1] == "failed")
-                for u in UNITS}
+    n_failed = {u: sum(1 for (uu, _), c in CASES.items() if uu == u and c[1] == "failed") for u in UNITS}
     n_sessions = {u: 2 if u == "U0006" else 3 for u in UNITS}
     params = store.read("parameters")
     for u in UNITS:
@@ -233,8 +236,9 @@ def test_every_unit_is_calibrated_from_its_good_sessions(corpus_run):
         doc = json.loads(cal.read_text())
         used = sorted(s["rep"] for s in doc["provenance"]["sessions_used"])
         assert len(used) == good_reps
-        assert sorted(f["rep"] for f in doc["provenance"]["sessions_failed"]) == \
-            sorted(r for (uu, r), c in CASES.items() if uu == u and c[1] == "failed")
+        assert sorted(f["rep"] for f in doc["provenance"]["sessions_failed"]) == sorted(
+            r for (uu, r), c in CASES.items() if uu == u and c[1] == "failed"
+        )
     assert log["units_calibrated"] == 6 and log["units_failed"] == []
     assert log["sessions_calibrated"] == 17 - 6  # 17 well-named sessions, 6 failed
     # the extra column was ignored, not lost in a different result: the unit with it is

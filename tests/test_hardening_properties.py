@@ -9,6 +9,7 @@ design is rank-deficient, judged here independently of the estimators' own check
 +/- rate differences and of the multiposition [f_ref 1] matrix, with numpy's matrix_rank).
 
 The reader-level fuzzing (bytes, table mutations, metadata) is in test_schemas_fuzz.py."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -38,6 +39,7 @@ N = len(BASE)
 
 def _replace(sm: StepMeans, **arrays) -> StepMeans:
     from dataclasses import replace
+
     return replace(sm, **arrays)
 
 
@@ -75,8 +77,10 @@ def check_outcome(sm: StepMeans):
         assert exc.code in CODES, exc.code
         assert exc.reason  # names what went wrong
         return exc
-    assert not deficient, (f"calibration from a rank-deficient design: {n_pairs} pairs "
-                           f"(rank {rank_g}), {n_pos} positions (rank {rank_a})")
+    assert not deficient, (
+        f"calibration from a rank-deficient design: {n_pairs} pairs "
+        f"(rank {rank_g}), {n_pos} positions (rank {rank_a})"
+    )
     for model, f in fit.calibration.fits.items():
         # the lever-arm fit leaves unobservable components NaN and names them in
         # ``undetermined`` (zhang2017); every other NaN would be silent
@@ -101,9 +105,11 @@ def test_dropping_random_steps_never_gives_nan_or_an_undetermined_calibration(ke
 
 
 @settings(max_examples=60, **SETTINGS)
-@given(axis=st.sampled_from(["x", "y", "z"]),
-       tests=st.sampled_from([("multirate",), ("multiposition",), ("multirate", "multiposition")]),
-       extra_drop=st.integers(0, 2**16))
+@given(
+    axis=st.sampled_from(["x", "y", "z"]),
+    tests=st.sampled_from([("multirate",), ("multiposition",), ("multirate", "multiposition")]),
+    extra_drop=st.integers(0, 2**16),
+)
 def test_removing_every_step_of_an_axis_is_undetermined(axis, tests, extra_drop):
     """Every step with the axis up (+ and -) of the given tests is removed (plus a few random
     others): no rotation about that axis, or no +/-1 g along it. Must be a DesignError."""
@@ -124,12 +130,13 @@ def test_removing_every_step_of_an_axis_is_undetermined(axis, tests, extra_drop)
 
 
 @settings(max_examples=50, **SETTINGS)
-@given(rows=st.lists(st.integers(0, N - 1), min_size=1, max_size=12, unique=True),
-       channel=st.integers(0, 5),
-       size=st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False),
-       std_scale=st.floats(0.0, 100.0, allow_nan=False))
-def test_finite_perturbations_of_step_means_give_an_error_or_finite_results(rows, channel, size,
-                                                                           std_scale):
+@given(
+    rows=st.lists(st.integers(0, N - 1), min_size=1, max_size=12, unique=True),
+    channel=st.integers(0, 5),
+    size=st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False),
+    std_scale=st.floats(0.0, 100.0, allow_nan=False),
+)
+def test_finite_perturbations_of_step_means_give_an_error_or_finite_results(rows, channel, size, std_scale):
     gyro, accel = BASE.gyro.copy(), BASE.accel.copy()
     gs, as_ = BASE.gyro_std * std_scale, BASE.accel_std * std_scale
     target = gyro if channel < 3 else accel

@@ -3,6 +3,7 @@
 Each case: the damage done, the expected code and message, the exit code, and the store's
 state after the run and after the next run. The cases that need a nightly run share one
 temporary Prefect API (module scope) and are marked slow; the rest run without Prefect."""
+
 from __future__ import annotations
 
 import errno
@@ -55,8 +56,26 @@ def one_line_error(capsys, command: str) -> str:
 
 
 # --- names -----------------------------------------------------------------------------------
-@pytest.mark.parametrize("bad", [".", "..", "U0001\n", "U\x00", "U\t1", "a/b", "-rf", "U1.",
-                                 ".hidden", "CON", "nul.txt", "", "x" * 129, "U 7", "é"])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        ".",
+        "..",
+        "U0001\n",
+        "U\x00",
+        "U\t1",
+        "a/b",
+        "-rf",
+        "U1.",
+        ".hidden",
+        "CON",
+        "nul.txt",
+        "",
+        "x" * 129,
+        "U 7",
+        "é",
+    ],
+)
 def test_ids_are_full_string_matches(bad):
     assert id_problem(bad, "unit") is not None
     with pytest.raises(ValueError):
@@ -78,12 +97,15 @@ def test_directory_with_trailing_newline_is_a_bad_path(tmp_path):
     assert "must match" in str(errs[0])
 
 
-@pytest.mark.parametrize("argv", [
-    ["calibration", "--results", "{r}", "--unit", "../../evil"],
-    ["calibration", "--results", "{r}", "--unit", "."],
-    ["report", "--results", "{r}", "--lot", ".."],
-    ["rerun", "{r}", "--results", "{r}", "--unit", "U1\n"],
-])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["calibration", "--results", "{r}", "--unit", "../../evil"],
+        ["calibration", "--results", "{r}", "--unit", "."],
+        ["report", "--results", "{r}", "--lot", ".."],
+        ["rerun", "{r}", "--results", "{r}", "--unit", "U1\n"],
+    ],
+)
 def test_unit_and_lot_arguments_go_through_the_name_check(tmp_path, capsys, argv):
     code = cli_main([a.format(r=tmp_path) for a in argv])
     assert code == 2
@@ -158,8 +180,7 @@ def test_step_id_reappearing_after_another_step_is_an_error(one_session):
     rows_3 = np.flatnonzero(ids == 3)
     ids[rows_3[-10:]] = 4  # the end of step 3 labelled 4, then step 3 again? no: 3 -> 4 -> 4
     ids[np.flatnonzero(ids == 5)[:10]] = 3  # step 3 reappears after step 4's samples
-    table = samples.set_column(samples.schema.get_field_index("step"), "step",
-                               pa.array(ids, pa.int32()))
+    table = samples.set_column(samples.schema.get_field_index("step"), "step", pa.array(ids, pa.int32()))
     with pytest.raises(SessionError) as info:
         session_from_tables(ref.key, steps, table, samples.schema.metadata)
     assert info.value.code == E.E_STEP_NOT_CONTIGUOUS
@@ -167,8 +188,7 @@ def test_step_id_reappearing_after_another_step_is_an_error(one_session):
     # samples of no step (-1) inside a step do not split it into two steps
     ids = samples.column("step").to_numpy().copy()
     ids[np.flatnonzero(ids == 3)[5:8]] = -1
-    table = samples.set_column(samples.schema.get_field_index("step"), "step",
-                               pa.array(ids, pa.int32()))
+    table = samples.set_column(samples.schema.get_field_index("step"), "step", pa.array(ids, pa.int32()))
     session_from_tables(ref.key, steps, table, samples.schema.metadata)
 
 
@@ -179,15 +199,14 @@ def _relabel_steps(ref, samples: pa.Table, n: int, out: Path) -> Path:
     shutil.copy(ref.steps_path, out / "steps.parquet")
     ids = samples.column("step").to_numpy().copy()
     ids[ids < n] = -1
-    table = samples.set_column(samples.schema.get_field_index("step"), "step",
-                               pa.array(ids, pa.int32()))
+    table = samples.set_column(samples.schema.get_field_index("step"), "step", pa.array(ids, pa.int32()))
     pq.write_table(table, out / "samples.parquet")
     return out
 
 
-def test_session_losing_more_than_five_percent_of_its_steps_fails(one_session, tmp_path,
-                                                                   monkeypatch):
+def test_session_losing_more_than_five_percent_of_its_steps_fails(one_session, tmp_path, monkeypatch):
     from schemas.dataset import SessionRef
+
     ref, steps, samples = one_session
     n_steps = steps.num_rows  # 118
     ok = SessionRef(ref.key, _relabel_steps(ref, samples, 5, tmp_path / "five"))  # 4.2 %
@@ -197,17 +216,22 @@ def test_session_losing_more_than_five_percent_of_its_steps_fails(one_session, t
     with pytest.raises(SessionError) as info:
         read_step_means(bad)
     assert info.value.code == E.E_TOO_MANY_STEPS_LOST
-    assert f"16 of {n_steps} steps left out (16 W_EMPTY_STEP), more than the 5% allowed" \
-        in str(info.value)
+    assert f"16 of {n_steps} steps left out (16 W_EMPTY_STEP), more than the 5% allowed" in str(info.value)
     monkeypatch.setenv("MIMUCAL_MAX_LOST_STEP_SHARE", "0.2")  # configurable
     read_step_means(bad)
 
 
 def _chunks(path: Path) -> list[tuple[str, int, int]]:
     md = pq.ParquetFile(path).metadata
-    return [(md.row_group(g).column(c).path_in_schema, md.row_group(g).column(c).data_page_offset,
-             md.row_group(g).column(c).total_compressed_size)
-            for g in range(md.num_row_groups) for c in range(md.num_columns)]
+    return [
+        (
+            md.row_group(g).column(c).path_in_schema,
+            md.row_group(g).column(c).data_page_offset,
+            md.row_group(g).column(c).total_compressed_size,
+        )
+        for g in range(md.num_row_groups)
+        for c in range(md.num_columns)
+    ]
 
 
 def _damaged(original: bytes, start: int, size: int, how: str) -> bytes:
@@ -216,7 +240,7 @@ def _damaged(original: bytes, start: int, size: int, how: str) -> bytes:
         for p in start + size // 2 + np.arange(4):
             b[p] ^= 0x5A
     else:  # 16 zero bytes: usually no longer decodes
-        b[start + size // 3:start + size // 3 + 16] = bytes(16)
+        b[start + size // 3 : start + size // 3 + 16] = bytes(16)
     return bytes(b)
 
 
@@ -225,6 +249,7 @@ def test_damaged_bytes_in_each_column_chunk_are_never_calibrated(one_session, tm
     rejected each time (E_CHECKSUM, or E_UNREADABLE_FILE where the bytes do not decode), and
     the unit pipeline marks it failed, never warned or ok."""
     from schemas.dataset import SessionRef
+
     ref, _, _ = one_session
     work = tmp_path / "s"
     shutil.copytree(ref.path, work)
@@ -249,6 +274,7 @@ def test_without_checksums_damaged_step_and_time_columns_are_still_caught(one_se
     ids, too many steps lost, non-increasing time). Damage to a sensor column that still
     decodes is not caught unless it makes a value non-finite (docs/hardening.md)."""
     from schemas.dataset import SessionRef
+
     ref, _, samples = one_session
     work = tmp_path / "s"
     shutil.copytree(ref.path, work)
@@ -260,8 +286,13 @@ def test_without_checksums_damaged_step_and_time_columns_are_still_caught(one_se
             session.samples_path.write_bytes(_damaged(original, start, size, how))
             out = unit_pipeline.calibrate_session(session)
             assert out.status == "failed", (name, how)
-            assert out.code in {E.E_UNKNOWN_STEP, E.E_STEP_NOT_CONTIGUOUS, E.E_UNREADABLE_FILE,
-                                E.E_TOO_MANY_STEPS_LOST, E.E_NONINCREASING_TIME}, out.code
+            assert out.code in {
+                E.E_UNKNOWN_STEP,
+                E.E_STEP_NOT_CONTIGUOUS,
+                E.E_UNREADABLE_FILE,
+                E.E_TOO_MANY_STEPS_LOST,
+                E.E_NONINCREASING_TIME,
+            }, out.code
 
 
 # --- calibration files: non-finite numbers ------------------------------------------------------
@@ -270,8 +301,9 @@ def test_nonfinite_term_values_are_written_as_null_and_read_back_as_nan(tmp_path
     params = np.arange(9, dtype=float)
     stderr = np.full(9, 0.1)
     params[4], stderr[[4, 5]] = np.nan, np.nan
-    cal = Calibration(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3),
-                      terms=(TermValue("lever_arm", params, stderr),))
+    cal = Calibration(
+        np.eye(3), np.zeros(3), np.eye(3), np.zeros(3), terms=(TermValue("lever_arm", params, stderr),)
+    )
     path = save_calibration(cal, tmp_path / "c.json", {"x": {"y": float("inf")}})
     doc = json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{c} written"))
     assert doc["terms"][0]["params"][lever.param_names[4]] is None
@@ -280,8 +312,9 @@ def test_nonfinite_term_values_are_written_as_null_and_read_back_as_nan(tmp_path
     back = load_calibration(path)
     np.testing.assert_array_equal(np.isnan(back.terms[0].params), np.isnan(params))
     with pytest.raises(ValueError, match="not finite"):
-        save_calibration(Calibration(np.full((3, 3), np.nan), np.zeros(3), np.eye(3),
-                                     np.zeros(3)), tmp_path / "bad.json")
+        save_calibration(
+            Calibration(np.full((3, 3), np.nan), np.zeros(3), np.eye(3), np.zeros(3)), tmp_path / "bad.json"
+        )
     assert not (tmp_path / "bad.json").exists()
 
 
@@ -310,12 +343,14 @@ def test_an_exception_in_one_units_calibration_fails_that_unit_only(small_fleet,
     res = calibrate_batch(jobs, run_discovery=False)
     assert [r.calibrated for r in res] == [True, False, True]
     assert res[1].error_code == "E_INTERNAL"
-    assert res[1].error == ("[E_INTERNAL] unit L01/U0002: unexpected error while calibrating "
-                            "(ZeroDivisionError: injected)")
+    assert res[1].error == (
+        "[E_INTERNAL] unit L01/U0002: unexpected error while calibrating (ZeroDivisionError: injected)"
+    )
 
 
 def test_an_exception_while_storing_one_unit_keeps_its_last_good_calibration(
-        small_fleet, tmp_path, monkeypatch):
+    small_fleet, tmp_path, monkeypatch
+):
     _, jobs = small_fleet
     store = ResultsStore(tmp_path)
     first = nightly.store_results(store, calibrate_batch(jobs, False), "run1", "v")
@@ -375,19 +410,28 @@ def test_check_names_a_truncated_table_and_a_missing_calibration(small_fleet, tm
     problems = store.verify()
     assert len(problems) == 2
     assert problems[0].startswith(f"table parameters: {part} is damaged (ArrowInvalid")
-    assert problems[0].endswith(f"run 'mimucal repair --results {tmp_path}' to rebuild what "
-                                f"can be rebuilt")
-    assert problems[1] == (f"unit L01/U0001: its current calibration file {cal} is missing; "
-                           f"run 'mimucal repair --results {tmp_path}' to rebuild what can be "
-                           f"rebuilt")
+    assert problems[0].endswith(f"run 'mimucal repair --results {tmp_path}' to rebuild what can be rebuilt")
+    assert problems[1] == (
+        f"unit L01/U0001: its current calibration file {cal} is missing; "
+        f"run 'mimucal repair --results {tmp_path}' to rebuild what can be "
+        f"rebuilt"
+    )
 
 
 def test_older_lot_files_are_rewritten_with_the_declared_schema(tmp_path):
     store = ResultsStore(tmp_path)
     d = tmp_path / "tables" / "summary"
     d.mkdir(parents=True)
-    old = pd.DataFrame({"lot": ["L01"], "unit": ["U1"], "model": ["gyro"], "parameter": ["k"],
-                        "mean": [1.0], "score": [None]})  # score all null: Arrow null type
+    old = pd.DataFrame(
+        {
+            "lot": ["L01"],
+            "unit": ["U1"],
+            "model": ["gyro"],
+            "parameter": ["k"],
+            "mean": [1.0],
+            "score": [None],
+        }
+    )  # score all null: Arrow null type
     pq.write_table(pa.Table.from_pandas(old, preserve_index=False), d / "lot=L01.parquet")
     assert pa.types.is_null(pq.read_schema(d / "lot=L01.parquet").field("score").type)
     store.write("units", pd.DataFrame({"lot": ["L01"], "unit": ["U1"], "state": ["calibrated"]}))
@@ -396,8 +440,7 @@ def test_older_lot_files_are_rewritten_with_the_declared_schema(tmp_path):
 
 
 # --- CLI: one line per failure -------------------------------------------------------------------
-def test_an_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_path, capsys,
-                                                                       monkeypatch):
+def test_an_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_path, capsys, monkeypatch):
     simulate_fleet(tmp_path / "d", 1, 1, 1, seed=3, sample_rate_hz=RATE_HZ)
 
     def prefect_down(*a, **k):
@@ -415,9 +458,11 @@ def test_an_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_pat
 
 def test_disk_full_and_read_only_are_one_line(tmp_path, capsys, monkeypatch):
     simulate_fleet(tmp_path / "d", 1, 1, 1, seed=3, sample_rate_hz=RATE_HZ)
-    for err, words in ((errno.ENOSPC, "No space left on device (ENOSPC); free space"),
-                       (errno.EROFS, "Read-only file system (EROFS); the file system is "
-                                     "read-only")):
+    for err, words in (
+        (errno.ENOSPC, "No space left on device (ENOSPC); free space"),
+        (errno.EROFS, "Read-only file system (EROFS); the file system is read-only"),
+    ):
+
         def fail(*a, _e=err, **k):
             raise OSError(_e, os.strerror(_e), str(tmp_path / "r" / "runs"))
 
@@ -437,21 +482,34 @@ def lever_lot(tmp_path_factory):
     without tilted dynamic steps (six lever-arm components unobservable), one outlier unit,
     one bad session; first nightly run through the CLI."""
     base = tmp_path_factory.mktemp("lever")
-    steps = protocols.to_frame(protocols.xu2016_multirate() + protocols.xu2016_multiposition()
-                               + protocols.dynamic_steps(tilted=False))
+    steps = protocols.to_frame(
+        protocols.xu2016_multirate()
+        + protocols.xu2016_multiposition()
+        + protocols.dynamic_steps(tilted=False)
+    )
     lever = get_effect("lever_arm")
 
     def truth(rng, lot, unit):
-        return typical_truth(rng).with_effects(
-            (lever, np.array([8, 4, -6, -5, 9, 3, 4, -7, 12.0])))
+        return typical_truth(rng).with_effects((lever, np.array([8, 4, -6, -5, 9, 3, 4, -7, 12.0])))
 
     mp = pytest.MonkeyPatch()
     mp.setattr(fleet_sim, "OUTLIER_KINDS", BIG_OUTLIERS)
-    manifest = simulate_fleet(base / "data", 1, 10, 3, seed=7, sample_rate_hz=RATE_HZ,
-                              protocol=steps, truth_factory=truth, outliers=1, bad_sessions=1)
+    manifest = simulate_fleet(
+        base / "data",
+        1,
+        10,
+        3,
+        seed=7,
+        sample_rate_hz=RATE_HZ,
+        protocol=steps,
+        truth_factory=truth,
+        outliers=1,
+        bad_sessions=1,
+    )
     mp.undo()
-    code = cli_main(["nightly", str(base / "data"), "--results", str(base / "results"),
-                     "--quiet", "--runner", "threads"])
+    code = cli_main(
+        ["nightly", str(base / "data"), "--results", str(base / "results"), "--quiet", "--runner", "threads"]
+    )
     return base / "data", base / "results", manifest, code
 
 
@@ -462,6 +520,7 @@ def test_nightly_and_rerun_succeed_with_unobservable_lever_arm_components(lever_
     log = json.loads(sorted((results / "runs").glob("*.json"))[-1].read_text())
     assert log["units_calibrated"] == 10 and log["units_failed"] == [] and "end" in log
     assert len(log["failed_sessions"]) == 1
+
     def not_json(token):
         pytest.fail(f"{token} in a calibration file is not JSON")
 
@@ -473,14 +532,16 @@ def test_nightly_and_rerun_succeed_with_unobservable_lever_arm_components(lever_
             assert None in lever["stderr"].values()
     unit = manifest["units"][0]["unit"]
     assert cli_main(["rerun", str(data), "--results", str(results), "--unit", unit]) in (0, 1)
-    rerun_log = json.loads(sorted((results / "runs").glob("*.json"),
-                                  key=lambda p: p.stat().st_mtime)[-1].read_text())
+    rerun_log = json.loads(
+        sorted((results / "runs").glob("*.json"), key=lambda p: p.stat().st_mtime)[-1].read_text()
+    )
     assert rerun_log["kind"] == "rerun" and rerun_log["units_calibrated"] == 1
 
 
 @pytest.mark.slow
 def test_every_table_directory_reads_as_one_table_in_pandas_pyarrow_and_duckdb(lever_lot):
     import duckdb
+
     _, results, _, _ = lever_lot
     store = ResultsStore(results)
     sessions = store.read("sessions")
@@ -503,8 +564,7 @@ def test_every_table_directory_reads_as_one_table_in_pandas_pyarrow_and_duckdb(l
 
 
 @pytest.mark.slow
-def test_damaged_store_is_refused_repaired_and_the_next_run_completes(lever_lot, tmp_path,
-                                                                     capsys):
+def test_damaged_store_is_refused_repaired_and_the_next_run_completes(lever_lot, tmp_path, capsys):
     data, results0, _, _ = lever_lot
     results = tmp_path / "results"
     shutil.copytree(results0, results)
@@ -539,8 +599,17 @@ def test_damaged_store_is_refused_repaired_and_the_next_run_completes(lever_lot,
 @pytest.mark.slow
 def test_an_empty_dataset_exits_3_with_a_warning(tmp_path, capsys, lever_lot):
     (tmp_path / "empty").mkdir()
-    code = cli_main(["nightly", str(tmp_path / "empty"), "--results", str(tmp_path / "r"),
-                     "--quiet", "--runner", "threads"])
+    code = cli_main(
+        [
+            "nightly",
+            str(tmp_path / "empty"),
+            "--results",
+            str(tmp_path / "r"),
+            "--quiet",
+            "--runner",
+            "threads",
+        ]
+    )
     assert code == 3
     assert "warning: no session under" in capsys.readouterr().err
 
@@ -567,12 +636,25 @@ def test_numpy_runtime_warnings_reach_the_terminal_only_with_debug(tmp_path):
     --debug. A real process: pytest's own warning capture would hide them in-process."""
     import subprocess
     import sys
-    steps = protocols.to_frame(protocols.xu2016_multirate() + protocols.xu2016_multiposition()
-                               + protocols.dynamic_steps(tilted=False))
+
+    steps = protocols.to_frame(
+        protocols.xu2016_multirate()
+        + protocols.xu2016_multiposition()
+        + protocols.dynamic_steps(tilted=False)
+    )
     lever = get_effect("lever_arm")
-    simulate_fleet(tmp_path / "d", 1, 1, 2, seed=5, sample_rate_hz=RATE_HZ, protocol=steps,
-                   truth_factory=lambda rng, lot, unit: typical_truth(rng).with_effects(
-                       (lever, np.array([8, 4, -6, -5, 9, 3, 4, -7, 12.0]))))
+    simulate_fleet(
+        tmp_path / "d",
+        1,
+        1,
+        2,
+        seed=5,
+        sample_rate_hz=RATE_HZ,
+        protocol=steps,
+        truth_factory=lambda rng, lot, unit: typical_truth(rng).with_effects(
+            (lever, np.array([8, 4, -6, -5, 9, 3, 4, -7, 12.0]))
+        ),
+    )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     env.pop("PYTHONWARNINGS", None)
     cmd = [sys.executable, "-m", "flows.cli", "calibrate", str(tmp_path / "d"), "--unit", "U0001"]
@@ -585,7 +667,8 @@ def test_numpy_runtime_warnings_reach_the_terminal_only_with_debug(tmp_path):
 
 @pytest.mark.slow
 def test_disk_full_while_writing_reports_exits_1_and_the_next_run_rebuilds_them(
-        lever_lot, tmp_path, capsys, monkeypatch):
+    lever_lot, tmp_path, capsys, monkeypatch
+):
     data, results0, _, _ = lever_lot
     results = tmp_path / "results"
     shutil.copytree(results0, results)

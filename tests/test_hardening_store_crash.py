@@ -8,6 +8,7 @@ on real processes at points it cannot choose this precisely).
 
 Also: temp files left by a writer killed mid-write are removed by the next run that holds
 the lock, and never by a run that does not."""
+
 from __future__ import annotations
 
 import json
@@ -24,8 +25,7 @@ from flows.fleet_sim import simulate_fleet  # noqa: E402
 from flows.nightly import nightly_fleet_calibration  # noqa: E402
 from schemas.results_store import TABLES, ResultsStore, StoreLockedError  # noqa: E402
 
-VOLATILE_COLUMNS = ("run_id", "calibrated_at", "updated_at", "calibration_file",
-                    "code_version")
+VOLATILE_COLUMNS = ("run_id", "calibrated_at", "updated_at", "calibration_file", "code_version")
 
 
 class SimulatedCrash(Exception):
@@ -34,9 +34,10 @@ class SimulatedCrash(Exception):
 
 def comparable(results: Path) -> tuple[dict, dict]:
     store = ResultsStore(results)
-    tables = {n: store.read(n).drop(columns=[c for c in VOLATILE_COLUMNS
-                                             if c in store.read(n).columns])
-              for n in TABLES}
+    tables = {
+        n: store.read(n).drop(columns=[c for c in VOLATILE_COLUMNS if c in store.read(n).columns])
+        for n in TABLES
+    }
     cals = {}
     for r in store.read("units").itertuples():
         doc = json.loads((results / r.calibration_file).read_text())
@@ -59,8 +60,7 @@ def fleet(tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("crash_after", [1, 3, 6])
-def test_crash_after_any_table_write_then_rerun_gives_the_clean_results(fleet, crash_after,
-                                                                       monkeypatch):
+def test_crash_after_any_table_write_then_rerun_gives_the_clean_results(fleet, crash_after, monkeypatch):
     base, data, (clean_tables, clean_cals) = fleet
     results = base / f"crash-{crash_after}"
     original = ResultsStore.write
@@ -100,12 +100,17 @@ def test_stale_temp_files_are_removed_by_the_next_lock_holder(tmp_path):
     (tmp_path / "calibrations" / "U1").mkdir(parents=True)
     (tmp_path / "runs").mkdir()
     (tmp_path / "tables" / "sessions").mkdir(parents=True)
-    stale = [tmp_path / ".sessions.parquet.k2j3.tmp",
-             tmp_path / "tables" / "sessions" / ".lot=L01.parquet.k2j3.tmp",
-             tmp_path / "calibrations" / "U1" / ".20261122T000000.000000Z.json.ab12.tmp",
-             tmp_path / "runs" / ".r1.json.zz.tmp"]
-    keep = [tmp_path / "sessions.parquet", tmp_path / "notes.tmp.txt",
-            tmp_path / "tables" / "sessions" / "lot=L01.parquet"]
+    stale = [
+        tmp_path / ".sessions.parquet.k2j3.tmp",
+        tmp_path / "tables" / "sessions" / ".lot=L01.parquet.k2j3.tmp",
+        tmp_path / "calibrations" / "U1" / ".20261122T000000.000000Z.json.ab12.tmp",
+        tmp_path / "runs" / ".r1.json.zz.tmp",
+    ]
+    keep = [
+        tmp_path / "sessions.parquet",
+        tmp_path / "notes.tmp.txt",
+        tmp_path / "tables" / "sessions" / "lot=L01.parquet",
+    ]
     for p in stale + keep:
         p.write_bytes(b"partial")
     with store.lock(owner="holder"):

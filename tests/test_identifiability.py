@@ -2,6 +2,7 @@
 columns, a combination of several terms, dead columns, and the lever arm of a protocol with
 and without the tilted dynamic steps (columns written here from w x (w x r), not from the
 catalogue's term code)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -66,9 +67,9 @@ def _lever_arm_design(steps):
             # (w x (w x r))_i = w_i (w . r) - |w|^2 r_i, linear in r
             m = wk[i] * wk - (wk @ wk) * np.eye(3)[i]
             b = np.zeros(3 * 4)
-            b[4 * i: 4 * i + 4] = [1.0, *f[k]]
+            b[4 * i : 4 * i + 4] = [1.0, *f[k]]
             t = np.zeros(9)
-            t[3 * i: 3 * i + 3] = m
+            t[3 * i : 3 * i + 3] = m
             rows_base.append(b)
             rows_term.append(t)
     return np.array(rows_base), np.array(rows_term)
@@ -88,20 +89,19 @@ def test_lever_arm_needs_the_tilted_steps():
     r = _lever(flat)
     assert r.rank["lever_arm"] == 3
     # accelerometer i sees only its own component along its own axis: the other six are blind
-    assert sorted(p for u in r.undetermined for p in u.params) == sorted(
-        set(LEVER) - {"r1x", "r2y", "r3z"})
+    assert sorted(p for u in r.undetermined for p in u.params) == sorted(set(LEVER) - {"r1x", "r2y", "r3z"})
     assert _lever(tilted).rank["lever_arm"] == 9
 
 
 def test_advisor_finds_the_steps_that_separate():
     flat = to_frame(dynamic_steps(tilted=False))
     library = {
-        "dynamic steps on the 45-degree diagonals":
-            lambda p: to_frame(p.drop(columns="step").to_dict("records")
-                               + dynamic_steps(rates=(), tilted=True)),
-        "more rates about the principal axes":
-            lambda p: to_frame(p.drop(columns="step").to_dict("records")
-                               + dynamic_steps(rates=(300,), tilted=False)),
+        "dynamic steps on the 45-degree diagonals": lambda p: to_frame(
+            p.drop(columns="step").to_dict("records") + dynamic_steps(rates=(), tilted=True)
+        ),
+        "more rates about the principal axes": lambda p: to_frame(
+            p.drop(columns="step").to_dict("records") + dynamic_steps(rates=(300,), tilted=False)
+        ),
     }
     advice = separating_additions(_lever, flat, library)
     assert len(advice) == 1 and advice[0].terms == ("lever_arm",)

@@ -2,6 +2,7 @@
 block show that the pivoted QR keeps all three columns, the QR is not run and the fit reuses
 the SVD. The fits are those of the QR path, bit for bit; the certificate never vouches for a
 block the QR would not keep whole."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -16,12 +17,13 @@ STEPS = protocols.default_session(verification=True)
 def _inputs(seed: int = 7, n: int = 5, steps=STEPS):
     rng = np.random.default_rng(seed)
     truth = simulator.typical_truth(rng)
-    sms = [simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L", "U", r))
-           for r in range(1, n + 1)]
+    sms = [
+        simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L", "U", r)) for r in range(1, n + 1)
+    ]
     fits = [f.calibration.fits for f in calibrate_repetitions(sms)]
     return zhang2017.lever_arm_inputs_stack(
-        sms, [f["accel_static"] for f in fits], [f["gyro"].K for f in fits],
-        [f["gyro"].w0 for f in fits])
+        sms, [f["accel_static"] for f in fits], [f["gyro"].K for f in fits], [f["gyro"].w0 for f in fits]
+    )
 
 
 def _same(a, b, path=""):
@@ -38,17 +40,22 @@ def _same(a, b, path=""):
 
 def test_certified_fits_are_the_qr_path_fits(monkeypatch):
     inputs = _inputs()
-    assert zhang2017._certify_determined(
-        [zhang2017._lever_design(x, "sensitive_axis") for x in inputs],
-        zhang2017.UNDETERMINED_RCOND) is not None  # the production protocol is certified
+    assert (
+        zhang2017._certify_determined(
+            [zhang2017._lever_design(x, "sensitive_axis") for x in inputs], zhang2017.UNDETERMINED_RCOND
+        )
+        is not None
+    )  # the production protocol is certified
     for projection in zhang2017.PROJECTIONS:
         for estimate_only in (False, True):
-            fast = zhang2017.fit_lever_arm_from_stack(inputs, projection=projection,
-                                                      estimate_only=estimate_only)
+            fast = zhang2017.fit_lever_arm_from_stack(
+                inputs, projection=projection, estimate_only=estimate_only
+            )
             with monkeypatch.context() as m:
                 m.setattr(zhang2017, "_certify_determined", lambda designs, rcond: None)
-                qr = zhang2017.fit_lever_arm_from_stack(inputs, projection=projection,
-                                                        estimate_only=estimate_only)
+                qr = zhang2017.fit_lever_arm_from_stack(
+                    inputs, projection=projection, estimate_only=estimate_only
+                )
             assert len(fast) == len(qr)
             for a, b in zip(fast, qr):
                 _same(a, b, projection)
@@ -60,8 +67,11 @@ def test_certified_fits_are_the_qr_path_fits(monkeypatch):
 
 
 def test_untilted_steps_are_not_certified_and_keep_their_warnings():
-    steps = protocols.to_frame(protocols.xu2016_multirate() + protocols.xu2016_multiposition()
-                               + protocols.dynamic_steps(tilted=False))
+    steps = protocols.to_frame(
+        protocols.xu2016_multirate()
+        + protocols.xu2016_multiposition()
+        + protocols.dynamic_steps(tilted=False)
+    )
     inputs = _inputs(seed=10, steps=steps)
     designs = [zhang2017._lever_design(x, "sensitive_axis") for x in inputs]
     assert zhang2017._certify_determined(designs, zhang2017.UNDETERMINED_RCOND) is None
@@ -71,8 +81,7 @@ def test_untilted_steps_are_not_certified_and_keep_their_warnings():
 
 def _qr_keeps_all(Xb: np.ndarray, rcond: float) -> bool:
     try:
-        lb = zhang2017._lever_blocks(None, rcond, "sensitive_axis",
-                                     (Xb, np.zeros(Xb.shape[:2])))
+        lb = zhang2017._lever_blocks(None, rcond, "sensitive_axis", (Xb, np.zeros(Xb.shape[:2])))
     except (zhang2017.DesignError, IndexError):
         # IndexError: _lever_blocks with fewer rows than columns (n < 3) fails naming an
         # undetermined component (a limitation of the QR path, left as it is); never whole
@@ -102,7 +111,7 @@ def test_certificate_never_vouches_for_a_block_the_qr_cuts():
         elif kind == 5 and rng.random() < 0.2:
             X[0, 0, 0] = np.nan
         sure = zhang2017._certify_determined([(X, np.zeros((3, n)))], rcond) is not None
-        keeps = all(_qr_keeps_all(X[i:i + 1].repeat(3, axis=0), rcond) for i in range(3))
+        keeps = all(_qr_keeps_all(X[i : i + 1].repeat(3, axis=0), rcond) for i in range(3))
         assert not (sure and not keeps), trial
         certified += sure
         cut += not keeps
@@ -114,8 +123,9 @@ def test_stacked_blocks_have_the_former_values_and_layout():
     base = rng.normal(size=(4, 3, 9, 3))
     cases = {
         "C": [b.copy() for b in base],
-        "transposed": [np.ascontiguousarray(b.transpose(2, 1, 0)).transpose(2, 1, 0)
-                       for b in base],  # (3, 9, 3) F-ordered
+        "transposed": [
+            np.ascontiguousarray(b.transpose(2, 1, 0)).transpose(2, 1, 0) for b in base
+        ],  # (3, 9, 3) F-ordered
         "y": [rng.normal(size=(9, 3)).T for _ in range(4)],  # (3, 9) transposed views
     }
     for name, per_session in cases.items():

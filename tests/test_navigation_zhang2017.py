@@ -1,11 +1,16 @@
 """Strapdown navigation of a turntable trajectory with a lever-armed unit: integration accuracy
 and the navigation benefit of the lever-arm compensation."""
+
 import numpy as np
 import pytest
 
 from calib_core import protocols
-from calib_core.navigation import (TurntableTrajectory, integrate_attitude, integrate_navigation,
-                                   simulate_navigation)
+from calib_core.navigation import (
+    TurntableTrajectory,
+    integrate_attitude,
+    integrate_navigation,
+    simulate_navigation,
+)
 from calib_core.simulator import simulate_step_means
 from calib_core.zhang2017 import AccelUnitTruth, fit_accel_static, fit_lever_arm
 
@@ -13,8 +18,7 @@ from conftest import PAPER_NOISE, random_unit
 
 
 def test_trajectory_is_a_rotation_about_the_vertical():
-    tr = TurntableTrajectory(axis_body=(1, 2, 2), rate_dps=90.0, rate_amplitude_dps=30.0,
-                             duration_s=10.0)
+    tr = TurntableTrajectory(axis_body=(1, 2, 2), rate_dps=90.0, rate_amplitude_dps=30.0, duration_s=10.0)
     m = tr.motion()
     u = np.array([1, 2, 2]) / 3.0
     # the body axis stays vertical, gravity (+1 g specific force) stays along it
@@ -41,21 +45,27 @@ def test_ideal_unit_navigates_without_error():
     assert np.max(np.abs(v)) < 1e-9 and np.max(np.abs(p)) < 1e-7
     v, p = integrate_navigation(m["C_nb"], m["f"] * 1.001, 0.01, 9.80665)
     assert v[-1, 2] == pytest.approx(1e-3 * 9.80665 * 100.0, rel=1e-9)
-    assert p[-1, 2] == pytest.approx(0.5e-3 * 9.80665 * 100.0 ** 2, rel=1e-6)
+    assert p[-1, 2] == pytest.approx(0.5e-3 * 9.80665 * 100.0**2, rel=1e-6)
 
 
-@pytest.mark.parametrize("traj", [
-    TurntableTrajectory(axis_body=(1, 1, 1), rate_dps=100.0),
-    TurntableTrajectory(axis_body=(1, 0.5, 1), rate_dps=100.0, rate_amplitude_dps=50.0,
-                        rate_period_s=15.0),
-], ids=["constant-100dps", "varying-100+-50dps"])
+@pytest.mark.parametrize(
+    "traj",
+    [
+        TurntableTrajectory(axis_body=(1, 1, 1), rate_dps=100.0),
+        TurntableTrajectory(
+            axis_body=(1, 0.5, 1), rate_dps=100.0, rate_amplitude_dps=50.0, rate_period_s=15.0
+        ),
+    ],
+    ids=["constant-100dps", "varying-100+-50dps"],
+)
 def test_lever_arm_compensation_10x_better_than_static_only(traj):
     rng = np.random.default_rng(21)
     base = random_unit(rng, tilt_deg=1.0)
     r8 = np.array([[8.0, 0.5, -0.4], [-0.6, 8.0, 0.3], [0.2, -0.5, 8.0]])  # 8 mm lever arms
     truth = AccelUnitTruth(scale=base.scale, bias=base.bias, C=base.C, lever_arm_mm=r8)
-    sm = simulate_step_means(truth.to_mimu_truth(**PAPER_NOISE), protocols.zhang2017_session(),
-                             np.random.default_rng(22))
+    sm = simulate_step_means(
+        truth.to_mimu_truth(**PAPER_NOISE), protocols.zhang2017_session(), np.random.default_rng(22)
+    )
     st = fit_accel_static(sm)
     lv = fit_lever_arm(sm, st)
     res = simulate_navigation(truth, st, lv, traj, np.random.default_rng(23))
@@ -78,8 +88,9 @@ def test_navigation_impact_replays_the_fitted_unit():
     from calib_core.reproduction.zhang2017 import paper_truth
 
     t = paper_truth()
-    sm = simulate_step_means(t.to_mimu_truth(**PAPER_NOISE), protocols.zhang2017_session(),
-                             np.random.default_rng(0))
+    sm = simulate_step_means(
+        t.to_mimu_truth(**PAPER_NOISE), protocols.zhang2017_session(), np.random.default_rng(0)
+    )
     st = fit_accel_static(sm)
     fin = navigation_impact(st, fit_lever_arm(sm, st)).final()
     # by hand from Table 3 about u = (1,1,1)/sqrt(3): accelerometer i senses

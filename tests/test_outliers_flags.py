@@ -2,22 +2,34 @@
 
 Expected values come from hand computation or from an independent vectorised computation,
 never from the module's own output."""
+
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from schemas.limits import config_from_toml
 from calib_core.outliers import (
-    KIND_LIMIT, KIND_ROBUST, KIND_SPREAD, OutlierConfig, OutlierConfigError, apply_flags,
-    flag_lot, flag_lots, robust_scale, robust_z, robust_z_threshold,
+    KIND_LIMIT,
+    KIND_ROBUST,
+    KIND_SPREAD,
+    OutlierConfig,
+    OutlierConfigError,
+    apply_flags,
+    flag_lot,
+    flag_lots,
+    robust_scale,
+    robust_z,
+    robust_z_threshold,
 )
+from schemas.limits import config_from_toml
 
-PARAMS = [("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)] + \
-         [("gyro", f"w0_{a}") for a in "xyz"] + \
-         [("accel", f"k_a{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)] + \
-         [("accel", f"f0_{a}") for a in "xyz"]
+PARAMS = (
+    [("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
+    + [("gyro", f"w0_{a}") for a in "xyz"]
+    + [("accel", f"k_a{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
+    + [("accel", f"f0_{a}") for a in "xyz"]
+)
 
 
 def gaussian_fleet(rng, lots=3, units=20, n_reps=5, outliers=(), shift_sd=12.0):
@@ -35,8 +47,18 @@ def gaussian_fleet(rng, lots=3, units=20, n_reps=5, outliers=(), shift_sd=12.0):
                     x += shift_sd * sd[p]
                     truth.add(unit)
                 s = 0.1 * sd[p] * np.sqrt(rng.chisquare(n_reps - 1) / (n_reps - 1))
-                rows.append({"lot": f"L{li}", "unit": unit, "model": p[0], "parameter": p[1],
-                             "mean": x, "std": s, "n_reps": n_reps, "unit_of_measure": "-"})
+                rows.append(
+                    {
+                        "lot": f"L{li}",
+                        "unit": unit,
+                        "model": p[0],
+                        "parameter": p[1],
+                        "mean": x,
+                        "std": s,
+                        "n_reps": n_reps,
+                        "unit_of_measure": "-",
+                    }
+                )
     return pd.DataFrame(rows), truth
 
 
@@ -60,16 +82,39 @@ def test_mad_zero_falls_back_to_mean_absolute_deviation():
 
 
 def test_identical_units_are_never_flagged():
-    df = pd.DataFrame([{"lot": "L", "unit": f"U{i}", "model": "gyro", "parameter": "k_g11",
-                        "mean": 1.0, "std": 1e-4, "n_reps": 5} for i in range(8)])
+    df = pd.DataFrame(
+        [
+            {
+                "lot": "L",
+                "unit": f"U{i}",
+                "model": "gyro",
+                "parameter": "k_g11",
+                "mean": 1.0,
+                "std": 1e-4,
+                "n_reps": 5,
+            }
+            for i in range(8)
+        ]
+    )
     lf = flag_lot(df)
     assert lf.robust and lf.flags == []
 
 
 def test_small_lot_gets_no_robust_flags_but_limits_apply():
-    df = pd.DataFrame([{"lot": "L", "unit": f"U{i}", "model": "gyro", "parameter": "k_g11",
-                        "mean": v, "std": 1e-4, "n_reps": 5}
-                       for i, v in enumerate([1.0, 1.001, 0.999, 1.5])])
+    df = pd.DataFrame(
+        [
+            {
+                "lot": "L",
+                "unit": f"U{i}",
+                "model": "gyro",
+                "parameter": "k_g11",
+                "mean": v,
+                "std": 1e-4,
+                "n_reps": 5,
+            }
+            for i, v in enumerate([1.0, 1.001, 0.999, 1.5])
+        ]
+    )
     cfg = config_from_toml("[limits.gyro.k_g11]\nmax = 1.2\n")
     lf = flag_lots(df, cfg)[0]
     assert not lf.robust and "fewer than 5" in lf.note
@@ -98,8 +143,9 @@ def test_clean_fleets_are_left_alone_and_outliers_found():
     rng = np.random.default_rng(11)
     false_units, missed = 0, 0
     for _ in range(12):
-        picks = {(int(rng.integers(3)), int(rng.integers(20)), int(rng.integers(len(PARAMS))))
-                 for _ in range(2)}
+        picks = {
+            (int(rng.integers(3)), int(rng.integers(20)), int(rng.integers(len(PARAMS)))) for _ in range(2)
+        }
         df, truth = gaussian_fleet(rng, outliers=picks, shift_sd=12.0)
         got = flagged(flag_lots(df))
         false_units += len(got - truth)
@@ -146,8 +192,9 @@ def test_spread_flag_needs_enough_reps():
     lf = flag_lots(df)[0]
     spread = [f for f in lf.flags if f.kind == KIND_SPREAD]
     assert [(f.unit, f.parameter) for f in spread] == [("U00007", "w0_z")]
-    assert spread[0].score == pytest.approx(df.loc[sel, "std"].iloc[0] /
-                                            np.median(df[df.parameter == "w0_z"]["std"]))
+    assert spread[0].score == pytest.approx(
+        df.loc[sel, "std"].iloc[0] / np.median(df[df.parameter == "w0_z"]["std"])
+    )
     df.loc[sel, "n_reps"] = 2  # a std from two reps says too little
     assert not [f for f in flag_lots(df)[0].flags if f.kind == KIND_SPREAD]
 

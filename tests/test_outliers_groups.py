@@ -1,5 +1,6 @@
 """flag_lots groups rows with numpy (pandas.factorize) instead of DataFrame.groupby: the
 groups, their order and the order of rows within them must be groupby's."""
+
 from __future__ import annotations
 
 import numpy as np

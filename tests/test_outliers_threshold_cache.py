@@ -1,5 +1,6 @@
 """The simulated outlier thresholds survive the process (calib_core.outliers known/remember,
 kept by the flows in the results store), and a stale or foreign cache is not trusted."""
+
 from __future__ import annotations
 
 import json
@@ -33,14 +34,11 @@ def test_a_remembered_threshold_is_used_instead_of_simulating(monkeypatch):
 
 def test_another_simulation_version_or_bad_entries_are_ignored(monkeypatch):
     _fresh(monkeypatch)
-    good = {"group_sizes": [5], "n_parameters": 3, "z_threshold": 3.5, "family_alpha": 0.01,
-            "q": 99.0}
-    assert o.remember_thresholds({"version": o.THRESHOLD_SIMULATION_VERSION + 1,
-                                  "thresholds": [good]}) == 0
+    good = {"group_sizes": [5], "n_parameters": 3, "z_threshold": 3.5, "family_alpha": 0.01, "q": 99.0}
+    assert o.remember_thresholds({"version": o.THRESHOLD_SIMULATION_VERSION + 1, "thresholds": [good]}) == 0
     assert o.remember_thresholds(None) == 0
     bad = [{"group_sizes": "x"}, {**good, "q": float("nan")}, {**good, "q": "abc"}]
-    assert o.remember_thresholds({"version": o.THRESHOLD_SIMULATION_VERSION,
-                                  "thresholds": bad}) == 0
+    assert o.remember_thresholds({"version": o.THRESHOLD_SIMULATION_VERSION, "thresholds": bad}) == 0
     assert o.robust_z_threshold(5, 3, 3.5, 0.01) != 99.0
 
 

@@ -1,6 +1,7 @@
 """The threshold simulation's draws, each lot's block written into one array and medians
 taken in place, give the same statistic to the bit as the plain loop (one (m, n) normal draw
 per lot, copying medians) it replaced: the thresholds, and so the flags, do not change."""
+
 from __future__ import annotations
 
 import numpy as np

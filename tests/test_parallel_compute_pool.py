@@ -1,5 +1,6 @@
 """flows.compute_pool: the unit work in forkserver worker processes or on a Dask cluster, and
 what happens when a worker dies."""
+
 from __future__ import annotations
 
 import os
@@ -50,8 +51,13 @@ def test_a_dead_worker_costs_time_not_the_batch(tmp_path):
 # --- the Dask backend (the ``dask`` runner) ------------------------------------------------------
 def _where_and_what(x: int) -> dict:
     import sys
-    return {"pid": os.getpid(), "square": x * x, "prefect": "prefect" in sys.modules,
-            "numerics": "calib_core.discovery" in sys.modules}
+
+    return {
+        "pid": os.getpid(),
+        "square": x * x,
+        "prefect": "prefect" in sys.modules,
+        "numerics": "calib_core.discovery" in sys.modules,
+    }
 
 
 def _die_unless(flow_pid: int, marker: str | None = None) -> int:
@@ -71,9 +77,15 @@ def _one_worker_cluster():
 
     import dask
     from distributed import LocalCluster
+
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        return LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                            dashboard_address=None, silence_logs=logging.ERROR)
+        return LocalCluster(
+            n_workers=1,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        )
 
 
 @pytest.fixture(scope="module")
@@ -129,11 +141,13 @@ def test_a_dead_dask_worker_costs_time_not_the_batch(cluster, tmp_path):
 # --- the forkserver started before the flow, and the workers' reads -----------------------------
 def _arrow_threads_here() -> bool:
     from schemas import reader
+
     return reader._arrow_threads
 
 
 def test_workers_read_on_their_own_thread_and_this_process_keeps_arrows_threads():
     from schemas import reader
+
     with cp.compute_pool(2):
         assert cp.run_in_pool(_arrow_threads_here) is False
     assert reader._arrow_threads is True
@@ -141,6 +155,7 @@ def test_workers_read_on_their_own_thread_and_this_process_keeps_arrows_threads(
 
 def test_a_pool_forks_its_workers_from_the_forkserver_started_before_it():
     from multiprocessing import forkserver
+
     cp.start_forkserver()
     server = forkserver._forkserver._forkserver_pid  # the stdlib keeps it private
     assert server is not None and server != os.getpid()
@@ -162,13 +177,14 @@ def _fleet_dirs(root, units_per_lot: dict[str, int]):
 
 def test_count_unit_dirs(tmp_path):
     from schemas.dataset import count_unit_dirs
+
     assert count_unit_dirs(_fleet_dirs(tmp_path, {"L1": 3, "L2": 4})) == 7
     assert count_unit_dirs(tmp_path / "missing") == 0
 
 
-def test_the_forkserver_is_started_early_only_when_the_run_may_use_worker_processes(
-        tmp_path, monkeypatch):
+def test_the_forkserver_is_started_early_only_when_the_run_may_use_worker_processes(tmp_path, monkeypatch):
     from flows.task_runners import AUTO_PROCESSES_MIN_UNITS, prestart_unit_work_pool
+
     started: list[int] = []
     monkeypatch.setattr(cp, "start_forkserver", lambda: started.append(1))
     few = _fleet_dirs(tmp_path / "few", {"L1": AUTO_PROCESSES_MIN_UNITS - 1})
@@ -183,9 +199,11 @@ def test_the_forkserver_is_started_early_only_when_the_run_may_use_worker_proces
 
 def test_the_nightly_launcher_starts_the_forkserver_before_prefect(tmp_path, monkeypatch):
     from flows import nightly
+
     order: list[str] = []
-    monkeypatch.setattr(nightly, "prestart_unit_work_pool",
-                        lambda kind, dataset: order.append(f"prestart {kind}"))
+    monkeypatch.setattr(
+        nightly, "prestart_unit_work_pool", lambda kind, dataset: order.append(f"prestart {kind}")
+    )
 
     class _Flow:  # stands for the Prefect flow: records that it ran, and after what
         def with_options(self, **_):
@@ -195,7 +213,5 @@ def test_the_nightly_launcher_starts_the_forkserver_before_prefect(tmp_path, mon
     nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r", runner="processes")
     nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r", runner="threads")
     # a Dask cluster's workers are warmed by its task runner: no forkserver for them
-    nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r",
-                                      dask_address="tcp://127.0.0.1:1")
-    assert order == ["prestart processes", "flow processes", "prestart threads", "flow threads",
-                     "flow dask"]
+    nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r", dask_address="tcp://127.0.0.1:1")
+    assert order == ["prestart processes", "flow processes", "prestart threads", "flow threads", "flow dask"]

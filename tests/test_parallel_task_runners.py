@@ -1,6 +1,7 @@
 """flows.task_runners: the runner choice, and workers in other processes reporting to the
 flow's own Prefect API server instead of starting one each (the cause of the slow Dask runs
 in the first benchmark)."""
+
 from __future__ import annotations
 
 import json
@@ -68,6 +69,7 @@ def test_dask_address_wins_and_the_dask_runner_keeps_its_cluster_settings(monkey
 
 def test_local_host_detection():
     import socket
+
     for h in ("127.0.0.1", "localhost", "::1", None, socket.gethostname()):
         assert tr._is_local_host(h), h
     for h in ("10.0.0.5", "192.168.1.20", "scheduler.example.org"):
@@ -76,6 +78,7 @@ def test_local_host_detection():
 
 def test_shared_api_settings_leave_settings_alone_outside_a_flow_or_with_a_server():
     from prefect.settings import PREFECT_API_URL, temporary_settings
+
     before = PREFECT_API_URL.value()
     with tr.shared_api_settings():  # no flow run: nothing to share
         assert PREFECT_API_URL.value() == before
@@ -127,10 +130,17 @@ def test_workers_in_other_processes_use_the_flows_api_server(tmp_path):
     script = tmp_path / "probe_runner.py"
     script.write_text(textwrap.dedent(_SCRIPT))
     env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "PREFECT_HOME")}
-    env.update(PREFECT_HOME=str(tmp_path / "prefect-home"),
-               PYTHONPATH=os.pathsep.join([str(REPO), str(tmp_path)]))
-    p = subprocess.run([sys.executable, str(script), *kinds], cwd=tmp_path, env=env,
-                       capture_output=True, text=True, timeout=900)
+    env.update(
+        PREFECT_HOME=str(tmp_path / "prefect-home"), PYTHONPATH=os.pathsep.join([str(REPO), str(tmp_path)])
+    )
+    p = subprocess.run(
+        [sys.executable, str(script), *kinds],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     result = json.loads(next(ln for ln in p.stdout.splitlines() if ln.startswith("RESULT "))[7:])
     assert sorted(result) == sorted(kinds)
@@ -201,10 +211,12 @@ def test_dask_runner_keeps_prefect_in_the_flow_and_the_numerics_on_warm_workers(
     script = tmp_path / "probe_dask.py"
     script.write_text(textwrap.dedent(_DASK_SCRIPT))
     env = {k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "PREFECT_HOME")}
-    env.update(PREFECT_HOME=str(tmp_path / "prefect-home"),
-               PYTHONPATH=os.pathsep.join([str(REPO), str(tmp_path)]))
-    p = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env,
-                       capture_output=True, text=True, timeout=900)
+    env.update(
+        PREFECT_HOME=str(tmp_path / "prefect-home"), PYTHONPATH=os.pathsep.join([str(REPO), str(tmp_path)])
+    )
+    p = subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900
+    )
     assert p.returncode == 0, p.stderr[-3000:]
     out = json.loads(next(ln for ln in p.stdout.splitlines() if ln.startswith("RESULT "))[7:])
     # the cluster was up and warm when the flow's body started, and the auto runner's

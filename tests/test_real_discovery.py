@@ -13,6 +13,7 @@ Thresholds come from the numbers measured in docs/real-discovery.md:
   destroyed), and simulated sessions (the field calibration replayed as a simulator on the
   real orientations, noise of the real poses) with and without a known g-sensitivity.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,7 +31,8 @@ REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 pytestmark = pytest.mark.skipif(
     not (REAL / "imu_tk" / "xsens_acc.txt").exists()
     or not (REAL / "imucal" / "example_ferraris_session.csv").exists(),
-    reason=f"real recordings absent under {REAL} (see shared/data/real/README.md)")
+    reason=f"real recordings absent under {REAL} (see shared/data/real/README.md)",
+)
 
 NOT_ON_STATIC = {"lever_arm", "gyro_scale_nonlinearity", "gyro_scale_asymmetry"}
 
@@ -121,10 +123,10 @@ def _simulated_poses(cal, poses, rng, theta=None, tau_g=0.01, tau_a=1e-4):
     _, _, ctx = pose_residuals(cal, sp)
     sim = cal if theta is None else replace(cal, terms=(TermValue("gyro_g_sensitivity", theta),))
     n = len(sp)
-    sg = np.sqrt((sp.G_std ** 2) @ (cal.K_g.T ** 2)) / np.sqrt(sp.count)[:, None]
-    sa = np.sqrt((sp.A_std ** 2) @ (cal.K_a.T ** 2)) / np.sqrt(sp.count)[:, None]
-    w = rng.normal(size=(n, 3)) * np.sqrt(sg ** 2 + tau_g ** 2)
-    f = ctx.f + rng.normal(size=(n, 3)) * np.sqrt(sa ** 2 + tau_a ** 2)
+    sg = np.sqrt((sp.G_std**2) @ (cal.K_g.T**2)) / np.sqrt(sp.count)[:, None]
+    sa = np.sqrt((sp.A_std**2) @ (cal.K_a.T**2)) / np.sqrt(sp.count)[:, None]
+    w = rng.normal(size=(n, 3)) * np.sqrt(sg**2 + tau_g**2)
+    f = ctx.f + rng.normal(size=(n, 3)) * np.sqrt(sa**2 + tau_a**2)
     G, A = sim.predict_raw(w, f, t=sp.t_mid)
     out = poses.sort_values("t_mid").copy()
     out[["gx", "gy", "gz"]] = G
@@ -135,8 +137,9 @@ def _simulated_poses(cal, poses, rng, theta=None, tau_g=0.01, tau_a=1e-4):
 def test_simulated_static_sessions_null_and_known_effect(xsens):
     cal, poses, _ = xsens
     rng = np.random.default_rng(11)
-    false_alarms = sum(bool(diagnose_static(cal, _simulated_poses(cal, poses, rng), "null").effects)
-                       for _ in range(25))
+    false_alarms = sum(
+        bool(diagnose_static(cal, _simulated_poses(cal, poses, rng), "null").effects) for _ in range(25)
+    )
     assert false_alarms <= 1
     theta = np.zeros(9)
     theta[[1, 3, 5]] = [0.03, -0.04, 0.02]  # deg/s per g, the size seen on real MEMS units
@@ -153,7 +156,7 @@ def test_simulated_static_sessions_null_and_known_effect(xsens):
     spread = est.std(axis=0, ddof=1)
     # unbiased (mean within 4 standard errors of the mean) and standard errors honest
     assert np.all(np.abs(est.mean(axis=0) - theta) < 4 * spread / np.sqrt(len(est)))
-    ratio = np.sqrt((se ** 2).mean(axis=0)) / spread
+    ratio = np.sqrt((se**2).mean(axis=0)) / spread
     assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio
 
 
@@ -195,9 +198,21 @@ def test_cli_writes_the_json(tmp_path, ferraris):
     save_calibration(cal, tmp_path / "cal.json")
     poses.to_csv(tmp_path / "poses.csv", index=False)
     out2 = tmp_path / "p.json"
-    assert main(["diagnose-real", "poses", "--poses", str(tmp_path / "poses.csv"),
-                 "--calibration", str(tmp_path / "cal.json"), "--json", str(out2)]) == 0
+    assert (
+        main(
+            [
+                "diagnose-real",
+                "poses",
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--calibration",
+                str(tmp_path / "cal.json"),
+                "--json",
+                str(out2),
+            ]
+        )
+        == 0
+    )
     doc2 = json.loads(out2.read_text())
-    assert doc2["blocks"]["gyro"]["baseline_rms"] == pytest.approx(
-        d.blocks["gyro"]["baseline_rms"], rel=1e-9)
+    assert doc2["blocks"]["gyro"]["baseline_rms"] == pytest.approx(d.blocks["gyro"]["baseline_rms"], rel=1e-9)
     assert main(["diagnose-real", "poses"]) == 2

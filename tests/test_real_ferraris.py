@@ -4,6 +4,7 @@ imucal is a test-only dependency (``pip install imucal`` into .venv); the compar
 skipped with a reason when it is not installed. The recording lives in ../shared beside the
 repository; every test here is skipped when it is absent.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,23 +31,35 @@ pytestmark = pytest.mark.skipif(not CSV.exists(), reason=f"real recording absent
 @pytest.fixture(scope="module")
 def ours():
     rec = read_imucal_csv(CSV)
-    fit = ferraris_calibration(rec.gyro, rec.accel, read_section_list(SECTIONS), RATE,
-                               gyro_unit=rec.gyro_unit, accel_unit=rec.accel_unit,
-                               g_local=rec.g_local)
+    fit = ferraris_calibration(
+        rec.gyro,
+        rec.accel,
+        read_section_list(SECTIONS),
+        RATE,
+        gyro_unit=rec.gyro_unit,
+        accel_unit=rec.accel_unit,
+        g_local=rec.g_local,
+    )
     return rec, fit
 
 
 @pytest.fixture(scope="module")
 def imucal_result():
     imucal = pytest.importorskip(
-        "imucal", reason="imucal not installed: `.venv/bin/pip install imucal` (test-only "
-                         "dependency) to compare with the reference implementation")
+        "imucal",
+        reason="imucal not installed: `.venv/bin/pip install imucal` (test-only "
+        "dependency) to compare with the reference implementation",
+    )
     df = pd.read_csv(CSV)
     section_list = pd.DataFrame(json.loads(SECTIONS.read_text())).T
     regions = imucal.ferraris_regions_from_section_list(df, section_list)
     info = imucal.FerrarisCalibration().compute(regions, RATE, "m/s^2", "deg/s")
-    acc, gyr = info.calibrate(df[["acc_x", "acc_y", "acc_z"]].to_numpy(),
-                              df[["gyr_x", "gyr_y", "gyr_z"]].to_numpy(), "m/s^2", "deg/s")
+    acc, gyr = info.calibrate(
+        df[["acc_x", "acc_y", "acc_z"]].to_numpy(),
+        df[["gyr_x", "gyr_y", "gyr_z"]].to_numpy(),
+        "m/s^2",
+        "deg/s",
+    )
     return info, acc, gyr
 
 
@@ -85,14 +98,16 @@ def test_matrices_equal_imucal(ours, imucal_result):
     (term,) = cal.terms
     assert term.name == "gyro_g_sensitivity"
     A_g = cal.geometry.gyro_axes
-    np.testing.assert_allclose(term.params.reshape(3, 3), A_g @ gyr_mat @ info.K_ga * IMUCAL_G,
-                               rtol=1e-10)
+    np.testing.assert_allclose(term.params.reshape(3, 3), A_g @ gyr_mat @ info.K_ga * IMUCAL_G, rtol=1e-10)
     # applied, it is imucal's body-frame rate error K_g K_ga f
     f = np.array([[0.3, -0.5, 0.8]])
     np.testing.assert_allclose(
-        get_effect("gyro_g_sensitivity").error(MotionContext.from_refs(np.zeros((1, 3)), f),
-                                               term.params, cal.geometry)[0, :3],
-        gyr_mat @ info.K_ga @ f[0] * IMUCAL_G, rtol=1e-9)
+        get_effect("gyro_g_sensitivity").error(
+            MotionContext.from_refs(np.zeros((1, 3)), f), term.params, cal.geometry
+        )[0, :3],
+        gyr_mat @ info.K_ga @ f[0] * IMUCAL_G,
+        rtol=1e-9,
+    )
 
 
 def test_calibration_file_round_trip_gives_deg_s_and_g(ours, tmp_path):
@@ -175,8 +190,7 @@ def test_ferraris_recovers_truth_on_a_synthetic_session():
     np.testing.assert_allclose(cal.K_g, K_g, rtol=1e-9)
     np.testing.assert_allclose(cal.w0, w0, atol=1e-9)
     # the body-frame g-sensitivity S, per gyro along its own sensing direction: A_g S
-    np.testing.assert_allclose(cal.terms[0].params.reshape(3, 3), cal.geometry.gyro_axes @ S,
-                               atol=1e-9)
+    np.testing.assert_allclose(cal.terms[0].params.reshape(3, 3), cal.geometry.gyro_axes @ S, atol=1e-9)
 
 
 def test_turntable_style_fit_of_the_six_poses_agrees(ours):
@@ -194,14 +208,25 @@ def test_turntable_style_fit_of_the_six_poses_agrees(ours):
     n = len(pm)
     f_ref = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
     sm = StepMeans(
-        key=SessionKey("imucal", "example", 1), step=np.arange(n),
-        test=np.array(["multiposition"] * n), up_axis=np.array(["+x", "-x", "+y", "-y", "+z", "-z"]),
-        rate_dps=np.zeros(n), angle_deg=np.full(n, np.nan), w_ref=np.zeros((n, 3)), f_ref=f_ref,
-        gyro=pm[["gx", "gy", "gz"]].to_numpy(), accel=pm[["ax", "ay", "az"]].to_numpy(),
+        key=SessionKey("imucal", "example", 1),
+        step=np.arange(n),
+        test=np.array(["multiposition"] * n),
+        up_axis=np.array(["+x", "-x", "+y", "-y", "+z", "-z"]),
+        rate_dps=np.zeros(n),
+        angle_deg=np.full(n, np.nan),
+        w_ref=np.zeros((n, 3)),
+        f_ref=f_ref,
+        gyro=pm[["gx", "gy", "gz"]].to_numpy(),
+        accel=pm[["ax", "ay", "az"]].to_numpy(),
         gyro_std=pm[["gx_std", "gy_std", "gz_std"]].to_numpy(),
-        accel_std=pm[["ax_std", "ay_std", "az_std"]].to_numpy(), count=pm["count"].to_numpy(),
-        t_mid=pm["t_mid"].to_numpy(), temp_c=np.full(n, np.nan), gyro_unit="deg/s",
-        accel_unit="g", g_local=IMUCAL_G)
+        accel_std=pm[["ax_std", "ay_std", "az_std"]].to_numpy(),
+        count=pm["count"].to_numpy(),
+        t_mid=pm["t_mid"].to_numpy(),
+        temp_c=np.full(n, np.nan),
+        gyro_unit="deg/s",
+        accel_unit="g",
+        g_local=IMUCAL_G,
+    )
     xu = fit_accel_multiposition(sm)
     cal = fit.calibration
     assert (np.abs(xu.K - cal.K_a) <= 3 * xu.K_stderr).all()

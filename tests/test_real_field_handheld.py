@@ -3,6 +3,7 @@ simulated sessions (Monte Carlo), pose detection, and the comparison with the pu
 references on the real recordings, with figures of merit computed here, independently of
 the code under test (own pose means, own per-sample rotation products with scipy, own
 application of each calibration's formula)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -40,8 +41,9 @@ def ours_as_functions(fit, t, A):
     p = fit.params()
     Ma = tri(p["a_yz"], p["a_zy"], p["a_zx"]) @ np.diag([p["s_ax"], p["s_ay"], p["s_az"]])
     ba = np.array([p["b_ax"], p["b_ay"], p["b_az"]])
-    Mg = full_mis(*(p[k] for k in ("g_yz", "g_zy", "g_zx", "g_xz", "g_xy", "g_yx"))) @ \
-        np.diag([p["s_gx"], p["s_gy"], p["s_gz"]])
+    Mg = full_mis(*(p[k] for k in ("g_yz", "g_zy", "g_zx", "g_xz", "g_xy", "g_yx"))) @ np.diag(
+        [p["s_gx"], p["s_gy"], p["s_gz"]]
+    )
     bg = np.array([p["b_gx"], p["b_gy"], p["b_gz"]])
     d = np.array([p.get(f"d_g{c}", 0.0) for c in "xyz"])
     S = np.array([[p.get(f"S_{r}{c}", 0.0) for c in "xyz"] for r in "xyz"])
@@ -52,6 +54,7 @@ def ours_as_functions(fit, t, A):
     def gyro(G, idx):
         f_g = accel(A[idx]) / fit.calibration.g_local
         return (G[idx] - bg - t[idx, None] * d - f_g @ S.T) @ Mg.T
+
     return accel, gyro
 
 
@@ -87,8 +90,14 @@ def quat_exp(rv):
 def quat_mul(a, b):
     w1, x1, y1, z1 = a.T
     w2, x2, y2, z2 = b.T
-    return np.column_stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+    return np.column_stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
 
 
 def rotate_by_conjugate(q, v):
@@ -102,8 +111,9 @@ def rms(x):
 
 # --- simulated sessions ------------------------------------------------------------------------
 def _truth_vector(tr):
-    return np.r_[tr.acc_mis, tr.acc_scale, tr.acc_bias, tr.gyro_mis, tr.gyro_scale, tr.gyro_bias,
-                 tr.gyro_drift]
+    return np.r_[
+        tr.acc_mis, tr.acc_scale, tr.acc_bias, tr.gyro_mis, tr.gyro_scale, tr.gyro_bias, tr.gyro_drift
+    ]
 
 
 @pytest.mark.slow
@@ -119,19 +129,28 @@ def test_standard_errors_match_monte_carlo_spread():
     for seed in range(8):
         s = simulate_hand_held(truth, np.random.default_rng(1000 + seed), n_poses=14)
         det = detect_poses(s.t, s.gyro, s.accel, init_s=10)
-        fit = fit_field(s.t, s.gyro, s.accel, det.poses, G0, accel_scale=MPU_ACC_SCALE,
-                        gyro_scale=MPU_GYRO_SCALE, drift=True, g_sensitivity=False,
-                        priors=Priors(None))
+        fit = fit_field(
+            s.t,
+            s.gyro,
+            s.accel,
+            det.poses,
+            G0,
+            accel_scale=MPU_ACC_SCALE,
+            gyro_scale=MPU_GYRO_SCALE,
+            drift=True,
+            g_sensitivity=False,
+            priors=Priors(None),
+        )
         assert list(fit.params())[-3:] == ["d_gx", "d_gy", "d_gz"]
         errs.append(np.array(list(fit.params().values())) - _truth_vector(truth))
         ses.append(np.array(list(fit.stderrs().values())))
     errs, ses = np.array(errs), np.array(ses)
-    ratio = np.sqrt(np.mean(errs ** 2, axis=0)) / ses.mean(axis=0)
+    ratio = np.sqrt(np.mean(errs**2, axis=0)) / ses.mean(axis=0)
     assert np.all((ratio > 0.5) & (ratio < 2.5)), ratio
     assert 0.9 < np.median(ratio) < 1.8, ratio
     # no estimator bias: a mean error of 3 standard errors of the mean (RMS / sqrt(8)) or more
     # would show one
-    assert np.all(np.abs(errs.mean(axis=0)) < 3 / np.sqrt(8) * np.sqrt(np.mean(errs ** 2, axis=0)))
+    assert np.all(np.abs(errs.mean(axis=0)) < 3 / np.sqrt(8) * np.sqrt(np.mean(errs**2, axis=0)))
     scale_idx = [3, 4, 5, 15, 16, 17]
     assert np.all(np.abs(errs[:, scale_idx] / _truth_vector(truth)[scale_idx]) < 3e-3)
     assert np.all(np.abs(errs[:, [0, 1, 2, 9, 10, 11, 12, 13, 14]]) < 2e-3)
@@ -142,15 +161,14 @@ def test_detector_on_a_wobbly_hand_session_and_rate_adaptation():
     s = simulate_hand_held(truth, np.random.default_rng(4), n_poses=10, hold_rate_dps=0.5)
     det = detect_poses(s.t, s.gyro, s.accel, init_s=10)
     assert len(det.poses) == 11 and not det.rejected
-    in_rest = sum(s.rest[p.start:p.end].sum() for p in det.poses)
+    in_rest = sum(s.rest[p.start : p.end].sum() for p in det.poses)
     assert in_rest / sum(len(p) for p in det.poses) > 0.99
     # the initial rest is a bias observation; holds wobbling at 0.5 deg/s RMS are not, but for
     # a slow (0.5 Hz) wobble that the 0.25 s window hardly sees (measured: 1 of 10 passes)
     assert det.poses[0].gyro_quiet and sum(p.gyro_quiet for p in det.poses[1:]) <= 1
     # the same session at twice the rate: window and shortest pose scale with it (the same
     # seconds, to the odd sample count nearest)
-    s2 = simulate_hand_held(truth, np.random.default_rng(4), n_poses=10, hold_rate_dps=0.5,
-                            rate_hz=200.0)
+    s2 = simulate_hand_held(truth, np.random.default_rng(4), n_poses=10, hold_rate_dps=0.5, rate_hz=200.0)
     det2 = detect_poses(s2.t, s2.gyro, s2.accel, init_s=10)
     assert abs(det2.window - 2 * det.window) <= 3 and abs(det2.min_samples - 2 * det.min_samples) <= 2
     assert det.window / det.rate_hz == pytest.approx(0.25, abs=1.01 / det.rate_hz)
@@ -177,6 +195,7 @@ def _published_mpu():
 
     def gyro(G, idx):  # calibrated rate = T K (raw - b)
         return (G[idx] - pg[9:12]) @ Mg.T
+
     return accel, gyro
 
 
@@ -194,7 +213,7 @@ def test_mpu6050_held_out_at_least_as_good_as_the_published_calibration():
             assert any(s <= (a + b) // 2 < e for s, e in iv), (a, b)
     # moves with a saturated int16 gyro sample cannot be integrated: left out for both
     mids = [(a + b) // 2 for a, b in iv]
-    ok = np.array([not (np.abs(G[mids[j]:mids[j + 1]]) >= 32767).any() for j in range(len(iv) - 1)])
+    ok = np.array([not (np.abs(G[mids[j] : mids[j + 1]]) >= 32767).any() for j in range(len(iv) - 1)])
     assert 5 <= ok.sum() < len(ok)
     kw = {"accel_scale": MPU_ACC_SCALE, "gyro_scale": MPU_GYRO_SCALE}
     full = fit_field(t, G, A, det.poses, G0, move_use=ok, **kw)
@@ -220,8 +239,11 @@ def test_mpu6050_held_out_at_least_as_good_as_the_published_calibration():
     # the published figures are in-sample for the authors (fitted on all poses and moves)
     assert rms(norm_ho) <= rms(norm_pub), (rms(norm_ho), rms(norm_pub))
     assert rms(angle_ho) <= rms(angle_pub), (rms(angle_ho), rms(angle_pub))
+
     # and the calibration is a large gain over the datasheet scales
-    raw_accel = lambda X: (np.atleast_2d(X)) * MPU_ACC_SCALE
+    def raw_accel(X):
+        return np.atleast_2d(X) * MPU_ACC_SCALE
+
     assert rms(pose_norm_err_mg(raw_accel, A, iv, G0)) > 20 * rms(norm_ho)
 
 
@@ -240,6 +262,7 @@ def imu_tk_demo(t, G, A, intervals, pose_use, move_use):
 
     def r_acc(p):
         return XSENS_G - np.linalg.norm((X - p[6:9]) @ (tri(*p[:3]) @ np.diag(p[3:6])).T, axis=1)
+
     means = np.array([A[a:b].mean(axis=0) for a, b in central])
     s0 = XSENS_G / np.median(np.linalg.norm(means - 32768, axis=1))
     pa = least_squares(r_acc, np.r_[0, 0, 0, s0, s0, s0, 32768, 32768, 32768], method="lm").x
@@ -260,6 +283,7 @@ def imu_tk_demo(t, G, A, intervals, pose_use, move_use):
             q = quat_mul(q, quat_exp(rv))
         pred = rotate_by_conjugate(q, u[moves])
         return (pred - u[np.array(moves) + 1]).ravel()
+
     pg = least_squares(r_gyro, np.r_[np.zeros(6), np.full(3, 1 / 6258)], method="lm").x
     Mg = full_mis(*pg[:6]) @ np.diag(pg[6:9])
 
@@ -268,6 +292,7 @@ def imu_tk_demo(t, G, A, intervals, pose_use, move_use):
 
     def gyro(GG, idx):
         return (GG[idx] - bg) @ Mg.T
+
     return accel, gyro
 
 

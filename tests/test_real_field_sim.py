@@ -1,20 +1,22 @@
 """The field (Tedaldi 2014) estimator against known truth on a simulated hand-moved session,
 and the static detector against the known rest intervals of that simulation."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calib_core.field import accel_matrix, field_calibration, gyro_matrix, misalignment
+from calib_core.field import field_calibration, misalignment
 from calib_core.static_detection import detect_static, moving_variance_magnitude
 
 G_LOCAL = 9.81
 RATE = 100.0
 
 
-def simulate_hand_session(rng, n_poses=18, init_s=8.0, rest_s=3.0, move_s=1.2,
-                          acc_noise=3.0, gyro_noise=8.0, gyro_g_dps=None):
+def simulate_hand_session(
+    rng, n_poses=18, init_s=8.0, rest_s=3.0, move_s=1.2, acc_noise=3.0, gyro_noise=8.0, gyro_g_dps=None
+):
     """Raw counts of an IMU moved by hand: rest, then ``n_poses`` rotations about random
     body-fixed axes (raised-cosine angle profile, 60..150 deg), each followed by a rest.
     ``gyro_g_dps`` (3x3, deg/s per g) adds a gyro g-sensitivity. Returns t, raw gyro, raw
@@ -87,7 +89,9 @@ def test_field_recovers_accel_truth(sim):
     np.testing.assert_allclose(p[6:9], truth["acc_bias"], atol=1.1)
     # the Calibration form maps raw -> g exactly as the truth does
     Ma = misalignment(*truth["acc_mis"]) @ np.diag(truth["acc_scale"])
-    np.testing.assert_allclose(res.calibration.K_a, Ma / G_LOCAL, rtol=0, atol=5e-3 * np.abs(Ma / G_LOCAL).max())
+    np.testing.assert_allclose(
+        res.calibration.K_a, Ma / G_LOCAL, rtol=0, atol=5e-3 * np.abs(Ma / G_LOCAL).max()
+    )
 
 
 def test_field_recovers_gyro_truth(sim):
@@ -119,7 +123,7 @@ def test_moving_variance_matches_direct_computation():
     x = rng.normal(0, 1, (500, 3)) * [1, 2, 3] + 32768
     s = moving_variance_magnitude(x, 51)
     i = 200
-    direct = np.linalg.norm(np.var(x[i - 25:i + 26], axis=0, ddof=1))
+    direct = np.linalg.norm(np.var(x[i - 25 : i + 26], axis=0, ddof=1))
     assert s[i] == pytest.approx(direct, rel=1e-9)
     assert np.isnan(s[:25]).all() and np.isnan(s[-25:]).all() and np.isfinite(s[25:-25]).all()
 
@@ -131,8 +135,7 @@ def test_field_recovers_gyro_g_sensitivity():
     rng = np.random.default_rng(99)
     S = rng.normal(0, 0.1, (3, 3))
     t, G, A, truth, rest = simulate_hand_session(rng, gyro_g_dps=S)
-    res = field_calibration(t, G, A, G_LOCAL, init_static_s=8.0, gyro_g_sensitivity=True,
-                            multipliers=[4])
+    res = field_calibration(t, G, A, G_LOCAL, init_static_s=8.0, gyro_g_sensitivity=True, multipliers=[4])
     (term,) = res.calibration.terms
     assert term.name == "gyro_g_sensitivity"
     np.testing.assert_allclose(term.params.reshape(3, 3), S, atol=0.015)

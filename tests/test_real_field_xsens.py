@@ -5,6 +5,7 @@ held-out: the calibrated static |f| must fall to the sensor's own noise floor, p
 of the fit must do as well, and the gyro must rotate gravity onto the next pose on transitions
 it was not fitted on. Initial guesses are those of IMU-TK's demo (shared/data/real/README.md).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -13,8 +14,13 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from calib_core.field import (accel_matrix, field_calibration, fit_accel_field, fit_gyro_field,
-                              fit_static_gyro_g_sensitivity)
+from calib_core.field import (
+    accel_matrix,
+    field_calibration,
+    fit_accel_field,
+    fit_gyro_field,
+    fit_static_gyro_g_sensitivity,
+)
 from calib_core.static_detection import detect_static
 from schemas.calibration_file import load_calibration, save_calibration
 from schemas.importers import IMUTK_G, read_imutk_pair
@@ -77,10 +83,14 @@ def test_accel_reaches_the_noise_floor(rec, res):
     # noise floor: per-sample spread of |f| about each pose's own mean (0.82 mg measured).
     # A model without error leaves only that: RMS / floor <= 1.25 allows 25% model error.
     M, b = accel_matrix(res.accel.params)
-    within = np.concatenate([np.linalg.norm((A[a:c] - b) @ M.T, axis=1)
-                             - np.linalg.norm((A[a:c] - b).mean(axis=0) @ M.T) for a, c in ext])
+    within = np.concatenate(
+        [
+            np.linalg.norm((A[a:c] - b) @ M.T, axis=1) - np.linalg.norm((A[a:c] - b).mean(axis=0) @ M.T)
+            for a, c in ext
+        ]
+    )
     floor_mg = 1e3 * within.std() / g
-    rms = np.sqrt(np.mean(err ** 2))
+    rms = np.sqrt(np.mean(err**2))
     assert rms <= 1.25 * floor_mg
     # against IMU-TK's initial guess (bias 32768, isotropic scale): relative |f| spread falls
     # by at least 50x (measured 0.103 -> 0.00082, x125)
@@ -89,7 +99,7 @@ def test_accel_reaches_the_noise_floor(rec, res):
     # held out: fitted on even poses, odd poses reach the same floor
     p_even, _, _ = fit_accel_field(A, ext[0::2], g, res.accel.params)
     held = _norm_err_mg(A, p_even, ext[1::2], g)
-    assert np.sqrt(np.mean(held ** 2)) <= 1.25 * floor_mg
+    assert np.sqrt(np.mean(held**2)) <= 1.25 * floor_mg
 
 
 def test_accel_misalignment_is_needed_on_this_unit(rec, res):
@@ -99,7 +109,7 @@ def test_accel_misalignment_is_needed_on_this_unit(rec, res):
     X = A[_samples(res.accel.extracted)]
     p0 = np.r_[res.accel.params[3:6], res.accel.params[6:9]]
     diag = least_squares(lambda p: g - np.linalg.norm((X - p[3:]) * p[:3], axis=1), p0, method="lm")
-    rms_diag = 1e3 * np.sqrt(np.mean(diag.fun ** 2)) / g
+    rms_diag = 1e3 * np.sqrt(np.mean(diag.fun**2)) / g
     assert rms_diag >= 3 * res.stats["accel_norm_rms_err_mg"]
 
 
@@ -110,8 +120,9 @@ def test_gyro_rotates_gravity_onto_held_out_poses(rec, res):
     against 28.7 deg with IMU-TK's initial guess (scale 1/6258 rad/s per count)."""
     ext = res.accel.extracted
     use = np.arange(len(ext) - 1) % 2 == 0
-    fit = fit_gyro_field(rec.t, rec.gyro, rec.accel, res.accel.params, ext, res.gyro.bias,
-                         DEMO["init_gyro_scale"], use=use)
+    fit = fit_gyro_field(
+        rec.t, rec.gyro, rec.accel, res.accel.params, ext, res.gyro.bias, DEMO["init_gyro_scale"], use=use
+    )
     held = fit.angles_deg[~use]
     assert np.median(held) < 2.5
     assert np.median(fit.angles_initial_deg[~use]) >= 10 * np.median(held)
@@ -148,16 +159,18 @@ def test_gyro_g_sensitivity_explains_the_residual_rates(rec, res):
     bias0, S = fit_static_gyro_g_sensitivity(rec.gyro, f, poses)
     G_corr = rec.gyro - f @ S.T
     use = np.arange(len(ext) - 1) % 2 == 0
-    plain = fit_gyro_field(rec.t, rec.gyro, rec.accel, res.accel.params, ext, res.gyro.bias,
-                           DEMO["init_gyro_scale"], use=use)
-    corr = fit_gyro_field(rec.t, G_corr, rec.accel, res.accel.params, ext, bias0,
-                          DEMO["init_gyro_scale"], use=use)
+    plain = fit_gyro_field(
+        rec.t, rec.gyro, rec.accel, res.accel.params, ext, res.gyro.bias, DEMO["init_gyro_scale"], use=use
+    )
+    corr = fit_gyro_field(
+        rec.t, G_corr, rec.accel, res.accel.params, ext, bias0, DEMO["init_gyro_scale"], use=use
+    )
     held_plain, held_corr = plain.angles_deg[~use], corr.angles_deg[~use]
     assert np.median(held_corr) < 0.5
     assert np.median(held_plain) >= 3 * np.median(held_corr)
 
     def pose_rate_rms(G, bias, fit):
         rates = np.array([np.degrees(fit.matrix @ (G[a:b_].mean(axis=0) - bias)) for a, b_ in poses])
-        return np.sqrt(np.mean(rates ** 2))
+        return np.sqrt(np.mean(rates**2))
 
     assert pose_rate_rms(G_corr, bias0, corr) < 0.03 < pose_rate_rms(rec.gyro, res.gyro.bias, plain)

@@ -1,5 +1,6 @@
 """Importers (generic column mapping, units, errors) and the `ferraris`, `field`,
 `import-raw` commands run end to end on the real recordings."""
+
 from __future__ import annotations
 
 import json
@@ -12,16 +13,16 @@ import pytest
 
 from flows.cli import main
 from schemas.calibration_file import load_calibration
-from schemas.errors import (E_MISSING_COLUMN, E_NONINCREASING_TIME, E_UNKNOWN_UNIT,
-                            SessionError)
+from schemas.errors import E_MISSING_COLUMN, E_NONINCREASING_TIME, E_UNKNOWN_UNIT, SessionError
 from schemas.importers import parse_column_mapping, read_section_list, read_table_recording
 
 REAL = Path(__file__).parents[2] / "shared" / "data" / "real"
 IMUCAL_CSV = REAL / "imucal" / "example_ferraris_session.csv"
 IMUCAL_SECTIONS = REAL / "imucal" / "example_ferraris_session_list.json"
 XSENS_ACC, XSENS_GYRO = REAL / "imu_tk" / "xsens_acc.txt", REAL / "imu_tk" / "xsens_gyro.txt"
-need_real = pytest.mark.skipif(not IMUCAL_CSV.exists() or not XSENS_ACC.exists(),
-                               reason=f"real recordings absent under {REAL}")
+need_real = pytest.mark.skipif(
+    not IMUCAL_CSV.exists() or not XSENS_ACC.exists(), reason=f"real recordings absent under {REAL}"
+)
 
 MAPPING = "t=0,gx=4,gy=5,gz=6,ax=1,ay=2,az=3"
 
@@ -35,8 +36,13 @@ def _whitespace_file(path: Path, rng) -> np.ndarray:
 def test_generic_whitespace_import_with_mapping_and_units(tmp_path):
     rng = np.random.default_rng(3)
     data = _whitespace_file(tmp_path / "imu.txt", rng)
-    rec = read_table_recording(tmp_path / "imu.txt", parse_column_mapping(MAPPING),
-                               gyro_unit="rad/s", accel_unit="m/s^2", g_local=9.8)
+    rec = read_table_recording(
+        tmp_path / "imu.txt",
+        parse_column_mapping(MAPPING),
+        gyro_unit="rad/s",
+        accel_unit="m/s^2",
+        g_local=9.8,
+    )
     np.testing.assert_allclose(rec.t, data[:, 0] - 3.0, atol=1e-12)
     np.testing.assert_allclose(rec.gyro, data[:, 4:7] * 180 / math.pi)
     np.testing.assert_allclose(rec.accel, data[:, 1:4] / 9.8)
@@ -62,8 +68,9 @@ def test_import_errors_name_file_column_and_code(tmp_path):
     rng = np.random.default_rng(4)
     data = _whitespace_file(tmp_path / "imu.txt", rng)
     with pytest.raises(SessionError) as err:
-        read_table_recording(tmp_path / "imu.txt", parse_column_mapping(MAPPING.replace("az=3", "az=9")),
-                             "LSB", "LSB")
+        read_table_recording(
+            tmp_path / "imu.txt", parse_column_mapping(MAPPING.replace("az=3", "az=9")), "LSB", "LSB"
+        )
     assert err.value.code == E_MISSING_COLUMN and err.value.column == "9"
     assert "imu.txt" in str(err.value)
     with pytest.raises(SessionError) as err:
@@ -88,8 +95,18 @@ def test_section_list_json_and_csv_agree(tmp_path):
 @need_real
 def test_cli_ferraris_on_the_imucal_session(tmp_path, capsys):
     out = tmp_path / "ferraris.json"
-    rc = main(["ferraris", str(IMUCAL_CSV), "--sections", str(IMUCAL_SECTIONS), "--rate", "102.4",
-               "--out", str(out)])
+    rc = main(
+        [
+            "ferraris",
+            str(IMUCAL_CSV),
+            "--sections",
+            str(IMUCAL_SECTIONS),
+            "--rate",
+            "102.4",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     cal = load_calibration(out)
     assert cal.kind == "ferraris" and (cal.gyro_unit, cal.accel_unit) == ("deg/s", "g")
@@ -98,17 +115,34 @@ def test_cli_ferraris_on_the_imucal_session(tmp_path, capsys):
     assert [t["name"] for t in doc["terms"]] == ["gyro_g_sensitivity"]
     assert doc["terms"][0]["units"]["Gxx"] == "deg/s per g"
     # without --rate the rotations cannot be integrated: a user error, exit code 2
-    assert main(["ferraris", str(IMUCAL_CSV), "--sections", str(IMUCAL_SECTIONS),
-                 "--out", str(out)]) == 2
+    assert main(["ferraris", str(IMUCAL_CSV), "--sections", str(IMUCAL_SECTIONS), "--out", str(out)]) == 2
     assert "--rate" in capsys.readouterr().err
 
 
 @need_real
 def test_cli_field_on_the_xsens_recording(tmp_path):
     out, poses = tmp_path / "field.json", tmp_path / "poses.csv"
-    rc = main(["field", str(XSENS_ACC), str(XSENS_GYRO), "--acc-bias", "32768",
-               "--gyro-scale", "1/6258", "--init-static", "50", "--g-local", "9.81744",
-               "--gyro-g-sensitivity", "--no-held-out", "--out", str(out), "--poses", str(poses)])
+    rc = main(
+        [
+            "field",
+            str(XSENS_ACC),
+            str(XSENS_GYRO),
+            "--acc-bias",
+            "32768",
+            "--gyro-scale",
+            "1/6258",
+            "--init-static",
+            "50",
+            "--g-local",
+            "9.81744",
+            "--gyro-g-sensitivity",
+            "--no-held-out",
+            "--out",
+            str(out),
+            "--poses",
+            str(poses),
+        ]
+    )
     assert rc == 0
     cal = load_calibration(out)
     assert cal.kind == "field" and (cal.gyro_unit, cal.accel_unit) == ("LSB", "LSB")
@@ -117,16 +151,32 @@ def test_cli_field_on_the_xsens_recording(tmp_path):
     w, f = cal.apply(pm[["gx", "gy", "gz"]].to_numpy(), pm[["ax", "ay", "az"]].to_numpy())
     assert np.abs(np.linalg.norm(f, axis=1) - 1).max() < 0.5e-3  # g
     # deg/s at rest: without the g-sensitivity term up to 0.23 deg/s, with it 0.016 RMS
-    assert np.sqrt(np.mean(w ** 2)) < 0.03 and np.abs(w).max() < 0.1
+    assert np.sqrt(np.mean(w**2)) < 0.03 and np.abs(w).max() < 0.1
 
 
 @need_real
 def test_cli_import_raw_writes_layout_and_pose_means(tmp_path):
     out, poses = tmp_path / "rec.parquet", tmp_path / "poses.csv"
-    rc = main(["import-raw", str(IMUCAL_CSV),
-               "--columns", "gx=gyr_x,gy=gyr_y,gz=gyr_z,ax=acc_x,ay=acc_y,az=acc_z",
-               "--gyro-unit", "deg/s", "--accel-unit", "m/s^2", "--g-local", "9.81",
-               "--rate", "102.4", "--out", str(out), "--poses", str(poses)])
+    rc = main(
+        [
+            "import-raw",
+            str(IMUCAL_CSV),
+            "--columns",
+            "gx=gyr_x,gy=gyr_y,gz=gyr_z,ax=acc_x,ay=acc_y,az=acc_z",
+            "--gyro-unit",
+            "deg/s",
+            "--accel-unit",
+            "m/s^2",
+            "--g-local",
+            "9.81",
+            "--rate",
+            "102.4",
+            "--out",
+            str(out),
+            "--poses",
+            str(poses),
+        ]
+    )
     assert rc == 0
     df = pd.read_parquet(out)
     assert list(df.columns) == ["t", "gx", "gy", "gz", "ax", "ay", "az"] and len(df) == 10376

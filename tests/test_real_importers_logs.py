@@ -1,6 +1,7 @@
 """Text logs as loggers write them: key,value preamble lines, comment lines, header
 detection, full-scale ranges, and errors that name the line; `mimucal field` on the
 MPU-6050 log as it is."""
+
 from __future__ import annotations
 
 import json
@@ -19,8 +20,13 @@ MPU = REAL / "mpu6050_tedaldi" / "example_data_calibration.csv"
 need_mpu = pytest.mark.skipif(not MPU.exists(), reason=f"real recordings absent under {REAL}")
 
 
-def _log(path: Path, rows: np.ndarray, preamble=("Fs,50", "Logging Type,0", "Initialization time,2.5"),
-         header="ax,ay,az,gx,gy,gz", comments=True) -> None:
+def _log(
+    path: Path,
+    rows: np.ndarray,
+    preamble=("Fs,50", "Logging Type,0", "Initialization time,2.5"),
+    header="ax,ay,az,gx,gy,gz",
+    comments=True,
+) -> None:
     lines = list(preamble)
     if comments:
         lines.append("# logger v1.2, units: counts")
@@ -51,15 +57,23 @@ def test_preamble_comments_and_header_are_recognised(tmp_path):
 def test_headerless_semicolon_log_with_mapping(tmp_path):
     rows = np.arange(60.0).reshape(10, 6)
     (tmp_path / "x.txt").write_text("\n".join(";".join(f"{v:g}" for v in r) for r in rows) + "\n")
-    rec = read_table_recording(tmp_path / "x.txt", {"gx": "0", "gy": "1", "gz": "2", "ax": "3",
-                                                    "ay": "4", "az": "5"}, "LSB", "LSB", rate_hz=10)
+    rec = read_table_recording(
+        tmp_path / "x.txt",
+        {"gx": "0", "gy": "1", "gz": "2", "ax": "3", "ay": "4", "az": "5"},
+        "LSB",
+        "LSB",
+        rate_hz=10,
+    )
     np.testing.assert_array_equal(rec.gyro, rows[:, :3])
 
 
-@pytest.mark.parametrize("bad_line, expect", [
-    ("1,2,3", "line 9: 3 fields, expected 6"),
-    ("1,2,3,x,5,6", "line 9: 'x' is not a number"),
-])
+@pytest.mark.parametrize(
+    "bad_line, expect",
+    [
+        ("1,2,3", "line 9: 3 fields, expected 6"),
+        ("1,2,3,x,5,6", "line 9: 'x' is not a number"),
+    ],
+)
 def test_a_bad_line_is_named(tmp_path, bad_line, expect):
     rows = np.ones((10, 6))
     _log(tmp_path / "log.csv", rows, comments=False)
@@ -90,8 +104,19 @@ def test_ranges():
 def test_cli_field_reads_the_mpu6050_log_as_it_is(tmp_path, capsys):
     """The documented command (docs/real-data.md) without the held-out refits."""
     out = tmp_path / "mpu.json"
-    rc = main(["field", str(MPU), "--accel-range", "2g", "--gyro-range", "250dps",
-               "--no-held-out", "--out", str(out)])
+    rc = main(
+        [
+            "field",
+            str(MPU),
+            "--accel-range",
+            "2g",
+            "--gyro-range",
+            "250dps",
+            "--no-held-out",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     printed = capsys.readouterr().out
     assert "static poses used" in printed and "rejected" in printed and "moves used" in printed
@@ -108,6 +133,10 @@ def test_cli_field_reads_the_mpu6050_log_as_it_is(tmp_path, capsys):
     assert len(doc["poses"]["moves_unusable"]) >= 1
     assert doc["fit"]["figures"]["after_norm_rms_mg"] < doc["fit"]["figures"]["before_norm_rms_mg"]
     # a range on a physical unit is a user error with one line
-    assert main(["field", str(MPU), "--accel-unit", "g", "--accel-range", "2g", "--out",
-                 str(tmp_path / "x.json")]) == 2
+    assert (
+        main(
+            ["field", str(MPU), "--accel-unit", "g", "--accel-range", "2g", "--out", str(tmp_path / "x.json")]
+        )
+        == 2
+    )
     assert "--accel-range applies to raw counts" in capsys.readouterr().err

@@ -3,6 +3,7 @@ flag state, cache/flag_state.parquet) and leaves the store exactly as a re-flag 
 compared file by file with a store re-flagged in full, when the pooled scales stay, when they
 move and another lot's flag changes, when a lot's files changed behind the state's back, and
 without a state (stores of older code)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,19 +33,42 @@ def _base_summary(seed: int = 11, units_per_lot: int = 8) -> pd.DataFrame:
     for lot in LOTS:
         for u in range(units_per_lot):
             for model, p in PARAMS:
-                rows.append({"lot": lot, "unit": f"{lot}-U{u}", "model": model, "parameter": p,
-                             "mean": rng.normal(), "std": 0.1 * (1 + rng.random()),
-                             "min": -1.0, "max": 1.0, "n_reps": 5, "unit_of_measure": "",
-                             "flagged": False, "flag_reason": "", "stale": False,
-                             "stale_reason": "", "run_id": "r0"})
+                rows.append(
+                    {
+                        "lot": lot,
+                        "unit": f"{lot}-U{u}",
+                        "model": model,
+                        "parameter": p,
+                        "mean": rng.normal(),
+                        "std": 0.1 * (1 + rng.random()),
+                        "min": -1.0,
+                        "max": 1.0,
+                        "n_reps": 5,
+                        "unit_of_measure": "",
+                        "flagged": False,
+                        "flag_reason": "",
+                        "stale": False,
+                        "stale_reason": "",
+                        "run_id": "r0",
+                    }
+                )
     return pd.DataFrame(rows)
 
 
 def _units(summary: pd.DataFrame) -> pd.DataFrame:
     u = summary[["lot", "unit"]].drop_duplicates().reset_index(drop=True)
-    return u.assign(state="calibrated", reason="", n_sessions=5, n_ok=5, n_warned=0,
-                    n_failed=0, calibration_file="x.json", calibrated_at="t0", run_id="r0",
-                    updated_at="t0")
+    return u.assign(
+        state="calibrated",
+        reason="",
+        n_sessions=5,
+        n_ok=5,
+        n_warned=0,
+        n_failed=0,
+        calibration_file="x.json",
+        calibrated_at="t0",
+        run_id="r0",
+        updated_at="t0",
+    )
 
 
 def _rows(summary: pd.DataFrame, lot: str, unit: str | None = None) -> np.ndarray:
@@ -73,8 +97,11 @@ def _update(store: ResultsStore, summary: pd.DataFrame, lot: str, unit: str) -> 
 
 
 def _files(store: ResultsStore) -> dict[str, bytes]:
-    return {f"{name}/{p.name}": p.read_bytes()
-            for name in ("summary", "units") for p in store.partitions(name).values()}
+    return {
+        f"{name}/{p.name}": p.read_bytes()
+        for name in ("summary", "units")
+        for p in store.partitions(name).values()
+    }
 
 
 class _FullReflags:
@@ -87,11 +114,13 @@ class _FullReflags:
         def spy(*args, **kwargs):
             self.calls += 1
             return full(*args, **kwargs)
+
         monkeypatch.setattr(nightly, "_reflag", spy)
 
 
-def _rerun_both(tmp_path, base: pd.DataFrame, changed: pd.DataFrame, lot: str, unit: str,
-                monkeypatch, before_update=None):
+def _rerun_both(
+    tmp_path, base: pd.DataFrame, changed: pd.DataFrame, lot: str, unit: str, monkeypatch, before_update=None
+):
     """The same update in two equal stores; re-flagged with the state in one and in full
     (state removed) in the other. Returns (partial result, full result, spy of the partial,
     the two stores)."""
@@ -182,8 +211,9 @@ def test_a_lot_rewritten_behind_the_state_is_reflagged(tmp_path, monkeypatch):
         u = store.read("units", lots=["L3"])
         store.write("units", u.assign(flagged=True, flag_reason="?"), lots=["L3"])
 
-    got, want, spy, fast, full = _rerun_both(tmp_path, base, base, "L1", "L1-U0", monkeypatch,
-                                             before_update=spoil_l3_flags)
+    got, want, spy, fast, full = _rerun_both(
+        tmp_path, base, base, "L1", "L1-U0", monkeypatch, before_update=spoil_l3_flags
+    )
     assert spy.calls == 0
     _same(got, want, fast, full)
     assert "L3" in got[1]  # its flagged units were restored
@@ -197,8 +227,9 @@ def test_without_a_usable_state_every_lot_is_reflagged(tmp_path, monkeypatch, da
         store.flag_state_path.unlink()
     elif damage == "broken":
         store.flag_state_path.write_bytes(b"not parquet")
-    cfg = OutlierConfig(family_alpha=0.0, z_threshold=3.0, history_units=0) \
-        if damage == "other config" else CFG
+    cfg = (
+        OutlierConfig(family_alpha=0.0, z_threshold=3.0, history_units=0) if damage == "other config" else CFG
+    )
     spy = _FullReflags(monkeypatch)
     nightly.reflag_after_update(store, ["L1"], cfg)
     assert spy.calls == 1

@@ -1,6 +1,7 @@
 """Replay: residual = K (measured - predicted raw) on every channel of every step, and its
 noise estimated from the data (within-step scatter + repetition scatter), checked against
 the simulator's truth."""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -22,8 +23,13 @@ def truth_calibration(truth, terms=()):
 
 
 def noiseless(truth):
-    return replace(truth, gyro_noise_dps=1e-12, gyro_bias_instability_dps=0.0,
-                   accel_noise_g=1e-12, accel_bias_instability_g=0.0)
+    return replace(
+        truth,
+        gyro_noise_dps=1e-12,
+        gyro_bias_instability_dps=0.0,
+        accel_noise_g=1e-12,
+        accel_bias_instability_g=0.0,
+    )
 
 
 def test_true_calibration_replays_every_channel_to_zero():
@@ -52,17 +58,22 @@ def test_residual_is_the_physical_error_of_a_bias_offset():
     cal = replace(truth_calibration(truth), w0=truth.w0 + offset[:3], f0=truth.f0 + offset[3:])
     table = replay_session(cal, sm)
     for i, ch in enumerate(("gx", "gy", "gz", "ax", "ay", "az")):
-        np.testing.assert_allclose(table.loc[table.channel == ch, "residual"], offset[i],
-                                   atol=1e-9)
+        np.testing.assert_allclose(table.loc[table.channel == ch, "residual"], offset[i], atol=1e-9)
 
 
 def test_noise_estimate_matches_the_truth_and_sees_bias_instability():
     """step_sd from the repetition scatter ~ sqrt(white^2/count + instability^2); white noise
     alone would underestimate it 3x."""
     rng = np.random.default_rng(3)
-    truth = sim.typical_truth(rng, gyro_noise_dps=0.05, gyro_bias_instability_dps=0.01,
-                              gyro_bias_repeatability_dps=0.05, accel_noise_g=1e-3,
-                              accel_bias_instability_g=1e-4, accel_bias_repeatability_g=1e-3)
+    truth = sim.typical_truth(
+        rng,
+        gyro_noise_dps=0.05,
+        gyro_bias_instability_dps=0.01,
+        gyro_bias_repeatability_dps=0.05,
+        accel_noise_g=1e-3,
+        accel_bias_instability_g=1e-4,
+        accel_bias_repeatability_g=1e-3,
+    )
     sessions = []
     for r in range(1, 7):
         tr = sim.draw_repetition_truth(truth, rng)
@@ -71,7 +82,7 @@ def test_noise_estimate_matches_the_truth_and_sees_bias_instability():
     table = replay_unit(cal, sessions)
     noise = estimate_noise(table)
     count = sessions[0].count[0]
-    expect_g = np.sqrt(0.05 ** 2 / count + 0.01 ** 2)
+    expect_g = np.sqrt(0.05**2 / count + 0.01**2)
     expect_a = np.sqrt(1e-6 / count + 1e-8)
     tab = noise.table
     gyro = tab[tab.channel.str.startswith("g")]
@@ -88,7 +99,7 @@ def test_noise_estimate_matches_the_truth_and_sees_bias_instability():
     assert np.all(table.sigma[~gyro_rows] > 1.4 * table.sigma_white[~gyro_rows])
     g = table[table.channel == "gx"]
     zc = (g.residual - g.groupby("rep").residual.transform("mean")) / g.sigma
-    assert 0.85 < np.sqrt(np.mean(zc ** 2)) < 1.15
+    assert 0.85 < np.sqrt(np.mean(zc**2)) < 1.15
 
 
 def test_single_repetition_falls_back_to_white_noise():
@@ -107,11 +118,20 @@ def test_xu2016_replay_shows_what_the_difference_method_cannot_see():
 
     def unit(effects, seed):
         rng = np.random.default_rng(seed)
-        truth = sim.typical_truth(rng, gyro_noise_dps=0.05, gyro_bias_instability_dps=0.01,
-                                  accel_noise_g=1e-3, accel_bias_instability_g=1e-4)
+        truth = sim.typical_truth(
+            rng,
+            gyro_noise_dps=0.05,
+            gyro_bias_instability_dps=0.01,
+            accel_noise_g=1e-3,
+            accel_bias_instability_g=1e-4,
+        )
         truth = truth.with_effects(*effects)
-        return [sim.simulate_step_means(sim.draw_repetition_truth(truth, rng), STEPS, rng,
-                                        key=SessionKey("L", "U", r)) for r in (1, 2, 3)]
+        return [
+            sim.simulate_step_means(
+                sim.draw_repetition_truth(truth, rng), STEPS, rng, key=SessionKey("L", "U", r)
+            )
+            for r in (1, 2, 3)
+        ]
 
     quad = (get_effect("gyro_scale_nonlinearity"), [0, 0, 0.1, 0, 0, 0])  # 1.3 deg/s at 3600
     s = summarise_residuals(replay_xu2016(unit([quad], 8))).set_index(["channel", "test"])

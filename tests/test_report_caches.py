@@ -1,6 +1,7 @@
 """The fleet index's caches give what reading the store gives: the lots table's rows
 (cache/fleet_index.json, valid while a lot's sessions and summary files are unchanged) and
 the calibration files of each unit directory (cache/report_history.json "dirs")."""
+
 from __future__ import annotations
 
 import json
@@ -22,8 +23,10 @@ from reports.synthetic import build_synthetic_store  # noqa: E402
 def _rows_from_tables(view: StoreView) -> dict[str, dict]:
     """The lots table's rows from the whole tables, as the index computed them before."""
     sessions, summary = view.table("sessions"), view.table("summary")
-    return {lot: index._lot_row(sessions[sessions["lot"] == lot], summary[summary["lot"] == lot])
-            for lot in view.lots()}
+    return {
+        lot: index._lot_row(sessions[sessions["lot"] == lot], summary[summary["lot"] == lot])
+        for lot in view.lots()
+    }
 
 
 def _text(root) -> str:
@@ -32,8 +35,9 @@ def _text(root) -> str:
 
 
 def test_lot_rows_cache_follows_the_lot_files(tmp_path):
-    truth = build_synthetic_store(tmp_path / "s", n_units=8, n_outliers=1, n_failed=1, seed=3,
-                                  nav_samples=100)
+    truth = build_synthetic_store(
+        tmp_path / "s", n_units=8, n_outliers=1, n_failed=1, seed=3, nav_samples=100
+    )
     view = StoreView(truth.root)
     cache = index.fleet_index_cache_path(view)
     assert not cache.exists()
@@ -59,8 +63,9 @@ def test_lot_rows_cache_follows_the_lot_files(tmp_path):
 
 def test_lot_rows_of_a_format_1_store(tmp_path):
     """A format-1.0 store (flat table files) is read whole, as before, without cache."""
-    truth = build_synthetic_store(tmp_path / "s", n_units=6, n_outliers=1, n_failed=0, seed=4,
-                                  nav_samples=100)
+    truth = build_synthetic_store(
+        tmp_path / "s", n_units=6, n_outliers=1, n_failed=0, seed=4, nav_samples=100
+    )
     view = StoreView(truth.root)
     want = _rows_from_tables(view)
     for name in ("sessions", "summary"):
@@ -76,8 +81,9 @@ def test_lot_rows_of_a_format_1_store(tmp_path):
 
 
 def test_history_directory_cache(tmp_path):
-    truth = build_synthetic_store(tmp_path / "s", n_units=4, n_outliers=0, n_failed=0, seed=5,
-                                  nav_samples=100)
+    truth = build_synthetic_store(
+        tmp_path / "s", n_units=4, n_outliers=0, n_failed=0, seed=5, nav_samples=100
+    )
     view = StoreView(truth.root)
     units = view.history_units()
     # directories settle (their mtime a few seconds old) before they are cached
@@ -108,6 +114,7 @@ def test_history_directory_cache(tmp_path):
     assert edited.loc[edited["file"] == new.name, "k_g11"].item() == 1.25
     # a cache written by older code (no "dirs") is read as before
     doc = json.loads(history.history_cache_path(view).read_text())
-    history.history_cache_path(view).write_text(json.dumps({"version": doc["version"],
-                                                            "files": doc["files"]}))
+    history.history_cache_path(view).write_text(
+        json.dumps({"version": doc["version"], "files": doc["files"]})
+    )
     pd.testing.assert_frame_equal(history.history_frame(StoreView(truth.root)), edited)

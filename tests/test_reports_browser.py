@@ -1,6 +1,7 @@
 """The lot report rendered in Debian's headless Chromium (DevTools protocol over a pipe):
 no JavaScript error, no network request, every figure drawn, the outlier units visibly
 marked in the table and in the plots (read from the DOM), a screenshot saved."""
+
 from __future__ import annotations
 
 import struct
@@ -15,8 +16,9 @@ from reports.unit import write_unit_report
 
 pytestmark = [
     pytest.mark.browser,
-    pytest.mark.skipif(find_chromium() is None,
-                       reason="Debian's chromium is not installed (run scripts/install-browser.sh)"),
+    pytest.mark.skipif(
+        find_chromium() is None, reason="Debian's chromium is not installed (run scripts/install-browser.sh)"
+    ),
 ]
 
 FLAGGED_RGB = "rgb(214, 39, 40)"  # reports.html.FLAGGED
@@ -95,7 +97,8 @@ def test_outliers_marked_in_table(lot_page, browser, store):
         assert "FLAGGED" in c["title"]
     badges = browser.evaluate(
         "Array.from(document.querySelectorAll('#key-parameters-gyro tr.flagged-unit')).map(function(r){"
-        "return r.getAttribute('data-unit');})")
+        "return r.getAttribute('data-unit');})"
+    )
     assert sorted(badges) == sorted(store.outliers)
 
 
@@ -121,7 +124,7 @@ def test_outliers_marked_and_labelled_in_strip_plots(lot_page, browser, store):
 
 def test_sorting_by_a_parameter(lot_page, browser, store):
     # the k_g11 outlier was shifted by +0.012, far above the lot: first when sorted descending
-    (unit, _), = [(u, p) for u, pairs in store.outliers.items() for _, p in pairs if p == "k_g11"]
+    ((unit, _),) = [(u, p) for u, pairs in store.outliers.items() for _, p in pairs if p == "k_g11"]
     order = browser.evaluate("""(function(){
         var th = Array.from(document.querySelectorAll('#key-parameters-gyro thead tr:last-child th'))
                  .filter(function(h){return h.textContent.indexOf('g11') >= 0;})[0];
@@ -154,8 +157,10 @@ def test_unit_report_and_index_render(store, browser):
         browser.wait_figures()
         browser.pump(0.3)
         total = browser.evaluate("document.querySelectorAll('.figure').length")
-        drawn = browser.evaluate("document.querySelectorAll('.figure[data-state=rendered] .main-svg').length > 0"
-                                 " && document.querySelectorAll('.figure[data-state=rendered]').length")
+        drawn = browser.evaluate(
+            "document.querySelectorAll('.figure[data-state=rendered] .main-svg').length > 0"
+            " && document.querySelectorAll('.figure[data-state=rendered]').length"
+        )
         assert total > 0 and drawn == total, (path, total, drawn)
         assert browser.log.errors == [], (path, browser.log.errors)
         assert browser.log.external_requests == []

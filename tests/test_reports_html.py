@@ -1,5 +1,6 @@
 """Lot, unit and fleet reports built from a synthetic results store (no browser): files in
 the right places, self-contained, flags in the right cells, missing tables tolerated."""
+
 from __future__ import annotations
 
 import re
@@ -19,8 +20,7 @@ from reports.unit import write_unit_report
 @pytest.fixture(scope="module")
 def lot_store(tmp_path_factory):
     root = tmp_path_factory.mktemp("store")
-    truth = build_synthetic_store(root, n_units=12, n_outliers=2, n_failed=1, seed=11,
-                                  nav_samples=4000)
+    truth = build_synthetic_store(root, n_units=12, n_outliers=2, n_failed=1, seed=11, nav_samples=4000)
     return truth
 
 
@@ -47,8 +47,9 @@ class KeyTableCells(HTMLParser):
         elif self.in_table and tag == "tr":
             self.unit = a.get("data-unit")
         elif self.in_table and tag == "td" and a.get("data-param") and self.unit:
-            self.cells.append((self.unit, a["data-param"], "flagged" in (a.get("class") or ""),
-                               a.get("title", "")))
+            self.cells.append(
+                (self.unit, a["data-param"], "flagged" in (a.get("class") or ""), a.get("title", ""))
+            )
 
     def handle_endtag(self, tag):
         if tag == "table":
@@ -94,8 +95,8 @@ def test_lot_report_marks_exactly_the_injected_outliers(lot_store, lot_html):
 
 def test_lot_report_lists_failed_sessions_with_reasons(lot_store, lot_html):
     text = lot_html[1]
-    (unit, rep), = lot_store.failed
-    block = text[text.index("Failed sessions (1)"):]
+    ((unit, rep),) = lot_store.failed
+    block = text[text.index("Failed sessions (1)") :]
     assert f'data-unit="{unit}"' in block[:3000]
     assert "E_MISSING_COLUMN" in block[:3000] and "required column" in block[:3000]
 
@@ -114,7 +115,9 @@ def drop_table(root, name):
     """Remove a table from a results store in either layout (format 1.0: one flat file at
     the root, as reports.synthetic writes it; 2.0: a directory of lot files)."""
     import shutil
+
     from schemas.results_store import ResultsStore
+
     st = ResultsStore(root)
     assert st.has_table(name)
     if st.legacy_path(name).exists():
@@ -125,8 +128,9 @@ def drop_table(root, name):
 
 
 def test_missing_tables_still_render(tmp_path):
-    truth = build_synthetic_store(tmp_path, n_units=5, n_outliers=1, seed=3, discovery=False,
-                                  navigation=False)
+    truth = build_synthetic_store(
+        tmp_path, n_units=5, n_outliers=1, seed=3, discovery=False, navigation=False
+    )
     for name in ("residuals", "compensation", "parameters"):
         drop_table(tmp_path, name)
     text = write_lot_report(tmp_path, truth.lot).read_text()
@@ -156,8 +160,9 @@ def test_unit_report_and_fleet_index(lot_store, tmp_path):
     assert "Navigation drift" in text and "History of calibrations" in text
     assert "Calibration files (3)" in text  # n_runs=3 calibration files kept
     # a second lot in the same store, then the index links to both reports
-    other = build_synthetic_store(lot_store.root, lot="LOT-2026-11B", n_units=6, n_outliers=1,
-                                  seed=12, unit_prefix="V")
+    other = build_synthetic_store(
+        lot_store.root, lot="LOT-2026-11B", n_units=6, n_outliers=1, seed=12, unit_prefix="V"
+    )
     write_lot_report(lot_store.root, other.lot)
     idx = write_fleet_index(lot_store.root)
     assert idx == lot_store.root / "reports" / "index.html"
@@ -173,7 +178,7 @@ def test_display_units_and_precision():
     assert display_unit("deg/s per deg/s") == ("", 1.0)
     assert display_unit("g") == ("mg", 1e3)
     assert display_unit("deg/s per LSB") == ("deg/s per LSB", 1.0)
-    assert decimals_for(3e-5) == 6          # 2 significant digits of a 3e-5 spread
+    assert decimals_for(3e-5) == 6  # 2 significant digits of a 3e-5 spread
     assert decimals_for(0.012) == 3
     assert decimals_for(25.0) == 0
     assert decimals_for(float("nan")) is None
@@ -203,8 +208,7 @@ def test_decimate_keeps_extremes_and_bounds_points():
 
 @pytest.mark.slow
 def test_fifty_unit_lot_report_stays_under_10_mb(tmp_path):
-    truth = build_synthetic_store(tmp_path, n_units=50, n_reps=5, n_outliers=2, seed=50,
-                                  navigation=False)
+    truth = build_synthetic_store(tmp_path, n_units=50, n_reps=5, n_outliers=2, seed=50, navigation=False)
     path = write_lot_report(tmp_path, truth.lot)
     text = path.read_text()
     size = path.stat().st_size

@@ -2,6 +2,7 @@
 lot-wide repetition statistics, the row formatter, the residual point order, and what the
 lot report shows per unit (Table 1/2 averages, Table 3 envelopes, residual figures) checked
 against the store's rows with plain pandas/numpy."""
+
 from __future__ import annotations
 
 import base64
@@ -23,8 +24,9 @@ from reports.unit import navigation_figure
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
     root = tmp_path_factory.mktemp("speed-store")
-    return build_synthetic_store(root, n_units=8, n_reps=4, n_outliers=2, n_failed=2, seed=21,
-                                 nav_samples=2500)
+    return build_synthetic_store(
+        root, n_units=8, n_reps=4, n_outliers=2, n_failed=2, seed=21, nav_samples=2500
+    )
 
 
 @pytest.fixture(scope="module")
@@ -41,22 +43,26 @@ def _decode(a):
 def _figures(text: str) -> dict[str, dict]:
     """name -> figure spec of every figure of a report."""
     out = {}
-    for m in re.finditer(r'data-spec="(fig\d+)-spec" data-name="([^"]*)".*?'
-                         r'<script type="application/json" id="\1-spec">(.*?)</script>', text, re.S):
+    for m in re.finditer(
+        r'data-spec="(fig\d+)-spec" data-name="([^"]*)".*?'
+        r'<script type="application/json" id="\1-spec">(.*?)</script>',
+        text,
+        re.S,
+    ):
         out[m.group(2)] = json.loads(m.group(3))
     return out
 
 
 def _unit_block(text: str, unit: str) -> str:
     start = text.index(f'<details class="unit" id="unit-{unit}"')
-    return text[start:text.index("</details>", start)]
+    return text[start : text.index("</details>", start)]
 
 
 def test_rep_stats_equal_row_by_row_numpy():
     rng = np.random.default_rng(4)
     V = rng.normal(1.0, 1e-3, (40, 6))
     S = np.abs(rng.normal(1e-4, 1e-5, (40, 6)))
-    V[3, 2] = V[7, :5] = V[9, :] = np.nan      # missing repetitions, one row empty
+    V[3, 2] = V[7, :5] = V[9, :] = np.nan  # missing repetitions, one row empty
     S[5, 0] = S[9, :] = np.nan
     avg, spread, mean_se = _rep_stats(V, S)
     for k in range(len(V)):
@@ -64,19 +70,25 @@ def test_rep_stats_equal_row_by_row_numpy():
         s = S[k][np.isfinite(S[k])]
         assert (avg[k] == np.mean(v)) if len(v) else np.isnan(avg[k])
         assert (spread[k] == np.std(v, ddof=1)) if len(v) > 1 else np.isnan(spread[k])
-        assert (mean_se[k] == np.sqrt(np.sum(s ** 2)) / len(s)) if len(s) else np.isnan(mean_se[k])
+        assert (mean_se[k] == np.sqrt(np.sum(s**2)) / len(s)) if len(s) else np.isnan(mean_se[k])
 
 
 @pytest.mark.parametrize("decimals", [None, 0, 3, 6])
 def test_td_numbers_is_fmt_per_cell(decimals):
     rng = np.random.default_rng(5)
-    x = np.concatenate([rng.normal(0, 1e-3, 20), rng.normal(0, 50, 20),
-                        [-0.0, -1e-9, 1e-9, np.nan, np.inf, -np.inf, 1.5e-7, -2.5e-12]])
+    x = np.concatenate(
+        [
+            rng.normal(0, 1e-3, 20),
+            rng.normal(0, 50, 20),
+            [-0.0, -1e-9, 1e-9, np.nan, np.inf, -np.inf, 1.5e-7, -2.5e-12],
+        ]
+    )
     got = td_numbers(x.tolist(), np.isfinite(x).tolist(), decimals)
     assert got == "".join(f"<td>{fmt(v, decimals)}</td>" for v in x)
     full = x[np.isfinite(x)]
     assert td_numbers(full.tolist(), [True] * len(full), decimals) == "".join(
-        f"<td>{fmt(v, decimals)}</td>" for v in full)
+        f"<td>{fmt(v, decimals)}</td>" for v in full
+    )
     assert MINUS in got and DASH in got and "-" not in got.replace("e-", "")
 
 
@@ -84,11 +96,19 @@ def test_residual_order_is_pandas_sort_order():
     """Ties and NaNs in the sort key: same rows in the same order as DataFrame.sort_values."""
     rng = np.random.default_rng(6)
     n = 400
-    res = pd.DataFrame({"unit": rng.choice(["U1", "U2"], n), "model": rng.choice(["baseline", "extended"], n),
-                        "test": "multirate", "step": rng.integers(0, 40, n),
-                        "channel": rng.choice(["gx", "gy", "gz", "ax"], n),
-                        "rate_dps": rng.choice([-30.0, 6.0, 12.0, np.nan, 300.0], n),
-                        "angle_deg": 0.0, "up_axis": "+z", "residual": rng.normal(size=n)})
+    res = pd.DataFrame(
+        {
+            "unit": rng.choice(["U1", "U2"], n),
+            "model": rng.choice(["baseline", "extended"], n),
+            "test": "multirate",
+            "step": rng.integers(0, 40, n),
+            "channel": rng.choice(["gx", "gy", "gz", "ax"], n),
+            "rate_dps": rng.choice([-30.0, 6.0, 12.0, np.nan, 300.0], n),
+            "angle_deg": 0.0,
+            "up_axis": "+z",
+            "residual": rng.normal(size=n),
+        }
+    )
     a = aggregate_residuals(res)
     ri = ResidualIndex(a)
     for unit in ("U1", "U2"):
@@ -104,32 +124,51 @@ def test_repetition_tables_show_the_stored_repetitions(store, lot_text):
     table holds them (k_g11: dimensionless, 6 decimals in this lot)."""
     p = StoreView(store.root).table("parameters")
     for unit in store.units:
-        rows = p[(p["unit"] == unit) & (p["model"] == "gyro") & (p["parameter"] == "k_g11")].sort_values("rep")
+        rows = p[(p["unit"] == unit) & (p["model"] == "gyro") & (p["parameter"] == "k_g11")].sort_values(
+            "rep"
+        )
         block = _unit_block(lot_text, unit)
         row = re.search(r'<tr><td class="text">k<sub>g11</sub></td>(.*?)</tr>', block).group(1)
         cells = re.findall(r"<td[^>]*>([^<]*)</td>", row)
         vals = rows["value"].to_numpy(float)
-        assert cells[1:1 + len(vals)] == [f"{v:.6f}" for v in vals]
+        assert cells[1 : 1 + len(vals)] == [f"{v:.6f}" for v in vals]
         assert cells[1 + len(vals)] == f"{np.mean(vals):.6f}"
         if (unit, 3) in store.failed:
             assert "Rep 3" not in block.split("Table 2")[0]
     # flagged averages in the unit's own tables are exactly the injected outliers
-    marked = {(u, m.group(1)) for u in store.units
-              for m in re.finditer(r'<tr><td class="text">([^<]+(?:<sub>[^<]+</sub>[^<]*)?)</td>'
-                                   r'(?:(?!</tr>).)*class="avg flagged"', _unit_block(lot_text, u))}
-    pretty = {"k_g11": "k<sub>g11</sub>", "w0_z": "ω<sub>0z</sub>", "k_a22": "k<sub>a22</sub>",
-              "f0_x": "f<sub>0x</sub>"}
+    marked = {
+        (u, m.group(1))
+        for u in store.units
+        for m in re.finditer(
+            r'<tr><td class="text">([^<]+(?:<sub>[^<]+</sub>[^<]*)?)</td>'
+            r'(?:(?!</tr>).)*class="avg flagged"',
+            _unit_block(lot_text, u),
+        )
+    }
+    pretty = {
+        "k_g11": "k<sub>g11</sub>",
+        "w0_z": "ω<sub>0z</sub>",
+        "k_a22": "k<sub>a22</sub>",
+        "f0_x": "f<sub>0x</sub>",
+    }
     assert marked == {(u, pretty[prm]) for u, pairs in store.outliers.items() for _, prm in pairs}
 
 
 def test_table3_envelopes_are_min_and_max_over_repetitions(store, lot_text):
     c = StoreView(store.root).table("compensation")
     unit = store.units[0]
-    cu = c[(c["unit"] == unit) & (c["input_axis"] == "x") & (c["method"] == "uncompensated")
-           & (c["output_axis"] == "y")]
+    cu = c[
+        (c["unit"] == unit)
+        & (c["input_axis"] == "x")
+        & (c["method"] == "uncompensated")
+        & (c["output_axis"] == "y")
+    ]
     block = _unit_block(lot_text, unit)
-    row = re.search(r'<tr class="sep"><td class="text"><b>x</b></td><td class="text">uncompensated</td>'
-                    r"<td>[^<]*</td><td>([^<]*)</td>", block).group(1)
+    row = re.search(
+        r'<tr class="sep"><td class="text"><b>x</b></td><td class="text">uncompensated</td>'
+        r"<td>[^<]*</td><td>([^<]*)</td>",
+        block,
+    ).group(1)
     assert row == f"{fmt(cu['err_min'].min(), 3)} ~ {fmt(cu['err_max'].max(), 3)}"
 
 
@@ -139,11 +178,25 @@ def test_residual_figures_hold_the_mean_and_envelope_per_step(store, lot_text):
     for unit in (store.units[0], next(iter(store.outliers))):
         spec = figs[f"{unit} gyro residuals"]
         trace = next(t for t in spec["data"] if t["name"] == "gx error" and t["xaxis"] == "x")  # baseline
-        d = r[(r["unit"] == unit) & (r["model"] == "baseline") & (r["test"] == "multirate") & (r["channel"] == "gx")]
-        g = d.groupby("step").agg(rate=("rate_dps", "first"), mean=("residual", "mean"),
-                                  lo=("residual", "min"), hi=("residual", "max")).sort_values(["rate", "step"])
+        d = r[
+            (r["unit"] == unit)
+            & (r["model"] == "baseline")
+            & (r["test"] == "multirate")
+            & (r["channel"] == "gx")
+        ]
+        g = (
+            d.groupby("step")
+            .agg(
+                rate=("rate_dps", "first"),
+                mean=("residual", "mean"),
+                lo=("residual", "min"),
+                hi=("residual", "max"),
+            )
+            .sort_values(["rate", "step"])
+        )
         # the rates (6 to 300 deg/s) span more than a decade: a symlog axis, the rate on hover
         from reports.sections import symlog
+
         rate = np.array(trace["customdata"], float)
         assert np.allclose(_decode(trace["x"]), symlog(rate).astype(np.float32), rtol=1e-6)
         x, y = rate, _decode(trace["y"])
@@ -151,7 +204,9 @@ def test_residual_figures_hold_the_mean_and_envelope_per_step(store, lot_text):
         assert len(x) == len(g) and np.all(np.diff(x) >= 0)
         # the same set of (rate, mean, envelope) points, whatever the order among equal rates
         got = sorted(zip(x.tolist(), y.tolist(), (y + plus).tolist(), (y - minus).tolist()))
-        want = sorted(zip(*(g[c].to_numpy(np.float32).astype(float).tolist() for c in ("rate", "mean", "hi", "lo"))))
+        want = sorted(
+            zip(*(g[c].to_numpy(np.float32).astype(float).tolist() for c in ("rate", "mean", "hi", "lo")))
+        )
         assert np.allclose(np.array(got), np.array(want), rtol=1e-6, atol=1e-9)
         accel = figs[f"{unit} accel residuals"]
         assert {t["name"] for t in accel["data"]} == {"ax error", "ay error", "az error"}

@@ -1,6 +1,7 @@
 """The rerun's speed-ups keep its outputs: the reflag's changed-lot test agrees with the
 store's own skip-unchanged comparison, reports written through one shared store view equal
 reports written one by one, and the import thread reports what it did."""
+
 from __future__ import annotations
 
 import re
@@ -26,12 +27,27 @@ def _summary(rng: np.random.Generator, lots: list[str], units_per_lot: int = 6) 
     for lot in lots:
         for u in range(units_per_lot):
             for p in ("k_g11", "w0_x", "k_a11"):
-                rows.append({"lot": lot, "unit": f"{lot}-U{u}", "model": "gyro", "parameter": p,
-                             "mean": rng.normal(), "std": abs(rng.normal()), "min": -1.0,
-                             "max": 1.0, "n_reps": 5, "unit_of_measure": "",
-                             "flagged": False, "flag_reason": "", "score": rng.normal(),
-                             "lot_median": rng.normal(), "stale": False, "stale_reason": "",
-                             "run_id": "r1"})
+                rows.append(
+                    {
+                        "lot": lot,
+                        "unit": f"{lot}-U{u}",
+                        "model": "gyro",
+                        "parameter": p,
+                        "mean": rng.normal(),
+                        "std": abs(rng.normal()),
+                        "min": -1.0,
+                        "max": 1.0,
+                        "n_reps": 5,
+                        "unit_of_measure": "",
+                        "flagged": False,
+                        "flag_reason": "",
+                        "score": rng.normal(),
+                        "lot_median": rng.normal(),
+                        "stale": False,
+                        "stale_reason": "",
+                        "run_id": "r1",
+                    }
+                )
     return pd.DataFrame(rows)
 
 
@@ -72,16 +88,18 @@ def _normalised(text: str) -> str:
 
 
 def test_reports_through_one_view_equal_reports_written_one_by_one(tmp_path):
-    truth = build_synthetic_store(tmp_path / "a", n_units=8, n_outliers=1, n_failed=1, seed=5,
-                                  nav_samples=500)
+    truth = build_synthetic_store(
+        tmp_path / "a", n_units=8, n_outliers=1, n_failed=1, seed=5, nav_samples=500
+    )
     unit = truth.units[0]
-    separate = [write_unit_report(truth.root, unit).read_text(),
-                write_lot_report(truth.root, truth.lot).read_text(),
-                write_fleet_index(truth.root).read_text()]
+    separate = [
+        write_unit_report(truth.root, unit).read_text(),
+        write_lot_report(truth.root, truth.lot).read_text(),
+        write_fleet_index(truth.root).read_text(),
+    ]
     written, problems = nightly.write_reports(truth.root, [truth.lot], units=(unit,))
     assert problems == []
-    assert [p.rsplit("/", 1)[-1] for p in written] == [f"{unit}.html", f"{truth.lot}.html",
-                                                       "index.html"]
+    assert [p.rsplit("/", 1)[-1] for p in written] == [f"{unit}.html", f"{truth.lot}.html", "index.html"]
     shared = [open(p).read() for p in written]
     assert [_normalised(t) for t in shared] == [_normalised(t) for t in separate]
 
@@ -97,14 +115,17 @@ def test_preload_imports_in_a_thread_and_reports_failures():
 @pytest.mark.parametrize("name", nightly.FLOW_PRELOAD)
 def test_preloaded_modules_exist(name):
     import importlib
+
     importlib.import_module(name)
 
 
 def test_history_cache_gives_the_rows_of_the_files(tmp_path):
     from reports import history
     from reports.store import StoreView
-    truth = build_synthetic_store(tmp_path / "s", n_units=5, n_outliers=0, n_failed=0, seed=9,
-                                  nav_samples=100)
+
+    truth = build_synthetic_store(
+        tmp_path / "s", n_units=5, n_outliers=0, n_failed=0, seed=9, nav_samples=100
+    )
     view = StoreView(truth.root)
     path = history.history_cache_path(view)
     assert not path.exists()

@@ -1,5 +1,6 @@
 """Step averaging: equals a naive per-step pandas computation; settling, saturated, too-short
 and empty steps; unit conversion (rad/s, m/s^2) and raw units (LSB, V)."""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -128,8 +129,7 @@ def test_rad_s_and_m_s2_average_like_deg_s_and_g(tmp_path):
     samples, md = simulate(truth, steps)
     base, _ = read_step_means(write(tmp_path, KEY, steps, samples, md))
     key2 = SessionKey("L1", "U001", 2)
-    si, w = read_step_means(write(tmp_path, key2, steps, samples, md, gyro_unit="rad/s",
-                                  accel_unit="m/s^2"))
+    si, w = read_step_means(write(tmp_path, key2, steps, samples, md, gyro_unit="rad/s", accel_unit="m/s^2"))
     assert w == []
     md_si = pq.read_schema(tmp_path / "lot=L1/unit=U001/rep=2/samples.parquet").metadata
     assert md_si[b"gyro_unit"] == b"rad/s" and md_si[b"accel_unit"] == b"m/s^2"
@@ -149,8 +149,7 @@ def test_lsb_and_volts_stay_raw(tmp_path):
     K^-1 (ref - bias) in those units."""
     rng = np.random.default_rng(5)
     base = sim.typical_truth(rng)
-    truth = replace(base, K_g=base.K_g / 131.0, K_a=base.K_a * 0.5, gyro_unit="LSB",
-                    accel_unit="V")
+    truth = replace(base, K_g=base.K_g / 131.0, K_a=base.K_a * 0.5, gyro_unit="LSB", accel_unit="V")
     steps = protocol()
     samples, md = simulate(truth, steps)
     sm, warnings = read_step_means(write(tmp_path, KEY, steps, samples, md))
@@ -172,8 +171,11 @@ def _saturating_truth(seed, **kw):
 
 
 def _expected_saturated(steps):
-    m = (steps["test"] == "multirate") & (steps["rate_dps"].abs() == 300) & \
-        steps["up_axis"].isin(["+x", "+y"])
+    m = (
+        (steps["test"] == "multirate")
+        & (steps["rate_dps"].abs() == 300)
+        & steps["up_axis"].isin(["+x", "+y"])
+    )
     return set(steps.loc[m, "step"].astype(int))
 
 
@@ -225,8 +227,15 @@ def test_quantised_raw_data_without_clipping_gives_no_saturation(seed):
     accelerometer repeat their extreme codes, but as a thinning noise tail, not a pile-up:
     nothing is left out."""
     base = sim.typical_truth(np.random.default_rng(seed))
-    truth = replace(base, K_g=base.K_g / 16.4, gyro_unit="LSB", gyro_quantum=1.0,
-                    K_a=base.K_a / 2048.0, accel_unit="LSB", accel_quantum=1.0)
+    truth = replace(
+        base,
+        K_g=base.K_g / 16.4,
+        gyro_unit="LSB",
+        gyro_quantum=1.0,
+        K_a=base.K_a / 2048.0,
+        accel_unit="LSB",
+        accel_quantum=1.0,
+    )
     steps = protocol()
     samples, md = simulate(truth, steps, seed=seed)
     _, warnings = step_means_from_tables(KEY, steps, samples, md)
@@ -247,8 +256,7 @@ def test_too_short_and_empty_steps(tmp_path):
     sm, warnings = read_step_means(write(tmp_path, KEY, steps_plus, samples, md))
     by_code = {w.code: w for w in warnings}
     assert set(by_code) == {E.W_TOO_SHORT, E.W_EMPTY_STEP}
-    assert by_code[E.W_TOO_SHORT].step == 4 and "2 sample(s) after settling" in \
-        by_code[E.W_TOO_SHORT].message
+    assert by_code[E.W_TOO_SHORT].step == 4 and "2 sample(s) after settling" in by_code[E.W_TOO_SHORT].message
     assert by_code[E.W_EMPTY_STEP].step == 500
     assert 4 not in sm.step and 500 not in sm.step and len(sm) == len(steps) - 1
     for w in warnings:
@@ -267,6 +275,7 @@ def test_min_samples_threshold(session):
 def test_averaging_is_vectorised_fast(tmp_path):
     """One 118-step session at 200 Hz (3 s steps, 71k samples) averages well under a second."""
     import time
+
     rng = np.random.default_rng(9)
     truth = sim.typical_truth(rng)
     steps = protocols.default_session()

@@ -1,5 +1,6 @@
 """Every invalid case of the contract gives its stable code and a message that names the
 session, the file and the reason. Bad sessions are made from a good simulated one in tmp_path."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -56,6 +57,7 @@ def set_metadata(path, **changes):
             else:
                 md[k] = v
         return t.replace_schema_metadata(md)
+
     rewrite(path, fn)
 
 
@@ -123,38 +125,41 @@ def test_not_parquet_at_all(good):
 # --- columns and types -------------------------------------------------------------------------
 def test_missing_sensor_column(good):
     rewrite(good.samples_path, lambda t: t.drop_columns(["gz"]))
-    expect_error(good, E.E_MISSING_COLUMN, "samples.parquet", "required column 'gz' is missing",
-                 column="gz")
+    expect_error(good, E.E_MISSING_COLUMN, "samples.parquet", "required column 'gz' is missing", column="gz")
 
 
 def test_missing_steps_column(good):
     rewrite(good.steps_path, lambda t: t.drop_columns(["settle_s"]))
-    expect_error(good, E.E_MISSING_COLUMN, "steps.parquet", "'settle_s' is missing",
-                 column="settle_s")
+    expect_error(good, E.E_MISSING_COLUMN, "steps.parquet", "'settle_s' is missing", column="settle_s")
 
 
 def test_extra_columns_are_ignored(good):
     before, _ = read_step_means(good)
-    rewrite(good.samples_path, lambda t: t.append_column("mag_x", pa.array(
-        [f"x{i}" for i in range(t.num_rows)])))
+    rewrite(
+        good.samples_path, lambda t: t.append_column("mag_x", pa.array([f"x{i}" for i in range(t.num_rows)]))
+    )
     rewrite(good.steps_path, lambda t: t.append_column("operator", pa.array(["A"] * t.num_rows)))
     after, warnings = read_step_means(good)
     assert warnings == []
     np.testing.assert_array_equal(after.gyro, before.gyro)
 
 
-@pytest.mark.parametrize("file,column,array_of,expected", [
-    ("samples", "gx", lambda t: pa.array(t["gx"].to_numpy().astype(str)), "float32 or float64"),
-    ("samples", "t", lambda t: pa.array(np.arange(t.num_rows, dtype=np.int64)), "float64"),
-    ("samples", "step", lambda t: pa.array(t["step"].to_numpy().astype(np.float64)), "int32"),
-    ("steps", "test", lambda t: pa.array(np.arange(t.num_rows, dtype=np.int32)), "string"),
-    ("steps", "rate_dps", lambda t: pa.array(t["rate_dps"].to_numpy().astype(str)), "float64"),
-])
+@pytest.mark.parametrize(
+    "file,column,array_of,expected",
+    [
+        ("samples", "gx", lambda t: pa.array(t["gx"].to_numpy().astype(str)), "float32 or float64"),
+        ("samples", "t", lambda t: pa.array(np.arange(t.num_rows, dtype=np.int64)), "float64"),
+        ("samples", "step", lambda t: pa.array(t["step"].to_numpy().astype(np.float64)), "int32"),
+        ("steps", "test", lambda t: pa.array(np.arange(t.num_rows, dtype=np.int32)), "string"),
+        ("steps", "rate_dps", lambda t: pa.array(t["rate_dps"].to_numpy().astype(str)), "float64"),
+    ],
+)
 def test_wrong_type(good, file, column, array_of, expected):
     path = good.samples_path if file == "samples" else good.steps_path
     rewrite(path, lambda t: replace_column(t, column, array_of(t)))
-    expect_error(good, E.E_WRONG_TYPE, path.name, f"column '{column}' has type",
-                 f"expected {expected}", column=column)
+    expect_error(
+        good, E.E_WRONG_TYPE, path.name, f"column '{column}' has type", f"expected {expected}", column=column
+    )
 
 
 def test_lenient_types_are_accepted(good):
@@ -164,6 +169,7 @@ def test_lenient_types_are_accepted(good):
     def widen(t):
         t = replace_column(t, "step", pa.array(t["step"].to_numpy().astype(np.int64)))
         return replace_column(t, "gx", pa.array(t["gx"].to_numpy().astype(np.float64)))
+
     rewrite(good.samples_path, widen)
     after, warnings = read_step_means(good)
     assert warnings == []
@@ -183,8 +189,9 @@ def test_unknown_accel_unit(good):
 
 def test_unparseable_range(good):
     set_metadata(good.samples_path, gyro_range_dps="300;300;3600")
-    expect_error(good, E.E_BAD_METADATA, "samples.parquet", "gyro_range_dps",
-                 "not a comma-separated list of numbers")
+    expect_error(
+        good, E.E_BAD_METADATA, "samples.parquet", "gyro_range_dps", "not a comma-separated list of numbers"
+    )
 
 
 def test_range_with_wrong_count(good):
@@ -203,9 +210,17 @@ def test_g_local_in_g_not_m_s2(good):
 
 
 def test_metadata_parsing():
-    md = parse_metadata({b"gyro_unit": b"rad/s", b"accel_unit": b"m/s^2",
-                         b"gyro_range_dps": b"300, 300, 3600", b"accel_range_g": b"16",
-                         b"operator": b"jd", b"pandas": b"{}"}, "s")
+    md = parse_metadata(
+        {
+            b"gyro_unit": b"rad/s",
+            b"accel_unit": b"m/s^2",
+            b"gyro_range_dps": b"300, 300, 3600",
+            b"accel_range_g": b"16",
+            b"operator": b"jd",
+            b"pandas": b"{}",
+        },
+        "s",
+    )
     assert md.gyro_range_dps == (300.0, 300.0, 3600.0)
     assert md.accel_range_g == (16.0, 16.0, 16.0)
     assert md.g_local == 9.80665  # default when absent
@@ -213,9 +228,13 @@ def test_metadata_parsing():
     assert md.gyro_unit == "deg/s" and md.accel_unit == "g"
     assert md.gyro_scale == pytest.approx(57.29577951308232)
     assert md.accel_scale == pytest.approx(1 / 9.80665)
-    assert md.provenance == {"gyro_unit": "rad/s", "accel_unit": "m/s^2",
-                             "gyro_range_dps": "300, 300, 3600", "accel_range_g": "16",
-                             "operator": "jd"}
+    assert md.provenance == {
+        "gyro_unit": "rad/s",
+        "accel_unit": "m/s^2",
+        "gyro_range_dps": "300, 300, 3600",
+        "accel_range_g": "16",
+        "operator": "jd",
+    }
     with pytest.raises(SessionError, match="must be finite and positive"):
         parse_triple("300,-1,3600", "gyro_range_dps", "s", "samples.parquet")
 
@@ -230,8 +249,15 @@ def _with_values(t, column, rows, value):
 def test_nan_burst(good):
     rewrite(good.samples_path, lambda t: _with_values(t, "ay", slice(2000, 2020), np.nan))
     sample_step = int(read_table(good.samples_path)["step"][2000].as_py())
-    expect_error(good, E.E_NONFINITE_VALUE, "samples.parquet", "20 NaN", "first at row 2000",
-                 column="ay", step=sample_step)
+    expect_error(
+        good,
+        E.E_NONFINITE_VALUE,
+        "samples.parquet",
+        "20 NaN",
+        "first at row 2000",
+        column="ay",
+        step=sample_step,
+    )
 
 
 def test_inf_value(good):
@@ -245,6 +271,7 @@ def test_null_value(good):
         mask = np.zeros(len(x), bool)
         mask[100:103] = True
         return replace_column(t, "ax", pa.array(x, mask=mask))
+
     rewrite(good.samples_path, fn)
     expect_error(good, E.E_NONFINITE_VALUE, "samples.parquet", "3 null", column="ax")
 
@@ -259,9 +286,11 @@ def test_nonincreasing_time(good):
         x = t["t"].to_numpy().copy()
         x[1000], x[1001] = x[1001], x[1000]
         return replace_column(t, "t", pa.array(x))
+
     rewrite(good.samples_path, fn)
-    expect_error(good, E.E_NONINCREASING_TIME, "samples.parquet", "not strictly increasing",
-                 "row 1001", column="t")
+    expect_error(
+        good, E.E_NONINCREASING_TIME, "samples.parquet", "not strictly increasing", "row 1001", column="t"
+    )
 
 
 def test_repeated_time_is_not_increasing(good):
@@ -269,6 +298,7 @@ def test_repeated_time_is_not_increasing(good):
         x = t["t"].to_numpy().copy()
         x[3001] = x[3000]
         return replace_column(t, "t", pa.array(x))
+
     rewrite(good.samples_path, fn)
     expect_error(good, E.E_NONINCREASING_TIME, "samples.parquet", "row 3001")
 
@@ -278,9 +308,11 @@ def test_duplicate_step_ids(good):
         s = t["step"].to_numpy().copy()
         s[7] = s[6]
         return replace_column(t, "step", pa.array(s))
+
     rewrite(good.steps_path, fn)
-    expect_error(good, E.E_DUPLICATE_STEP, "steps.parquet", "step id 6 appears 2 times",
-                 column="step", step=6)
+    expect_error(
+        good, E.E_DUPLICATE_STEP, "steps.parquet", "step id 6 appears 2 times", column="step", step=6
+    )
 
 
 def test_unknown_step_in_samples(good):
@@ -288,17 +320,20 @@ def test_unknown_step_in_samples(good):
         s = t["step"].to_numpy().copy()
         s[s == 5] = 999
         return replace_column(t, "step", pa.array(s))
+
     rewrite(good.samples_path, fn)
-    expect_error(good, E.E_UNKNOWN_STEP, "samples.parquet", "step id 999 is not in steps.parquet",
-                 step=999)
+    expect_error(good, E.E_UNKNOWN_STEP, "samples.parquet", "step id 999 is not in steps.parquet", step=999)
 
 
-@pytest.mark.parametrize("column,value,reason", [
-    ("test", "spin", "test 'spin' is not one of"),
-    ("up_axis", "up", "up_axis 'up' is not one of"),
-    ("w_ref_y", np.nan, "w_ref_y is nan"),
-    ("settle_s", -1.0, "settle_s is -1.0"),
-])
+@pytest.mark.parametrize(
+    "column,value,reason",
+    [
+        ("test", "spin", "test 'spin' is not one of"),
+        ("up_axis", "up", "up_axis 'up' is not one of"),
+        ("w_ref_y", np.nan, "w_ref_y is nan"),
+        ("settle_s", -1.0, "settle_s is -1.0"),
+    ],
+)
 def test_bad_step_definition(good, column, value, reason):
     rewrite(good.steps_path, lambda t: _with_values(t, column, [3], value))
     expect_error(good, E.E_BAD_STEP_DEFINITION, "steps.parquet", reason, column=column, step=3)
@@ -309,6 +344,7 @@ def test_reserved_step_id(good):
         s = t["step"].to_numpy().copy()
         s[0] = -1
         return replace_column(t, "step", pa.array(s))
+
     rewrite(good.steps_path, fn)
     expect_error(good, E.E_BAD_STEP_DEFINITION, "steps.parquet", "reserved", step=-1)
 
@@ -324,10 +360,8 @@ def test_empty_steps(good):
 
 
 def test_no_usable_step(good):
-    rewrite(good.steps_path, lambda t: replace_column(
-        t, "settle_s", pa.array(np.full(t.num_rows, 5.0))))
-    expect_error(good, E.E_EMPTY_SESSION, "samples.parquet", "no usable step left",
-                 "118 W_TOO_SHORT")
+    rewrite(good.steps_path, lambda t: replace_column(t, "settle_s", pa.array(np.full(t.num_rows, 5.0))))
+    expect_error(good, E.E_EMPTY_SESSION, "samples.parquet", "no usable step left", "118 W_TOO_SHORT")
 
 
 # --- design errors and the error types -----------------------------------------------------------
@@ -344,6 +378,7 @@ def test_from_design_error_names_session_and_what_is_undetermined():
 
 def test_session_error_pickles_and_serialises():
     import pickle
+
     err = SessionError(E.E_MISSING_COLUMN, str(KEY), "samples.parquet", "gone", column="gz", step=3)
     back = pickle.loads(pickle.dumps(err))
     assert str(back) == str(err) and back.column == "gz" and back.step == 3
@@ -351,9 +386,20 @@ def test_session_error_pickles_and_serialises():
 
 
 def test_schemas_are_the_contract():
-    assert STEPS_SCHEMA.names == ["step", "test", "up_axis", "rate_dps", "angle_deg", "w_ref_x",
-                                  "w_ref_y", "w_ref_z", "f_ref_x", "f_ref_y", "f_ref_z",
-                                  "settle_s"]
+    assert STEPS_SCHEMA.names == [
+        "step",
+        "test",
+        "up_axis",
+        "rate_dps",
+        "angle_deg",
+        "w_ref_x",
+        "w_ref_y",
+        "w_ref_z",
+        "f_ref_x",
+        "f_ref_y",
+        "f_ref_z",
+        "settle_s",
+    ]
     assert STEPS_SCHEMA.field("step").type == pa.int32()
     assert SAMPLES_SCHEMA.names == ["step", "t", "gx", "gy", "gz", "ax", "ay", "az"]
     assert SAMPLES_SCHEMA.field("t").type == pa.float64()

@@ -1,6 +1,7 @@
 """A steps table whose string column holds bytes that are not UTF-8 (a corrupt file: found
 by tests/test_schemas_fuzz.py, one flipped byte of steps.parquet) is a SessionError naming
 the column, not an ArrowException."""
+
 from __future__ import annotations
 
 import pyarrow as pa

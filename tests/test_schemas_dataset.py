@@ -1,5 +1,6 @@
 """Hive layout discovery (good and bad directory names), fingerprints, and the writer's
 round trip."""
+
 from __future__ import annotations
 
 import os
@@ -35,22 +36,29 @@ def _mkdirs(root, *paths):
 
 
 def test_find_sessions_good_and_bad_names(tmp_path):
-    _mkdirs(tmp_path,
-            "lot=L1/unit=U001/rep=1", "lot=L1/unit=U001/rep=2", "lot=L1/unit=U002/rep=10",
-            "lot=L2/unit=U003/rep=1",
-            "lot=L2/unit=U003/rep=0",  # rep must be >= 1
-            "lot=L2/unit=U003/rep=01",  # leading zero would alias rep=1
-            "lot=L2/unit=U003/rep=x",
-            "lot=L2/unit=U 4/rep=1",  # space not allowed in an id
-            "lot=L2/units=U005/rep=1",  # wrong key
-            "batch=7/unit=U006/rep=1",
-            "lot=L1/unit=U001/.rep=3.tmp",  # hidden: ignored
-            "_staging/unit=U009/rep=1")  # underscore: ignored
+    _mkdirs(
+        tmp_path,
+        "lot=L1/unit=U001/rep=1",
+        "lot=L1/unit=U001/rep=2",
+        "lot=L1/unit=U002/rep=10",
+        "lot=L2/unit=U003/rep=1",
+        "lot=L2/unit=U003/rep=0",  # rep must be >= 1
+        "lot=L2/unit=U003/rep=01",  # leading zero would alias rep=1
+        "lot=L2/unit=U003/rep=x",
+        "lot=L2/unit=U 4/rep=1",  # space not allowed in an id
+        "lot=L2/units=U005/rep=1",  # wrong key
+        "batch=7/unit=U006/rep=1",
+        "lot=L1/unit=U001/.rep=3.tmp",  # hidden: ignored
+        "_staging/unit=U009/rep=1",
+    )  # underscore: ignored
     (tmp_path / "fleet.json").write_text("{}")  # plain files are ignored
     refs, errors = find_sessions(tmp_path)
     assert [str(r.key) for r in refs] == [
-        "lot=L1/unit=U001/rep=1", "lot=L1/unit=U001/rep=2", "lot=L1/unit=U002/rep=10",
-        "lot=L2/unit=U003/rep=1"]
+        "lot=L1/unit=U001/rep=1",
+        "lot=L1/unit=U001/rep=2",
+        "lot=L1/unit=U002/rep=10",
+        "lot=L2/unit=U003/rep=1",
+    ]
     assert refs[2].path == tmp_path / "lot=L1/unit=U002/rep=10"
     assert all(e.code == E_BAD_PATH for e in errors)
     bad = {e.file: e for e in errors}
@@ -64,8 +72,13 @@ def test_find_sessions_good_and_bad_names(tmp_path):
 
 
 def test_filters(tmp_path):
-    _mkdirs(tmp_path, "lot=L1/unit=U001/rep=1", "lot=L1/unit=U002/rep=1",
-            "lot=L2/unit=U003/rep=1", "lot=L2/unit=U003/rep=2")
+    _mkdirs(
+        tmp_path,
+        "lot=L1/unit=U001/rep=1",
+        "lot=L1/unit=U002/rep=1",
+        "lot=L2/unit=U003/rep=1",
+        "lot=L2/unit=U003/rep=2",
+    )
     refs, errors = find_sessions(tmp_path, unit="U003")
     assert [r.key for r in refs] == [SessionKey("L2", "U003", 1), SessionKey("L2", "U003", 2)]
     refs, _ = find_sessions(tmp_path, lot="L1")
@@ -75,8 +88,7 @@ def test_filters(tmp_path):
 
 
 def test_unit_in_two_lots_is_rejected(tmp_path):
-    _mkdirs(tmp_path, "lot=L1/unit=U001/rep=1", "lot=L2/unit=U001/rep=1",
-            "lot=L2/unit=U002/rep=1")
+    _mkdirs(tmp_path, "lot=L1/unit=U001/rep=1", "lot=L2/unit=U001/rep=1", "lot=L2/unit=U002/rep=1")
     refs, errors = find_sessions(tmp_path)
     assert [str(r.key) for r in refs] == ["lot=L2/unit=U002/rep=1"]
     assert len(errors) == 2 and all(e.code == E_BAD_PATH for e in errors)
@@ -94,6 +106,7 @@ def test_missing_root(tmp_path):
 
 def test_fingerprint_is_content_touch_and_copy_keep_it_a_changed_value_does_not(tmp_path):
     import shutil
+
     steps, samples, md = _session()
     key = SessionKey("L1", "U001", 1)
     path = write_session(tmp_path / "a", key, steps, samples, md)

@@ -3,6 +3,7 @@ independent computation: per-segment sums (several runs per step), the (6, n) ch
 and its fallback when gyro / accel are replaced, the cached step columns, the saturation
 pre-check (the exact rules decide whenever it lets them), the one-pass finiteness check, and
 precision with large offsets."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -106,10 +107,21 @@ def test_replaced_gyro_or_accel_is_used_not_the_stale_channel_array():
     np.testing.assert_allclose(moved.accel, base.accel * 2.0, rtol=1e-12)
     np.testing.assert_allclose(moved.gyro_std, base.gyro_std, rtol=1e-9)
     # and without any of the reader's derived forms, the same numbers as with them
-    plain, _ = average_session(dataclasses.replace(data, channels=None, step_columns=None,
-                                                   step_row=None))
-    for f in ("gyro", "accel", "gyro_std", "accel_std", "count", "t_mid", "step", "test",
-              "up_axis", "w_ref", "f_ref", "angle_deg"):
+    plain, _ = average_session(dataclasses.replace(data, channels=None, step_columns=None, step_row=None))
+    for f in (
+        "gyro",
+        "accel",
+        "gyro_std",
+        "accel_std",
+        "count",
+        "t_mid",
+        "step",
+        "test",
+        "up_axis",
+        "w_ref",
+        "f_ref",
+        "angle_deg",
+    ):
         np.testing.assert_array_equal(getattr(plain, f), getattr(base, f))
         assert getattr(plain, f).dtype == getattr(base, f).dtype
 
@@ -173,9 +185,16 @@ def _case_full_scale_kept(samples, steps):
     return s
 
 
-@pytest.mark.parametrize("case", [_case_clip_in_settling, _case_clip_kept,
-                                  _case_clip_kept_beyond_a_settling_transient,
-                                  _case_full_scale_in_settling, _case_full_scale_kept])
+@pytest.mark.parametrize(
+    "case",
+    [
+        _case_clip_in_settling,
+        _case_clip_kept,
+        _case_clip_kept_beyond_a_settling_transient,
+        _case_full_scale_in_settling,
+        _case_full_scale_kept,
+    ],
+)
 def test_saturation_precheck_agrees_with_the_exact_rules(monkeypatch, case):
     steps, samples, md = _simulate(34)
     md = dict(md, gyro_range_dps="350,350,4000", accel_range_g="50,50,50")
@@ -186,8 +205,7 @@ def test_saturation_precheck_agrees_with_the_exact_rules(monkeypatch, case):
     assert [str(w) for w in w_fast] == [str(w) for w in w_exact]
     np.testing.assert_array_equal(fast.step, exact.step)
     saturated = {w.step for w in w_exact}
-    if case in (_case_clip_kept, _case_clip_kept_beyond_a_settling_transient,
-                _case_full_scale_kept):
+    if case in (_case_clip_kept, _case_clip_kept_beyond_a_settling_transient, _case_full_scale_kept):
         assert len(saturated) == 1  # the case is what it claims to be
     else:
         assert saturated == set()
@@ -197,16 +215,26 @@ def test_saturation_precheck_agrees_with_the_exact_rules(monkeypatch, case):
 def test_saturation_precheck_on_quantised_raw_data(monkeypatch, seed):
     """LSB data repeat their extreme codes: the pre-check hands over to the exact rules."""
     base = sim.typical_truth(np.random.default_rng(seed))
-    truth = dataclasses.replace(base, K_g=base.K_g / 16.4, gyro_unit="LSB", gyro_quantum=1.0,
-                                K_a=base.K_a / 2048.0, accel_unit="LSB", accel_quantum=1.0)
+    truth = dataclasses.replace(
+        base,
+        K_g=base.K_g / 16.4,
+        gyro_unit="LSB",
+        gyro_quantum=1.0,
+        K_a=base.K_a / 2048.0,
+        accel_unit="LSB",
+        accel_quantum=1.0,
+    )
     steps = protocols.default_session(duration_s=1.0, settle_s=0.2)
     rng = np.random.default_rng(seed)
     samples = sim.simulate_session(truth, steps, rng, RATE)
     md = sim.session_metadata(truth, RATE)
     data = session_from_tables(KEY, steps, samples, md)
     x = data.channels
-    assert averaging._may_saturate(x[:3], np.array([0]),  # one segment: every sample
-                                   None)  # repeated extremes: exact rules
+    assert averaging._may_saturate(
+        x[:3],
+        np.array([0]),  # one segment: every sample
+        None,
+    )  # repeated extremes: exact rules
     fast, w_fast = average_session(data)
     _force_exact_saturation_rules(monkeypatch)
     exact, w_exact = average_session(data)
@@ -292,8 +320,8 @@ def test_settling_search_equals_the_rule_on_every_sample(seed):
     if found is not None:
         np.testing.assert_array_equal(found, exact)
     for r in range(n_runs):  # the exact answer is the rule's suffix
-        kept = t[start[r]:end[r]] - t0[r] >= threshold[r]
-        assert kept.sum() == end[r] - exact[r] and kept[exact[r] - start[r]:].all()
+        kept = t[start[r] : end[r]] - t0[r] >= threshold[r]
+        assert kept.sum() == end[r] - exact[r] and kept[exact[r] - start[r] :].all()
 
 
 def test_settling_fallback_gives_the_same_step_means(monkeypatch):
@@ -311,11 +339,16 @@ def test_settling_fallback_gives_the_same_step_means(monkeypatch):
 def test_one_stat_answers_missing_not_regular_and_empty(tmp_path):
     from schemas import reader
     from schemas.errors import E_MISSING_FILE, E_UNREADABLE_FILE
+
     (tmp_path / "dir.parquet").mkdir()
     (tmp_path / "empty.parquet").write_bytes(b"")
     (tmp_path / "file").write_bytes(b"x")
-    cases = {"nothing.parquet": E_MISSING_FILE, "dir.parquet": E_UNREADABLE_FILE,
-             "empty.parquet": E_UNREADABLE_FILE, "file/below.parquet": E_MISSING_FILE}
+    cases = {
+        "nothing.parquet": E_MISSING_FILE,
+        "dir.parquet": E_UNREADABLE_FILE,
+        "empty.parquet": E_UNREADABLE_FILE,
+        "file/below.parquet": E_MISSING_FILE,
+    }
     for name, code in cases.items():
         path = tmp_path / name
         assert (reader._stat(path) is None) == (not path.exists())

@@ -1,12 +1,12 @@
 """The speed paths of the reader and the averaging (docs/benchmarks.md) give the same answers
 as the plain paths: the steps-table cache, the sample -> step lookup table and its binary
 search fallback, and the run-based first/last sample times."""
+
 from __future__ import annotations
 
 import dataclasses
 
 import numpy as np
-import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest

@@ -1,6 +1,7 @@
 """From files to E_UNDETERMINED: a protocol without rotation about one axis, and saturation
 that leaves too little, read fine but cannot determine K_g; the session error names the
 session and what is undetermined. (Uses the xu2016 estimator as the pipeline does.)"""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -37,8 +38,7 @@ def test_no_rotation_about_x_is_undetermined(tmp_path):
     steps = protocols.default_session(duration_s=1.0, settle_s=0.2, dynamic=False)
     steps = steps[~((steps["test"] == "multirate") & (steps["up_axis"] == "+x"))]
     samples = sim.simulate_session(truth, steps, rng, RATE)
-    ref = SessionRef(KEY, write_session(tmp_path, KEY, steps, samples,
-                                        sim.session_metadata(truth, RATE)))
+    ref = SessionRef(KEY, write_session(tmp_path, KEY, steps, samples, sim.session_metadata(truth, RATE)))
     err, warnings = _fit_or_session_error(ref)
     assert warnings == []
     assert err is not None and err.code == E_UNDETERMINED
@@ -57,8 +57,7 @@ def test_saturation_that_removes_an_axis_is_undetermined(tmp_path, monkeypatch):
     truth = replace(sim.typical_truth(rng, misalignment=0.0), gyro_range_dps=(5.0, 350.0, 4000.0))
     steps = protocols.default_session(duration_s=1.0, settle_s=0.2, dynamic=False)
     samples = sim.simulate_session(truth, steps, rng, RATE)
-    ref = SessionRef(KEY, write_session(tmp_path, KEY, steps, samples,
-                                        sim.session_metadata(truth, RATE)))
+    ref = SessionRef(KEY, write_session(tmp_path, KEY, steps, samples, sim.session_metadata(truth, RATE)))
     err, warnings = _fit_or_session_error(ref)
     x_rates = steps[(steps["test"] == "multirate") & (steps["up_axis"] == "+x")]["step"]
     assert set(x_rates) <= {w.step for w in warnings if w.code == W_SATURATED}
@@ -72,8 +71,7 @@ def test_full_protocol_minus_one_axis(tmp_path, drop):
     steps = protocols.default_session(duration_s=1.0, settle_s=0.2, dynamic=False)
     steps = steps[~((steps["test"] == "multirate") & (steps["up_axis"] == drop))]
     samples = sim.simulate_session(truth, steps, rng, RATE)
-    ref = SessionRef(KEY, write_session(tmp_path, KEY, steps, samples,
-                                        sim.session_metadata(truth, RATE)))
+    ref = SessionRef(KEY, write_session(tmp_path, KEY, steps, samples, sim.session_metadata(truth, RATE)))
     err, _ = _fit_or_session_error(ref)
     assert err is not None and err.code == E_UNDETERMINED
     assert f"axis {drop[1]}" in str(err)

@@ -2,6 +2,7 @@
 (explicit cross products and trigonometry, not the simulator's own helpers): sensing axes and
 scales, lever arm at a 3-D position, Earth rate at a latitude, thermal coefficients, noise
 densities, a tilted table axis, and that the xu2016 fit recovers the linear part."""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -10,8 +11,13 @@ import numpy as np
 import pytest
 
 from calib_core.protocols import default_session, to_frame, xu2016_multirate
-from calib_core.sim.physics import (EARTH_RATE_DPS, Turntable, WarmUp, simulate_physics_session,
-                                    typical_physics_unit)
+from calib_core.sim.physics import (
+    EARTH_RATE_DPS,
+    Turntable,
+    WarmUp,
+    simulate_physics_session,
+    typical_physics_unit,
+)
 from calib_core.xu2016 import fit_accel_multiposition, fit_gyro_multirate
 from schemas.physics_sessions import physics_unit_step_means
 
@@ -20,8 +26,9 @@ G = 9.80665
 
 def _quiet(unit, temperature=None):
     q = lambda s: replace(s, white_density=0.0, instability=0.0, turn_on=0.0)  # noqa: E731
-    return replace(unit, gyros=tuple(map(q, unit.gyros)), accels=tuple(map(q, unit.accels)),
-                   temperature=temperature)
+    return replace(
+        unit, gyros=tuple(map(q, unit.gyros)), accels=tuple(map(q, unit.accels)), temperature=temperature
+    )
 
 
 def _ideal(unit):
@@ -30,7 +37,8 @@ def _ideal(unit):
     return replace(
         unit,
         gyros=tuple(replace(s, axis=tuple(e[i]), scale=1.0, bias=0.0) for i, s in enumerate(unit.gyros)),
-        accels=tuple(replace(s, axis=tuple(e[i]), scale=1.0, bias=0.0) for i, s in enumerate(unit.accels)))
+        accels=tuple(replace(s, axis=tuple(e[i]), scale=1.0, bias=0.0) for i, s in enumerate(unit.accels)),
+    )
 
 
 def _steps(pred):
@@ -74,7 +82,7 @@ def test_lever_arm_is_centripetal_acceleration_at_the_full_position(unit):
     samples, _ = simulate_physics_session(u, steps, np.random.default_rng(0))
     w = np.radians(300.0)
     # rotation about body x: w x (w x r) = -w^2 (0, r_y, r_z); gravity +1 g on x
-    expected = np.array([1.0, -w**2 * r[1] * 1e-3 / G, -w**2 * r[2] * 1e-3 / G])
+    expected = np.array([1.0, -(w**2) * r[1] * 1e-3 / G, -(w**2) * r[2] * 1e-3 / G])
     for step in steps.step:
         got = [_step_mean(samples, step, c) for c in ("ax", "ay", "az")]
         np.testing.assert_allclose(got, expected, atol=2e-6)
@@ -89,7 +97,7 @@ def test_misaligned_accelerometer_senses_the_leakage(unit):
     steps = _steps(lambda row: row["up_axis"] == "+z" and row["rate_dps"] == 3600.0)
     samples, _ = simulate_physics_session(u, steps, np.random.default_rng(0))
     w = np.radians(3600.0)
-    expected = np.cos(tilt) * 1.0 + np.sin(tilt) * (-w**2 * 10e-3 / G)
+    expected = np.cos(tilt) * 1.0 + np.sin(tilt) * (-(w**2) * 10e-3 / G)
     assert _step_mean(samples, steps.step.iloc[0], "az") == pytest.approx(expected, abs=2e-5)
 
 
@@ -97,9 +105,12 @@ def test_earth_rate_at_latitude(unit):
     u = _ideal(_quiet(unit))
     lat = 45.0
     steps = _steps(lambda row: row["test"] == "stationary")
-    samples, md = simulate_physics_session(u, steps, np.random.default_rng(0),
-                                           table=Turntable(latitude_deg=lat, heading_deg=30.0,
-                                                           declare_location=True))
+    samples, md = simulate_physics_session(
+        u,
+        steps,
+        np.random.default_rng(0),
+        table=Turntable(latitude_deg=lat, heading_deg=30.0, declare_location=True),
+    )
     assert md["latitude_deg"] == "45" and md["table_heading_deg"] == "30"
     omega = 15.041067 / 3600.0  # deg/s
     for step, up in zip(steps.step, steps.up_axis):
@@ -140,8 +151,9 @@ def test_table_rate_error_and_tilted_axis(unit):
     u = _ideal(_quiet(unit))
     steps = _steps(lambda row: row["up_axis"] == "+x" and row["rate_dps"] == 120.0)
     steps["duration_s"] = 3.5  # 0.5 s of settling, then 3 s = exactly one turn at 120 deg/s
-    samples, _ = simulate_physics_session(u, steps, np.random.default_rng(0),
-                                          table=Turntable(rate_scale_error=1e-3, axis_tilt_deg=2.0))
+    samples, _ = simulate_physics_session(
+        u, steps, np.random.default_rng(0), table=Turntable(rate_scale_error=1e-3, axis_tilt_deg=2.0)
+    )
     step = steps.step.iloc[0]
     assert _step_mean(samples, step, "gx") == pytest.approx(120.0 * 1.001, rel=1e-6)
     # gravity is 2 deg off the table axis (= body x): along it cos(2 deg); across it, it turns once

@@ -1,5 +1,6 @@
 """`mimucal simulate` / flows.fleet_sim.simulate_fleet: layout, manifest, determinism,
 outliers beyond the lot spread, bad sessions with their expected codes."""
+
 from __future__ import annotations
 
 import json
@@ -28,8 +29,17 @@ def short_protocol():
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     out = tmp_path_factory.mktemp("fleet")
-    manifest = simulate_fleet(out, lots=2, units=3, reps=2, seed=5, sample_rate_hz=RATE,
-                              outliers=2, bad_sessions=5, protocol=short_protocol())
+    manifest = simulate_fleet(
+        out,
+        lots=2,
+        units=3,
+        reps=2,
+        seed=5,
+        sample_rate_hz=RATE,
+        outliers=2,
+        bad_sessions=5,
+        protocol=short_protocol(),
+    )
     return out, manifest
 
 
@@ -70,8 +80,7 @@ def test_outliers_stand_out_of_the_lot_spread(fleet):
         lot = lots[u["lot"]]
         dk = np.asarray(u["truth"]["K_g"]) - np.asarray(lot["K_g"])
         dw = np.asarray(u["truth"]["w0"]) - np.asarray(lot["w0"])
-        z = max(np.abs(np.diag(dk)).max() / UNIT_SPREAD["k_diag"],
-                np.abs(dw).max() / UNIT_SPREAD["w0_dps"])
+        z = max(np.abs(np.diag(dk)).max() / UNIT_SPREAD["k_diag"], np.abs(dw).max() / UNIT_SPREAD["w0_dps"])
         if u["outlier"] is None:
             assert z < 5, u["unit"]
         else:
@@ -85,6 +94,7 @@ def test_outliers_stand_out_of_the_lot_spread(fleet):
 def test_unit_spread_matches_the_population_model():
     """K_g diagonal sd 0.003 and off-diagonal sd 0.002 around the lot mean, w0 sd 0.05 deg/s."""
     from flows.fleet_sim import unit_truth
+
     lot_truth = sim.typical_truth(np.random.default_rng(0))
     rng = np.random.default_rng(1)
     units = [unit_truth(lot_truth, rng) for _ in range(400)]
@@ -105,15 +115,15 @@ def test_truth_factory_replaces_the_population(tmp_path):
         return sim.MimuTruth()
 
     steps = protocols.default_session(duration_s=0.5, settle_s=0.1, dynamic=False).iloc[:4]
-    m = simulate_fleet(tmp_path, 2, 2, 1, seed=1, sample_rate_hz=10, protocol=steps,
-                       truth_factory=factory)
+    m = simulate_fleet(tmp_path, 2, 2, 1, seed=1, sample_rate_hz=10, protocol=steps, truth_factory=factory)
     assert calls == [("L01", "U0001"), ("L01", "U0002"), ("L02", "U0003"), ("L02", "U0004")]
     assert m["units"][3]["truth"]["K_g"] == np.eye(3).tolist()
 
 
 def test_deterministic_for_a_seed(tmp_path):
-    kw = dict(lots=1, units=2, reps=2, sample_rate_hz=RATE, outliers=1, bad_sessions=1,
-              protocol=short_protocol())
+    kw = dict(
+        lots=1, units=2, reps=2, sample_rate_hz=RATE, outliers=1, bad_sessions=1, protocol=short_protocol()
+    )
     a = simulate_fleet(tmp_path / "a", seed=9, **kw)
     b = simulate_fleet(tmp_path / "b", seed=9, **kw)
     c = simulate_fleet(tmp_path / "c", seed=10, **kw)
@@ -139,8 +149,27 @@ def test_si_units_fleet_reads_like_deg_s(tmp_path):
 
 def test_cli_simulate(tmp_path, capsys):
     out = tmp_path / "cli"
-    rc = main(["simulate", str(out), "--lots", "1", "--units", "2", "--reps", "1", "--seed", "3",
-               "--rate", "10", "--outliers", "1", "--bad-sessions", "1", "--verification"])
+    rc = main(
+        [
+            "simulate",
+            str(out),
+            "--lots",
+            "1",
+            "--units",
+            "2",
+            "--reps",
+            "1",
+            "--seed",
+            "3",
+            "--rate",
+            "10",
+            "--outliers",
+            "1",
+            "--bad-sessions",
+            "1",
+            "--verification",
+        ]
+    )
     text = capsys.readouterr().out
     print(text)
     assert rc == 0
@@ -168,8 +197,13 @@ def test_cli_rejects_bad_counts(tmp_path, capsys):
 
 
 def test_a_units_data_do_not_depend_on_the_fleet_size(tmp_path):
-    kw = dict(lots=1, reps=1, seed=12, sample_rate_hz=10.0,
-              protocol=protocols.default_session(duration_s=0.5, settle_s=0.1, dynamic=False))
+    kw = dict(
+        lots=1,
+        reps=1,
+        seed=12,
+        sample_rate_hz=10.0,
+        protocol=protocols.default_session(duration_s=0.5, settle_s=0.1, dynamic=False),
+    )
     small = simulate_fleet(tmp_path / "small", units=1, **kw)
     large = simulate_fleet(tmp_path / "large", units=3, **kw)
     assert small["units"][0] == large["units"][0]
@@ -181,9 +215,19 @@ def test_fits_on_the_files_recover_the_manifest_truth(tmp_path):
     """Files in rad/s and m/s^2 -> reader -> xu2016 fits: K_g and K_a equal the manifest's
     truth (inside units) within 5 standard errors."""
     from calib_core.xu2016 import fit_accel_multiposition, fit_gyro_multirate
-    m = simulate_fleet(tmp_path, lots=1, units=2, reps=1, seed=8, sample_rate_hz=RATE,
-                       outliers=1, gyro_unit="rad/s", accel_unit="m/s^2",
-                       protocol=short_protocol())
+
+    m = simulate_fleet(
+        tmp_path,
+        lots=1,
+        units=2,
+        reps=1,
+        seed=8,
+        sample_rate_hz=RATE,
+        outliers=1,
+        gyro_unit="rad/s",
+        accel_unit="m/s^2",
+        protocol=short_protocol(),
+    )
     truth = {u["unit"]: u["truth"] for u in m["units"]}
     for ref in find_sessions(tmp_path)[0]:
         sm, _ = read_step_means(ref)

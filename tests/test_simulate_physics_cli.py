@@ -1,5 +1,6 @@
 """`mimucal simulate --physics`: a dataset from the independent physics simulator with a
 catalogue effect hidden in its sensors, then `mimucal diagnose` on it as a user would."""
+
 from __future__ import annotations
 
 import json
@@ -11,8 +12,25 @@ from flows.cli import main
 
 def test_hidden_lever_arm_is_found_with_null_for_what_the_steps_cannot_see(tmp_path, capsys):
     data = tmp_path / "data"
-    assert main(["simulate", str(data), "--physics", "--units", "1", "--reps", "3",
-                 "--hide", "lever_arm", "--no-tilted", "--seed", "3"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                str(data),
+                "--physics",
+                "--units",
+                "1",
+                "--reps",
+                "3",
+                "--hide",
+                "lever_arm",
+                "--no-tilted",
+                "--seed",
+                "3",
+            ]
+        )
+        == 0
+    )
     manifest = json.loads((data / "fleet.json").read_text())
     truth = manifest["units"][0]["hidden"][0]["params"]
     assert manifest["simulator"] == "physics" and manifest["tilted_steps"] is False

@@ -1,6 +1,7 @@
 """The results store partitioned by lot (format 2.0): one file per table and lot, reads of
 some lots, writes that touch only their lots, and the transparent read and migration of a
 format-1.0 store (one flat file per table at the root)."""
+
 from __future__ import annotations
 
 import json
@@ -13,7 +14,11 @@ import pyarrow.parquet as pq
 import pytest
 
 from schemas.results_store import (
-    STORE_FORMAT_VERSION, TABLES, ResultsStore, _normalise, partition_file_name,
+    STORE_FORMAT_VERSION,
+    TABLES,
+    ResultsStore,
+    _normalise,
+    partition_file_name,
 )
 
 LOTS = ("L01", "L02", "L10")
@@ -25,31 +30,51 @@ def summary_rows(lot: str, units: list[str], seed: int, run: str = "r1") -> pd.D
     for u in units:
         for model, params in (("gyro", ("k_g11", "w0_x")), ("accel", ("k_a11", "f0_x"))):
             for p in params:
-                rows.append({"lot": lot, "unit": u, "model": model, "parameter": p,
-                             "mean": float(rng.normal()), "std": float(rng.uniform()),
-                             "min": -1.0, "max": 1.0, "n_reps": 5, "unit_of_measure": "x",
-                             "flagged": False, "flag_reason": "", "stale": False,
-                             "stale_reason": "", "run_id": run})
+                rows.append(
+                    {
+                        "lot": lot,
+                        "unit": u,
+                        "model": model,
+                        "parameter": p,
+                        "mean": float(rng.normal()),
+                        "std": float(rng.uniform()),
+                        "min": -1.0,
+                        "max": 1.0,
+                        "n_reps": 5,
+                        "unit_of_measure": "x",
+                        "flagged": False,
+                        "flag_reason": "",
+                        "stale": False,
+                        "stale_reason": "",
+                        "run_id": run,
+                    }
+                )
     return pd.DataFrame(rows)
 
 
 def residual_rows(lot: str, units: list[str], seed: int) -> pd.DataFrame:
     rng = np.random.default_rng(seed)
     n = 7
-    return pd.DataFrame({"lot": np.repeat([lot] * len(units), n * 2),
-                         "unit": np.repeat(units, n * 2),
-                         "rep": np.tile(np.repeat([1, 2], n), len(units)),
-                         "step": np.tile(np.arange(n), 2 * len(units)),
-                         "resid": rng.normal(size=2 * n * len(units))})
+    return pd.DataFrame(
+        {
+            "lot": np.repeat([lot] * len(units), n * 2),
+            "unit": np.repeat(units, n * 2),
+            "rep": np.tile(np.repeat([1, 2], n), len(units)),
+            "step": np.tile(np.arange(n), 2 * len(units)),
+            "resid": rng.normal(size=2 * n * len(units)),
+        }
+    )
 
 
 def fleet_tables() -> dict[str, pd.DataFrame]:
     """Summary and residual rows of 3 lots (given out of order, as a flow would)."""
     units = {lot: [f"U{i + 10 * k:04d}" for i in range(3)] for k, lot in enumerate(LOTS)}
-    summ = pd.concat([summary_rows(lot, units[lot], seed=k) for k, lot in enumerate(LOTS)][::-1],
-                     ignore_index=True)
-    res = pd.concat([residual_rows(lot, units[lot], seed=10 + k)
-                     for k, lot in enumerate(LOTS)][::-1], ignore_index=True)
+    summ = pd.concat(
+        [summary_rows(lot, units[lot], seed=k) for k, lot in enumerate(LOTS)][::-1], ignore_index=True
+    )
+    res = pd.concat(
+        [residual_rows(lot, units[lot], seed=10 + k) for k, lot in enumerate(LOTS)][::-1], ignore_index=True
+    )
     return {"summary": summ, "residuals": res}
 
 
@@ -74,13 +99,13 @@ def test_one_file_per_lot_and_reads_give_the_sorted_table(tmp_path):
     tabs = fleet_tables()
     for name, df in tabs.items():
         st.write(name, df)
-        assert sorted(p.name for p in (tmp_path / "tables" / name).iterdir()) == \
-            [f"lot={lot}.parquet" for lot in LOTS]
+        assert sorted(p.name for p in (tmp_path / "tables" / name).iterdir()) == [
+            f"lot={lot}.parquet" for lot in LOTS
+        ]
         back = st.read(name)
         pd.testing.assert_frame_equal(back, expected(df, name))
         one = st.read(name, lots=["L02"])
-        pd.testing.assert_frame_equal(
-            one, expected(df[df["lot"] == "L02"], name))
+        pd.testing.assert_frame_equal(one, expected(df[df["lot"] == "L02"], name))
         two = st.read(name, lots={"L10", "L01"})
         pd.testing.assert_frame_equal(two, expected(df[df["lot"] != "L02"], name))
         assert len(st.read(name, lots=["nope"])) == 0
@@ -157,8 +182,7 @@ def test_write_of_some_lots_refuses_rows_of_others_and_skips_unchanged(tmp_path)
 
 def test_odd_lot_names_and_missing_lots_round_trip(tmp_path):
     st = ResultsStore(tmp_path)
-    df = pd.concat([residual_rows("lot a/ü%", ["U1"], 1), residual_rows("L1", ["U2"], 2)],
-                   ignore_index=True)
+    df = pd.concat([residual_rows("lot a/ü%", ["U1"], 1), residual_rows("L1", ["U2"], 2)], ignore_index=True)
     df.loc[df.index[-3:], "lot"] = None
     st.write("residuals", df)
     names = sorted(p.name for p in st.table_dir("residuals").iterdir())
@@ -173,16 +197,25 @@ def write_flat_v1(root: Path, tables: dict[str, pd.DataFrame]) -> None:
     """A format-1.0 store as the old code wrote it: each table normalised, sorted, one file."""
     root.mkdir(parents=True, exist_ok=True)
     for name, df in tables.items():
-        pq.write_table(pa.Table.from_pandas(expected(df, name), preserve_index=False),
-                       root / f"{name}.parquet", compression="zstd")
+        pq.write_table(
+            pa.Table.from_pandas(expected(df, name), preserve_index=False),
+            root / f"{name}.parquet",
+            compression="zstd",
+        )
 
 
 def v1_tables() -> dict[str, pd.DataFrame]:
     tabs = fleet_tables()
-    units = tabs["summary"][["lot", "unit"]].drop_duplicates().assign(
-        state="calibrated", reason="", n_sessions=5, flagged=False, flag_reason="")
-    sessions = units[["lot", "unit"]].merge(pd.DataFrame({"rep": [1, 2]}), how="cross").assign(
-        status="ok", fingerprint="f", run_id="r1")
+    units = (
+        tabs["summary"][["lot", "unit"]]
+        .drop_duplicates()
+        .assign(state="calibrated", reason="", n_sessions=5, flagged=False, flag_reason="")
+    )
+    sessions = (
+        units[["lot", "unit"]]
+        .merge(pd.DataFrame({"rep": [1, 2]}), how="cross")
+        .assign(status="ok", fingerprint="f", run_id="r1")
+    )
     return {**tabs, "units": units, "sessions": sessions}
 
 
@@ -193,8 +226,7 @@ def test_format_1_store_is_read_as_is_and_migrated_by_the_first_write(tmp_path):
     assert st.format_version() == "1.0" and st.exists()
     for name, df in tabs.items():
         pd.testing.assert_frame_equal(st.read(name), expected(df, name))
-        pd.testing.assert_frame_equal(st.read(name, lots=["L10"]),
-                                      expected(df[df["lot"] == "L10"], name))
+        pd.testing.assert_frame_equal(st.read(name, lots=["L10"]), expected(df[df["lot"] == "L10"], name))
     assert st.table_lots("units") == list(LOTS) and st.lots() == list(LOTS)
     assert st.fingerprints()[("L02", "U0010", 2)] == "f"
     assert not st.tables_dir.exists()  # reading never writes

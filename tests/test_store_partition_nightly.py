@@ -2,6 +2,7 @@
 is replaced by a thread pool, so what is checked is the bookkeeping: each lot is handed over
 once, whole and sorted, as soon as its last unit is done; no more than ``max_in_flight``
 batches are ever submitted and not consumed; a stored lot's results are not kept."""
+
 from __future__ import annotations
 
 import gc
@@ -45,8 +46,7 @@ class FakeTask:
         with self.lock:
             self.outstanding += 1
             self.max_outstanding = max(self.max_outstanding, self.outstanding)
-        fut = self.pool.submit(lambda: (time.sleep(delay),
-                                        [FakeResult(j.lot, j.unit) for j in jobs])[1])
+        fut = self.pool.submit(lambda: (time.sleep(delay), [FakeResult(j.lot, j.unit) for j in jobs])[1])
         original = fut.result
 
         def result(timeout=None):
@@ -54,16 +54,15 @@ class FakeTask:
             with self.lock:
                 self.outstanding -= 1
             return out
+
         fut.result = result
         return fut
 
 
 @pytest.mark.parametrize("batch_size,max_in_flight,seed", [(3, 4, 1), (1, 2, 2), (8, 1, 3)])
-def test_lots_are_handed_over_whole_once_done_and_then_freed(monkeypatch, batch_size,
-                                                             max_in_flight, seed):
+def test_lots_are_handed_over_whole_once_done_and_then_freed(monkeypatch, batch_size, max_in_flight, seed):
     per_lot = {"L01": 7, "L02": 5, "L03": 1, "L04": 9}
-    jobs = [UnitJob(lot, f"U{lot[-1]}{i:02d}", [], "new")
-            for lot, n in per_lot.items() for i in range(n)]
+    jobs = [UnitJob(lot, f"U{lot[-1]}{i:02d}", [], "new") for lot, n in per_lot.items() for i in range(n)]
     with ThreadPoolExecutor(max_workers=2) as pool:
         fake = FakeTask(pool, seed)
         monkeypatch.setattr(nightly, "calibrate_units_task", fake)
@@ -98,15 +97,27 @@ def test_a_lot_is_stored_before_later_lots_finish_calibrating(monkeypatch):
     """With one batch in flight the lots are stored in order, each before the next lot's
     first batch completes: what bounds memory to one lot."""
     per_lot = {"L01": 4, "L02": 4, "L03": 4}
-    jobs = [UnitJob(lot, f"U{lot[-1]}{i}", [], "new") for lot, n in per_lot.items()
-            for i in range(n)]
+    jobs = [UnitJob(lot, f"U{lot[-1]}{i}", [], "new") for lot, n in per_lot.items() for i in range(n)]
     events = []
     with ThreadPoolExecutor(max_workers=1) as pool:
         monkeypatch.setattr(nightly, "calibrate_units_task", FakeTask(pool, 0))
         monkeypatch.setattr(nightly, "as_completed", as_completed)
-        nightly._run_batches(jobs, 2, False,
-                             lambda b: events.append(("batch", b[0].lot)),
-                             lambda lot, rs: events.append(("store", lot)), max_in_flight=1)
-    assert events == [("batch", "L01"), ("batch", "L01"), ("store", "L01"),
-                      ("batch", "L02"), ("batch", "L02"), ("store", "L02"),
-                      ("batch", "L03"), ("batch", "L03"), ("store", "L03")]
+        nightly._run_batches(
+            jobs,
+            2,
+            False,
+            lambda b: events.append(("batch", b[0].lot)),
+            lambda lot, rs: events.append(("store", lot)),
+            max_in_flight=1,
+        )
+    assert events == [
+        ("batch", "L01"),
+        ("batch", "L01"),
+        ("store", "L01"),
+        ("batch", "L02"),
+        ("batch", "L02"),
+        ("store", "L02"),
+        ("batch", "L03"),
+        ("batch", "L03"),
+        ("store", "L03"),
+    ]

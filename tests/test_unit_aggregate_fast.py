@@ -3,6 +3,7 @@ repetitions as their definitions give them (numbers worked by hand, and numpy on
 parameter's values), NaN values and missing models included; every fit's ``parameters()``
 lists the names, values and units of the paper's parameters.
 """
+
 from __future__ import annotations
 
 import math
@@ -40,8 +41,11 @@ def _rep(rep: int, *params) -> RepetitionCalibration:
 
 def test_summarise_known_numbers():
     nan = float("nan")
-    reps = [_rep(3, ("a", 3.0, nan)), _rep(1, ("a", 1.0, 0.1), ("b", 10.0, nan)),
-            _rep(2, ("a", 2.0, 0.3), ("b", 20.0, nan))]
+    reps = [
+        _rep(3, ("a", 3.0, nan)),
+        _rep(1, ("a", 1.0, 0.1), ("b", 10.0, nan)),
+        _rep(2, ("a", 2.0, 0.3), ("b", 20.0, nan)),
+    ]
     a, b = summarise(reps)  # in the order the parameters first appear, reps in rep order
     assert (a.model, a.name, a.unit, a.n_reps, a.values) == ("m", "a", "u", 3, (1.0, 2.0, 3.0))
     assert (a.mean, a.std, a.min, a.max) == (2.0, 1.0, 1.0, 3.0)
@@ -65,10 +69,16 @@ def _by_definition(reps):
     out = {}
     for key, ps in by_key.items():
         v, se = np.array([p.value for p in ps]), np.array([p.stderr for p in ps])
-        out[key] = dict(unit=ps[0].unit, n_reps=len(v), values=tuple(v.tolist()),
-                        mean=v.mean(), std=v.std(ddof=1) if len(v) > 1 else np.nan,
-                        min=v.min(), max=v.max(),
-                        mean_stderr=np.nanmean(se) if np.isfinite(se).any() else np.nan)
+        out[key] = dict(
+            unit=ps[0].unit,
+            n_reps=len(v),
+            values=tuple(v.tolist()),
+            mean=v.mean(),
+            std=v.std(ddof=1) if len(v) > 1 else np.nan,
+            min=v.min(),
+            max=v.max(),
+            mean_stderr=np.nanmean(se) if np.isfinite(se).any() else np.nan,
+        )
     return out
 
 
@@ -94,8 +104,11 @@ def test_summarise_fitted_repetitions():
 
 def test_summarise_with_nan_parameters():
     # untilted dynamic steps: some lever-arm components are NaN (value and stderr)
-    steps = protocols.to_frame(protocols.xu2016_multirate() + protocols.xu2016_multiposition()
-                               + protocols.dynamic_steps(tilted=False))
+    steps = protocols.to_frame(
+        protocols.xu2016_multirate()
+        + protocols.xu2016_multiposition()
+        + protocols.dynamic_steps(tilted=False)
+    )
     reps = _reps(seed=10, steps=steps)
     assert np.isnan(reps[0].fits["lever_arm"].lever_arm_mm).any()
     out = summarise(reps)
@@ -132,33 +145,39 @@ def test_parameters_from_blocks_are_the_former_params():
     fits = rep.fits
 
     def params(model, names, values, stderrs, unit):
-        return [Param(model, n, float(v), float(e), unit) for n, v, e in
-                zip(names, np.ravel(values), np.ravel(stderrs))]
+        return [
+            Param(model, n, float(v), float(e), unit)
+            for n, v, e in zip(names, np.ravel(values), np.ravel(stderrs))
+        ]
 
     g, a, st, lv = fits["gyro"], fits["accel"], fits["accel_static"], fits["lever_arm"]
     mat = [f"{i}{j}" for i in "123" for j in "123"]
     expected = {
-        "gyro": params("gyro", [f"k_g{s}" for s in mat], g.K, g.K_stderr,
-                       f"deg/s per {g.raw_unit}")
+        "gyro": params("gyro", [f"k_g{s}" for s in mat], g.K, g.K_stderr, f"deg/s per {g.raw_unit}")
         + params("gyro", [f"w0_{x}" for x in AXES], g.w0, g.w0_stderr, "deg/s"),
-        "accel": params("accel", [f"k_a{s}" for s in mat], a.K, a.K_stderr,
-                        f"g per {a.raw_unit}")
+        "accel": params("accel", [f"k_a{s}" for s in mat], a.K, a.K_stderr, f"g per {a.raw_unit}")
         + params("accel", [f"f0_{x}" for x in AXES], a.f0, a.f0_stderr, "g"),
-        "accel_static": params("accel_static", [f"k_{x}" for x in AXES], st.scale,
-                               st.scale_stderr, f"{st.unit}/g")
+        "accel_static": params(
+            "accel_static", [f"k_{x}" for x in AXES], st.scale, st.scale_stderr, f"{st.unit}/g"
+        )
         + params("accel_static", [f"u0_{x}" for x in AXES], st.bias, st.bias_stderr, st.unit)
-        + params("accel_static", [f"theta_{x}{y}" for x in AXES for y in AXES],
-                 st.angles_deg, st.angles_stderr, "deg"),
-        "lever_arm": params("lever_arm", [f"r{i}{x}" for i in "123" for x in AXES],
-                            lv.lever_arm_mm, lv.stderr, "mm"),
+        + params(
+            "accel_static",
+            [f"theta_{x}{y}" for x in AXES for y in AXES],
+            st.angles_deg,
+            st.angles_stderr,
+            "deg",
+        ),
+        "lever_arm": params(
+            "lever_arm", [f"r{i}{x}" for i in "123" for x in AXES], lv.lever_arm_mm, lv.stderr, "mm"
+        ),
     }
     for name in ("gyro_traditional", "accel_traditional"):
         t = fits[name]
         s, b = ("s_g", "b_g") if name.startswith("gyro") else ("s_a", "b_a")
-        expected[name] = (params(name, [f"{s}{x}" for x in mat], t.S, t.S_stderr,
-                                 f"{t.raw_unit} per {t.physical_unit}")
-                          + params(name, [f"{b}_{x}" for x in AXES], t.b, t.b_stderr,
-                                   t.raw_unit))
+        expected[name] = params(
+            name, [f"{s}{x}" for x in mat], t.S, t.S_stderr, f"{t.raw_unit} per {t.physical_unit}"
+        ) + params(name, [f"{b}_{x}" for x in AXES], t.b, t.b_stderr, t.raw_unit)
     assert set(expected) == set(fits)
     for name, fit in fits.items():
         got = fit.parameters()

@@ -1,4 +1,5 @@
 """xu2016 estimators against known truth, and their standard errors against Monte Carlo."""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -14,8 +15,13 @@ STEPS = protocols.default_session(verification=True)
 
 
 def _quiet(truth):
-    return replace(truth, gyro_noise_dps=0.0, gyro_bias_instability_dps=0.0, accel_noise_g=0.0,
-                   accel_bias_instability_g=0.0)
+    return replace(
+        truth,
+        gyro_noise_dps=0.0,
+        gyro_bias_instability_dps=0.0,
+        accel_noise_g=0.0,
+        accel_bias_instability_g=0.0,
+    )
 
 
 def test_noise_free_recovers_truth_exactly():
@@ -60,21 +66,24 @@ def test_kg_recovered_to_1e_minus_4_with_realistic_noise():
 def test_standard_errors_match_monte_carlo_spread():
     """(estimate - truth) / stderr over 200 sessions: mean ~ 0, std within 0.8-1.25."""
     rng = np.random.default_rng(2016)
-    truth = simulator.typical_truth(rng, gyro_bias_repeatability_dps=0.02,
-                                    accel_bias_repeatability_g=2e-4)
+    truth = simulator.typical_truth(rng, gyro_bias_repeatability_dps=0.02, accel_bias_repeatability_g=2e-4)
     z = {"gyro": [], "accel": [], "gyro_traditional": [], "accel_traditional": []}
     for _ in range(200):
         rep_truth = simulator.draw_repetition_truth(truth, rng)
         sm = simulator.simulate_step_means(rep_truth, STEPS, rng)
         g = xu2016.fit_gyro_multirate(sm)
         a = xu2016.fit_accel_multiposition(sm)
-        z["gyro"].append(np.r_[((g.K - rep_truth.K_g) / g.K_stderr).ravel(),
-                               (g.w0 - rep_truth.w0) / g.w0_stderr])
-        z["accel"].append(np.r_[((a.K - rep_truth.K_a) / a.K_stderr).ravel(),
-                                (a.f0 - rep_truth.f0) / a.f0_stderr])
+        z["gyro"].append(
+            np.r_[((g.K - rep_truth.K_g) / g.K_stderr).ravel(), (g.w0 - rep_truth.w0) / g.w0_stderr]
+        )
+        z["accel"].append(
+            np.r_[((a.K - rep_truth.K_a) / a.K_stderr).ravel(), (a.f0 - rep_truth.f0) / a.f0_stderr]
+        )
         # traditional: true S = K^-1, b = -K^-1 x0
-        for name, fit, K, x0 in (("gyro_traditional", xu2016.fit_gyro_traditional(sm), rep_truth.K_g, rep_truth.w0),
-                                 ("accel_traditional", xu2016.fit_accel_traditional(sm), rep_truth.K_a, rep_truth.f0)):
+        for name, fit, K, x0 in (
+            ("gyro_traditional", xu2016.fit_gyro_traditional(sm), rep_truth.K_g, rep_truth.w0),
+            ("accel_traditional", xu2016.fit_accel_traditional(sm), rep_truth.K_a, rep_truth.f0),
+        ):
             S = np.linalg.inv(K)
             z[name].append(np.r_[((fit.S - S) / fit.S_stderr).ravel(), (fit.b + S @ x0) / fit.b_stderr])
     for name, rows in z.items():

@@ -1,5 +1,6 @@
 """zhang2017 lever arms: the forward physics, recovery by the joint least squares, the paper's
 closed form for contrast, undetermined components, compensation."""
+
 import json
 
 import numpy as np
@@ -9,9 +10,14 @@ from calib_core import protocols
 from calib_core.effects import MotionContext
 from calib_core.errors import DesignError
 from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import (AccelUnitTruth, SensitiveAxisLeverArm,
-                                  compensate_specific_force, fit_accel_static, fit_lever_arm,
-                                  paper_lever_arm)
+from calib_core.zhang2017 import (
+    AccelUnitTruth,
+    SensitiveAxisLeverArm,
+    compensate_specific_force,
+    fit_accel_static,
+    fit_lever_arm,
+    paper_lever_arm,
+)
 
 from conftest import PAPER_NOISE, paper_unit, random_unit
 
@@ -21,15 +27,25 @@ G = 9.80665
 def test_centripetal_physics_by_hand():
     # x accelerometer exactly along x at r = (10, 0, 0) mm, rotating at 180 deg/s about z:
     # it senses the centripetal acceleration -w^2 r_x (towards the axis), in g
-    u = AccelUnitTruth(scale=np.ones(3), bias=np.zeros(3), C=np.eye(3),
-                       lever_arm_mm=np.array([[10.0, 0, 0], [0, 0, 0], [0, 0, 0]]), unit="g")
+    u = AccelUnitTruth(
+        scale=np.ones(3),
+        bias=np.zeros(3),
+        C=np.eye(3),
+        lever_arm_mm=np.array([[10.0, 0, 0], [0, 0, 0], [0, 0, 0]]),
+        unit="g",
+    )
     w = np.pi  # rad/s
     out = u.raw([0.0, 0.0, 1.0], [0.0, 0.0, 180.0])[0]
-    assert out[0] == pytest.approx(-w ** 2 * 0.010 / G, rel=1e-12)
+    assert out[0] == pytest.approx(-(w**2) * 0.010 / G, rel=1e-12)
     assert out[1] == 0.0 and out[2] == pytest.approx(1.0)
     # angular acceleration about z of 90 deg/s^2: tangential dw/dt x r along +y, x unaffected
-    u2 = AccelUnitTruth(scale=np.ones(3), bias=np.zeros(3), C=np.eye(3),
-                        lever_arm_mm=np.array([[0, 0, 0], [10.0, 0, 0], [0, 0, 0]]), unit="g")
+    u2 = AccelUnitTruth(
+        scale=np.ones(3),
+        bias=np.zeros(3),
+        C=np.eye(3),
+        lever_arm_mm=np.array([[0, 0, 0], [10.0, 0, 0], [0, 0, 0]]),
+        unit="g",
+    )
     out = u2.raw([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 90.0])[0]
     assert out[1] == pytest.approx(np.pi / 2 * 0.010 / G, rel=1e-12)
 
@@ -45,8 +61,7 @@ def test_simulator_effect_equals_unit_forward_model():
 
 
 def _fits(u, steps, seed, **noise):
-    sm = simulate_step_means(u.to_mimu_truth(**(noise or PAPER_NOISE)), steps,
-                             np.random.default_rng(seed))
+    sm = simulate_step_means(u.to_mimu_truth(**(noise or PAPER_NOISE)), steps, np.random.default_rng(seed))
     st = fit_accel_static(sm)
     return sm, st, fit_lever_arm(sm, st)
 
@@ -128,8 +143,9 @@ def test_paper_formula_blows_up_joint_ls_does_not():
     c = np.eye(3) + np.array([[0, 3e-5, -2e-5], [-4e-5, 0, 2.5e-5], [3e-5, -3e-5, 0]])
     c /= np.linalg.norm(c, axis=1, keepdims=True)
     r = np.array([[-8.0, 1.0, -1.5], [0.8, -8.0, 0.6], [-1.2, 0.5, -8.0]])
-    u = AccelUnitTruth(scale=np.array([0.40, 0.41, 0.39]), bias=np.array([2.4, 2.5, 2.45]),
-                       C=c.T, lever_arm_mm=r)
+    u = AccelUnitTruth(
+        scale=np.array([0.40, 0.41, 0.39]), bias=np.array([2.4, 2.5, 2.45]), C=c.T, lever_arm_mm=r
+    )
     sm, st, lv = _fits(u, protocols.zhang2017_session(), 5)
     paper = paper_lever_arm(sm, st)
     off = ~np.eye(3, dtype=bool)
@@ -151,8 +167,7 @@ def test_paper_formula_agrees_when_noise_free():
 
 def test_compensation_inverts_the_forward_model():
     u = random_unit(np.random.default_rng(8), tilt_deg=3.0)
-    sm, st, lv = _fits(u, protocols.zhang2017_session(), 1,
-                       accel_noise_g=0.0, accel_bias_instability_g=0.0)
+    sm, st, lv = _fits(u, protocols.zhang2017_session(), 1, accel_noise_g=0.0, accel_bias_instability_g=0.0)
     rng = np.random.default_rng(9)
     f = rng.normal(size=(50, 3))
     w = rng.normal(0, 300, (50, 3))

@@ -1,5 +1,6 @@
 """Standard errors of the static and lever-arm fits against the Monte Carlo spread, on the
 paper's unit at the paper's noise (one loop: both stages per simulated session)."""
+
 import numpy as np
 
 from calib_core import protocols
@@ -21,9 +22,15 @@ def test_stderr_agree_with_monte_carlo_spread():
         sm = simulate_step_means(mimu, steps, rng)
         st = fit_accel_static(sm)
         lv = fit_lever_arm(sm, st)
-        z_static.append(np.concatenate([
-            (st.scale - u.scale) / st.scale_stderr, (st.bias - u.bias) / st.bias_stderr,
-            ((st.angles_deg - u.angles_deg) / st.angles_stderr).ravel()]))
+        z_static.append(
+            np.concatenate(
+                [
+                    (st.scale - u.scale) / st.scale_stderr,
+                    (st.bias - u.bias) / st.bias_stderr,
+                    ((st.angles_deg - u.angles_deg) / st.angles_stderr).ravel(),
+                ]
+            )
+        )
         z_lever.append(((lv.lever_arm_mm - u.lever_arm_mm) / lv.stderr).ravel())
         err_r.append(np.abs(lv.lever_arm_mm - u.lever_arm_mm).max())
         err_ang.append(np.abs(st.angles_deg - u.angles_deg).max())

@@ -1,10 +1,16 @@
 """`mimucal reproduce zhang2017` numerics: the paper's unit simulated and recovered."""
+
 import json
 
 import numpy as np
 
-from calib_core.reproduction.zhang2017 import (PUBLISHED_ANGLES_DEG, PUBLISHED_R_MM,
-                                               PUBLISHED_SCALE_V_PER_G, paper_truth, reproduce)
+from calib_core.reproduction.zhang2017 import (
+    PUBLISHED_ANGLES_DEG,
+    PUBLISHED_R_MM,
+    PUBLISHED_SCALE_V_PER_G,
+    paper_truth,
+    reproduce,
+)
 
 
 def test_paper_truth_is_table_1_and_3():
@@ -15,8 +21,10 @@ def test_paper_truth_is_table_1_and_3():
     # published row 2 is not a unit vector (its off-diagonal cosines imply 0.934 deg)
     off = ~np.eye(3, dtype=bool)
     assert np.max(np.abs(t.angles_deg[off] - PUBLISHED_ANGLES_DEG[off])) < 1e-4
-    assert abs(t.angles_deg[1, 1] - np.degrees(np.hypot(np.radians(89.25516 - 90),
-                                                         np.radians(90.5630 - 90)))) < 1e-3
+    assert (
+        abs(t.angles_deg[1, 1] - np.degrees(np.hypot(np.radians(89.25516 - 90), np.radians(90.5630 - 90))))
+        < 1e-3
+    )
 
 
 def test_reproduce_recovers_published_values():

@@ -1,5 +1,6 @@
 """zhang2017 static model: 15 <-> 12 parameter conversions, recovery on simulated units,
 standard errors against Monte Carlo spread."""
+
 import numpy as np
 import pytest
 
@@ -7,8 +8,14 @@ from calib_core import protocols
 from calib_core.errors import DesignError
 from calib_core.results import FitResult
 from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import (C_from_angles, affine_from_parts, affine_to_static, angles_from_C,
-                                  fit_accel_static, static_to_affine)
+from calib_core.zhang2017 import (
+    C_from_angles,
+    affine_from_parts,
+    affine_to_static,
+    angles_from_C,
+    fit_accel_static,
+    static_to_affine,
+)
 
 from conftest import PAPER_ANGLES, PAPER_NOISE, paper_unit, random_unit
 
@@ -20,8 +27,9 @@ def test_angles_to_cosines_matches_definition():
     assert abs(C[0, 0] - np.cos(np.radians(0.75997))) < 1e-8
     assert abs(C[1, 0] - np.cos(np.radians(90.71425))) < 1e-8  # x accelerometer along body y
     # without normalisation the published angles come back exactly
-    assert np.allclose(angles_from_C(C_from_angles(PAPER_ANGLES, normalise=False)), PAPER_ANGLES,
-                       rtol=0, atol=1e-9)
+    assert np.allclose(
+        angles_from_C(C_from_angles(PAPER_ANGLES, normalise=False)), PAPER_ANGLES, rtol=0, atol=1e-9
+    )
 
 
 @pytest.mark.parametrize("seed", range(20))
@@ -46,8 +54,7 @@ def test_round_trip_15_12_machine_precision(seed):
 
 
 def _fit(u, steps, rng, **noise):
-    return fit_accel_static(simulate_step_means(u.to_mimu_truth(**(noise or PAPER_NOISE)),
-                                                steps, rng))
+    return fit_accel_static(simulate_step_means(u.to_mimu_truth(**(noise or PAPER_NOISE)), steps, rng))
 
 
 def test_static_fit_recovers_paper_unit():

@@ -8,6 +8,7 @@ axis i through the design of the multirate (or multiposition) test, and what the
 has beyond that noise becomes turn-on repeatability. Where one noise level cannot explain two
 published spreads at once, the report says so: that gap is input for model discovery.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -48,15 +49,21 @@ PUBLISHED_TABLE2 = {
 }
 # Table 3: output error ranges (deg/s), [input axis][method] -> (x, y, z) as (min, max)
 PUBLISHED_TABLE3 = {
-    "x": {"uncompensated": [(0.004, 0.288), (-7.305, -7.185), (-3.474, 2.825)],
-          "proposed": [(-0.142, 0.144), (-0.005, 0.034), (-0.081, 0.039)],
-          "traditional": [(-0.142, 0.143), (-0.0048, 0.034), (-0.081, 0.041)]},
-    "y": {"uncompensated": [(-3.445, 3.738), (-0.364, 0.4684), (-4.829, 4.105)],
-          "proposed": [(-0.005, 0.014), (-0.15, 0.162), (0.007, 0.069)],
-          "traditional": [(-0.005, 0.015), (-0.15, 0.161), (0.007, 0.071)]},
-    "z": {"uncompensated": [(-37.773, 37.959), (-1.174, 1.607), (-17.449, 16.48)],
-          "proposed": [(-0.149, 0.218), (-0.214, 0.358), (-2.954, 4.838)],
-          "traditional": [(-0.149, 0.218), (-0.214, 0.358), (-2.950, 4.835)]},
+    "x": {
+        "uncompensated": [(0.004, 0.288), (-7.305, -7.185), (-3.474, 2.825)],
+        "proposed": [(-0.142, 0.144), (-0.005, 0.034), (-0.081, 0.039)],
+        "traditional": [(-0.142, 0.143), (-0.0048, 0.034), (-0.081, 0.041)],
+    },
+    "y": {
+        "uncompensated": [(-3.445, 3.738), (-0.364, 0.4684), (-4.829, 4.105)],
+        "proposed": [(-0.005, 0.014), (-0.15, 0.162), (0.007, 0.069)],
+        "traditional": [(-0.005, 0.015), (-0.15, 0.161), (0.007, 0.071)],
+    },
+    "z": {
+        "uncompensated": [(-37.773, 37.959), (-1.174, 1.607), (-17.449, 16.48)],
+        "proposed": [(-0.149, 0.218), (-0.214, 0.358), (-2.954, 4.838)],
+        "traditional": [(-0.149, 0.218), (-0.214, 0.358), (-2.950, 4.835)],
+    },
 }
 AXES = "xyz"
 
@@ -70,8 +77,17 @@ def derive_noise(duration_s: float, settle_s: float, sample_rate_hz: float) -> d
     truth = simulator.xu2016_truth()
     steps = protocols.default_session(duration_s, settle_s, dynamic=False)
     sm = simulator.simulate_step_means(
-        replace(truth, gyro_noise_dps=0.0, gyro_bias_instability_dps=0.0, accel_noise_g=0.0,
-                accel_bias_instability_g=0.0), steps, np.random.default_rng(0), sample_rate_hz)
+        replace(
+            truth,
+            gyro_noise_dps=0.0,
+            gyro_bias_instability_dps=0.0,
+            accel_noise_g=0.0,
+            accel_bias_instability_g=0.0,
+        ),
+        steps,
+        np.random.default_rng(0),
+        sample_rate_hz,
+    )
     dG, _, _ = xu2016.multirate_pairs(sm)
     # std(K_ii) = sigma_step * sqrt(2) * sqrt([(dG^T dG)^-1]_ii)
     g_unscaled = np.sqrt(np.diag(np.linalg.pinv(dG.T @ dG)) * 2.0)
@@ -93,12 +109,16 @@ def derive_noise(duration_s: float, settle_s: float, sample_rate_hz: float) -> d
     w0_from_noise = sig_g_used / np.sqrt(n_stat)
     f0_from_noise = sig_a_used * a_unscaled[3]
     return {
-        "gyro_step_sigma_dps": sig_g_used, "accel_step_sigma_g": sig_a_used,
-        "gyro_sigma_from_K_dps": sig_g, "gyro_sigma_bound_from_w0_dps": sig_g_bound,
-        "accel_sigma_from_K_g": sig_a, "accel_sigma_bound_from_f0_g": sig_a_bound,
-        "gyro_repeatability_dps": np.sqrt(np.maximum(w0_spread ** 2 - w0_from_noise ** 2, 0.0)),
-        "accel_repeatability_g": np.sqrt(np.maximum(f0_spread ** 2 - f0_from_noise ** 2, 0.0)),
-        "w0_spread_published": w0_spread, "f0_spread_published_g": f0_spread,
+        "gyro_step_sigma_dps": sig_g_used,
+        "accel_step_sigma_g": sig_a_used,
+        "gyro_sigma_from_K_dps": sig_g,
+        "gyro_sigma_bound_from_w0_dps": sig_g_bound,
+        "accel_sigma_from_K_g": sig_a,
+        "accel_sigma_bound_from_f0_g": sig_a_bound,
+        "gyro_repeatability_dps": np.sqrt(np.maximum(w0_spread**2 - w0_from_noise**2, 0.0)),
+        "accel_repeatability_g": np.sqrt(np.maximum(f0_spread**2 - f0_from_noise**2, 0.0)),
+        "w0_spread_published": w0_spread,
+        "f0_spread_published_g": f0_spread,
     }
 
 
@@ -111,12 +131,22 @@ class ReproductionReport:
     findings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"table1": self.table1, "table2": self.table2, "table3": self.table3,
-                "findings": self.findings}
+        return {
+            "table1": self.table1,
+            "table2": self.table2,
+            "table3": self.table3,
+            "findings": self.findings,
+        }
 
 
-def reproduce(rate_hz: float = 100.0, reps: int = 5, seed: int = 0, duration_s: float = 3.0,
-              settle_s: float = 0.5, averager=None) -> ReproductionReport:
+def reproduce(
+    rate_hz: float = 100.0,
+    reps: int = 5,
+    seed: int = 0,
+    duration_s: float = 3.0,
+    settle_s: float = 0.5,
+    averager=None,
+) -> ReproductionReport:
     """Run the method ``reps`` times on the simulated unit.
 
     ``averager(key, steps, samples, metadata) -> StepMeans`` turns simulated raw samples into
@@ -140,8 +170,7 @@ def reproduce(rate_hz: float = 100.0, reps: int = 5, seed: int = 0, duration_s: 
     for r in range(reps):
         rep_truth = simulator.draw_repetition_truth(truth, rng)
         key = SessionKey("xu2016", "MIMU", r + 1)
-        sm = simulator.simulate_repetition_step_means(rep_truth, steps, rng, rate_hz, key,
-                                                      averager)
+        sm = simulator.simulate_repetition_step_means(rep_truth, steps, rng, rate_hz, key, averager)
         g = xu2016.fit_gyro_multirate(sm)
         fits.append((sm, g, xu2016.fit_accel_multiposition(sm), xu2016.fit_gyro_traditional(sm)))
     lines: list[str] = []
@@ -166,22 +195,33 @@ def _param_table(published: dict, fits: list, kind: str, bias_scale: float) -> l
         else:
             a = AXES.index(name[-1])
             ours = np.array([(f.w0 if kind == "gyro" else f.f0)[a] for f in fits]) * bias_scale
-        rows.append({"parameter": name, "published_mean": vals[5], "mean": float(ours.mean()),
-                     "difference": float(ours.mean() - vals[5]),
-                     "published_std": _published_spread(published, name),
-                     "std": float(ours.std(ddof=1)) if len(ours) > 1 else float("nan"),
-                     "per_rep": ours.tolist()})
+        rows.append(
+            {
+                "parameter": name,
+                "published_mean": vals[5],
+                "mean": float(ours.mean()),
+                "difference": float(ours.mean() - vals[5]),
+                "published_std": _published_spread(published, name),
+                "std": float(ours.std(ddof=1)) if len(ours) > 1 else float("nan"),
+                "per_rep": ours.tolist(),
+            }
+        )
     return rows
 
 
 def _format_table(title: str, rows: list[dict]) -> list[str]:
-    out = ["", title,
-           f"{'parameter':<10}{'published':>12}{'mimucal':>12}{'diff':>11}"
-           f"{'pub. spread':>13}{'our spread':>12}{'ratio':>8}"]
+    out = [
+        "",
+        title,
+        f"{'parameter':<10}{'published':>12}{'mimucal':>12}{'diff':>11}"
+        f"{'pub. spread':>13}{'our spread':>12}{'ratio':>8}",
+    ]
     for r in rows:
         ratio = r["std"] / r["published_std"] if r["published_std"] > 0 else float("nan")
-        out.append(f"{r['parameter']:<10}{r['published_mean']:>12.5f}{r['mean']:>12.5f}"
-                   f"{r['difference']:>11.5f}{r['published_std']:>13.5f}{r['std']:>12.5f}{ratio:>8.2f}")
+        out.append(
+            f"{r['parameter']:<10}{r['published_mean']:>12.5f}{r['mean']:>12.5f}"
+            f"{r['difference']:>11.5f}{r['published_std']:>13.5f}{r['std']:>12.5f}{ratio:>8.2f}"
+        )
     return out
 
 
@@ -191,64 +231,95 @@ def _table3(fits) -> list[dict]:
         df = xu2016.compensation_errors(sm, g, trad, tests=("verification",))
         rows.append(df)
     import pandas as pd
+
     df = pd.concat(rows)
-    agg = df.groupby(["input_axis", "method", "output_axis"]).agg(
-        err_min=("err_min", "min"), err_max=("err_max", "max")).reset_index()
+    agg = (
+        df.groupby(["input_axis", "method", "output_axis"])
+        .agg(err_min=("err_min", "min"), err_max=("err_max", "max"))
+        .reset_index()
+    )
     out = []
     for _, r in agg.iterrows():
         pub = PUBLISHED_TABLE3[r.input_axis][r.method][AXES.index(r.output_axis)]
-        out.append({"input_axis": r.input_axis, "method": r.method, "output_axis": r.output_axis,
-                    "err_min": float(r.err_min), "err_max": float(r.err_max),
-                    "published_min": pub[0], "published_max": pub[1]})
+        out.append(
+            {
+                "input_axis": r.input_axis,
+                "method": r.method,
+                "output_axis": r.output_axis,
+                "err_min": float(r.err_min),
+                "err_max": float(r.err_max),
+                "published_min": pub[0],
+                "published_max": pub[1],
+            }
+        )
     return out
 
 
 def _format_table3(rows) -> list[str]:
-    out = ["", "Table 3: output error of the angular rates (deg/s), min~max over the "
-           "verification sweep and all repetitions",
-           f"{'input':<6}{'method':<15}{'axis':<5}{'published':>20}{'mimucal':>22}"]
+    out = [
+        "",
+        "Table 3: output error of the angular rates (deg/s), min~max over the "
+        "verification sweep and all repetitions",
+        f"{'input':<6}{'method':<15}{'axis':<5}{'published':>20}{'mimucal':>22}",
+    ]
     order = {"uncompensated": 0, "proposed": 1, "traditional": 2}
     for r in sorted(rows, key=lambda r: (r["input_axis"], order[r["method"]], r["output_axis"])):
-        out.append(f"{r['input_axis']:<6}{r['method']:<15}{r['output_axis']:<5}"
-                   f"{r['published_min']:>9.3f} ~ {r['published_max']:>8.3f}"
-                   f"{r['err_min']:>11.3f} ~ {r['err_max']:>8.3f}")
+        out.append(
+            f"{r['input_axis']:<6}{r['method']:<15}{r['output_axis']:<5}"
+            f"{r['published_min']:>9.3f} ~ {r['published_max']:>8.3f}"
+            f"{r['err_min']:>11.3f} ~ {r['err_max']:>8.3f}"
+        )
     return out
 
 
 def _findings(noise: dict, t3: list[dict]) -> list[str]:
     f = []
     for sensor, unit, k_sig, bound, scale in (
-            ("gyro", "deg/s", noise["gyro_sigma_from_K_dps"], noise["gyro_sigma_bound_from_w0_dps"], 1.0),
-            ("accelerometer", "mg", noise["accel_sigma_from_K_g"], noise["accel_sigma_bound_from_f0_g"], 1e3)):
+        ("gyro", "deg/s", noise["gyro_sigma_from_K_dps"], noise["gyro_sigma_bound_from_w0_dps"], 1.0),
+        ("accelerometer", "mg", noise["accel_sigma_from_K_g"], noise["accel_sigma_bound_from_f0_g"], 1e3),
+    ):
         for a, ks, b in zip(AXES, k_sig, bound):
             if ks > 1.5 * b:
-                f.append(f"{sensor} {a}: the published K spread needs a step noise of "
-                         f"{scale * ks:.4g} {unit}, but the published bias spread allows at most "
-                         f"{scale * b:.4g} {unit}: the scale factor itself changes between "
-                         f"repetitions ({ks / b:.0f}x more K spread than noise explains); a linear, "
-                         "stationary model cannot express it (thermal scale-factor drift is the "
-                         "likely cause).")
+                f.append(
+                    f"{sensor} {a}: the published K spread needs a step noise of "
+                    f"{scale * ks:.4g} {unit}, but the published bias spread allows at most "
+                    f"{scale * b:.4g} {unit}: the scale factor itself changes between "
+                    f"repetitions ({ks / b:.0f}x more K spread than noise explains); a linear, "
+                    "stationary model cannot express it (thermal scale-factor drift is the "
+                    "likely cause)."
+                )
     rep = noise["gyro_repeatability_dps"]
-    f.append("Gyro bias spreads of Table 1 exceed what the step noise gives by a turn-on "
-             "repeatability of " + ", ".join(f"{a} {s:.4f}" for a, s in zip(AXES, rep))
-             + " deg/s; w0_y drifts monotonically over the five repetitions (-0.1445 to -0.0910): "
-             "a drift (e.g. thermal), not white noise.")
+    f.append(
+        "Gyro bias spreads of Table 1 exceed what the step noise gives by a turn-on "
+        "repeatability of "
+        + ", ".join(f"{a} {s:.4f}" for a, s in zip(AXES, rep))
+        + " deg/s; w0_y drifts monotonically over the five repetitions (-0.1445 to -0.0910): "
+        "a drift (e.g. thermal), not white noise."
+    )
     z = [r for r in t3 if r["input_axis"] == "z" and r["method"] == "proposed" and r["output_axis"] == "z"]
     if z:
         z = z[0]
-        f.append(f"Table 3, z input, proposed compensation, z output: the linear simulation leaves "
-                 f"{z['err_min']:.3f} ~ {z['err_max']:.3f} deg/s where the paper reports "
-                 f"{z['published_min']} ~ {z['published_max']}: an error growing with rate that an "
-                 "affine model does not leave; consistent with z gyro scale-factor nonlinearity "
-                 "(see docs/model-discovery.md).")
-    xy = [r for r in t3 if r["input_axis"] == "x" and r["method"] == "uncompensated" and r["output_axis"] == "y"]
+        f.append(
+            f"Table 3, z input, proposed compensation, z output: the linear simulation leaves "
+            f"{z['err_min']:.3f} ~ {z['err_max']:.3f} deg/s where the paper reports "
+            f"{z['published_min']} ~ {z['published_max']}: an error growing with rate that an "
+            "affine model does not leave; consistent with z gyro scale-factor nonlinearity "
+            "(see docs/model-discovery.md)."
+        )
+    xy = [
+        r for r in t3 if r["input_axis"] == "x" and r["method"] == "uncompensated" and r["output_axis"] == "y"
+    ]
     if xy:
         xy = xy[0]
-        f.append(f"Table 3, x input, uncompensated y output: the published -7.305 ~ -7.185 deg/s "
-                 f"is nearly constant, but k_g21 = 0.02394 makes the y output swing with the x rate "
-                 f"({xy['err_min']:.3f} ~ {xy['err_max']:.3f} here over +/-300 deg/s): that row "
-                 "cannot come from Table 1 with any linear model (another sign convention or a "
-                 "transcription error in the paper).")
-    f.append("Table 1 labels the gyro biases rad/s; Table 3's uncompensated errors only fit "
-             "deg/s (a -0.35 rad/s z bias would show as -20 deg/s), so they are read as deg/s.")
+        f.append(
+            f"Table 3, x input, uncompensated y output: the published -7.305 ~ -7.185 deg/s "
+            f"is nearly constant, but k_g21 = 0.02394 makes the y output swing with the x rate "
+            f"({xy['err_min']:.3f} ~ {xy['err_max']:.3f} here over +/-300 deg/s): that row "
+            "cannot come from Table 1 with any linear model (another sign convention or a "
+            "transcription error in the paper)."
+        )
+    f.append(
+        "Table 1 labels the gyro biases rad/s; Table 3's uncompensated errors only fit "
+        "deg/s (a -0.35 rad/s z bias would show as -20 deg/s), so they are read as deg/s."
+    )
     return f

@@ -26,7 +26,8 @@ The unit is six sensors, each with
 
 The turntable (:class:`Turntable`) turns about an axis that may be tilted from the vertical
 (``axis_tilt_deg``, rotating steps only: the unit sits on the table face, so it turns about
-its nominal axis while gravity is off that axis and turns around it), at a rate that may be off by ``rate_scale_error``;
+its nominal axis while gravity is off that axis and turns around it), at a rate that may be off by
+``rate_scale_error``;
 Earth rotation (15.04 deg/h) is added at ``latitude_deg`` (``None``: no Earth rate).
 
 Orientation convention (what the Earth rate's horizontal part depends on): in each step the
@@ -44,6 +45,7 @@ Temperature: each repetition is a cold start: ``WarmUp`` from ``start_c`` toward
 Outputs: the contract's samples columns (raw units ``deg/s``/``g``, or ``LSB`` with
 quantisation) and key-value metadata. Physical outputs saturate at the declared ranges.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -146,12 +148,12 @@ class PhysicsUnit:
     temperature: WarmUp | None = field(default_factory=WarmUp)
     g_local: float = 9.80665
 
-    def replace_gyro(self, i: int, **changes) -> "PhysicsUnit":
+    def replace_gyro(self, i: int, **changes) -> PhysicsUnit:
         gyros = list(self.gyros)
         gyros[i] = replace(gyros[i], **changes)
         return replace(self, gyros=tuple(gyros))
 
-    def replace_accel(self, i: int, **changes) -> "PhysicsUnit":
+    def replace_accel(self, i: int, **changes) -> PhysicsUnit:
         accels = list(self.accels)
         accels[i] = replace(accels[i], **changes)
         return replace(self, accels=tuple(accels))
@@ -177,10 +179,15 @@ def misaligned_axis(nominal: np.ndarray, angle_rad: float, rng: np.random.Genera
     return nominal * np.cos(angle_rad) + perp * np.sin(angle_rad)
 
 
-def typical_physics_unit(rng: np.random.Generator, misalignment_deg: float = 0.5,
-                         scale_error: float = 0.01, gyro_bias_dps: float = 0.5,
-                         accel_bias_g: float = 5e-3, temperature: WarmUp | None = WarmUp(),
-                         **unit_kw) -> PhysicsUnit:
+def typical_physics_unit(
+    rng: np.random.Generator,
+    misalignment_deg: float = 0.5,
+    scale_error: float = 0.01,
+    gyro_bias_dps: float = 0.5,
+    accel_bias_g: float = 5e-3,
+    temperature: WarmUp | None = WarmUp(),
+    **unit_kw,
+) -> PhysicsUnit:
     """A clean, realistic unit: each sensing axis off its nominal body axis by
     ``misalignment_deg`` (each sensor its own direction), scale errors and biases of the
     given size, MEMS-grade noise, a warm-up ramp; no effect beyond the linear model.
@@ -191,15 +198,27 @@ def typical_physics_unit(rng: np.random.Generator, misalignment_deg: float = 0.5
     """
     mis = misalignment_deg * DEG
     gyros = tuple(
-        GyroSensor(axis=tuple(misaligned_axis(_AXES[i], mis, rng)),
-                   scale=1.0 + rng.normal(0.0, scale_error), bias=rng.normal(0.0, gyro_bias_dps),
-                   white_density=0.05 / np.sqrt(50.0), instability=0.01, turn_on=0.05)
-        for i in range(3))
+        GyroSensor(
+            axis=tuple(misaligned_axis(_AXES[i], mis, rng)),
+            scale=1.0 + rng.normal(0.0, scale_error),
+            bias=rng.normal(0.0, gyro_bias_dps),
+            white_density=0.05 / np.sqrt(50.0),
+            instability=0.01,
+            turn_on=0.05,
+        )
+        for i in range(3)
+    )
     accels = tuple(
-        AccelSensor(axis=tuple(misaligned_axis(_AXES[i], mis, rng)),
-                    scale=1.0 + rng.normal(0.0, scale_error), bias=rng.normal(0.0, accel_bias_g),
-                    white_density=1e-3 / np.sqrt(50.0), instability=1e-4, turn_on=1e-3)
-        for i in range(3))
+        AccelSensor(
+            axis=tuple(misaligned_axis(_AXES[i], mis, rng)),
+            scale=1.0 + rng.normal(0.0, scale_error),
+            bias=rng.normal(0.0, accel_bias_g),
+            white_density=1e-3 / np.sqrt(50.0),
+            instability=1e-4,
+            turn_on=1e-3,
+        )
+        for i in range(3)
+    )
     return PhysicsUnit(gyros=gyros, accels=accels, temperature=temperature, **unit_kw)
 
 
@@ -224,8 +243,9 @@ class _StepGeometry:
     rate: float  # true table rate, deg/s (signed about ``axis``)
 
 
-def _step_geometry(w_ref: np.ndarray, f_ref: np.ndarray, heading_deg: float,
-                   table: Turntable) -> _StepGeometry:
+def _step_geometry(
+    w_ref: np.ndarray, f_ref: np.ndarray, heading_deg: float, table: Turntable
+) -> _StepGeometry:
     rate_nominal = float(np.linalg.norm(w_ref))
     if np.linalg.norm(f_ref) > 1e-9:
         up0 = _unit(f_ref)
@@ -236,8 +256,9 @@ def _step_geometry(w_ref: np.ndarray, f_ref: np.ndarray, heading_deg: float,
         if table.axis_tilt_deg:  # the unit sits on the table face; the table axis is off
             side = _heading_reference(axis)  # the vertical, so gravity is off the axis too
             side = _rotate(side[None], axis[None], np.array([table.tilt_azimuth_deg * DEG]))[0]
-            up0 = _rotate(up0[None], _unit(np.cross(axis, side))[None],
-                          np.array([table.axis_tilt_deg * DEG]))[0]
+            up0 = _rotate(
+                up0[None], _unit(np.cross(axis, side))[None], np.array([table.axis_tilt_deg * DEG])
+            )[0]
         rate = rate_nominal * (1.0 + table.rate_scale_error)
     else:
         axis, rate = np.zeros(3), 0.0
@@ -272,8 +293,7 @@ def _motion(steps: pd.DataFrame, rate_hz: float, gap_s: float, table: Turntable)
     w_ref = steps[["w_ref_x", "w_ref_y", "w_ref_z"]].to_numpy(float)
     f_ref = steps[["f_ref_x", "f_ref_y", "f_ref_z"]].to_numpy(float)
     settle = steps["settle_s"].to_numpy(float)
-    heading = (steps["heading_deg"].to_numpy(float) if "heading_deg" in steps
-               else np.zeros(len(steps)))
+    heading = steps["heading_deg"].to_numpy(float) if "heading_deg" in steps else np.zeros(len(steps))
     ids = steps["step"].to_numpy(np.int32)
     prev = None
     for k in range(len(steps)):  # per step (a hundred), not per sample
@@ -296,8 +316,9 @@ def _motion(steps: pd.DataFrame, rate_hz: float, gap_s: float, table: Turntable)
         rate[sl] = r
         dwdt[sl] = np.where(tau < ramp, geo.rate / ramp, 0.0)
         # angle turned: integral of the ramp then of the constant rate
-        angle[sl] = DEG * np.where(tau < ramp, 0.5 * geo.rate * tau**2 / ramp,
-                                   geo.rate * (0.5 * ramp + (tau - ramp)))
+        angle[sl] = DEG * np.where(
+            tau < ramp, 0.5 * geo.rate * tau**2 / ramp, geo.rate * (0.5 * ramp + (tau - ramp))
+        )
         prev = geo
     w_table = axis * rate[:, None]
     # world vectors seen from the body turn backwards about the rotation axis
@@ -317,17 +338,22 @@ def earth_rate_body(up: np.ndarray, north: np.ndarray, latitude_deg: float) -> n
 
 
 # -- the session ------------------------------------------------------------------------
-def simulate_physics_session(unit: PhysicsUnit, steps: pd.DataFrame, rng: np.random.Generator,
-                             rate_hz: float = 50.0, table: Turntable = Turntable(),
-                             gap_s: float = 0.2, session_start: str = "2026-11-20T02:00:00Z",
-                             dtype=np.float32) -> tuple[pd.DataFrame, dict[str, str]]:
+def simulate_physics_session(
+    unit: PhysicsUnit,
+    steps: pd.DataFrame,
+    rng: np.random.Generator,
+    rate_hz: float = 50.0,
+    table: Turntable = Turntable(),
+    gap_s: float = 0.2,
+    session_start: str = "2026-11-20T02:00:00Z",
+    dtype=np.float32,
+) -> tuple[pd.DataFrame, dict[str, str]]:
     """Raw samples (the contract's columns) and metadata of one repetition (a cold start)."""
     step_of, t, w_table, dwdt, up, north = _motion(steps, rate_hz, gap_s, table)
     w = w_table.copy()
     if table.latitude_deg is not None:
         w += earth_rate_body(up, north, table.latitude_deg)
-    temp = (unit.temperature.at(t) if unit.temperature is not None
-            else np.full(len(t), REF_TEMP_C))
+    temp = unit.temperature.at(t) if unit.temperature is not None else np.full(len(t), REF_TEMP_C)
     f_centre = up  # specific force at rest is the up direction, 1 g
     w_rad, a_rad = w * DEG, dwdt * DEG
     raw = {}
@@ -345,32 +371,34 @@ def simulate_physics_session(unit: PhysicsUnit, steps: pd.DataFrame, rng: np.ran
         centripetal = np.cross(w_rad, np.cross(w_rad, np.broadcast_to(r, w.shape)))
         tangential = np.cross(a_rad, np.broadcast_to(r, w.shape))
         f = f_centre + (centripetal + tangential) / unit.g_local
-        out = (a.transfer(f @ np.asarray(a.axis), temp) + a.bias_per_h * t / 3600.0
-               + a.noise(t, rate_hz, rng))
+        out = a.transfer(f @ np.asarray(a.axis), temp) + a.bias_per_h * t / 3600.0 + a.noise(t, rate_hz, rng)
         lim = unit.accel_range_g[i]
         raw[name] = a.scale * np.clip(out, -lim, lim)
-    for names, quant in ((("gx", "gy", "gz"), unit.gyro_unit == "LSB"),
-                         (("ax", "ay", "az"), unit.accel_unit == "LSB")):
+    for names, quant in (
+        (("gx", "gy", "gz"), unit.gyro_unit == "LSB"),
+        (("ax", "ay", "az"), unit.accel_unit == "LSB"),
+    ):
         if quant:
             for nm in names:
                 raw[nm] = np.round(raw[nm])
-    samples = pd.DataFrame({"step": step_of, "t": t,
-                            **{k: v.astype(dtype) for k, v in raw.items()}})
+    samples = pd.DataFrame({"step": step_of, "t": t, **{k: v.astype(dtype) for k, v in raw.items()}})
     if unit.temperature is not None:
-        samples["temp_c"] = (temp + rng.normal(0.0, unit.temperature.noise_c, len(t))
-                             ).astype(np.float32)
+        samples["temp_c"] = (temp + rng.normal(0.0, unit.temperature.noise_c, len(t))).astype(np.float32)
     return samples, physics_metadata(unit, rate_hz, table, session_start)
 
 
-def physics_metadata(unit: PhysicsUnit, rate_hz: float, table: Turntable,
-                     session_start: str) -> dict[str, str]:
+def physics_metadata(
+    unit: PhysicsUnit, rate_hz: float, table: Turntable, session_start: str
+) -> dict[str, str]:
     """Key-value metadata of samples.parquet. Ranges are declared in the physical units."""
     md = {
-        "gyro_unit": unit.gyro_unit, "accel_unit": unit.accel_unit,
+        "gyro_unit": unit.gyro_unit,
+        "accel_unit": unit.accel_unit,
         "sample_rate_hz": f"{rate_hz:g}",
         "gyro_range_dps": ",".join(f"{v:g}" for v in unit.gyro_range_dps),
         "accel_range_g": ",".join(f"{v:g}" for v in unit.accel_range_g),
-        "g_local": f"{unit.g_local:.5f}", "session_start": session_start,
+        "g_local": f"{unit.g_local:.5f}",
+        "session_start": session_start,
         "source": "mimucal physics simulator",
     }
     if table.declare_location and table.latitude_deg is not None:

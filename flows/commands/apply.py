@@ -17,6 +17,7 @@ meaningless, so ``--force`` does not override this. Refuses (exit 2) a ``samples
 whose metadata names another unit than the calibration's (``provenance.unit``), unless
 ``--force`` (then a warning on stderr). Warns on stderr when the calibration's QA status is
 ``flagged`` or ``limits``."""
+
 from __future__ import annotations
 
 import argparse
@@ -37,18 +38,31 @@ CSV_ACCEL = ("acc_x", "acc_y", "acc_z")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("apply", help="apply a calibration file to raw samples (Parquet or CSV)",
-                       description=__doc__, epilog=EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "apply",
+        help="apply a calibration file to raw samples (Parquet or CSV)",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("calibration", metavar="CALIBRATION.json")
     p.add_argument("raw", metavar="RAW", help="samples.parquet of the contract, or a .csv")
     p.add_argument("out", metavar="OUT", help="output file: .parquet or .csv (the format its name says)")
-    p.add_argument("--gyro-unit", default="deg/s", choices=("deg/s", "rad/s", "LSB", "V"),
-                   help="CSV only: unit of gyr_* (default deg/s)")
-    p.add_argument("--accel-unit", default="m/s^2", choices=("g", "m/s^2", "LSB", "V"),
-                   help="CSV only: unit of acc_* (default m/s^2)")
-    p.add_argument("--force", action="store_true",
-                   help="apply even if the raw file's metadata names another unit")
+    p.add_argument(
+        "--gyro-unit",
+        default="deg/s",
+        choices=("deg/s", "rad/s", "LSB", "V"),
+        help="CSV only: unit of gyr_* (default deg/s)",
+    )
+    p.add_argument(
+        "--accel-unit",
+        default="m/s^2",
+        choices=("g", "m/s^2", "LSB", "V"),
+        help="CSV only: unit of acc_* (default m/s^2)",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="apply even if the raw file's metadata names another unit"
+    )
     p.set_defaults(func=run)
 
 
@@ -65,7 +79,8 @@ def _check_units(cal, gyro_unit: str, accel_unit: str, declared: tuple[str, str]
         raise CliError(
             f"{src}: raw units gyro={declared[0]!r}, accel={declared[1]!r} do not match the "
             f"calibration's raw_units gyro={cal.gyro_unit!r}, accel={cal.accel_unit!r}; a "
-            f"calibration only applies to data in the units it was fitted on")
+            f"calibration only applies to data in the units it was fitted on"
+        )
 
 
 def _apply(cal, G, A, t=None, temp=None):
@@ -73,18 +88,21 @@ def _apply(cal, G, A, t=None, temp=None):
     if cal.terms and t is not None and len(t) > 2:
         w_aff, _ = cal.apply_affine(G, A)
         dwdt = np.gradient(w_aff, t, axis=0)
-    return cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t, gyro_unit=cal.gyro_unit,
-                     accel_unit=cal.accel_unit)  # units checked and converted by the caller
+    return cal.apply(
+        G, A, dwdt=dwdt, temp_c=temp, t=t, gyro_unit=cal.gyro_unit, accel_unit=cal.accel_unit
+    )  # units checked and converted by the caller
 
 
 def _check_unit_id(doc: dict, md: dict, src: str, force: bool) -> None:
     """The unit named by the raw file's metadata against the calibration's unit."""
     import sys
+
     cal_unit = (doc.get("provenance") or {}).get("unit") or (doc.get("metadata") or {}).get("unit")
     raw_unit = md.get("unit")
     if cal_unit and raw_unit and str(cal_unit) != str(raw_unit):
-        msg = (f"{src}: the raw file's metadata names unit {raw_unit!r}, the calibration is "
-               f"of unit {cal_unit!r}")
+        msg = (
+            f"{src}: the raw file's metadata names unit {raw_unit!r}, the calibration is of unit {cal_unit!r}"
+        )
         if not force:
             raise CliError(msg + "; pass --force to apply it anyway")
         print(f"mimucal apply: warning: {msg} (--force)", file=sys.stderr)
@@ -92,11 +110,16 @@ def _check_unit_id(doc: dict, md: dict, src: str, force: bool) -> None:
 
 def _warn_qa(doc: dict, path: str) -> None:
     import sys
+
     from schemas.calibration_file import qa_of
+
     qa = qa_of(doc)
     if qa is not None and qa["status"] != "pass":
-        print(f"mimucal apply: warning: {path} has QA status {qa['status']!r}: "
-              + "; ".join(qa.get("reasons") or []), file=sys.stderr)
+        print(
+            f"mimucal apply: warning: {path} has QA status {qa['status']!r}: "
+            + "; ".join(qa.get("reasons") or []),
+            file=sys.stderr,
+        )
 
 
 OUTPUT_FORMATS = {".parquet": "Parquet", ".csv": "CSV"}
@@ -110,6 +133,7 @@ def write_output(res, out: Path, out_format: str, meta: dict[str, str]) -> None:
 
     import pyarrow as pa
     import pyarrow.parquet as pq
+
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
     os.close(fd)
@@ -132,8 +156,11 @@ def run(args: argparse.Namespace) -> int:
     import pandas as pd
     import pyarrow.parquet as pq
 
-    from schemas.calibration_file import (CalibrationFileError, calibration_from_dict,
-                                          read_calibration_document)
+    from schemas.calibration_file import (
+        CalibrationFileError,
+        calibration_from_dict,
+        read_calibration_document,
+    )
     from schemas.contract import G_LOCAL_DEFAULT, decode_metadata
 
     try:
@@ -174,9 +201,14 @@ def run(args: argparse.Namespace) -> int:
             res[f"w_{ax}"] = w[:, i]
         for i, ax in enumerate("xyz"):
             res[f"f_{ax}"] = f[:, i]
-        meta = {"gyro_unit": "deg/s", "accel_unit": "g", "calibrated": "true",
-                "calibration_file": str(Path(args.calibration).resolve()), "source": str(raw),
-                "g_local": f"{cal.g_local:.5f}"}
+        meta = {
+            "gyro_unit": "deg/s",
+            "accel_unit": "g",
+            "calibrated": "true",
+            "calibration_file": str(Path(args.calibration).resolve()),
+            "source": str(raw),
+            "g_local": f"{cal.g_local:.5f}",
+        }
         units = "w_* deg/s, f_* g"
     elif suffix == ".csv":
         try:
@@ -185,8 +217,9 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"{raw}: cannot read CSV ({exc})") from None
         missing = [c for c in CSV_ACCEL + CSV_GYRO if c not in df]
         if missing:
-            raise CliError(f"{raw}: missing column(s) {', '.join(missing)} (need "
-                           f"{', '.join(CSV_ACCEL + CSV_GYRO)})")
+            raise CliError(
+                f"{raw}: missing column(s) {', '.join(missing)} (need {', '.join(CSV_ACCEL + CSV_GYRO)})"
+            )
         G, gu = _to_inside(df[list(CSV_GYRO)].to_numpy(float), args.gyro_unit, cal.g_local)
         A, au = _to_inside(df[list(CSV_ACCEL)].to_numpy(float), args.accel_unit, cal.g_local)
         _check_units(cal, gu, au, (args.gyro_unit, args.accel_unit), str(raw))
@@ -195,9 +228,14 @@ def run(args: argparse.Namespace) -> int:
         res = df.copy()
         res[list(CSV_GYRO)] = w
         res[list(CSV_ACCEL)] = f * cal.g_local
-        meta = {"gyro_unit": "deg/s", "accel_unit": "m/s^2", "calibrated": "true",
-                "calibration_file": str(Path(args.calibration).resolve()), "source": str(raw),
-                "g_local": f"{cal.g_local:.5f}"}
+        meta = {
+            "gyro_unit": "deg/s",
+            "accel_unit": "m/s^2",
+            "calibrated": "true",
+            "calibration_file": str(Path(args.calibration).resolve()),
+            "source": str(raw),
+            "g_local": f"{cal.g_local:.5f}",
+        }
         units = "gyr_* deg/s, acc_* m/s^2"
     else:
         raise CliError(f"{raw}: expected a .parquet (contract samples) or .csv file")

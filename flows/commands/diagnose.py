@@ -5,6 +5,7 @@ residuals exceed the noise estimated from the repetitions, names the catalogue e
 explain the misfit (held-out gain, false-alarm rate ``--alpha`` per unit) and says whether
 anything is left unexplained. See docs/model-discovery.md.
 """
+
 from __future__ import annotations
 
 import sys
@@ -15,22 +16,31 @@ from flows.cli import CliError
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "diagnose", help="model discovery: where the calibration model is wrong and why",
+        "diagnose",
+        help="model discovery: where the calibration model is wrong and why",
         description="Replay the fitted calibration of one unit as a simulation of its "
-                    "protocol, test its residuals against the noise estimated from the "
-                    "repetitions, and name the catalogue effects that explain the misfit.")
+        "protocol, test its residuals against the noise estimated from the "
+        "repetitions, and name the catalogue effects that explain the misfit.",
+    )
     p.add_argument("dataset", type=Path, help="dataset root (lot=*/unit=*/rep=*/)")
     p.add_argument("--unit", required=True, help="unit id")
-    p.add_argument("--json", type=Path, default=None, metavar="FILE",
-                   help="also write the diagnosis as JSON here")
-    p.add_argument("--residuals", type=Path, default=None, metavar="FILE.parquet",
-                   help="also write the replay residuals before/after (one table, column "
-                        "'model') as Parquet")
-    p.add_argument("--min-gain", type=float, default=1.05,
-                   help="held-out gain a term must reach on the channels it fixes to be "
-                        "named (default 1.05)")
-    p.add_argument("--alpha", type=float, default=0.01,
-                   help="false-alarm rate per unit (default 0.01)")
+    p.add_argument(
+        "--json", type=Path, default=None, metavar="FILE", help="also write the diagnosis as JSON here"
+    )
+    p.add_argument(
+        "--residuals",
+        type=Path,
+        default=None,
+        metavar="FILE.parquet",
+        help="also write the replay residuals before/after (one table, column 'model') as Parquet",
+    )
+    p.add_argument(
+        "--min-gain",
+        type=float,
+        default=1.05,
+        help="held-out gain a term must reach on the channels it fixes to be named (default 1.05)",
+    )
+    p.add_argument("--alpha", type=float, default=0.01, help="false-alarm rate per unit (default 0.01)")
     p.set_defaults(func=run)
 
 
@@ -40,8 +50,10 @@ def _fmt_p(p: float) -> str:
 
 def summary_lines(diag) -> list[str]:
     """A readable account of a :class:`calib_core.discovery.Diagnosis`."""
-    lines = [f"unit {diag.unit} (lot {diag.lot}): {diag.n_reps} repetitions, false-alarm "
-             f"rate {diag.alpha:g} per unit"]
+    lines = [
+        f"unit {diag.unit} (lot {diag.lot}): {diag.n_reps} repetitions, false-alarm "
+        f"rate {diag.alpha:g} per unit"
+    ]
     tab = diag.noise.table
     parts = []
     for ch in ("gx", "gy", "gz", "ax", "ay", "az"):
@@ -58,15 +70,22 @@ def summary_lines(diag) -> list[str]:
         verdict = f" -> MISFIT on {', '.join(bad)}"
     else:
         verdict = " -> MISFIT (overall lack of fit; no single channel rejects)"
-    lines.append(f"affine model: lack of fit F={lb.statistic:.3g} ({lb.dof1}, {lb.dof2}), "
-                 f"{_fmt_p(lb.p_value)}" + verdict)
+    lines.append(
+        f"affine model: lack of fit F={lb.statistic:.3g} ({lb.dof1}, {lb.dof2}), "
+        f"{_fmt_p(lb.p_value)}" + verdict
+    )
     if diag.effects or getattr(diag, "confounded", []):
         lines.append("effects found:")
-    tags = {"partial": " (partial: leaves its channels misfit; not applied)",
-            "negligible": f" (negligible: significant, but the unit fits without it or its "
-                          f"held-out gain is below {diag.min_gain:g}; not applied)"}
-    listed = ([(e, "") for e in diag.effects] + [(e, tags["partial"]) for e in diag.partial]
-              + [(e, tags["negligible"]) for e in diag.negligible])
+    tags = {
+        "partial": " (partial: leaves its channels misfit; not applied)",
+        "negligible": f" (negligible: significant, but the unit fits without it or its "
+        f"held-out gain is below {diag.min_gain:g}; not applied)",
+    }
+    listed = (
+        [(e, "") for e in diag.effects]
+        + [(e, tags["partial"]) for e in diag.partial]
+        + [(e, tags["negligible"]) for e in diag.negligible]
+    )
     for e, tag in listed:
         lines.append(f"  {e.name} on {','.join(e.axes) or '-'}{tag}")
         for n, v in e.estimate.items():
@@ -77,17 +96,21 @@ def summary_lines(diag) -> list[str]:
             lines.append(f"      {n}: undetermined ({why})")
         ev = e.evidence
         on = f" on {','.join(e.channels)}" if e.channels else ""
-        lines.append(f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
-                     f"{_fmt_p(ev.p_value)} (threshold {ev.threshold:.2g}); held-out rms{on} "
-                     f"{e.heldout_rms_before:.3g} -> {e.heldout_rms_after:.3g} sigma "
-                     f"(gain {e.gain:.3g})")
+        lines.append(
+            f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
+            f"{_fmt_p(ev.p_value)} (threshold {ev.threshold:.2g}); held-out rms{on} "
+            f"{e.heldout_rms_before:.3g} -> {e.heldout_rms_after:.3g} sigma "
+            f"(gain {e.gain:.3g})"
+        )
     for c in getattr(diag, "confounded", []):
         ev = c.evidence
         on = f" on {','.join(c.channels)}" if c.channels else ""
         lines.append(f"  confounded: [{', '.join(c.terms)}] (combined fit applied; none named)")
-        lines.append(f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
-                     f"{_fmt_p(ev.p_value)}; held-out rms{on} {c.heldout_rms_before:.3g} -> "
-                     f"{c.heldout_rms_after:.3g} sigma (gain {c.gain:.3g})")
+        lines.append(
+            f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
+            f"{_fmt_p(ev.p_value)}; held-out rms{on} {c.heldout_rms_before:.3g} -> "
+            f"{c.heldout_rms_after:.3g} sigma (gain {c.gain:.3g})"
+        )
         lines.append(f"      {c.advice()}")
     for g in getattr(diag, "confounded_set_aside", []):
         lines.append(f"  confounded, set aside (partial or negligible): [{', '.join(g)}]")
@@ -97,12 +120,16 @@ def summary_lines(diag) -> list[str]:
         lines += [f"  {a}" for a in advice]
     la = diag.lack_of_fit_after
     if diag.effects:
-        lines.append(f"extended model: lack of fit F={la.statistic:.3g} ({la.dof1}, {la.dof2}), "
-                     f"{_fmt_p(la.p_value)}")
+        lines.append(
+            f"extended model: lack of fit F={la.statistic:.3g} ({la.dof1}, {la.dof2}), {_fmt_p(la.p_value)}"
+        )
     if diag.unexplained:
         still = [c for c, t in diag.channel_misfit_after.items() if t.rejects]
-        lines.append("UNEXPLAINED misfit left" + (f" on {', '.join(still)}" if still else "")
-                     + ": no catalogue effect accounts for it")
+        lines.append(
+            "UNEXPLAINED misfit left"
+            + (f" on {', '.join(still)}" if still else "")
+            + ": no catalogue effect accounts for it"
+        )
     elif diag.misfit:
         lines.append("misfit explained by the effects above")
     return lines
@@ -130,8 +157,10 @@ def run(args) -> int:
         print(f"skipped: {e}", file=sys.stderr)
     if not refs:
         from flows.user_errors import units_under
-        raise CliError(f"no session of unit {args.unit!r} under {args.dataset} "
-                       f"(units: {units_under(args.dataset)})")
+
+        raise CliError(
+            f"no session of unit {args.unit!r} under {args.dataset} (units: {units_under(args.dataset)})"
+        )
     sessions = []
     for ref in refs:
         try:
@@ -143,11 +172,14 @@ def run(args) -> int:
             print(f"warning: {ref.key}: {getattr(w, 'message', w)}", file=sys.stderr)
         sessions.append(sm)
     if len(sessions) < 2:
-        raise CliError(f"unit {args.unit}: {len(sessions)} readable repetition(s); model "
-                       f"discovery needs at least 2 (the noise is estimated from their scatter)")
+        raise CliError(
+            f"unit {args.unit}: {len(sessions)} readable repetition(s); model "
+            f"discovery needs at least 2 (the noise is estimated from their scatter)"
+        )
     try:
-        diag = diagnose_unit(sessions, alpha=args.alpha, tables=args.residuals is not None,
-                             min_gain=args.min_gain)
+        diag = diagnose_unit(
+            sessions, alpha=args.alpha, tables=args.residuals is not None, min_gain=args.min_gain
+        )
     except DesignError as exc:
         raise CliError(f"unit {args.unit}: {exc.reason}") from None
     print("\n".join(summary_lines(diag)))
@@ -159,14 +191,15 @@ def run(args) -> int:
     if production is not None:
         s = summarise_residuals(production).groupby("channel", sort=False)
         worst = s.apply(lambda g: g.loc[g.rms_z.idxmax()], include_groups=False)
-        print("xu2016 calibration replayed (rms residual / sigma, worst test per channel): "
-              + ", ".join(f"{ch} {r.rms_z:.3g} ({r.test})" for ch, r in worst.iterrows()))
+        print(
+            "xu2016 calibration replayed (rms residual / sigma, worst test per channel): "
+            + ", ".join(f"{ch} {r.rms_z:.3g} ({r.test})" for ch, r in worst.iterrows())
+        )
     if args.json:
         write_json_atomic(args.json, diag.to_dict())
         print(f"-> {args.json}")
     if args.residuals:
-        parts = [diag.residuals_before.assign(model="affine"),
-                 diag.residuals_after.assign(model="extended")]
+        parts = [diag.residuals_before.assign(model="affine"), diag.residuals_after.assign(model="extended")]
         if production is not None:
             parts.append(production.assign(model="xu2016"))
         table = pd.concat(parts, ignore_index=True)

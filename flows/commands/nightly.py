@@ -1,4 +1,5 @@
 """``mimucal nightly DATASET --results DIR``: calibrate what is new or changed, flag, report."""
+
 from __future__ import annotations
 
 import argparse
@@ -22,42 +23,68 @@ terminal) and the reports RESULTS/reports/."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("nightly", help="calibrate every new or changed session of a fleet",
-                       description=__doc__, epilog=EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "nightly",
+        help="calibrate every new or changed session of a fleet",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("dataset", metavar="DATASET", help="hive dataset root (lot=/unit=/rep=)")
     p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
     p.add_argument("--force", action="store_true", help="recalibrate every unit")
-    p.add_argument("--dask-address", metavar="ADDR", default=None,
-                   help="run the per-unit tasks on this Dask scheduler (tcp://host:port)")
-    p.add_argument("--runner", default=None,
-                   choices=["auto", "threads", "processes", "prefect-processes", "dask"],
-                   help="where the unit work runs without --dask-address: auto (default: "
-                        "worker processes from 24 units to calibrate, else threads), threads "
-                        "(one core), processes (a forkserver pool, both cores, ~3 s start-up), "
-                        "prefect-processes (Prefect's process pool), dask (a local Dask "
-                        "cluster); default $MIMUCAL_TASK_RUNNER or auto")
+    p.add_argument(
+        "--dask-address",
+        metavar="ADDR",
+        default=None,
+        help="run the per-unit tasks on this Dask scheduler (tcp://host:port)",
+    )
+    p.add_argument(
+        "--runner",
+        default=None,
+        choices=["auto", "threads", "processes", "prefect-processes", "dask"],
+        help="where the unit work runs without --dask-address: auto (default: "
+        "worker processes from 24 units to calibrate, else threads), threads "
+        "(one core), processes (a forkserver pool, both cores, ~3 s start-up), "
+        "prefect-processes (Prefect's process pool), dask (a local Dask "
+        "cluster); default $MIMUCAL_TASK_RUNNER or auto",
+    )
     p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
-    p.add_argument("--batch-size", type=int, default=None, metavar="N",
-                   help="units per Prefect task (default 8)")
-    p.add_argument("--wait", action="store_true",
-                   help="wait for another run holding the results store instead of refusing")
+    p.add_argument(
+        "--batch-size", type=int, default=None, metavar="N", help="units per Prefect task (default 8)"
+    )
+    p.add_argument(
+        "--wait",
+        action="store_true",
+        help="wait for another run holding the results store instead of refusing",
+    )
     p.add_argument("--no-discovery", action="store_true", help="skip model discovery")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
-    p.add_argument("--unit-reports", action="store_true",
-                   help="also write a report per unit of the lots reported (RESULTS/reports/units/; "
-                        "~0.2 s and ~5 MB each)")
-    p.add_argument("--verbose", action="store_true",
-                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
-    p.add_argument("--follow-symlinks", action="store_true",
-                   help="calibrate session directories reached through a symbolic link that "
-                        "leads outside DATASET (refused by default)")
+    p.add_argument(
+        "--unit-reports",
+        action="store_true",
+        help="also write a report per unit of the lots reported (RESULTS/reports/units/; "
+        "~0.2 s and ~5 MB each)",
+    )
+    p.add_argument(
+        "--verbose",
+        action="store_true",
+        help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)",
+    )
+    p.add_argument(
+        "--follow-symlinks",
+        action="store_true",
+        help="calibrate session directories reached through a symbolic link that "
+        "leads outside DATASET (refused by default)",
+    )
     p.set_defaults(func=run)
 
 
-CONFIG_HELP = ("QA configuration: outlier options and acceptance limits with units (docs/"
-               "flows.md); stored in the results store and applied by every later run; "
-               "'none' clears it")
+CONFIG_HELP = (
+    "QA configuration: outlier options and acceptance limits with units (docs/"
+    "flows.md); stored in the results store and applied by every later run; "
+    "'none' clears it"
+)
 
 
 def check_config(path: str | None) -> None:
@@ -66,6 +93,7 @@ def check_config(path: str | None) -> None:
     if path is None or path == "none":
         return
     from schemas.limits import LimitsError, config_from_toml
+
     try:
         text = Path(path).read_text()
     except OSError as exc:
@@ -84,8 +112,10 @@ def run(args: argparse.Namespace) -> int:
     if args.batch_size is not None and args.batch_size < 1:
         raise CliError("--batch-size must be >= 1")
     from flows import runtime
+
     runtime.ensure_environment(args.results, verbose=args.verbose)  # before Prefect's import
     from flows.task_runners import resolve_kind
+
     try:
         resolve_kind(args.runner)  # a bad $MIMUCAL_TASK_RUNNER is refused before start-up
     except ValueError as exc:
@@ -93,27 +123,44 @@ def run(args: argparse.Namespace) -> int:
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
+
     try:
         log = nightly.nightly_fleet_calibration(
-            dataset, args.results, force=args.force, dask_address=args.dask_address,
-            batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE, config=args.config,
-            wait=args.wait, run_discovery=not args.no_discovery, progress=not args.quiet,
-            runner=args.runner, unit_reports=args.unit_reports,
-            follow_symlinks=args.follow_symlinks)
+            dataset,
+            args.results,
+            force=args.force,
+            dask_address=args.dask_address,
+            batch_size=args.batch_size or nightly.DEFAULT_BATCH_SIZE,
+            config=args.config,
+            wait=args.wait,
+            run_discovery=not args.no_discovery,
+            progress=not args.quiet,
+            runner=args.runner,
+            unit_reports=args.unit_reports,
+            follow_symlinks=args.follow_symlinks,
+        )
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
     if not log.get("sessions_found") and not log.get("path_errors"):
-        print(f"mimucal nightly: warning: no session under {dataset} (expected "
-              f"lot=<id>/unit=<id>/rep=<n>/ directories); nothing to do", file=sys.stderr)
+        print(
+            f"mimucal nightly: warning: no session under {dataset} (expected "
+            f"lot=<id>/unit=<id>/rep=<n>/ directories); nothing to do",
+            file=sys.stderr,
+        )
         return 3
     return exit_code(log)
 
 
 def exit_code(log: dict) -> int:
     """1 when any session, unit or report failed, or a directory did not parse; else 0."""
-    failed = (log.get("failed_sessions") or log.get("units_failed") or log.get("path_errors")
-              or log.get("report_problems") or log.get("unit_errors"))
+    failed = (
+        log.get("failed_sessions")
+        or log.get("units_failed")
+        or log.get("path_errors")
+        or log.get("report_problems")
+        or log.get("unit_errors")
+    )
     return 1 if failed else 0
 
 
@@ -150,4 +197,5 @@ def summary_with_wall_time(log: dict) -> str:
     in brackets)."""
     from flows.clock import since_start
     from flows.nightly import summary_line
+
     return summary_line(log, wall_s=since_start())

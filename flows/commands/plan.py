@@ -6,6 +6,7 @@ analysed with the affine calibration projected out (:mod:`calib_core.plan`): whi
 determined, which parameters are not, which terms are confounded, and which step sets of the
 library would separate them. See docs/model-discovery.md, "Identifiability".
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -15,19 +16,34 @@ from flows.cli import CliError
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "plan", help="what a protocol (steps table) can and cannot identify",
+        "plan",
+        help="what a protocol (steps table) can and cannot identify",
         description="Analyse a steps table (the contract's steps.parquet, or the same "
-                    "columns as CSV) before acquisition: which catalogue effects its steps "
-                    "determine, which are confounded or undetermined, and which step sets "
-                    "would separate them.")
+        "columns as CSV) before acquisition: which catalogue effects its steps "
+        "determine, which are confounded or undetermined, and which step sets "
+        "would separate them.",
+    )
     p.add_argument("steps", type=Path, metavar="STEPS", help="steps.parquet or .csv")
-    p.add_argument("--latitude", type=float, default=None, metavar="DEG",
-                   help="latitude of the table (with --table-heading: the Earth rate's "
-                        "direction is known)")
-    p.add_argument("--table-heading", type=float, default=None, metavar="DEG",
-                   help="heading of the table's zero reference, degrees east of true north")
-    p.add_argument("--tol", type=float, default=0.05,
-                   help="confounded / undetermined below this sine of angle (default 0.05)")
+    p.add_argument(
+        "--latitude",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="latitude of the table (with --table-heading: the Earth rate's direction is known)",
+    )
+    p.add_argument(
+        "--table-heading",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="heading of the table's zero reference, degrees east of true north",
+    )
+    p.add_argument(
+        "--tol",
+        type=float,
+        default=0.05,
+        help="confounded / undetermined below this sine of angle (default 0.05)",
+    )
     p.set_defaults(func=run)
 
 
@@ -44,10 +60,12 @@ def read_steps_table(path: Path):
     try:
         if path.suffix.lower() == ".csv":
             table = pa.Table.from_pandas(pd.read_csv(path), preserve_index=False)
-            table = table.set_column(table.schema.get_field_index("step"), "step",
-                                     table.column("step").cast(pa.int32()))
+            table = table.set_column(
+                table.schema.get_field_index("step"), "step", table.column("step").cast(pa.int32())
+            )
         else:
             import pyarrow.parquet as pq
+
             table = pq.read_table(path)
     except (OSError, ValueError, KeyError, pa.ArrowException) as exc:
         raise CliError(f"{path}: cannot read the steps table ({exc})") from None
@@ -63,7 +81,6 @@ def run(args) -> int:
     if not 0 < args.tol < 1:
         raise CliError(f"--tol must be between 0 and 1, got {args.tol}")
     steps = read_steps_table(args.steps)
-    result = plan(steps, tol=args.tol, latitude_deg=args.latitude,
-                  table_heading_deg=args.table_heading)
+    result = plan(steps, tol=args.tol, latitude_deg=args.latitude, table_heading_deg=args.table_heading)
     print("\n".join(result.lines()))
     return 0

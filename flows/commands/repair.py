@@ -17,6 +17,7 @@ What every run checks first (``ResultsStore.verify``) and what repair does about
 
 Exit code 0 when the store verifies after the repair, 2 when something could not be
 repaired (listed)."""
+
 from __future__ import annotations
 
 import argparse
@@ -34,9 +35,13 @@ EPILOG = """examples:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("repair", help="rebuild the damaged parts of a results store",
-                       description=__doc__, epilog=EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "repair",
+        help="rebuild the damaged parts of a results store",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
     p.add_argument("--no-reports", action="store_true", help="do not rebuild the reports")
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
@@ -45,6 +50,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from schemas.results_store import ResultsStore
+
     root = Path(args.results)
     if not root.is_dir():
         raise CliError(f"{root} is not a directory")
@@ -53,8 +59,10 @@ def run(args: argparse.Namespace) -> int:
         done, not_done = repair_store(store)
         if not args.no_reports and not store.symlinks():
             from flows import runtime
+
             runtime.ensure_environment(args.results)
             from flows.nightly import write_reports
+
             lots = sorted(set(store.table_lots("units")) | set(store.table_lots("summary")))
             if lots:
                 written, problems = write_reports(root, lots)
@@ -74,12 +82,15 @@ def repair_store(store) -> tuple[list[str], list[str]]:
     """Repair ``store`` (held locked by the caller); returns (what was done, what could
     not be done), one line each."""
     from schemas.results_store import TABLES, _unreadable
+
     done: list[str] = []
     not_done: list[str] = []
     links = store.symlinks()
     for link in links:
-        not_done.append(f"{link} is a symbolic link; replace it by a real file/directory or "
-                        f"remove it (not removed: it may point to data you need)")
+        not_done.append(
+            f"{link} is a symbolic link; replace it by a real file/directory or "
+            f"remove it (not removed: it may point to data you need)"
+        )
     if links:
         return done, not_done
     damaged_lots: set[str | None] = set()
@@ -102,8 +113,7 @@ def repair_store(store) -> tuple[list[str], list[str]]:
             done.append(f"removed damaged {path} ({why})")
     for lot in sorted(units_damaged, key=lambda x: (x is None, x or "")):
         n = _rebuild_units_rows(store, lot)
-        done.append(f"rebuilt the units rows of lot {lot or '(all)'} from {n} calibration "
-                    f"file(s)")
+        done.append(f"rebuilt the units rows of lot {lot or '(all)'} from {n} calibration file(s)")
     # current calibration files that are missing
     units = store.read("units") if store.has_table("units") else None
     redo: set[tuple[str, str]] = set()
@@ -117,17 +127,22 @@ def repair_store(store) -> tuple[list[str], list[str]]:
             if files:
                 units.at[i, "calibration_file"] = str(files[-1][1].relative_to(store.root))
                 units.at[i, "state"] = "stale"
-                units.at[i, "reason"] = (f"calibration file {f} was missing; the newest "
-                                         f"remaining one is used until the next run")
-                done.append(f"unit {r['lot']}/{r['unit']}: missing {f}; now points to "
-                            f"{units.at[i, 'calibration_file']}")
+                units.at[i, "reason"] = (
+                    f"calibration file {f} was missing; the newest remaining one is used until the next run"
+                )
+                done.append(
+                    f"unit {r['lot']}/{r['unit']}: missing {f}; now points to "
+                    f"{units.at[i, 'calibration_file']}"
+                )
             else:
                 units.at[i, "calibration_file"] = None
                 units.at[i, "state"] = "failed"
                 units.at[i, "reason"] = f"calibration file {f} is missing and no other is left"
-                not_done.append(f"unit {r['lot']}/{r['unit']}: {f} is missing and no other "
-                                f"calibration is left; the next 'mimucal nightly' "
-                                f"recalibrates it")
+                not_done.append(
+                    f"unit {r['lot']}/{r['unit']}: {f} is missing and no other "
+                    f"calibration is left; the next 'mimucal nightly' "
+                    f"recalibrates it"
+                )
             redo.add((str(r["lot"]), str(r["unit"])))
             changed = True
         if changed:
@@ -137,8 +152,7 @@ def repair_store(store) -> tuple[list[str], list[str]]:
         sessions = store.read("sessions")
         if len(sessions):
             lot_col = sessions["lot"].astype(object)
-            hit = lot_col.isin([x for x in damaged_lots if x is not None]).to_numpy(
-                dtype=bool, copy=True)
+            hit = lot_col.isin([x for x in damaged_lots if x is not None]).to_numpy(dtype=bool, copy=True)
             if None in damaged_lots:
                 hit |= lot_col.isna().to_numpy(dtype=bool)
             keys = list(zip(lot_col.astype(str), sessions["unit"].astype(str)))
@@ -147,9 +161,11 @@ def repair_store(store) -> tuple[list[str], list[str]]:
                 sessions.loc[hit, "fingerprint"] = None
                 store.write("sessions", sessions)
         for lot in sorted(x for x in damaged_lots if x is not None):
-            not_done.append(f"lot {lot}: parameters, summary, residuals and the other per-"
-                            f"session rows cannot be rebuilt without the sessions; the next "
-                            f"'mimucal nightly' recalibrates the lot's units from the dataset")
+            not_done.append(
+                f"lot {lot}: parameters, summary, residuals and the other per-"
+                f"session rows cannot be rebuilt without the sessions; the next "
+                f"'mimucal nightly' recalibrates the lot's units from the dataset"
+            )
     return done, not_done
 
 
@@ -159,6 +175,7 @@ def _rebuild_units_rows(store, lot: str | None) -> int:
     import pandas as pd
 
     from schemas.results_store import TIMESTAMP_FORMAT, iso  # noqa: F401
+
     rows = []
     n = 0
     if store.calibrations_dir.is_dir():
@@ -176,16 +193,24 @@ def _rebuild_units_rows(store, lot: str | None) -> int:
             n += 1
             used = prov.get("sessions_used") or []
             failed = prov.get("sessions_failed") or []
-            rows.append({"lot": prov.get("lot"), "unit": d.name, "state": "calibrated",
-                         "reason": "rebuilt by 'mimucal repair' from the calibration file",
-                         "n_sessions": len(used) + len(failed),
-                         "n_ok": sum(1 for s in used if s.get("status") == "ok"),
-                         "n_warned": sum(1 for s in used if s.get("status") == "warned"),
-                         "n_failed": len(failed),
-                         "calibration_file": str(path.relative_to(store.root)),
-                         "calibrated_at": prov.get("calibrated_at") or iso(ts),
-                         "run_id": prov.get("run_id"), "updated_at": iso(ts),
-                         "flagged": False, "flag_reason": ""})
+            rows.append(
+                {
+                    "lot": prov.get("lot"),
+                    "unit": d.name,
+                    "state": "calibrated",
+                    "reason": "rebuilt by 'mimucal repair' from the calibration file",
+                    "n_sessions": len(used) + len(failed),
+                    "n_ok": sum(1 for s in used if s.get("status") == "ok"),
+                    "n_warned": sum(1 for s in used if s.get("status") == "warned"),
+                    "n_failed": len(failed),
+                    "calibration_file": str(path.relative_to(store.root)),
+                    "calibrated_at": prov.get("calibrated_at") or iso(ts),
+                    "run_id": prov.get("run_id"),
+                    "updated_at": iso(ts),
+                    "flagged": False,
+                    "flag_reason": "",
+                }
+            )
     df = pd.DataFrame(rows)
     if lot is None:
         store.write("units", df)

@@ -1,5 +1,6 @@
 """``mimucal report --results DIR --lot LOT``: rebuild a lot's flags and report from the
 results store (no raw data is read)."""
+
 from __future__ import annotations
 
 import argparse
@@ -21,35 +22,52 @@ every model's key-parameter table, the lot figures and the sessions; unit sectio
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("report", help="rebuild one lot's outlier flags and HTML report",
-                       description=__doc__, epilog=EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "report",
+        help="rebuild one lot's outlier flags and HTML report",
+        description=__doc__,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--results", required=True, metavar="DIR", help="results store directory")
     p.add_argument("--lot", required=True, help="lot id")
     p.add_argument("--config", metavar="TOML", default=None, help=CONFIG_HELP)
     p.add_argument("--wait", action="store_true", help="wait for a run holding the store")
-    p.add_argument("--pdf", nargs="?", const="", default=None, metavar="FILE",
-                   help="also print the lot report to PDF (default RESULTS/reports/<lot>.pdf)")
-    p.add_argument("--verbose", action="store_true",
-                   help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)")
+    p.add_argument(
+        "--pdf",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="FILE",
+        help="also print the lot report to PDF (default RESULTS/reports/<lot>.pdf)",
+    )
+    p.add_argument(
+        "--verbose",
+        action="store_true",
+        help="show Prefect's log lines on the terminal (default: RESULTS/logs/prefect.log)",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     check_config(args.config)
     from flows.user_errors import check_lot
+
     check_lot(args.results, args.lot)  # answered before Prefect starts, with the lots there are
     if args.pdf is not None:
         from reports.pdf import PdfError, chromium_or_error
+
         try:
             chromium_or_error()  # before the report is rebuilt, not after
         except PdfError as exc:
             raise CliError(str(exc)) from None
     from flows import runtime
+
     runtime.ensure_environment(args.results, verbose=args.verbose)
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError
+
     try:
         out = nightly.lot_quality_report(args.results, args.lot, args.config, args.wait)
     except (StoreLockedError, OutlierConfigError, FileNotFoundError, LookupError) as exc:
@@ -65,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     if args.pdf is not None:
         from reports.lot import lot_report_path
         from reports.pdf import PdfError, print_pdf
+
         html = lot_report_path(args.results, args.lot)
         pdf = Path(args.pdf) if args.pdf else html.with_suffix(".pdf")
         try:

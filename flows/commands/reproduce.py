@@ -1,8 +1,8 @@
 """`mimucal reproduce PAPER`: simulate a paper's unit, run its method, compare with its tables."""
+
 from __future__ import annotations
 
 import importlib
-import json
 from pathlib import Path
 
 from flows.cli import CliError
@@ -15,16 +15,21 @@ PAPERS = {
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "reproduce", help="reproduce a seed paper's tables by simulation",
+        "reproduce",
+        help="reproduce a seed paper's tables by simulation",
         description="Simulate the unit of a seed paper with its published values as truth, run "
-                    "the paper's method on every repetition and print the published and the "
-                    "reproduced tables side by side, with what cannot be matched.")
+        "the paper's method on every repetition and print the published and the "
+        "reproduced tables side by side, with what cannot be matched.",
+    )
     p.add_argument("paper", choices=sorted(PAPERS), help="which paper")
     p.add_argument("--rate", type=float, default=100.0, help="sample rate, Hz (default 100)")
     p.add_argument("--reps", type=int, default=5, help="repetitions (default 5, as the papers)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--fast", action="store_true",
-                   help="draw step means directly instead of simulating and averaging samples")
+    p.add_argument(
+        "--fast",
+        action="store_true",
+        help="draw step means directly instead of simulating and averaging samples",
+    )
     p.add_argument("--json", type=Path, default=None, help="also write the tables as JSON")
     p.set_defaults(func=run)
 
@@ -39,12 +44,16 @@ def run(args) -> int:
 
         def averager(key, steps, samples, metadata):
             import pyarrow as pa
-            return step_means_from_tables(key, steps, pa.Table.from_pandas(samples,
-                                          preserve_index=False), metadata)[0]
+
+            return step_means_from_tables(
+                key, steps, pa.Table.from_pandas(samples, preserve_index=False), metadata
+            )[0]
+
         kwargs["averager"] = averager
     report = module.reproduce(**kwargs)
     print(report.text)
     if args.json:
         from schemas.calibration_file import write_json_atomic
+
         write_json_atomic(args.json, report.to_dict())
     return 0

@@ -1,4 +1,5 @@
 """`mimucal simulate OUT --lots L --units N --reps R --seed S`: write a simulated fleet."""
+
 from __future__ import annotations
 
 import shutil
@@ -10,44 +11,88 @@ from flows.cli import CliError
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "simulate", help="write a simulated fleet in the acquisition format (+ fleet.json truth)",
+        "simulate",
+        help="write a simulated fleet in the acquisition format (+ fleet.json truth)",
         description="Simulate LOTS x UNITS x REPS turntable sessions (xu2016 multirate + "
-                    "multiposition + zhang2017 dynamic protocol) and write them under OUT as "
-                    "lot=*/unit=*/rep=*/{steps,samples}.parquet, with OUT/fleet.json listing "
-                    "every unit's truth, the injected outliers and the sessions made bad.")
+        "multiposition + zhang2017 dynamic protocol) and write them under OUT as "
+        "lot=*/unit=*/rep=*/{steps,samples}.parquet, with OUT/fleet.json listing "
+        "every unit's truth, the injected outliers and the sessions made bad.",
+    )
     p.add_argument("out", type=Path, metavar="OUT", help="output dataset root")
     p.add_argument("--lots", type=int, default=1, help="number of lots (default 1)")
     p.add_argument("--units", type=int, default=4, help="units per lot (default 4)")
     p.add_argument("--reps", type=int, default=5, help="repetitions per unit (default 5)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--rate", type=float, default=100.0, metavar="HZ",
-                   help="sample rate in Hz (default 100)")
-    p.add_argument("--outliers", type=int, default=0, metavar="K",
-                   help="units with one parameter shifted far beyond the lot spread")
-    p.add_argument("--bad-sessions", type=int, default=0, metavar="K",
-                   help="sessions damaged after writing (NaN burst, truncated file, ...)")
-    p.add_argument("--verification", action="store_true",
-                   help="append the xu2016 verification sweep (Table 3) to the protocol")
-    p.add_argument("--gyro-unit", choices=("deg/s", "rad/s"), default=None,
-                   help="unit of the written gyro samples (default deg/s)")
-    p.add_argument("--accel-unit", choices=("g", "m/s^2"), default=None,
-                   help="unit of the written accelerometer samples (default g)")
-    p.add_argument("--physics", action="store_true",
-                   help="simulate with the independent physics simulator (each sensor its own "
-                        "misaligned axis, noise processes, warm-up ramp; docs/physics-simulator.md)")
-    p.add_argument("--hide", action="append", default=[], metavar="EFFECT[:SCALE]",
-                   help="with --physics: hide a catalogue effect in every unit at SCALE times a "
-                        "realistic size (default 1); repeatable")
-    p.add_argument("--no-tilted", action="store_true",
-                   help="with --physics: leave out the dynamic steps on the 45-degree diagonals")
-    p.add_argument("--latitude", type=float, default=None, metavar="DEG",
-                   help="with --physics: add the Earth rate at this latitude")
-    p.add_argument("--declare-location", action="store_true",
-                   help="with --latitude: write latitude_deg/table_heading_deg into the metadata")
-    p.add_argument("--force", action="store_true",
-                   help="replace a fleet simulated earlier in OUT (its lot=* directories and "
-                        "fleet.json are removed first; a dataset without fleet.json is never "
-                        "removed)")
+    p.add_argument("--rate", type=float, default=100.0, metavar="HZ", help="sample rate in Hz (default 100)")
+    p.add_argument(
+        "--outliers",
+        type=int,
+        default=0,
+        metavar="K",
+        help="units with one parameter shifted far beyond the lot spread",
+    )
+    p.add_argument(
+        "--bad-sessions",
+        type=int,
+        default=0,
+        metavar="K",
+        help="sessions damaged after writing (NaN burst, truncated file, ...)",
+    )
+    p.add_argument(
+        "--verification",
+        action="store_true",
+        help="append the xu2016 verification sweep (Table 3) to the protocol",
+    )
+    p.add_argument(
+        "--gyro-unit",
+        choices=("deg/s", "rad/s"),
+        default=None,
+        help="unit of the written gyro samples (default deg/s)",
+    )
+    p.add_argument(
+        "--accel-unit",
+        choices=("g", "m/s^2"),
+        default=None,
+        help="unit of the written accelerometer samples (default g)",
+    )
+    p.add_argument(
+        "--physics",
+        action="store_true",
+        help="simulate with the independent physics simulator (each sensor its own "
+        "misaligned axis, noise processes, warm-up ramp; docs/physics-simulator.md)",
+    )
+    p.add_argument(
+        "--hide",
+        action="append",
+        default=[],
+        metavar="EFFECT[:SCALE]",
+        help="with --physics: hide a catalogue effect in every unit at SCALE times a "
+        "realistic size (default 1); repeatable",
+    )
+    p.add_argument(
+        "--no-tilted",
+        action="store_true",
+        help="with --physics: leave out the dynamic steps on the 45-degree diagonals",
+    )
+    p.add_argument(
+        "--latitude",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="with --physics: add the Earth rate at this latitude",
+    )
+    p.add_argument(
+        "--declare-location",
+        action="store_true",
+        help="with --latitude: write latitude_deg/table_heading_deg into the metadata",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace a fleet simulated earlier in OUT (its lot=* directories and "
+        "fleet.json are removed first; a dataset without fleet.json is never "
+        "removed)",
+    )
     p.set_defaults(func=run)
 
 
@@ -66,11 +111,14 @@ def run(args) -> int:
         lots = [p for p in out.iterdir() if p.name.startswith("lot=")]
         simulated = (out / MANIFEST).exists()
         if (lots or simulated) and not args.force:
-            raise CliError(f"{out} already holds a dataset; use --force to replace a simulated "
-                           f"fleet or choose an empty directory")
+            raise CliError(
+                f"{out} already holds a dataset; use --force to replace a simulated "
+                f"fleet or choose an empty directory"
+            )
         if lots and not simulated:
-            raise CliError(f"{out} holds a dataset that was not simulated (no {MANIFEST}); "
-                           f"refusing to remove it")
+            raise CliError(
+                f"{out} holds a dataset that was not simulated (no {MANIFEST}); refusing to remove it"
+            )
         for p in lots:  # a simulated fleet, replaced on request (no stale sessions left)
             shutil.rmtree(p)
         (out / MANIFEST).unlink(missing_ok=True)
@@ -81,17 +129,27 @@ def run(args) -> int:
         raise CliError("--hide, --no-tilted, --latitude and --declare-location need --physics")
     try:
         manifest = simulate_fleet(
-            out, args.lots, args.units, args.reps, args.seed, sample_rate_hz=args.rate,
-            outliers=args.outliers, bad_sessions=args.bad_sessions,
-            verification=args.verification, gyro_unit=args.gyro_unit,
-            accel_unit=args.accel_unit)
+            out,
+            args.lots,
+            args.units,
+            args.reps,
+            args.seed,
+            sample_rate_hz=args.rate,
+            outliers=args.outliers,
+            bad_sessions=args.bad_sessions,
+            verification=args.verification,
+            gyro_unit=args.gyro_unit,
+            accel_unit=args.accel_unit,
+        )
     except ValueError as exc:
         raise CliError(str(exc)) from None
     elapsed = time.perf_counter() - start
     n = args.lots * args.units * args.reps
-    print(f"wrote {n} sessions ({args.lots} lot(s) x {args.units} unit(s) x {args.reps} rep(s), "
-          f"{manifest['n_steps']} steps at {args.rate:g} Hz, gyro {manifest['file_units']['gyro']}, "
-          f"accel {manifest['file_units']['accel']}) to {out} in {elapsed:.1f} s")
+    print(
+        f"wrote {n} sessions ({args.lots} lot(s) x {args.units} unit(s) x {args.reps} rep(s), "
+        f"{manifest['n_steps']} steps at {args.rate:g} Hz, gyro {manifest['file_units']['gyro']}, "
+        f"accel {manifest['file_units']['accel']}) to {out} in {elapsed:.1f} s"
+    )
     for o in manifest["outliers"]:
         print(f"  outlier: lot={o['lot']}/unit={o['unit']} ({o['param']} {o['shift']:+g})")
     for b in manifest["bad_sessions"]:
@@ -107,8 +165,7 @@ def _parse_hide(specs: list[str]) -> tuple[tuple[str, float], ...]:
     for spec in specs:
         name, _, scale = spec.partition(":")
         if name not in catalogue():
-            raise CliError(f"--hide {spec}: unknown effect {name!r}; known: "
-                           f"{', '.join(sorted(catalogue()))}")
+            raise CliError(f"--hide {spec}: unknown effect {name!r}; known: {', '.join(sorted(catalogue()))}")
         try:
             value = float(scale) if scale else 1.0
         except ValueError:
@@ -121,18 +178,30 @@ def _run_physics(args, out: Path, start: float) -> int:
     from flows.fleet_sim import MANIFEST, simulate_physics_fleet
 
     if args.outliers or args.bad_sessions or args.verification or args.gyro_unit or args.accel_unit:
-        raise CliError("--physics takes --lots/--units/--reps/--seed/--rate/--hide/--no-tilted/"
-                       "--latitude/--declare-location only")
+        raise CliError(
+            "--physics takes --lots/--units/--reps/--seed/--rate/--hide/--no-tilted/"
+            "--latitude/--declare-location only"
+        )
     hide = _parse_hide(args.hide)
     rate = args.rate if args.rate != 100.0 else 50.0  # the physics units' noise is set at 50 Hz
-    manifest = simulate_physics_fleet(out, args.lots, args.units, args.reps, args.seed,
-                                      sample_rate_hz=rate, hide=hide, tilted=not args.no_tilted,
-                                      latitude_deg=args.latitude,
-                                      declare_location=args.declare_location)
+    manifest = simulate_physics_fleet(
+        out,
+        args.lots,
+        args.units,
+        args.reps,
+        args.seed,
+        sample_rate_hz=rate,
+        hide=hide,
+        tilted=not args.no_tilted,
+        latitude_deg=args.latitude,
+        declare_location=args.declare_location,
+    )
     n = args.lots * args.units * args.reps
     hidden = ", ".join(f"{h['effect']} x{h['scale']:g}" for h in manifest["hidden"]) or "none"
-    print(f"wrote {n} physics-simulator sessions ({args.lots} lot(s) x {args.units} unit(s) x "
-          f"{args.reps} rep(s), {manifest['n_steps']} steps at {rate:g} Hz; hidden: {hidden}) "
-          f"to {out} in {time.perf_counter() - start:.1f} s")
+    print(
+        f"wrote {n} physics-simulator sessions ({args.lots} lot(s) x {args.units} unit(s) x "
+        f"{args.reps} rep(s), {manifest['n_steps']} steps at {rate:g} Hz; hidden: {hidden}) "
+        f"to {out} in {time.perf_counter() - start:.1f} s"
+    )
     print(f"  truth: {out / MANIFEST}")
     return 0
