@@ -148,6 +148,9 @@ def _arrow_threads_here() -> bool:
 def test_workers_read_on_their_own_thread_and_this_process_keeps_arrows_threads():
     from schemas import reader
 
+    # the precondition set here: an earlier test in this process (a Dask cluster whose
+    # workers are threads of this process) may have switched them off
+    reader.use_arrow_threads(True)
     with cp.compute_pool(2):
         assert cp.run_in_pool(_arrow_threads_here) is False
     assert reader._arrow_threads is True
