@@ -797,38 +797,26 @@ def _flag_one_lot(
             for i in range(len(x)):
                 v = x[i]
                 u = str(grp_units[i])
-                if lim.min is not None and not v >= lim.min:
-                    flags.append(
-                        Flag(
-                            lot,
-                            u,
-                            model,
-                            name,
-                            KIND_LIMIT,
-                            float(v),
-                            med,
-                            float(v - lim.min),
-                            lim.min,
-                            f"{model}.{name} = {_fmt(v)}{u_txt} below limit min "
-                            f"{_fmt(lim.min)}{u_txt}" + (f" (limit {lim.written})" if lim.written else ""),
+                written = f" (limit {lim.written})" if lim.written else ""
+                for bound, side, outside in (
+                    (lim.min, "below limit min", lim.min is not None and not v >= lim.min),
+                    (lim.max, "above limit max", lim.max is not None and not v <= lim.max),
+                ):
+                    if outside:
+                        flags.append(
+                            Flag(
+                                lot,
+                                u,
+                                model,
+                                name,
+                                KIND_LIMIT,
+                                float(v),
+                                med,
+                                float(v - bound),
+                                bound,
+                                f"{model}.{name} = {_fmt(v)}{u_txt} {side} {_fmt(bound)}{u_txt}{written}",
+                            )
                         )
-                    )
-                if lim.max is not None and not v <= lim.max:
-                    flags.append(
-                        Flag(
-                            lot,
-                            u,
-                            model,
-                            name,
-                            KIND_LIMIT,
-                            float(v),
-                            med,
-                            float(v - lim.max),
-                            lim.max,
-                            f"{model}.{name} = {_fmt(v)}{u_txt} above limit max "
-                            f"{_fmt(lim.max)}{u_txt}" + (f" (limit {lim.written})" if lim.written else ""),
-                        )
-                    )
     thr_used = float(np.median(thresholds)) if thresholds else float("nan")
     if history is not None:
         reference, detail = "fleet history", history.detail
