@@ -19,9 +19,9 @@ def physics(
     n_units: int = 40, n_clean: int = 200, sections: str = "effects,pairs,clean,ooc", scales=(0.25, 0.5, 1.0)
 ) -> None:
     """The Done-when figures of the discovery on the independent physics simulator."""
-    from calib_core import protocols
     from calib_core.discovery.evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
     from calib_core.effects import catalogue
+    from calib_core.sim import protocols
     from schemas.physics_sessions import physics_unit_step_means
 
     steps = protocols.default_session()
@@ -89,7 +89,7 @@ def physics(
 
 
 def xu2016() -> None:
-    from calib_core.discovery_xu2016 import gap_analysis
+    from calib_core.paper.xu2016_gap import gap_analysis
 
     r = gap_analysis()
     print("per-axis hypotheses (gyro_scale_nonlinearity fitted to the compensated range):")

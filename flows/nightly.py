@@ -901,7 +901,7 @@ def _reflag_changed_lots(
 
 def unit_navigation(ur: UnitResult) -> pd.DataFrame | None:
     """Navigation drift of the unit's first repetition with a fully determined lever arm."""
-    from calib_core.navigation import navigation_table
+    from calib_core.sim.navigation import navigation_table
 
     if not ur.calibrated:
         return None
@@ -1335,9 +1335,9 @@ def lot_report_flow(results: str, lot: str, config: str | None = None, wait: boo
 # that thread first and logs what it cost (run log: ``preload``).
 FLOW_PRELOAD = (
     "calib_core.discovery",
-    "calib_core.zhang2017",
-    "calib_core.navigation",
-    "calib_core.pipeline",
+    "calib_core.models.zhang2017",
+    "calib_core.sim.navigation",
+    "calib_core.models.pipeline",
     "schemas.unit_document",
     "reports.unit",
     "reports.lot",

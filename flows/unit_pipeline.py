@@ -14,7 +14,7 @@ import pandas as pd
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
+from calib_core.models.pipeline import calibrate_repetitions, calibration_from_unit
 from calib_core.results import Param, RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
@@ -142,7 +142,7 @@ class UnitOutcome:
 
     def residuals_frame(self) -> pd.DataFrame | None:
         """The per-step residual rows of every successful session, one frame for the unit
-        (columns ``calib_core.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
+        (columns ``calib_core.models.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
         return self._table("residual_table")
 
     def compensation_frame(self) -> pd.DataFrame | None:
@@ -308,7 +308,7 @@ def _discovery_available() -> bool:
 def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
-    from calib_core.pipeline import residual_table
+    from calib_core.models.pipeline import residual_table
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
 
     t0 = time.perf_counter()

@@ -325,7 +325,7 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> Uni
     ...
     LookupError: no session of unit 'U0001' under /nonexistent (units: none)
     """
-    from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
+    from calib_core.models.pipeline import calibrate_repetitions, calibration_from_unit
     from schemas.errors import SessionError
 
     lot, read, failed = _read_unit(dataset, unit)
@@ -391,9 +391,14 @@ def simulate_unit_dataset(
 ):
     """Write ``reps`` simulated turntable sessions of one unit (the default xu2016 +
     zhang2017 protocol, a typical MEMS unit) under ``root/lot=<lot>/unit=<unit>/`` and
-    return its truth (``calib_core.simulator.MimuTruth``). For examples and tests."""
-    from calib_core.protocols import default_session
-    from calib_core.simulator import draw_repetition_truth, session_metadata, simulate_session, typical_truth
+    return its truth (``calib_core.sim.simulator.MimuTruth``). For examples and tests."""
+    from calib_core.sim.protocols import default_session
+    from calib_core.sim.simulator import (
+        draw_repetition_truth,
+        session_metadata,
+        simulate_session,
+        typical_truth,
+    )
     from calib_core.steps import SessionKey
     from schemas.writer import write_session
 

@@ -10,8 +10,8 @@ and the units after boundary conversion, exactly as in the contract: gyro ``deg/
 input is converted to deg/s) or a raw unit (``LSB``; ``counts`` is an alias; ``V``); accel
 ``g`` (``m/s^2`` input is divided by the recording's ``g_local``; ``mg`` is divided by 1000) or
 raw (``LSB``, ``V``). There is no ``step`` column and no reference: the calibration methods
-that consume these recordings (:mod:`calib_core.ferraris`, :mod:`calib_core.field`) find the
-static poses themselves or take a section list.
+that consume these recordings (:mod:`calib_core.models.ferraris`,
+:mod:`calib_core.models.field.imu_tk`) find the static poses themselves or take a section list.
 
 Errors are :class:`schemas.errors.SessionError` naming the file (the "session" is the file
 name: these recordings have no lot/unit/rep).

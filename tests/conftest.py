@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calib_core import protocols, simulator
+from calib_core.models.zhang2017 import C_from_angles
+from calib_core.sim import protocols, simulator
+from calib_core.sim.accel_unit import AccelUnitTruth
 from calib_core.steps import SessionKey, StepMeans
-from calib_core.zhang2017 import AccelUnitTruth, C_from_angles
 
 # Zhang et al. 2017: the published installation angles theta_ij (deg) of the paper's unit
 PAPER_ANGLES = np.array(

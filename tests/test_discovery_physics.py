@@ -10,7 +10,6 @@ import json
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation import run_scenario
 from calib_core.effects import (
@@ -21,6 +20,7 @@ from calib_core.effects import (
     register_effect,
     unregister_effect,
 )
+from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from schemas.calibration_file import calibration_from_dict, calibration_to_dict
 from schemas.physics_sessions import physics_unit_step_means

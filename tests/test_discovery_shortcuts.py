@@ -16,12 +16,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery import turntable as disc
 from calib_core.effects import get_effect
-from calib_core.simulator import REALISTIC_NOISE, simulate_unit
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
+from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit
 
 STEPS = protocols.default_session()
 

@@ -14,14 +14,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib_core import protocols, simulator, xu2016, zhang2017
-from calib_core.pipeline import (
+from calib_core.models import xu2016, zhang2017
+from calib_core.models.pipeline import (
     RESIDUAL_COLUMNS,
     baseline_residuals,
     calibrate_repetition,
     calibration_from_fits,
 )
 from calib_core.results import RepetitionCalibration, summarise
+from calib_core.sim import protocols, simulator
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import CodedStrings, ColumnTable
 from flows.unit_pipeline import SessionOutcome, aggregate_unit
@@ -297,7 +298,7 @@ def test_of_test_subsets_are_kept_and_equal_a_fresh_selection():
 def test_cpu_by_stage_adds_up_and_changes_nothing():
     import time
 
-    from calib_core.pipeline import STAGES
+    from calib_core.models.pipeline import STAGES
 
     sm = _sessions(1)[0]
     plain = calibrate_repetition(sm)

@@ -20,7 +20,7 @@ from flows import runtime
 
 runtime.ensure_environment()
 
-from calib_core.simulator import typical_truth  # noqa: E402
+from calib_core.sim.simulator import typical_truth  # noqa: E402
 from flows import fleet_sim  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
 from reports.history import history_frame  # noqa: E402

@@ -260,9 +260,9 @@ def test_apply_refuses_gravity_in_m_s2_for_a_g_calibration_and_converts_when_tol
 
 
 def test_the_limits_table_knows_every_parameter_a_calibration_produces():
-    from calib_core.pipeline import calibrate_repetition
-    from calib_core.protocols import default_session
-    from calib_core.simulator import simulate_step_means, typical_truth
+    from calib_core.models.pipeline import calibrate_repetition
+    from calib_core.sim.protocols import default_session
+    from calib_core.sim.simulator import simulate_step_means, typical_truth
     from schemas.limits import PARAMETERS, STORED_UNIT
 
     rng = np.random.default_rng(3)

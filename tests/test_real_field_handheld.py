@@ -1,4 +1,4 @@
-"""Hand-held field calibration (calib_core.field_joint): known truth and standard errors on
+"""Hand-held field calibration (calib_core.models.field.joint): known truth and standard errors on
 simulated sessions (Monte Carlo), pose detection, and the comparison with the published
 references on the real recordings, with figures of merit computed here, independently of
 the code under test (own pose means, own per-sample rotation products with scipy, own
@@ -13,9 +13,9 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from calib_core.field_joint import Priors, fit_field
-from calib_core.hand_held import mpu6050_like_truth, simulate_hand_held
-from calib_core.static_detection import detect_poses
+from calib_core.models.field.joint import Priors, fit_field
+from calib_core.models.field.static_detection import detect_poses
+from calib_core.sim.hand_held import mpu6050_like_truth, simulate_hand_held
 from schemas.importers import read_imutk_pair, read_table_recording
 
 REAL = Path(__file__).parents[2] / "shared" / "data" / "real"

@@ -12,10 +12,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from calib_core import protocols
-from calib_core.pipeline import calibrate_repetitions
+from calib_core.models.pipeline import calibrate_repetitions
+from calib_core.models.xu2016 import AXES
 from calib_core.results import Param, RepetitionCalibration, param_list, summarise
-from calib_core.xu2016 import AXES
+from calib_core.sim import protocols
 
 from conftest import STEPS_WITH_VERIFICATION, unit_step_means
 

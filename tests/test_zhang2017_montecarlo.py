@@ -3,9 +3,9 @@ paper's unit at the paper's noise (one loop: both stages per simulated session).
 
 import numpy as np
 
-from calib_core import protocols
-from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import fit_accel_static, fit_lever_arm
+from calib_core.models.zhang2017 import fit_accel_static, fit_lever_arm
+from calib_core.sim import protocols
+from calib_core.sim.simulator import simulate_step_means
 
 from conftest import PAPER_NOISE, paper_unit
 

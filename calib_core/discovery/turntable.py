@@ -12,7 +12,7 @@ every step of both sensors (gyro channels during multiposition steps and acceler
 channels during rotation steps included). Even-in-rate terms are visible because steps enter
 one by one, not as the +/- differences of xu2016 (which cancel them).
 
-Weights are 1/sigma of each step mean, estimated from the data (:mod:`calib_core.replay`):
+Weights are 1/sigma of each step mean, estimated from the data (:mod:`calib_core.discovery.replay`):
 within-step scatter plus the step-to-step scatter seen across repetitions.
 
 Tests (alpha is the family-wise false-alarm rate per unit, default 1%):
@@ -52,7 +52,16 @@ import pandas as pd
 from scipy import stats
 
 from calib_core.calibration import Calibration, TermValue
+from calib_core.discovery.identifiability import Identifiability, analyse
 from calib_core.discovery.presentation import evidence_frame
+from calib_core.discovery.replay import (
+    MIN_POOL_DOF,
+    NOISE_COLUMNS,
+    NoiseEstimate,
+    replay_unit,
+    test_group,
+    two_way_residual,
+)
 from calib_core.discovery.results import (
     DEFAULT_ALPHA,
     DEFAULT_MIN_GAIN,
@@ -65,20 +74,11 @@ from calib_core.discovery.results import (
 from calib_core.discovery.selection import stepwise
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.identifiability import Identifiability, analyse
-from calib_core.replay import (
-    MIN_POOL_DOF,
-    NOISE_COLUMNS,
-    NoiseEstimate,
-    replay_unit,
-    test_group,
-    two_way_residual,
-)
 from calib_core.steps import StepMeans
 
 _RCOND = 1e-10
 # terms whose columns share a direction up to this sine of angle (the part of a column the
-# others do not explain is below 5 % of it) are tested together: calib_core.identifiability
+# others do not explain is below 5 % of it) are tested together: calib_core.discovery.identifiability
 CONFOUNDING_TOL = 0.05
 
 
@@ -177,7 +177,7 @@ class _UnitGrid:
 
     def white_sigma(self, K: np.ndarray) -> np.ndarray:
         """Within-step scatter of the step mean through the 6x3 gain rows K, (R, n, 6)
-        (:func:`calib_core.replay.white_sigma` for every repetition at once)."""
+        (:func:`calib_core.discovery.replay.white_sigma` for every repetition at once)."""
         return np.sqrt(np.einsum("rnck,ck->rnc", self.std**2, K**2)) / np.sqrt(self.count)[..., None]
 
     def _balanced_groups(self) -> tuple[np.ndarray, ...]:
@@ -199,7 +199,7 @@ class _UnitGrid:
     # -- pure error: the two-way (step x repetition) residual within each test group ------
     def two_way(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Two-way residual of X (..., R, n, k) per test group (a value per step and per
-        repetition removed, :func:`calib_core.replay.two_way_residual`), as rows (..., m, k),
+        repetition removed, :func:`calib_core.discovery.replay.two_way_residual`), as rows (..., m, k),
         the group of each row (m,) and the degrees of freedom per group."""
         ng = len(self.groups)
         if self.balanced:  # double centring of every group's (step x repetition) table
@@ -761,7 +761,7 @@ class _Discovery:
         return K, np.moveaxis(resid, 0, -1)
 
     def _noise(self, K: np.ndarray, resid: np.ndarray) -> tuple[list, np.ndarray]:
-        """:func:`calib_core.replay.estimate_noise_arrays` and :func:`noise_sigma` on the
+        """:func:`calib_core.discovery.replay.estimate_noise_arrays` and :func:`noise_sigma` on the
         grid (same pooling, same numbers)."""
         g = self.g
         white = g.white_sigma(K)
@@ -1423,9 +1423,9 @@ _ADVICE_CACHE: dict[bytes, list] = {}
 
 
 def _advice(sm: StepMeans) -> list:
-    """:func:`calib_core.plan.advise` for the unit's protocol (the steps' motion and
+    """:func:`calib_core.discovery.plan.advise` for the unit's protocol (the steps' motion and
     headings, nominal times and warm-up: the same for every unit of the protocol, kept)."""
-    from calib_core.plan import advise
+    from calib_core.discovery.plan import advise
 
     key = b"".join(
         [

@@ -139,8 +139,8 @@ def run(args) -> int:
     import pandas as pd
 
     from calib_core.discovery import diagnose_unit
+    from calib_core.discovery.replay import replay_xu2016, summarise_residuals
     from calib_core.errors import DesignError
-    from calib_core.replay import replay_xu2016, summarise_residuals
     from schemas.averaging import read_step_means
     from schemas.calibration_file import write_json_atomic
     from schemas.dataset import find_sessions

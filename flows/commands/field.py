@@ -217,14 +217,8 @@ def run(args) -> int:
     import numpy as np
 
     from calib_core.errors import DesignError
-    from calib_core.field_joint import (
-        Priors,
-        field_figures,
-        fit_field,
-        held_out_figures,
-        usable_moves,
-    )
-    from calib_core.static_detection import clipped_samples, detect_poses
+    from calib_core.models.field.joint import Priors, field_figures, fit_field, held_out_figures, usable_moves
+    from calib_core.models.field.static_detection import clipped_samples, detect_poses
     from schemas.calibration_file import save_calibration
 
     rec = _read(args)
@@ -335,7 +329,7 @@ def run(args) -> int:
         },
     )
     if args.poses:
-        from calib_core.static_detection import static_pose_means
+        from calib_core.models.field.static_detection import static_pose_means
 
         static_pose_means(rec.t, rec.gyro, rec.accel, det.intervals()).to_csv(args.poses, index=False)
     _print_summary(args, rec, det, move_ok, figures, model, held)
@@ -348,7 +342,7 @@ def _json_numbers(d: dict) -> dict:
 
 
 def _imu_tk(args, rec, init_s):
-    from calib_core.field import field_calibration
+    from calib_core.models.field.imu_tk import field_calibration
 
     res = field_calibration(
         rec.t,

@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from calib_core import xu2016
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
+from calib_core.models import xu2016
 from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.steps import StepMeans, stack_field
 from calib_core.tables import CodedStrings, ColumnTable
@@ -197,7 +197,7 @@ def _fit_zhang2017(
     DesignError raises instead of becoming the sessions' warning)."""
     lap = lap if lap is not None else _Lap(None)
     try:
-        from calib_core import zhang2017
+        from calib_core.models import zhang2017
     except ImportError:  # pragma: no cover - module always present in a full install
         return
     alone = len(sms) == 1
@@ -301,7 +301,7 @@ def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline")
     """Calibrated step mean minus reference, every step and channel (gyro deg/s, accel g).
 
     ``sigma`` is the white-noise part only (within-step scatter through K); the step-to-step
-    part is estimated across repetitions by :mod:`calib_core.replay`."""
+    part is estimated across repetitions by :mod:`calib_core.discovery.replay`."""
     return residual_table(sm, cal, model).to_frame()
 
 

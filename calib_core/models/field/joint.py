@@ -2,7 +2,7 @@
 gyro (scale, misalignment, bias and bias drift) jointly from the moves and the quiet poses,
 with standard errors and held-out figures of merit.
 
-Models (IMU-TK's ``x' = T K (x - b)``, as in :mod:`calib_core.field`):
+Models (IMU-TK's ``x' = T K (x - b)``, as in :mod:`calib_core.models.field.imu_tk`):
 
 * accel, 9 parameters ``a_yz a_zy a_zx s_ax s_ay s_az b_ax b_ay b_az``: triangular ``T_a``
   (the body frame is the accelerometer's), fitted on the **mean of each static pose**:
@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.field import (
+from calib_core.models.field.imu_tk import (
     ACCEL_PARAM_NAMES,
     GYRO_PARAM_NAMES,
     SegmentIntegrator,
@@ -57,7 +57,7 @@ from calib_core.field import (
     accel_matrix,
     gyro_matrix,
 )
-from calib_core.static_detection import Pose, odd_window
+from calib_core.models.field.static_detection import Pose, odd_window
 
 GYRO_BIAS_NAMES = ("b_gx", "b_gy", "b_gz")
 GYRO_DRIFT_NAMES = ("d_gx", "d_gy", "d_gz")

@@ -26,7 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calib_core.zhang2017 import AccelStaticFit, AccelUnitTruth, LeverArmFit, compensate_specific_force
+from calib_core.models.zhang2017 import AccelStaticFit, LeverArmFit, compensate_specific_force
+from calib_core.sim.accel_unit import AccelUnitTruth
 
 if TYPE_CHECKING:  # pandas is imported where the store's table is built
     import pandas as pd

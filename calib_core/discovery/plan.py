@@ -1,7 +1,7 @@
 """What a protocol can identify, before anyone runs the turntable: every catalogue term's
 columns on the protocol's steps (nominal unit, nominal noise) analysed by
-:mod:`calib_core.identifiability`, and the step sets of the library
-(:data:`calib_core.protocols.STEP_SETS`) that would resolve each confounded or undetermined
+:mod:`calib_core.discovery.identifiability`, and the step sets of the library
+(:data:`calib_core.sim.protocols.STEP_SETS`) that would resolve each confounded or undetermined
 set. ``mimucal plan`` prints it; model discovery asks it for a unit's own steps.
 
 Assumptions, stated because the steps table alone does not say them:
@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from calib_core.discovery.identifiability import DEFAULT_TOL, Advice, Identifiability, analyse
 from calib_core.effects import MotionContext, catalogue, get_effect
-from calib_core.identifiability import DEFAULT_TOL, Advice, Identifiability, analyse
 
 NOMINAL_SIGMA = np.array([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])  # deg/s, g per step mean
 WARM_UP_C = (25.0, 10.0, 600.0)  # start, rise, time constant (s)
@@ -187,12 +187,12 @@ def advise(
     ident: Identifiability | None = None,
 ) -> list[Advice]:
     """For each confounded set and each term with undetermined parameters, the step sets of
-    ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it. A
+    ``library`` (default :data:`calib_core.sim.protocols.STEP_SETS`) that resolve it. A
     confounded set is resolved when every member has a direction of its own given the
     others (discovery can then test each member given the rest; a shared direction, such as
     the vertical Earth rate and an isotropic g-sensitivity, may remain); an undetermined
     term when all its excited parameters are determined."""
-    from calib_core.protocols import STEP_SETS, extended
+    from calib_core.sim.protocols import STEP_SETS, extended
 
     lib = STEP_SETS if library is None else library
     kw = {"latitude_deg": latitude_deg, "table_heading_deg": table_heading_deg}
