@@ -42,12 +42,11 @@ from calib_core.outliers import (  # noqa: E402
     KIND_LIMIT,
     LotFlags,
     OutlierConfig,
+    ThresholdTable,
     apply_flags,
     flag_lots,
-    known_thresholds,
     pooled_scales,
     pooling_rows,
-    remember_thresholds,
 )
 from calib_core.tables import ColumnTable  # noqa: E402
 from flows.compute_pool import run_in_pool  # noqa: E402
@@ -639,10 +638,10 @@ def _flag(
     store; new lot layouts are added to it) and the units' acquisition times (small lots'
     fleet history)."""
     cached = store.read_outlier_thresholds()
-    remember_thresholds(cached)
+    thresholds = ThresholdTable(cached)
     times = unit_times(store) if config.uses_history() else None
-    lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo, times)
-    now = known_thresholds()
+    lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo, times, thresholds)
+    now = thresholds.document()
     if now != cached:  # new lot layouts simulated: keep them for the next process
         store.write_outlier_thresholds(now)
     return lf

@@ -22,7 +22,7 @@ from calib_core.models.pipeline import (
     calibration_from_fits,
 )
 from calib_core.results import RepetitionCalibration, summarise
-from calib_core.sim import protocols, simulator
+from calib_core.sim import accel_unit, protocols, simulator
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import CodedStrings, ColumnTable
 from flows.unit_pipeline import SessionOutcome, aggregate_unit
@@ -215,7 +215,7 @@ def test_multirate_pairs_are_opposite_rates_about_one_axis():
 def test_lever_arm_all_determined_recovers_the_truth_when_noise_free():
     # tilted dynamic steps: every component determined, the block-diagonal batched solve
     lever = np.array([[5, -3, 2], [-4, 6, 1], [2, 3, -7.0]])
-    truth = zhang2017.AccelUnitTruth(
+    truth = accel_unit.AccelUnitTruth(
         scale=np.array([0.5, 0.51, 0.49]),
         bias=np.array([0.01, -0.02, 0.03]),
         C=zhang2017.C_from_angles(np.array([[0.5, 89.5, 90.2], [90.3, 0.7, 89.6], [89.8, 90.4, 0.6]])),
