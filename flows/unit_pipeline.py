@@ -15,7 +15,7 @@ import pandas as pd
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.models.pipeline import calibrate_repetitions, calibration_from_unit
-from calib_core.results import Param, RepetitionCalibration, UnitCalibration
+from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
 from schemas.averaging import read_step_means
@@ -135,10 +135,6 @@ class UnitOutcome:
     terms: tuple[TermValue, ...] = ()
     diagnosis: object | None = None  # calib_core.discovery.Diagnosis when discovery ran
     notes: list[str] = field(default_factory=list)
-
-    @property
-    def parameter_rows(self) -> list[Param]:
-        return [p for s in self.sessions if s.calibration for p in s.calibration.parameters()]
 
     def residuals_frame(self) -> pd.DataFrame | None:
         """The per-step residual rows of every successful session, one frame for the unit

@@ -45,7 +45,15 @@ def _summary(lots: dict[str, int]) -> pd.DataFrame:
     for lot, n in lots.items():
         for u in range(n):
             rows.append(
-                dict(lot=lot, unit=f"U{u:02d}", model="gyro", parameter="w0_x", mean=0.01 * u, std=0.1, n_reps=5)
+                dict(
+                    lot=lot,
+                    unit=f"U{u:02d}",
+                    model="gyro",
+                    parameter="w0_x",
+                    mean=0.01 * u,
+                    std=0.1,
+                    n_reps=5,
+                )
             )
     return pd.DataFrame(rows)
 
