@@ -10,6 +10,7 @@ and applied (xu2016 section 3.1 averages the five repetitions the same way).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,9 +20,20 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
 from calib_core.models import xu2016
-from calib_core.results import RepetitionCalibration, UnitCalibration
+from calib_core.results import FitResult, RepetitionCalibration, UnitCalibration
 from calib_core.steps import StepMeans, stack_field
 from calib_core.tables import CodedStrings, ColumnTable
+
+# The methods fitted on every session besides xu2016's (which the session needs), by the
+# model name their results carry: ``fitter(sessions) -> one fit per session`` (the sessions
+# share one step layout), each fit a calib_core.results.FitResult. A DesignError (the steps
+# cannot determine the method) becomes the session's warning ``W_<NAME>_SKIPPED``; the store,
+# the averages over repetitions and the reports take every model's parameters as they come.
+# Adding a calibration method is its module in calib_core/models/ and its line here.
+OPTIONAL_FITS: tuple[tuple[str, Callable[[list[StepMeans]], list[FitResult]]], ...] = (
+    ("gyro_traditional", xu2016.fit_gyro_traditional_stack),
+    ("accel_traditional", xu2016.fit_accel_traditional_stack),
+)
 
 
 @dataclass
@@ -131,10 +143,7 @@ def _calibrate_together(
                 "estimates are not those of a working sensor: " + "; ".join(str(i) for i in implausible),
                 undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible),
             )
-    for name, fitter in (
-        ("gyro_traditional", xu2016.fit_gyro_traditional_stack),
-        ("accel_traditional", xu2016.fit_accel_traditional_stack),
-    ):
+    for name, fitter in OPTIONAL_FITS:
         try:
             for f, trad in zip(fits, fitter(sms)):
                 f[name] = trad
