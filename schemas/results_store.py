@@ -775,9 +775,9 @@ class ResultsStore:
         return self.root / "cache" / "outlier_thresholds.json"
 
     def read_outlier_thresholds(self) -> dict | None:
-        """The outlier thresholds simulated by earlier runs (calib_core.outliers'
-        ``known_thresholds`` document), or None when absent or unreadable: a cache, never
-        a source of truth (the values are recomputed when missing)."""
+        """The outlier thresholds simulated by earlier runs (the document of a
+        ``calib_core.outliers.ThresholdTable``), or None when absent or unreadable: a cache,
+        never a source of truth (the values are recomputed when missing)."""
         try:
             return json.loads(self.outlier_thresholds_path.read_text())
         except (OSError, ValueError):

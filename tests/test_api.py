@@ -26,6 +26,7 @@ def test_docstring_examples_run():
     assert res.attempted >= 20 and res.failed == 0
 
 
+@pytest.mark.slow
 def test_readme_example_runs(tmp_path):
     text = (ROOT / "README.md").read_text()
     section = text[text.index("## Python API") :]

@@ -127,6 +127,7 @@ def test_undetermined_lever_arm_components_are_null_in_every_file():
     assert np.isfinite(back.terms[0].params).all()
 
 
+@pytest.mark.slow
 def test_serial_noise_is_recovered_and_whitened_away():
     """Step means of 5 repetitions with white noise plus a Gauss-Markov wander (share 0.7,
     time constant 20 s, steps 3.7 s apart): the estimate finds the share and the time

@@ -93,8 +93,8 @@ def _dense_fit(L, train: np.ndarray, cols: np.ndarray, R: int):
 @pytest.mark.parametrize(
     "effect,theta,drop",
     [
-        (None, None, False),
-        ("gyro_g_sensitivity", [0, 0, 0, 0, 0, 0, 0.04, 0, 0], False),
+        pytest.param(None, None, False, marks=pytest.mark.slow),
+        pytest.param("gyro_g_sensitivity", [0, 0, 0, 0, 0, 0, 0.04, 0, 0], False, marks=pytest.mark.slow),
         ("lever_arm", [0, 0, 0, 4.0, -3.0, 2.0, 0, 0, 0], True),
     ],
 )

@@ -156,6 +156,7 @@ def test_standard_errors_match_monte_carlo_spread():
     assert np.all(np.abs(errs[:, [0, 1, 2, 9, 10, 11, 12, 13, 14]]) < 2e-3)
 
 
+@pytest.mark.slow
 def test_detector_on_a_wobbly_hand_session_and_rate_adaptation():
     truth = mpu6050_like_truth(np.random.default_rng(3))
     s = simulate_hand_held(truth, np.random.default_rng(4), n_poses=10, hold_rate_dps=0.5)

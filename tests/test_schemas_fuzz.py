@@ -96,6 +96,7 @@ def test_table_mutations_are_an_error_or_finite(column, rows, value, drop):
     check_outcome(lambda: step_means_from_tables(KEY, STEPS, table, MD))
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None)
 @given(
     key=st.sampled_from(
