@@ -245,6 +245,4 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
 
 
 def _layout_ctx(d, r: int):
-    from calib_core.discovery.turntable import _layout
-
-    return _layout(d.sessions).ctx[r]
+    return d.layout.ctx[r]

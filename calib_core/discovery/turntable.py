@@ -120,10 +120,12 @@ class _UnitGrid:
         names: list[str],
         geometry: SensingGeometry | None = None,
         dropped: frozenset[int] = frozenset(),
+        layout: _Layout | None = None,
     ) -> _UnitGrid:
         """The unit's grid with the terms' columns through ``geometry`` (default: the
-        nominal one); ``dropped`` term columns (undetermined parameters) are left at 0."""
-        lay = _layout(sessions)
+        nominal one); ``dropped`` term columns (undetermined parameters) are left at 0.
+        ``layout``: the sessions' :func:`_layout` when the caller already has it."""
+        lay = layout if layout is not None else _layout(sessions)
         R, n = lay.real.shape
         raw = np.zeros((R, n, 6, 3))
         std = np.zeros((R, n, 6, 3))
@@ -243,10 +245,10 @@ class _Layout:
 
 
 def _layout(sessions: list[StepMeans]) -> _Layout:
-    """The grid's layout of these repetitions, read-only. Built for every unit: keeping it for
-    the next unit of the same protocol saved 2-5 ms of a unit's ~60 ms of discovery on
-    simulated fleets only (real sessions' step mid-times differ, so no key ever matched);
-    docs/benchmarks.md."""
+    """The grid's layout of these repetitions, read-only: built once per unit's discovery and
+    shared by its grids. Not kept for the next unit: a process-wide cache of layouts keyed on
+    the sessions' bytes hit only on simulated fleets, whose step mid-times are identical to the
+    bit (docs/benchmarks.md)."""
     lay = _build_layout(sessions)
     for a in (lay.real, lay.step, lay.gcode, lay.y, lay.t):
         a.setflags(write=False)
@@ -661,7 +663,9 @@ class _Discovery:
         self.alpha = alpha
         self.min_gain = float(min_gain)
         self.names = sorted(catalogue())
-        self.g = _UnitGrid.build(self.sessions, self.names, geometry)
+        # one layout for every grid of this unit (its motion contexts keep the term columns)
+        self.layout = _layout(self.sessions)
+        self.g = _UnitGrid.build(self.sessions, self.names, geometry, layout=self.layout)
         if noise_model is None:
             # affine fit weighted by within-step scatter only, to get K and residuals
             white = self.g.white_sigma(np.tile(np.eye(3), (2, 1)))
@@ -670,7 +674,7 @@ class _Discovery:
         if geometry is None:  # the terms act through the affine fit's sensing geometry
             K = noise_model[0]
             geometry = SensingGeometry.from_gains(K[:3], K[3:])
-            self.g = _UnitGrid.build(self.sessions, self.names, geometry)
+            self.g = _UnitGrid.build(self.sessions, self.names, geometry, layout=self.layout)
         self.geometry = geometry
         # noise from the data: within-step scatter through K + repetition scatter
         self._noise_rows, self.sigma = self._noise(*noise_model)
@@ -680,7 +684,7 @@ class _Discovery:
         self.undetermined = self._undetermined()
         if self.undetermined:  # fitted as 0: rebuild the terms' columns without them
             dropped = frozenset(self.undetermined)
-            self.g = _UnitGrid.build(self.sessions, self.names, geometry, dropped)
+            self.g = _UnitGrid.build(self.sessions, self.names, geometry, dropped, self.layout)
             self._factorise()
         self._fits: dict[tuple, _FitResult] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
