@@ -178,6 +178,47 @@ def _orth(A: np.ndarray) -> np.ndarray:
     return u[:, s > 1e-10 * max(s.max(initial=0.0), 1e-300)]
 
 
+SOAK_AFTER_S = 3600.0  # a temperature soak: the unit has settled an hour after power-on
+CURVED_TAU_S = 150.0  # a warm-up whose time constant is well inside the session
+
+
+def _with_temperature(steps: pd.DataFrame, tau_s: float, extra: pd.DataFrame | None = None) -> pd.DataFrame:
+    """``steps`` (plus ``extra`` rows, whose ``t_mid`` is given) with explicit ``t_mid`` and
+    ``temp_c``: the nominal times, a 10 degC warm-up with time constant ``tau_s``."""
+    out = steps.copy()
+    out["t_mid"] = step_context(steps).t
+    if extra is not None:
+        from calib_core.protocols import extended
+
+        out = extended(out, extra.to_dict("records"))
+    start, rise, _ = WARM_UP_C
+    out["temp_c"] = start + rise * (1.0 - np.exp(-out["t_mid"].to_numpy(float) / tau_s))
+    return out
+
+
+def _curved_warm_up(steps: pd.DataFrame) -> pd.DataFrame:
+    return _with_temperature(steps, CURVED_TAU_S)
+
+
+def _soak(steps: pd.DataFrame) -> pd.DataFrame:
+    # the protocol's own stationary steps (its first three without any) run again: no new
+    # motion, only a new temperature at a new time
+    still = steps[steps["test"] == "stationary"] if "test" in steps else steps.iloc[:0]
+    rows = (still if len(still) else steps.iloc[:3]).drop(columns=["step"]).reset_index(drop=True)
+    rows["t_mid"] = SOAK_AFTER_S + DEFAULT_DURATION_S * np.arange(len(rows))
+    return _with_temperature(steps, WARM_UP_C[2], rows)
+
+
+# changes of *when* the steps run (the temperature they see), beside the step sets of
+# :data:`calib_core.protocols.STEP_SETS`: what tells a drift in temperature from one in time
+TEMPERATURE_CHANGES = {
+    "a warm-up that is not linear in time over the session (steps started while the "
+    "temperature still rises fast, time constant about 150 s)": _curved_warm_up,
+    "a temperature soak at a different time (the stationary steps repeated once the unit "
+    "has settled, an hour after power-on)": _soak,
+}
+
+
 def advise(
     steps: pd.DataFrame,
     library: Mapping | None = None,
@@ -187,7 +228,8 @@ def advise(
     ident: Identifiability | None = None,
 ) -> list[Advice]:
     """For each confounded set and each term with undetermined parameters, the step sets of
-    ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it. A
+    ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it, or the
+    changes of when the steps run of :data:`TEMPERATURE_CHANGES`. A
     confounded set is resolved when every member has a direction of its own given the
     others (discovery can then test each member given the rest; a shared direction, such as
     the vertical Earth rate and an isotropic g-sensitivity, may remain); an undetermined
@@ -209,8 +251,10 @@ def advise(
     if not issues:
         return []
     resolved: dict[str, list[str]] = {text: [] for text, _, _ in issues}
-    for label, rows in lib.items():
-        base, terms, _ = design(extended(steps, rows()), **kw)
+    changes = {label: (lambda s, rows=rows: extended(s, rows())) for label, rows in lib.items()}
+    changes.update(TEMPERATURE_CHANGES)
+    for label, change in changes.items():
+        base, terms, _ = design(change(steps), **kw)
         ext = None
         for text, members, kind in issues:
             if kind == "confounded":
