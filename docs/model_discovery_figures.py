@@ -2,7 +2,8 @@
 
     .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
-        # SECTIONS: comma-separated subset of effects,pairs,clean,ooc
+        # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS (5th
+        # argument): comma-separated catalogue effects, the rows of the effects table
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -16,9 +17,14 @@ import numpy as np
 
 
 def physics(
-    n_units: int = 40, n_clean: int = 200, sections: str = "effects,pairs,clean,ooc", scales=(0.25, 0.5, 1.0)
+    n_units: int = 40,
+    n_clean: int = 200,
+    sections: str = "effects,pairs,clean,ooc",
+    scales=(0.25, 0.5, 1.0),
+    effects: tuple[str, ...] = (),
 ) -> None:
-    """The Done-when figures of the discovery on the independent physics simulator."""
+    """The Done-when figures of the discovery on the independent physics simulator
+    (``effects``: the rows of those catalogue effects only; empty: every one)."""
     from calib_core import protocols
     from calib_core.discovery.evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
     from calib_core.effects import catalogue
@@ -42,6 +48,8 @@ def physics(
         )
         print("|---|" + "---|" * len(scales))
         for name in sorted(catalogue()):
+            if effects and name not in effects:
+                continue
             cells = []
             for scale in scales:
                 t = run_scenario(step_means_of, steps, n_units, seed(name, scale), (name,), scale)
@@ -126,6 +134,7 @@ if __name__ == "__main__":
             n_units=int(args[0]) if args else 40,
             n_clean=int(args[1]) if len(args) > 1 else 200,
             sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc",
+            effects=tuple(args[3].split(",")) if len(args) > 3 else (),
         )
     else:
         {"xu2016": xu2016}[what]()
