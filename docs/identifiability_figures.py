@@ -116,5 +116,6 @@ def main(n_units: int = 40, sections: str = "") -> None:
         for note in o.notes[:8]:
             print(f"<!--   {note} -->")
 
+
 if __name__ == "__main__":
     main(int(sys.argv[1]) if len(sys.argv) > 1 else 40, sys.argv[2] if len(sys.argv) > 2 else "")

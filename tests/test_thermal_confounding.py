@@ -39,9 +39,9 @@ def test_near_confounded_pairs_are_those_between_the_two_thresholds():
     assert set(pairs) == {("a", "b"), ("b", "c")}
     assert pairs[("a", "b")] == pytest.approx(0.1 / np.sqrt(1.01), rel=1e-9)
     # the same pair below the first threshold is analyse's business, not this one's
-    assert {c.terms for c in analyse(np.zeros((50, 0)), {"a": terms["a"], "c": terms["c"]}, {}).confounded} == {
-        ("a", "c")
-    }
+    assert {
+        c.terms for c in analyse(np.zeros((50, 0)), {"a": terms["a"], "c": terms["c"]}, {}).confounded
+    } == {("a", "c")}
 
 
 @pytest.mark.slow
