@@ -25,7 +25,15 @@ import numpy as np
 import pandas as pd
 
 from calib_core.effects import MotionContext, catalogue, get_effect
-from calib_core.identifiability import DEFAULT_TOL, Advice, Identifiability, analyse
+from calib_core.identifiability import (
+    DEFAULT_TOL,
+    NEAR_TOL,
+    Advice,
+    Confounded,
+    Identifiability,
+    analyse,
+    near_confounded,
+)
 
 NOMINAL_SIGMA = np.array([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])  # deg/s, g per step mean
 WARM_UP_C = (25.0, 10.0, 600.0)  # start, rise, time constant (s)
@@ -173,6 +181,20 @@ def separable(
     return all(own_directions(base, terms, m, tuple(x for x in members if x != m), tol) > 0 for m in members)
 
 
+def near_pairs(
+    base: np.ndarray,
+    terms: Mapping[str, np.ndarray],
+    tol: float = DEFAULT_TOL,
+    confounded: tuple[Confounded, ...] = (),
+) -> tuple[Confounded, ...]:
+    """Near-collinear pairs of terms (:func:`calib_core.identifiability.near_confounded`)
+    once the base model is projected out of their columns; pairs inside a ``confounded``
+    set are that set's business, not listed."""
+    Q = _orth(base)
+    pairs = near_confounded({n: Z - Q @ (Q.T @ Z) for n, Z in terms.items()}, tol)
+    return tuple(c for c in pairs if not any(set(c.terms) <= set(g.terms) for g in confounded))
+
+
 def _orth(A: np.ndarray) -> np.ndarray:
     u, s, _ = np.linalg.svd(A, full_matrices=False)
     return u[:, s > 1e-10 * max(s.max(initial=0.0), 1e-300)]
@@ -227,7 +249,8 @@ def advise(
     table_heading_deg: float | None = None,
     ident: Identifiability | None = None,
 ) -> list[Advice]:
-    """For each confounded set and each term with undetermined parameters, the step sets of
+    """For each confounded set, each near-collinear pair (:func:`near_pairs`: discovery
+    lets the data decide it) and each term with undetermined parameters, the step sets of
     ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it, or the
     changes of when the steps run of :data:`TEMPERATURE_CHANGES`. A
     confounded set is resolved when every member has a direction of its own given the
@@ -245,6 +268,9 @@ def advise(
         for c in ident.confounded
         if not separable(base0, terms0, c.terms, tol)
     ]
+    issues += [
+        (f"near-{c.describe()}", c.terms, "near") for c in near_pairs(base0, terms0, tol, ident.confounded)
+    ]
     for term in sorted({u.term for u in ident.undetermined}):
         params = sorted({p for u in ident.undetermined if u.term == term for p in u.params})
         issues.append((f"undetermined: {term} ({', '.join(params)})", (term,), "undetermined"))
@@ -255,10 +281,13 @@ def advise(
     changes.update(TEMPERATURE_CHANGES)
     for label, change in changes.items():
         base, terms, _ = design(change(steps), **kw)
-        ext = None
+        ext = near = None
         for text, members, kind in issues:
             if kind == "confounded":
                 ok = separable(base, terms, members, tol)
+            elif kind == "near":  # no longer near-collinear, nor confounded
+                near = near_pairs(base, terms, tol) if near is None else near
+                ok = separable(base, terms, members, tol) and members not in {c.terms for c in near}
             else:
                 if ext is None:
                     ext = analyse(
@@ -280,6 +309,7 @@ class Plan:
     not_excited: dict[str, tuple[str, ...]]
     advice: tuple[Advice, ...]
     separable: tuple[tuple[str, ...], ...] = ()
+    near: tuple[Confounded, ...] = ()  # near-collinear pairs (sine from tol to NEAR_TOL)
 
     def identifiable(self) -> list[str]:
         ident = self.identifiability
@@ -307,6 +337,11 @@ class Plan:
                 )
             else:
                 out.append(f"  {c.describe()}: cannot be told apart")
+        for c in self.near:
+            out.append(
+                f"  near-{c.describe()}: told apart only by an effect several times the noise "
+                f"(below {NEAR_TOL:g}; discovery tests each given the other)"
+            )
         for u in ident.undetermined:
             out.append(f"  undetermined: {u.describe()} ({100 * u.left:.1f} % left)")
         for a in self.advice:
@@ -328,4 +363,5 @@ def plan(
         not_excited(steps, latitude_deg, table_heading_deg),
         tuple(advise(steps, None, tol, latitude_deg, table_heading_deg, ident)),
         tuple(c.terms for c in ident.confounded if separable(base, terms, c.terms, tol)),
+        near_pairs(base, terms, tol, ident.confounded),
     )

@@ -13,7 +13,7 @@ from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation_ident import sensor_effect_scenario
 from calib_core.effects import get_effect
 from calib_core.identifiability import analyse, near_confounded
-from calib_core.plan import TEMPERATURE_CHANGES, _curved_warm_up, advise, design
+from calib_core.plan import TEMPERATURE_CHANGES, _curved_warm_up, _with_temperature, advise, design, plan
 from calib_core.sim.physics import Turntable, WarmUp, typical_physics_unit
 from flows.commands.diagnose import summary_lines
 from schemas.physics_sessions import physics_unit_step_means
@@ -57,6 +57,19 @@ def test_plan_says_a_curved_warm_up_or_a_soak_separates_temperature_from_time():
     # a soak is no new motion: it does not separate the Earth rate from g-sensitivity
     whole = {a.terms: a.separated_by for a in advise(protocols.whole_turn_session())}
     assert SOAK_LABEL not in whole[("earth_rate", "gyro_g_sensitivity")]
+
+
+@pytest.mark.slow
+def test_plan_lists_a_near_collinear_pair_and_what_separates_it():
+    # a 400 s warm-up: temperature and time at a sine of about 0.1 on the nominal design
+    p = plan(_with_temperature(protocols.default_session(), 400.0))
+    near = {c.terms: c.sin_angle for c in p.near}
+    assert 0.05 <= near[("bias_time_drift", "thermal_bias_drift")] < 0.15
+    assert not any("thermal_bias_drift" in c.terms for c in p.identifiability.confounded)
+    advice = {a.issue.split(" (")[0]: a.separated_by for a in p.advice}
+    sep = advice["near-confounded: bias_time_drift, thermal_bias_drift"]
+    assert WARM_UP_LABEL in sep and SOAK_LABEL in sep
+    assert any(ln.startswith("  near-confounded: bias_time_drift, thermal_bias_drift") for ln in p.lines())
 
 
 @pytest.mark.slow
