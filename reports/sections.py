@@ -1086,14 +1086,6 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
     )
 
 
-def other_models_tables(ctx: LotContext, unit: str) -> str:
-    p = ctx.parameters
-    if p is None:
-        return ""
-    models = ctx.unit_models(unit)
-    return "".join(repetition_table(ctx, unit, m) for m in models if m not in ("gyro", "accel"))
-
-
 # ----------------------------------------------------------------------------- residual plots
 
 
