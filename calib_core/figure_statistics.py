@@ -1,6 +1,7 @@
 """The reductions behind the reports' figures, computed from stored rows when a report is
 built: the per-step residual envelope over a unit's repetitions, the RMS residual per unit,
-sensor and model, and the fleet index's lot trend of each key element over the units'
+sensor and model, Table 3's min..max over the repetitions, a unit's parameter changes over
+its calibrations, and the fleet index's lot trend of each key element over the units'
 current calibration files. The reports only draw and format what these return; the lot
 statistics of the key-parameter tables are the summary's own columns (written by the
 re-flag, :data:`calib_core.outliers.LOT_COLUMNS`).
@@ -39,6 +40,21 @@ def residual_envelope(res: pd.DataFrame | None) -> pd.DataFrame | None:
         up_axis=("up_axis", "first"),
         n=("residual", "size"),
     ).reset_index()
+
+
+def compensation_envelope(compensation: pd.DataFrame) -> pd.DataFrame:
+    """xu2016 Table 3 over a unit's repetitions: per unit, input axis, method and output
+    axis of the ``compensation`` rows, the smallest ``err_min`` (``lo``), the largest
+    ``err_max`` (``hi``) and the number of repetitions (``n_reps``)."""
+    return compensation.groupby(["unit", "input_axis", "method", "output_axis"], sort=True).agg(
+        lo=("err_min", "min"), hi=("err_max", "max"), n_reps=("rep", "nunique")
+    )
+
+
+def changes_since_first(values: pd.DataFrame) -> pd.DataFrame:
+    """Each column of ``values`` (rows in time order) minus its first row: a unit's key
+    parameters as the change since its first calibration."""
+    return values - values.iloc[0]
 
 
 def residual_rms(envelope: pd.DataFrame | None) -> pd.DataFrame | None:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from calib_core.figure_statistics import residual_envelope, residual_rms
+from calib_core.figure_statistics import compensation_envelope, residual_envelope, residual_rms
 from reports.html import (
     CHANNEL_COLOURS,
     CLEAN,
@@ -38,6 +38,7 @@ from reports.html import (
     with_unit,
 )
 from reports.store import StoreView
+from schemas.display import spread_unit
 
 # Models in the key-parameter table and strip plots, with their headings.
 KEY_MODELS: list[tuple[str, str]] = [
@@ -377,7 +378,10 @@ class LotContext:
         return cache.get(unit, [])
 
     def info(self, model: str, name: str) -> ParamInfo:
-        return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None, "ppm", 1e6)
+        ppm = spread_unit("")  # an unknown parameter: a dimensionless ratio
+        return self.params.get((model, name)) or ParamInfo(
+            model, name, "", "", 1.0, None, ppm.label, ppm.factor
+        )
 
     def value(self, model: str, name: str, v: Any) -> str:
         p = self.info(model, name)
@@ -1015,9 +1019,7 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
             output_axis=c["output_axis"].astype(str),
             method=c["method"].astype(str),
         )
-        agg = cc.groupby(["unit", "input_axis", "method", "output_axis"], sort=True).agg(
-            lo=("err_min", "min"), hi=("err_max", "max"), n_reps=("rep", "nunique")
-        )
+        agg = compensation_envelope(cc)
         uom = (
             cc.groupby("unit")["unit_of_measure"].first()
             if "unit_of_measure" in cc
