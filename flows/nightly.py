@@ -246,16 +246,10 @@ def save_config(store: ResultsStore, text: str | None | bool) -> None:
 
 
 def unit_navigation(ur: UnitResult) -> pd.DataFrame | None:
-    """Navigation drift of the unit's first repetition with a fully determined lever arm."""
-    from calib_core.navigation import navigation_table
+    """Navigation drift of a calibrated unit (calib_core.navigation.unit_navigation_table)."""
+    from calib_core.navigation import unit_navigation_table
 
-    if not ur.calibrated:
-        return None
-    for rep in ur.outcome.calibration.reps:
-        static, lever = rep.fits.get("accel_static"), rep.fits.get("lever_arm")
-        if static is not None and lever is not None and not lever.undetermined:
-            return navigation_table(static, lever)
-    return None
+    return unit_navigation_table(ur.outcome.calibration.reps) if ur.calibrated else None
 
 
 def write_reports(
@@ -507,12 +501,8 @@ def nightly_flow(
         preloaded = _await_preload()
         if preloaded is not None:
             log["preload"] = preloaded
-        refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
-        digests = DigestCache(store.read_digest_cache())
-        jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
-        current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
-        if digests.read or set(digests.entries) - current:  # files of moved datasets go
-            store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
+        # 1. the sessions, and the units to calibrate (new or changed)
+        refs, path_errors, jobs, skipped = _plan_night(store, dataset, force, follow_symlinks)
         if run_discovery and not _discovery_available():
             logger.warning("model discovery skipped: calib_core.discovery is not available")
         log.update(
@@ -526,90 +516,37 @@ def nightly_flow(
             }
         )
         store.write_run(run_id, log)
-        prog = _Progress(
-            len(jobs), stream=sys.stderr if progress else False, per_lot=Counter(j.lot for j in jobs)
-        )
-
-        def on_progress(batch: list[UnitResult]) -> None:
-            line = prog.update(batch)
-            log["progress"] = {
-                "units_done": prog.done,
-                "units_total": prog.total,
-                "failed_sessions": prog.failed_sessions,
-                "line": line,
-            }
-            store.write_run(run_id, log)
-
-        tally = RunTally()
-        store_s = [0.0]
-        writes: deque = deque()
-
-        def store_lot(lot_results: list[UnitResult]) -> None:
-            t = time.monotonic()
-            tally.add(lot_results, store_results(store, lot_results, run_id, version))
-            del lot_results[:]  # this thread's reference: the lot's results can go now
-            release_memory()  # its frames' pages back before the next lot (flows.memory)
-            store_s[0] += time.monotonic() - t
-
-        def on_lot(lot: str, lot_results: list[UnitResult]) -> None:
-            # stored as soon as the lot is complete, then dropped: memory is one lot, not the
-            # fleet; flags and reports wait for every lot (the robust scale is pooled). The
-            # writing runs in one writer thread so that batches keep being submitted meanwhile
-            # (with worker processes the workers would otherwise wait for it); at most one
-            # more lot waits behind the one being written (memory: two lots), and a failed
-            # write fails the run as before
-            while len(writes) >= 2:
-                writes.popleft().result()
-            writes.append(writer.submit(store_lot, lot_results))
-
-        if jobs:
-            pooled = runner != "dask" and uses_unit_work_pool(runner, len(jobs))
-            log["unit_work"] = "worker processes" if pooled else "task runner"
-            with (
-                ThreadPoolExecutor(1, thread_name_prefix="mimucal-store") as writer,
-                unit_work_pool(None if runner == "dask" else runner, len(jobs) if pooled else 0),
-            ):
-                _run_batches(jobs, batch_size, run_discovery, on_progress, on_lot, max_in_flight)
-                t_cal = time.monotonic() - t0
-                while writes:
-                    writes.popleft().result()
-        else:
-            t_cal = time.monotonic() - t0
-        # calibration_s: the fit phase (read ... aggregate) until the last batch is back; the
-        # storing of lots overlaps it (store_s: time spent storing, in the writer thread)
-        lots = sorted(tally.lots | (set(store.lots()) if interrupted else set()))
+        # 2. calibrate them in batches, each lot stored as soon as its units are done
+        night = _LotStorage(store, run_id, version, log, progress, jobs)
+        t_cal = night.calibrate_and_store(jobs, batch_size, run_discovery, max_in_flight, runner) - t0
+        lots = sorted(night.tally.lots | (set(store.lots()) if interrupted else set()))
         # the pages the fit phase and the lots' storing freed (in the task runner's and the
         # writer's malloc arenas), given back before flags and reports allocate theirs in
         # this thread's arena (flows.memory; docs/benchmarks.md)
         release_memory()
+        # 3. the flags of every lot the run touched (and of those the pooled scales move)
         lot_flags, report_lots = reflag_after_update(store, lots, cfg)
-        # reports that are missing or older than their lot's tables (a run that died or hit
-        # a full disk while writing them) are rebuilt too
-        report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
         release_memory()
-        # unit reports (``unit_reports``): every unit of the lots whose report is rewritten
-        units = (
-            tuple(sorted({str(u) for u in store.read("units", lots=report_lots, columns=["unit"])["unit"]}))
-            if unit_reports and report_lots
-            else ()
-        )
-        reports, problems = write_reports(results, report_lots, units) if report_lots else ([], [])
+        # 4. the reports of those lots and of any whose report is missing or out of date
+        reports, problems = _write_night_reports(store, results, report_lots, unit_reports)
         for p in problems:
             logger.warning(p)
-        flagged = sorted({f"{f.lot}/{f.unit}" for lf in lot_flags for f in lf.flags})
+        # 5. the run log's end; interrupted runs marked recovered
         log.update(
             {
                 "end": iso(utc_now()),
                 "elapsed_s": round(time.monotonic() - t0, 3),
+                # the fit phase (read ... aggregate) until the last batch is back; the storing
+                # of lots overlaps it (store_s: time spent storing, in the writer thread)
                 "calibration_s": round(t_cal, 3),
-                "store_s": round(store_s[0], 3),
-                **tally.log_fields(),
-                "flagged_units": flagged,
+                "store_s": round(night.store_s, 3),
+                **night.tally.log_fields(),
+                "flagged_units": sorted({f"{f.lot}/{f.unit}" for lf in lot_flags for f in lf.flags}),
                 "flags": [lf.to_dict() for lf in lot_flags],
                 "lots_touched": lots,
                 "reports": reports,
                 "report_problems": problems,
-                "discovery_notes": sorted(tally.discovery_notes),
+                "discovery_notes": sorted(night.tally.discovery_notes),
                 "summary": None,
             }
         )
@@ -620,6 +557,107 @@ def nightly_flow(
             doc.update({"interrupted": True, "recovered_by": run_id})
             store.write_run(rid, doc)
     return jsonable(log)
+
+
+def _plan_night(
+    store: ResultsStore, dataset: str, force: bool, follow_symlinks: bool
+) -> tuple[list[SessionRef], list, list[UnitJob], list[tuple[str, str]]]:
+    """(sessions found, bad paths, units to calibrate, units unchanged): :func:`plan_units`
+    against the store's fingerprints; the store's digest cache keeps the files of the
+    dataset only."""
+    refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
+    digests = DigestCache(store.read_digest_cache())
+    jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
+    current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
+    if digests.read or set(digests.entries) - current:  # files of moved datasets go
+        store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
+    return refs, path_errors, jobs, skipped
+
+
+class _LotStorage:
+    """The calibration phase of a night: batches of units calibrated, the progress in the run
+    log, and each lot stored as soon as its last unit is done, then dropped (memory: one lot,
+    not the fleet; flags and reports wait for every lot: the robust scale is pooled)."""
+
+    def __init__(
+        self, store: ResultsStore, run_id: str, version: str, log: dict, progress: bool, jobs: list[UnitJob]
+    ) -> None:
+        self.store, self.run_id, self.version, self.log = store, run_id, version, log
+        self.tally = RunTally()
+        self.store_s = 0.0
+        self.progress = _Progress(
+            len(jobs), stream=sys.stderr if progress else False, per_lot=Counter(j.lot for j in jobs)
+        )
+        self._writes: deque = deque()
+        self._writer: ThreadPoolExecutor | None = None
+
+    def calibrate_and_store(
+        self,
+        jobs: list[UnitJob],
+        batch_size: int,
+        run_discovery: bool,
+        max_in_flight: int,
+        runner: str | None,
+    ) -> float:
+        """Returns when the last batch came back (time.monotonic; the lots' storing may
+        finish after it)."""
+        if not jobs:
+            return time.monotonic()
+        pooled = runner != "dask" and uses_unit_work_pool(runner, len(jobs))
+        self.log["unit_work"] = "worker processes" if pooled else "task runner"
+        with (
+            ThreadPoolExecutor(1, thread_name_prefix="mimucal-store") as self._writer,
+            unit_work_pool(None if runner == "dask" else runner, len(jobs) if pooled else 0),
+        ):
+            _run_batches(jobs, batch_size, run_discovery, self.on_progress, self.on_lot, max_in_flight)
+            fitted = time.monotonic()
+            while self._writes:
+                self._writes.popleft().result()
+        return fitted
+
+    def on_progress(self, batch: list[UnitResult]) -> None:
+        prog = self.progress
+        line = prog.update(batch)
+        self.log["progress"] = {
+            "units_done": prog.done,
+            "units_total": prog.total,
+            "failed_sessions": prog.failed_sessions,
+            "line": line,
+        }
+        self.store.write_run(self.run_id, self.log)
+
+    def on_lot(self, lot: str, lot_results: list[UnitResult]) -> None:
+        # the writing runs in one writer thread so that batches keep being submitted meanwhile
+        # (with worker processes the workers would otherwise wait for it); at most one more
+        # lot waits behind the one being written (memory: two lots), and a failed write fails
+        # the run
+        while len(self._writes) >= 2:
+            self._writes.popleft().result()
+        self._writes.append(self._writer.submit(self._store_lot, lot_results))
+
+    def _store_lot(self, lot_results: list[UnitResult]) -> None:
+        t = time.monotonic()
+        self.tally.add(lot_results, store_results(self.store, lot_results, self.run_id, self.version))
+        del lot_results[:]  # this thread's reference: the lot's results can go now
+        release_memory()  # its frames' pages back before the next lot (flows.memory)
+        self.store_s += time.monotonic() - t
+
+
+def _write_night_reports(
+    store: ResultsStore, results: str, report_lots: list[str], unit_reports: bool
+) -> tuple[list[str], list[str]]:
+    """:func:`write_reports` of the lots re-flagged and of those whose report is missing or
+    older than their lot's tables (a run that died or hit a full disk while writing them);
+    with ``unit_reports`` every unit of those lots too."""
+    report_lots = sorted(set(report_lots) | set(reports_to_rebuild(store)))
+    if not report_lots:
+        return [], []
+    units = (
+        tuple(sorted({str(u) for u in store.read("units", lots=report_lots, columns=["unit"])["unit"]}))
+        if unit_reports
+        else ()
+    )
+    return write_reports(results, report_lots, units)
 
 
 def interrupted_runs(store: ResultsStore) -> list[str]:
