@@ -220,3 +220,19 @@ def test_an_older_store_gets_stderr_of_mean_from_its_parameters(run_store, tmp_p
     old.write("navigation", pd.DataFrame({"lot": [lot], "unit": ["U0001"], "case": ["x"], "t": [0.0]}))
     got = pq.read_table(path).column("stderr_of_mean").to_numpy()
     np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+def test_the_reports_parameter_names_are_the_fits():
+    """Every parameter the reports order or title is one a fit produces (no name declared
+    for a parameter that no model has), and every model the pipeline fits has its order."""
+    from calib_core.pipeline import calibrate_repetitions
+    from reports.sections import PARAM_ORDER
+
+    from conftest import unit_step_means
+
+    fitted: dict[str, list[str]] = {}
+    for p in calibrate_repetitions(unit_step_means(1, 7))[0].calibration.parameters():
+        fitted.setdefault(p.model, []).append(p.name)
+    assert set(PARAM_ORDER) == set(fitted)
+    for model, names in PARAM_ORDER.items():
+        assert sorted(names) == sorted(fitted[model]), model
