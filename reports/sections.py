@@ -291,7 +291,7 @@ class LotContext:
             if uoms is not None:
                 uom = next((str(uoms[i]) for i in pos if pd.notna(uoms[i])), "")
             label, scale = display_unit(uom)
-            spread = next((first_finite(col, pos) for col in typical if first_finite(col, pos) > 0), math.nan)
+            spread = next((v for v in (first_finite(col, pos) for col in typical) if v > 0), math.nan)
             dec = decimals_for(spread * scale, extra=1)
             slabel, sscale = spread_display(uom)
             self.params[(str(model), str(name))] = ParamInfo(
