@@ -257,6 +257,32 @@ def unit_store_rows(
     discovery_rows(ur, rows, run_id)
 
 
+def unit_row_from_calibration_file(
+    unit: str, provenance: dict[str, Any], calibration_file: str, produced
+) -> dict[str, Any]:
+    """The ``units`` row of a unit rebuilt from its newest calibration file (``mimucal
+    repair``): its provenance names the lot, run and sessions; ``produced`` is the file's
+    time stamp (datetime)."""
+    used = provenance.get("sessions_used") or []
+    failed = provenance.get("sessions_failed") or []
+    return {
+        "lot": provenance.get("lot"),
+        "unit": unit,
+        "state": "calibrated",
+        "reason": "rebuilt by 'mimucal repair' from the calibration file",
+        "n_sessions": len(used) + len(failed),
+        "n_ok": sum(1 for s in used if s.get("status") == "ok"),
+        "n_warned": sum(1 for s in used if s.get("status") == "warned"),
+        "n_failed": len(failed),
+        "calibration_file": calibration_file,
+        "calibrated_at": provenance.get("calibrated_at") or iso(produced),
+        "run_id": provenance.get("run_id"),
+        "updated_at": iso(produced),
+        "flagged": False,
+        "flag_reason": "",
+    }
+
+
 def discovery_rows(ur: Any, rows: StoreRows, run_id: str) -> None:
     """One row per finding, numbers as the report shows them
     (:func:`calib_core.discovery.presentation.finding_rows`), and the series behind each
