@@ -37,7 +37,6 @@ from prefect import flow, get_run_logger, task  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402
 from prefect.futures import as_completed  # noqa: E402
 
-from calib_core.outliers import OutlierConfig  # noqa: E402
 from flows.compute_pool import run_in_pool  # noqa: E402
 from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
@@ -61,7 +60,7 @@ from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and to
 )
 from schemas.dataset import DigestCache, SessionRef, find_sessions  # noqa: E402
 from schemas.flagging import reflag_after_update  # noqa: E402
-from schemas.limits import config_from_toml  # noqa: E402
+from schemas.limits import resolve_config, save_config  # noqa: E402
 from schemas.results_store import (  # noqa: E402
     ResultsStore,
     iso,
@@ -207,42 +206,6 @@ class RunTally:
             "sessions_calibrated": self.sessions_calibrated,
             "failed_sessions": [f for _, f in sorted(self.failed_sessions, key=lambda x: x[0])],
         }
-
-
-CLEAR_CONFIG = "none"  # ``--config none``: forget the stored configuration, use the defaults
-
-
-def load_config(path: str | Path | None) -> OutlierConfig:
-    if not path or str(path) == CLEAR_CONFIG:
-        return OutlierConfig()
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise FileNotFoundError(f"outlier configuration {p}: {exc.strerror}") from None
-    return config_from_toml(text, source=str(p))
-
-
-def resolve_config(store: ResultsStore, path: str | Path | None) -> tuple[OutlierConfig, str | None | bool]:
-    """The QA configuration of a run and what to store under the lock: ``--config FILE``
-    sets it for this and every later run (returned text), ``--config none`` clears it
-    (None), no ``--config`` keeps the one stored (False: nothing to store). A stored text
-    that no longer parses is an error naming the file."""
-    if path is None:
-        text = store.read_qa_config()
-        if text is None:
-            return OutlierConfig(), False
-        return config_from_toml(text, source=str(store.qa_config_path)), False
-    if str(path) == CLEAR_CONFIG:
-        return OutlierConfig(), None
-    cfg = load_config(path)
-    return cfg, Path(path).read_text()
-
-
-def save_config(store: ResultsStore, text: str | None | bool) -> None:
-    """Store what :func:`resolve_config` returned (under the run's lock)."""
-    if text is not False:
-        store.write_qa_config(text)  # type: ignore[arg-type]
 
 
 def unit_navigation(ur: UnitResult) -> pd.DataFrame | None:
