@@ -1,7 +1,10 @@
 """Prefect flows: the nightly fleet calibration, the lot report rebuild and the single-unit
-rerun. Orchestration only: the work is :mod:`flows.unit_pipeline` (per session/unit),
-:mod:`calib_core.discovery`, :mod:`calib_core.outliers`, :mod:`schemas.results_store` and
-:mod:`reports`.
+rerun. Orchestration only: the work is :mod:`flows.unit_pipeline` (per session/unit), the
+store's rows :mod:`schemas.store_rows`, the flags :mod:`schemas.flagging` (its decisions
+:mod:`calib_core.flag_decisions`, its rules :mod:`calib_core.outliers`), the run's
+configuration :mod:`schemas.limits` and :mod:`reports`. A night: plan the units whose
+sessions changed, calibrate them in batches and store each lot as it completes, re-flag the
+lots touched, write their reports, log the run (:func:`nightly_flow`).
 
 Granularity: one Prefect task per *batch of units* (``batch_size`` units, default 8): a task
 costs ~4 ms with the thread pool and ~60-85 ms with a process pool or Dask (docs/flows.md),
