@@ -1164,6 +1164,11 @@ def nightly_flow(
         refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
         digests = DigestCache(store.read_digest_cache())
         jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
+        # --- hook: units calibrated from field recordings (lot=L/unit=U/field/, flows.field_units)
+        from flows.field_units import add_field_units
+
+        jobs, skipped, path_errors = add_field_units(dataset, store, force, refs, jobs, skipped, path_errors)
+        # --- end of hook
         current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
         if digests.read or set(digests.entries) - current:  # files of moved datasets go
             store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
