@@ -120,8 +120,8 @@ def _truth_vector(tr):
 def test_standard_errors_match_monte_carlo_spread():
     """8 sessions of one MPU-6050-like truth with a gyro bias drift, new noise each time, no
     prior. Measured on these seeds: MC RMS error / mean stated stderr 0.72-1.82 per
-    parameter, median 1.34 (the stated errors are somewhat optimistic: the noise of a pose's
-    gravity direction, shared by the two moves that touch it, is not in the model); |mean
+    parameter, median 1.34 (docs/real-data.md: the accelerometer's z = error / stated error
+    is Student-t with 5 dof, RMS sqrt(5/3); the gyro's stated errors ~1.2x optimistic); |mean
     error| / RMS error <= 0.55 (no estimator bias beyond the noise of 8 draws); largest
     errors 1.6e-3 relative on scale factors and 0.9e-3 rad on misalignments."""
     truth = mpu6050_like_truth(np.random.default_rng(7), drift=True)
