@@ -55,7 +55,9 @@ def make_field_lot(root: Path, n_poses: int = 12) -> dict[str, object]:
         for r in range(2 if u == 0 else 1):
             write_log(
                 d / f"rec{r + 1}.csv",
-                simulate_hand_held(truth, np.random.default_rng(1000 + 10 * u + r), n_poses=n_poses),
+                simulate_hand_held(
+                    truth, np.random.default_rng(1000 + 10 * u + r), n_poses=n_poses, rate_hz=50.0
+                ),
             )
     return truths
 
