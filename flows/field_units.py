@@ -270,6 +270,34 @@ def unit_calibration(lot: str, unit: str, outcomes: list[SessionOutcome], fitted
     return uc, applied
 
 
+E_MIXED_UNITS = "E_MIXED_UNITS"
+
+
+def drop_mixed_units(outcomes: list[SessionOutcome], fitted: list) -> tuple[list[SessionOutcome], list]:
+    """A unit's recordings are averaged, so they must share raw units: the first fitted
+    recording's units decide, a recording in other units fails (``E_MIXED_UNITS``, naming
+    both). ``fitted`` runs parallel to the successful outcomes."""
+    units_of = lambda o: (o.calibration.fits["gyro"].raw_unit, o.calibration.fits["accel"].raw_unit)  # noqa: E731
+    good = [i for i, o in enumerate(outcomes) if o.calibration is not None]
+    if not good:
+        return outcomes, fitted
+    first = outcomes[good[0]]
+    ref = units_of(first)
+    out, kept = list(outcomes), []
+    for k, i in enumerate(good):
+        o = outcomes[i]
+        if units_of(o) == ref:
+            kept.append(fitted[k])
+            continue
+        msg = (
+            f"[{E_MIXED_UNITS}] session {o.key}, file {o.path.name}: raw units gyro {units_of(o)[0]}, "
+            f"accel {units_of(o)[1]} differ from {first.path.name}'s ({ref[0]}, {ref[1]}); a unit's "
+            "recordings are averaged, so they must share their raw units"
+        )
+        out[i] = SessionOutcome(o.key, o.path, STATUS_FAILED, E_MIXED_UNITS, msg, [], o.fingerprint)
+    return out, kept
+
+
 def calibrate_field_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Every recording of one field unit, their average, and model discovery on the static
     poses of the recording with the most poses. Never raises on bad data."""
@@ -280,6 +308,7 @@ def calibrate_field_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitRe
         outcomes.append(o)
         if r is not None:
             fitted.append(r)
+    outcomes, fitted = drop_mixed_units(outcomes, fitted)
     unit_out = UnitOutcome(job.lot, job.unit, outcomes)
     diag_doc, note = None, None
     if fitted:

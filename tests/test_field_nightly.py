@@ -195,3 +195,23 @@ def test_field_lot_through_nightly(tmp_path):
     msg = s2[(s2.unit == "H2")]["message"].iloc[0]
     assert "E_UNREADABLE_FILE" in msg and "rec1.csv" in msg and "unit=H2" in msg
     assert isinstance(pd.Timestamp(units2.loc["H2", "updated_at"]), pd.Timestamp)
+
+
+def test_recordings_in_other_raw_units_than_the_first_fail_by_name():
+    from types import SimpleNamespace
+
+    from calib_core.steps import SessionKey
+    from flows.field_units import drop_mixed_units
+    from flows.unit_pipeline import SessionOutcome
+
+    def outcome(rep, gyro_unit):
+        fits = {"gyro": SimpleNamespace(raw_unit=gyro_unit), "accel": SimpleNamespace(raw_unit="LSB")}
+        cal = SimpleNamespace(fits=fits)
+        return SessionOutcome(SessionKey("L", "U", rep), Path(f"r{rep}.csv"), "ok", None, None, [], "", cal)
+
+    outs = [outcome(1, "LSB"), outcome(2, "deg/s"), outcome(3, "LSB")]
+    kept_outs, kept = drop_mixed_units(outs, ["fit1", "fit2", "fit3"])
+    assert kept == ["fit1", "fit3"]
+    assert [o.status for o in kept_outs] == ["ok", "failed", "ok"]
+    assert kept_outs[1].code == "E_MIXED_UNITS" and "r2.csv" in kept_outs[1].message
+    assert "r1.csv" in kept_outs[1].message
