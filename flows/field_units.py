@@ -348,3 +348,11 @@ def add_field_units(dataset, store, force: bool, refs: list, jobs: list, skipped
         [*skipped, *field_skipped],
         [*path_errors, *errors],
     )
+
+
+def field_unit_job(dataset, unit: str) -> FieldUnitJob | None:
+    """The rerun job of ``unit`` when it is a field unit (its recordings found), else None."""
+    jobs, _, _ = plan_field_units(dataset, {}, force=True, unit=unit)
+    if not jobs:
+        return None
+    return FieldUnitJob(jobs[0].lot, unit, jobs[0].refs, "rerun")

@@ -1443,13 +1443,18 @@ def rerun_flow(
 
         preloaded = _await_preload()
         refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-        if not refs:
+        # --- hook: a unit calibrated from field recordings (flows.field_units)
+        from flows.field_units import field_unit_job
+
+        field_job = None if refs else field_unit_job(dataset, unit)
+        # --- end of hook
+        if not refs and field_job is None:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
             raise LookupError(
                 f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
             )
-        lot = refs[0].key.lot
-        job = UnitJob(lot, unit, refs, "rerun")
+        lot = refs[0].key.lot if refs else field_job.lot
+        job = field_job or UnitJob(lot, unit, refs, "rerun")
         log: dict[str, Any] = {
             "run_id": run_id,
             "kind": "rerun",
@@ -1589,7 +1594,9 @@ def rerun_unit(
         ResultsStore(Path(results)).ensure_unlocked()
     ResultsStore(Path(results)).check()
     refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-    if not refs:  # before Prefect starts: one line, no failed flow run
+    from flows.field_units import field_unit_job  # hook: field units (flows.field_units)
+
+    if not refs and field_unit_job(dataset, unit) is None:  # before Prefect: one line, no failed flow run
         why = "; ".join(str(e) for e in path_errors) or "no session directory found"
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"

@@ -196,6 +196,13 @@ def test_field_lot_through_nightly(tmp_path):
     assert "E_UNREADABLE_FILE" in msg and "rec1.csv" in msg and "unit=H2" in msg
     assert isinstance(pd.Timestamp(units2.loc["H2", "updated_at"]), pd.Timestamp)
 
+    # a field unit is rerun alone: recalibrated (new run id), its unit report written
+    assert cli_main(["rerun", str(data), "--results", str(results), "--unit", "H1"]) in (0, 1)
+    units3 = store.read("units").set_index("unit")
+    assert units3.loc["H1", "run_id"] != units2.loc["H1", "run_id"]
+    assert units3.loc["H1", "state"] == "calibrated"
+    assert (results / "reports" / "units" / "H1.html").is_file()
+
 
 def test_recordings_in_other_raw_units_than_the_first_fail_by_name():
     from types import SimpleNamespace
