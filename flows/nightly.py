@@ -41,6 +41,7 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402
 from prefect.futures import as_completed  # noqa: E402
 
 from flows.compute_pool import run_in_pool  # noqa: E402
+from flows.field_units import add_field_units, field_unit_job  # noqa: E402
 from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
     DASK_ENV,
@@ -534,6 +535,8 @@ def _plan_night(
     refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
     digests = DigestCache(store.read_digest_cache())
     jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
+    # units calibrated from field recordings (lot=L/unit=U/field/): flows.field_units
+    jobs, skipped, path_errors = add_field_units(dataset, store, force, refs, jobs, skipped, path_errors)
     current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
     if digests.read or set(digests.entries) - current:  # files of moved datasets go
         store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
@@ -788,13 +791,14 @@ def rerun_flow(
 
         preloaded = _await_preload()
         refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-        if not refs:
+        field_job = None if refs else field_unit_job(dataset, unit)  # a unit of field recordings
+        if not refs and field_job is None:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
             raise LookupError(
                 f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
             )
-        lot = refs[0].key.lot
-        job = UnitJob(lot, unit, refs, "rerun")
+        lot = refs[0].key.lot if refs else field_job.lot
+        job = field_job or UnitJob(lot, unit, refs, "rerun")
         log: dict[str, Any] = {
             "run_id": run_id,
             "kind": "rerun",
@@ -934,7 +938,7 @@ def rerun_unit(
         ResultsStore(Path(results)).ensure_unlocked()
     ResultsStore(Path(results)).check()
     refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-    if not refs:  # before Prefect starts: one line, no failed flow run
+    if not refs and field_unit_job(dataset, unit) is None:  # before Prefect: one line, no failed flow run
         why = "; ".join(str(e) for e in path_errors) or "no session directory found"
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"

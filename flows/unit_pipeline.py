@@ -304,6 +304,10 @@ def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
     """:func:`calibrate_unit_job`, with any exception it lets through (a bug) turned into
     the unit's failure: the rest of the batch and of the fleet goes on."""
     try:
+        from flows.field_units import FieldUnitJob, calibrate_field_unit_job
+
+        if isinstance(job, FieldUnitJob):  # a unit of field recordings
+            return calibrate_field_unit_job(job, run_discovery)
         return calibrate_unit_job(job, run_discovery)
     except Exception as exc:  # noqa: BLE001 - one unit never fails the flow
         return failed_unit_result(job.lot, job.unit, "calibrating", exc)
