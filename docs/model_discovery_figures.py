@@ -1,8 +1,9 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS]]]
+    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS [EFFECTS]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
-        # SECTIONS: comma-separated subset of effects,pairs,clean,ooc
+        # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS: comma-separated
+        # catalogue effects of the effects table (default: all)
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -16,7 +17,11 @@ import numpy as np
 
 
 def physics(
-    n_units: int = 40, n_clean: int = 200, sections: str = "effects,pairs,clean,ooc", scales=(0.25, 0.5, 1.0)
+    n_units: int = 40,
+    n_clean: int = 200,
+    sections: str = "effects,pairs,clean,ooc",
+    scales=(0.25, 0.5, 1.0),
+    effects: str | None = None,
 ) -> None:
     """The Done-when figures of the discovery on the independent physics simulator."""
     from calib_core import protocols
@@ -41,7 +46,7 @@ def physics(
             + " |"
         )
         print("|---|" + "---|" * len(scales))
-        for name in sorted(catalogue()):
+        for name in sorted(catalogue()) if effects is None else effects.split(","):
             cells = []
             for scale in scales:
                 t = run_scenario(step_means_of, steps, n_units, seed(name, scale), (name,), scale)
@@ -126,6 +131,7 @@ if __name__ == "__main__":
             n_units=int(args[0]) if args else 40,
             n_clean=int(args[1]) if len(args) > 1 else 200,
             sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc",
+            effects=args[3] if len(args) > 3 else None,
         )
     else:
         {"xu2016": xu2016}[what]()

@@ -1294,7 +1294,11 @@ class _Discovery:
             targeted = any(set(item) & set(lab.split("+")) for lab in self.misfit_terms())
             if not (overall_fixed or targeted):
                 return "negligible", 1.0, ()
-            ch = tuple(sorted({c for n in item for c in self.significant_channels(list(chosen), n)}))
+            # (a confounded group's members have no individually significant parameter:
+            # its gain counts on all its sensors)
+            ch = tuple(
+                sorted({c for n in item for c in self.significant_channels(list(chosen), n)})
+            ) or tuple(sensors)
             if not ch:
                 return "negligible", 1.0, ()
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
