@@ -1,9 +1,9 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS [EFFECTS]]]]
+    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
         # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS: comma-separated
-        # catalogue effects of the effects table (default: all)
+        # catalogue effects of the effects table (default: all); SCALES: e.g. 0.25,1
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -131,7 +131,8 @@ if __name__ == "__main__":
             n_units=int(args[0]) if args else 40,
             n_clean=int(args[1]) if len(args) > 1 else 200,
             sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc",
-            effects=args[3] if len(args) > 3 else None,
+            effects=args[3] if len(args) > 3 and args[3] != "all" else None,
+            scales=tuple(float(x) for x in args[4].split(",")) if len(args) > 4 else (0.25, 0.5, 1.0),
         )
     else:
         {"xu2016": xu2016}[what]()

@@ -17,17 +17,22 @@ within-step scatter plus the step-to-step scatter seen across repetitions.
 
 Tests (alpha is the family-wise false-alarm rate per unit, default 1%):
 
-- **misfit** (lack of fit): the residual of the model is split into *pure error* (what is
-  left after a free value per step and per repetition, i.e. the repetition-to-repetition
-  scatter) and *lack of fit* (the rest). F = (SS_lof/dof_lof) / (SS_pure/dof_pure) against
-  F(dof_lof, dof_pure). A systematic error common to the repetitions inflates SS_lof only.
+- **misfit** (lack of fit): the residual of the model is split into *pure error* (the
+  repetition-to-repetition scatter) and *lack of fit* (the mean over the repetitions the
+  model does not explain), both projected on the directions the model leaves free
+  (:meth:`_Discovery.projected_lack_of_fit`): F = (SS_lof/dof_lof) / (SS_pure/dof_pure)
+  against F with Satterthwaite dof. A systematic error common to the repetitions inflates
+  SS_lof only. "The unit misfits" is the union of the overall test (alpha / 4), the six
+  channels' (alpha / 24 each) and every candidate's targeted test (the same projected sums
+  with and without it, alpha / 2 over the candidates): at most alpha on a unit that fits.
 - **a term** T added to the current set S: F = (dSS/p) / (SS_pure/dof_pure) against
-  F(p, dof_pure) (p = rank gained), at alpha / (number of candidate terms) (Bonferroni over
-  the catalogue), *and* its leave-one-repetition-out held-out rms must drop (gain > 1).
+  F(p, dof_pure) (p = rank gained), at alpha / 2 / (number of candidate terms) (Bonferroni
+  over the catalogue), *and* its leave-one-repetition-out held-out rms must drop (gain > 1).
 - forward selection adds the most significant eligible term and repeats; a backward pass
   drops any chosen term no longer significant given the others.
 - a chosen term must fix at least one channel it acts on that misfit at baseline
-  (per-channel lack-of-fit test at alpha/6); a term that leaves all of them misfit only
+  (per-channel lack-of-fit test at alpha/24), or, when no channel misfits, be what makes the
+  unit misfit; a term that leaves all of them misfit only
   soaks up part of something else and is reported as a *partial* candidate, not an effect.
 - **misfit**: the baseline lack-of-fit test rejects, or a term was significant (a
   targeted test is more powerful than the omnibus one).
@@ -642,6 +647,8 @@ class Diagnosis:
     confounded: list[ConfoundedFinding] = field(default_factory=list)
     confounded_set_aside: list[list[str]] = field(default_factory=list)  # partial/negligible
     advice: list[str] = field(default_factory=list)  # which steps would separate them
+    # candidates whose targeted test on the affine model rejects (part of "misfit")
+    misfit_terms: list[str] = field(default_factory=list)
     # the series behind each finding's figure (calib_core.discovery.presentation)
     evidence: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
 
@@ -671,6 +678,7 @@ class Diagnosis:
                 "confounded": [c.to_dict() for c in self.confounded],
                 "confounded_set_aside": [list(g) for g in self.confounded_set_aside],
                 "advice": list(self.advice),
+                "misfit_terms": list(self.misfit_terms),
                 "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
                 "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
                 "misfit_channels_before": [c for c, t in self.channel_misfit_before.items() if t.rejects],
@@ -1551,6 +1559,7 @@ def _diagnose_unit(
         min_gain=min_gain,
         relinearisations=moves,
         confounded=confounded,
+        misfit_terms=list(d.misfit_terms()),
         confounded_set_aside=[list(i) for k in ("partial", "negligible") for i in items[k] if len(i) > 1],
         advice=[
             a.describe()
