@@ -434,7 +434,9 @@ def _dof_inflation(dev: np.ndarray) -> float:
         return 1.0
     hetero = n * np.sum(v**2) * (R - 1) / (R + 1) / np.sum(v) ** 2
     c0 = np.sum(dev**2)
-    rho2 = sum((np.sum(dev[:, k:] * dev[:, :-k]) / c0) ** 2 for k in range(1, min(_INFLATION_LAGS, n - 1) + 1))
+    rho2 = sum(
+        (np.sum(dev[:, k:] * dev[:, :-k]) / c0) ** 2 for k in range(1, min(_INFLATION_LAGS, n - 1) + 1)
+    )
     return float(max(hetero, 1.0) * (1.0 + 2.0 * rho2))
 
 
