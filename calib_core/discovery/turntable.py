@@ -34,8 +34,7 @@ Tests (alpha is the family-wise false-alarm rate per unit, default 1%):
   (per-channel lack-of-fit test at alpha/24), or, when no channel misfits, be what makes the
   unit misfit; a term that leaves all of them misfit only
   soaks up part of something else and is reported as a *partial* candidate, not an effect.
-- **misfit**: the baseline lack-of-fit test rejects, or a term was significant (a
-  targeted test is more powerful than the omnibus one).
+- **misfit**: the union test above rejects at baseline, or a term was chosen.
 - **unexplained**: the lack-of-fit test still rejects after selection, or a partial term was
   set aside.
 
