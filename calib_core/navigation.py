@@ -267,3 +267,13 @@ def navigation_table(
         for case in res.velocity_error
     ]
     return pd.concat(frames, ignore_index=True)
+
+
+def unit_navigation_table(reps) -> pd.DataFrame | None:
+    """:func:`navigation_table` of a unit's first repetition (``RepetitionCalibration``, in
+    rep order) with a static fit and a fully determined lever arm; None when none has them."""
+    for rep in reps:
+        static, lever = rep.fits.get("accel_static"), rep.fits.get("lever_arm")
+        if static is not None and lever is not None and not lever.undetermined:
+            return navigation_table(static, lever)
+    return None

@@ -54,6 +54,13 @@ import pandas as pd
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian -> its sigma
 MEANAD_TO_SIGMA = 1.2533  # sqrt(pi/2): mean absolute deviation of a Gaussian -> sigma
 MIN_REPS_FOR_SPREAD = 4
+MIN_UNITS_FOR_SCATTER = 3  # a lot's scatter (robust_scale of its units' means) from 3 units
+# The numbers a lot's re-flag writes on each summary row of the lot, besides the flags: the
+# row's robust z (``score``) and the lot's statistics of the parameter over its units (every
+# unit, flagged or not): the median of the means, their robust scale, and the median of the
+# units' repetition std (units with MIN_REPS_FOR_SPREAD repetitions: the spread rule's
+# reference)
+LOT_COLUMNS = ("score", "lot_median", "lot_scatter", "lot_median_std")
 # a history reference needs at least this many good units (or history_units, if fewer)
 HISTORY_MIN_UNITS = 15
 # a unit of an earlier lot is "good" for the history when no robust-model parameter is further
@@ -150,7 +157,7 @@ class LotFlags:
     z_threshold_used: float
     note: str
     flags: list[Flag] = field(default_factory=list)
-    scores: pd.DataFrame | None = None  # lot, unit, model, parameter, score, lot_median
+    scores: pd.DataFrame | None = None  # lot, unit, model, parameter, *LOT_COLUMNS
     # what the robust z was computed against: "lot" (its own median, the pooled or lot
     # scale), "fleet history" (median and scale of the last good units of earlier lots) or
     # "none" (too few units and no history)
@@ -186,6 +193,23 @@ def robust_scale(x: np.ndarray) -> float:
         return float(MAD_TO_SIGMA * mad)
     meanad = np.mean(np.abs(x - med))
     return float(MEANAD_TO_SIGMA * meanad)
+
+
+def lot_statistics(means: np.ndarray, stds: np.ndarray, n_reps: np.ndarray) -> tuple[float, float, float]:
+    """A parameter's statistics over a lot's units (every unit, flagged or not), from their
+    summary rows: the median of the finite means (``lot_median``), their robust scale from
+    MIN_UNITS_FOR_SCATTER units (``lot_scatter``) and the median repetition std of the units
+    with MIN_REPS_FOR_SPREAD repetitions (``lot_median_std``: the spread rule's reference);
+    NaN where there are too few."""
+    x = np.asarray(means, float)
+    x = x[np.isfinite(x)]
+    s, n = np.asarray(stds, float), np.asarray(n_reps, float)
+    spread = np.isfinite(s) & (n >= MIN_REPS_FOR_SPREAD)
+    return (
+        float(np.median(x)) if len(x) else float("nan"),
+        robust_scale(x) if len(x) >= MIN_UNITS_FOR_SCATTER else float("nan"),
+        float(np.median(s[spread])) if spread.any() else float("nan"),
+    )
 
 
 def robust_z(x: np.ndarray) -> np.ndarray:
@@ -686,6 +710,8 @@ def _flag_one_lot(
     n_rows = len(unit_col)
     score = np.full(n_rows, np.nan)
     median = np.full(n_rows, np.nan)
+    scatter = np.full(n_rows, np.nan)
+    median_std = np.full(n_rows, np.nan)
     thresholds: list[float] = []
     limit_notes: list[str] = []
     mean_col, std_col, nreps_col = cols["mean"], cols["std"], cols["n_reps"]
@@ -696,8 +722,10 @@ def _flag_one_lot(
         ok = np.isfinite(x)
         if not ok.any():
             continue
-        med = float(np.median(x[ok]))
+        med, scatter[idx], median_std[idx] = lot_statistics(x, std_col[idx], nreps_col[idx])
         median[idx] = med
+        s_all = std_col[idx]
+        rep_spread = np.isfinite(s_all) & (nreps_col[idx] >= MIN_REPS_FOR_SPREAD)
         in_robust = (not cfg.robust_models) or model in cfg.robust_models
         ref = history.stats.get((model, name)) if history is not None else None
         if in_robust and ref is not None:
@@ -757,11 +785,9 @@ def _flag_one_lot(
                     )
                 )
         if robust and in_robust and ok.sum() >= cfg.min_units:
-            s = std_col[idx]
-            nr = nreps_col[idx]
-            use = np.isfinite(s) & (nr >= MIN_REPS_FOR_SPREAD)
+            s, use = s_all, rep_spread
             if use.sum() >= cfg.min_units:
-                med_s = float(np.median(s[use]))
+                med_s = float(median_std[idx[0]])
                 if med_s > 0:
                     ratio = np.where(use, s / med_s, np.nan)
                     for i in np.flatnonzero(np.nan_to_num(ratio) > cfg.spread_factor):
@@ -855,6 +881,8 @@ def _flag_one_lot(
             "parameter": cols["parameter"],
             "score": score,
             "lot_median": median,
+            "lot_scatter": scatter,
+            "lot_median_std": median_std,
         }
     )
     return LotFlags(
@@ -863,10 +891,10 @@ def _flag_one_lot(
 
 
 def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFrame:
-    """The summary with ``flagged``, ``flag_reason``, ``score`` and ``lot_median`` set from
-    the flags (rows of lots not in ``lot_flags`` keep their values)."""
+    """The summary with ``flagged``, ``flag_reason`` and the columns of :data:`LOT_COLUMNS`
+    set from the flags (rows of lots not in ``lot_flags`` keep their values)."""
     out = summary.copy()
-    for col, default in (("flagged", False), ("flag_reason", ""), ("score", np.nan), ("lot_median", np.nan)):
+    for col, default in (("flagged", False), ("flag_reason", ""), *((c, np.nan) for c in LOT_COLUMNS)):
         if col not in out:
             out[col] = default
     out["flagged"] = out["flagged"].astype(bool)
@@ -878,8 +906,8 @@ def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFram
         out.loc[in_lot, "flag_reason"] = ""
         if lf.scores is not None and len(lf.scores):
             sc = out.loc[in_lot, key].merge(lf.scores, on=key, how="left")
-            out.loc[in_lot, "score"] = sc["score"].to_numpy(float)
-            out.loc[in_lot, "lot_median"] = sc["lot_median"].to_numpy(float)
+            for col in LOT_COLUMNS:
+                out.loc[in_lot, col] = sc[col].to_numpy(float)
         reasons: dict[tuple, list[str]] = {}
         for f in lf.flags:
             reasons.setdefault((f.lot, f.unit, f.model, f.parameter), []).append(f"[{f.kind}] {f.reason}")

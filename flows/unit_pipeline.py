@@ -15,7 +15,7 @@ import pandas as pd
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
-from calib_core.results import Param, RepetitionCalibration, UnitCalibration
+from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
 from schemas.averaging import read_step_means
@@ -136,10 +136,6 @@ class UnitOutcome:
     diagnosis: object | None = None  # calib_core.discovery.Diagnosis when discovery ran
     notes: list[str] = field(default_factory=list)
 
-    @property
-    def parameter_rows(self) -> list[Param]:
-        return [p for s in self.sessions if s.calibration for p in s.calibration.parameters()]
-
     def residuals_frame(self) -> pd.DataFrame | None:
         """The per-step residual rows of every successful session, one frame for the unit
         (columns ``calib_core.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
@@ -243,59 +239,6 @@ class UnitResult:
         return sum(1 for s in self.outcome.sessions if s.status == "failed")
 
 
-def calibration_file_extra(ur: UnitResult, context: dict[str, Any]) -> dict[str, Any]:
-    """The sections a unit's calibration file holds beside the applied calibration (the same
-    for the results store and ``mimucal calibrate --json``): ``provenance`` (``context``:
-    run id, code version, time..., then the sessions used and failed, the extension terms,
-    model discovery's verdict), ``averaged`` (mean, std and units over the repetitions) and
-    ``repetitions`` (each repetition's fits with standard errors)."""
-    from schemas.unit_document import calibration_file_sections
-
-    out = ur.outcome
-    failed = [
-        {"rep": s.key.rep, "code": s.code, "message": s.message} for s in out.sessions if not s.succeeded
-    ]
-    used = [
-        {
-            "rep": s.key.rep,
-            "path": str(s.path),
-            "fingerprint": s.fingerprint,
-            "status": s.status,
-            "session_start": (s.calibration.provenance or {}).get("session_start") if s.calibration else None,
-        }
-        for s in out.sessions
-        if s.succeeded
-    ]
-    # when the unit was measured (its sessions' last session_start; None when no session
-    # says it: then the time of the calibration is when it was produced)
-    context = {**context, "acquired_at": acquisition_time(u["session_start"] for u in used)}
-    return calibration_file_sections(
-        ur.lot,
-        ur.unit,
-        out.calibration.reps,
-        failed,
-        used,
-        [t.name for t in out.applied.terms],
-        ur.diagnosis,
-        context,
-    )
-
-
-def acquisition_time(session_starts) -> str | None:
-    """The last of the sessions' ``session_start`` values (ISO 8601, UTC), None when none is
-    readable: a calibration describes the unit as measured once its sessions are done."""
-    from schemas.results_store import iso, parse_when
-
-    times = []
-    for v in session_starts:
-        if isinstance(v, str) and v.strip():
-            try:
-                times.append(parse_when(v))
-            except ValueError:
-                continue
-    return iso(max(times)) if times else None
-
-
 def _discovery_available() -> bool:
     try:
         import calib_core.discovery  # noqa: F401
@@ -361,6 +304,10 @@ def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
     """:func:`calibrate_unit_job`, with any exception it lets through (a bug) turned into
     the unit's failure: the rest of the batch and of the fleet goes on."""
     try:
+        from flows.field_units import FieldUnitJob, calibrate_field_unit_job
+
+        if isinstance(job, FieldUnitJob):  # a unit of field recordings
+            return calibrate_field_unit_job(job, run_discovery)
         return calibrate_unit_job(job, run_discovery)
     except Exception as exc:  # noqa: BLE001 - one unit never fails the flow
         return failed_unit_result(job.lot, job.unit, "calibrating", exc)

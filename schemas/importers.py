@@ -117,6 +117,19 @@ def convert_accel(
     raise _err(E_UNKNOWN_UNIT, path, f"accel unit {unit!r} is not one of {', '.join(ACCEL_INPUT_UNITS)}")
 
 
+def accel_from_g(values: np.ndarray, unit: str, g_local: float) -> np.ndarray:
+    """Specific force in g back to ``unit`` (g, mg or m/s^2 with ``g_local``): the inverse
+    of :func:`convert_accel`, for outputs written in the input's unit."""
+    values = np.asarray(values, float)
+    if unit == "g":
+        return values
+    if unit == "mg":
+        return values * 1000.0
+    if unit in ("m/s^2", "m/s2"):
+        return values * g_local
+    raise ValueError(f"specific force in g cannot be written in {unit!r}")
+
+
 FULL_SCALE_COUNTS = 32768.0  # a signed 16-bit output: +/- full scale is +/- 32768 counts
 
 

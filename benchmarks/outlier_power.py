@@ -1,7 +1,7 @@
 """Detection power of the outlier flags vs lot size, with and without the fleet history
 (calib_core.outliers): the table of docs/flows.md.
 
-    python -m flows.outlier_power [--trials 200] [--sizes 5 8 12 20 40] [--shifts 0 4 6 8 10]
+    python -m benchmarks.outlier_power [--trials 200] [--sizes 5 8 12 20 40] [--shifts 0 4 6 8 10]
 
 Each trial: three earlier lots of 20 clean units (acquired before), then the lot under test
 of ``n`` units; every unit has 24 parameters (the gyro and accel models), unit means
