@@ -1,9 +1,10 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS]]]
+    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
         # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS (5th
-        # argument): comma-separated catalogue effects, the rows of the effects table
+        # argument): comma-separated catalogue effects, the rows of the effects table ("all":
+        # every one); SCALES (6th): comma-separated sizes of its columns, e.g. 0.25,1
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -138,7 +139,8 @@ if __name__ == "__main__":
             n_units=int(args[0]) if args else 40,
             n_clean=int(args[1]) if len(args) > 1 else 200,
             sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc",
-            effects=tuple(args[3].split(",")) if len(args) > 3 else (),
+            effects=tuple(args[3].split(",")) if len(args) > 3 and args[3] != "all" else (),
+            scales=tuple(float(x) for x in args[4].split(",")) if len(args) > 4 else (0.25, 0.5, 1.0),
         )
     else:
         {"xu2016": xu2016}[what]()

@@ -68,8 +68,11 @@ def summary_lines(diag) -> list[str]:
         verdict = " -> fits to noise"
     elif bad:
         verdict = f" -> MISFIT on {', '.join(bad)}"
-    else:
+    elif lb.rejects:
         verdict = " -> MISFIT (overall lack of fit; no single channel rejects)"
+    else:
+        terms = ", ".join(getattr(diag, "misfit_terms", [])) or "a term"
+        verdict = f" -> MISFIT (targeted test of {terms}; no lack-of-fit test rejects)"
     lines.append(
         f"affine model: lack of fit F={lb.statistic:.3g} ({lb.dof1}, {lb.dof2}), "
         f"{_fmt_p(lb.p_value)}" + verdict
