@@ -8,11 +8,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation import run_scenario
 from calib_core.discovery.turntable import _Discovery
 from calib_core.effects import CHANNELS, get_effect
+from calib_core.sim import protocols
 from calib_core.sim.physics import typical_physics_unit
 from schemas.physics_sessions import physics_unit_step_means
 
