@@ -134,16 +134,23 @@ def pose_means(
     )
 
 
-def _covariance(sol, n_params: int) -> np.ndarray:
-    """``(J^T J)^-1`` times the residual variance (NaN when not determined)."""
+def _covariance(sol, n_params: int, cross: np.ndarray | None = None) -> np.ndarray:
+    """``(J^T J)^-1`` times the residual variance (NaN when not determined). ``cross``: the
+    weighted residuals' correlation matrix where it is not the identity (leading rows, the
+    rest independent), giving the sandwich ``B J^T C J B`` with ``B = (J^T J)^-1``."""
     m = sol.fun.size
     if m <= n_params:
         return np.full((n_params, n_params), np.nan)
     s2 = float(np.sum(sol.fun**2)) / (m - n_params)
     try:
-        return np.linalg.inv(sol.jac.T @ sol.jac) * s2
+        B = np.linalg.inv(sol.jac.T @ sol.jac)
     except np.linalg.LinAlgError:
         return np.full((n_params, n_params), np.nan)
+    if cross is None:
+        return B * s2
+    J = sol.jac[: len(cross)]
+    meat = sol.jac.T @ sol.jac + J.T @ (cross - np.eye(len(cross))) @ J
+    return B @ meat @ B * s2
 
 
 # --- accelerometer ------------------------------------------------------------------------
@@ -312,6 +319,20 @@ def moves_of(mid: np.ndarray) -> list[tuple[int, int]]:
     return [(int(mid[j]), int(mid[j + 1])) for j in range(len(mid) - 1)]
 
 
+def tangent_bases(u: np.ndarray) -> np.ndarray:
+    """(k, 3, 2): two orthonormal vectors perpendicular to each unit vector ``u_k``. A move's
+    residual is the difference of two unit vectors, whose component along ``u_{j+1}`` is
+    second order (``cos(angle) - 1``): its two components across ``u_{j+1}`` are the
+    residual's degrees of freedom, and counting a third would understate the move noise by
+    sqrt(2/3) in the variance components."""
+    u = np.asarray(u, float)
+    helper = np.eye(3)[np.argmin(np.abs(u), axis=1)]  # the axis least aligned with u
+    e1 = np.cross(u, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u, e1)
+    return np.stack([e1, e2], axis=2)
+
+
 def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, drift: bool, g_sens: bool):
     """Residual groups (moves, quiet poses) of the gyro model; ``F`` calibrated specific
     force (g) per sample, used by the g-sensitivity block. ``parts(p, u, F)`` takes other
@@ -322,6 +343,7 @@ def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, dri
     j0, j1 = np.flatnonzero(move_use), np.flatnonzero(move_use) + 1
     k_s = 15 if drift else 12
     starts, ends = pm.start[quiet_use], pm.end[quiet_use]
+    tangent = tangent_bases(u)
 
     def parts(p, u_=u, F_=F):
         M = gyro_matrix(p[:9])
@@ -332,7 +354,7 @@ def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, dri
         corr = F_[samples] @ S.T if g_sens else 0.0
         w[samples] = (G_s - b0 - t_s[:, None] * b1 - corr) @ M.T
         q = integ.rotations(w)
-        r_move = (_rotate_by_conjugate(q[j0], u_[j0]) - u_[j1]).ravel()
+        r_move = np.einsum("mki,mk->mi", tangent[j1], _rotate_by_conjugate(q[j0], u_[j0]) - u_[j1]).ravel()
         Fq = (
             np.array([F_[a:b].mean(axis=0) for a, b in zip(starts, ends)]).reshape(-1, 3)
             if g_sens
@@ -342,6 +364,52 @@ def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, dri
         return r_move, r_quiet
 
     return parts
+
+
+def _shared_hold_correlation(parts_of, G, p, pm: PoseMeans, quiet_use, sig_m: float, sig_q: float):
+    """Correlation matrix of the weighted residuals (moves, then quiet poses) from the gyro
+    samples they share: a move integrates from the middle of one pose to the middle of the
+    next, so the noise of each half of a quiet pose is in a move *and* in that pose's mean
+    (its bias residual). Taken as independent, the two would count that noise twice and
+    the bias and drift errors would be stated ~1.15x too small.
+
+    Per half of a quiet pose and per axis, ``D``: the weighted move residuals' change per
+    raw unit of a constant offset on the half's samples (finite difference). A half's mean
+    noise carries the pose mean's variance (two halves, independent, each the mean's
+    variance times 2, half of it shared), so its covariance with the weighted quiet row is
+    ``D * se * sig_q`` (that row's noise is ``mean noise / (se sig_q)``, variance 1)."""
+    parts0 = parts_of(G)
+    rm0, rq0 = parts0(p)
+    n_m, n_q = rm0.size, rq0.size
+    X = np.zeros((n_m, n_q))
+    h = max(float(np.median(pm.gyro_se)), 1e-9)
+    for col, j in enumerate(np.flatnonzero(quiet_use)):
+        for lo, hi in ((pm.start[j], pm.mid[j]), (pm.mid[j], pm.end[j])):
+            for a in range(3):
+                Gp = G.copy()
+                Gp[lo:hi, a] += h
+                D = (parts_of(Gp)(p)[0] - rm0) / (h * sig_m)
+                X[:, 3 * col + a] += D * pm.gyro_se[j, a] * sig_q
+    C = np.eye(n_m + n_q)
+    C[:n_m, n_m:] = X
+    C[n_m:, :n_m] = X.T
+    return C
+
+
+def group_redundancies(jac: np.ndarray, sizes: tuple[int, ...]) -> list[float]:
+    """Redundancy of each consecutive group of rows: its row count minus its share of the
+    hat matrix' trace (the parameters it determines), at least 0.5. Dividing a group's sum
+    of squares by it (rather than by its row count) is the unbiased variance component: a
+    group that determines most parameters would otherwise look quieter than it is."""
+    try:
+        h = np.sum(jac * np.linalg.solve(jac.T @ jac, jac.T).T, axis=1)
+    except np.linalg.LinAlgError:
+        h = np.zeros(len(jac))
+    out, k = [], 0
+    for n in sizes:
+        out.append(max(n - float(np.sum(h[k : k + n])), 0.5))
+        k += n
+    return out
 
 
 WALD_P = 1e-3  # an optional block is kept when its Wald test rejects "zero" at this level
@@ -452,16 +520,26 @@ def fit_gyro_joint(
         sig_m_used, sig_q_used = sig_m, sig_q
         x = sol.x
         rm, rq = parts(x)
-        sig_m = max(float(np.sqrt(np.mean(rm**2))), 1e-9)
-        sig_q = max(float(np.sqrt(np.mean(rq**2))), 1e-12)
+        red_m, red_q = group_redundancies(sol.jac, (rm.size, rq.size))
+        sig_m = max(float(np.sqrt(np.sum(rm**2) / red_m)), 1e-9)
+        sig_q = max(float(np.sqrt(np.sum(rq**2) / red_q)), 1e-12)
     names = (
         GYRO_PARAM_NAMES
         + GYRO_BIAS_NAMES
         + (GYRO_DRIFT_NAMES if drift else ())
         + (GYRO_G_SENS_NAMES if g_sensitivity else ())
     )
-    cov = _covariance(sol, len(x0))
     sm_final, sq_final = sig_m_used, sig_q_used
+    cross = _shared_hold_correlation(
+        lambda G_: _gyro_residual_fn(t, G_, F, integ, u, move_use, pm, quiet_use, drift, g_sensitivity),
+        G,
+        sol.x,
+        pm,
+        quiet_use,
+        sm_final,
+        sq_final,
+    )
+    cov = _covariance(sol, len(x0), cross)
 
     def weighted(p, u_, F_):
         rm, rq = parts(p, u_, F_)
