@@ -152,11 +152,12 @@ def test_move_residual_basis_and_variance_component_redundancies():
 @pytest.mark.slow
 def test_standard_errors_match_monte_carlo_spread():
     """8 sessions of one MPU-6050-like truth with a gyro bias drift, new noise each time, no
-    prior. Measured on these seeds: MC RMS error / mean stated stderr 0.72-1.82 per
-    parameter, median 1.34 (docs/real-data.md: the accelerometer's z = error / stated error
-    is Student-t with 5 dof, RMS sqrt(5/3); the gyro's stated errors ~1.2x optimistic); |mean
-    error| / RMS error <= 0.55 (no estimator bias beyond the noise of 8 draws); largest
-    errors 1.6e-3 relative on scale factors and 0.9e-3 rad on misalignments."""
+    prior. Measured on these seeds: MC RMS error / mean stated stderr 0.64-1.82 per
+    parameter, median 1.23, the gyro's 1.11 (the mean stated error varies between sessions
+    with the pose geometry; docs/real-data.md: the accelerometer's z = error / stated error
+    is Student-t with 5 dof, RMS sqrt(5/3); the gyro's z is checked on 24 sessions below);
+    |mean error| / RMS error <= 0.56 (no estimator bias beyond the noise of 8 draws); errors
+    below 3e-3 relative on scale factors and 2e-3 rad on misalignments."""
     truth = mpu6050_like_truth(np.random.default_rng(7), drift=True)
     errs, ses = [], []
     for seed in range(8):

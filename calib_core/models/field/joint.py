@@ -14,7 +14,9 @@ Models (IMU-TK's ``x' = T K (x - b)``, as in :mod:`calib_core.models.field.imu_t
   (``w`` is expressed in the accelerometer frame, where the gravity directions live). Two
   kinds of residual, fitted together:
 
-  - each move between consecutive poses ``j -> j+1``: ``dR^T u_j - u_{j+1}``, with ``u`` the
+  - each move between consecutive poses ``j -> j+1``: ``dR^T u_j - u_{j+1}`` in the two
+    directions across ``u_{j+1}`` (:func:`tangent_bases`; along it the difference of two
+    unit vectors is second order), with ``u`` the
     unit gravity direction of each pose (calibrated accel mean) and ``dR`` the product of
     ``exp(w_k (t_{k+1} - t_k))`` over the samples from the middle of pose ``j`` to the middle
     of pose ``j+1``, on the recorded sample times. Integrating from pose middle to pose
@@ -27,12 +29,15 @@ Models (IMU-TK's ``x' = T K (x - b)``, as in :mod:`calib_core.models.field.imu_t
 
   The bias drift ``d_g`` (counts per s) is fitted and kept when the data show it (any axis
   at more than 3 standard errors, see :func:`fit_gyro_joint`). The two residual groups are
-  weighted by their own RMS (variance components re-estimated twice), so neither unit
-  (rad vs rad/s) dominates by convention.
+  weighted by their own variance components (sum of squares over the group's redundancy,
+  :func:`group_redundancies`, re-estimated twice), so neither unit (rad vs rad/s) dominates
+  by convention.
 
-Standard errors: ``sqrt(diag((J^T J)^-1))`` at the solution with the weighted residuals'
-variance; the accelerometer's uncertainty is not propagated into the gyro's (the gravity
-directions are treated as known), which the Monte Carlo test checks is adequate.
+Standard errors: ``(J^T J)^-1`` at the solution with the weighted residuals' variance, as a
+sandwich for the gyro noise a quiet pose's mean shares with the two moves integrated through
+it (:func:`_shared_hold_correlation`); the gyro's include the accelerometer's, propagated
+through the gravity directions to first order. Checked against Monte Carlo on the hand-held
+simulator (docs/real-data.md, tests/test_real_field_handheld.py).
 
 Figures of merit (:func:`field_figures`): per pose the static |f| error (|mean f| - 1 g, mg),
 per move the angle between the gravity direction the gyro predicts and the one measured
