@@ -371,30 +371,39 @@ def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, dri
     return parts
 
 
-def _shared_hold_correlation(parts_of, G, p, pm: PoseMeans, quiet_use, sig_m: float, sig_q: float):
+def _shared_hold_correlation(
+    parts_of, t, G, p, pm: PoseMeans, quiet_use, move_use, sig_m: float, sig_q: float
+) -> np.ndarray:
     """Correlation matrix of the weighted residuals (moves, then quiet poses) from the gyro
     samples they share: a move integrates from the middle of one pose to the middle of the
     next, so the noise of each half of a quiet pose is in a move *and* in that pose's mean
     (its bias residual). Taken as independent, the two would count that noise twice and
     the bias and drift errors would be stated ~1.15x too small.
 
-    Per half of a quiet pose and per axis, ``D``: the weighted move residuals' change per
-    raw unit of a constant offset on the half's samples (finite difference). A half's mean
-    noise carries the pose mean's variance (two halves, independent, each the mean's
-    variance times 2, half of it shared), so its covariance with the weighted quiet row is
-    ``D * se * sig_q`` (that row's noise is ``mean noise / (se sig_q)``, variance 1)."""
-    parts0 = parts_of(G)
-    rm0, rq0 = parts0(p)
-    n_m, n_q = rm0.size, rq0.size
+    Per half of a quiet pose and per axis, ``D``: the weighted residual of the move through
+    that half, its change per raw unit of a constant offset on the half's samples (finite
+    difference; ``parts_of(G, integrator)`` gives the residual function, here with only that
+    move integrated). A half's mean noise carries the pose mean's variance (two independent
+    halves, each twice the mean's variance, half of it shared), so its covariance with the
+    weighted quiet row is ``D * se * sig_q`` (that row's noise is ``mean noise / (se
+    sig_q)``, variance 1)."""
+    moves = moves_of(pm.mid)
+    row = np.cumsum(move_use) - 1  # each used move's first residual row / 2
+    n_m, n_q = 2 * int(move_use.sum()), 3 * int(quiet_use.sum())
     X = np.zeros((n_m, n_q))
     h = max(float(np.median(pm.gyro_se)), 1e-9)
     for col, j in enumerate(np.flatnonzero(quiet_use)):
-        for lo, hi in ((pm.start[j], pm.mid[j]), (pm.mid[j], pm.end[j])):
+        for m, lo, hi in ((j - 1, pm.start[j], pm.mid[j]), (j, pm.mid[j], pm.end[j])):
+            if not (0 <= m < len(moves) and move_use[m]) or hi <= lo:
+                continue
+            only_m = SegmentIntegrator(t, [mv if k == m else (mv[0], mv[0]) for k, mv in enumerate(moves)])
+            rows = slice(2 * row[m], 2 * row[m] + 2)
+            r0 = parts_of(G, only_m)(p)[0][rows]
             for a in range(3):
                 Gp = G.copy()
                 Gp[lo:hi, a] += h
-                D = (parts_of(Gp)(p)[0] - rm0) / (h * sig_m)
-                X[:, 3 * col + a] += D * pm.gyro_se[j, a] * sig_q
+                D = (parts_of(Gp, only_m)(p)[0][rows] - r0) / (h * sig_m)
+                X[rows, 3 * col + a] += D * pm.gyro_se[j, a] * sig_q
     C = np.eye(n_m + n_q)
     C[:n_m, n_m:] = X
     C[n_m:, :n_m] = X.T
@@ -536,11 +545,15 @@ def fit_gyro_joint(
     )
     sm_final, sq_final = sig_m_used, sig_q_used
     cross = _shared_hold_correlation(
-        lambda G_: _gyro_residual_fn(t, G_, F, integ, u, move_use, pm, quiet_use, drift, g_sensitivity),
+        lambda G_, integ_: _gyro_residual_fn(
+            t, G_, F, integ_, u, move_use, pm, quiet_use, drift, g_sensitivity
+        ),
+        t,
         G,
         sol.x,
         pm,
         quiet_use,
+        move_use,
         sm_final,
         sq_final,
     )
