@@ -18,7 +18,7 @@ from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
 from calib_core.results import Param, RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
-from schemas.averaging import read_step_means
+from schemas.averaging import leave_out_inconsistent_steps, read_step_means
 from schemas.dataset import SessionRef, fingerprint
 from schemas.errors import SessionError, from_design_error
 
@@ -63,7 +63,9 @@ def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionO
 def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> list[SessionOutcome]:
     """:func:`calibrate_session` of each session (the repetitions of a unit): every session
     read first, then the fits of those read together (``calibrate_repetitions`` stacks the
-    sessions that share a step layout); each outcome is the one its session gives alone."""
+    sessions that share a step layout); each outcome is the one its session gives alone, but
+    for the steps left out because they contradict the same step in the unit's other
+    repetitions (``W_INCONSISTENT_STEP``, :func:`schemas.averaging.leave_out_inconsistent_steps`)."""
     fps = []
     read: list[tuple[int, StepMeans, list]] = []
     outcomes: list[SessionOutcome | None] = [None] * len(refs)
@@ -75,6 +77,15 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             outcomes[i] = _failed(ref, fps[i], exc)
             continue
         read.append((i, sm, warns))
+    # steps that contradict the unit's other repetitions are left out before the fits
+    checked = leave_out_inconsistent_steps([(sm, warns) for _, sm, warns in read])
+    kept = []
+    for (i, _, _), item in zip(read, checked):
+        if isinstance(item, SessionError):  # too many steps lost in all
+            outcomes[i] = _failed(refs[i], fps[i], item)
+        else:
+            kept.append((i, *item))
+    read = kept
     fits = calibrate_repetitions([sm for _, sm, _ in read])
     for (i, sm, warns), fit in zip(read, fits):
         ref, fp = refs[i], fps[i]
