@@ -242,3 +242,35 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
             if prev is None or abs(found.z) > abs(prev.z):
                 worst[(int(r), int(col))] = found
     return sorted(worst.values(), key=lambda s: (s.index, s.step))
+
+
+# --- NumPy floating-point errors: recorded and named, not printed -------------------------------
+class NumericEvents:
+    """Floating-point errors NumPy meets inside a ``with`` block (overflow, invalid value,
+    division by zero), counted instead of printed as ``RuntimeWarning``s, so that the caller
+    can name them (``W_NUMERIC``, with the session) where they happen. ``np.errstate`` is a
+    context variable: each thread (a Prefect task) records its own; code that deliberately
+    ignores an error (``np.errstate(invalid="ignore")`` around a NaN comparison) still does."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self._state = np.errstate(over="call", invalid="call", divide="call", call=self._record)
+
+    def _record(self, kind: str, flag: int) -> None:
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+
+    def __enter__(self) -> NumericEvents:
+        self._state.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._state.__exit__(*exc)
+
+    def __bool__(self) -> bool:
+        return bool(self.counts)
+
+    def __str__(self) -> str:
+        """e.g. ``overflow (2 operations), invalid value (1 operation)``."""
+        return ", ".join(
+            f"{kind} ({n} operation{'s' if n != 1 else ''})" for kind, n in sorted(self.counts.items())
+        )

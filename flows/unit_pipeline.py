@@ -14,11 +14,12 @@ import pandas as pd
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
+from calib_core.guards import NumericEvents
+from calib_core.pipeline import calibrate_repetition, calibrate_repetitions, calibration_from_unit
 from calib_core.results import Param, RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
-from schemas.averaging import leave_out_inconsistent_steps, read_step_means
+from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, read_step_means
 from schemas.dataset import SessionRef, fingerprint
 from schemas.errors import SessionError, from_design_error
 
@@ -86,12 +87,14 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
         else:
             kept.append((i, *item))
     read = kept
-    fits = calibrate_repetitions([sm for _, sm, _ in read])
-    for (i, sm, warns), fit in zip(read, fits):
+    fits, numeric = _fit_recording_numeric_events([sm for _, sm, _ in read])
+    for (i, sm, warns), fit, events in zip(read, fits, numeric):
         ref, fp = refs[i], fps[i]
         if isinstance(fit, Exception):
             outcomes[i] = _failed(ref, fp, fit)
             continue
+        if events:
+            warns = [*warns, numeric_warning(str(ref.key), "fitting it", events)]
         warning_texts = [str(w) for w in warns] + list(fit.calibration.warnings)
         fit.calibration.warnings = warning_texts
         fit.calibration.provenance.update({"path": str(ref.path), "fingerprint": fp})
@@ -110,6 +113,25 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             sm if keep_step_means else None,
         )
     return outcomes
+
+
+def _fit_recording_numeric_events(sms: list[StepMeans]) -> tuple[list, list[NumericEvents]]:
+    """``calibrate_repetitions(sms)`` and, per session, the floating-point errors NumPy met
+    fitting it. The sessions are fitted together; only when that meets some are they fitted
+    again one at a time (the same fits) to tell whose they are."""
+    with NumericEvents() as together:
+        fits = calibrate_repetitions(sms)
+    if not together or len(sms) == 1:
+        return fits, [together] * len(sms)
+    fits, events = [], []
+    for sm in sms:
+        with NumericEvents() as alone:
+            try:
+                fits.append(calibrate_repetition(sm))
+            except Exception as exc:  # noqa: BLE001 - the caller reports it for its session
+                fits.append(exc)
+        events.append(alone)
+    return fits, events
 
 
 def _failed(ref: SessionRef, fp: str, exc: Exception) -> SessionOutcome:

@@ -61,7 +61,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
-from calib_core.guards import CONSISTENCY_Z_LIMIT, inconsistent_steps
+from calib_core.guards import CONSISTENCY_Z_LIMIT, NumericEvents, inconsistent_steps
 from calib_core.steps import SessionKey, StepMeans
 from schemas.contract import ACCEL_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE
 from schemas.dataset import SessionRef
@@ -70,6 +70,7 @@ from schemas.errors import (
     E_TOO_MANY_STEPS_LOST,
     W_EMPTY_STEP,
     W_INCONSISTENT_STEP,
+    W_NUMERIC,
     W_SATURATED,
     W_TOO_SHORT,
     SessionError,
@@ -547,9 +548,23 @@ def read_step_means(
     also when more than ``max_lost_share`` (default :func:`max_lost_step_share`) of its
     steps are left out."""
     data = read_session(ref)
-    sm, warns = average_session(data, min_samples)
+    with NumericEvents() as numeric:
+        sm, warns = average_session(data, min_samples)
     check_lost_steps(data.label, len(data.steps), warns, max_lost_share)
+    if numeric:
+        warns.append(numeric_warning(data.label, "averaging its steps", numeric))
     return sm, warns
+
+
+def numeric_warning(label: str, stage: str, events: NumericEvents) -> SessionWarning:
+    """``W_NUMERIC``: the floating-point errors NumPy met on this session (they are not
+    printed: the terminal shows no RuntimeWarning), named with the session and the stage."""
+    return SessionWarning(
+        W_NUMERIC,
+        f"{label}: floating-point {events} while {stage} (a value too large or undefined for "
+        f"the arithmetic: damaged data?); the results kept are finite and passed the "
+        f"plausibility checks",
+    )
 
 
 def step_means_from_tables(

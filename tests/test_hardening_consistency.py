@@ -193,3 +193,33 @@ def test_damaged_sensor_bytes_without_checksums_never_enter_the_unit_unflagged(t
     codes = set(outcomes.values())
     assert "W_INCONSISTENT_STEP" in codes  # values damaged inside the range are caught
     assert codes & {E.E_NONFINITE_VALUE, E.E_TOO_MANY_STEPS_LOST}
+
+
+# --- NumPy floating-point errors ------------------------------------------------------------------
+def test_numeric_events_are_recorded_per_thread_and_deliberate_ignores_stay_ignored():
+    import threading
+    import warnings
+
+    from calib_core.guards import NumericEvents
+
+    seen: dict[str, NumericEvents] = {}
+
+    def work(name: str, overflow: bool) -> None:
+        with NumericEvents() as events:
+            if overflow:
+                np.array([1e200]) * np.array([1e200])
+            with np.errstate(invalid="ignore"):  # a NaN comparison the code means
+                np.array([np.inf]) - np.array([np.inf])
+        seen[name] = events
+
+    threads = [threading.Thread(target=work, args=(n, n == "a")) for n in ("a", "b")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert seen["a"].counts == {"overflow": 1} and str(seen["a"]) == "overflow (1 operation)"
+    assert not seen["b"]
+    with warnings.catch_warnings():  # outside the block NumPy's own setting is back
+        warnings.simplefilter("error")
+        with pytest.raises(RuntimeWarning):
+            np.array([1e200]) * np.array([1e200])
