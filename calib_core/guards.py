@@ -208,8 +208,8 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
     shared = present.sum(axis=0) >= 2  # a step seen in one repetition has nothing to compare
     full_scale = np.concatenate([np.asarray(sms[0].gyro_range_dps, float), np.asarray(sms[0].accel_range_g, float)])
     worst: dict[tuple[int, int], StepDisagreement] = {}
-    with np.errstate(invalid="ignore"):
-        median = np.nanmedian(np.where(shared[None, :, None], values, np.nan), axis=0)
+    median = np.full((n_col, 6), np.nan)  # over the repetitions that have the step
+    median[shared] = np.nanmedian(values[:, shared], axis=0)
     for c in range(6):
         ref = w_ref if c < 3 else f_ref
         dev = np.full((n_rep, n_col), np.nan)
