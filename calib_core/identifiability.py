@@ -31,6 +31,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 DEFAULT_TOL = 0.05
+# pairs whose own parts are below this (but above DEFAULT_TOL) are *near-confounded*: the
+# design still separates them, but an effect must be several times the noise before the
+# data can: an effect of 10 sigma shows its own part at under 1.5 sigma. Discovery lets the
+# data decide such a pair (each tested given the other), :func:`near_confounded`
+NEAR_TOL = 0.15
 
 
 @dataclass(frozen=True)
@@ -202,6 +207,33 @@ def analyse(
         {n: int(np.asarray(terms[n]).shape[1]) for n in names},
         tol,
     )
+
+
+def near_confounded(
+    terms: Mapping[str, np.ndarray], tol: float = DEFAULT_TOL, near_tol: float = NEAR_TOL
+) -> tuple[Confounded, ...]:
+    """Pairs of terms whose columns (``terms[name]``, (N, p), the base model already
+    projected out and the noise weights applied) are near-collinear: the sine of the
+    smallest principal angle between their spans is in ``[tol, near_tol)``. Below ``tol``
+    they are confounded (:func:`analyse`); above ``near_tol`` each has a part of its own
+    large enough to be tested apart. E.g. a bias drift in temperature and one in time on a
+    warm-up nearly linear in time over the session (sine about 0.04-0.09)."""
+    spans = {}
+    for name, Z in terms.items():
+        Z = np.asarray(Z, float)
+        norms = np.linalg.norm(Z, axis=0)
+        if Z.size and (norms > 0).any():
+            spans[name] = _orth(Z[:, norms > 0] / norms[norms > 0])
+    names = sorted(n for n, q in spans.items() if q.shape[1])
+    out = []
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            cos = np.linalg.svd(spans[a].T @ spans[b], compute_uv=False)
+            c = float(min(cos[0], 1.0)) if cos.size else 0.0
+            sin = float(np.sqrt(max(1.0 - c * c, 0.0)))
+            if tol <= sin < near_tol:
+                out.append(Confounded((a, b), sin))
+    return tuple(out)
 
 
 @dataclass(frozen=True)

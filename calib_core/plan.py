@@ -25,7 +25,15 @@ import numpy as np
 import pandas as pd
 
 from calib_core.effects import MotionContext, catalogue, get_effect
-from calib_core.identifiability import DEFAULT_TOL, Advice, Identifiability, analyse
+from calib_core.identifiability import (
+    DEFAULT_TOL,
+    NEAR_TOL,
+    Advice,
+    Confounded,
+    Identifiability,
+    analyse,
+    near_confounded,
+)
 
 NOMINAL_SIGMA = np.array([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])  # deg/s, g per step mean
 WARM_UP_C = (25.0, 10.0, 600.0)  # start, rise, time constant (s)
@@ -173,9 +181,64 @@ def separable(
     return all(own_directions(base, terms, m, tuple(x for x in members if x != m), tol) > 0 for m in members)
 
 
+def near_pairs(
+    base: np.ndarray,
+    terms: Mapping[str, np.ndarray],
+    tol: float = DEFAULT_TOL,
+    confounded: tuple[Confounded, ...] = (),
+) -> tuple[Confounded, ...]:
+    """Near-collinear pairs of terms (:func:`calib_core.identifiability.near_confounded`)
+    once the base model is projected out of their columns; pairs inside a ``confounded``
+    set are that set's business, not listed."""
+    Q = _orth(base)
+    pairs = near_confounded({n: Z - Q @ (Q.T @ Z) for n, Z in terms.items()}, tol)
+    return tuple(c for c in pairs if not any(set(c.terms) <= set(g.terms) for g in confounded))
+
+
 def _orth(A: np.ndarray) -> np.ndarray:
     u, s, _ = np.linalg.svd(A, full_matrices=False)
     return u[:, s > 1e-10 * max(s.max(initial=0.0), 1e-300)]
+
+
+SOAK_AFTER_S = 3600.0  # a temperature soak: the unit has settled an hour after power-on
+CURVED_TAU_S = 150.0  # a warm-up whose time constant is well inside the session
+
+
+def _with_temperature(steps: pd.DataFrame, tau_s: float, extra: pd.DataFrame | None = None) -> pd.DataFrame:
+    """``steps`` (plus ``extra`` rows, whose ``t_mid`` is given) with explicit ``t_mid`` and
+    ``temp_c``: the nominal times, a 10 degC warm-up with time constant ``tau_s``."""
+    out = steps.copy()
+    out["t_mid"] = step_context(steps).t
+    if extra is not None:
+        from calib_core.protocols import extended
+
+        out = extended(out, extra.to_dict("records"))
+    start, rise, _ = WARM_UP_C
+    out["temp_c"] = start + rise * (1.0 - np.exp(-out["t_mid"].to_numpy(float) / tau_s))
+    return out
+
+
+def _curved_warm_up(steps: pd.DataFrame) -> pd.DataFrame:
+    return _with_temperature(steps, CURVED_TAU_S)
+
+
+def _soak(steps: pd.DataFrame) -> pd.DataFrame:
+    # the protocol's own stationary steps (its first three without any) run again: no new
+    # motion, only a new temperature at a new time
+    still = steps[steps["test"] == "stationary"] if "test" in steps else steps.iloc[:0]
+    rows = (still if len(still) else steps.iloc[:3]).drop(columns=["step"]).reset_index(drop=True)
+    rows["t_mid"] = SOAK_AFTER_S + DEFAULT_DURATION_S * np.arange(len(rows))
+    return _with_temperature(steps, WARM_UP_C[2], rows)
+
+
+# changes of *when* the steps run (the temperature they see), beside the step sets of
+# :data:`calib_core.protocols.STEP_SETS`: what tells a drift in temperature from one in time
+TEMPERATURE_CHANGES = {
+    "a warm-up that is not linear in time over the session (steps started while the "
+    "temperature still rises fast, time constant about 150 s)": _curved_warm_up,
+    "a temperature soak at a different time (the stationary steps repeated once the unit "
+    "has settled, an hour after power-on)": _soak,
+}
 
 
 def advise(
@@ -186,8 +249,10 @@ def advise(
     table_heading_deg: float | None = None,
     ident: Identifiability | None = None,
 ) -> list[Advice]:
-    """For each confounded set and each term with undetermined parameters, the step sets of
-    ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it. A
+    """For each confounded set, each near-collinear pair (:func:`near_pairs`: discovery
+    lets the data decide it) and each term with undetermined parameters, the step sets of
+    ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it, or the
+    changes of when the steps run of :data:`TEMPERATURE_CHANGES`. A
     confounded set is resolved when every member has a direction of its own given the
     others (discovery can then test each member given the rest; a shared direction, such as
     the vertical Earth rate and an isotropic g-sensitivity, may remain); an undetermined
@@ -203,18 +268,26 @@ def advise(
         for c in ident.confounded
         if not separable(base0, terms0, c.terms, tol)
     ]
+    issues += [
+        (f"near-{c.describe()}", c.terms, "near") for c in near_pairs(base0, terms0, tol, ident.confounded)
+    ]
     for term in sorted({u.term for u in ident.undetermined}):
         params = sorted({p for u in ident.undetermined if u.term == term for p in u.params})
         issues.append((f"undetermined: {term} ({', '.join(params)})", (term,), "undetermined"))
     if not issues:
         return []
     resolved: dict[str, list[str]] = {text: [] for text, _, _ in issues}
-    for label, rows in lib.items():
-        base, terms, _ = design(extended(steps, rows()), **kw)
-        ext = None
+    changes = {label: (lambda s, rows=rows: extended(s, rows())) for label, rows in lib.items()}
+    changes.update(TEMPERATURE_CHANGES)
+    for label, change in changes.items():
+        base, terms, _ = design(change(steps), **kw)
+        ext = near = None
         for text, members, kind in issues:
             if kind == "confounded":
                 ok = separable(base, terms, members, tol)
+            elif kind == "near":  # no longer near-collinear, nor confounded
+                near = near_pairs(base, terms, tol) if near is None else near
+                ok = separable(base, terms, members, tol) and members not in {c.terms for c in near}
             else:
                 if ext is None:
                     ext = analyse(
@@ -236,6 +309,7 @@ class Plan:
     not_excited: dict[str, tuple[str, ...]]
     advice: tuple[Advice, ...]
     separable: tuple[tuple[str, ...], ...] = ()
+    near: tuple[Confounded, ...] = ()  # near-collinear pairs (sine from tol to NEAR_TOL)
 
     def identifiable(self) -> list[str]:
         ident = self.identifiability
@@ -263,6 +337,11 @@ class Plan:
                 )
             else:
                 out.append(f"  {c.describe()}: cannot be told apart")
+        for c in self.near:
+            out.append(
+                f"  near-{c.describe()}: told apart only by an effect several times the noise "
+                f"(below {NEAR_TOL:g}; discovery tests each given the other)"
+            )
         for u in ident.undetermined:
             out.append(f"  undetermined: {u.describe()} ({100 * u.left:.1f} % left)")
         for a in self.advice:
@@ -284,4 +363,5 @@ def plan(
         not_excited(steps, latitude_deg, table_heading_deg),
         tuple(advise(steps, None, tol, latitude_deg, table_heading_deg, ident)),
         tuple(c.terms for c in ident.confounded if separable(base, terms, c.terms, tol)),
+        near_pairs(base, terms, tol, ident.confounded),
     )

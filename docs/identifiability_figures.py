@@ -2,7 +2,7 @@
 
     .venv/bin/python docs/identifiability_figures.py [N_UNITS [EFFECTS]]    # 40 units per row
         # EFFECTS: "earth" (the Earth-rate rows only) or comma-separated thermal rows only,
-        # e.g. thermal_bias_drift,bias_time_drift
+        # e.g. thermal_bias_drift,bias_time_drift; "pairs": the nonlinearity + thermal pair
 
 Seeded: the same numbers every run.
 """
@@ -15,9 +15,14 @@ import time
 
 def main(n_units: int = 40, sections: str = "") -> None:
     """``sections``: "earth" for the Earth-rate rows only, or comma-separated effect names
-    for those thermal rows only; empty: everything."""
+    for those thermal rows only (with "pairs": the nonlinearity + thermal pair rows);
+    empty: everything."""
     from calib_core import protocols
-    from calib_core.discovery.evaluation_ident import earth_rate_scenario, sensor_effect_scenario
+    from calib_core.discovery.evaluation_ident import (
+        earth_rate_scenario,
+        pair_scenario,
+        sensor_effect_scenario,
+    )
     from calib_core.sim.physics import Turntable, WarmUp
     from schemas.physics_sessions import physics_unit_step_means
 
@@ -60,27 +65,55 @@ def main(n_units: int = 40, sections: str = "") -> None:
             print(f"<!--   {note} -->")
     print()
     print(
-        "| hidden effect (default protocol, warm-up ramp) | units | named alone | named | "
-        "right parameter largest | other effect named |"
+        "| hidden effect (default protocol) | units | named alone | confounded with its "
+        "near-collinear partner (applied) | named | right parameter largest | other effect "
+        "named alone |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     fast = WarmUp(rise_c=10.0, tau_s=150.0)
     for name, seed, warm, label in (
-        ("thermal_scale_drift", 21, WarmUp(), ""),
-        ("thermal_bias_drift", 22, WarmUp(), ""),
-        ("bias_time_drift", 23, WarmUp(), ""),
+        ("thermal_scale_drift", 21, WarmUp(), ", 10 degC warm-up (600 s)"),
+        ("thermal_bias_drift", 22, WarmUp(), ", 10 degC warm-up (600 s)"),
+        ("bias_time_drift", 23, WarmUp(), ", 10 degC warm-up (600 s)"),
         ("thermal_bias_drift", 24, fast, ", warm-up time constant 150 s"),
         ("bias_time_drift", 25, fast, ", warm-up time constant 150 s"),
     ):
         if sections and name not in sections.split(","):
             continue
+        t0 = time.perf_counter()
         o = sensor_effect_scenario(step_means_of, default, name, n_units, seed, warm_up=warm)
         print(
-            f"| {name}{label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.named):.0f} % | "
-            f"{o.right_axis}/{o.named} | {o.pct(o.other_named):.0f} % |",
+            f"| {name}{label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.confounded):.0f} % | "
+            f"{o.pct(o.named):.0f} % | {o.right_axis}/{o.named} | {o.pct(o.other_named):.0f} % |"
+            f"  <!-- {time.perf_counter() - t0:.0f} s -->",
             flush=True,
         )
-        for note in o.notes[:5]:
+        if name == "thermal_scale_drift":  # gyros and accelerometers apart (their limits differ)
+            for kind, prefix in (("gyros", "sensor g"), ("accelerometers", "sensor a")):
+                k = [v for p, v in o.by_place.items() if p.startswith(prefix)]
+                print(f"<!--   {kind}: right axis {sum(v[1] for v in k)}/{sum(v[0] for v in k)} -->")
+        for note in o.notes[:8]:
+            print(f"<!--   {note} -->")
+    if sections and "pairs" not in sections.split(","):
+        return
+    print()
+    print(
+        "| effects hidden (1x, default protocol) | units | both named, nothing else | found "
+        "(named, or in a confounded group), nothing else named | of which confounded | "
+        "other effect named |"
+    )
+    print("|---|---|---|---|---|---|")
+    pair = ("gyro_scale_nonlinearity", "thermal_bias_drift")
+    for warm, label, seed in ((WarmUp(), "10 degC warm-up (600 s)", 31), (fast, "warm-up 150 s", 32)):
+        t0 = time.perf_counter()
+        o = pair_scenario(step_means_of, default, pair, n_units, seed, warm_up=warm)
+        print(
+            f"| {' + '.join(pair)}, {label} | {o.n} | {o.pct(o.named):.0f} % | {o.pct(o.found):.0f} % | "
+            f"{o.pct(o.confounded):.0f} % | {o.pct(o.other_named):.0f} % |"
+            f"  <!-- {time.perf_counter() - t0:.0f} s -->",
+            flush=True,
+        )
+        for note in o.notes[:8]:
             print(f"<!--   {note} -->")
 
 

@@ -65,7 +65,7 @@ from calib_core.discovery.results import (
 from calib_core.discovery.selection import stepwise
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.identifiability import Identifiability, analyse
+from calib_core.identifiability import Confounded, Identifiability, analyse, near_confounded
 from calib_core.replay import (
     MIN_POOL_DOF,
     NOISE_COLUMNS,
@@ -1030,6 +1030,48 @@ class _Discovery:
             self.__dict__["_ident"] = analyse(np.zeros((P, 0)), terms, pnames, CONFOUNDING_TOL)
         return self.__dict__["_ident"]
 
+    @property
+    def near_confounded(self) -> tuple[Confounded, ...]:
+        """Pairs of terms near-collinear on the unit's steps but not confounded
+        (:func:`identifiability.near_confounded` on the same columns as
+        :attr:`identifiability`): the data decide them (:meth:`_settle_near_confounded`)."""
+        if "_near" not in self.__dict__:
+            P = self.g.P
+            Rg = self.Rg[0][:P, :P]
+            grouped = {n for grp in self.identifiability.groups() if len(grp) > 1 for n in grp}
+            terms = {}
+            for n in self.names:
+                a, b = self.g.offset[n]
+                keep = [k for k in range(a, b) if k not in self.undetermined and self.g.live_mask[:, k].any()]
+                if keep and n not in grouped:
+                    terms[n] = Rg[:, keep]
+            self.__dict__["_near"] = near_confounded(terms, CONFOUNDING_TOL)
+        return self.__dict__["_near"]
+
+    def _settle_near_confounded(self, items: list[tuple[str, ...]]) -> list[tuple[str, ...]]:
+        """A chosen term A with a near-confounded partner B (:attr:`near_confounded`) that
+        alone would explain the data as well (B significant given the other chosen terms
+        without A): A stays named when it is significant given B; B replaces it when B is
+        significant given A and A not given B; when neither is significant given the other,
+        the pair is one confounded item (the combined fit applied, no name picked). Tests
+        at alpha over the catalogue, as :meth:`_resolve`."""
+        thr = self.alpha / len(self.names)
+        out = list(items)
+        for pair in self.near_confounded:
+            names = tuple(n for i in out for n in i)
+            a, b = pair.terms
+            if (a in names) == (b in names) or (a,) not in out and (b,) not in out:
+                continue  # both chosen (each significant given the other), or neither
+            kept, rival = (a, b) if (a,) in out else (b, a)
+            others = tuple(n for n in names if n != kept)
+            if not self.term_test(others, rival, thr).rejects:
+                continue  # the partner alone does not explain the data
+            if self.term_test(others + (rival,), kept, thr).rejects:
+                continue  # the chosen one is significant given its partner
+            rival_given_kept = self.term_test(names, rival, thr).rejects
+            out[out.index((kept,))] = (rival,) if rival_given_kept else tuple(sorted((kept, rival)))
+        return out
+
     def test_groups(self) -> list[tuple[str, ...]]:
         """Candidates as tested: confounded terms together, the others alone."""
         ident = self.identifiability
@@ -1071,7 +1113,7 @@ class _Discovery:
             return self.heldout_rms(cur + groups[lab], ch) < self.heldout_rms(cur, ch)
 
         labels = stepwise(list(groups), test, improves, self.alpha)
-        chosen = self._resolve([groups[lab] for lab in labels])
+        chosen = self._settle_near_confounded(self._resolve([groups[lab] for lab in labels]))
         partial: list[tuple[str, ...]] = []
         negligible: list[tuple[str, ...]] = []
         while chosen:
@@ -1228,7 +1270,12 @@ class _Discovery:
         others = tuple(n for n in full if n not in item)
         ch = tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
         sin = min(
-            (c.sin_angle for c in self.identifiability.confounded if set(c.terms) & set(item)), default=0.0
+            (
+                c.sin_angle
+                for c in self.identifiability.confounded + self.near_confounded
+                if set(c.terms) & set(item)
+            ),
+            default=0.0,
         )
         # each member as if it were the whole explanation (with the other chosen terms): the
         # combined fit's split along the shared direction is arbitrary
