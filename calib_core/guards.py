@@ -96,7 +96,9 @@ def check_fits(fits: dict, sm: StepMeans) -> list[Implausible]:
 # scale or drift that moved) is taken out per repetition by a robust affine fit on the
 # references and the step's time, and what is left is noise, scaled per group of steps of
 # one test and rate (a scale pooled over the group's steps and repetitions).
-CONSISTENCY_Z_LIMIT = 15.0  # robust z beyond which a step is left out: twice the largest of clean units (docs/hardening.md)
+# robust z beyond which a step is left out: 1.5x the largest of any clean unit measured on
+# both simulators (docs/hardening.md)
+CONSISTENCY_Z_LIMIT = 15.0
 CONSISTENCY_MIN_GROUP = 30  # deviations needed for a group's own scale (else its test's, then all)
 CHANNEL_NAMES = ("gx", "gy", "gz", "ax", "ay", "az")
 _MAD_TO_SD = 1.4826
@@ -262,9 +264,11 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
         ref = np.broadcast_to((w_ref if c < 3 else f_ref)[None], (fitted, n_col, 3))
         X[:, c] = np.concatenate([ones, ref, t[..., None], t[..., None] ** 2], axis=2)
     dev = np.full((n_rep, n_col, 6), np.nan)
-    dev[:fitted] = _robust_affine_residuals(d.reshape(-1, n_col), X.reshape(-1, n_col, 6)).reshape(
-        fitted, 6, n_col
-    ).transpose(0, 2, 1)
+    dev[:fitted] = (
+        _robust_affine_residuals(d.reshape(-1, n_col), X.reshape(-1, n_col, 6))
+        .reshape(fitted, 6, n_col)
+        .transpose(0, 2, 1)
+    )
     if n_rep == 2:  # each the other's reference: both deviations are +/- the difference
         dev[1] = -dev[0]
     # the scale leaves out the median repetition of each step (its deviation from itself
@@ -287,7 +291,12 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
         c = int(np.argmax(np.where(beyond[r, col], np.abs(z[r, col]), -1.0)))  # its worst channel
         out.append(
             StepDisagreement(
-                int(r), int(step_id[col]), CHANNEL_NAMES[c], float(z[r, col, c]), float(dev[r, col, c]), n_rep == 2
+                int(r),
+                int(step_id[col]),
+                CHANNEL_NAMES[c],
+                float(z[r, col, c]),
+                float(dev[r, col, c]),
+                n_rep == 2,
             )
         )
     return sorted(out, key=lambda s: (s.index, s.step))

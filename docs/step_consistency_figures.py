@@ -41,8 +41,9 @@ def catch_rate(n_units: int) -> dict[int, tuple[int, float]]:
     """One sample of a random step and channel replaced by a value uniform inside the full
     scale (the step mean moves by (value - mean) / count): how many are caught, and the
     largest step-mean shift (raw unit) of the missed ones."""
-    from calib_core.guards import inconsistent_steps
     from test_hardening_consistency import _project_unit
+
+    from calib_core.guards import inconsistent_steps
 
     out = {}
     for reps in REPS:
@@ -78,7 +79,10 @@ def main(n_project: int = 1000, n_physics: int = 300, n_catch: int = 300) -> Non
         z = largest_z(make, n, seed)
         print(f"clean units, {name}, {n} units: largest robust z " + " / ".join(f"{z[r]:.1f}" for r in REPS))
     for reps, (caught, missed) in catch_rate(n_catch).items():
-        print(f"{reps} reps: one sample damaged inside full scale: caught {caught}/{n_catch}; largest missed shift {missed:.3g}")
+        print(
+            f"{reps} reps: one sample damaged inside full scale: caught {caught}/{n_catch}; "
+            f"largest missed shift {missed:.3g}"
+        )
 
 
 if __name__ == "__main__":

@@ -623,7 +623,10 @@ def leave_out_inconsistent_steps(
                 )
             warns.append(
                 SessionWarning(
-                    W_INCONSISTENT_STEP, f"{sm.key}: {what}: {d.channel} differs from {whom}", d.step, d.channel
+                    W_INCONSISTENT_STEP,
+                    f"{sm.key}: {what}: {d.channel} differs from {whom}",
+                    d.step,
+                    d.channel,
                 )
             )
         n_lost_before = sum(w.step is not None for w in sessions[r][1])

@@ -178,7 +178,9 @@ def test_calibrate_unit_names_a_bad_session_and_leaves_out_a_contradicting_step(
     table = pq.read_table(reps[1] / "samples.parquet")
     ax = table.column("ax").to_numpy().astype(np.float64)
     ax[np.flatnonzero(table.column("step").to_numpy() == 80)[-5:]] += 0.5  # 5 samples, in range
-    pq.write_table(table.set_column(table.schema.get_field_index("ax"), "ax", pa.array(ax)), reps[1] / "samples.parquet")
+    pq.write_table(
+        table.set_column(table.schema.get_field_index("ax"), "ax", pa.array(ax)), reps[1] / "samples.parquet"
+    )
     res = api.calibrate_unit(data, "U0003", discover=False)
     assert [(f["rep"], f["code"]) for f in res.failed] == [(4, "E_UNREADABLE_FILE")]
     status = {s["rep"]: (s["status"], s["warnings"]) for s in res.sessions}

@@ -41,7 +41,8 @@ def _physics_unit(seed: int, reps: int):
     unit = replace(
         unit,
         accels=tuple(
-            replace(a, position_mm=tuple(rng.uniform(-12, 12, 3)), k2=rng.normal(0, 1e-4)) for a in unit.accels
+            replace(a, position_mm=tuple(rng.uniform(-12, 12, 3)), k2=rng.normal(0, 1e-4))
+            for a in unit.accels
         ),
         gyros=tuple(
             replace(g, k3=rng.normal(0, 1e-10), g_sens=tuple(rng.normal(0, 0.01, 3)), random_walk=0.002)
@@ -138,8 +139,11 @@ def test_inconsistent_steps_count_toward_too_many_steps_lost():
 def _chunks(path: Path) -> list[tuple[str, int, int]]:
     md = pq.ParquetFile(path).metadata
     return [
-        (md.row_group(g).column(c).path_in_schema, md.row_group(g).column(c).data_page_offset,
-         md.row_group(g).column(c).total_compressed_size)
+        (
+            md.row_group(g).column(c).path_in_schema,
+            md.row_group(g).column(c).data_page_offset,
+            md.row_group(g).column(c).total_compressed_size,
+        )
         for g in range(md.num_row_groups)
         for c in range(md.num_columns)
     ]
@@ -180,7 +184,9 @@ def test_damaged_sensor_bytes_without_checksums_never_enter_the_unit_unflagged(t
                 out = unit_pipeline.calibrate_sessions(refs)
                 assert [o.status for o in out[1:]] == ["ok", "ok"]
                 o = out[0]
-                outcomes[(name, how, where)] = o.code or "+".join(sorted({w[1:].split("]")[0] for w in o.warnings}))
+                outcomes[(name, how, where)] = o.code or "+".join(
+                    sorted({w[1:].split("]")[0] for w in o.warnings})
+                )
                 if o.status == "failed":
                     continue
                 assert o.status == "warned" and o.warnings, (name, how, where)

@@ -663,7 +663,9 @@ def test_numpy_runtime_warnings_never_reach_the_terminal_and_become_named_warnin
     table = pq.read_table(rep1.samples_path)
     gx = table.column("gx").to_numpy().astype(np.float64)
     gx[np.flatnonzero(table.column("step").to_numpy() == 20)[-3]] = 1e160
-    pq.write_table(table.set_column(table.schema.get_field_index("gx"), "gx", pa.array(gx)), rep1.samples_path)
+    pq.write_table(
+        table.set_column(table.schema.get_field_index("gx"), "gx", pa.array(gx)), rep1.samples_path
+    )
 
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     env.pop("PYTHONWARNINGS", None)
