@@ -96,7 +96,7 @@ def check_fits(fits: dict, sm: StepMeans) -> list[Implausible]:
 # scale or drift that moved) is taken out per repetition by a robust affine fit on the
 # references and the step's time, and what is left is noise, scaled per group of steps of
 # one test and rate (a scale pooled over the group's steps and repetitions).
-# robust z beyond which a step is left out: 1.5x the largest of any clean unit measured on
+# robust z beyond which a step is left out: 1.4x the largest of any clean unit measured on
 # both simulators (docs/hardening.md)
 CONSISTENCY_Z_LIMIT = 15.0
 CONSISTENCY_MIN_GROUP = 30  # deviations needed for a group's own scale (else its test's, then all)

@@ -56,8 +56,8 @@ def _physics_unit(seed: int, reps: int):
 @pytest.mark.parametrize("reps", [2, 3, 5])
 def test_clean_units_lose_no_step(reps):
     """No clean unit of either simulator loses a step (measured on 1,000 project-simulator
-    and 300 physics-simulator units per repetition count: largest robust z 7.5, limit 15;
-    here a sample of them)."""
+    and 300 physics-simulator units per repetition count: largest robust z 10.8, limit 15,
+    docs/step_consistency_figures.py; here a sample of them)."""
     for seed in range(12):
         assert inconsistent_steps(_project_unit(seed, reps)) == []
     for seed in range(2):
