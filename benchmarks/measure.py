@@ -185,7 +185,7 @@ def _sample_files(dataset: str) -> list[str]:
 
 # --- kinds ------------------------------------------------------------------------------------
 def do_simulate(a) -> dict:
-    from calib_core import protocols
+    from calib_core.sim import protocols
     from flows.fleet_sim import simulate_fleet
 
     lots = max(1, -(-a.units // a.units_per_lot))
@@ -375,7 +375,7 @@ def do_fit(a) -> dict:
 
 
 def do_stages(a) -> dict:
-    from calib_core.pipeline import calibrate_repetitions
+    from calib_core.models.pipeline import calibrate_repetitions
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     from schemas.averaging import average_session
     from schemas.reader import read_session

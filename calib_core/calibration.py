@@ -115,6 +115,22 @@ class Calibration:
                 )
         return G, A
 
+    def apply_recording(
+        self,
+        G: np.ndarray,
+        A: np.ndarray,
+        t: np.ndarray | None = None,
+        temp_c: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`apply` to the samples of a recording (raw units already the calibration's):
+        the angular acceleration that terms of it need is the time derivative of the affine
+        rates (``t`` [s], at least 3 samples; without them the terms see none)."""
+        dwdt = None
+        if self.terms and t is not None and len(t) > 2:
+            w_affine, _ = self.apply_affine(G, A)
+            dwdt = np.gradient(w_affine, t, axis=0)
+        return self.apply(G, A, dwdt=dwdt, temp_c=temp_c, t=t)
+
     def apply(
         self,
         G: np.ndarray,

@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -54,6 +53,13 @@ import pandas as pd
 MAD_TO_SIGMA = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian -> its sigma
 MEANAD_TO_SIGMA = 1.2533  # sqrt(pi/2): mean absolute deviation of a Gaussian -> sigma
 MIN_REPS_FOR_SPREAD = 4
+MIN_UNITS_FOR_SCATTER = 3  # a lot's scatter (robust_scale of its units' means) from 3 units
+# The numbers a lot's re-flag writes on each summary row of the lot, besides the flags: the
+# row's robust z (``score``) and the lot's statistics of the parameter over its units (every
+# unit, flagged or not): the median of the means, their robust scale, and the median of the
+# units' repetition std (units with MIN_REPS_FOR_SPREAD repetitions: the spread rule's
+# reference)
+LOT_COLUMNS = ("score", "lot_median", "lot_scatter", "lot_median_std")
 # a history reference needs at least this many good units (or history_units, if fewer)
 HISTORY_MIN_UNITS = 15
 # a unit of an earlier lot is "good" for the history when no robust-model parameter is further
@@ -150,7 +156,7 @@ class LotFlags:
     z_threshold_used: float
     note: str
     flags: list[Flag] = field(default_factory=list)
-    scores: pd.DataFrame | None = None  # lot, unit, model, parameter, score, lot_median
+    scores: pd.DataFrame | None = None  # lot, unit, model, parameter, *LOT_COLUMNS
     # what the robust z was computed against: "lot" (its own median, the pooled or lot
     # scale), "fleet history" (median and scale of the last good units of earlier lots) or
     # "none" (too few units and no history)
@@ -188,6 +194,23 @@ def robust_scale(x: np.ndarray) -> float:
     return float(MEANAD_TO_SIGMA * meanad)
 
 
+def lot_statistics(means: np.ndarray, stds: np.ndarray, n_reps: np.ndarray) -> tuple[float, float, float]:
+    """A parameter's statistics over a lot's units (every unit, flagged or not), from their
+    summary rows: the median of the finite means (``lot_median``), their robust scale from
+    MIN_UNITS_FOR_SCATTER units (``lot_scatter``) and the median repetition std of the units
+    with MIN_REPS_FOR_SPREAD repetitions (``lot_median_std``: the spread rule's reference);
+    NaN where there are too few."""
+    x = np.asarray(means, float)
+    x = x[np.isfinite(x)]
+    s, n = np.asarray(stds, float), np.asarray(n_reps, float)
+    spread = np.isfinite(s) & (n >= MIN_REPS_FOR_SPREAD)
+    return (
+        float(np.median(x)) if len(x) else float("nan"),
+        robust_scale(x) if len(x) >= MIN_UNITS_FOR_SCATTER else float("nan"),
+        float(np.median(s[spread])) if spread.any() else float("nan"),
+    )
+
+
 def robust_z(x: np.ndarray) -> np.ndarray:
     """Modified z-scores of ``x`` (zeros when all values are equal)."""
     x = np.asarray(x, float)
@@ -197,13 +220,9 @@ def robust_z(x: np.ndarray) -> np.ndarray:
     return (x - np.median(x)) / s
 
 
-# Thresholds already simulated, by (sorted group sizes, n_parameters, z_threshold,
-# family_alpha). The simulation is deterministic (seeded) but costs 1-2 s of CPU per layout,
-# which every fresh process (a rerun, the lot-report command) would pay again: the flows keep
-# these values in the results store and hand them back with remember_thresholds. Bump
-# THRESHOLD_SIMULATION_VERSION when the simulation changes, so that old values are not reused.
+# Bump THRESHOLD_SIMULATION_VERSION when the simulation of a threshold changes, so that the
+# values a results store kept from earlier runs are not reused.
 THRESHOLD_SIMULATION_VERSION = 1
-_KNOWN_THRESHOLDS: dict[tuple, float] = {}
 
 
 def _threshold_key(
@@ -212,73 +231,149 @@ def _threshold_key(
     return (tuple(sizes), int(n_parameters), float(z_threshold), float(family_alpha))
 
 
-def known_thresholds() -> dict:
-    """The simulated thresholds of this process, as a JSON-ready document."""
-    return {
-        "version": THRESHOLD_SIMULATION_VERSION,
-        "thresholds": [
-            {
-                "group_sizes": list(k[0]),
-                "n_parameters": k[1],
-                "z_threshold": k[2],
-                "family_alpha": k[3],
-                "q": v,
-            }
-            for k, v in sorted(_KNOWN_THRESHOLDS.items())
-        ],
-    }
+class ThresholdTable:
+    """The robust-z thresholds of one run, each simulated once per lot layout.
+
+    The simulation is deterministic (seeded) but costs 1-2 s of CPU per layout, and a fleet
+    has few layouts. The caller owns the table: it makes one per run (from the document an
+    earlier run kept, :meth:`document`), passes it to every :func:`flag_lots` of that run and
+    keeps the document again. Nothing in calib_core outlives the call that was given the table.
+    """
+
+    def __init__(self, document: dict | None = None) -> None:
+        self._q: dict[tuple, float] = {}
+        self.take(document)
+
+    def __len__(self) -> int:
+        return len(self._q)
+
+    def take(self, document: dict | None) -> int:
+        """Take the thresholds of an earlier run's :meth:`document`; a document of another
+        simulation version, or malformed entries, are ignored. Returns how many were taken."""
+        if not isinstance(document, dict) or document.get("version") != THRESHOLD_SIMULATION_VERSION:
+            return 0
+        n = 0
+        for e in document.get("thresholds") or []:
+            try:
+                key = _threshold_key(
+                    tuple(int(x) for x in e["group_sizes"]),
+                    e["n_parameters"],
+                    e["z_threshold"],
+                    e["family_alpha"],
+                )
+                q = float(e["q"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            if math.isfinite(q):
+                self._q.setdefault(key, q)
+                n += 1
+        return n
+
+    def document(self) -> dict:
+        """The thresholds known to this table, as a JSON-ready document."""
+        return {
+            "version": THRESHOLD_SIMULATION_VERSION,
+            "thresholds": [
+                {
+                    "group_sizes": list(k[0]),
+                    "n_parameters": k[1],
+                    "z_threshold": k[2],
+                    "family_alpha": k[3],
+                    "q": v,
+                }
+                for k, v in sorted(self._q.items())
+            ],
+        }
+
+    def robust_z(
+        self,
+        group_sizes: int | tuple[int, ...],
+        n_parameters: int,
+        z_threshold: float = 3.5,
+        family_alpha: float = 0.01,
+    ) -> float:
+        """Threshold on |robust z| for one parameter: ``max(z_threshold, q)`` where ``q`` is
+        exceeded by the largest |z| over all units with probability ``family_alpha /
+        n_parameters`` when every unit is clean and Gaussian.
+
+        ``group_sizes``: units per lot whose lot-centred values share one MAD (a single int: one
+        lot with its own MAD). ``q`` comes from a seeded simulation of exactly that statistic:
+        centring on each lot's own median shrinks the deviations and the MAD, which raises the
+        tail (3 lots of 20 need 5.99 where one group of 60 needs 5.72, at 0.01/24)."""
+        sizes = (
+            (int(group_sizes),)
+            if isinstance(group_sizes, (int, np.integer))
+            else tuple(sorted(int(n) for n in group_sizes))
+        )
+        if family_alpha <= 0 or sum(sizes) < 3:
+            return float(z_threshold)
+        key = _threshold_key(sizes, n_parameters, z_threshold, family_alpha)
+        if key not in self._q:
+            self._q[key] = _robust_q(sizes, n_parameters, family_alpha)
+        return float(max(z_threshold, self._q[key]))
+
+    def history_z(
+        self,
+        history_groups: tuple[int, ...],
+        n_lot: int,
+        n_parameters: int,
+        z_threshold: float = 3.5,
+        family_alpha: float = 0.01,
+        location: str = "lot",
+    ) -> float:
+        """Threshold on the robust z of the ``n_lot`` units of a small lot judged against a
+        history of earlier units (``history_groups``: how many of them per earlier lot):
+        ``max(z_threshold, q)``, ``q`` exceeded by the largest of the ``n_lot`` |z| with
+        probability ``family_alpha / n_parameters`` when every unit is clean and Gaussian, from
+        a seeded simulation of that very statistic:
+
+        - ``location="lot"``: ``z = (x - lot median) / s``, ``s`` the robust scale of the
+          history's values each centred on its own lot's median (the lot's median from its few
+          units is uncertain, the scale from the history much less);
+        - ``location="history"``: ``z = (x - history median) / s``, ``s`` the history's robust
+          scale (history median and scale both uncertain; lots are assumed to share one mean).
+
+        Kept in a :class:`ThresholdTable` under the group sizes ``(0, n_lot, *history_groups)``
+        ("lot") or ``(0, 0, n_lot, *history_groups)`` ("history"): a real layout never has a
+        lot of 0 units."""
+        groups = tuple(sorted(int(g) for g in history_groups))
+        n_lot = int(n_lot)
+        if family_alpha <= 0 or sum(groups) < 3 or n_lot < 1:
+            return float(z_threshold)
+        tag = (0, n_lot) if location == "lot" else (0, 0, n_lot)
+        key = _threshold_key(tag + groups, n_parameters, z_threshold, family_alpha)
+        if key not in self._q:
+            self._q[key] = _history_q(groups, n_lot, n_parameters, family_alpha, location, tag)
+        return float(max(z_threshold, self._q[key]))
 
 
-def remember_thresholds(doc: dict | None) -> int:
-    """Take thresholds simulated by an earlier process (:func:`known_thresholds`'s document);
-    a document of another simulation version, or malformed entries, are ignored. Returns how
-    many were taken."""
-    if not isinstance(doc, dict) or doc.get("version") != THRESHOLD_SIMULATION_VERSION:
-        return 0
-    n = 0
-    for e in doc.get("thresholds") or []:
-        try:
-            key = _threshold_key(
-                tuple(int(x) for x in e["group_sizes"]),
-                e["n_parameters"],
-                e["z_threshold"],
-                e["family_alpha"],
-            )
-            q = float(e["q"])
-        except (KeyError, TypeError, ValueError):
-            continue
-        if math.isfinite(q):
-            _KNOWN_THRESHOLDS.setdefault(key, q)
-            n += 1
-    return n
-
-
-@lru_cache(maxsize=256)
 def robust_z_threshold(
     group_sizes: int | tuple[int, ...],
     n_parameters: int,
     z_threshold: float = 3.5,
     family_alpha: float = 0.01,
 ) -> float:
-    """Threshold on |robust z| for one parameter: ``max(z_threshold, q)`` where ``q`` is
-    exceeded by the largest |z| over all units with probability ``family_alpha /
-    n_parameters`` when every unit is clean and Gaussian.
+    """:meth:`ThresholdTable.robust_z` simulated afresh (nothing kept)."""
+    return ThresholdTable().robust_z(group_sizes, n_parameters, z_threshold, family_alpha)
 
-    ``group_sizes``: units per lot whose lot-centred values share one MAD (a single int: one
-    lot with its own MAD). ``q`` comes from a seeded simulation of exactly that statistic:
-    centring on each lot's own median shrinks the deviations and the MAD, which raises the
-    tail (3 lots of 20 need 5.99 where one group of 60 needs 5.72, at 0.01/24)."""
-    sizes = (
-        (int(group_sizes),)
-        if isinstance(group_sizes, (int, np.integer))
-        else tuple(sorted(int(n) for n in group_sizes))
+
+def history_z_threshold(
+    history_groups: tuple[int, ...],
+    n_lot: int,
+    n_parameters: int,
+    z_threshold: float = 3.5,
+    family_alpha: float = 0.01,
+    location: str = "lot",
+) -> float:
+    """:meth:`ThresholdTable.history_z` simulated afresh (nothing kept)."""
+    return ThresholdTable().history_z(
+        history_groups, n_lot, n_parameters, z_threshold, family_alpha, location
     )
+
+
+def _robust_q(sizes: tuple[int, ...], n_parameters: int, family_alpha: float) -> float:
+    """The simulated ``q`` of :meth:`ThresholdTable.robust_z` (sizes sorted)."""
     total = sum(sizes)
-    if family_alpha <= 0 or total < 3:
-        return float(z_threshold)
-    key = _threshold_key(sizes, n_parameters, z_threshold, family_alpha)
-    if key in _KNOWN_THRESHOLDS:
-        return float(max(z_threshold, _KNOWN_THRESHOLDS[key]))
     p = family_alpha / max(n_parameters, 1)
     # ~2e7 normal draws at most, in chunks of ~2e6 (memory stays ~50 MB)
     rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
@@ -293,43 +388,14 @@ def robust_z_threshold(
         q1 = float(np.quantile(zmax, 1.0 - p_hi))
         q2 = float(np.quantile(zmax, 1.0 - p_hi / 10.0))
         q = q2 + (q2 - q1) * math.log10(p_hi / 10.0 / p)
-    _KNOWN_THRESHOLDS[key] = float(q)
-    return float(max(z_threshold, q))
+    return float(q)
 
 
-@lru_cache(maxsize=256)
-def history_z_threshold(
-    history_groups: tuple[int, ...],
-    n_lot: int,
-    n_parameters: int,
-    z_threshold: float = 3.5,
-    family_alpha: float = 0.01,
-    location: str = "lot",
+def _history_q(
+    groups: tuple[int, ...], n_lot: int, n_parameters: int, family_alpha: float, location: str, tag: tuple
 ) -> float:
-    """Threshold on the robust z of the ``n_lot`` units of a small lot judged against a
-    history of earlier units (``history_groups``: how many of them per earlier lot):
-    ``max(z_threshold, q)``, ``q`` exceeded by the largest of the ``n_lot`` |z| with
-    probability ``family_alpha / n_parameters`` when every unit is clean and Gaussian, from
-    a seeded simulation of that very statistic:
-
-    - ``location="lot"``: ``z = (x - lot median) / s``, ``s`` the robust scale of the
-      history's values each centred on its own lot's median (the lot's median from its few
-      units is uncertain, the scale from the history much less);
-    - ``location="history"``: ``z = (x - history median) / s``, ``s`` the history's robust
-      scale (history median and scale both uncertain; lots are assumed to share one mean).
-
-    Cached with the other thresholds under the group sizes ``(0, n_lot, *history_groups)``
-    ("lot") or ``(0, 0, n_lot, *history_groups)`` ("history"): a real layout never has a
-    lot of 0 units."""
-    groups = tuple(sorted(int(g) for g in history_groups))
-    n_lot = int(n_lot)
+    """The simulated ``q`` of :meth:`ThresholdTable.history_z` (groups sorted)."""
     n_history = sum(groups)
-    if family_alpha <= 0 or n_history < 3 or n_lot < 1:
-        return float(z_threshold)
-    tag = (0, n_lot) if location == "lot" else (0, 0, n_lot)
-    key = _threshold_key(tag + groups, n_parameters, z_threshold, family_alpha)
-    if key in _KNOWN_THRESHOLDS:
-        return float(max(z_threshold, _KNOWN_THRESHOLDS[key]))
     p = family_alpha / max(n_parameters, 1)
     total = n_history + n_lot
     rows = int(min(200.0 / p, max(2_000, 20_000_000 // total)))
@@ -365,8 +431,7 @@ def history_z_threshold(
         q1 = float(np.quantile(zmax, 1.0 - p_hi))
         q2 = float(np.quantile(zmax, 1.0 - p_hi / 10.0))
         q = q2 + (q2 - q1) * math.log10(p_hi / 10.0 / p)
-    _KNOWN_THRESHOLDS[key] = float(q)
-    return float(max(z_threshold, q))
+    return float(q)
 
 
 def _simulated_zmax(rng: np.random.Generator, m: int, sizes: tuple[int, ...]) -> np.ndarray:
@@ -597,6 +662,7 @@ def flag_lots(
     config: OutlierConfig | None = None,
     lots: list[str] | None = None,
     unit_times: dict[tuple[str, str], float] | None = None,
+    thresholds: ThresholdTable | None = None,
 ) -> list[LotFlags]:
     """Flags of each lot (all lots in ``summary`` unless ``lots`` is given). ``summary`` has
     one row per lot, unit, model and parameter with columns lot, unit, model, parameter,
@@ -609,8 +675,11 @@ def flag_lots(
 
     ``unit_times`` ((lot, unit) -> acquisition time, s): lots with fewer than
     ``history_below`` units are judged against the fleet's history instead
-    (:func:`history_references`) when they have one; without it, as above."""
+    (:func:`history_references`) when they have one; without it, as above.
+
+    ``thresholds``: the run's :class:`ThresholdTable` (None: one for this call only)."""
     cfg = config or OutlierConfig()
+    thresholds = ThresholdTable() if thresholds is None else thresholds
     need = {"lot", "unit", "model", "parameter", "mean", "std", "n_reps"}
     missing = need - set(summary.columns)
     if missing:
@@ -638,12 +707,25 @@ def flag_lots(
         )
         rows = np.flatnonzero(in_lot)
         out.append(
-            _flag_one_lot({c: v[rows] for c, v in cols.items()}, n_params, lot, cfg, pooled, history.get(lot))
+            _flag_one_lot(
+                {c: v[rows] for c, v in cols.items()},
+                n_params,
+                lot,
+                cfg,
+                pooled,
+                thresholds,
+                history.get(lot),
+            )
         )
     return out
 
 
-def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None, lot: str | None = None) -> LotFlags:
+def flag_lot(
+    summary: pd.DataFrame,
+    config: OutlierConfig | None = None,
+    lot: str | None = None,
+    thresholds: ThresholdTable | None = None,
+) -> LotFlags:
     """Flags of one lot using that lot's rows only (its own scale)."""
     cfg = config or OutlierConfig()
     if lot is None:
@@ -653,7 +735,7 @@ def flag_lot(summary: pd.DataFrame, config: OutlierConfig | None = None, lot: st
         lot = str(lots[0])
     rows = summary[summary["lot"].astype(str) == str(lot)]
     local = OutlierConfig(**{**cfg.__dict__, "scale_pool": "lot"})
-    return flag_lots(rows, local, [str(lot)])[0]
+    return flag_lots(rows, local, [str(lot)], thresholds=thresholds)[0]
 
 
 def _same_unit(stored: Any, limit_unit: str) -> bool:
@@ -673,6 +755,7 @@ def _flag_one_lot(
     lot: str,
     cfg: OutlierConfig,
     pooled: dict[tuple[str, str], tuple[float, tuple[int, ...]]],
+    table: ThresholdTable,
     history: HistoryReference | None = None,
 ) -> LotFlags:
     """Flags of one lot: ``cols`` its rows' columns (unit, model, parameter, mean, std,
@@ -686,6 +769,8 @@ def _flag_one_lot(
     n_rows = len(unit_col)
     score = np.full(n_rows, np.nan)
     median = np.full(n_rows, np.nan)
+    scatter = np.full(n_rows, np.nan)
+    median_std = np.full(n_rows, np.nan)
     thresholds: list[float] = []
     limit_notes: list[str] = []
     mean_col, std_col, nreps_col = cols["mean"], cols["std"], cols["n_reps"]
@@ -696,8 +781,10 @@ def _flag_one_lot(
         ok = np.isfinite(x)
         if not ok.any():
             continue
-        med = float(np.median(x[ok]))
+        med, scatter[idx], median_std[idx] = lot_statistics(x, std_col[idx], nreps_col[idx])
         median[idx] = med
+        s_all = std_col[idx]
+        rep_spread = np.isfinite(s_all) & (nreps_col[idx] >= MIN_REPS_FOR_SPREAD)
         in_robust = (not cfg.robust_models) or model in cfg.robust_models
         ref = history.stats.get((model, name)) if history is not None else None
         if in_robust and ref is not None:
@@ -709,7 +796,7 @@ def _flag_one_lot(
                 ref_med = med
                 scale, groups = history.centred[(model, name)]
                 where = f"lot median {_fmt(med)}, scale of the fleet history ({sum(groups)} units)"
-            thr = history_z_threshold(
+            thr = table.history_z(
                 groups, int(ok.sum()), n_params, cfg.z_threshold, cfg.family_alpha, cfg.history_location
             )
             thresholds.append(thr)
@@ -735,7 +822,7 @@ def _flag_one_lot(
                 scale, n_pool = pooled[(model, name)]
             else:
                 scale, n_pool = robust_scale(x[ok]), (int(ok.sum()),)
-            thr = robust_z_threshold(n_pool, n_params, cfg.z_threshold, cfg.family_alpha)
+            thr = table.robust_z(n_pool, n_params, cfg.z_threshold, cfg.family_alpha)
             thresholds.append(thr)
             z = np.where(ok, (x - med) / scale, np.nan) if scale > 0 else np.zeros(len(x))
             score[idx] = z
@@ -757,11 +844,9 @@ def _flag_one_lot(
                     )
                 )
         if robust and in_robust and ok.sum() >= cfg.min_units:
-            s = std_col[idx]
-            nr = nreps_col[idx]
-            use = np.isfinite(s) & (nr >= MIN_REPS_FOR_SPREAD)
+            s, use = s_all, rep_spread
             if use.sum() >= cfg.min_units:
-                med_s = float(np.median(s[use]))
+                med_s = float(median_std[idx[0]])
                 if med_s > 0:
                     ratio = np.where(use, s / med_s, np.nan)
                     for i in np.flatnonzero(np.nan_to_num(ratio) > cfg.spread_factor):
@@ -855,6 +940,8 @@ def _flag_one_lot(
             "parameter": cols["parameter"],
             "score": score,
             "lot_median": median,
+            "lot_scatter": scatter,
+            "lot_median_std": median_std,
         }
     )
     return LotFlags(
@@ -863,10 +950,10 @@ def _flag_one_lot(
 
 
 def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFrame:
-    """The summary with ``flagged``, ``flag_reason``, ``score`` and ``lot_median`` set from
-    the flags (rows of lots not in ``lot_flags`` keep their values)."""
+    """The summary with ``flagged``, ``flag_reason`` and the columns of :data:`LOT_COLUMNS`
+    set from the flags (rows of lots not in ``lot_flags`` keep their values)."""
     out = summary.copy()
-    for col, default in (("flagged", False), ("flag_reason", ""), ("score", np.nan), ("lot_median", np.nan)):
+    for col, default in (("flagged", False), ("flag_reason", ""), *((c, np.nan) for c in LOT_COLUMNS)):
         if col not in out:
             out[col] = default
     out["flagged"] = out["flagged"].astype(bool)
@@ -878,8 +965,8 @@ def apply_flags(summary: pd.DataFrame, lot_flags: list[LotFlags]) -> pd.DataFram
         out.loc[in_lot, "flag_reason"] = ""
         if lf.scores is not None and len(lf.scores):
             sc = out.loc[in_lot, key].merge(lf.scores, on=key, how="left")
-            out.loc[in_lot, "score"] = sc["score"].to_numpy(float)
-            out.loc[in_lot, "lot_median"] = sc["lot_median"].to_numpy(float)
+            for col in LOT_COLUMNS:
+                out.loc[in_lot, col] = sc[col].to_numpy(float)
         reasons: dict[tuple, list[str]] = {}
         for f in lf.flags:
             reasons.setdefault((f.lot, f.unit, f.model, f.parameter), []).append(f"[{f.kind}] {f.reason}")

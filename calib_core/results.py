@@ -165,13 +165,30 @@ class ParamSummary:
     max: float
     n_reps: int
     values: tuple[float, ...]  # per repetition, in rep order (the 'Number 1..5' columns)
-    mean_stderr: float  # mean of the per-repetition standard errors
+    mean_stderr: float  # mean of the per-repetition standard errors (one repetition's typical)
+    # standard error of ``mean`` from the repetitions' own standard errors, the repetitions
+    # independent: sqrt(sum se_i^2) / n over those with a finite one
+    stderr_of_mean: float = float("nan")
+
+
+def stderr_of_mean(stderrs: np.ndarray) -> np.ndarray:
+    """The standard error of the mean over independent repetitions, per column of
+    ``stderrs`` (repetitions x parameters): sqrt(sum se_i^2) / n over the repetitions with a
+    finite standard error; NaN where none has one. The summary's ``stderr_of_mean``."""
+    s = np.atleast_2d(np.asarray(stderrs, float))
+    finite = np.isfinite(s)
+    n = finite.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.sqrt(np.where(finite, s * s, 0.0).sum(axis=0)) / n
+    out[n == 0] = np.nan
+    return out
 
 
 def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     """Every parameter over the repetitions (xu2016 Tables 1-2): mean, sample std (ddof=1),
-    min, max, the values in rep order and the mean of the standard errors (NaN when no
-    repetition has a finite one), in the order the parameters first appear.
+    min, max, the values in rep order, the mean of the standard errors and the standard
+    error of the mean (both NaN when no repetition has a finite one), in the order the
+    parameters first appear.
 
     A parameter some repetitions lack (a model they could not fit) is summarised over those
     that have it; each repetition lists a parameter at most once."""
@@ -204,6 +221,7 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
         se_known = has & ~np.isnan(s)
         mean_se = np.where(se_known, s, 0.0).sum(axis=0) / se_known.sum(axis=0)
     mean_se[~(has & np.isfinite(s)).any(axis=0)] = np.nan
+    se_of_mean = stderr_of_mean(np.where(has, s, np.nan))
     vmin = np.where(has, v, np.inf).min(axis=0)
     vmax = np.where(has, v, -np.inf).max(axis=0)
     values = [
@@ -222,8 +240,9 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
             n_reps=k,
             values=vals,
             mean_stderr=se,
+            stderr_of_mean=se_m,
         )
-        for (model, name), unit, m, sd, lo, hi, k, vals, se in zip(
+        for (model, name), unit, m, sd, lo, hi, k, vals, se, se_m in zip(
             column,
             units,
             mean.tolist(),
@@ -233,6 +252,7 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
             n.tolist(),
             values,
             mean_se.tolist(),
+            se_of_mean.tolist(),
         )
     ]
 

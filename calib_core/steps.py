@@ -1,7 +1,7 @@
 """Per-step averages of one session: the boundary between reading data and fitting models.
 
 Everything in ``calib_core`` consumes :class:`StepMeans`; ``schemas.averaging`` produces it
-from raw Parquet, and ``calib_core.simulator.simulate_step_means`` produces it directly (fast
+from raw Parquet, and ``calib_core.sim.simulator.simulate_step_means`` produces it directly (fast
 path for Monte Carlo tests). Only *usable* steps are in it: saturated or too-short steps were
 already removed and named as warnings by the producer.
 

@@ -17,12 +17,12 @@ def main(n_units: int = 40, sections: str = "") -> None:
     """``sections``: "earth" for the Earth-rate rows only, or comma-separated effect names
     for those thermal rows only (with "pairs": the nonlinearity + thermal pair rows);
     empty: everything."""
-    from calib_core import protocols
     from calib_core.discovery.evaluation_ident import (
         earth_rate_scenario,
         pair_scenario,
         sensor_effect_scenario,
     )
+    from calib_core.sim import protocols
     from calib_core.sim.physics import Turntable, WarmUp
     from schemas.physics_sessions import physics_unit_step_means
 

@@ -1,9 +1,10 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS]]]
+    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
         # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS (5th
-        # argument): comma-separated catalogue effects, the rows of the effects table
+        # argument): comma-separated catalogue effects, the rows of the effects table ("all":
+        # every one); SCALES (6th): comma-separated sizes of its columns, e.g. 0.25,1
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -25,9 +26,9 @@ def physics(
 ) -> None:
     """The Done-when figures of the discovery on the independent physics simulator
     (``effects``: the rows of those catalogue effects only; empty: every one)."""
-    from calib_core import protocols
     from calib_core.discovery.evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
     from calib_core.effects import catalogue
+    from calib_core.sim import protocols
     from schemas.physics_sessions import physics_unit_step_means
 
     steps = protocols.default_session()
@@ -101,7 +102,7 @@ def physics(
 
 
 def xu2016() -> None:
-    from calib_core.discovery_xu2016 import gap_analysis
+    from calib_core.paper.xu2016_gap import gap_analysis
 
     r = gap_analysis()
     print("per-axis hypotheses (gyro_scale_nonlinearity fitted to the compensated range):")
@@ -138,7 +139,8 @@ if __name__ == "__main__":
             n_units=int(args[0]) if args else 40,
             n_clean=int(args[1]) if len(args) > 1 else 200,
             sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc",
-            effects=tuple(args[3].split(",")) if len(args) > 3 else (),
+            effects=tuple(args[3].split(",")) if len(args) > 3 and args[3] != "all" else (),
+            scales=tuple(float(x) for x in args[4].split(",")) if len(args) > 4 else (0.25, 0.5, 1.0),
         )
     else:
         {"xu2016": xu2016}[what]()

@@ -4,7 +4,7 @@ with a manifest (``fleet.json``) of the truth, the injected outliers and the ses
 Population model (deterministic for a seed; every unit has its own child seed, so a unit's
 data do not depend on how many units were simulated before it):
 
-- each lot has a lot-mean unit drawn by :func:`calib_core.simulator.typical_truth` (K near
+- each lot has a lot-mean unit drawn by :func:`calib_core.sim.simulator.typical_truth` (K near
   identity, 1 % scale and cross-axis terms, 0.5 deg/s and 5 mg biases);
 - each unit scatters around its lot mean: K_g and K_a diagonal sd ``UNIT_SPREAD['k_diag']``
   (0.003), off-diagonal sd 0.002, w0 sd 0.05 deg/s, f0 sd 1 mg;
@@ -34,8 +34,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from calib_core import protocols
-from calib_core.simulator import (
+from calib_core.sim import protocols
+from calib_core.sim.simulator import (
     MimuTruth,
     draw_repetition_truth,
     session_metadata,
@@ -183,7 +183,7 @@ def simulate_fleet(
     """Write ``lots`` lots x ``units`` units per lot x ``reps`` repetitions under ``out`` and
     the manifest ``out/fleet.json``; return the manifest.
 
-    ``protocol``: a step table (default :func:`calib_core.protocols.default_session`, with the
+    ``protocol``: a step table (default :func:`calib_core.sim.protocols.default_session`, with the
     verification sweep when ``verification``). ``truth_factory(rng, lot, unit)`` replaces the
     population model (outliers are still injected on top). Unit ids ``U0001..`` are numbered
     across the fleet (a unit belongs to one lot), lots ``L01..``.

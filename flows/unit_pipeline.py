@@ -15,8 +15,8 @@ import pandas as pd
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import NumericEvents
-from calib_core.pipeline import calibrate_repetition, calibrate_repetitions, calibration_from_unit
-from calib_core.results import Param, RepetitionCalibration, UnitCalibration
+from calib_core.models.pipeline import calibrate_repetition, calibrate_repetitions, calibration_from_unit
+from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
 from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, read_step_means
@@ -169,13 +169,9 @@ class UnitOutcome:
     diagnosis: object | None = None  # calib_core.discovery.Diagnosis when discovery ran
     notes: list[str] = field(default_factory=list)
 
-    @property
-    def parameter_rows(self) -> list[Param]:
-        return [p for s in self.sessions if s.calibration for p in s.calibration.parameters()]
-
     def residuals_frame(self) -> pd.DataFrame | None:
         """The per-step residual rows of every successful session, one frame for the unit
-        (columns ``calib_core.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
+        (columns ``calib_core.models.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
         return self._table("residual_table")
 
     def compensation_frame(self) -> pd.DataFrame | None:
@@ -276,59 +272,6 @@ class UnitResult:
         return sum(1 for s in self.outcome.sessions if s.status == "failed")
 
 
-def calibration_file_extra(ur: UnitResult, context: dict[str, Any]) -> dict[str, Any]:
-    """The sections a unit's calibration file holds beside the applied calibration (the same
-    for the results store and ``mimucal calibrate --json``): ``provenance`` (``context``:
-    run id, code version, time..., then the sessions used and failed, the extension terms,
-    model discovery's verdict), ``averaged`` (mean, std and units over the repetitions) and
-    ``repetitions`` (each repetition's fits with standard errors)."""
-    from schemas.unit_document import calibration_file_sections
-
-    out = ur.outcome
-    failed = [
-        {"rep": s.key.rep, "code": s.code, "message": s.message} for s in out.sessions if not s.succeeded
-    ]
-    used = [
-        {
-            "rep": s.key.rep,
-            "path": str(s.path),
-            "fingerprint": s.fingerprint,
-            "status": s.status,
-            "session_start": (s.calibration.provenance or {}).get("session_start") if s.calibration else None,
-        }
-        for s in out.sessions
-        if s.succeeded
-    ]
-    # when the unit was measured (its sessions' last session_start; None when no session
-    # says it: then the time of the calibration is when it was produced)
-    context = {**context, "acquired_at": acquisition_time(u["session_start"] for u in used)}
-    return calibration_file_sections(
-        ur.lot,
-        ur.unit,
-        out.calibration.reps,
-        failed,
-        used,
-        [t.name for t in out.applied.terms],
-        ur.diagnosis,
-        context,
-    )
-
-
-def acquisition_time(session_starts) -> str | None:
-    """The last of the sessions' ``session_start`` values (ISO 8601, UTC), None when none is
-    readable: a calibration describes the unit as measured once its sessions are done."""
-    from schemas.results_store import iso, parse_when
-
-    times = []
-    for v in session_starts:
-        if isinstance(v, str) and v.strip():
-            try:
-                times.append(parse_when(v))
-            except ValueError:
-                continue
-    return iso(max(times)) if times else None
-
-
 def _discovery_available() -> bool:
     try:
         import calib_core.discovery  # noqa: F401
@@ -341,7 +284,7 @@ def _discovery_available() -> bool:
 def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
-    from calib_core.pipeline import residual_table
+    from calib_core.models.pipeline import residual_table
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
 
     t0 = time.perf_counter()
@@ -394,6 +337,10 @@ def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
     """:func:`calibrate_unit_job`, with any exception it lets through (a bug) turned into
     the unit's failure: the rest of the batch and of the fleet goes on."""
     try:
+        from flows.field_units import FieldUnitJob, calibrate_field_unit_job
+
+        if isinstance(job, FieldUnitJob):  # a unit of field recordings
+            return calibrate_field_unit_job(job, run_discovery)
         return calibrate_unit_job(job, run_discovery)
     except Exception as exc:  # noqa: BLE001 - one unit never fails the flow
         return failed_unit_result(job.lot, job.unit, "calibrating", exc)

@@ -15,14 +15,16 @@ import numpy as np
 import pandas as pd
 
 from reports.store import StoreView, provenance
+from schemas.display import value_unit
 from schemas.results_store import TIMESTAMP_FORMAT
 
+_F0 = value_unit("g")  # accelerometer biases, stored in g, shown in mg (schemas.display)
 # (group, element name, how to read it from the file, display scale, unit label)
 KEY_ELEMENTS: list[tuple[str, str, str, int, int | None, float, str]] = (
     [("K_g", f"k_g{i + 1}{j + 1}", "K_g", i, j, 1.0, "") for i in range(3) for j in range(3)]
     + [("w0", f"w0_{a}", "w0", i, None, 1.0, "deg/s") for i, a in enumerate("xyz")]
     + [("K_a", f"k_a{i + 1}{j + 1}", "K_a", i, j, 1.0, "") for i in range(3) for j in range(3)]
-    + [("f0", f"f0_{a}", "f0", i, None, 1e3, "mg") for i, a in enumerate("xyz")]
+    + [("f0", f"f0_{a}", "f0", i, None, _F0.factor, _F0.label) for i, a in enumerate("xyz")]
 )
 GROUP_TITLES = {
     "K_g": "Gyroscope K<sub>g</sub>",

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from calib_core.figure_statistics import lot_trends
 from reports.history import GROUP_TITLES, KEY_ELEMENTS, history_frame
 from reports.html import DASH, Page, arr, esc, fmt_time, grid, kpi, missing, table, write_atomic
 from reports.lot import lot_report_path
@@ -29,36 +30,6 @@ LOT_COLOURS = [
     "#ff9da6",
     "#bab0ac",
 ]
-
-
-def lot_trends(h: pd.DataFrame) -> pd.DataFrame:
-    """Per lot: median over all its units of each key element and its spread (1.4826 MAD, a
-    robust standard deviation), from each unit's current calibration (its last produced
-    file), placed at the lot's acquisition time (the median of its units' times: when they
-    were measured, ``session_start``; processing time for files without it). A rerun of one
-    unit replaces that unit's value in its lot's median; it never makes a point of its own."""
-    if not len(h):
-        return pd.DataFrame()
-    cur = h.sort_values("produced", kind="stable").groupby(["lot", "unit"], sort=False, dropna=False).tail(1)
-    names = [e[1] for e in KEY_ELEMENTS]
-    rows = []
-    for lot, g in cur.groupby("lot", sort=False, dropna=False):
-        t = g["time"].sort_values()
-        row = {
-            "lot": lot,
-            "time": t.iloc[(len(t) - 1) // 2],
-            "n_units": g["unit"].nunique(),
-            "time_source": ", ".join(sorted(set(g["time_source"].astype(str)))),
-        }
-        values = g[names].to_numpy(float)  # one block per group, not a column at a time
-        for k, n in enumerate(names):
-            v = values[:, k]
-            v = v[np.isfinite(v)]
-            med = float(np.median(v)) if len(v) else np.nan
-            row[n] = med
-            row[n + "_spread"] = float(1.4826 * np.median(np.abs(v - med))) if len(v) > 1 else np.nan
-        rows.append(row)
-    return pd.DataFrame(rows).sort_values("time", kind="stable").reset_index(drop=True)
 
 
 def trend_figure(tr: pd.DataFrame, group: str) -> dict:
@@ -279,7 +250,7 @@ def render_fleet_index(results_root: str | Path, view: StoreView | None = None) 
 
     # trends
     h = history_frame(view)
-    tr = lot_trends(h)
+    tr = lot_trends(h, [e[1] for e in KEY_ELEMENTS])
     if len(tr):
         figs = "".join(
             f"<h3>{GROUP_TITLES[g]}</h3>"
@@ -292,7 +263,8 @@ def render_fleet_index(results_root: str | Path, view: StoreView | None = None) 
         trend_html = (
             '<p class="note">Per lot: median over all the lot\'s units of each key parameter '
             "(points; each unit's current calibration) and its spread (error bars: "
-            "1.4826 × MAD across units), at the time the lot was acquired (median of its "
+            "the lot scatter, 1.4826 × MAD across units, from 3 units), at the time the lot "
+            "was acquired (median of its "
             f"units' acquisition times; from: {esc(src)}).</p>" + figs
         )
     else:

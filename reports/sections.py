@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from calib_core.figure_statistics import compensation_envelope, residual_envelope, residual_rms
 from reports.html import (
     CHANNEL_COLOURS,
     CLEAN,
@@ -37,6 +38,7 @@ from reports.html import (
     with_unit,
 )
 from reports.store import StoreView
+from schemas.display import spread_unit
 
 # Models in the key-parameter table and strip plots, with their headings.
 KEY_MODELS: list[tuple[str, str]] = [
@@ -60,8 +62,8 @@ PARAM_ORDER = {
     "lever_arm": [f"r{i}{a}" for i in (1, 2, 3) for a in "xyz"],
     # zhang2017: zero biases, scale factors, installation angles
     "accel_static": (
-        [f"{b}_{a}" for b in ("u0", "b") for a in "xyz"]
-        + [f"{k}_{a}" for k in ("k", "s") for a in "xyz"]
+        [f"u0_{a}" for a in "xyz"]
+        + [f"k_{a}" for a in "xyz"]
         + [f"theta_{a}{b}" for a in "xyz" for b in "xyz"]
     ),
     "gyro_traditional": [f"s_g{m}" for m in _MAT] + [f"b_g_{a}" for a in "xyz"],
@@ -73,6 +75,20 @@ def py_values(x: pd.Series | pd.Index) -> list:
     """The elements of a Series or Index as Python objects, as ``list(x)`` gives them, without
     iterating an Arrow-backed string array element by element (~4 us an element)."""
     return x.to_numpy(dtype=object).tolist()
+
+
+def stored_column(df: pd.DataFrame, name: str) -> list:
+    """A stored numeric column as a list of floats (NaN where missing, all NaN when the
+    table has no such column: a store written before it was stored)."""
+    if name not in df:
+        return [math.nan] * len(df)
+    return df[name].to_numpy(dtype=float, na_value=math.nan).tolist()
+
+
+def first_finite(values: list, positions: Iterable[int]) -> float:
+    """The first finite ``values[i]`` for ``i`` in ``positions`` (a lot column repeats one
+    value on each of its rows), NaN when none is."""
+    return next((values[i] for i in positions if math.isfinite(values[i])), math.nan)
 
 
 def pretty_param(name: str) -> str:
@@ -253,7 +269,7 @@ class LotContext:
                 ctx.unit_kinds.setdefault(str(u), set()).update(flag_kinds(r) or {KIND_OUTLIER})
         ctx.limits, ctx.limits_problem = stored_limits(view)
         ctx.qa_lot = view.store.read_qa_lot(lot)
-        ctx.residual_agg = aggregate_residuals(ctx.residuals)
+        ctx.residual_agg = residual_envelope(ctx.residuals)
         if ctx.summary is not None and len(ctx.summary) and not ctx.units:
             ctx.units = sorted({str(u) for u in ctx.summary["unit"].dropna()})
         return ctx
@@ -264,22 +280,18 @@ class LotContext:
             src = self.parameters.rename(columns={"value": "mean"})
         if src is None:
             return
-        # one pass over the columns as numpy/lists, positions per (model, parameter) from a
-        # single group-by (pandas operations per group cost ~1 ms each, ~60 groups a lot)
+        # one pass over the columns as lists, positions per (model, parameter) from a single
+        # group-by (pandas operations per group cost ~1 ms each, ~60 groups a lot)
         uoms = py_values(src["unit_of_measure"]) if "unit_of_measure" in src else None
-        stds = src["std"].to_numpy(dtype=float) if "std" in src else None
-        means = src["mean"].to_numpy(dtype=float)
+        # decimals from the lot's typical repetition spread, else its scatter across units
+        # (the summary's lot columns, written by the re-flag)
+        typical = [stored_column(src, c) for c in ("lot_median_std", "lot_scatter")]
         for (model, name), pos in src.groupby(["model", "parameter"], sort=False).indices.items():
             uom = ""
             if uoms is not None:
                 uom = next((str(uoms[i]) for i in pos if pd.notna(uoms[i])), "")
             label, scale = display_unit(uom)
-            spread = np.nan
-            if stds is not None and (~np.isnan(stds[pos])).any():
-                spread = float(np.nanmedian(stds[pos]))
-            if not (math.isfinite(spread) and spread > 0):
-                m = means[pos]
-                spread = float(np.nanmedian(np.abs(m - np.nanmedian(m)))) * 1.4826 if len(m) > 1 else np.nan
+            spread = next((v for v in (first_finite(col, pos) for col in typical) if v > 0), math.nan)
             dec = decimals_for(spread * scale, extra=1)
             slabel, sscale = spread_display(uom)
             self.params[(str(model), str(name))] = ParamInfo(
@@ -323,7 +335,6 @@ class LotContext:
                 keys = list(zip(py_values(idx.get_level_values(0)), py_values(idx.get_level_values(1))))
                 names = [str(x) for x in py_values(idx.get_level_values(2))]
                 have_all = np.isfinite(V)
-                offsets = {}
                 start = 0
                 for k in range(1, len(keys) + 1):
                     if k == len(keys) or keys[k] != keys[start]:
@@ -335,22 +346,26 @@ class LotContext:
                             V[sl][:, have],
                             S[sl][:, have],
                         )
-                        offsets[keys[start]] = start
                         start = k
-                # average, spread and mean stderr of every row of the lot at once, in display
-                # units: the finite values of a row are the same with or without the
-                # repetitions its unit lacks, so these equal the per-table statistics
-                scale = np.array([self.info(m, n).scale for (_, m), n in zip(keys, names)])[:, None]
-                self.__dict__["_rep_stat_rows"] = (offsets, *_rep_stats(V * scale, S * scale))
             self.__dict__["_rep_tables"] = cache
         return cache.get((unit, model))
 
-    def rep_stats(self, unit: str, model: str, rows: list[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(average, spread, mean stderr) in display units of rows ``rows`` of
-        ``rep_table(unit, model)``."""
-        offsets, avg, spread, mean_se = self.__dict__["_rep_stat_rows"]
-        at = offsets[(unit, model)] + np.asarray(rows, dtype=int)
-        return avg[at], spread[at], mean_se[at]
+    def rep_stats(self, unit: str, model: str, names: list[str]) -> list[tuple[Any, Any, Any]]:
+        """(mean, std, stderr of the mean) over the repetitions of each parameter ``names`` of
+        one unit and model, in the stored unit: the unit's summary row (None when it has
+        none)."""
+        cache = self.__dict__.get("_summary_stats")
+        if cache is None:
+            cache = {}
+            s = self.summary
+            if s is not None and len(s):
+                cols = [stored_column(s, c) for c in ("mean", "std", "stderr_of_mean")]
+                keys = zip(py_values(s["unit"]), py_values(s["model"]), py_values(s["parameter"]))
+                for i, key in enumerate(keys):
+                    cache[tuple(map(str, key))] = tuple(c[i] for c in cols)
+            self.__dict__["_summary_stats"] = cache
+        none = (None, None, None)
+        return [cache.get((unit, model, n), none) for n in names]
 
     def unit_models(self, unit: str) -> list[str]:
         cache = self.__dict__.get("_unit_models")
@@ -363,7 +378,10 @@ class LotContext:
         return cache.get(unit, [])
 
     def info(self, model: str, name: str) -> ParamInfo:
-        return self.params.get((model, name)) or ParamInfo(model, name, "", "", 1.0, None, "ppm", 1e6)
+        ppm = spread_unit("")  # an unknown parameter: a dimensionless ratio
+        return self.params.get((model, name)) or ParamInfo(
+            model, name, "", "", 1.0, None, ppm.label, ppm.factor
+        )
 
     def value(self, model: str, name: str, v: Any) -> str:
         p = self.info(model, name)
@@ -418,32 +436,6 @@ class LotContext:
             self.__dict__["_session_counts"] = cache
         c = cache.get(unit, {})
         return {k: c.get(k, 0) for k in ("ok", "warned", "failed")}
-
-
-def aggregate_residuals(res: pd.DataFrame | None) -> pd.DataFrame | None:
-    """Per unit, model, step and channel: mean over repetitions and the min..max envelope.
-    This is the downsampling of the residual traces (a factor n_reps) and keeps the
-    repetition spread visible as error bars."""
-    if res is None or not len(res):
-        return None
-    res = res.copy()
-    if "model" not in res.columns:
-        res["model"] = "baseline"
-    for c, d in (("rate_dps", 0.0), ("angle_deg", 0.0), ("up_axis", ""), ("test", "")):
-        if c not in res.columns:
-            res[c] = d
-    keys = ["unit", "model", "test", "step", "channel"]
-    g = res.groupby(keys, sort=True, dropna=False)
-    agg = g.agg(
-        residual=("residual", "mean"),
-        rmin=("residual", "min"),
-        rmax=("residual", "max"),
-        rate_dps=("rate_dps", "first"),
-        angle_deg=("angle_deg", "first"),
-        up_axis=("up_axis", "first"),
-        n=("residual", "size"),
-    ).reset_index()
-    return agg
 
 
 # ----------------------------------------------------------------------------- header
@@ -727,25 +719,17 @@ def key_parameter_table(ctx: LotContext) -> str:
 
 
 def _lot_rows(ctx: LotContext, s: pd.DataFrame, model: str, names: list[str]) -> list[str]:
-    """The lot median and scatter (1.4826 MAD) rows under a key-parameter table; they stay
-    last when the table is sorted (the runtime sorts the rows without class "lotstat")."""
+    """The lot median and scatter (1.4826 MAD, from 3 units) rows under a key-parameter
+    table: the summary's ``lot_median`` and ``lot_scatter``; they stay last when the table is
+    sorted (the runtime sorts the rows without class "lotstat")."""
     sub = s[s["model"] == model]
+    by_name = {str(k): pos for k, pos in sub.groupby("parameter", sort=False).indices.items()}
+    medians, scatters = stored_column(sub, "lot_median"), stored_column(sub, "lot_scatter")
     med, mad = [], []
     for n in names:
-        v = sub.loc[sub["parameter"] == n, "mean"].to_numpy(float)
-        v = v[np.isfinite(v)]
-        p = ctx.info(model, n)
-        if len(v):
-            m = float(np.median(v))
-            med.append(f"<td>{ctx.value(model, n, m)}</td>")
-            mad.append(
-                f"<td>{p.spread(1.4826 * float(np.median(np.abs(v - m))))}</td>"
-                if len(v) > 2
-                else f"<td>{DASH}</td>"
-            )
-        else:
-            med.append(f"<td>{DASH}</td>")
-            mad.append(f"<td>{DASH}</td>")
+        pos = by_name.get(n, [])
+        med.append(f"<td>{ctx.value(model, n, first_finite(medians, pos))}</td>")
+        mad.append(f"<td>{ctx.info(model, n).spread(first_finite(scatters, pos))}</td>")
     return [
         f'<tr class="lotstat"><td class="text">lot median</td><td></td><td></td>{"".join(med)}</tr>',
         f'<tr class="lotstat"><td class="text">lot scatter</td><td></td><td></td>{"".join(mad)}</tr>',
@@ -970,30 +954,6 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
 # ----------------------------------------------------------------------------- per unit tables
 
 
-def _rep_stats(V: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row (parameter) of repetition values V and their stderrs S: average and spread
-    (std, ddof 1) over the finite values, and the standard error of the average of
-    independent repetitions. Rows without a missing value are reduced together (the same
-    arithmetic, row by row, as np.mean / np.std of that row); the others one by one."""
-    n_rows, n_reps = V.shape
-    avg, spread, mean_se = np.full(n_rows, np.nan), np.full(n_rows, np.nan), np.full(n_rows, np.nan)
-    full_v = np.isfinite(V).all(axis=1)
-    full_s = np.isfinite(S).all(axis=1)
-    if n_reps:
-        avg[full_v] = np.mean(V[full_v], axis=1)
-        mean_se[full_s] = np.sqrt(np.sum(S[full_s] ** 2, axis=1)) / n_reps
-    if n_reps > 1:
-        spread[full_v] = np.std(V[full_v], axis=1, ddof=1)
-    for k in np.flatnonzero(~full_v):
-        vals = V[k][np.isfinite(V[k])]
-        avg[k] = float(np.mean(vals)) if len(vals) else np.nan
-        spread[k] = float(np.std(vals, ddof=1)) if len(vals) > 1 else np.nan
-    for k in np.flatnonzero(~full_s):
-        se = S[k][np.isfinite(S[k])]
-        mean_se[k] = float(np.sqrt(np.sum(se**2)) / len(se)) if len(se) else np.nan
-    return avg, spread, mean_se
-
-
 def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
     """xu2016 Table 1/2 layout: a row per parameter, a column per repetition, average, spread."""
     p = ctx.parameters
@@ -1028,7 +988,7 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
         ["Parameter", "Unit"] + [f"Rep {r}" for r in reps] + ["Average", "Spread (std)", "Stderr of average"]
     )
     Vs = V[order] * scale
-    avg, spread, mean_se = ctx.rep_stats(unit, model, order)
+    stats = ctx.rep_stats(unit, model, names)
     rows = []
     values, finite = Vs.tolist(), np.isfinite(Vs).tolist()
     for k, (n, info) in enumerate(zip(names, infos)):
@@ -1037,10 +997,10 @@ def repetition_table(ctx: LotContext, unit: str, model: str) -> str:
         rows.append(
             heads[k]
             + td_numbers(values[k], finite[k], info.decimals)
-            + f'<td class="{cls}">{fmt(avg[k], info.decimals)}</td>'
-            # spreads in their own units (ppm, deg/h, mg): avg etc. are in the value unit
-            f'<td class="spread">{info.spread(spread[k] / info.scale)}</td>'
-            f'<td class="spread">{info.spread(mean_se[k] / info.scale)}</td></tr>'
+            + f'<td class="{cls}">{ctx.value(model, n, stats[k][0])}</td>'
+            # spreads in their own units (ppm, deg/h, mg)
+            f'<td class="spread">{info.spread(stats[k][1])}</td>'
+            f'<td class="spread">{info.spread(stats[k][2])}</td></tr>'
         )
     return f"<h4>{esc(MODEL_TITLES.get(model, model))}</h4>" + table(
         headers, rows, cls="paper", text_cols=2, wrap=False
@@ -1059,9 +1019,7 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
             output_axis=c["output_axis"].astype(str),
             method=c["method"].astype(str),
         )
-        agg = cc.groupby(["unit", "input_axis", "method", "output_axis"], sort=True).agg(
-            lo=("err_min", "min"), hi=("err_max", "max"), n_reps=("rep", "nunique")
-        )
+        agg = compensation_envelope(cc)
         uom = (
             cc.groupby("unit")["unit_of_measure"].first()
             if "unit_of_measure" in cc
@@ -1128,14 +1086,6 @@ def compensation_table(ctx: LotContext, unit: str) -> str:
         + f'<p class="note">Envelope (min ~ max) over {n_reps} repetition(s)'
         + f"{'; source: ' + esc(src) if src else ''}.</p>"
     )
-
-
-def other_models_tables(ctx: LotContext, unit: str) -> str:
-    p = ctx.parameters
-    if p is None:
-        return ""
-    models = ctx.unit_models(unit)
-    return "".join(repetition_table(ctx, unit, m) for m in models if m not in ("gyro", "accel"))
 
 
 # ----------------------------------------------------------------------------- residual plots
@@ -1336,8 +1286,9 @@ def accel_residual_figure(ctx: LotContext, unit: str) -> dict | None:
             for u, h, st in zip(ri.up_axis[dc], ri.angle_deg[dc].tolist(), ri.step[dc].tolist())
         ]
 
+    label, scale = display_unit("g")  # residuals stored in g, shown in mg
     return _residual_figure(
-        ri, d, ("ax", "ay", "az"), labels, 1e3, "mg", "orientation (axis up, heading)", "square", True
+        ri, d, ("ax", "ay", "az"), labels, scale, label, "orientation (axis up, heading)", "square", True
     )
 
 
@@ -1350,23 +1301,24 @@ def _unit_ticks(ctx: LotContext) -> list[str]:
 
 def residual_overview_figure(ctx: LotContext) -> dict | None:
     """RMS residual per unit and sensor, baseline vs extended model: one figure for the lot."""
-    a = ctx.residual_agg
-    if a is None or not len(a):
+    rms = residual_rms(ctx.residual_agg)
+    if rms is None:
         return None
-    a = a.assign(
-        sensor=np.where(a["channel"].astype(str).str.startswith("g"), "gyro", "accel"),
-        sq=a["residual"].astype(float) ** 2,
-    )
-    rms = (a.groupby(["unit", "sensor", "model"])["sq"].mean() ** 0.5).reset_index()
     units = ctx.units
-    layout, refs = grid(1, 2, ["gyro RMS error [deg/s]", "accelerometer RMS error [mg]"], hspace=0.08)
+    shown = {"gyro": display_unit("deg/s"), "accel": display_unit("g")}
+    layout, refs = grid(
+        1,
+        2,
+        [f"gyro RMS error [{shown['gyro'][0]}]", f"accelerometer RMS error [{shown['accel'][0]}]"],
+        hspace=0.08,
+    )
     styles = {
         "baseline": {"color": "#f58518", "symbol": "circle"},
         "extended": {"color": "#4c78a8", "symbol": "x"},
     }
     data = []
     for j, sensor in enumerate(("gyro", "accel")):
-        scale = 1.0 if sensor == "gyro" else 1e3
+        scale = shown[sensor][1]
         xr, yr = refs[j]
         for m in sorted(rms["model"].astype(str).unique()):
             d = rms[(rms["sensor"] == sensor) & (rms["model"] == m)].set_index("unit").reindex(units)
@@ -1374,7 +1326,7 @@ def residual_overview_figure(ctx: LotContext) -> dict | None:
                 {
                     "type": "scatter",
                     "x": units,
-                    "y": arr(d["sq"].to_numpy(float) * scale),
+                    "y": arr(d["rms"].to_numpy(float) * scale),
                     "mode": "markers",
                     "name": f"{m} model",
                     "marker": {"size": 8, **styles.get(m, {"color": "#54a24b", "symbol": "diamond"})},

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from calib_core.outliers import lot_statistics
+from calib_core.results import stderr_of_mean
 from schemas.results_store import TABLE_COLUMNS, TIMESTAMP_FORMAT, ResultsStore, write_parquet_atomic
 
 AXES = "xyz"
@@ -248,16 +250,22 @@ def _write(path: Path, df: pd.DataFrame) -> None:
 
 
 def _summary(params: pd.DataFrame, outliers: dict[str, list[tuple[str, str]]]) -> pd.DataFrame:
+    """The summary rows of the synthetic parameters, each statistic by the definition the
+    pipeline stores (calib_core.results.stderr_of_mean, calib_core.outliers.lot_statistics);
+    the flags placed by hand (``outliers``)."""
     g = params.groupby(["lot", "unit", "model", "parameter"], sort=False)
     s = g["value"].agg(["mean", "std", "min", "max", "count"]).reset_index()
     s = s.rename(columns={"count": "n_reps"})
+    s["stderr_of_mean"] = [stderr_of_mean(se.to_numpy(float)[:, None])[0] for _, se in g["stderr"]]
     s["unit_of_measure"] = g["unit_of_measure"].first().to_numpy()
-    med = s.groupby(["lot", "model", "parameter"])["mean"].transform("median")
-    mad = s.groupby(["lot", "model", "parameter"])["mean"].transform(
-        lambda x: (x - x.median()).abs().median()
-    )
-    s["lot_median"] = med
-    s["score"] = 0.6745 * (s["mean"] - med) / mad.where(mad > 0)
+    for col in ("lot_median", "lot_scatter", "lot_median_std"):
+        s[col] = np.nan
+    for _, pos in s.groupby(["lot", "model", "parameter"], sort=False).indices.items():
+        stats = lot_statistics(
+            s["mean"].to_numpy()[pos], s["std"].to_numpy()[pos], s["n_reps"].to_numpy()[pos]
+        )
+        s.loc[s.index[pos], ["lot_median", "lot_scatter", "lot_median_std"]] = stats
+    s["score"] = (s["mean"] - s["lot_median"]) / s["lot_scatter"].where(s["lot_scatter"] > 0)
     s["flagged"] = False
     s["flag_reason"] = ""
     s["stale"] = False

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from calib_core.figure_statistics import changes_since_first
 from reports.history import KEY_ELEMENTS, history_frame
 from reports.html import (
     CASE_COLOURS,
@@ -29,6 +30,7 @@ from reports.html import (
 from reports.lot import ReportError, safe_name
 from reports.sections import LotContext, kpi_block, qa_badge, unit_qa_note, unit_section
 from reports.store import StoreView
+from schemas.display import spread_unit
 
 NAV_MAX_POINTS = 1500  # per trace; a 60 s drift at 1 kHz is 60,000 samples
 
@@ -113,15 +115,17 @@ def history_figure(h: pd.DataFrame) -> dict | None:
     for k, g in enumerate(groups):
         xr, yr = refs[k]
         names = [e[1] for e in KEY_ELEMENTS if e[0] == g and (e[4] is None or e[3] == e[4])]
-        scale = 1e6 if g.startswith("K") else 1.0
+        # changes of the (dimensionless) K elements as spreads are shown: ppm
+        scale = spread_unit("").factor if g.startswith("K") else 1.0
         unit = {"K_g": "", "K_a": "", "w0": " deg/s", "f0": " mg"}[g]
+        changes = changes_since_first(h[names])
         for c, n in enumerate(names):
             v = h[n].to_numpy(float)
             data.append(
                 {
                     "type": "scatter",
                     "x": t,
-                    "y": arr((v - v[0]) * scale),
+                    "y": arr(changes[n].to_numpy(float) * scale),
                     "mode": "lines+markers",
                     "name": n,
                     "marker": {"size": 7, "color": colours[c]},

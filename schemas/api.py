@@ -61,6 +61,8 @@ import pandas as pd
 
 from calib_core.calibration import Calibration
 from calib_core.results import RepetitionCalibration, UnitCalibration
+from schemas.errors import SessionError
+from schemas.importers import convert_accel, convert_gyro
 
 __all__ = [
     "CalibrationMismatch",
@@ -74,7 +76,6 @@ __all__ = [
     "simulate_unit_dataset",
 ]
 
-RAD_TO_DEG = 180.0 / np.pi
 GYRO_COLUMNS = ("gx", "gy", "gz")
 ACCEL_COLUMNS = ("ax", "ay", "az")
 
@@ -166,14 +167,6 @@ def read_samples(path: str | Path) -> pd.DataFrame:
 
 
 # --- applying ------------------------------------------------------------------------------------
-def _to_inside(values: np.ndarray, unit: str, g_local: float) -> tuple[np.ndarray, str]:
-    if unit == "rad/s":
-        return values * RAD_TO_DEG, "deg/s"
-    if unit == "m/s^2":
-        return values / g_local, "g"
-    return values, unit
-
-
 def apply_to_frame(
     cal: Calibration,
     df: pd.DataFrame,
@@ -210,8 +203,13 @@ def apply_to_frame(
     if unit is not None and cal_unit is not None and str(unit) != str(cal_unit):
         raise CalibrationMismatch(f"the samples are of unit {unit}, the calibration of unit {cal_unit}")
     g_local = float(attrs.get("g_local", cal.g_local))
-    G, gu = _to_inside(df[list(GYRO_COLUMNS)].to_numpy(float), gyro_unit, g_local)
-    A, au = _to_inside(df[list(ACCEL_COLUMNS)].to_numpy(float), accel_unit, g_local)
+    try:  # the importers' boundary conversion (rad/s -> deg/s, m/s^2 and mg -> g)
+        G, gu = convert_gyro(df[list(GYRO_COLUMNS)].to_numpy(float), gyro_unit)
+        A, au = convert_accel(df[list(ACCEL_COLUMNS)].to_numpy(float), accel_unit, g_local)
+    except SessionError as exc:
+        raise CalibrationMismatch(
+            f"{exc.reason}; the calibration's raw_units are gyro={cal.gyro_unit!r}, accel={cal.accel_unit!r}"
+        ) from None
     if gu != cal.gyro_unit or au != cal.accel_unit:
         raise CalibrationMismatch(
             f"raw units gyro={gyro_unit!r} ({gu} after conversion), accel={accel_unit!r} do not "
@@ -220,11 +218,7 @@ def apply_to_frame(
         )
     t = df["t"].to_numpy(float) if "t" in df else None
     temp = df["temp_c"].to_numpy(float) if "temp_c" in df else None
-    dwdt = None
-    if cal.terms and t is not None and len(t) > 2:  # terms of angular acceleration need it
-        w_affine, _ = cal.apply_affine(G, A)
-        dwdt = np.gradient(w_affine, t, axis=0)
-    w, f = cal.apply(G, A, dwdt=dwdt, temp_c=temp, t=t)
+    w, f = cal.apply_recording(G, A, t=t, temp_c=temp)
     out = pd.DataFrame({c: df[c] for c in ("t", "step", "temp_c") if c in df}, index=df.index)
     for i, ax in enumerate("xyz"):
         out[f"w_{ax}"] = w[:, i]
@@ -334,7 +328,7 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> Uni
     ...
     LookupError: no session of unit 'U0001' under /nonexistent (units: none)
     """
-    from calib_core.pipeline import calibrate_repetitions, calibration_from_unit
+    from calib_core.models.pipeline import calibrate_repetitions, calibration_from_unit
     from schemas.errors import SessionError
 
     lot, read, failed = _read_unit(dataset, unit)
@@ -401,9 +395,14 @@ def simulate_unit_dataset(
 ):
     """Write ``reps`` simulated turntable sessions of one unit (the default xu2016 +
     zhang2017 protocol, a typical MEMS unit) under ``root/lot=<lot>/unit=<unit>/`` and
-    return its truth (``calib_core.simulator.MimuTruth``). For examples and tests."""
-    from calib_core.protocols import default_session
-    from calib_core.simulator import draw_repetition_truth, session_metadata, simulate_session, typical_truth
+    return its truth (``calib_core.sim.simulator.MimuTruth``). For examples and tests."""
+    from calib_core.sim.protocols import default_session
+    from calib_core.sim.simulator import (
+        draw_repetition_truth,
+        session_metadata,
+        simulate_session,
+        typical_truth,
+    )
     from calib_core.steps import SessionKey
     from schemas.writer import write_session
 

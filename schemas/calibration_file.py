@@ -111,19 +111,15 @@ def calibration_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Calibr
 # one element per line. ``json.dump(indent=2)`` gives the same documents (equal after
 # ``json.load``) but goes through json's pure-Python encoder (any ``indent`` disables the C
 # one): ~10 ms per calibration file of ~31 KB, a fifth of storing a unit. Here only the
-# objects are walked in Python; every one-line value is one call of the C encoder.
+# objects are walked in Python; every one-line value is one call of an encoder without
+# ``indent``, which json runs in C.
 _INDENT = "  "
 _SEPARATORS = (", ", ": ")
-_encode_str = json.encoder.encode_basestring_ascii
-_c_make_encoder = getattr(json.encoder, "c_make_encoder", None)
+_encode_str = json.JSONEncoder(ensure_ascii=True).encode  # a str: straight to the C escaper
 
 
 def _one_line_encoder(allow_nan: bool, hook):
-    """``value -> str`` on one line: the C encoder's iterator made once and reused (what
-    ``JSONEncoder.encode`` would rebuild on every call), else json's own."""
-    if _c_make_encoder is not None:
-        enc = _c_make_encoder(None, hook, _encode_str, None, ": ", ", ", False, False, allow_nan)
-        return lambda v: "".join(enc(v, 0))
+    """``value -> str`` on one line."""
     return json.JSONEncoder(
         ensure_ascii=True, allow_nan=allow_nan, separators=_SEPARATORS, default=hook
     ).encode

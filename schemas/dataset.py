@@ -18,6 +18,7 @@ from pathlib import Path
 from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_FILE, STEPS_FILE
 from schemas.errors import E_BAD_PATH, SessionError
+from schemas.field_dataset import FIELD_DIR
 
 # Lot and unit ids are directory and file names in the results store (calibrations/<unit>/,
 # reports/units/<unit>.html): full-string matches (\A...\Z: a trailing newline does not pass,
@@ -134,6 +135,8 @@ def find_sessions(
             if unit is not None and unit_id != unit:
                 continue
             for rep_dir in _visible_dirs(unit_dir):
+                if rep_dir.name == FIELD_DIR:  # field recordings: schemas.field_dataset
+                    continue
                 rep, why = _parse_part(rep_dir.name, "rep")
                 if why:
                     errors.append(_bad(rep_dir, why))

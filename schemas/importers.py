@@ -10,8 +10,8 @@ and the units after boundary conversion, exactly as in the contract: gyro ``deg/
 input is converted to deg/s) or a raw unit (``LSB``; ``counts`` is an alias; ``V``); accel
 ``g`` (``m/s^2`` input is divided by the recording's ``g_local``; ``mg`` is divided by 1000) or
 raw (``LSB``, ``V``). There is no ``step`` column and no reference: the calibration methods
-that consume these recordings (:mod:`calib_core.ferraris`, :mod:`calib_core.field`) find the
-static poses themselves or take a section list.
+that consume these recordings (:mod:`calib_core.models.ferraris`,
+:mod:`calib_core.models.field.imu_tk`) find the static poses themselves or take a section list.
 
 Errors are :class:`schemas.errors.SessionError` naming the file (the "session" is the file
 name: these recordings have no lot/unit/rep).
@@ -115,6 +115,19 @@ def convert_accel(
     if unit == "V":
         return values, "V"
     raise _err(E_UNKNOWN_UNIT, path, f"accel unit {unit!r} is not one of {', '.join(ACCEL_INPUT_UNITS)}")
+
+
+def accel_from_g(values: np.ndarray, unit: str, g_local: float) -> np.ndarray:
+    """Specific force in g back to ``unit`` (g, mg or m/s^2 with ``g_local``): the inverse
+    of :func:`convert_accel`, for outputs written in the input's unit."""
+    values = np.asarray(values, float)
+    if unit == "g":
+        return values
+    if unit == "mg":
+        return values * 1000.0
+    if unit in ("m/s^2", "m/s2"):
+        return values * g_local
+    raise ValueError(f"specific force in g cannot be written in {unit!r}")
 
 
 FULL_SCALE_COUNTS = 32768.0  # a signed 16-bit output: +/- full scale is +/- 32768 counts

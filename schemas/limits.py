@@ -32,9 +32,13 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from calib_core.outliers import Limit, OutlierConfig, OutlierConfigError
+
+if TYPE_CHECKING:  # the store module imports more than a configuration needs
+    from schemas.results_store import ResultsStore
 
 STANDARD_GRAVITY = 9.80665
 _MAT = [f"{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
@@ -252,3 +256,40 @@ def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
         return OutlierConfig(**kwargs)
     except OutlierConfigError as exc:
         raise LimitsError(f"{source}: {exc}") from None
+
+
+# --- a run's configuration: --config FILE, --config none, or the one the store keeps ----------------
+CLEAR_CONFIG = "none"  # ``--config none``: forget the stored configuration, use the defaults
+
+
+def load_config(path: str | Path | None) -> OutlierConfig:
+    if not path or str(path) == CLEAR_CONFIG:
+        return OutlierConfig()
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as exc:
+        raise FileNotFoundError(f"outlier configuration {p}: {exc.strerror}") from None
+    return config_from_toml(text, source=str(p))
+
+
+def resolve_config(store: ResultsStore, path: str | Path | None) -> tuple[OutlierConfig, str | None | bool]:
+    """The QA configuration of a run and what to store under the lock: ``--config FILE``
+    sets it for this and every later run (returned text), ``--config none`` clears it
+    (None), no ``--config`` keeps the one stored (False: nothing to store). A stored text
+    that no longer parses is an error naming the file."""
+    if path is None:
+        text = store.read_qa_config()
+        if text is None:
+            return OutlierConfig(), False
+        return config_from_toml(text, source=str(store.qa_config_path)), False
+    if str(path) == CLEAR_CONFIG:
+        return OutlierConfig(), None
+    cfg = load_config(path)
+    return cfg, Path(path).read_text()
+
+
+def save_config(store: ResultsStore, text: str | None | bool) -> None:
+    """Store what :func:`resolve_config` returned (under the run's lock)."""
+    if text is not False:
+        store.write_qa_config(text)  # type: ignore[arg-type]

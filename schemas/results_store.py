@@ -713,12 +713,35 @@ class ResultsStore:
         write (under the caller's lock). Returns the files rewritten."""
         rewritten = []
         for name in TABLES:
-            for path in self.partitions(name).values():
-                if schema_problem(pq.read_schema(path), name) is not None:
-                    write_table_atomic(conform(pq.read_table(path), name), path)
+            for lot, path in self.partitions(name).items():
+                schema = pq.read_schema(path)
+                if schema_problem(schema, name) is not None:
+                    table = pq.read_table(path)
+                    if name == "summary" and "stderr_of_mean" not in schema.names:
+                        table = self._with_stderr_of_mean(table, lot)
+                    write_table_atomic(conform(table, name), path)
                     rewritten.append(path)
         self._schemas_checked = True
         return rewritten
+
+    def _with_stderr_of_mean(self, summary: pa.Table, lot: str | None) -> pa.Table:
+        """A summary lot file written before the summary stored ``stderr_of_mean``, with it
+        computed from the lot's ``parameters`` rows (calib_core.results.stderr_of_mean, as
+        ``summarise`` computes it for new rows)."""
+        from calib_core.results import stderr_of_mean
+
+        params = self.read("parameters", lots=None if lot is None else [lot])
+        df = summary.to_pandas()
+        key = ["unit", "model", "parameter"]
+        if not len(params) or not len(df) or "stderr" not in params:
+            return summary
+        wide = params.astype({c: str for c in key}).pivot_table(
+            index="rep", columns=key, values="stderr", aggfunc="last", dropna=False
+        )
+        se = pd.Series(stderr_of_mean(wide.to_numpy(float)), index=wide.columns)
+        at = pd.MultiIndex.from_frame(df[key].astype(str))
+        values = se.reindex(at).to_numpy(float)
+        return summary.append_column("stderr_of_mean", pa.array(values, pa.float64()))
 
     # fingerprints of the last run: (lot, unit, rep) -> fingerprint
     def fingerprints(self) -> dict[tuple[str, str, int], str]:
@@ -775,9 +798,9 @@ class ResultsStore:
         return self.root / "cache" / "outlier_thresholds.json"
 
     def read_outlier_thresholds(self) -> dict | None:
-        """The outlier thresholds simulated by earlier runs (calib_core.outliers'
-        ``known_thresholds`` document), or None when absent or unreadable: a cache, never
-        a source of truth (the values are recomputed when missing)."""
+        """The outlier thresholds simulated by earlier runs (the document of a
+        ``calib_core.outliers.ThresholdTable``), or None when absent or unreadable: a cache,
+        never a source of truth (the values are recomputed when missing)."""
         try:
             return json.loads(self.outlier_thresholds_path.read_text())
         except (OSError, ValueError):

@@ -3,7 +3,7 @@ calibration vs the published reference of each real recording, on the same poses
 
     PYTHONPATH=. python scripts/real_field_table.py [--real ../shared/data/real]
 
-Figures (calib_core.field_joint.field_figures): static |f| error RMS over the poses (mg) and
+Figures (calib_core.models.field.joint.field_figures): static |f| error RMS over the poses (mg) and
 the gravity-direction error across the moves, RMS (deg). mimucal's are shown in-sample and
 held out (leave-one-out up to 15 poses/moves, else 5 folds); a reference fitted by its
 authors on all the data is in-sample only; IMU-TK's procedure is also refitted on the same
@@ -19,16 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from calib_core.calibration import Calibration
-from calib_core.ferraris import ferraris_calibration
-from calib_core.field import fit_accel_field, fit_gyro_field
-from calib_core.field_joint import (
+from calib_core.models.ferraris import ferraris_calibration
+from calib_core.models.field.imu_tk import fit_accel_field, fit_gyro_field
+from calib_core.models.field.joint import (
     field_figures,
     fit_field,
     held_out_figures,
     to_calibration,
     usable_moves,
 )
-from calib_core.static_detection import clipped_samples, detect_poses
+from calib_core.models.field.static_detection import clipped_samples, detect_poses
 from schemas.importers import read_imucal_csv, read_imutk_pair, read_table_recording
 
 G0 = 9.80665
@@ -141,7 +141,7 @@ def xsens(real: Path) -> list[str]:
         om = np.zeros(n_m, bool)
         om[ok_idx[np.arange(len(ok_idx)) % 5 == k]] = True
         an[om] = f(_imu_tk_procedure(rec, det, g, np.ones(n_p, bool), move_ok & ~om)).angle_deg[om]
-    from calib_core.field_joint import HeldOut
+    from calib_core.models.field.joint import HeldOut
 
     ref_held = HeldOut(ne, an, 5, 5)
     return _header("Xsens, IMU-TK's demo recording", det, move_ok) + [

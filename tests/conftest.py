@@ -12,10 +12,13 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from calib_core import protocols, simulator
+from calib_core.models.zhang2017 import C_from_angles
+from calib_core.outliers import ThresholdTable
+from calib_core.sim import protocols, simulator
+from calib_core.sim.accel_unit import AccelUnitTruth
 from calib_core.steps import SessionKey, StepMeans
-from calib_core.zhang2017 import AccelUnitTruth, C_from_angles
 
 # Zhang et al. 2017: the published installation angles theta_ij (deg) of the paper's unit
 PAPER_ANGLES = np.array(
@@ -65,3 +68,10 @@ def load_manifest(fleet_dir: Path | str) -> dict:
     from flows.fleet_sim import MANIFEST
 
     return json.loads((Path(fleet_dir) / MANIFEST).read_text())
+
+
+@pytest.fixture(scope="session")
+def thresholds() -> ThresholdTable:
+    """The robust-z thresholds of the test session, each lot layout simulated once (as one
+    nightly run does with its own table): pass it to ``flag_lots(..., thresholds=...)``."""
+    return ThresholdTable()

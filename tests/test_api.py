@@ -26,6 +26,7 @@ def test_docstring_examples_run():
     assert res.attempted >= 20 and res.failed == 0
 
 
+@pytest.mark.slow
 def test_readme_example_runs(tmp_path):
     text = (ROOT / "README.md").read_text()
     section = text[text.index("## Python API") :]
@@ -137,8 +138,13 @@ def test_discover_unit_names_an_effect_put_into_the_simulation(tmp_path):
     """A gyro scale nonlinearity put into the simulated unit is named; a linear unit gets
     none (the README example's [] is checked in test_readme_example_runs)."""
     from calib_core.effects import get_effect
-    from calib_core.protocols import default_session
-    from calib_core.simulator import draw_repetition_truth, session_metadata, simulate_session, typical_truth
+    from calib_core.sim.protocols import default_session
+    from calib_core.sim.simulator import (
+        draw_repetition_truth,
+        session_metadata,
+        simulate_session,
+        typical_truth,
+    )
     from calib_core.steps import SessionKey
     from schemas.writer import write_session
 

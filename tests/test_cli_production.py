@@ -183,6 +183,7 @@ def store(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_a_wrong_lot_or_unit_is_one_line_with_what_exists_before_prefect(data, store):
     base, root = data
     t0 = time.monotonic()

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pandas as pd
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.effects import get_effect
-from calib_core.simulator import REALISTIC_NOISE
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
+from calib_core.sim.simulator import REALISTIC_NOISE
 from calib_core.steps import SessionKey
 from flows.cli import main
 from schemas.writer import write_session

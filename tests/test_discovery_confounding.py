@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.calibration import Calibration, TermValue
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation_ident import earth_rate_scenario, quiet_gyros, sensor_effect_scenario
 from calib_core.effects import get_effect
 from calib_core.effects.earth_rate import EARTH_RATE_DEG_H
+from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from flows.commands.diagnose import summary_lines
 from schemas.averaging import read_step_means

@@ -13,8 +13,8 @@ from flows import runtime
 
 runtime.ensure_environment()
 
-from calib_core import protocols  # noqa: E402
 from calib_core.effects import get_effect  # noqa: E402
+from calib_core.sim import protocols  # noqa: E402
 from calib_core.sim.physics import typical_physics_unit  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
 from schemas.physics_sessions import write_physics_unit  # noqa: E402

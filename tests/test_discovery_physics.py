@@ -10,7 +10,6 @@ import json
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation import run_scenario
 from calib_core.effects import (
@@ -21,6 +20,7 @@ from calib_core.effects import (
     register_effect,
     unregister_effect,
 )
+from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from schemas.calibration_file import calibration_from_dict, calibration_to_dict
 from schemas.physics_sessions import physics_unit_step_means
@@ -127,6 +127,7 @@ def test_undetermined_lever_arm_components_are_null_in_every_file():
     assert np.isfinite(back.terms[0].params).all()
 
 
+@pytest.mark.slow
 def test_serial_noise_is_recovered_and_whitened_away():
     """Step means of 5 repetitions with white noise plus a Gauss-Markov wander (share 0.7,
     time constant 20 s, steps 3.7 s apart): the estimate finds the share and the time

@@ -1,4 +1,4 @@
-"""Model discovery on the estimator's own simulator (:mod:`calib_core.simulator`), where a test
+"""Model discovery on the estimator's own simulator (:mod:`calib_core.sim.simulator`), where a test
 needs the exact model: standard errors against the Monte Carlo spread, the diagnosis
 document, the repetitions it needs. Hidden effects, clean lots and effects outside the
 catalogue are tested on the independent physics simulator (test_discovery_physics.py)."""
@@ -10,12 +10,12 @@ import json
 import numpy as np
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.discovery import diagnose_unit
 from calib_core.effects import get_effect
 from calib_core.errors import DesignError
-from calib_core.simulator import REALISTIC_NOISE, simulate_unit
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
+from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit
 
 STEPS = protocols.default_session()
 N_REPS = 5

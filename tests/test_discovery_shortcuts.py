@@ -1,8 +1,7 @@
 """Shortcuts of the discovery set-up (issue 7, fourth round) against the work they skip.
 
-- the grid's protocol part is built once per layout (:func:`calib_core.discovery._layout`):
-  a grid from the cache equals one built from scratch, its shared arrays are read-only, and
-  a unit whose steps differ gets its own layout;
+- the grid's protocol part (:func:`calib_core.discovery.turntable._layout`) is read-only, and
+  a unit whose steps differ gets a layout of its own;
 - the rank test is skipped when every fold is far from losing rank
   (:func:`calib_core.discovery._surely_full_rank`): it never skips a design that the exact
   test (numpy's matrix_rank rule) finds deficient;
@@ -16,12 +15,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery import turntable as disc
-from calib_core.effects import get_effect
-from calib_core.simulator import REALISTIC_NOISE, simulate_unit
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
+from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit
 
 STEPS = protocols.default_session()
 
@@ -49,23 +47,12 @@ def _assert_same(a, b):
         assert a == b
 
 
-def test_cached_layout_gives_the_grid_built_from_scratch():
-    names = sorted(disc.catalogue())
-    first, second = _unit(1, unit="U001"), _unit(2, unit="U002")
-    disc._LAYOUT_CACHE.clear()
-    disc._UnitGrid.build(first, names)  # fills the cache with the protocol's layout
-    assert len(disc._LAYOUT_CACHE) == 1
-    cached = disc._UnitGrid.build(second, names)
-    assert len(disc._LAYOUT_CACHE) == 1  # same protocol: a hit
-    disc._LAYOUT_CACHE.clear()
-    fresh = disc._UnitGrid.build(second, names)
-    for name, value in _grid_fields(fresh).items():
-        _assert_same(value, _grid_fields(cached)[name])
-    # the shared arrays cannot be written by one unit for the next
-    assert not cached.real.flags.writeable and not cached.y.flags.writeable
+def test_the_layout_arrays_are_read_only_and_the_units_own_columns_are_not():
+    grid = disc._UnitGrid.build(_unit(1, unit="U001"), sorted(disc.catalogue()))
+    assert not grid.real.flags.writeable and not grid.y.flags.writeable
     with pytest.raises(ValueError):
-        cached.gcode[0, 0] = 1
-    assert cached.M.flags.writeable  # the unit's own copy (raw columns filled in)
+        grid.gcode[0, 0] = 1
+    assert grid.M.flags.writeable  # the unit's own copy (raw columns filled in)
 
 
 def test_a_unit_whose_steps_differ_gets_its_own_layout():
@@ -75,27 +62,10 @@ def test_a_unit_whose_steps_differ_gets_its_own_layout():
     keep[[5, 50]] = False
     dropped = list(sessions)
     dropped[1] = sessions[1].select(keep)
-    disc._LAYOUT_CACHE.clear()
     a = disc._UnitGrid.build(sessions, names)
     b = disc._UnitGrid.build(dropped, names)
-    assert len(disc._LAYOUT_CACHE) == 2
     assert a.balanced and not b.balanced
     assert b.real[1].sum() == len(sessions[1]) - 2
-
-
-def test_diagnosis_is_the_same_with_a_cold_and_a_warm_layout_cache():
-    rng = np.random.default_rng(4)
-    theta = np.zeros(get_effect("gyro_scale_asymmetry").n_params)
-    theta[2] = 800.0  # found: two selection passes over the same grid
-    truth = sim.typical_truth(rng, **REALISTIC_NOISE).with_effects(
-        (get_effect("gyro_scale_asymmetry"), theta)
-    )
-    sessions, _ = simulate_unit(truth, STEPS, rng, 3)
-    disc._LAYOUT_CACHE.clear()
-    cold = diagnose_unit(sessions, tables=False).to_dict()
-    warm = diagnose_unit(sessions, tables=False).to_dict()
-    assert cold == warm
-    assert [e["name"] for e in cold["effects"]] == ["gyro_scale_asymmetry"]
 
 
 def _exact_full_rank(D: np.ndarray) -> bool:

@@ -5,7 +5,7 @@ factors of each channel's bias-removed weighted design (:class:`calib_core.disco
 Here each of its numbers is recomputed the plain way, one dense weighted least squares over
 every row with explicit bias columns, on balanced units and on units whose repetitions lost
 steps (the general two-way path), and the noise estimate is recomputed with
-:func:`calib_core.replay.estimate_noise_arrays`."""
+:func:`calib_core.discovery.replay.estimate_noise_arrays`."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib_core import protocols, replay
-from calib_core import simulator as sim
+from calib_core.discovery import replay
+from calib_core.discovery.replay import NoiseEstimate, estimate_noise_arrays, two_way_residual
 from calib_core.discovery.turntable import (
     _Discovery,
     _lstsq_cov,
@@ -24,8 +24,9 @@ from calib_core.discovery.turntable import (
 )
 from calib_core.effects import CHANNELS, MotionContext
 from calib_core.errors import DesignError
-from calib_core.replay import NoiseEstimate, estimate_noise_arrays, two_way_residual
-from calib_core.simulator import REALISTIC_NOISE, simulate_unit
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
+from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit
 
 STEPS = protocols.default_session()
 
@@ -92,8 +93,8 @@ def _dense_fit(L, train: np.ndarray, cols: np.ndarray, R: int):
 @pytest.mark.parametrize(
     "effect,theta,drop",
     [
-        (None, None, False),
-        ("gyro_g_sensitivity", [0, 0, 0, 0, 0, 0, 0.04, 0, 0], False),
+        pytest.param(None, None, False, marks=pytest.mark.slow),
+        pytest.param("gyro_g_sensitivity", [0, 0, 0, 0, 0, 0, 0.04, 0, 0], False, marks=pytest.mark.slow),
         ("lever_arm", [0, 0, 0, 4.0, -3.0, 2.0, 0, 0, 0], True),
     ],
 )

@@ -19,8 +19,8 @@ import numpy as np
 from test_discovery_shortcuts import _unit  # a simulated unit's sessions
 
 from calib_core.discovery import turntable as disc
+from calib_core.discovery.replay import MIN_POOL_DOF
 from calib_core.effects import CHANNELS
-from calib_core.replay import MIN_POOL_DOF
 from calib_core.results import to_jsonable
 
 

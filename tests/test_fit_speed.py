@@ -14,14 +14,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib_core import protocols, simulator, xu2016, zhang2017
-from calib_core.pipeline import (
+from calib_core.models import xu2016, zhang2017
+from calib_core.models.pipeline import (
     RESIDUAL_COLUMNS,
     baseline_residuals,
     calibrate_repetition,
     calibration_from_fits,
 )
 from calib_core.results import RepetitionCalibration, summarise
+from calib_core.sim import accel_unit, protocols, simulator
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import CodedStrings, ColumnTable
 from flows.unit_pipeline import SessionOutcome, aggregate_unit
@@ -214,7 +215,7 @@ def test_multirate_pairs_are_opposite_rates_about_one_axis():
 def test_lever_arm_all_determined_recovers_the_truth_when_noise_free():
     # tilted dynamic steps: every component determined, the block-diagonal batched solve
     lever = np.array([[5, -3, 2], [-4, 6, 1], [2, 3, -7.0]])
-    truth = zhang2017.AccelUnitTruth(
+    truth = accel_unit.AccelUnitTruth(
         scale=np.array([0.5, 0.51, 0.49]),
         bias=np.array([0.01, -0.02, 0.03]),
         C=zhang2017.C_from_angles(np.array([[0.5, 89.5, 90.2], [90.3, 0.7, 89.6], [89.8, 90.4, 0.6]])),
@@ -297,7 +298,7 @@ def test_of_test_subsets_are_kept_and_equal_a_fresh_selection():
 def test_cpu_by_stage_adds_up_and_changes_nothing():
     import time
 
-    from calib_core.pipeline import STAGES
+    from calib_core.models.pipeline import STAGES
 
     sm = _sessions(1)[0]
     plain = calibrate_repetition(sm)

@@ -16,10 +16,10 @@ from dataclasses import fields, is_dataclass, replace
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq, solve_lstsq_stack
-from calib_core.pipeline import _same_layout, calibrate_repetition, calibrate_repetitions
+from calib_core.models.pipeline import _same_layout, calibrate_repetition, calibrate_repetitions
+from calib_core.sim import protocols
 from calib_core.steps import StepMeans
 
 from conftest import STEPS_WITH_VERIFICATION, unit_step_means
@@ -87,7 +87,7 @@ def test_stacked_group_equals_each_session_alone():
 
 
 def test_each_batched_fit_equals_its_per_session_fit():
-    from calib_core import xu2016, zhang2017
+    from calib_core.models import xu2016, zhang2017
 
     sms = unit_step_means(n=4, seed=21)
     pairs = [

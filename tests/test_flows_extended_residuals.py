@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from calib_core.effects import get_effect
-from calib_core.simulator import typical_truth
+from calib_core.sim.simulator import typical_truth
 from flows.fleet_sim import simulate_fleet
 from flows.nightly import UnitJob, calibrate_unit_job
 from schemas.dataset import find_sessions

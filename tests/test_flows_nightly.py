@@ -261,6 +261,7 @@ def test_worker_processes_give_the_same_results_as_threads(small):
         pd.testing.assert_frame_equal(a, b)
 
 
+@pytest.mark.slow
 def test_a_served_run_starts_the_workers_forkserver_itself(small, monkeypatch):
     """A served deployment calls the flow without nightly_fleet_calibration, which would have
     started the forkserver while Prefect started: the flow's body asks for it, before its

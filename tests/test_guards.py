@@ -7,10 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calib_core import protocols, simulator
 from calib_core.errors import DesignError
 from calib_core.guards import check_affine
-from calib_core.pipeline import calibrate_repetition
+from calib_core.models.pipeline import calibrate_repetition
+from calib_core.sim import protocols, simulator
 
 STEPS = protocols.default_session()
 

@@ -12,11 +12,11 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from calib_core import protocols
 from calib_core.guards import CONSISTENCY_Z_LIMIT, inconsistent_steps
-from calib_core.pipeline import calibrate_repetition
+from calib_core.models.pipeline import calibrate_repetition
+from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
-from calib_core.simulator import REALISTIC_NOISE, simulate_unit, typical_truth
+from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit, typical_truth
 from flows import unit_pipeline
 from flows.fleet_sim import simulate_fleet
 from schemas import errors as E

@@ -1,5 +1,5 @@
 """Issue 8 item 2 on the fits: property tests (hypothesis, derandomized) of
-``calib_core.pipeline.calibrate_repetition`` on corrupted step means.
+``calib_core.models.pipeline.calibrate_repetition`` on corrupted step means.
 
 Whatever is done to a good session's step means (steps dropped at random, finite
 perturbations of the means, references scaled, every step of an axis removed), the pipeline
@@ -17,10 +17,10 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.errors import DesignError
-from calib_core.pipeline import calibrate_repetition
+from calib_core.models.pipeline import calibrate_repetition
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from calib_core.steps import StepMeans
 
 SETTINGS = dict(derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])

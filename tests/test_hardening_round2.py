@@ -23,10 +23,10 @@ from flows import runtime
 
 runtime.ensure_environment()
 
-from calib_core import protocols  # noqa: E402
 from calib_core.calibration import Calibration, TermValue  # noqa: E402
 from calib_core.effects import get_effect  # noqa: E402
-from calib_core.simulator import typical_truth  # noqa: E402
+from calib_core.sim import protocols  # noqa: E402
+from calib_core.sim.simulator import typical_truth  # noqa: E402
 from flows import fleet_sim, nightly, unit_pipeline  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
 from flows.fleet_sim import simulate_fleet  # noqa: E402

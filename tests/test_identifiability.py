@@ -1,4 +1,4 @@
-"""calib_core.identifiability on designs whose answer is known by construction: collinear
+"""calib_core.discovery.identifiability on designs whose answer is known by construction: collinear
 columns, a combination of several terms, dead columns, and the lever arm of a protocol with
 and without the tilted dynamic steps (columns written here from w x (w x r), not from the
 catalogue's term code)."""
@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib_core.identifiability import analyse, separating_additions
-from calib_core.protocols import dynamic_steps, to_frame
+from calib_core.discovery.identifiability import analyse, separating_additions
+from calib_core.sim.protocols import dynamic_steps, to_frame
 
 NAMES = {"A": ("a1", "a2"), "B": ("b1", "b2"), "C": ("c1", "c2"), "D": ("d1",)}
 

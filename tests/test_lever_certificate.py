@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from calib_core import protocols, simulator, zhang2017
-from calib_core.pipeline import calibrate_repetitions
+from calib_core.errors import DesignError
+from calib_core.models.pipeline import calibrate_repetitions
+from calib_core.models.zhang2017 import lever_arm
+from calib_core.sim import protocols, simulator
 from calib_core.steps import SessionKey
 
 STEPS = protocols.default_session(verification=True)
@@ -21,7 +23,7 @@ def _inputs(seed: int = 7, n: int = 5, steps=STEPS):
         simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L", "U", r)) for r in range(1, n + 1)
     ]
     fits = [f.calibration.fits for f in calibrate_repetitions(sms)]
-    return zhang2017.lever_arm_inputs_stack(
+    return lever_arm.lever_arm_inputs_stack(
         sms, [f["accel_static"] for f in fits], [f["gyro"].K for f in fits], [f["gyro"].w0 for f in fits]
     )
 
@@ -41,29 +43,29 @@ def _same(a, b, path=""):
 def test_certified_fits_are_the_qr_path_fits(monkeypatch):
     inputs = _inputs()
     assert (
-        zhang2017._certify_determined(
-            [zhang2017._lever_design(x, "sensitive_axis") for x in inputs], zhang2017.UNDETERMINED_RCOND
+        lever_arm._certify_determined(
+            [lever_arm._lever_design(x, "sensitive_axis") for x in inputs], lever_arm.UNDETERMINED_RCOND
         )
         is not None
     )  # the production protocol is certified
-    for projection in zhang2017.PROJECTIONS:
+    for projection in lever_arm.PROJECTIONS:
         for estimate_only in (False, True):
-            fast = zhang2017.fit_lever_arm_from_stack(
+            fast = lever_arm.fit_lever_arm_from_stack(
                 inputs, projection=projection, estimate_only=estimate_only
             )
             with monkeypatch.context() as m:
-                m.setattr(zhang2017, "_certify_determined", lambda designs, rcond: None)
-                qr = zhang2017.fit_lever_arm_from_stack(
+                m.setattr(lever_arm, "_certify_determined", lambda designs, rcond: None)
+                qr = lever_arm.fit_lever_arm_from_stack(
                     inputs, projection=projection, estimate_only=estimate_only
                 )
             assert len(fast) == len(qr)
             for a, b in zip(fast, qr):
                 _same(a, b, projection)
     # one session alone, too
-    one = zhang2017.fit_lever_arm_from(inputs[0])
+    one = lever_arm.fit_lever_arm_from(inputs[0])
     with monkeypatch.context() as m:
-        m.setattr(zhang2017, "_certify_determined", lambda designs, rcond: None)
-        _same(one, zhang2017.fit_lever_arm_from(inputs[0]))
+        m.setattr(lever_arm, "_certify_determined", lambda designs, rcond: None)
+        _same(one, lever_arm.fit_lever_arm_from(inputs[0]))
 
 
 def test_untilted_steps_are_not_certified_and_keep_their_warnings():
@@ -73,16 +75,16 @@ def test_untilted_steps_are_not_certified_and_keep_their_warnings():
         + protocols.dynamic_steps(tilted=False)
     )
     inputs = _inputs(seed=10, steps=steps)
-    designs = [zhang2017._lever_design(x, "sensitive_axis") for x in inputs]
-    assert zhang2017._certify_determined(designs, zhang2017.UNDETERMINED_RCOND) is None
-    fits = zhang2017.fit_lever_arm_from_stack(inputs)
+    designs = [lever_arm._lever_design(x, "sensitive_axis") for x in inputs]
+    assert lever_arm._certify_determined(designs, lever_arm.UNDETERMINED_RCOND) is None
+    fits = lever_arm.fit_lever_arm_from_stack(inputs)
     assert all(f.undetermined and np.isnan(f.lever_arm_mm).any() for f in fits)
 
 
 def _qr_keeps_all(Xb: np.ndarray, rcond: float) -> bool:
     try:
-        lb = zhang2017._lever_blocks(None, rcond, "sensitive_axis", (Xb, np.zeros(Xb.shape[:2])))
-    except (zhang2017.DesignError, IndexError):
+        lb = lever_arm._lever_blocks(None, rcond, "sensitive_axis", (Xb, np.zeros(Xb.shape[:2])))
+    except (DesignError, IndexError):
         # IndexError: _lever_blocks with fewer rows than columns (n < 3) fails naming an
         # undetermined component (a limitation of the QR path, left as it is); never whole
         return False
@@ -91,7 +93,7 @@ def _qr_keeps_all(Xb: np.ndarray, rcond: float) -> bool:
 
 def test_certificate_never_vouches_for_a_block_the_qr_cuts():
     rng = np.random.default_rng(11)
-    rcond = zhang2017.UNDETERMINED_RCOND
+    rcond = lever_arm.UNDETERMINED_RCOND
     certified = cut = 0
     for trial in range(3000):
         n = int(rng.integers(1, 12))
@@ -110,7 +112,7 @@ def test_certificate_never_vouches_for_a_block_the_qr_cuts():
             X *= 10 ** rng.uniform(-6, 6, size=3)
         elif kind == 5 and rng.random() < 0.2:
             X[0, 0, 0] = np.nan
-        sure = zhang2017._certify_determined([(X, np.zeros((3, n)))], rcond) is not None
+        sure = lever_arm._certify_determined([(X, np.zeros((3, n)))], rcond) is not None
         keeps = all(_qr_keeps_all(X[i : i + 1].repeat(3, axis=0), rcond) for i in range(3))
         assert not (sure and not keeps), trial
         certified += sure
@@ -130,6 +132,6 @@ def test_stacked_blocks_have_the_former_values_and_layout():
     }
     for name, per_session in cases.items():
         former = np.stack([np.stack([X[i] for i in range(3)]) for X in per_session])
-        got = zhang2017._stack_blocks(per_session)
+        got = lever_arm._stack_blocks(per_session)
         assert got.strides == former.strides, name
         assert got.tobytes() == former.tobytes(), name

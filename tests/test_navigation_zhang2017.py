@@ -4,15 +4,16 @@ and the navigation benefit of the lever-arm compensation."""
 import numpy as np
 import pytest
 
-from calib_core import protocols
-from calib_core.navigation import (
+from calib_core.models.zhang2017 import fit_accel_static, fit_lever_arm
+from calib_core.sim import protocols
+from calib_core.sim.accel_unit import AccelUnitTruth
+from calib_core.sim.navigation import (
     TurntableTrajectory,
     integrate_attitude,
     integrate_navigation,
     simulate_navigation,
 )
-from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import AccelUnitTruth, fit_accel_static, fit_lever_arm
+from calib_core.sim.simulator import simulate_step_means
 
 from conftest import PAPER_NOISE, random_unit
 
@@ -84,8 +85,8 @@ def test_lever_arm_compensation_10x_better_than_static_only(traj):
 
 
 def test_navigation_impact_replays_the_fitted_unit():
-    from calib_core.navigation import navigation_impact
-    from calib_core.reproduction.zhang2017 import paper_truth
+    from calib_core.paper.zhang2017 import paper_truth
+    from calib_core.sim.navigation import navigation_impact
 
     t = paper_truth()
     sm = simulate_step_means(

@@ -20,7 +20,6 @@ from calib_core.outliers import (
     flag_lots,
     robust_scale,
     robust_z,
-    robust_z_threshold,
 )
 from schemas.limits import config_from_toml
 
@@ -81,7 +80,7 @@ def test_mad_zero_falls_back_to_mean_absolute_deviation():
     assert np.all(robust_z(np.full(7, 3.0)) == 0.0)
 
 
-def test_identical_units_are_never_flagged():
+def test_identical_units_are_never_flagged(thresholds):
     df = pd.DataFrame(
         [
             {
@@ -96,11 +95,11 @@ def test_identical_units_are_never_flagged():
             for i in range(8)
         ]
     )
-    lf = flag_lot(df)
+    lf = flag_lot(df, thresholds=thresholds)
     assert lf.robust and lf.flags == []
 
 
-def test_small_lot_gets_no_robust_flags_but_limits_apply():
+def test_small_lot_gets_no_robust_flags_but_limits_apply(thresholds):
     df = pd.DataFrame(
         [
             {
@@ -116,17 +115,17 @@ def test_small_lot_gets_no_robust_flags_but_limits_apply():
         ]
     )
     cfg = config_from_toml("[limits.gyro.k_g11]\nmax = 1.2\n")
-    lf = flag_lots(df, cfg)[0]
+    lf = flag_lots(df, cfg, thresholds=thresholds)[0]
     assert not lf.robust and "fewer than 5" in lf.note
     assert [(f.unit, f.kind) for f in lf.flags] == [("U3", KIND_LIMIT)]
     assert "above limit max 1.2" in lf.flags[0].reason
 
 
-def test_threshold_controls_family_wise_rate_independently_checked():
-    thr = robust_z_threshold(20, 24, 3.5, 0.01)
+def test_threshold_controls_family_wise_rate_independently_checked(thresholds):
+    thr = thresholds.robust_z(20, 24, 3.5, 0.01)
     assert thr > 3.5
-    assert robust_z_threshold((20, 20, 20), 24) == pytest.approx(5.99, abs=0.25)
-    assert robust_z_threshold(20, 24, 3.5, 0.0) == 3.5
+    assert thresholds.robust_z((20, 20, 20), 24) == pytest.approx(5.99, abs=0.25)
+    assert thresholds.robust_z(20, 24, 3.5, 0.0) == 3.5
     # independent check: 4000 clean lots of 20 Gaussian units x 24 parameters; the chance a
     # lot gets any |z| > thr should be about 0.01 (binomial sd ~0.0016)
     rng = np.random.default_rng(7)
@@ -139,7 +138,7 @@ def test_threshold_controls_family_wise_rate_independently_checked():
     assert (np.abs(x - med) / mad > 3.5).any(axis=(1, 2)).mean() > 0.9
 
 
-def test_clean_fleets_are_left_alone_and_outliers_found():
+def test_clean_fleets_are_left_alone_and_outliers_found(thresholds):
     rng = np.random.default_rng(11)
     false_units, missed = 0, 0
     for _ in range(12):
@@ -147,7 +146,7 @@ def test_clean_fleets_are_left_alone_and_outliers_found():
             (int(rng.integers(3)), int(rng.integers(20)), int(rng.integers(len(PARAMS)))) for _ in range(2)
         }
         df, truth = gaussian_fleet(rng, outliers=picks, shift_sd=12.0)
-        got = flagged(flag_lots(df))
+        got = flagged(flag_lots(df, thresholds=thresholds))
         false_units += len(got - truth)
         missed += len(truth - got)
     # 12 fleets at family alpha 0.01 each: ~0.12 false units expected
@@ -155,19 +154,19 @@ def test_clean_fleets_are_left_alone_and_outliers_found():
     assert missed == 0
 
 
-def test_plain_per_lot_rule_floods_clean_units():
+def test_plain_per_lot_rule_floods_clean_units(thresholds):
     rng = np.random.default_rng(12)
     plain = OutlierConfig(family_alpha=0.0, scale_pool="lot")
     # ~7 false units per clean fleet of 3 x 20 units x 24 parameters (0.0975 per lot and
     # parameter, independent check above); 4 fleets: ~28
-    n = sum(len(flagged(flag_lots(gaussian_fleet(rng)[0], plain))) for _ in range(4))
+    n = sum(len(flagged(flag_lots(gaussian_fleet(rng)[0], plain, thresholds=thresholds))) for _ in range(4))
     assert n >= 12
 
 
-def test_flag_reason_names_parameter_value_median_and_score():
+def test_flag_reason_names_parameter_value_median_and_score(thresholds):
     rng = np.random.default_rng(3)
     df, truth = gaussian_fleet(rng, lots=1, outliers={(0, 4, 0)}, shift_sd=30.0)
-    lf = flag_lots(df)[0]
+    lf = flag_lots(df, thresholds=thresholds)[0]
     robust = [f for f in lf.flags if f.kind == KIND_ROBUST]
     assert {f.unit for f in robust} == truth
     f = robust[0]
@@ -184,19 +183,19 @@ def test_flag_reason_names_parameter_value_median_and_score():
     assert row.lot_median == pytest.approx(med)
 
 
-def test_spread_flag_needs_enough_reps():
+def test_spread_flag_needs_enough_reps(thresholds):
     rng = np.random.default_rng(5)
     df, _ = gaussian_fleet(rng, lots=1)
     sel = (df.unit == "U00007") & (df.parameter == "w0_z")
     df.loc[sel, "std"] *= 10.0
-    lf = flag_lots(df)[0]
+    lf = flag_lots(df, thresholds=thresholds)[0]
     spread = [f for f in lf.flags if f.kind == KIND_SPREAD]
     assert [(f.unit, f.parameter) for f in spread] == [("U00007", "w0_z")]
     assert spread[0].score == pytest.approx(
         df.loc[sel, "std"].iloc[0] / np.median(df[df.parameter == "w0_z"]["std"])
     )
     df.loc[sel, "n_reps"] = 2  # a std from two reps says too little
-    assert not [f for f in flag_lots(df)[0].flags if f.kind == KIND_SPREAD]
+    assert not [f for f in flag_lots(df, thresholds=thresholds)[0].flags if f.kind == KIND_SPREAD]
 
 
 def test_toml_config_and_errors():

@@ -29,6 +29,7 @@ def test_without_a_pool_the_work_runs_here():
     assert cp.run_in_pool(_pid_and_square, 3) == (os.getpid(), 9)
 
 
+@pytest.mark.slow
 def test_work_runs_in_worker_processes_and_the_pool_is_closed_after():
     with cp.compute_pool(2):
         assert cp.active()

@@ -12,9 +12,9 @@ import pyarrow.parquet as pq
 import pytest
 from scipy import linalg
 
-from calib_core import protocols
+from calib_core.discovery.plan import NOMINAL_SIGMA, step_context
 from calib_core.effects import catalogue, get_effect
-from calib_core.plan import NOMINAL_SIGMA, step_context
+from calib_core.sim import protocols
 from flows.cli import main
 from schemas.writer import steps_table
 

@@ -20,11 +20,11 @@ from flows import runtime
 
 runtime.ensure_environment()
 
-from calib_core.simulator import typical_truth  # noqa: E402
+from calib_core.figure_statistics import lot_trends  # noqa: E402
+from calib_core.sim.simulator import typical_truth  # noqa: E402
 from flows import fleet_sim  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
-from reports.history import history_frame  # noqa: E402
-from reports.index import lot_trends  # noqa: E402
+from reports.history import KEY_ELEMENTS, history_frame  # noqa: E402
 from reports.store import StoreView  # noqa: E402
 from schemas.results_store import ResultsStore  # noqa: E402
 
@@ -212,7 +212,7 @@ def test_acquisition_time_drives_at_trends_and_a_copy_is_unchanged(fleet, capsys
     assert "session_start" in err  # the time it goes by
     # after the rerun of U0004 the lot's trend point is the median over all 20 units
     view = StoreView(results)
-    tr = lot_trends(history_frame(view)).set_index("lot")
+    tr = lot_trends(history_frame(view), [e[1] for e in KEY_ELEMENTS]).set_index("lot")
     assert tr.loc["L01", "n_units"] == 20 and tr.loc["L02", "n_units"] == 6
     summary = ResultsStore(results).read("summary")
     kg = summary.query("lot == 'L01' and model == 'gyro' and parameter == 'k_g11'")["mean"]

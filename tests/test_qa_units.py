@@ -19,7 +19,6 @@ from calib_core.outliers import (
     OutlierConfig,
     OutlierConfigError,
     flag_lots,
-    history_z_threshold,
 )
 from schemas.calibration_file import dumps_json, qa_of, save_calibration, set_qa_status
 from schemas.limits import LimitsError, config_from_toml
@@ -95,31 +94,31 @@ def _summary(values: dict[str, np.ndarray], uom: str = "g") -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def test_a_limit_in_mg_flags_by_the_stored_g_value_and_names_the_written_limit():
+def test_a_limit_in_mg_flags_by_the_stored_g_value_and_names_the_written_limit(thresholds):
     cfg = config_from_toml('[limits]\nf0_y = {min = "-7 mg", max = "7 mg"}\n')
     df = _summary({"L": np.array([0.001, -0.002, 0.0075, 0.003, -0.0071, 0.0])})
-    lf = flag_lots(df, cfg)[0]
+    lf = flag_lots(df, cfg, thresholds=thresholds)[0]
     hits = sorted((f.unit, f.kind) for f in lf.flags)
     assert hits == [("L-U2", KIND_LIMIT), ("L-U4", KIND_LIMIT)]
     assert all("-7 mg .. 7 mg" in f.reason and " g " in f.reason for f in lf.flags)
 
 
-def test_a_limit_is_not_applied_to_values_stored_in_another_unit():
+def test_a_limit_is_not_applied_to_values_stored_in_another_unit(thresholds):
     cfg = config_from_toml("[limits]\nk_a11 = {min = 0.99, max = 1.01}\n")
     df = _summary({"L": np.array([0.5, 0.6, 0.55, 0.52, 0.58])}, uom="g per LSB")
     df["parameter"] = "k_a11"
-    lf = flag_lots(df, cfg)[0]
+    lf = flag_lots(df, cfg, thresholds=thresholds)[0]
     assert lf.flags == [] and "limit of accel.k_a11 not applied" in lf.note
     df["unit_of_measure"] = "g per g"  # dimensionless: the limit applies
-    assert {f.kind for f in flag_lots(df, cfg)[0].flags} == {KIND_LIMIT}
+    assert {f.kind for f in flag_lots(df, cfg, thresholds=thresholds)[0].flags} == {KIND_LIMIT}
 
 
 # --- small lots against the fleet history ---------------------------------------------------
-def test_history_threshold_has_its_designed_false_rate_in_an_independent_simulation():
+def test_history_threshold_has_its_designed_false_rate_in_an_independent_simulation(thresholds):
     # one parameter, alpha 0.05: a clean lot of 6 exceeds the threshold 5 % of the time
     groups, n = (20, 20), 6
     for location in ("lot", "history"):
-        thr = history_z_threshold(groups, n, 1, 0.1, 0.05, location)
+        thr = thresholds.history_z(groups, n, 1, 0.1, 0.05, location)
         rng = np.random.default_rng(99)
         m = 20_000
         hits = 0
@@ -163,14 +162,16 @@ def _fleet(rng, n_small: int, shift: float, offset: float = 0.0):
     return pd.DataFrame(rows), times
 
 
-def test_small_lot_finds_a_shift_its_own_lot_misses_and_says_which_reference():
+def test_small_lot_finds_a_shift_its_own_lot_misses_and_says_which_reference(thresholds):
     rng = np.random.default_rng(5)
     found = {"own": 0, "history": 0}
     for _ in range(20):
         df, times = _fleet(rng, 6, 6.0)
         # the lot judged alone: what a small fleet of small lots had before the history
-        own = flag_lots(df[df["lot"] == "T"], OutlierConfig(history_units=0), ["T"], times)[0]
-        hist = flag_lots(df, OutlierConfig(), ["T"], times)[0]
+        own = flag_lots(
+            df[df["lot"] == "T"], OutlierConfig(history_units=0), ["T"], times, thresholds=thresholds
+        )[0]
+        hist = flag_lots(df, OutlierConfig(), ["T"], times, thresholds=thresholds)[0]
         assert own.reference == "lot" and hist.reference == "fleet history"
         assert "(E0, E1)" in hist.reference_detail
         n_good = int(hist.reference_detail.split(" good units")[0].rsplit(" ", 1)[1])
@@ -184,22 +185,22 @@ def test_small_lot_finds_a_shift_its_own_lot_misses_and_says_which_reference():
     assert found["own"] <= 2 and found["history"] >= 10, found
 
 
-def test_history_is_not_used_for_big_lots_or_without_earlier_lots():
+def test_history_is_not_used_for_big_lots_or_without_earlier_lots(thresholds):
     rng = np.random.default_rng(6)
     df, times = _fleet(rng, 25, 0.0)
-    assert flag_lots(df, OutlierConfig(), ["T"], times)[0].reference == "lot"
+    assert flag_lots(df, OutlierConfig(), ["T"], times, thresholds=thresholds)[0].reference == "lot"
     df, times = _fleet(rng, 6, 0.0)
     first = {k: v for k, v in times.items()}
     for k in first:  # every lot acquired at once: none is earlier
         times[k] = 0.0
-    assert flag_lots(df, OutlierConfig(), ["T"], times)[0].reference == "lot"
+    assert flag_lots(df, OutlierConfig(), ["T"], times, thresholds=thresholds)[0].reference == "lot"
 
 
-def test_a_lot_offset_flags_the_whole_lot_only_with_the_history_median():
+def test_a_lot_offset_flags_the_whole_lot_only_with_the_history_median(thresholds):
     rng = np.random.default_rng(8)
     df, times = _fleet(rng, 8, 0.0, offset=8.0)  # the small lot's mean 8 sd away
-    by_lot = flag_lots(df, OutlierConfig(), ["T"], times)[0]
-    by_hist = flag_lots(df, OutlierConfig(history_location="history"), ["T"], times)[0]
+    by_lot = flag_lots(df, OutlierConfig(), ["T"], times, thresholds=thresholds)[0]
+    by_hist = flag_lots(df, OutlierConfig(history_location="history"), ["T"], times, thresholds=thresholds)[0]
     assert by_lot.flags == []
     assert len({f.unit for f in by_hist.flags}) == 8
 
@@ -260,9 +261,9 @@ def test_apply_refuses_gravity_in_m_s2_for_a_g_calibration_and_converts_when_tol
 
 
 def test_the_limits_table_knows_every_parameter_a_calibration_produces():
-    from calib_core.pipeline import calibrate_repetition
-    from calib_core.protocols import default_session
-    from calib_core.simulator import simulate_step_means, typical_truth
+    from calib_core.models.pipeline import calibrate_repetition
+    from calib_core.sim.protocols import default_session
+    from calib_core.sim.simulator import simulate_step_means, typical_truth
     from schemas.limits import PARAMETERS, STORED_UNIT
 
     rng = np.random.default_rng(3)

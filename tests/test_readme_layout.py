@@ -3,7 +3,7 @@
 The table is the ``| path | what |`` table under ``## Layout``. A row's path is a directory
 (``calib_core/sim/``) or a file; a package row covers the modules in it, so adding a module
 needs no README change, adding a package needs its row. Paths named in a row's text in
-backticks (``steps.py``, ``reproduction/``) are read relative to the row's path, or relative to
+backticks (``steps.py``, ``paper/``) are read relative to the row's path, or relative to
 the repository when they contain a ``/`` before their end (``flows/cli.py``); each must exist.
 Packages are the directories with an ``__init__.py`` under the packages the wheel ships
 (``[tool.setuptools.packages.find] include`` in pyproject.toml).

@@ -80,9 +80,9 @@ def test_xsens_nothing_else_and_untestable_terms_reported(xsens):
 
 
 def test_xsens_estimate_agrees_with_the_independent_static_fit(xsens):
-    """calib_core.field's own least-squares fit of b + S f on the pose samples (not the
+    """calib_core.models.field.imu_tk's own least-squares fit of b + S f on the pose samples (not the
     catalogue) gives the same matrix, per gyro, within the reported standard errors."""
-    from calib_core.field import fit_static_gyro_g_sensitivity
+    from calib_core.models.field.imu_tk import fit_static_gyro_g_sensitivity
     from schemas.importers import read_imutk_pair
 
     cal, poses, d = xsens

@@ -16,7 +16,7 @@ import pytest
 
 from calib_core.effects import MotionContext, get_effect
 from calib_core.errors import DesignError
-from calib_core.ferraris import FERRARIS_SECTIONS, ferraris_calibration
+from calib_core.models.ferraris import FERRARIS_SECTIONS, ferraris_calibration
 from schemas.calibration_file import load_calibration, save_calibration
 from schemas.importers import IMUCAL_G, read_imucal_csv, read_section_list
 
@@ -198,9 +198,9 @@ def test_turntable_style_fit_of_the_six_poses_agrees(ours):
     squares) on the six static poses with their nominal +/-1 g references. It must agree with
     the Ferraris matrices within its own standard errors (3 sigma); f0 differs because
     Ferraris uses only the diagonal of the pose sums (measured 0.6-1.9 sigma, 0.4-1.4 mg)."""
-    from calib_core.ferraris import section_pose_means
+    from calib_core.models.ferraris import section_pose_means
+    from calib_core.models.xu2016 import fit_accel_multiposition
     from calib_core.steps import SessionKey, StepMeans
-    from calib_core.xu2016 import fit_accel_multiposition
 
     rec, fit = ours
     pm = section_pose_means(rec.t, rec.gyro, rec.accel, read_section_list(SECTIONS))

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calib_core.field import field_calibration, misalignment
-from calib_core.static_detection import detect_static, moving_variance_magnitude
+from calib_core.models.field.imu_tk import field_calibration, misalignment
+from calib_core.models.field.static_detection import detect_static, moving_variance_magnitude
 
 G_LOCAL = 9.81
 RATE = 100.0

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from calib_core.field import (
+from calib_core.models.field.imu_tk import (
     accel_matrix,
     field_calibration,
     fit_accel_field,
     fit_gyro_field,
     fit_static_gyro_g_sensitivity,
 )
-from calib_core.static_detection import detect_static
+from calib_core.models.field.static_detection import detect_static
 from schemas.calibration_file import load_calibration, save_calibration
 from schemas.importers import IMUTK_G, read_imutk_pair
 

@@ -119,6 +119,7 @@ def test_cli_ferraris_on_the_imucal_session(tmp_path, capsys):
     assert "--rate" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @need_real
 def test_cli_field_on_the_xsens_recording(tmp_path):
     out, poses = tmp_path / "field.json", tmp_path / "poses.csv"

@@ -1,4 +1,4 @@
-"""The re-flag after an update re-flags only the lots that can have changed (flows.nightly's
+"""The re-flag after an update re-flags only the lots that can have changed (schemas.flagging's
 flag state, cache/flag_state.parquet) and leaves the store exactly as a re-flag of every lot:
 compared file by file with a store re-flagged in full, when the pooled scales stay, when they
 move and another lot's flag changes, when a lot's files changed behind the state's back, and
@@ -15,7 +15,7 @@ from flows import runtime
 runtime.ensure_environment()
 
 from calib_core.outliers import OutlierConfig, pooled_scales  # noqa: E402
-from flows import nightly  # noqa: E402
+from schemas import flagging  # noqa: E402
 from schemas.results_store import ResultsStore  # noqa: E402
 
 LOTS = ["L1", "L2", "L3"]
@@ -83,7 +83,7 @@ def _store(root, summary: pd.DataFrame) -> ResultsStore:
     store = ResultsStore(root)
     store.write("summary", summary)
     store.write("units", _units(summary))
-    nightly.reflag_after_update(store, LOTS, CFG)
+    flagging.reflag_after_update(store, LOTS, CFG)
     assert store.flag_state_path.exists()
     return store
 
@@ -109,13 +109,13 @@ class _FullReflags:
 
     def __init__(self, monkeypatch):
         self.calls = 0
-        full = nightly._reflag
+        full = flagging._reflag
 
         def spy(*args, **kwargs):
             self.calls += 1
             return full(*args, **kwargs)
 
-        monkeypatch.setattr(nightly, "_reflag", spy)
+        monkeypatch.setattr(flagging, "_reflag", spy)
 
 
 def _rerun_both(
@@ -131,9 +131,9 @@ def _rerun_both(
         _update(store, changed, lot, unit)
     full.flag_state_path.unlink()
     spy = _FullReflags(monkeypatch)
-    got = nightly.reflag_after_update(fast, [lot], CFG)
+    got = flagging.reflag_after_update(fast, [lot], CFG)
     calls = spy.calls
-    want = nightly.reflag_after_update(full, [lot], CFG)
+    want = flagging.reflag_after_update(full, [lot], CFG)
     assert spy.calls == calls + 1  # the store without a state was re-flagged in full
     spy.calls = calls
     return got, want, spy, fast, full
@@ -144,7 +144,7 @@ def _same(got, want, fast: ResultsStore, full: ResultsStore) -> None:
     assert got[1] == want[1]
     assert _files(fast) == _files(full)  # byte for byte, every lot of both tables
     # and the state left behind describes the store: the next re-flag re-flags nothing else
-    assert nightly._lot_files(fast) == fast.read_flag_state()[1]["files"]
+    assert flagging._lot_files(fast) == fast.read_flag_state()[1]["files"]
 
 
 def test_scales_unchanged_only_the_touched_lot_is_reflagged(tmp_path, monkeypatch):
@@ -231,7 +231,7 @@ def test_without_a_usable_state_every_lot_is_reflagged(tmp_path, monkeypatch, da
         OutlierConfig(family_alpha=0.0, z_threshold=3.0, history_units=0) if damage == "other config" else CFG
     )
     spy = _FullReflags(monkeypatch)
-    nightly.reflag_after_update(store, ["L1"], cfg)
+    flagging.reflag_after_update(store, ["L1"], cfg)
     assert spy.calls == 1
-    nightly.reflag_after_update(store, ["L1"], cfg)  # the state is back
+    flagging.reflag_after_update(store, ["L1"], cfg)  # the state is back
     assert spy.calls == 1

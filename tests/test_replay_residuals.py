@@ -8,11 +8,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.calibration import Calibration, TermValue
+from calib_core.discovery.replay import REPLAY_COLUMNS, estimate_noise, replay_session, replay_unit
 from calib_core.effects import get_effect
-from calib_core.replay import REPLAY_COLUMNS, estimate_noise, replay_session, replay_unit
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
 
 STEPS = protocols.default_session()
@@ -114,7 +114,7 @@ def test_single_repetition_falls_back_to_white_noise():
 def test_xu2016_replay_shows_what_the_difference_method_cannot_see():
     """A quadratic z gyro error cancels in xu2016's +/- differences (its K is unbiased) but
     the replay of every step shows it, growing with rate; a clean unit replays to noise."""
-    from calib_core.replay import replay_xu2016, summarise_residuals
+    from calib_core.discovery.replay import replay_xu2016, summarise_residuals
 
     def unit(effects, seed):
         rng = np.random.default_rng(seed)

@@ -15,12 +15,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from calib_core import protocols
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation import OUT_OF_CATALOGUE
 from calib_core.discovery.evaluation_ident import quiet_gyros
 from calib_core.discovery.presentation import finding_rows
 from calib_core.effects import get_effect
+from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from reports.browser import Chromium, find_chromium
 from reports.lot import write_lot_report

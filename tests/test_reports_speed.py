@@ -13,9 +13,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from calib_core.figure_statistics import residual_envelope
 from reports.html import DASH, MINUS, fmt, td_numbers
 from reports.lot import render_lot_report
-from reports.sections import LotContext, ResidualIndex, _rep_stats, aggregate_residuals
+from reports.sections import LotContext, ResidualIndex
 from reports.store import StoreView
 from reports.synthetic import build_synthetic_store
 from reports.unit import navigation_figure
@@ -58,21 +59,6 @@ def _unit_block(text: str, unit: str) -> str:
     return text[start : text.index("</details>", start)]
 
 
-def test_rep_stats_equal_row_by_row_numpy():
-    rng = np.random.default_rng(4)
-    V = rng.normal(1.0, 1e-3, (40, 6))
-    S = np.abs(rng.normal(1e-4, 1e-5, (40, 6)))
-    V[3, 2] = V[7, :5] = V[9, :] = np.nan  # missing repetitions, one row empty
-    S[5, 0] = S[9, :] = np.nan
-    avg, spread, mean_se = _rep_stats(V, S)
-    for k in range(len(V)):
-        v = V[k][np.isfinite(V[k])]
-        s = S[k][np.isfinite(S[k])]
-        assert (avg[k] == np.mean(v)) if len(v) else np.isnan(avg[k])
-        assert (spread[k] == np.std(v, ddof=1)) if len(v) > 1 else np.isnan(spread[k])
-        assert (mean_se[k] == np.sqrt(np.sum(s**2)) / len(s)) if len(s) else np.isnan(mean_se[k])
-
-
 @pytest.mark.parametrize("decimals", [None, 0, 3, 6])
 def test_td_numbers_is_fmt_per_cell(decimals):
     rng = np.random.default_rng(5)
@@ -109,7 +95,7 @@ def test_residual_order_is_pandas_sort_order():
             "residual": rng.normal(size=n),
         }
     )
-    a = aggregate_residuals(res)
+    a = residual_envelope(res)
     ri = ResidualIndex(a)
     for unit in ("U1", "U2"):
         d = a[a["unit"] == unit]

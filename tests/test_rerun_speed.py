@@ -14,6 +14,7 @@ from flows import runtime
 
 runtime.ensure_environment()
 
+from calib_core.flag_decisions import lots_with_new_flags  # noqa: E402
 from flows import nightly  # noqa: E402
 from reports.index import write_fleet_index  # noqa: E402
 from reports.lot import write_lot_report  # noqa: E402
@@ -71,7 +72,7 @@ def test_changed_lots_are_the_lots_the_store_would_rewrite(tmp_path):
     after.loc[d, "lot_median"] = np.nan  # a value became missing
     # C, E, F: the same values (F's NaN scores stay NaN)
     expected = ["A", "B", "D"]
-    assert nightly._lots_with_new_flags(before, after) == expected
+    assert lots_with_new_flags(before, after) == expected
     # the store's own decision (skip_unchanged against the frame read) agrees
     assert sorted(store.write("summary", after, skip_unchanged=True, previous=before)) == expected
 
@@ -79,7 +80,7 @@ def test_changed_lots_are_the_lots_the_store_would_rewrite(tmp_path):
 def test_changed_lots_missing_flag_column_means_every_lot():
     before = _summary(np.random.default_rng(4), ["A", "B"]).drop(columns=["score"])
     after = before.assign(score=0.0)
-    assert nightly._lots_with_new_flags(before, after) == ["A", "B"]
+    assert lots_with_new_flags(before, after) == ["A", "B"]
 
 
 def _normalised(text: str) -> str:

@@ -8,9 +8,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.errors import DesignError
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
 from schemas import errors as E
 from schemas.averaging import read_step_means

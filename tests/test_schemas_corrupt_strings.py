@@ -7,7 +7,7 @@ from __future__ import annotations
 import pyarrow as pa
 import pytest
 
-from calib_core import protocols
+from calib_core.sim import protocols
 from schemas.errors import E_UNREADABLE_FILE, SessionError
 from schemas.reader import validate_steps
 

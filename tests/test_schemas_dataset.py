@@ -10,8 +10,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_SCHEMA, STEPS_SCHEMA
 from schemas.dataset import find_sessions, fingerprint

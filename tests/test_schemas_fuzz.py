@@ -11,8 +11,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from calib_core import protocols
-from calib_core import simulator as sim
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
 from schemas.averaging import read_step_means, step_means_from_tables
 from schemas.dataset import SessionRef
@@ -96,6 +96,7 @@ def test_table_mutations_are_an_error_or_finite(column, rows, value, drop):
     check_outcome(lambda: step_means_from_tables(KEY, STEPS, table, MD))
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None)
 @given(
     key=st.sampled_from(

@@ -14,8 +14,8 @@ import pandas as pd
 import pyarrow as pa
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
 from schemas import averaging
 from schemas.averaging import average_session, read_step_means

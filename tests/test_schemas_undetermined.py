@@ -9,11 +9,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
 from calib_core.errors import DesignError
+from calib_core.models.xu2016 import fit_gyro_multirate
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
-from calib_core.xu2016 import fit_gyro_multirate
 from schemas.averaging import read_step_means
 from schemas.dataset import SessionRef
 from schemas.errors import E_UNDETERMINED, W_SATURATED, from_design_error

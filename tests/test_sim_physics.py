@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from calib_core.protocols import default_session, to_frame, xu2016_multirate
+from calib_core.models.xu2016 import fit_accel_multiposition, fit_gyro_multirate
 from calib_core.sim.physics import (
     EARTH_RATE_DPS,
     Turntable,
@@ -18,7 +18,7 @@ from calib_core.sim.physics import (
     simulate_physics_session,
     typical_physics_unit,
 )
-from calib_core.xu2016 import fit_accel_multiposition, fit_gyro_multirate
+from calib_core.sim.protocols import default_session, to_frame, xu2016_multirate
 from schemas.physics_sessions import physics_unit_step_means
 
 G = 9.80665

@@ -9,8 +9,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from calib_core import protocols
-from calib_core import simulator as sim
+from calib_core.sim import protocols
+from calib_core.sim import simulator as sim
 from flows.cli import main
 from flows.fleet_sim import BAD_KINDS, UNIT_SPREAD, simulate_fleet
 from schemas.averaging import read_step_means
@@ -214,7 +214,7 @@ def test_a_units_data_do_not_depend_on_the_fleet_size(tmp_path):
 def test_fits_on_the_files_recover_the_manifest_truth(tmp_path):
     """Files in rad/s and m/s^2 -> reader -> xu2016 fits: K_g and K_a equal the manifest's
     truth (inside units) within 5 standard errors."""
-    from calib_core.xu2016 import fit_accel_multiposition, fit_gyro_multirate
+    from calib_core.models.xu2016 import fit_accel_multiposition, fit_gyro_multirate
 
     m = simulate_fleet(
         tmp_path,

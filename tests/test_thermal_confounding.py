@@ -8,12 +8,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.discovery import diagnose_unit
 from calib_core.discovery.evaluation_ident import sensor_effect_scenario
+from calib_core.discovery.identifiability import analyse, near_confounded
+from calib_core.discovery.plan import (
+    TEMPERATURE_CHANGES,
+    _curved_warm_up,
+    _with_temperature,
+    advise,
+    design,
+    plan,
+)
 from calib_core.effects import get_effect
-from calib_core.identifiability import analyse, near_confounded
-from calib_core.plan import TEMPERATURE_CHANGES, _curved_warm_up, _with_temperature, advise, design, plan
+from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, WarmUp, typical_physics_unit
 from flows.commands.diagnose import summary_lines
 from schemas.physics_sessions import physics_unit_step_means

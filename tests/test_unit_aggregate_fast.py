@@ -12,10 +12,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from calib_core import protocols
-from calib_core.pipeline import calibrate_repetitions
+from calib_core.models.pipeline import calibrate_repetitions
+from calib_core.models.xu2016 import AXES
 from calib_core.results import Param, RepetitionCalibration, param_list, summarise
-from calib_core.xu2016 import AXES
+from calib_core.sim import protocols
 
 from conftest import STEPS_WITH_VERIFICATION, unit_step_means
 
@@ -50,9 +50,11 @@ def test_summarise_known_numbers():
     assert (a.model, a.name, a.unit, a.n_reps, a.values) == ("m", "a", "u", 3, (1.0, 2.0, 3.0))
     assert (a.mean, a.std, a.min, a.max) == (2.0, 1.0, 1.0, 3.0)
     assert a.mean_stderr == pytest.approx(0.2, rel=1e-15)  # the NaN stderr left out
+    # sqrt(0.1^2 + 0.3^2) / 2 over the two repetitions with a standard error
+    assert a.stderr_of_mean == pytest.approx(math.sqrt(0.1) / 2, rel=1e-15)
     assert (b.n_reps, b.values, b.mean, b.min, b.max) == (2, (10.0, 20.0), 15.0, 10.0, 20.0)
     assert b.std == pytest.approx(math.sqrt(50.0), rel=1e-15)
-    assert math.isnan(b.mean_stderr)  # no repetition has a standard error
+    assert math.isnan(b.mean_stderr) and math.isnan(b.stderr_of_mean)  # no repetition has one
     one = summarise(reps[:1])[0]
     assert one.n_reps == 1 and one.mean == 3.0 and math.isnan(one.std)
     assert summarise([]) == []
@@ -78,6 +80,11 @@ def _by_definition(reps):
             min=v.min(),
             max=v.max(),
             mean_stderr=np.nanmean(se) if np.isfinite(se).any() else np.nan,
+            stderr_of_mean=(
+                np.sqrt(np.sum(se[np.isfinite(se)] ** 2)) / np.isfinite(se).sum()
+                if np.isfinite(se).any()
+                else np.nan
+            ),
         )
     return out
 
@@ -89,9 +96,23 @@ def _check(summaries, reps) -> None:
         e = expected[(s.model, s.name)]
         assert (s.unit, s.n_reps) == (e["unit"], e["n_reps"])
         np.testing.assert_allclose(s.values, e["values"], rtol=0, atol=0)
-        for stat in ("mean", "std", "min", "max", "mean_stderr"):
+        for stat in ("mean", "std", "min", "max", "mean_stderr", "stderr_of_mean"):
             np.testing.assert_allclose(getattr(s, stat), e[stat], rtol=1e-12, err_msg=stat)
         assert all(type(getattr(s, k)) is float for k in ("mean", "std", "min", "max"))
+
+
+def test_stderr_of_mean_matches_the_monte_carlo_spread_of_the_mean():
+    # five repetitions with unequal standard errors, each value drawn around the truth with
+    # its own: the spread of the mean over many draws is what stderr_of_mean predicts
+    rng = np.random.default_rng(2026)
+    se = np.array([0.5, 1.0, 1.0, 2.0, 3.0])
+    means = []
+    for _ in range(4000):
+        v = 10.0 + rng.normal(0.0, se)
+        (s,) = summarise([_rep(i + 1, ("a", float(x), float(e))) for i, (x, e) in enumerate(zip(v, se))])
+        means.append(s.mean)
+    assert np.std(means, ddof=1) == pytest.approx(s.stderr_of_mean, rel=0.05)
+    assert s.mean_stderr == pytest.approx(se.mean())  # another quantity: 1.5, not 0.86
 
 
 def test_summarise_fitted_repetitions():

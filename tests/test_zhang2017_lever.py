@@ -6,18 +6,17 @@ import json
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.effects import MotionContext
 from calib_core.errors import DesignError
-from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import (
-    AccelUnitTruth,
-    SensitiveAxisLeverArm,
+from calib_core.models.zhang2017 import (
     compensate_specific_force,
     fit_accel_static,
     fit_lever_arm,
     paper_lever_arm,
 )
+from calib_core.sim import protocols
+from calib_core.sim.accel_unit import AccelUnitTruth, SensitiveAxisLeverArm
+from calib_core.sim.simulator import simulate_step_means
 
 from conftest import PAPER_NOISE, paper_unit, random_unit
 
@@ -184,8 +183,8 @@ def _catalogue_truth(noise: bool):
     term."""
     from dataclasses import replace
 
-    from calib_core import simulator
     from calib_core.effects import get_effect
+    from calib_core.sim import simulator
 
     r = np.array([[8.0, 0.5, -0.3], [0.2, 8.0, 0.1], [-0.4, 0.3, 8.0]])
     # accelerometers on the body axes (xu2016's scales, no misalignment): the catalogue's

@@ -2,16 +2,18 @@
 paper's unit at the paper's noise (one loop: both stages per simulated session)."""
 
 import numpy as np
+import pytest
 
-from calib_core import protocols
-from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import fit_accel_static, fit_lever_arm
+from calib_core.models.zhang2017 import fit_accel_static, fit_lever_arm
+from calib_core.sim import protocols
+from calib_core.sim.simulator import simulate_step_means
 
 from conftest import PAPER_NOISE, paper_unit
 
 N_RUNS = 300  # std of a z-score std over 300 runs ~0.045: the 0.8-1.25 band is > 4 sigma wide
 
 
+@pytest.mark.slow
 def test_stderr_agree_with_monte_carlo_spread():
     u = paper_unit()
     mimu = u.to_mimu_truth(**PAPER_NOISE)

@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from calib_core.reproduction.zhang2017 import (
+from calib_core.paper.zhang2017 import (
     PUBLISHED_ANGLES_DEG,
     PUBLISHED_R_MM,
     PUBLISHED_SCALE_V_PER_G,

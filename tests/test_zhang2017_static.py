@@ -4,11 +4,8 @@ standard errors against Monte Carlo spread."""
 import numpy as np
 import pytest
 
-from calib_core import protocols
 from calib_core.errors import DesignError
-from calib_core.results import FitResult
-from calib_core.simulator import simulate_step_means
-from calib_core.zhang2017 import (
+from calib_core.models.zhang2017 import (
     C_from_angles,
     affine_from_parts,
     affine_to_static,
@@ -16,6 +13,9 @@ from calib_core.zhang2017 import (
     fit_accel_static,
     static_to_affine,
 )
+from calib_core.results import FitResult
+from calib_core.sim import protocols
+from calib_core.sim.simulator import simulate_step_means
 
 from conftest import PAPER_ANGLES, PAPER_NOISE, paper_unit, random_unit
 

@@ -168,6 +168,70 @@ def finding_rows(diag) -> list[dict[str, Any]]:
     return rows
 
 
+def static_finding_rows(diag, lot: str, unit: str) -> list[dict[str, Any]]:
+    """The store's ``discovery`` rows of a :class:`~calib_core.discovery.static.StaticDiagnosis`
+    (model discovery on a field recording's static poses): one ``named`` row per effect
+    kept, one ``unexplained`` row when a block's residual stays above its noise, else one
+    ``none`` row; the columns of :func:`finding_rows` (held-out rms in the block's unit)."""
+    unit_cols = {
+        "confounded_groups": "",
+        "partial_terms": "",
+        "negligible_terms": "",
+        "advice": f"static poses of field recording {diag.recording} (no turntable references)",
+    }
+    head = {"lot": lot, "unit": unit, "misfit": bool(diag.misfit), "unexplained": bool(diag.unexplained)}
+    rows = [
+        {
+            **head,
+            "effect": e.name,
+            "kind": "named",
+            "axes": ",".join(e.axes),
+            "channels": ",".join(e.channels),
+            "estimates": estimates_text(e),
+            "evidence": evidence_text(e.evidence),
+            "evidence_p": float(e.evidence.p_value),
+            "heldout_rms_before": float(e.heldout_rms_before),
+            "heldout_rms_after": float(e.heldout_rms_after),
+            "gain": float(e.gain),
+            "separated_by": "",
+            **unit_cols,
+        }
+        for e in diag.effects
+    ]
+    if diag.unexplained:
+        b = [
+            k
+            for k, v in diag.blocks.items()
+            if v.get("chi2_white_p_after", 1.0) < diag.alpha / len(diag.blocks)
+        ]
+        blk = diag.blocks[b[0]] if b else {}
+        before, after = (
+            blk.get("heldout_rms_before", float("nan")),
+            blk.get("heldout_rms_after", float("nan")),
+        )
+        rows.append(
+            {
+                **head,
+                "effect": "unexplained misfit",
+                "kind": "unexplained",
+                "axes": "",
+                "channels": ",".join(b),
+                "estimates": "",
+                "evidence": f"residual {blk.get('rms_over_white_after', float('nan')):.3g} x the white noise "
+                f"of a pose mean ({', '.join(b)})",
+                "evidence_p": float(blk.get("chi2_white_p_after", float("nan"))),
+                "heldout_rms_before": float(before),
+                "heldout_rms_after": float(after),
+                "gain": float(before / after) if after and after > 0 else float("nan"),
+                "separated_by": "",
+                **unit_cols,
+            }
+        )
+    if not rows:
+        rows.append({**head, "effect": None, "kind": "none", **unit_cols})
+    return rows
+
+
 def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
     """The series behind each figure, from the final :class:`_Discovery` ``d``: per finding
     (named, confounded; the misfit left for unexplained), per channel it was judged on, every
@@ -245,6 +309,4 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
 
 
 def _layout_ctx(d, r: int):
-    from calib_core.discovery.turntable import _layout
-
-    return _layout(d.sessions).ctx[r]
+    return d.layout.ctx[r]

@@ -103,7 +103,7 @@ class ConfoundedFinding:
     applied and no one of them is named. ``members``: each term fitted as if it were the whole
     explanation (with the unit's other chosen terms), what either reading would estimate;
     ``separated_by`` the step sets that would tell them apart
-    (:func:`calib_core.identifiability.separating_additions`)."""
+    (:func:`calib_core.discovery.identifiability.separating_additions`)."""
 
     terms: tuple[str, ...]
     members: tuple[EffectFinding, ...]
@@ -113,7 +113,7 @@ class ConfoundedFinding:
     channels: tuple[str, ...] = ()
     sin_angle: float = 0.0
     separated_by: tuple[str, ...] = ()
-    separable: bool = False  # the protocol sees a part of each (calib_core.plan.separable)
+    separable: bool = False  # the protocol sees a part of each (calib_core.discovery.plan.separable)
     heldout_unit: str = "sigma"
 
     @property

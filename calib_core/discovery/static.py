@@ -3,8 +3,8 @@
 The turntable discovery (:mod:`calib_core.discovery.turntable`) compares every step with a known
 reference. A hand-made session (Ferraris, IMU-TK field calibration) has no reference except
 what physics fixes at rest, so the *measured* quantities are the static poses' mean raw
-outputs (:func:`calib_core.static_detection.static_pose_means`,
-``FieldCalibrationResult.pose_means``, :func:`calib_core.ferraris.section_pose_means`) and
+outputs (:func:`calib_core.models.field.static_detection.static_pose_means`,
+``FieldCalibrationResult.pose_means``, :func:`calib_core.models.ferraris.section_pose_means`) and
 the baseline model is the calibration the recording's own method produced. At a static pose:
 
 * **gyro** reference: rate 0. The Earth rate (0.0042 deg/s at most, direction unknown here)
@@ -475,7 +475,7 @@ def diagnose_static(
 
     ``cal`` is the calibration the recording's method produced (its terms are part of the
     baseline and refitted with it); ``pose_means`` one row per static pose (see
-    :func:`calib_core.static_detection.static_pose_means`); ``alpha`` the family-wise
+    :func:`calib_core.models.field.static_detection.static_pose_means`); ``alpha`` the family-wise
     false-alarm rate of the recording; ``block_size`` consecutive poses left out together
     in the held-out score; ``candidates`` defaults to the whole catalogue."""
     poses = pose_means if isinstance(pose_means, StaticPoses) else StaticPoses.from_pose_means(pose_means)

@@ -12,25 +12,29 @@ every step of both sensors (gyro channels during multiposition steps and acceler
 channels during rotation steps included). Even-in-rate terms are visible because steps enter
 one by one, not as the +/- differences of xu2016 (which cancel them).
 
-Weights are 1/sigma of each step mean, estimated from the data (:mod:`calib_core.replay`):
+Weights are 1/sigma of each step mean, estimated from the data (:mod:`calib_core.discovery.replay`):
 within-step scatter plus the step-to-step scatter seen across repetitions.
 
 Tests (alpha is the family-wise false-alarm rate per unit, default 1%):
 
-- **misfit** (lack of fit): the residual of the model is split into *pure error* (what is
-  left after a free value per step and per repetition, i.e. the repetition-to-repetition
-  scatter) and *lack of fit* (the rest). F = (SS_lof/dof_lof) / (SS_pure/dof_pure) against
-  F(dof_lof, dof_pure). A systematic error common to the repetitions inflates SS_lof only.
+- **misfit** (lack of fit): the residual of the model is split into *pure error* (the
+  repetition-to-repetition scatter) and *lack of fit* (the mean over the repetitions the
+  model does not explain), both projected on the directions the model leaves free
+  (:meth:`_Discovery.projected_lack_of_fit`): F = (SS_lof/dof_lof) / (SS_pure/dof_pure)
+  against F with Satterthwaite dof. A systematic error common to the repetitions inflates
+  SS_lof only. "The unit misfits" is the union of the overall test (alpha / 4), the six
+  channels' (alpha / 24 each) and every candidate's targeted test (the same projected sums
+  with and without it, alpha / 2 over the candidates): at most alpha on a unit that fits.
 - **a term** T added to the current set S: F = (dSS/p) / (SS_pure/dof_pure) against
-  F(p, dof_pure) (p = rank gained), at alpha / (number of candidate terms) (Bonferroni over
-  the catalogue), *and* its leave-one-repetition-out held-out rms must drop (gain > 1).
+  F(p, dof_pure) (p = rank gained), at alpha / 2 / (number of candidate terms) (Bonferroni
+  over the catalogue), *and* its leave-one-repetition-out held-out rms must drop (gain > 1).
 - forward selection adds the most significant eligible term and repeats; a backward pass
   drops any chosen term no longer significant given the others.
 - a chosen term must fix at least one channel it acts on that misfit at baseline
-  (per-channel lack-of-fit test at alpha/6); a term that leaves all of them misfit only
+  (per-channel lack-of-fit test at alpha/24), or, when no channel misfits, be what makes the
+  unit misfit; a term that leaves all of them misfit only
   soaks up part of something else and is reported as a *partial* candidate, not an effect.
-- **misfit**: the baseline lack-of-fit test rejects, or a term was significant (a
-  targeted test is more powerful than the omnibus one).
+- **misfit**: the union test above rejects at baseline, or a term was chosen.
 - **unexplained**: the lack-of-fit test still rejects after selection, or a partial term was
   set aside.
 
@@ -52,7 +56,16 @@ import pandas as pd
 from scipy import stats
 
 from calib_core.calibration import Calibration, TermValue
+from calib_core.discovery.identifiability import Confounded, Identifiability, analyse, near_confounded
 from calib_core.discovery.presentation import evidence_frame
+from calib_core.discovery.replay import (
+    MIN_POOL_DOF,
+    NOISE_COLUMNS,
+    NoiseEstimate,
+    replay_unit,
+    test_group,
+    two_way_residual,
+)
 from calib_core.discovery.results import (
     DEFAULT_ALPHA,
     DEFAULT_MIN_GAIN,
@@ -65,20 +78,11 @@ from calib_core.discovery.results import (
 from calib_core.discovery.selection import stepwise
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.identifiability import Confounded, Identifiability, analyse, near_confounded
-from calib_core.replay import (
-    MIN_POOL_DOF,
-    NOISE_COLUMNS,
-    NoiseEstimate,
-    replay_unit,
-    test_group,
-    two_way_residual,
-)
 from calib_core.steps import StepMeans
 
 _RCOND = 1e-10
 # terms whose columns share a direction up to this sine of angle (the part of a column the
-# others do not explain is below 5 % of it) are tested together: calib_core.identifiability
+# others do not explain is below 5 % of it) are tested together: calib_core.discovery.identifiability
 CONFOUNDING_TOL = 0.05
 
 
@@ -120,10 +124,12 @@ class _UnitGrid:
         names: list[str],
         geometry: SensingGeometry | None = None,
         dropped: frozenset[int] = frozenset(),
+        layout: _Layout | None = None,
     ) -> _UnitGrid:
         """The unit's grid with the terms' columns through ``geometry`` (default: the
-        nominal one); ``dropped`` term columns (undetermined parameters) are left at 0."""
-        lay = _layout(sessions)
+        nominal one); ``dropped`` term columns (undetermined parameters) are left at 0.
+        ``layout``: the sessions' :func:`_layout` when the caller already has it."""
+        lay = layout if layout is not None else _layout(sessions)
         R, n = lay.real.shape
         raw = np.zeros((R, n, 6, 3))
         std = np.zeros((R, n, 6, 3))
@@ -177,7 +183,7 @@ class _UnitGrid:
 
     def white_sigma(self, K: np.ndarray) -> np.ndarray:
         """Within-step scatter of the step mean through the 6x3 gain rows K, (R, n, 6)
-        (:func:`calib_core.replay.white_sigma` for every repetition at once)."""
+        (:func:`calib_core.discovery.replay.white_sigma` for every repetition at once)."""
         return np.sqrt(np.einsum("rnck,ck->rnc", self.std**2, K**2)) / np.sqrt(self.count)[..., None]
 
     def _balanced_groups(self) -> tuple[np.ndarray, ...]:
@@ -199,7 +205,7 @@ class _UnitGrid:
     # -- pure error: the two-way (step x repetition) residual within each test group ------
     def two_way(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Two-way residual of X (..., R, n, k) per test group (a value per step and per
-        repetition removed, :func:`calib_core.replay.two_way_residual`), as rows (..., m, k),
+        repetition removed, :func:`calib_core.discovery.replay.two_way_residual`), as rows (..., m, k),
         the group of each row (m,) and the degrees of freedom per group."""
         ng = len(self.groups)
         if self.balanced:  # double centring of every group's (step x repetition) table
@@ -242,38 +248,14 @@ class _Layout:
     ctx: list[MotionContext]  # per repetition
 
 
-_LAYOUT_CACHE: dict[tuple, _Layout] = {}
-_LAYOUT_CACHE_MAX = 16
-
-
 def _layout(sessions: list[StepMeans]) -> _Layout:
-    """The grid's layout of these repetitions, remembered by the bytes of everything it is
-    built from (a protocol's units share one; a unit whose steps differ misses)."""
-    key = tuple(
-        (
-            len(sm),
-            sm.step.astype(np.int64).tobytes(),
-            _test_names(sm).tobytes(),
-            np.asarray(sm.w_ref, float).tobytes(),
-            np.asarray(sm.f_ref, float).tobytes(),
-            np.asarray(sm.temp_c, float).tobytes(),
-            np.asarray(sm.t_mid, float).tobytes(),
-            float(sm.g_local),
-            sm.headings.tobytes(),
-            sm.latitude_deg,
-            sm.table_heading_deg,
-            sm.turned_deg().tobytes(),
-        )
-        for sm in sessions
-    )
-    lay = _LAYOUT_CACHE.get(key)
-    if lay is None:
-        lay = _build_layout(sessions)
-        for a in (lay.real, lay.step, lay.gcode, lay.y, lay.t):
-            a.setflags(write=False)
-        if len(_LAYOUT_CACHE) >= _LAYOUT_CACHE_MAX:
-            _LAYOUT_CACHE.clear()
-        _LAYOUT_CACHE[key] = lay
+    """The grid's layout of these repetitions, read-only: built once per unit's discovery and
+    shared by its grids. Not kept for the next unit: a process-wide cache of layouts keyed on
+    the sessions' bytes hit only on simulated fleets, whose step mid-times are identical to the
+    bit (docs/benchmarks.md)."""
+    lay = _build_layout(sessions)
+    for a in (lay.real, lay.step, lay.gcode, lay.y, lay.t):
+        a.setflags(write=False)
     return lay
 
 
@@ -408,6 +390,31 @@ def _serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> _SerialNois
         total = c0 + var_mean
         var_mean = total / n * (1.0 + 2.0 * lam * np.array([np.sum((1.0 - lag / n) * p**lag) for p in phi]))
     return _SerialNoise(lam, tau)
+
+
+# lags of the leftover serial correlation counted by _dof_inflation (the steps a first-order
+# wander of 20 s spans after whitening: its leftover correlation is gone by then)
+_INFLATION_LAGS = 5
+
+
+def _dof_inflation(dev: np.ndarray) -> float:
+    """Satterthwaite factor (>= 1) by which the effective degrees of freedom of a sum of
+    squares of noise with covariance M fall below its count: n tr(M^2) / tr(M)^2, estimated
+    from the repetitions' deviations ``dev`` (R, n) (each step's mean over the repetitions
+    removed, so R - 1 dof per step). Unequal step variances (v_i, whose square is corrected
+    for its own estimation noise: E v^2 = m^2 (R + 1) / (R - 1)) and the serial correlation
+    left after whitening (lags 1.._INFLATION_LAGS, 1 + 2 sum rho_k^2) both make the sums
+    spread more than the F distribution of the nominal dof assumes."""
+    R, n = dev.shape
+    v = np.sum(dev**2, axis=0) / (R - 1)
+    if not np.any(v > 0):
+        return 1.0
+    hetero = n * np.sum(v**2) * (R - 1) / (R + 1) / np.sum(v) ** 2
+    c0 = np.sum(dev**2)
+    rho2 = sum(
+        (np.sum(dev[:, k:] * dev[:, :-k]) / c0) ** 2 for k in range(1, min(_INFLATION_LAGS, n - 1) + 1)
+    )
+    return float(max(hetero, 1.0) * (1.0 + 2.0 * rho2))
 
 
 def _prewhiten(A: np.ndarray, noise: _SerialNoise, real: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -619,6 +626,8 @@ class Diagnosis:
     confounded: list[ConfoundedFinding] = field(default_factory=list)
     confounded_set_aside: list[list[str]] = field(default_factory=list)  # partial/negligible
     advice: list[str] = field(default_factory=list)  # which steps would separate them
+    # candidates whose targeted test on the affine model rejects (part of "misfit")
+    misfit_terms: list[str] = field(default_factory=list)
     # the series behind each finding's figure (calib_core.discovery.presentation)
     evidence: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
 
@@ -648,6 +657,7 @@ class Diagnosis:
                 "confounded": [c.to_dict() for c in self.confounded],
                 "confounded_set_aside": [list(g) for g in self.confounded_set_aside],
                 "advice": list(self.advice),
+                "misfit_terms": list(self.misfit_terms),
                 "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
                 "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
                 "misfit_channels_before": [c for c, t in self.channel_misfit_before.items() if t.rejects],
@@ -685,7 +695,9 @@ class _Discovery:
         self.alpha = alpha
         self.min_gain = float(min_gain)
         self.names = sorted(catalogue())
-        self.g = _UnitGrid.build(self.sessions, self.names, geometry)
+        # one layout for every grid of this unit (its motion contexts keep the term columns)
+        self.layout = _layout(self.sessions)
+        self.g = _UnitGrid.build(self.sessions, self.names, geometry, layout=self.layout)
         if noise_model is None:
             # affine fit weighted by within-step scatter only, to get K and residuals
             white = self.g.white_sigma(np.tile(np.eye(3), (2, 1)))
@@ -694,7 +706,7 @@ class _Discovery:
         if geometry is None:  # the terms act through the affine fit's sensing geometry
             K = noise_model[0]
             geometry = SensingGeometry.from_gains(K[:3], K[3:])
-            self.g = _UnitGrid.build(self.sessions, self.names, geometry)
+            self.g = _UnitGrid.build(self.sessions, self.names, geometry, layout=self.layout)
         self.geometry = geometry
         # noise from the data: within-step scatter through K + repetition scatter
         self._noise_rows, self.sigma = self._noise(*noise_model)
@@ -704,7 +716,7 @@ class _Discovery:
         self.undetermined = self._undetermined()
         if self.undetermined:  # fitted as 0: rebuild the terms' columns without them
             dropped = frozenset(self.undetermined)
-            self.g = _UnitGrid.build(self.sessions, self.names, geometry, dropped)
+            self.g = _UnitGrid.build(self.sessions, self.names, geometry, dropped, self.layout)
             self._factorise()
         self._fits: dict[tuple, _FitResult] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
@@ -761,7 +773,7 @@ class _Discovery:
         return K, np.moveaxis(resid, 0, -1)
 
     def _noise(self, K: np.ndarray, resid: np.ndarray) -> tuple[list, np.ndarray]:
-        """:func:`calib_core.replay.estimate_noise_arrays` and :func:`noise_sigma` on the
+        """:func:`calib_core.discovery.replay.estimate_noise_arrays` and :func:`noise_sigma` on the
         grid (same pooling, same numbers)."""
         g = self.g
         white = g.white_sigma(K)
@@ -823,6 +835,10 @@ class _Discovery:
         self.Mc = Mc
         A_raw = w[..., None] * Mc
         A = _prewhiten(A_raw, self.serial, g.real, g.t)
+        self.A = A
+        # each repetition's bias column, weighted and whitened as the rows (the lack-of-fit
+        # test removes it per repetition)
+        self.A_bias = _prewhiten(np.where(g.real, w, 0.0)[..., None], self.serial, g.real, g.t)[..., 0]
         k = A.shape[-1]
         self.Rrep = _qr_r(A)  # (6, R, k, k)
         # the held-out score is the residual a user sees, residual / sigma, not whitened: a
@@ -975,6 +991,16 @@ class _Discovery:
         return self._tests[key]
 
     def _lack_of_fit(self, names: tuple[str, ...], threshold: float) -> FTest:
+        if self.g.balanced:
+            ss_lof, dof, ss_pure, dof_pure, inflation = self.projected_lack_of_fit(names).T
+            # the channels' sums are independent: their Satterthwaite dof add
+            return f_test(
+                float(ss_lof.sum()),
+                float(np.sum(dof / inflation)),
+                float(ss_pure.sum()),
+                float(np.sum(dof_pure / inflation)),
+                threshold,
+            )
         f = self.fit(names)
         dof_res = 6 * self.rows_channel - sum(self.base_rank) - f.rank
         ps, pd_ = self.pure(names)
@@ -988,6 +1014,12 @@ class _Discovery:
         return dict(self._tests[key])  # the tests are frozen; the dict is the caller's
 
     def _channel_lack_of_fit(self, names: tuple[str, ...], threshold: float) -> dict[str, FTest]:
+        if self.g.balanced:
+            parts = self.projected_lack_of_fit(names)
+            return {
+                CHANNELS[c]: f_test(ss, dof / infl, ssp, dofp / infl, threshold)
+                for c, (ss, dof, ssp, dofp, infl) in enumerate(parts.tolist())
+            }
         f = self.fit(names)
         ps, pd_ = self.pure(names)
         cols = self.g.cols(tuple(sorted(names)))
@@ -999,6 +1031,71 @@ class _Discovery:
                 float(f.ss_channel[c]) - ps[c], dof_res - int(pd_[c]), ps[c], int(pd_[c]), threshold
             )
         return out
+
+    def projected_lack_of_fit(self, names: tuple[str, ...]) -> np.ndarray:
+        """Per channel (6, 5): (SS_lof, dof_lof, SS_pure, dof_pure, inflation) of the
+        lack-of-fit test
+        with the pure error *projected on the lack-of-fit space*.
+
+        Each repetition's whitened residual r_h (its own bias removed) = systematic error s
+        + noise e_h, the e_h independent between repetitions with any covariance M within
+        one (what the serial-noise model leaves: a wander not quite Gauss-Markov, a sigma a
+        little off on some steps). Q projects out the model's columns (mean over the
+        repetitions). SS_lof = R |Q mean_h r_h|^2 has expectation tr(Q M) under no misfit,
+        and so has SS_pure / (R - 1) with SS_pure = sum_h |Q (r_h - mean r)|^2: the ratio
+        is calibrated whatever M is, where the pure error over every direction is not (a
+        direction the model projects out may hold more or less noise than the average one).
+        The model's columns are those of the channel, each term's coefficient free per
+        channel (a little more freedom than the joint fit: conservative). Both sums are
+        quadratic forms in the same noise: when M is not a multiple of the identity their
+        spread is that of fewer degrees of freedom (Satterthwaite), see
+        :func:`_dof_inflation` (the dof to test with are dof / inflation).
+        Balanced grids only (every repetition the same steps)."""
+        key = ("projected", tuple(sorted(names)))
+        if key in self._tests:
+            return self._tests[key]
+        g, R = self.g, self.g.R
+        cols = g.cols(tuple(sorted(names)))
+        f = self.fit(names)
+        out = np.zeros((6, 5))
+        for c in range(6):
+            A = self.A[c]  # (R, n, k)
+            wb = self.A_bias[c]  # (R, n)
+            # each repetition's own bias removed from every column
+            coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
+            A = A - wb[..., None] * coef[:, None, :]
+            resid = A @ f.v[c]  # (R, n)
+            local = 3 + np.flatnonzero(np.isin(g.colmap[c], cols))
+            X = np.concatenate([A[..., :3], A[..., local], wb[..., None]], axis=-1).mean(axis=0)
+            U, s, _ = np.linalg.svd(X, full_matrices=False)
+            Ub = U[:, s > s[0] * 1e-10 * max(X.shape)]
+            rbar = resid.mean(axis=0)
+            e = rbar - Ub @ (Ub.T @ rbar)
+            dev = resid - rbar
+            dev = dev - (dev @ Ub) @ Ub.T
+            dof = X.shape[0] - Ub.shape[1]
+            out[c] = (R * float(e @ e), dof, float(np.sum(dev**2)), (R - 1) * dof, _dof_inflation(dev))
+        self._tests[key] = out
+        return out
+
+    def targeted_test(self, names: tuple[str, ...], threshold: float) -> FTest:
+        """F test of the terms ``names`` on the affine model with the pure error projected on
+        the terms' own directions (:meth:`projected_lack_of_fit` with and without them): the
+        noise along a slow direction (a drift over the repetition) is what the repetitions
+        show along it, not the average over every direction, so the test keeps its
+        false-alarm rate when the whitening leaves some wander (the pure error of
+        :meth:`group_test` pools every direction: more dof, but too small along slow ones).
+        Unbalanced grids: :meth:`group_test`."""
+        if not self.g.balanced:
+            return self.group_test((), names, threshold)
+        a, b = self.projected_lack_of_fit(()), self.projected_lack_of_fit(tuple(names))
+        return f_test(
+            float(np.sum(a[:, 0] - b[:, 0])),
+            int(np.sum(a[:, 1] - b[:, 1])),
+            float(np.sum(a[:, 2] - b[:, 2])),
+            int(np.sum(a[:, 3] - b[:, 3])),
+            threshold,
+        )
 
     def term_test(self, current: tuple[str, ...], name: str, threshold: float) -> FTest:
         return self.group_test(current, (name,), threshold)
@@ -1054,8 +1151,8 @@ class _Discovery:
         without A): A stays named when it is significant given B; B replaces it when B is
         significant given A and A not given B; when neither is significant given the other,
         the pair is one confounded item (the combined fit applied, no name picked). Tests
-        at alpha over the catalogue, as :meth:`_resolve`."""
-        thr = self.alpha / len(self.names)
+        at the terms' share of alpha (``term_alpha``) over the catalogue, as :meth:`_resolve`."""
+        thr = self.term_alpha / len(self.names)
         out = list(items)
         for pair in self.near_confounded:
             names = tuple(n for i in out for n in i)
@@ -1081,9 +1178,6 @@ class _Discovery:
     def channels_of(self, name: str) -> tuple[int, ...]:
         a, b = self.g.offset[name]
         return tuple(int(c) for c in np.flatnonzero(self.g.live_mask[:, a:b].any(axis=1)))
-
-    def column_channels(self, col: int) -> list[int]:
-        return [int(c) for c in np.flatnonzero(self.g.live_mask[:, col])]
 
     def sensor_channels(self, name: str) -> tuple[int, ...]:
         """The channels of the sensors the term's parameters act on (a term reaches the
@@ -1112,7 +1206,7 @@ class _Discovery:
             cur = flat(current)
             return self.heldout_rms(cur + groups[lab], ch) < self.heldout_rms(cur, ch)
 
-        labels = stepwise(list(groups), test, improves, self.alpha)
+        labels = stepwise(list(groups), test, improves, self.term_alpha)
         chosen = self._settle_near_confounded(self._resolve([groups[lab] for lab in labels]))
         partial: list[tuple[str, ...]] = []
         negligible: list[tuple[str, ...]] = []
@@ -1142,7 +1236,7 @@ class _Discovery:
         catalogue. Members that pass are named alone; when none does, the group stays one
         item (reported confounded, its combined fit applied)."""
         out: list[tuple[str, ...]] = []
-        thr = self.alpha / len(self.names)
+        thr = self.term_alpha / len(self.names)
         names = [n for i in items for n in i]
         for item in items:
             if len(item) == 1:
@@ -1156,13 +1250,46 @@ class _Discovery:
                 out.append(item)
         return out
 
+    # alpha, the false-alarm rate per unit, is shared by the tests that say "the unit
+    # misfits" (Bonferroni): half by the lack-of-fit tests (the overall one alpha / 4, each
+    # channel alpha / 24), half by the catalogue's targeted tests (alpha / 2 over the
+    # candidates), which see a small effect along its own direction long before an omnibus
+    # test over every direction does
+    @property
+    def lof_alpha(self) -> float:
+        return self.alpha / 4
+
+    @property
+    def channel_alpha(self) -> float:
+        return self.alpha / 24
+
+    @property
+    def term_alpha(self) -> float:
+        return self.alpha / 2
+
     def misfit_channels(self) -> list[int]:
-        """Channels whose lack of fit rejects at baseline (alpha / 6 each)."""
-        before = self.channel_lack_of_fit((), self.alpha / 6)
+        """Channels whose lack of fit rejects at baseline (``channel_alpha`` each)."""
+        before = self.channel_lack_of_fit((), self.channel_alpha)
         return [c for c in range(6) if before[CHANNELS[c]].rejects]
 
+    def misfit_terms(self) -> list[str]:
+        """Candidates (:meth:`test_groups`, joined by "+") whose targeted test on the affine
+        model (:meth:`targeted_test`) rejects at ``term_alpha`` over the candidates: the
+        targeted part of "the unit misfits"."""
+        if "_misfit_terms" not in self.__dict__:
+            groups = self.test_groups()
+            thr = self.term_alpha / len(groups)
+            self.__dict__["_misfit_terms"] = [
+                "+".join(g) for g in groups if self.targeted_test(g, thr).rejects
+            ]
+        return self.__dict__["_misfit_terms"]
+
     def unit_misfits(self) -> bool:
-        return bool(self.lack_of_fit((), self.alpha).rejects or self.misfit_channels())
+        """The union test: the overall or a channel's lack of fit, or a candidate's targeted
+        test rejects; its false-alarm rate on a unit that fits is at most alpha."""
+        return bool(
+            self.lack_of_fit((), self.lof_alpha).rejects or self.misfit_channels() or self.misfit_terms()
+        )
 
     def _verdict(self, chosen: list[str], name: str | tuple[str, ...]) -> tuple[str, float, tuple[int, ...]]:
         """("named" | "partial" | "negligible", held-out gain, channels it fixes) of a term
@@ -1183,14 +1310,23 @@ class _Discovery:
         if not self.unit_misfits():
             return "negligible", 1.0, ()
         if not self.misfit_channels():
-            # only the overall test rejects: the term must fix that, and its gain counts on
-            # the sensors of its individually significant parameters
-            if not (
-                self.lack_of_fit(others, self.alpha).rejects
-                and not self.lack_of_fit(tuple(chosen), self.alpha).rejects
-            ):
+            # only the overall test or the targeted tests reject: the term must be what
+            # makes the unit misfit (the overall test rejects without it and not with it,
+            # or its own test given the other chosen terms rejects at the targeted tests'
+            # threshold), and its gain counts on the sensors of its individually
+            # significant parameters
+            overall_fixed = (
+                self.lack_of_fit(others, self.lof_alpha).rejects
+                and not self.lack_of_fit(tuple(chosen), self.lof_alpha).rejects
+            )
+            targeted = any(set(item) & set(lab.split("+")) for lab in self.misfit_terms())
+            if not (overall_fixed or targeted):
                 return "negligible", 1.0, ()
-            ch = tuple(sorted({c for n in item for c in self.significant_channels(list(chosen), n)}))
+            # (a confounded group's members have no individually significant parameter:
+            # its gain counts on all its sensors)
+            ch = tuple(
+                sorted({c for n in item for c in self.significant_channels(list(chosen), n)})
+            ) or tuple(sensors)
             if not ch:
                 return "negligible", 1.0, ()
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
@@ -1198,8 +1334,8 @@ class _Discovery:
         bad = [c for c in sensors if c in self.misfit_channels()]
         if not bad:
             return "negligible", 1.0, ()
-        without = self.channel_lack_of_fit(others, self.alpha / 6)
-        with_ = self.channel_lack_of_fit(tuple(chosen), self.alpha / 6)
+        without = self.channel_lack_of_fit(others, self.channel_alpha)
+        with_ = self.channel_lack_of_fit(tuple(chosen), self.channel_alpha)
         fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects and not with_[CHANNELS[c]].rejects)
         if not fixed:
             if all(with_[CHANNELS[c]].rejects for c in bad):
@@ -1400,10 +1536,10 @@ def _diagnose_unit(
             and noise_moved < np.log(1.03)
         ):
             break
-    lof_before = d.lack_of_fit((), alpha)
+    lof_before = d.lack_of_fit((), d.lof_alpha)
     chosen_t = tuple(chosen)
-    lof_after = d.lack_of_fit(chosen_t, alpha)
-    thr = alpha / len(d.names)
+    lof_after = d.lack_of_fit(chosen_t, d.lof_alpha)
+    thr = d.term_alpha / len(d.names)
     items = d.items
     groups = [i for kind in ("chosen", "partial", "negligible") for i in items[kind] if len(i) > 1]
     effects = [d.finding(chosen, i[0], thr) for i in items["chosen"] if len(i) == 1]
@@ -1421,8 +1557,8 @@ def _diagnose_unit(
     else:
         res_before = res_after = pd.DataFrame()
     sm0 = d.sessions[0]
-    ch_before = d.channel_lack_of_fit((), alpha / 6)
-    ch_after = d.channel_lack_of_fit(chosen_t, alpha / 6)
+    ch_before = d.channel_lack_of_fit((), d.channel_alpha)
+    ch_after = d.channel_lack_of_fit(chosen_t, d.channel_alpha)
     diag = Diagnosis(
         lot=sm0.key.lot,
         unit=sm0.key.unit,
@@ -1448,6 +1584,7 @@ def _diagnose_unit(
         min_gain=min_gain,
         relinearisations=moves,
         confounded=confounded,
+        misfit_terms=list(d.misfit_terms()),
         confounded_set_aside=[list(i) for k in ("partial", "negligible") for i in items[k] if len(i) > 1],
         advice=[
             a.describe()
@@ -1470,9 +1607,9 @@ _ADVICE_CACHE: dict[bytes, list] = {}
 
 
 def _advice(sm: StepMeans) -> list:
-    """:func:`calib_core.plan.advise` for the unit's protocol (the steps' motion and
+    """:func:`calib_core.discovery.plan.advise` for the unit's protocol (the steps' motion and
     headings, nominal times and warm-up: the same for every unit of the protocol, kept)."""
-    from calib_core.plan import advise
+    from calib_core.discovery.plan import advise
 
     key = b"".join(
         [

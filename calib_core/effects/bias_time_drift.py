@@ -1,7 +1,7 @@
 """Bias linear in time since the session started (per hour) on each of the six sensors: a
 trend that is not temperature (ageing of the turn-on transient, a slow drift of the
 electronics). With a warm-up ramp recorded, time and temperature are told apart by the
-curvature of the ramp (:mod:`calib_core.identifiability` says when they are not)."""
+curvature of the ramp (:mod:`calib_core.discovery.identifiability` says when they are not)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """A MIMU on a turntable, written from the sensor physics and nothing else.
 
 Why a second simulator: model discovery must be checked on data it did not shape. The older
-:mod:`calib_core.simulator` adds each effect with the very term functions the estimator fits,
+:mod:`calib_core.sim.simulator` adds each effect with the very term functions the estimator fits,
 so it can only show that the code agrees with itself. This module is a forward model in the
 *sensor* frame, written from first principles, and it imports nothing from the effect
 catalogue, the estimators or the calibration forms.

@@ -23,8 +23,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from flows.cli import CliError
 
 EPILOG = """examples:
@@ -32,7 +30,6 @@ EPILOG = """examples:
       data/lot=L01/unit=U0001/rep=1/samples.parquet calibrated.parquet
   mimucal apply cal.json recording.csv calibrated.csv --accel-unit m/s^2 --gyro-unit deg/s"""
 
-RAD_TO_DEG = 180.0 / np.pi
 CSV_GYRO = ("gyr_x", "gyr_y", "gyr_z")
 CSV_ACCEL = ("acc_x", "acc_y", "acc_z")
 
@@ -64,33 +61,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--force", action="store_true", help="apply even if the raw file's metadata names another unit"
     )
     p.set_defaults(func=run)
-
-
-def _to_inside(values: np.ndarray, unit: str, g_local: float) -> tuple[np.ndarray, str]:
-    if unit == "rad/s":
-        return values * RAD_TO_DEG, "deg/s"
-    if unit == "m/s^2":
-        return values / g_local, "g"
-    return values, unit
-
-
-def _check_units(cal, gyro_unit: str, accel_unit: str, declared: tuple[str, str], src: str):
-    if gyro_unit != cal.gyro_unit or accel_unit != cal.accel_unit:
-        raise CliError(
-            f"{src}: raw units gyro={declared[0]!r}, accel={declared[1]!r} do not match the "
-            f"calibration's raw_units gyro={cal.gyro_unit!r}, accel={cal.accel_unit!r}; a "
-            f"calibration only applies to data in the units it was fitted on"
-        )
-
-
-def _apply(cal, G, A, t=None, temp=None):
-    dwdt = None
-    if cal.terms and t is not None and len(t) > 2:
-        w_aff, _ = cal.apply_affine(G, A)
-        dwdt = np.gradient(w_aff, t, axis=0)
-    return cal.apply(
-        G, A, dwdt=dwdt, temp_c=temp, t=t, gyro_unit=cal.gyro_unit, accel_unit=cal.accel_unit
-    )  # units checked and converted by the caller
 
 
 def _check_unit_id(doc: dict, md: dict, src: str, force: bool) -> None:
@@ -156,12 +126,14 @@ def run(args: argparse.Namespace) -> int:
     import pandas as pd
     import pyarrow.parquet as pq
 
+    from schemas.api import CalibrationMismatch, apply_to_frame
     from schemas.calibration_file import (
         CalibrationFileError,
         calibration_from_dict,
         read_calibration_document,
     )
     from schemas.contract import G_LOCAL_DEFAULT, decode_metadata
+    from schemas.importers import accel_from_g
 
     try:
         doc = read_calibration_document(Path(args.calibration))
@@ -188,19 +160,20 @@ def run(args: argparse.Namespace) -> int:
         if "gyro_unit" not in md or "accel_unit" not in md:
             raise CliError(f"{raw}: metadata gyro_unit/accel_unit missing; cannot tell the raw units")
         _check_unit_id(doc, md, str(raw), args.force)
-        g_local = float(md.get("g_local", G_LOCAL_DEFAULT))
         df = table.to_pandas()
-        G, gu = _to_inside(df[["gx", "gy", "gz"]].to_numpy(float), md["gyro_unit"], g_local)
-        A, au = _to_inside(df[["ax", "ay", "az"]].to_numpy(float), md["accel_unit"], g_local)
-        _check_units(cal, gu, au, (md["gyro_unit"], md["accel_unit"]), str(raw))
-        t = df["t"].to_numpy(float) if "t" in df else None
-        temp = df["temp_c"].to_numpy(float) if "temp_c" in df else None
-        w, f = _apply(cal, G, A, t, temp)
-        res = pd.DataFrame({c: df[c] for c in ("step", "t", "temp_c") if c in df})
-        for i, ax in enumerate("xyz"):
-            res[f"w_{ax}"] = w[:, i]
-        for i, ax in enumerate("xyz"):
-            res[f"f_{ax}"] = f[:, i]
+        df.attrs = {"g_local": float(md.get("g_local", G_LOCAL_DEFAULT))}
+        try:  # the unit id was checked above (--force may override it)
+            out_cols = apply_to_frame(cal, df, md["gyro_unit"], md["accel_unit"])
+        except CalibrationMismatch as exc:
+            raise CliError(
+                f"{raw}: {exc}; a calibration only applies to data in the units it was fitted on"
+            ) from None
+        res = out_cols[
+            [c for c in ("step", "t", "temp_c") if c in out_cols]
+            + [f"w_{a}" for a in "xyz"]
+            + [f"f_{a}" for a in "xyz"]
+        ].reset_index(drop=True)
+        w = res[[f"w_{a}" for a in "xyz"]].to_numpy()
         meta = {
             "gyro_unit": "deg/s",
             "accel_unit": "g",
@@ -220,14 +193,21 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(
                 f"{raw}: missing column(s) {', '.join(missing)} (need {', '.join(CSV_ACCEL + CSV_GYRO)})"
             )
-        G, gu = _to_inside(df[list(CSV_GYRO)].to_numpy(float), args.gyro_unit, cal.g_local)
-        A, au = _to_inside(df[list(CSV_ACCEL)].to_numpy(float), args.accel_unit, cal.g_local)
-        _check_units(cal, gu, au, (args.gyro_unit, args.accel_unit), str(raw))
-        t = df["t"].to_numpy(float) if "t" in df else None
-        w, f = _apply(cal, G, A, t, None)
+        raw_cols = dict(zip(CSV_GYRO + CSV_ACCEL, ("gx", "gy", "gz", "ax", "ay", "az")))
+        samples = df[[c for c in ("t", *raw_cols) if c in df]].rename(columns=raw_cols)
+        try:
+            out_cols = apply_to_frame(cal, samples, args.gyro_unit, args.accel_unit)
+        except CalibrationMismatch as exc:
+            raise CliError(
+                f"{raw}: {exc}; a calibration only applies to data in the units it was fitted on"
+            ) from None
+        w = out_cols[[f"w_{a}" for a in "xyz"]].to_numpy()
         res = df.copy()
         res[list(CSV_GYRO)] = w
-        res[list(CSV_ACCEL)] = f * cal.g_local
+        # back to the CSV's m/s^2 with the calibration's g_local (the importers' conversion, inverted)
+        res[list(CSV_ACCEL)] = accel_from_g(
+            out_cols[[f"f_{a}" for a in "xyz"]].to_numpy(), "m/s^2", cal.g_local
+        )
         meta = {
             "gyro_unit": "deg/s",
             "accel_unit": "m/s^2",

@@ -106,10 +106,11 @@ def summary_lines(ur, failed: list[dict], n_reps: int) -> list[str]:
 
 def run(args) -> int:
     from flows.runtime import code_version
-    from flows.unit_pipeline import UnitJob, calibrate_unit_job, calibration_file_extra
+    from flows.unit_pipeline import UnitJob, calibrate_unit_job
     from schemas.calibration_file import calibration_to_dict, dumps_json, save_calibration
     from schemas.dataset import find_sessions
     from schemas.results_store import iso, utc_now
+    from schemas.store_rows import calibration_file_extra
 
     if not args.dataset.is_dir():
         raise CliError(f"dataset {args.dataset} is not a directory")

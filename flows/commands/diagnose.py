@@ -68,8 +68,11 @@ def summary_lines(diag) -> list[str]:
         verdict = " -> fits to noise"
     elif bad:
         verdict = f" -> MISFIT on {', '.join(bad)}"
-    else:
+    elif lb.rejects:
         verdict = " -> MISFIT (overall lack of fit; no single channel rejects)"
+    else:
+        terms = ", ".join(getattr(diag, "misfit_terms", [])) or "a term"
+        verdict = f" -> MISFIT (targeted test of {terms}; no lack-of-fit test rejects)"
     lines.append(
         f"affine model: lack of fit F={lb.statistic:.3g} ({lb.dof1}, {lb.dof2}), "
         f"{_fmt_p(lb.p_value)}" + verdict
@@ -139,8 +142,8 @@ def run(args) -> int:
     import pandas as pd
 
     from calib_core.discovery import diagnose_unit
+    from calib_core.discovery.replay import replay_xu2016, summarise_residuals
     from calib_core.errors import DesignError
-    from calib_core.replay import replay_xu2016, summarise_residuals
     from schemas.averaging import read_step_means
     from schemas.calibration_file import write_json_atomic
     from schemas.dataset import find_sessions

@@ -69,8 +69,8 @@ def register(sub) -> None:
 def load_recording(name: str, data: Path):
     """(calibration, pose table, label) of a bundled real recording, calibrated with its
     own method."""
-    from calib_core.ferraris import ferraris_calibration, section_pose_means
-    from calib_core.field import field_calibration
+    from calib_core.models.ferraris import ferraris_calibration, section_pose_means
+    from calib_core.models.field.imu_tk import field_calibration
     from schemas.importers import IMUCAL_RATE_HZ, read_imucal_csv, read_imutk_pair, read_section_list
 
     if name == "xsens":

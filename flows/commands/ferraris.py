@@ -60,7 +60,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from calib_core.errors import DesignError
-    from calib_core.ferraris import ferraris_calibration
+    from calib_core.models.ferraris import ferraris_calibration
     from schemas.calibration_file import save_calibration
     from schemas.errors import SessionError
     from schemas.importers import read_section_list

@@ -16,9 +16,6 @@ from flows.commands.import_raw import (
     read_table_args,
 )
 
-INIT_PREAMBLE_KEYS = ("initialization time", "init time", "initial rest", "tinit")
-INT16_LIMIT = 32767.0  # an int16 output clips here
-
 
 def register(sub) -> None:
     p = sub.add_parser(
@@ -180,51 +177,27 @@ def _read(args):
 
 
 def _init_static(args, rec) -> float | None:
-    if args.init_static is not None:
-        return args.init_static if args.init_static > 0 else None
-    for key, value in rec.metadata.get("preamble", {}).items():
-        if key.strip().lower() in INIT_PREAMBLE_KEYS:
-            try:
-                return float(value)
-            except ValueError:
-                return None
-    return None
+    from flows.field_units import init_static_s
+
+    return init_static_s(vars(args), rec.metadata.get("preamble", {}))
 
 
 def _starting_scales(args, rec) -> tuple[float | None, float | None]:
-    from schemas.importers import FULL_SCALE_COUNTS, parse_range
+    from flows.field_units import starting_scales
 
-    acc, gyr = args.acc_scale, args.gyro_scale
     try:
-        if acc is None and args.accel_range:
-            if rec.accel_unit != "LSB":
-                raise CliError("--accel-range applies to raw counts (--accel-unit LSB)")
-            acc = parse_range(args.accel_range, "accel") * args.g_local / FULL_SCALE_COUNTS
-        if gyr is None and args.gyro_range:
-            if rec.gyro_unit != "LSB":
-                raise CliError("--gyro-range applies to raw counts (--gyro-unit LSB)")
-            gyr = math.radians(parse_range(args.gyro_range, "gyro") / FULL_SCALE_COUNTS)
+        return starting_scales(vars(args), rec.gyro_unit, rec.accel_unit)
     except ValueError as exc:
         raise CliError(str(exc)) from exc
-    if acc is None and rec.accel_unit == "g":  # already physical: identity is the start
-        acc = args.g_local
-    if gyr is None and rec.gyro_unit == "deg/s":
-        gyr = math.radians(1.0)
-    return acc, gyr
 
 
 def run(args) -> int:
     import numpy as np
 
     from calib_core.errors import DesignError
-    from calib_core.field_joint import (
-        Priors,
-        field_figures,
-        fit_field,
-        held_out_figures,
-        usable_moves,
-    )
-    from calib_core.static_detection import clipped_samples, detect_poses
+    from calib_core.models.field.joint import Priors, field_figures, fit_field, held_out_figures, usable_moves
+    from calib_core.models.field.static_detection import clipped_samples, detect_poses
+    from flows.field_units import INT16_LIMIT
     from schemas.calibration_file import save_calibration
 
     rec = _read(args)
@@ -335,7 +308,7 @@ def run(args) -> int:
         },
     )
     if args.poses:
-        from calib_core.static_detection import static_pose_means
+        from calib_core.models.field.static_detection import static_pose_means
 
         static_pose_means(rec.t, rec.gyro, rec.accel, det.intervals()).to_csv(args.poses, index=False)
     _print_summary(args, rec, det, move_ok, figures, model, held)
@@ -348,7 +321,7 @@ def _json_numbers(d: dict) -> dict:
 
 
 def _imu_tk(args, rec, init_s):
-    from calib_core.field import field_calibration
+    from calib_core.models.field.imu_tk import field_calibration
 
     res = field_calibration(
         rec.t,

@@ -118,7 +118,7 @@ def register(sub) -> None:
 def run(args) -> int:
     import numpy as np
 
-    from calib_core.static_detection import detect_static, static_pose_means
+    from calib_core.models.field.static_detection import detect_static, static_pose_means
 
     rec = read_table_args(args, args.file, args.gyro_unit, args.accel_unit, args.g_local)
     print(

@@ -142,10 +142,10 @@ def run(args: argparse.Namespace) -> int:
     except (StoreLockedError, OutlierConfigError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from None
     print_outcome(log)
-    if not log.get("sessions_found") and not log.get("path_errors"):
+    if not log.get("units_found") and not log.get("path_errors"):
         print(
             f"mimucal nightly: warning: no session under {dataset} (expected "
-            f"lot=<id>/unit=<id>/rep=<n>/ directories); nothing to do",
+            f"lot=<id>/unit=<id>/rep=<n>/ or lot=<id>/unit=<id>/field/ directories); nothing to do",
             file=sys.stderr,
         )
         return 3

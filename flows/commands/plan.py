@@ -2,7 +2,7 @@
 can and cannot identify, before anyone runs the turntable.
 
 Every catalogue term's columns on the steps (nominal unit and noise, a nominal warm-up) are
-analysed with the affine calibration projected out (:mod:`calib_core.plan`): which terms are
+analysed with the affine calibration projected out (:mod:`calib_core.discovery.plan`): which terms are
 determined, which parameters are not, which terms are confounded, and which step sets of the
 library would separate them. See docs/model-discovery.md, "Identifiability".
 """
@@ -76,7 +76,7 @@ def read_steps_table(path: Path):
 
 
 def run(args) -> int:
-    from calib_core.plan import plan
+    from calib_core.discovery.plan import plan
 
     if not 0 < args.tol < 1:
         raise CliError(f"--tol must be between 0 and 1, got {args.tol}")

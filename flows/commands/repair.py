@@ -174,7 +174,7 @@ def _rebuild_units_rows(store, lot: str | None) -> int:
     provenance names the lot, unit and run)."""
     import pandas as pd
 
-    from schemas.results_store import TIMESTAMP_FORMAT, iso  # noqa: F401
+    from schemas.store_rows import unit_row_from_calibration_file
 
     rows = []
     n = 0
@@ -191,26 +191,7 @@ def _rebuild_units_rows(store, lot: str | None) -> int:
             if lot is not None and prov.get("lot") != lot:
                 continue
             n += 1
-            used = prov.get("sessions_used") or []
-            failed = prov.get("sessions_failed") or []
-            rows.append(
-                {
-                    "lot": prov.get("lot"),
-                    "unit": d.name,
-                    "state": "calibrated",
-                    "reason": "rebuilt by 'mimucal repair' from the calibration file",
-                    "n_sessions": len(used) + len(failed),
-                    "n_ok": sum(1 for s in used if s.get("status") == "ok"),
-                    "n_warned": sum(1 for s in used if s.get("status") == "warned"),
-                    "n_failed": len(failed),
-                    "calibration_file": str(path.relative_to(store.root)),
-                    "calibrated_at": prov.get("calibrated_at") or iso(ts),
-                    "run_id": prov.get("run_id"),
-                    "updated_at": iso(ts),
-                    "flagged": False,
-                    "flag_reason": "",
-                }
-            )
+            rows.append(unit_row_from_calibration_file(d.name, prov, str(path.relative_to(store.root)), ts))
     df = pd.DataFrame(rows)
     if lot is None:
         store.write("units", df)

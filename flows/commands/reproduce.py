@@ -8,8 +8,8 @@ from pathlib import Path
 from flows.cli import CliError
 
 PAPERS = {
-    "xu2016": "calib_core.reproduction.xu2016",
-    "zhang2017": "calib_core.reproduction.zhang2017",
+    "xu2016": "calib_core.paper.xu2016",
+    "zhang2017": "calib_core.paper.zhang2017",
 }
 
 

@@ -26,7 +26,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calib_core.zhang2017 import AccelStaticFit, AccelUnitTruth, LeverArmFit, compensate_specific_force
+from calib_core.models.zhang2017 import AccelStaticFit, LeverArmFit, compensate_specific_force
+from calib_core.sim.accel_unit import AccelUnitTruth
 
 if TYPE_CHECKING:  # pandas is imported where the store's table is built
     import pandas as pd
@@ -267,3 +268,13 @@ def navigation_table(
         for case in res.velocity_error
     ]
     return pd.concat(frames, ignore_index=True)
+
+
+def unit_navigation_table(reps) -> pd.DataFrame | None:
+    """:func:`navigation_table` of a unit's first repetition (``RepetitionCalibration``, in
+    rep order) with a static fit and a fully determined lever arm; None when none has them."""
+    for rep in reps:
+        static, lever = rep.fits.get("accel_static"), rep.fits.get("lever_arm")
+        if static is not None and lever is not None and not lever.undetermined:
+            return navigation_table(static, lever)
+    return None

@@ -18,7 +18,7 @@ Models (IMU-TK's ``CalibratedTriad``: ``x' = T K (x - b)``, ``K`` diagonal scale
   ``dR^T u_0 - u_1`` (3 components) with ``dR`` the product of ``exp(w_k dt_k)`` over the
   samples between the two poses and ``u`` the unit gravity direction of each pose.
 
-Static detection (:mod:`calib_core.static_detection`) uses Tedaldi's data-driven threshold:
+Static detection (:mod:`calib_core.models.field.static_detection`) uses Tedaldi's data-driven threshold:
 ``k * noise floor`` with the floor from the initial static period, and, as IMU-TK does,
 ``k = 2..10`` is scanned and the one whose accelerometer fit has the lowest cost is kept.
 Only the central ``interval_samples`` samples of each static interval are used.
@@ -41,7 +41,7 @@ from scipy.optimize import least_squares
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import SensingGeometry
 from calib_core.errors import DesignError
-from calib_core.static_detection import (
+from calib_core.models.field.static_detection import (
     StaticDetection,
     central_samples,
     detect_static,

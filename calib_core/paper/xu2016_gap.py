@@ -27,9 +27,10 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
-from calib_core import protocols, simulator, xu2016
 from calib_core.effects import get_effect
-from calib_core.reproduction.xu2016 import PUBLISHED_TABLE1, PUBLISHED_TABLE3
+from calib_core.models import xu2016
+from calib_core.paper.xu2016 import PUBLISHED_TABLE1, PUBLISHED_TABLE3
+from calib_core.sim import protocols, simulator
 from calib_core.steps import SessionKey
 
 AXES = "xyz"

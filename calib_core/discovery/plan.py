@@ -1,7 +1,7 @@
 """What a protocol can identify, before anyone runs the turntable: every catalogue term's
 columns on the protocol's steps (nominal unit, nominal noise) analysed by
-:mod:`calib_core.identifiability`, and the step sets of the library
-(:data:`calib_core.protocols.STEP_SETS`) that would resolve each confounded or undetermined
+:mod:`calib_core.discovery.identifiability`, and the step sets of the library
+(:data:`calib_core.sim.protocols.STEP_SETS`) that would resolve each confounded or undetermined
 set. ``mimucal plan`` prints it; model discovery asks it for a unit's own steps.
 
 Assumptions, stated because the steps table alone does not say them:
@@ -24,8 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from calib_core.effects import MotionContext, catalogue, get_effect
-from calib_core.identifiability import (
+from calib_core.discovery.identifiability import (
     DEFAULT_TOL,
     NEAR_TOL,
     Advice,
@@ -34,6 +33,7 @@ from calib_core.identifiability import (
     analyse,
     near_confounded,
 )
+from calib_core.effects import MotionContext, catalogue, get_effect
 
 NOMINAL_SIGMA = np.array([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])  # deg/s, g per step mean
 WARM_UP_C = (25.0, 10.0, 600.0)  # start, rise, time constant (s)
@@ -187,7 +187,7 @@ def near_pairs(
     tol: float = DEFAULT_TOL,
     confounded: tuple[Confounded, ...] = (),
 ) -> tuple[Confounded, ...]:
-    """Near-collinear pairs of terms (:func:`calib_core.identifiability.near_confounded`)
+    """Near-collinear pairs of terms (:func:`calib_core.discovery.identifiability.near_confounded`)
     once the base model is projected out of their columns; pairs inside a ``confounded``
     set are that set's business, not listed."""
     Q = _orth(base)
@@ -210,7 +210,7 @@ def _with_temperature(steps: pd.DataFrame, tau_s: float, extra: pd.DataFrame | N
     out = steps.copy()
     out["t_mid"] = step_context(steps).t
     if extra is not None:
-        from calib_core.protocols import extended
+        from calib_core.sim.protocols import extended
 
         out = extended(out, extra.to_dict("records"))
     start, rise, _ = WARM_UP_C
@@ -232,7 +232,7 @@ def _soak(steps: pd.DataFrame) -> pd.DataFrame:
 
 
 # changes of *when* the steps run (the temperature they see), beside the step sets of
-# :data:`calib_core.protocols.STEP_SETS`: what tells a drift in temperature from one in time
+# :data:`calib_core.sim.protocols.STEP_SETS`: what tells a drift in temperature from one in time
 TEMPERATURE_CHANGES = {
     "a warm-up that is not linear in time over the session (steps started while the "
     "temperature still rises fast, time constant about 150 s)": _curved_warm_up,
@@ -251,13 +251,13 @@ def advise(
 ) -> list[Advice]:
     """For each confounded set, each near-collinear pair (:func:`near_pairs`: discovery
     lets the data decide it) and each term with undetermined parameters, the step sets of
-    ``library`` (default :data:`calib_core.protocols.STEP_SETS`) that resolve it, or the
+    ``library`` (default :data:`calib_core.sim.protocols.STEP_SETS`) that resolve it, or the
     changes of when the steps run of :data:`TEMPERATURE_CHANGES`. A
     confounded set is resolved when every member has a direction of its own given the
     others (discovery can then test each member given the rest; a shared direction, such as
     the vertical Earth rate and an isotropic g-sensitivity, may remain); an undetermined
     term when all its excited parameters are determined."""
-    from calib_core.protocols import STEP_SETS, extended
+    from calib_core.sim.protocols import STEP_SETS, extended
 
     lib = STEP_SETS if library is None else library
     kw = {"latitude_deg": latitude_deg, "table_heading_deg": table_heading_deg}

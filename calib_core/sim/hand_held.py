@@ -1,5 +1,5 @@
 """Simulated hand-held calibration sessions with known truth (for the field estimator's tests
-and Monte Carlo), written independently of the fit code in :mod:`calib_core.field_joint`.
+and Monte Carlo), written independently of the fit code in :mod:`calib_core.models.field.joint`.
 
 The unit rests, then is turned by hand through ``n_poses`` rotations about random body axes
 (raised-cosine angle profile) and held still after each. A hand does not hold perfectly

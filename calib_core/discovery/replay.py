@@ -304,7 +304,7 @@ def summarise_residuals(table: pd.DataFrame) -> pd.DataFrame:
 def xu2016_calibration(sm: StepMeans) -> Calibration:
     """The production baseline of one session: xu2016 multirate (K_g, w0) and multiposition
     (K_a, f0) fits, affine only."""
-    from calib_core import xu2016
+    from calib_core.models import xu2016
 
     g = xu2016.fit_gyro_multirate(sm)
     a = xu2016.fit_accel_multiposition(sm)

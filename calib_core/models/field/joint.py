@@ -2,7 +2,7 @@
 gyro (scale, misalignment, bias and bias drift) jointly from the moves and the quiet poses,
 with standard errors and held-out figures of merit.
 
-Models (IMU-TK's ``x' = T K (x - b)``, as in :mod:`calib_core.field`):
+Models (IMU-TK's ``x' = T K (x - b)``, as in :mod:`calib_core.models.field.imu_tk`):
 
 * accel, 9 parameters ``a_yz a_zy a_zx s_ax s_ay s_az b_ax b_ay b_az``: triangular ``T_a``
   (the body frame is the accelerometer's), fitted on the **mean of each static pose**:
@@ -49,7 +49,7 @@ from scipy.optimize import least_squares
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.field import (
+from calib_core.models.field.imu_tk import (
     ACCEL_PARAM_NAMES,
     GYRO_PARAM_NAMES,
     SegmentIntegrator,
@@ -57,7 +57,7 @@ from calib_core.field import (
     accel_matrix,
     gyro_matrix,
 )
-from calib_core.static_detection import Pose, odd_window
+from calib_core.models.field.static_detection import Pose, odd_window
 
 GYRO_BIAS_NAMES = ("b_gx", "b_gy", "b_gz")
 GYRO_DRIFT_NAMES = ("d_gx", "d_gy", "d_gz")
@@ -65,6 +65,8 @@ GYRO_G_SENS_NAMES = tuple(f"S_{r}{c}" for r in "xyz" for c in "xyz")  # raw gyro
 MIN_ACCEL_POSES = 10  # 9 parameters + 1 degree of freedom for the residual variance
 MIN_ACCEL_POSES_WITH_PRIOR = 7  # the prior determines the 3 misalignments: 6 + 1
 CORR_WINDOW_S = 0.25  # samples closer than this are not independent in a pose's gyro mean
+ACCEL_BATCH_S = 0.5  # block length of the batch-means standard error of a pose's accel mean
+MIN_TAU_DOF = 10  # residual degrees of freedom needed to estimate tau / drop the prior
 MIN_MOVES = 5  # 2 direction constraints each: 10 >= 9 gyro parameters (bias from quiet poses)
 
 
@@ -83,15 +85,24 @@ class PoseMeans:
     gyro_quiet: np.ndarray  # (k,) bool
     gyro_se: np.ndarray  # (k, 3) standard error of the gyro mean, raw units (see pose_means)
     accel_se: np.ndarray  # (k, 3) same for the accel mean
+    accel_se_batch: np.ndarray | None = None  # (k, 3) the accel mean's, by batch means
 
     def __len__(self) -> int:
         return len(self.count)
 
 
-def pose_means(t, G, A, poses: tuple[Pose, ...] | list[Pose], corr_samples: int = 1) -> PoseMeans:
+def pose_means(
+    t, G, A, poses: tuple[Pose, ...] | list[Pose], corr_samples: int = 1, batch_samples: int | None = None
+) -> PoseMeans:
     """``gyro_se``: within-pose std / sqrt(count / corr_samples): a hand's wobble is slow, so
     samples closer than ``corr_samples`` (the detector's window) are not counted as
-    independent; a long rest gets a small error, a wobbly hold a large one."""
+    independent; a long rest gets a small error, a wobbly hold a large one.
+
+    ``accel_se``: as ``gyro_se``. ``accel_se_batch`` (with ``batch_samples``): by batch
+    means, the std of the means of consecutive blocks of that many samples over sqrt(number
+    of blocks): the white noise's std / sqrt(count) for a still unit, larger with a slow
+    wobble, without assuming its correlation time, but from few blocks (a 3 s pose has 6 of
+    0.5 s: a ~30 % error); poses of fewer than 3 blocks get ``accel_se``."""
     t, G, A = (np.asarray(x, float) for x in (t, G, A))
 
     def se_of(X):
@@ -99,7 +110,15 @@ def pose_means(t, G, A, poses: tuple[Pose, ...] | list[Pose], corr_samples: int 
             [X[p.start : p.end].std(axis=0, ddof=1) / np.sqrt(max(len(p) / corr_samples, 1.0)) for p in poses]
         ).reshape(-1, 3)
 
+    def batch_se(X, p):
+        n_b = len(p) // batch_samples if batch_samples else 0
+        if n_b < 3:
+            return X[p.start : p.end].std(axis=0, ddof=1) / np.sqrt(max(len(p) / corr_samples, 1.0))
+        blocks = X[p.start : p.start + n_b * batch_samples].reshape(n_b, batch_samples, 3).mean(axis=1)
+        return blocks.std(axis=0, ddof=1) / np.sqrt(n_b)
+
     se = se_of(G)
+    accel_se_batch = np.array([batch_se(A, p) for p in poses]).reshape(-1, 3) if batch_samples else None
     return PoseMeans(
         accel=np.array([A[p.start : p.end].mean(axis=0) for p in poses]).reshape(-1, 3),
         gyro=np.array([G[p.start : p.end].mean(axis=0) for p in poses]).reshape(-1, 3),
@@ -111,6 +130,7 @@ def pose_means(t, G, A, poses: tuple[Pose, ...] | list[Pose], corr_samples: int 
         gyro_quiet=np.array([p.gyro_quiet for p in poses], bool),
         gyro_se=np.maximum(se, 1e-12),
         accel_se=np.maximum(se_of(A), 1e-12),
+        accel_se_batch=None if accel_se_batch is None else np.maximum(accel_se_batch, 1e-12),
     )
 
 
@@ -134,6 +154,8 @@ class AccelPoseFit:
     x0: np.ndarray  # starting point
     residual_mg: np.ndarray  # per fitted pose, |f| - g in mg
     cov: np.ndarray | None = None
+    pose_noise_mg: float = 0.0  # tau: the pose-to-pose |f| noise beyond the poses' own
+    prior_used: tuple[bool, ...] = (False, False, False)  # a_yz a_zy a_zx kept the prior
 
 
 def initial_accel_params(
@@ -164,9 +186,10 @@ class Priors:
     misalignment: float | None = 0.01
 
 
-def _pose_norm_se_mg(pm: PoseMeans, scale_g_per_unit: float) -> np.ndarray:
-    """Standard error of each pose's |mean f| in mg (isotropic approximation)."""
-    return 1e3 * np.linalg.norm(pm.accel_se, axis=1) / np.sqrt(3) * scale_g_per_unit
+def _pose_norm_se_mg(accel_se: np.ndarray, scale_g_per_unit: float) -> np.ndarray:
+    """Standard error of each pose's |mean f| in mg (isotropic approximation) from the
+    per-axis errors of its accel mean (raw units)."""
+    return 1e3 * np.linalg.norm(accel_se, axis=1) / np.sqrt(3) * scale_g_per_unit
 
 
 def fit_accel_poses(
@@ -174,7 +197,21 @@ def fit_accel_poses(
 ) -> AccelPoseFit:
     """9 accel parameters from the poses' |mean f|, each residual divided by its standard
     error (mg), plus the misalignment prior in the same normalised units; standard errors
-    scaled by the residual variance."""
+    scaled by the residual variance.
+
+    A pose's |f| error is the noise of its mean plus a pose-to-pose part ``tau`` the noise
+    does not show (placement on an uneven support, a hand's residual acceleration,
+    hysteresis). When the fit leaves at least ``MIN_TAU_DOF`` degrees of freedom, ``tau`` is
+    estimated from the residuals (variance components, method of moments) with the means'
+    batch-means errors (``accel_se_batch``: the within-pose std over sqrt(count / 0.25 s)
+    overstates a still unit's white noise ~5x and would hide ``tau``), and each pose is
+    weighted by ``1/sqrt(se^2 + tau^2)``, so that a very still pose does not outweigh the
+    others by a noise that is not its error. With fewer poses the weights are
+    ``1/accel_se`` (from all of a pose's samples: steadier than a few block means).
+
+    The prior acts on the misalignments the data do not determine: with ``MIN_TAU_DOF``
+    degrees of freedom, a misalignment whose standard error without the prior is below the
+    prior's sigma is left to the data (``prior_used`` says which ones kept it)."""
     use = np.ones(len(pm), bool) if use is None else np.asarray(use, bool)
     X = pm.accel[use]
     need = MIN_ACCEL_POSES_WITH_PRIOR if priors.misalignment else MIN_ACCEL_POSES
@@ -184,21 +221,45 @@ def fit_accel_poses(
             f"{len(X)} static poses: the accelerometer's 9 parameters need at least {need}",
             undetermined=ACCEL_PARAM_NAMES,
         )
-    se = np.maximum(_pose_norm_se_mg(pm, float(np.mean(x0[3:6])) / g_local)[use], 1e-6)
+    dof = len(X) - 9
+    estimate_tau = dof >= MIN_TAU_DOF and pm.accel_se_batch is not None
+    se_per_axis = pm.accel_se_batch if estimate_tau else pm.accel_se
+    se = np.maximum(_pose_norm_se_mg(se_per_axis, float(np.mean(x0[3:6])) / g_local)[use], 1e-6)
     mis_sig = priors.misalignment
 
-    def resid(p):
+    def norm_err_mg(p):
         M, b = accel_matrix(p)
-        r = [1e3 * (np.linalg.norm((X - b) @ M.T, axis=1) / g_local - 1) / se]
-        if mis_sig:
-            r.append(p[:3] / mis_sig)
-        return np.concatenate(r)
+        return 1e3 * (np.linalg.norm((X - b) @ M.T, axis=1) / g_local - 1)
 
-    sol = least_squares(resid, np.asarray(x0, float), method="lm", x_scale="jac")
-    M, b = accel_matrix(sol.x)
-    res_mg = 1e3 * (np.linalg.norm((X - b) @ M.T, axis=1) / g_local - 1)
+    def solve(start, sigma, prior_on):
+        def resid(p):
+            r = norm_err_mg(p) / sigma
+            return np.concatenate([r, p[:3][prior_on] / mis_sig]) if prior_on.any() else r
+
+        return least_squares(resid, np.asarray(start, float), method="lm", x_scale="jac")
+
+    prior_on = np.full(3, bool(mis_sig))
+    if mis_sig and estimate_tau:
+        free = solve(x0, se, np.zeros(3, bool))
+        free_se = np.sqrt(np.clip(np.diag(_covariance(free, 9)), 0, None))[:3]
+        prior_on = ~(free_se < mis_sig)  # NaN (undetermined): the prior stays
+    sol = solve(x0, se, prior_on)
+    tau = 0.0
+    if estimate_tau:
+        for _ in range(3):  # tau moves the solution a little: re-estimated on it
+            r = norm_err_mg(sol.x)
+            tau = float(np.sqrt(max(0.0, float(np.sum(r**2)) / dof - float(np.mean(se**2)))))
+            sol = solve(sol.x, np.sqrt(se**2 + tau**2), prior_on)
     cov = _covariance(sol, 9)
-    return AccelPoseFit(sol.x, np.sqrt(np.clip(np.diag(cov), 0, None)), np.asarray(x0, float), res_mg, cov)
+    return AccelPoseFit(
+        sol.x,
+        np.sqrt(np.clip(np.diag(cov), 0, None)),
+        np.asarray(x0, float),
+        norm_err_mg(sol.x),
+        cov,
+        tau,
+        tuple(bool(v) for v in prior_on),
+    )
 
 
 def gravity_directions(accel_params: np.ndarray, accel_means: np.ndarray) -> np.ndarray:
@@ -545,7 +606,8 @@ def fit_field(
     ``gyro_scale`` rad/s per raw unit are starting values (full-scale range / 32768);
     ``accel_bias`` a starting bias (default: centre of the poses)."""
     t, G, A = (np.asarray(x, float) for x in (t, G, A))
-    pm = pose_means(t, G, A, poses, odd_window(1.0 / np.median(np.diff(t)), CORR_WINDOW_S))
+    rate = 1.0 / np.median(np.diff(t))
+    pm = pose_means(t, G, A, poses, odd_window(rate, CORR_WINDOW_S), max(int(round(ACCEL_BATCH_S * rate)), 1))
     pose_use = np.ones(len(pm), bool) if pose_use is None else np.asarray(pose_use, bool)
     move_use = np.ones(max(len(pm) - 1, 0), bool) if move_use is None else np.asarray(move_use, bool)
     x0 = initial_accel_params(pm.accel[pose_use], g_local, accel_scale, accel_bias)
@@ -566,6 +628,8 @@ def fit_field(
         "gyro_bias_drift": gyr.drift,
         "gyro_g_sensitivity": gyr.g_sensitivity,
         "misalignment_prior_rad": priors.misalignment,
+        "misalignment_prior_applied": dict(zip(ACCEL_PARAM_NAMES[:3], acc.prior_used)),
+        "accel_pose_noise_mg": acc.pose_noise_mg,
         **(metadata or {}),
     }
     cal = to_calibration(

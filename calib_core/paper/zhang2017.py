@@ -22,18 +22,18 @@ from typing import Any
 
 import numpy as np
 
-from calib_core import protocols, simulator
-from calib_core.navigation import TurntableTrajectory, simulate_navigation
-from calib_core.steps import SessionKey
-from calib_core.zhang2017 import (
+from calib_core.models.zhang2017 import (
     AXES,
-    AccelUnitTruth,
     C_from_angles,
     affine_to_static,
     fit_accel_static,
     fit_lever_arm,
     paper_lever_arm,
 )
+from calib_core.sim import protocols, simulator
+from calib_core.sim.accel_unit import AccelUnitTruth
+from calib_core.sim.navigation import TurntableTrajectory, simulate_navigation
+from calib_core.steps import SessionKey
 
 PUBLISHED_ZERO_BIAS_V = np.array([2.405098, 2.380978, 2.435503])
 PUBLISHED_SCALE_V_PER_G = np.array([0.39496, 0.39808, 0.40024])
@@ -93,7 +93,7 @@ def reproduce(
 ) -> ReproductionReport:
     """Run both stages ``reps`` times on the simulated unit of the paper.
 
-    Protocol: :func:`calib_core.protocols.zhang2017_session` (six-position static and
+    Protocol: :func:`calib_core.sim.protocols.zhang2017_session` (six-position static and
     stationary + constant-rate steps at 100/150/200 deg/s, x-, y-, z-up, plus 200 deg/s with
     the up axis on the 45-degree diagonals), one minute per step. ``averager(key, steps,
     samples, metadata) -> StepMeans`` runs the raw-sample path when given."""

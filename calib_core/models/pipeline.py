@@ -10,18 +10,30 @@ and applied (xu2016 section 3.1 averages the five repetitions the same way).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
-from calib_core import xu2016
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
-from calib_core.results import RepetitionCalibration, UnitCalibration
+from calib_core.models import xu2016
+from calib_core.results import FitResult, RepetitionCalibration, UnitCalibration
 from calib_core.steps import StepMeans, stack_field
 from calib_core.tables import CodedStrings, ColumnTable
+
+# The methods fitted on every session besides xu2016's (which the session needs), by the
+# model name their results carry: ``fitter(sessions) -> one fit per session`` (the sessions
+# share one step layout), each fit a calib_core.results.FitResult. A DesignError (the steps
+# cannot determine the method) becomes the session's warning ``W_<NAME>_SKIPPED``; the store,
+# the averages over repetitions and the reports take every model's parameters as they come.
+# Adding a calibration method is its module in calib_core/models/ and its line here.
+OPTIONAL_FITS: tuple[tuple[str, Callable[[list[StepMeans]], list[FitResult]]], ...] = (
+    ("gyro_traditional", xu2016.fit_gyro_traditional_stack),
+    ("accel_traditional", xu2016.fit_accel_traditional_stack),
+)
 
 
 @dataclass
@@ -131,10 +143,7 @@ def _calibrate_together(
                 "estimates are not those of a working sensor: " + "; ".join(str(i) for i in implausible),
                 undetermined=tuple(f"{i.model} {i.parameter}" for i in implausible),
             )
-    for name, fitter in (
-        ("gyro_traditional", xu2016.fit_gyro_traditional_stack),
-        ("accel_traditional", xu2016.fit_accel_traditional_stack),
-    ):
+    for name, fitter in OPTIONAL_FITS:
         try:
             for f, trad in zip(fits, fitter(sms)):
                 f[name] = trad
@@ -197,7 +206,7 @@ def _fit_zhang2017(
     DesignError raises instead of becoming the sessions' warning)."""
     lap = lap if lap is not None else _Lap(None)
     try:
-        from calib_core import zhang2017
+        from calib_core.models import zhang2017
     except ImportError:  # pragma: no cover - module always present in a full install
         return
     alone = len(sms) == 1
@@ -301,7 +310,7 @@ def baseline_residuals(sm: StepMeans, cal: Calibration, model: str = "baseline")
     """Calibrated step mean minus reference, every step and channel (gyro deg/s, accel g).
 
     ``sigma`` is the white-noise part only (within-step scatter through K); the step-to-step
-    part is estimated across repetitions by :mod:`calib_core.replay`."""
+    part is estimated across repetitions by :mod:`calib_core.discovery.replay`."""
     return residual_table(sm, cal, model).to_frame()
 
 

@@ -2,7 +2,7 @@
 Tables 1, 2 and 3 beside the published numbers.
 
 Truth: the averages of Tables 1 and 2 (gyro biases read as deg/s, see
-:func:`calib_core.simulator.xu2016_truth`). Noise is *derived* from the published repetition
+:func:`calib_core.sim.simulator.xu2016_truth`). Noise is *derived* from the published repetition
 spreads, not tuned by hand: the spread of K_ii over repetitions fixes the step-level noise of
 axis i through the design of the multirate (or multiposition) test, and what the bias spread
 has beyond that noise becomes turn-on repeatability. Where one noise level cannot explain two
@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from calib_core import protocols, simulator, xu2016
+from calib_core.models import xu2016
+from calib_core.sim import protocols, simulator
 from calib_core.steps import SessionKey
 
 PUBLISHED_TABLE1 = {  # Number 1..5, Average

@@ -173,8 +173,8 @@ def section_pose_means(
 ):
     """Raw means per static section of a Ferraris session (name, start, end, count, t_mid,
     gx..az and their std), for model discovery on real data; see
-    :func:`calib_core.static_detection.static_pose_means`."""
-    from calib_core.static_detection import static_pose_means
+    :func:`calib_core.models.field.static_detection.static_pose_means`."""
+    from calib_core.models.field.static_detection import static_pose_means
 
     names = [k for k in STATIC_SECTIONS if k in sections]
     return static_pose_means(t, G, A, [sections[k] for k in names], names=names, trim=trim)

@@ -228,7 +228,7 @@ def whole_turn_session(
     return to_frame(rows)
 
 
-# step sets the protocol advisor may add (calib_core.plan.advise): label -> rows
+# step sets the protocol advisor may add (calib_core.discovery.plan.advise): label -> rows
 STEP_SETS = {
     "stationary steps at two headings": two_heading_stationary,
     "dynamic steps on the 45-degree diagonals": diagonal_dynamic,

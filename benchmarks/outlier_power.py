@@ -1,7 +1,7 @@
 """Detection power of the outlier flags vs lot size, with and without the fleet history
 (calib_core.outliers): the table of docs/flows.md.
 
-    python -m flows.outlier_power [--trials 200] [--sizes 5 8 12 20 40] [--shifts 0 4 6 8 10]
+    python -m benchmarks.outlier_power [--trials 200] [--sizes 5 8 12 20 40] [--shifts 0 4 6 8 10]
 
 Each trial: three earlier lots of 20 clean units (acquired before), then the lot under test
 of ``n`` units; every unit has 24 parameters (the gyro and accel models), unit means
@@ -25,7 +25,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from calib_core.outliers import KIND_ROBUST, OutlierConfig, flag_lots
+from calib_core.outliers import KIND_ROBUST, OutlierConfig, ThresholdTable, flag_lots
 
 PARAMS = (
     [("gyro", f"k_g{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]
@@ -67,6 +67,7 @@ def measure(sizes: list[int], shifts: list[float], trials: int, seed: int = 2026
         "history median and spread": OutlierConfig(history_location="history"),
     }
     out = []
+    thresholds = ThresholdTable()  # one simulation per lot layout for the whole study
     for n in sizes:
         for shift in shifts:
             rng = np.random.default_rng([seed, n, int(round(shift * 10))])
@@ -78,7 +79,7 @@ def measure(sizes: list[int], shifts: list[float], trials: int, seed: int = 2026
                 for name, cfg in configs.items():
                     # "lot alone": no earlier lot in the store (a first small lot)
                     rows = df[df["lot"] == "T"] if name == "lot alone" else df
-                    lf = flag_lots(rows, cfg, ["T"], times)[0]
+                    lf = flag_lots(rows, cfg, ["T"], times, thresholds)[0]
                     hit = {(f.unit, f.model, f.parameter) for f in lf.flags if f.kind == KIND_ROBUST}
                     found[name] += target in hit and shift > 0
                     false[name] += len({f.unit for f in lf.flags} - {target[0]})
