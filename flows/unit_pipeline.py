@@ -20,7 +20,7 @@ from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
 from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, read_step_means
-from schemas.dataset import SessionRef, fingerprint
+from schemas.dataset import SessionRef, UnitJob, fingerprint  # noqa: F401  (UnitJob re-exported)
 from schemas.errors import SessionError, from_design_error
 
 STATUS_OK, STATUS_WARNED, STATUS_FAILED = "ok", "warned", "failed"
@@ -237,14 +237,6 @@ def calibrate_unit(refs: list[SessionRef], keep_step_means: bool = True) -> Unit
 
 
 # --- one unit as the nightly and rerun flows run it (discovery included) ---------------------
-@dataclass
-class UnitJob:
-    lot: str
-    unit: str
-    refs: list[SessionRef]
-    reason: str  # why it is (re)calibrated: new, changed, forced, rerun
-
-
 @dataclass
 class UnitResult:
     """What a task returns for one unit: the lead's UnitOutcome (step means dropped) plus
