@@ -85,3 +85,250 @@ def check_fits(fits: dict, sm: StepMeans) -> list[Implausible]:
         a = fits["accel"]
         out += check_affine("accel", "k_a", a.K, a.f0, a.raw_unit, np.asarray(sm.accel_range_g))
     return out
+
+
+# --- steps whose content contradicts the unit's other repetitions -----------------------------
+# A step mean damaged into the sensor's range (bytes that still decode, no page checksum) is
+# invisible to the session's own fit: the structured model error the fit leaves out (lever
+# arm, nonlinearity) reaches a robust z of ~3,500 on clean high-rate steps. The same step in
+# the unit's other repetitions carries the same structured error, so the step is compared with
+# the median of its repetitions; what differs between clean repetitions (turn-on bias, a
+# scale or drift that moved) is taken out per repetition by a robust affine fit on the
+# references and the step's time, and what is left is noise, scaled per group of steps of
+# one test and rate (a scale pooled over the group's steps and repetitions).
+# robust z beyond which a step is left out: 1.4x the largest of any clean unit measured on
+# both simulators (docs/hardening.md)
+CONSISTENCY_Z_LIMIT = 15.0
+CONSISTENCY_MIN_GROUP = 30  # deviations needed for a group's own scale (else its test's, then all)
+CHANNEL_NAMES = ("gx", "gy", "gz", "ax", "ay", "az")
+_MAD_TO_SD = 1.4826
+
+
+@dataclass(frozen=True)
+class StepDisagreement:
+    """Step ``step`` of repetition ``index`` (position in the list given) disagrees with the
+    same step in the unit's other repetitions: channel, robust z and the difference in the
+    channel's raw unit (after the repetition's own offset is taken out)."""
+
+    index: int
+    step: int
+    channel: str
+    z: float
+    deviation: float
+    ambiguous: bool  # two repetitions: which one is wrong cannot be told; both are named
+
+
+_LAYOUT_FIELDS = ("step", "test", "up_axis", "rate_dps", "w_ref", "f_ref")
+_BISQUARE_C = 4.685
+_IRLS_ITERATIONS = 8
+
+
+def _same_layout(a: StepMeans, b: StepMeans) -> bool:
+    return all(
+        getattr(a, f).dtype == getattr(b, f).dtype
+        and getattr(a, f).shape == getattr(b, f).shape
+        and getattr(a, f).tobytes() == getattr(b, f).tobytes()
+        for f in _LAYOUT_FIELDS
+    )
+
+
+def _step_columns(sms: list[StepMeans]) -> tuple[list[np.ndarray], StepMeans | None, list[tuple]]:
+    """Column of every row of every session in a table of the unit's distinct steps (same id,
+    test, pose, rate and references), and the steps' keys. The usual unit (every repetition
+    with the same steps) takes the first session's rows as the columns."""
+    if all(_same_layout(sms[0], sm) for sm in sms[1:]):
+        cols = np.arange(len(sms[0]))
+        return [cols] * len(sms), sms[0], []
+    columns: dict[tuple, int] = {}
+    out = []
+    for sm in sms:
+        keys = zip(
+            sm.step.tolist(),
+            sm.test.tolist(),
+            sm.up_axis.tolist(),
+            sm.rate_dps.tolist(),
+            map(bytes, sm.w_ref),
+            map(bytes, sm.f_ref),
+        )
+        out.append(np.array([columns.setdefault(k, len(columns)) for k in keys], np.intp))
+    return out, None, list(columns)
+
+
+def _nanmedian_rows(a: np.ndarray) -> np.ndarray:
+    """Median of the finite values of each row of ``a`` (P, S), as (P, 1); NaN for a row
+    without any. What ``np.nanmedian(a, axis=1, keepdims=True)`` gives, without its masked
+    arrays (which cost most of this check's time on rows of ~100 values)."""
+    srt = np.sort(a, axis=1)  # NaN last
+    n = np.isfinite(a).sum(axis=1)
+    lo = np.maximum((n - 1) // 2, 0)[:, None]
+    hi = np.maximum(n // 2, 0)[:, None]
+    mid = 0.5 * (np.take_along_axis(srt, lo, axis=1) + np.take_along_axis(srt, hi, axis=1))
+    return np.where(n[:, None] > 0, mid, np.nan)
+
+
+def _robust_affine_residuals(d: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Residuals of the problems ``d`` (P, S) (NaN: no value) on ``X`` (P, S, p), each by
+    iteratively reweighted least squares with Tukey's bisquare (c = 4.685) starting from the
+    median, all problems at once (normal equations, pseudo-inverse): a few damaged steps do
+    not move the fit."""
+    out = np.full(d.shape, np.nan)
+    enough = np.isfinite(d).sum(axis=1) >= X.shape[2] + 2  # else no residual (NaN)
+    if not enough.any():
+        return out
+    d, X = d[enough], X[enough]
+    valid = np.isfinite(d)
+    d0 = np.where(valid, d, 0.0)
+    X = np.where(valid[..., None], X, 0.0)
+    e = d - _nanmedian_rows(d)
+    for _ in range(_IRLS_ITERATIONS):
+        centre = _nanmedian_rows(e)
+        s = _MAD_TO_SD * _nanmedian_rows(np.abs(e - centre))
+        u = np.where(valid, e, 0.0) / (_BISQUARE_C * np.where(s > 0, s, np.inf))
+        w = np.where(valid & (np.abs(u) < 1), (1 - u * u) ** 2, 0.0)
+        Xw = X * w[..., None]
+        beta = np.linalg.pinv(Xw.transpose(0, 2, 1) @ X) @ (Xw.transpose(0, 2, 1) @ d0[..., None])
+        e = np.where(valid, d0 - (X @ beta)[..., 0], np.nan)
+    out[enough] = e
+    return out
+
+
+def _group_scales(dev: np.ndarray, groups: np.ndarray, tests: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """(S, 6) robust scale of the deviations ``dev`` (R, S, 6) (NaN where not counted) per
+    step and channel: pooled over the steps of the step's group (test and |rate|) and every
+    repetition; a group with too few deviations takes its test's scale, a test with too few
+    the channel's."""
+
+    def scale(values: np.ndarray) -> np.ndarray:
+        v = values.reshape(-1, values.shape[-1]).T  # (6, values)
+        enough = np.isfinite(v).sum(axis=1) >= CONSISTENCY_MIN_GROUP
+        return np.where(enough, _MAD_TO_SD * _nanmedian_rows(np.abs(v))[:, 0], np.nan)
+
+    everything = scale(dev)
+    by_test = {t: scale(dev[:, tests == t]) for t in np.unique(tests)}
+    out = np.full(dev.shape[1:], np.nan)
+    for g in np.unique(groups):
+        cols = groups == g
+        s = scale(dev[:, cols])
+        for fallback in (by_test[tests[cols][0]], everything):
+            s = np.where(np.isnan(s), fallback, s)
+        out[cols] = np.maximum(s, floor)  # NaN (no scale anywhere) stays NaN
+    return out
+
+
+def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMIT) -> list[StepDisagreement]:
+    """Steps of the repetitions ``sms`` (one unit) whose mean disagrees with the same step
+    (same id, test, pose, rate and references) in the other repetitions by more than
+    ``z_limit`` robust standard deviations, on any channel; at most one entry per
+    repetition and step (its worst channel).
+
+    With three or more repetitions the reference of a step is the median over repetitions,
+    which one damaged repetition cannot move. With two, each is the other's reference: a
+    step beyond the limit is named in both, ``ambiguous``. One repetition: nothing to compare
+    with (an empty list)."""
+    n_rep = len(sms)
+    if n_rep < 2:
+        return []
+    cols_of, layout, keys = _step_columns(sms)
+    if layout is not None:
+        step_id, test = layout.step, layout.test
+        rate, w_ref, f_ref = np.abs(layout.rate_dps), layout.w_ref, layout.f_ref
+    else:
+        step_id = np.array([k[0] for k in keys])
+        test = np.array([k[1] for k in keys])
+        rate = np.abs(np.array([k[3] for k in keys], float))
+        w_ref = np.array([np.frombuffer(k[4]) for k in keys])
+        f_ref = np.array([np.frombuffer(k[5]) for k in keys])
+    n_col = len(step_id)
+    values = np.full((n_rep, n_col, 6), np.nan)
+    t_mid = np.full((n_rep, n_col), np.nan)
+    for r, (sm, cols) in enumerate(zip(sms, cols_of)):
+        values[r, cols, :3] = sm.gyro
+        values[r, cols, 3:] = sm.accel
+        t_mid[r, cols] = sm.t_mid
+    present = np.isfinite(values[..., 0])
+    shared = present.sum(axis=0) >= 2  # a step seen in one repetition has nothing to compare
+    if np.count_nonzero(shared) < 8:
+        return []
+    values[:, ~shared] = np.nan
+    median = np.full((n_col, 6), np.nan)  # over the repetitions that have the step
+    median[shared] = np.nanmedian(values[:, shared], axis=0)
+    # the problems: each repetition (two: the first only, the second is its mirror) and channel
+    fitted = 1 if n_rep == 2 else n_rep
+    d = (values[:fitted] - median[None]).transpose(0, 2, 1)  # (fitted, 6, S)
+    t = t_mid[:fitted]
+    with np.errstate(invalid="ignore", divide="ignore"):  # a session without times: t = 0
+        t = np.nan_to_num((t - np.nanmean(t, axis=1, keepdims=True)) / np.nanstd(t, axis=1, keepdims=True))
+    ones = np.ones((fitted, n_col, 1))
+    X = np.empty((fitted, 6, n_col, 6))
+    for c in range(6):
+        ref = np.broadcast_to((w_ref if c < 3 else f_ref)[None], (fitted, n_col, 3))
+        X[:, c] = np.concatenate([ones, ref, t[..., None], t[..., None] ** 2], axis=2)
+    dev = np.full((n_rep, n_col, 6), np.nan)
+    dev[:fitted] = (
+        _robust_affine_residuals(d.reshape(-1, n_col), X.reshape(-1, n_col, 6))
+        .reshape(fitted, 6, n_col)
+        .transpose(0, 2, 1)
+    )
+    if n_rep == 2:  # each the other's reference: both deviations are +/- the difference
+        dev[1] = -dev[0]
+    # the scale leaves out the median repetition of each step (its deviation from itself
+    # is zero before the affine fit: counting it would shrink the scale by a third with
+    # three repetitions) and, with two repetitions, the second's (the same numbers); the
+    # floor, a millionth of full scale, gives noise-free data one
+    counted = np.where(values == median[None], np.nan, dev)
+    if n_rep == 2:
+        counted[1] = np.nan
+    full_scale = np.concatenate(
+        [np.asarray(sms[0].gyro_range_dps, float), np.asarray(sms[0].accel_range_g, float)]
+    )
+    group = np.char.add(np.char.add(test.astype(str), "|"), rate.astype(str))
+    scale = _group_scales(counted, group, test.astype(str), 1e-6 * full_scale)
+    with np.errstate(invalid="ignore"):
+        z = dev / scale[None]
+    beyond = np.abs(np.nan_to_num(z)) > z_limit
+    out = []
+    for r, col in zip(*np.nonzero(beyond.any(axis=2))):
+        c = int(np.argmax(np.where(beyond[r, col], np.abs(z[r, col]), -1.0)))  # its worst channel
+        out.append(
+            StepDisagreement(
+                int(r),
+                int(step_id[col]),
+                CHANNEL_NAMES[c],
+                float(z[r, col, c]),
+                float(dev[r, col, c]),
+                n_rep == 2,
+            )
+        )
+    return sorted(out, key=lambda s: (s.index, s.step))
+
+
+# --- NumPy floating-point errors: recorded and named, not printed -------------------------------
+class NumericEvents:
+    """Floating-point errors NumPy meets inside a ``with`` block (overflow, invalid value,
+    division by zero), counted instead of printed as ``RuntimeWarning``s, so that the caller
+    can name them (``W_NUMERIC``, with the session) where they happen. ``np.errstate`` is a
+    context variable: each thread (a Prefect task) records its own; code that deliberately
+    ignores an error (``np.errstate(invalid="ignore")`` around a NaN comparison) still does."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+        self._state = np.errstate(over="call", invalid="call", divide="call", call=self._record)
+
+    def _record(self, kind: str, flag: int) -> None:
+        self.counts[kind] = self.counts.get(kind, 0) + 1
+
+    def __enter__(self) -> NumericEvents:
+        self._state.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._state.__exit__(*exc)
+
+    def __bool__(self) -> bool:
+        return bool(self.counts)
+
+    def __str__(self) -> str:
+        """e.g. ``overflow (2 operations), invalid value (1 operation)``."""
+        return ", ".join(
+            f"{kind} ({n} operation{'s' if n != 1 else ''})" for kind, n in sorted(self.counts.items())
+        )

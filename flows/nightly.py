@@ -62,7 +62,7 @@ from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and to
     calibrate_unit_job,
     failed_unit_result,
 )
-from schemas.dataset import DigestCache, SessionRef, find_sessions  # noqa: E402
+from schemas.dataset import DigestCache, SessionRef, find_sessions, plan_units  # noqa: E402,F401  (plan_units re-exported)
 from schemas.flagging import reflag_after_update  # noqa: E402
 from schemas.limits import resolve_config, save_config  # noqa: E402
 from schemas.results_store import (  # noqa: E402
@@ -77,46 +77,6 @@ DEFAULT_BATCH_SIZE = 8
 
 
 # --- plain-Python pieces (tested without Prefect) ------------------------------------------------
-def plan_units(
-    refs: list[SessionRef], previous: dict[tuple[str, str, int], str], force: bool = False, cache=None
-) -> tuple[list[UnitJob], list[tuple[str, str]]]:
-    """Units to calibrate (new, changed, or all with ``force``) and units skipped because
-    every session's fingerprint (a content hash, schemas.dataset.fingerprint) is unchanged
-    and no session appeared or disappeared. ``cache``: a schemas.dataset.DigestCache."""
-    from schemas.dataset import fingerprint
-
-    by_unit: dict[tuple[str, str], list[SessionRef]] = {}
-    for r in refs:
-        by_unit.setdefault((r.key.lot, r.key.unit), []).append(r)
-    prev_reps: dict[tuple[str, str], set[int]] = {}
-    for lot, unit, rep in previous:
-        prev_reps.setdefault((lot, unit), set()).add(rep)
-    jobs, skipped = [], []
-    for (lot, unit), rs in sorted(by_unit.items()):
-        if force:
-            jobs.append(UnitJob(lot, unit, rs, "forced"))
-            continue
-        if (lot, unit) not in prev_reps:
-            jobs.append(UnitJob(lot, unit, rs, "new"))
-            continue
-        reps_now = {r.key.rep for r in rs}
-        changed = [
-            r.key.rep for r in rs if previous.get((lot, unit, r.key.rep)) != fingerprint(r.path, cache)
-        ]
-        if changed or reps_now != prev_reps[(lot, unit)]:
-            why = []
-            if changed:
-                why.append("changed rep " + ",".join(map(str, changed)))
-            if reps_now - prev_reps[(lot, unit)]:
-                why.append("new rep " + ",".join(map(str, sorted(reps_now - prev_reps[(lot, unit)]))))
-            if prev_reps[(lot, unit)] - reps_now:
-                why.append("removed rep " + ",".join(map(str, sorted(prev_reps[(lot, unit)] - reps_now))))
-            jobs.append(UnitJob(lot, unit, rs, "; ".join(why)))
-        else:
-            skipped.append((lot, unit))
-    return jobs, skipped
-
-
 def store_results(
     store: ResultsStore, results: list[UnitResult], run_id: str, code_version: str, when=None
 ) -> dict[str, Any]:

@@ -14,12 +14,13 @@ import pandas as pd
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.models.pipeline import calibrate_repetitions, calibration_from_unit
+from calib_core.guards import NumericEvents
+from calib_core.models.pipeline import calibrate_repetition, calibrate_repetitions, calibration_from_unit
 from calib_core.results import RepetitionCalibration, UnitCalibration
 from calib_core.steps import SessionKey, StepMeans
 from calib_core.tables import ColumnTable
-from schemas.averaging import read_step_means
-from schemas.dataset import SessionRef, fingerprint
+from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, read_step_means
+from schemas.dataset import SessionRef, UnitJob, fingerprint  # noqa: F401  (UnitJob re-exported)
 from schemas.errors import SessionError, from_design_error
 
 STATUS_OK, STATUS_WARNED, STATUS_FAILED = "ok", "warned", "failed"
@@ -63,7 +64,9 @@ def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionO
 def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> list[SessionOutcome]:
     """:func:`calibrate_session` of each session (the repetitions of a unit): every session
     read first, then the fits of those read together (``calibrate_repetitions`` stacks the
-    sessions that share a step layout); each outcome is the one its session gives alone."""
+    sessions that share a step layout); each outcome is the one its session gives alone, but
+    for the steps left out because they contradict the same step in the unit's other
+    repetitions (``W_INCONSISTENT_STEP``, :func:`schemas.averaging.leave_out_inconsistent_steps`)."""
     fps = []
     read: list[tuple[int, StepMeans, list]] = []
     outcomes: list[SessionOutcome | None] = [None] * len(refs)
@@ -75,12 +78,23 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             outcomes[i] = _failed(ref, fps[i], exc)
             continue
         read.append((i, sm, warns))
-    fits = calibrate_repetitions([sm for _, sm, _ in read])
-    for (i, sm, warns), fit in zip(read, fits):
+    # steps that contradict the unit's other repetitions are left out before the fits
+    checked = leave_out_inconsistent_steps([(sm, warns) for _, sm, warns in read])
+    kept = []
+    for (i, _, _), item in zip(read, checked):
+        if isinstance(item, SessionError):  # too many steps lost in all
+            outcomes[i] = _failed(refs[i], fps[i], item)
+        else:
+            kept.append((i, *item))
+    read = kept
+    fits, numeric = _fit_recording_numeric_events([sm for _, sm, _ in read])
+    for (i, sm, warns), fit, events in zip(read, fits, numeric):
         ref, fp = refs[i], fps[i]
         if isinstance(fit, Exception):
             outcomes[i] = _failed(ref, fp, fit)
             continue
+        if events:
+            warns = [*warns, numeric_warning(str(ref.key), "fitting it", events)]
         warning_texts = [str(w) for w in warns] + list(fit.calibration.warnings)
         fit.calibration.warnings = warning_texts
         fit.calibration.provenance.update({"path": str(ref.path), "fingerprint": fp})
@@ -99,6 +113,25 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             sm if keep_step_means else None,
         )
     return outcomes
+
+
+def _fit_recording_numeric_events(sms: list[StepMeans]) -> tuple[list, list[NumericEvents]]:
+    """``calibrate_repetitions(sms)`` and, per session, the floating-point errors NumPy met
+    fitting it. The sessions are fitted together; only when that meets some are they fitted
+    again one at a time (the same fits) to tell whose they are."""
+    with NumericEvents() as together:
+        fits = calibrate_repetitions(sms)
+    if not together or len(sms) == 1:
+        return fits, [together] * len(sms)
+    fits, events = [], []
+    for sm in sms:
+        with NumericEvents() as alone:
+            try:
+                fits.append(calibrate_repetition(sm))
+            except Exception as exc:  # noqa: BLE001 - the caller reports it for its session
+                fits.append(exc)
+        events.append(alone)
+    return fits, events
 
 
 def _failed(ref: SessionRef, fp: str, exc: Exception) -> SessionOutcome:
@@ -204,14 +237,6 @@ def calibrate_unit(refs: list[SessionRef], keep_step_means: bool = True) -> Unit
 
 
 # --- one unit as the nightly and rerun flows run it (discovery included) ---------------------
-@dataclass
-class UnitJob:
-    lot: str
-    unit: str
-    refs: list[SessionRef]
-    reason: str  # why it is (re)calibrated: new, changed, forced, rerun
-
-
 @dataclass
 class UnitResult:
     """What a task returns for one unit: the lead's UnitOutcome (step means dropped) plus

@@ -283,9 +283,11 @@ class UnitCalibrationResult:
 
 
 def _read_unit(dataset: str | Path, unit: str):
-    """The unit's sessions read and averaged: (lot, [(ref, step means)], failed)."""
-    from schemas.averaging import read_step_means
+    """The unit's sessions read and averaged, the steps that contradict the unit's other
+    repetitions left out (as the nightly does): (lot, [(ref, step means, warnings)], failed)."""
+    from schemas.averaging import leave_out_inconsistent_steps, read_step_means
     from schemas.dataset import find_sessions
+    from schemas.errors import SessionError
 
     refs, _ = find_sessions(dataset, unit=unit)
     if not refs:
@@ -296,12 +298,19 @@ def _read_unit(dataset: str | Path, unit: str):
     read, failed = [], []
     for ref in sorted(refs, key=lambda r: r.key.rep):
         try:
-            sm, _ = read_step_means(ref)
-        except ValueError as exc:  # SessionError: names the session, file and reason
+            sm, warns = read_step_means(ref)
+        except (SessionError, ValueError) as exc:  # names the session, file and reason
             failed.append({"rep": ref.key.rep, "code": getattr(exc, "code", "E_INPUT"), "message": str(exc)})
             continue
-        read.append((ref, sm))
-    return refs[0].key.lot, read, failed
+        read.append((ref, sm, warns))
+    checked = leave_out_inconsistent_steps([(sm, warns) for _, sm, warns in read])
+    kept = []
+    for (ref, _, _), item in zip(read, checked):
+        if isinstance(item, SessionError):  # E_TOO_MANY_STEPS_LOST
+            failed.append({"rep": ref.key.rep, "code": item.code, "message": str(item)})
+        else:
+            kept.append((ref, *item))
+    return refs[0].key.lot, kept, failed
 
 
 def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> UnitCalibrationResult:
@@ -323,10 +332,10 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> Uni
     from schemas.errors import SessionError
 
     lot, read, failed = _read_unit(dataset, unit)
-    fits = calibrate_repetitions([sm for _, sm in read])
+    fits = calibrate_repetitions([sm for _, sm, _ in read])
     reps: list[RepetitionCalibration] = []
     good_sm, sessions = [], []
-    for (ref, sm), fit in zip(read, fits):
+    for (ref, sm, warns), fit in zip(read, fits):
         if isinstance(fit, Exception):
             code = getattr(fit, "code", "E_INTERNAL")
             msg = str(fit) if isinstance(fit, SessionError) else f"[{code}] session {ref.key}: {fit}"
@@ -338,7 +347,8 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> Uni
             {
                 "rep": ref.key.rep,
                 "path": str(ref.path),
-                "status": "ok",
+                "status": "warned" if warns else "ok",
+                "warnings": [str(w) for w in warns],
                 "session_start": fit.calibration.provenance.get("session_start"),
             }
         )
@@ -371,7 +381,7 @@ def discover_unit(dataset: str | Path, unit: str, alpha: float | None = None):
             f"unit {unit}: model discovery needs two readable repetitions, "
             f"{len(read)} read" + (f" ({failed[0]['message']})" if failed else "")
         )
-    return diagnose_unit([sm for _, sm in read], DEFAULT_ALPHA if alpha is None else alpha)
+    return diagnose_unit([sm for _, sm, _ in read], DEFAULT_ALPHA if alpha is None else alpha)
 
 
 # --- a small dataset to try things on ------------------------------------------------------------

@@ -61,6 +61,7 @@ import numpy as np
 import pandas as pd
 import pyarrow as pa
 
+from calib_core.guards import CONSISTENCY_Z_LIMIT, NumericEvents, inconsistent_steps
 from calib_core.steps import SessionKey, StepMeans
 from schemas.contract import ACCEL_COLUMNS, GYRO_COLUMNS, SAMPLES_FILE
 from schemas.dataset import SessionRef
@@ -68,6 +69,8 @@ from schemas.errors import (
     E_EMPTY_SESSION,
     E_TOO_MANY_STEPS_LOST,
     W_EMPTY_STEP,
+    W_INCONSISTENT_STEP,
+    W_NUMERIC,
     W_SATURATED,
     W_TOO_SHORT,
     SessionError,
@@ -545,9 +548,23 @@ def read_step_means(
     also when more than ``max_lost_share`` (default :func:`max_lost_step_share`) of its
     steps are left out."""
     data = read_session(ref)
-    sm, warns = average_session(data, min_samples)
+    with NumericEvents() as numeric:
+        sm, warns = average_session(data, min_samples)
     check_lost_steps(data.label, len(data.steps), warns, max_lost_share)
+    if numeric:
+        warns.append(numeric_warning(data.label, "averaging its steps", numeric))
     return sm, warns
+
+
+def numeric_warning(label: str, stage: str, events: NumericEvents) -> SessionWarning:
+    """``W_NUMERIC``: the floating-point errors NumPy met on this session (they are not
+    printed: the terminal shows no RuntimeWarning), named with the session and the stage."""
+    return SessionWarning(
+        W_NUMERIC,
+        f"{label}: floating-point {events} while {stage} (a value too large or undefined for "
+        f"the arithmetic: damaged data?); the results kept are finite and passed the "
+        f"plausibility checks",
+    )
 
 
 def step_means_from_tables(
@@ -559,3 +576,64 @@ def step_means_from_tables(
 ) -> tuple[StepMeans, list[SessionWarning]]:
     """Validate and average in-memory tables (same rules as files)."""
     return average_session(session_from_tables(key, steps_df, samples_table, metadata), min_samples)
+
+
+def leave_out_inconsistent_steps(
+    sessions: list[tuple[StepMeans, list[SessionWarning]]],
+    z_limit: float = CONSISTENCY_Z_LIMIT,
+    max_lost_share: float | None = None,
+) -> list[tuple[StepMeans, list[SessionWarning]] | SessionError]:
+    """The averaged repetitions of one unit (each with its warnings so far), each step that
+    contradicts the same step in the other repetitions (:func:`calib_core.guards.
+    inconsistent_steps`) left out with a ``W_INCONSISTENT_STEP`` warning; item i is session
+    i's step means and warnings, or the :class:`SessionError` ``E_TOO_MANY_STEPS_LOST`` when
+    the steps it has lost in all now exceed the allowed share.
+
+    Why against the other repetitions and not the session's own fit: a damaged value inside
+    the sensor's range (bytes that decode, no page checksum) is an outlier of one repetition,
+    while the structured error the fit leaves out (lever arm, nonlinearity) is the same in
+    every repetition and cancels in the comparison. A unit with a single repetition has
+    nothing to compare with: its steps are kept (docs/hardening.md, limitations)."""
+    sms = [sm for sm, _ in sessions]
+    found = inconsistent_steps(sms, z_limit)
+    out: list[tuple[StepMeans, list[SessionWarning]] | SessionError] = []
+    for r, (sm, warns) in enumerate(sessions):
+        mine = [d for d in found if d.index == r]
+        if not mine:
+            out.append((sm, warns))
+            continue
+        warns = list(warns)
+        drop = np.zeros(len(sm), bool)
+        for d in mine:
+            i = int(np.flatnonzero(sm.step == d.step)[0])
+            drop[i] = True
+            unit = sm.gyro_unit if d.channel.startswith("g") else sm.accel_unit
+            what = f"step {d.step} ({sm.test[i]}, {sm.up_axis[i]} up, {float(sm.rate_dps[i]):g} deg/s)"
+            if d.ambiguous:
+                other = sms[1 - r].key.rep
+                whom = (
+                    f"the same step in rep {other} by {2 * abs(d.deviation):.4g} {unit} "
+                    f"(robust z {abs(d.z):.0f}, limit {z_limit:g}); two repetitions cannot tell "
+                    f"which is wrong, so it is left out of both"
+                )
+            else:
+                whom = (
+                    f"the same step in the unit's other repetitions by {d.deviation:+.4g} {unit} "
+                    f"(robust z {abs(d.z):.0f}, limit {z_limit:g}); left out"
+                )
+            warns.append(
+                SessionWarning(
+                    W_INCONSISTENT_STEP,
+                    f"{sm.key}: {what}: {d.channel} differs from {whom}",
+                    d.step,
+                    d.channel,
+                )
+            )
+        n_lost_before = sum(w.step is not None for w in sessions[r][1])
+        try:
+            check_lost_steps(str(sm.key), len(sm) + n_lost_before, warns, max_lost_share)
+        except SessionError as exc:
+            out.append(exc)
+            continue
+        out.append((sm.select(~drop), warns))
+    return out

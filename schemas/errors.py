@@ -55,8 +55,10 @@ ERROR_CODES = (
 W_SATURATED = "W_SATURATED"  # a sample of the step (after settling) reached full scale
 W_TOO_SHORT = "W_TOO_SHORT"  # fewer than min_samples samples left after settling
 W_EMPTY_STEP = "W_EMPTY_STEP"  # a step of steps.parquet has no samples at all
+W_INCONSISTENT_STEP = "W_INCONSISTENT_STEP"  # the step contradicts the unit's other repetitions
+W_NUMERIC = "W_NUMERIC"  # NumPy met overflow / invalid values / division by zero on the session
 
-WARNING_CODES = (W_SATURATED, W_TOO_SHORT, W_EMPTY_STEP)
+WARNING_CODES = (W_SATURATED, W_TOO_SHORT, W_EMPTY_STEP, W_INCONSISTENT_STEP, W_NUMERIC)
 
 
 class SessionError(Exception):

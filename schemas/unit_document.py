@@ -63,6 +63,26 @@ def _stack(reps: list[dict], key: str, fn):
     return fn(np.array(present, dtype=float))
 
 
+def _mean_over_reps(a: np.ndarray) -> np.ndarray:
+    """Mean over repetitions (axis 0) of the finite values; NaN where none is finite (a lever
+    arm component no repetition could observe, named by W_LEVER_ARM_UNDETERMINED), computed
+    without NumPy's empty-slice warning."""
+    finite = np.isfinite(a)
+    n = finite.sum(axis=0)
+    total = np.where(finite, a, 0.0).sum(axis=0)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
+
+
+def _std_over_reps(a: np.ndarray) -> np.ndarray:
+    """Sample standard deviation (ddof 1) over repetitions of the finite values; NaN where
+    fewer than two are finite."""
+    finite = np.isfinite(a)
+    n = finite.sum(axis=0)
+    dev = np.where(finite, a - _mean_over_reps(a), 0.0)
+    var = (dev * dev).sum(axis=0) / np.maximum(n - 1, 1)
+    return np.where(n > 1, np.sqrt(var), np.nan)
+
+
 def unit_document(
     lot: str, unit: str, reps: list[RepetitionCalibration], failed: list[dict[str, Any]] | None = None
 ) -> dict[str, Any]:
@@ -81,15 +101,8 @@ def unit_document(
     keys = list(BASE_KEYS) + [
         k for k in ("accel_static", "lever_arm_mm") if any(k in p["values"] for p in per)
     ]
-    mean = {k: _tolist(_stack(per, k, lambda a: np.nanmean(a, axis=0))) for k in keys}
-    std = {
-        k: _tolist(
-            _stack(
-                per, k, lambda a: np.nanstd(a, axis=0, ddof=1) if len(a) > 1 else np.full(a.shape[1:], np.nan)
-            )
-        )
-        for k in keys
-    }
+    mean = {k: _tolist(_stack(per, k, _mean_over_reps)) for k in keys}
+    std = {k: _tolist(_stack(per, k, _std_over_reps)) for k in keys}
     g, a = (reps[0].fits["gyro"], reps[0].fits["accel"]) if reps else (None, None)
     units = {
         "K_g": f"deg/s per {g.raw_unit}" if g else None,

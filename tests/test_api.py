@@ -168,3 +168,29 @@ def test_discover_unit_names_an_effect_put_into_the_simulation(tmp_path):
     res = api.calibrate_unit(tmp_path, "U0001")  # discovery's calibration is the one applied
     assert [t.name for t in res.calibration.terms] == ["gyro_scale_nonlinearity"]
     assert abs(res.calibration.terms[0].params[5] - 0.3) < 0.05
+
+
+def test_calibrate_unit_names_a_bad_session_and_leaves_out_a_contradicting_step(tmp_path):
+    """As the nightly: a truncated samples file is a failed entry (not an exception), and a
+    step that contradicts the same step in the other repetitions is left out with
+    W_INCONSISTENT_STEP, its session 'warned'."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    data = tmp_path / "data"
+    api.simulate_unit_dataset(data, unit="U0003", reps=4, seed=2, rate_hz=10)
+    reps = sorted((data / "lot=L01" / "unit=U0003").iterdir())
+    (reps[3] / "samples.parquet").write_bytes((reps[3] / "samples.parquet").read_bytes()[:100])
+    table = pq.read_table(reps[1] / "samples.parquet")
+    ax = table.column("ax").to_numpy().astype(np.float64)
+    ax[np.flatnonzero(table.column("step").to_numpy() == 80)[-5:]] += 0.5  # 5 samples, in range
+    pq.write_table(
+        table.set_column(table.schema.get_field_index("ax"), "ax", pa.array(ax)), reps[1] / "samples.parquet"
+    )
+    res = api.calibrate_unit(data, "U0003", discover=False)
+    assert [(f["rep"], f["code"]) for f in res.failed] == [(4, "E_UNREADABLE_FILE")]
+    status = {s["rep"]: (s["status"], s["warnings"]) for s in res.sessions}
+    assert status[1] == ("ok", []) and status[3] == ("ok", [])
+    assert status[2][0] == "warned" and len(status[2][1]) == 1
+    assert status[2][1][0].startswith("[W_INCONSISTENT_STEP] lot=L01/unit=U0003/rep=2: step 80 (")
+    assert "ax differs from the same step in the unit's other repetitions" in status[2][1][0]

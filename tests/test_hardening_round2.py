@@ -630,10 +630,13 @@ def test_unknown_unit_or_lot_lists_the_ones_that_exist(small_fleet, tmp_path, ca
 
 
 @pytest.mark.slow
-def test_numpy_runtime_warnings_reach_the_terminal_only_with_debug(tmp_path):
-    """``mimucal calibrate`` on a unit whose lever-arm components are partly unobservable
-    (NaN stderr averaged: 'Mean of empty slice'): no RuntimeWarning on stderr, unless
-    --debug. A real process: pytest's own warning capture would hide them in-process."""
+def test_numpy_runtime_warnings_never_reach_the_terminal_and_become_named_warnings(tmp_path):
+    """``mimucal calibrate`` (real processes: pytest's own warning capture would hide them
+    in-process), with and without --debug: (1) a unit whose lever-arm components are partly
+    unobservable (their repetitions' mean was NumPy's 'Mean of empty slice'): no
+    RuntimeWarning, the components named by W_LEVER_ARM_UNDETERMINED; (2) a float64 sample
+    damaged to 1e160 deg/s (its square overflows in the step's standard deviation): no
+    RuntimeWarning, the session warned with W_NUMERIC (and its step W_SATURATED)."""
     import subprocess
     import sys
 
@@ -655,14 +658,35 @@ def test_numpy_runtime_warnings_reach_the_terminal_only_with_debug(tmp_path):
             (lever, np.array([8, 4, -6, -5, 9, 3, 4, -7, 12.0]))
         ),
     )
+    simulate_fleet(tmp_path / "o", 1, 1, 3, seed=3, sample_rate_hz=RATE_HZ)
+    rep1 = sorted(find_sessions(tmp_path / "o")[0], key=lambda r: r.key.rep)[0]
+    table = pq.read_table(rep1.samples_path)
+    gx = table.column("gx").to_numpy().astype(np.float64)
+    gx[np.flatnonzero(table.column("step").to_numpy() == 20)[-3]] = 1e160
+    pq.write_table(
+        table.set_column(table.schema.get_field_index("gx"), "gx", pa.array(gx)), rep1.samples_path
+    )
+
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     env.pop("PYTHONWARNINGS", None)
-    cmd = [sys.executable, "-m", "flows.cli", "calibrate", str(tmp_path / "d"), "--unit", "U0001"]
-    quiet = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120)
-    debug = subprocess.run(cmd + ["--debug"], capture_output=True, text=True, env=env, timeout=120)
-    assert quiet.returncode == 0 and debug.returncode == 0, quiet.stderr
-    assert "RuntimeWarning" in debug.stderr  # the case does raise them
-    assert "RuntimeWarning" not in quiet.stderr
+
+    def calibrate(dataset: str, *extra: str) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, "-m", "flows.cli", "calibrate", str(tmp_path / dataset), "--unit", "U0001"]
+        done = subprocess.run(cmd + list(extra), capture_output=True, text=True, env=env, timeout=180)
+        assert done.returncode == 0, done.stderr
+        assert "RuntimeWarning" not in done.stderr and "Warning" not in done.stdout, done.stderr
+        return done
+
+    for extra in ((), ("--debug",)):
+        text = calibrate("d", *extra).stdout
+        assert "warning rep 1: W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe" in text, text
+    text = calibrate("o", "--debug").stdout
+    assert "warning rep 1: [W_SATURATED] lot=L01/unit=U0001/rep=1: step 20 " in text
+    assert (
+        "warning rep 1: [W_NUMERIC] lot=L01/unit=U0001/rep=1: floating-point overflow (1 operation) "
+        "while averaging its steps" in text
+    ), text
+    assert "warning rep 2" not in text and "warning rep 3" not in text
 
 
 @pytest.mark.slow

@@ -77,12 +77,6 @@ class Identifiability:
         """Every parameter of ``term`` determined and no direction shared with another term."""
         return self.rank[term] == self.n_params[term] and not any(term in c.terms for c in self.confounded)
 
-    def estimable(self, term: str) -> bool:
-        """Some direction of ``term`` is determined and its own."""
-        return self.rank[term] > 0 and not any(
-            term in c.terms and self.rank[term] <= 1 for c in self.confounded
-        )
-
     def groups(self) -> list[tuple[str, ...]]:
         """Test groups: confounded terms together (union of overlapping sets), others alone."""
         parent = {t: t for t in self.terms}

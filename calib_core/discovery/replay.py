@@ -152,6 +152,12 @@ class NoiseEstimate:
             self._records = self.table.to_dict(orient="records")
         return [dict(r) for r in self._records]
 
+    def step_sd_by_channel(self) -> dict[str, float]:
+        """The typical noise of a step mean per channel: the median of its test groups'
+        step_sd (physical units: deg/s for gyros, g for accelerometers)."""
+        t = self.table
+        return {str(ch): float(sub["step_sd"].median()) for ch, sub in t.groupby("channel", sort=False)}
+
     def __repr__(self) -> str:
         return f"NoiseEstimate(from_repetitions={self.from_repetitions}, rows={len(self.records())})"
 

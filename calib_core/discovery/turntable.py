@@ -1179,9 +1179,6 @@ class _Discovery:
         a, b = self.g.offset[name]
         return tuple(int(c) for c in np.flatnonzero(self.g.live_mask[:, a:b].any(axis=1)))
 
-    def column_channels(self, col: int) -> list[int]:
-        return [int(c) for c in np.flatnonzero(self.g.live_mask[:, col])]
-
     def sensor_channels(self, name: str) -> tuple[int, ...]:
         """The channels of the sensors the term's parameters act on (a term reaches the
         other channels of its triad only through misalignment)."""

@@ -96,6 +96,8 @@ def summary_lines(ur, failed: list[dict], n_reps: int) -> list[str]:
         )
     elif ur.discovery_note:
         lines.append(ur.discovery_note)
+    for s in out.sessions:  # what was left out of a used session, or went wrong in its numbers
+        lines += [f"warning rep {s.key.rep}: {w}" for w in s.warnings if s.succeeded]
     for f in failed:
         msg = f["message"] or ""
         lines.append(f"failed rep {f['rep']}: " + (msg if msg.startswith("[") else f"[{f['code']}] {msg}"))

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from flows.cli import CliError
+from schemas.display import value_unit
 
 
 def register(sub) -> None:
@@ -54,13 +55,12 @@ def summary_lines(diag) -> list[str]:
         f"unit {diag.unit} (lot {diag.lot}): {diag.n_reps} repetitions, false-alarm "
         f"rate {diag.alpha:g} per unit"
     ]
-    tab = diag.noise.table
+    step_sd = diag.noise.step_sd_by_channel()
     parts = []
     for ch in ("gx", "gy", "gz", "ax", "ay", "az"):
-        sub = tab[tab["channel"] == ch]
-        if len(sub):
-            unit, scale = ("deg/s", 1.0) if ch[0] == "g" else ("mg", 1e3)
-            parts.append(f"{ch} {sub['step_sd'].median() * scale:.3g} {unit}")
+        if ch in step_sd:
+            shown = value_unit("deg/s" if ch[0] == "g" else "g")
+            parts.append(f"{ch} {step_sd[ch] * shown.factor:.3g} {shown.label}")
     lines.append("noise of a step mean (repetition scatter): " + ", ".join(parts))
     lb = diag.lack_of_fit_before
     bad = [c for c, t in diag.channel_misfit_before.items() if t.rejects]
