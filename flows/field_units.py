@@ -16,12 +16,11 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from calib_core.models.field.results import field_unit_calibration
 from flows.unit_pipeline import (
     STATUS_FAILED,
     STATUS_OK,
@@ -31,6 +30,7 @@ from flows.unit_pipeline import (
     UnitOutcome,
     UnitResult,
 )
+from schemas.errors import E_MIXED_UNITS
 from schemas.field_dataset import FieldRecordingRef, field_fingerprint, find_field_recordings
 
 INIT_PREAMBLE_KEYS = ("initialization time", "init time", "initial rest", "tinit")
@@ -238,41 +238,6 @@ def calibrate_recording(ref: FieldRecordingRef) -> tuple[SessionOutcome, _Record
     return out, _Recording(fit.calibration, pm)
 
 
-def unit_calibration(lot: str, unit: str, outcomes: list[SessionOutcome], fitted: list[_Recording]):
-    """The unit's calibration: the mean of its recordings' affine forms (as turntable
-    repetitions are averaged), kind ``field``, with the optional gyro terms every recording
-    kept (averaged; a term only some recordings kept is left out)."""
-    from calib_core.calibration import TermValue
-    from calib_core.models.pipeline import calibration_from_unit
-    from calib_core.results import UnitCalibration
-
-    good = [o.calibration for o in outcomes if o.succeeded and o.calibration is not None]
-    uc = UnitCalibration.from_reps(lot, unit, good)
-    names = set.intersection(*({tv.name for tv in r.calibration.terms} for r in fitted)) if fitted else set()
-    terms = tuple(
-        TermValue(
-            n,
-            np.mean([next(tv.params for tv in r.calibration.terms if tv.name == n) for r in fitted], axis=0),
-        )
-        for n in sorted(names)
-    )
-    base = calibration_from_unit(uc)
-    applied = replace(
-        base,
-        terms=terms,
-        kind="field",
-        metadata={
-            **base.metadata,
-            "model": "field (hand-held poses)",
-            "recordings": [r.provenance["recording"] for r in good],
-        },
-    )
-    return uc, applied
-
-
-E_MIXED_UNITS = "E_MIXED_UNITS"
-
-
 def drop_mixed_units(outcomes: list[SessionOutcome], fitted: list) -> tuple[list[SessionOutcome], list]:
     """A unit's recordings are averaged, so they must share raw units: the first fitted
     recording's units decide, a recording in other units fails (``E_MIXED_UNITS``, naming
@@ -312,7 +277,10 @@ def calibrate_field_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitRe
     unit_out = UnitOutcome(job.lot, job.unit, outcomes)
     diag_doc, note = None, None
     if fitted:
-        unit_out.calibration, unit_out.applied = unit_calibration(job.lot, job.unit, outcomes, fitted)
+        reps = [o.calibration for o in outcomes if o.succeeded and o.calibration is not None]
+        unit_out.calibration, unit_out.applied = field_unit_calibration(
+            job.lot, job.unit, reps, [r.calibration for r in fitted]
+        )
         unit_out.terms = unit_out.applied.terms
     else:
         unit_out.notes.append(f"unit {job.unit}: no field recording succeeded; no calibration produced")

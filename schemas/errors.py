@@ -30,6 +30,7 @@ E_UNDETERMINED = "E_UNDETERMINED"  # the usable steps cannot determine the model
 E_STEP_NOT_CONTIGUOUS = "E_STEP_NOT_CONTIGUOUS"  # a step id reappears after another step's
 E_TOO_MANY_STEPS_LOST = "E_TOO_MANY_STEPS_LOST"  # more than the allowed share left out
 E_CHECKSUM = "E_CHECKSUM"  # a Parquet page's CRC does not match its bytes
+E_MIXED_UNITS = "E_MIXED_UNITS"  # a field recording in other raw units than its unit's first
 
 ERROR_CODES = (
     E_MISSING_FILE,
@@ -49,6 +50,7 @@ ERROR_CODES = (
     E_STEP_NOT_CONTIGUOUS,
     E_TOO_MANY_STEPS_LOST,
     E_CHECKSUM,
+    E_MIXED_UNITS,
 )
 
 # --- warning codes ------------------------------------------------------------------------

@@ -26,6 +26,7 @@ import hashlib
 import json
 import os
 from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -96,6 +97,11 @@ def read_options(path: Path) -> dict[str, Any]:
         if k not in FIELD_OPTIONS:
             raise ValueError(f"options file {path}: unknown option {k!r} (known: {', '.join(FIELD_OPTIONS)})")
         kind = FIELD_OPTIONS[k][0]
+        if isinstance(v, str) and kind == (int, float):  # "1/6258", as on the command line
+            try:
+                v = doc[k] = float(Fraction(v.strip()))
+            except (ValueError, ZeroDivisionError):
+                raise ValueError(f"options file {path}: option {k!r} is not a number ({v!r})") from None
         if v is not None and (not isinstance(v, kind) or isinstance(v, bool)):
             raise ValueError(f"options file {path}: option {k!r} has the wrong type ({type(v).__name__})")
     return doc

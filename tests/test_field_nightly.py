@@ -222,3 +222,19 @@ def test_recordings_in_other_raw_units_than_the_first_fail_by_name():
     assert [o.status for o in kept_outs] == ["ok", "failed", "ok"]
     assert kept_outs[1].code == "E_MIXED_UNITS" and "r2.csv" in kept_outs[1].message
     assert "r1.csv" in kept_outs[1].message
+
+
+def test_numeric_options_take_the_command_lines_fractions(tmp_path):
+    """``"gyro_scale": "1/6258"`` in an options file means what ``--gyro-scale 1/6258`` means;
+    a string that is no number is an error naming the file and the option."""
+    f = tmp_path / "lot=L1" / "unit=U1" / "field"
+    f.mkdir(parents=True)
+    (f / "a.csv").write_text("1\n")
+    (f / "field.json").write_text(json.dumps({"gyro_scale": "1/6258", "acc_bias": "32768"}))
+    (ref,), errors = find_field_recordings(tmp_path)
+    assert not errors
+    assert ref.options["gyro_scale"] == 1 / 6258 and ref.options["acc_bias"] == 32768.0
+    (f / "field.json").write_text(json.dumps({"gyro_scale": "fast"}))
+    refs, errors = find_field_recordings(tmp_path)
+    assert not refs and "option 'gyro_scale' is not a number ('fast')" in str(errors[0])
+    assert "field.json" in str(errors[0])

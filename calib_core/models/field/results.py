@@ -12,15 +12,17 @@ central differences)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from calib_core.calibration import Calibration, TermValue
 from calib_core.models.field.imu_tk import accel_matrix, gyro_matrix
 from calib_core.models.field.joint import FieldFigures, FieldJointFit
+from calib_core.models.pipeline import calibration_from_unit
 from calib_core.models.xu2016 import F0_NAMES, K_A_NAMES, K_G_NAMES, W0_NAMES
-from calib_core.results import ParamBlock, params_of_blocks
+from calib_core.results import ParamBlock, RepetitionCalibration, UnitCalibration, params_of_blocks
 
 FIGURE_NAMES = ("norm_rms_mg", "angle_rms_deg", "n_poses", "n_moves")
 FIGURE_UNITS = ("mg", "deg", "poses", "moves")
@@ -148,3 +150,30 @@ def affine_fits(fit: FieldJointFit) -> tuple[FieldGyroFit, FieldAccelFit]:
 def figure_fit(figures: FieldFigures, move_ok) -> FieldFigureFit:
     s = figures.summary("", move_ok)
     return FieldFigureFit(np.array([float(s[n]) for n in FIGURE_NAMES]))
+
+
+def field_unit_calibration(
+    lot: str, unit: str, reps: list[RepetitionCalibration], recordings: list[Calibration]
+) -> tuple[UnitCalibration, Calibration]:
+    """A field unit's calibration: the mean of its recordings' affine forms (``reps``, as
+    turntable repetitions are averaged), kind ``field``, with the optional gyro terms every
+    recording's calibration (``recordings``) kept, averaged; a term only some kept is left
+    out."""
+    uc = UnitCalibration.from_reps(lot, unit, reps)
+    names = set.intersection(*({tv.name for tv in c.terms} for c in recordings)) if recordings else set()
+    terms = tuple(
+        TermValue(n, np.mean([next(tv.params for tv in c.terms if tv.name == n) for c in recordings], axis=0))
+        for n in sorted(names)
+    )
+    base = calibration_from_unit(uc)
+    applied = replace(
+        base,
+        terms=terms,
+        kind="field",
+        metadata={
+            **base.metadata,
+            "model": "field (hand-held poses)",
+            "recordings": [r.provenance["recording"] for r in reps],
+        },
+    )
+    return uc, applied
