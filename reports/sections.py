@@ -42,8 +42,16 @@ from schemas.display import spread_unit
 
 # Models in the key-parameter table and strip plots, with their headings.
 KEY_MODELS: list[tuple[str, str]] = [
-    ("gyro", "Gyroscope K<sub>g</sub>, ω<sub>0</sub> (xu2016 multirate)"),
-    ("accel", "Accelerometer K<sub>a</sub>, f<sub>0</sub> (xu2016 multiposition)"),
+    (
+        "gyro",
+        "Gyroscope K<sub>g</sub>, ω<sub>0</sub> (ω = K<sub>g</sub> G + ω<sub>0</sub>: "
+        "turntable multirate or field poses)",
+    ),
+    (
+        "accel",
+        "Accelerometer K<sub>a</sub>, f<sub>0</sub> (f = K<sub>a</sub> A + f<sub>0</sub>: "
+        "turntable multiposition or field poses)",
+    ),
     ("accel_static", "Accelerometer static model (zhang2017, 15 parameters)"),
     ("lever_arm", "Accelerometer lever arms (zhang2017 dynamic)"),
 ]
