@@ -26,10 +26,20 @@ def main(n_units: int = 40, sections: str = "") -> None:
     from calib_core.sim.physics import Turntable, WarmUp
     from schemas.physics_sessions import physics_unit_step_means
 
-    def step_means_of(unit, steps, rng, unit_id, table):
+    def step_means_of(unit, steps, rng, unit_id, table, back_to_back=False):
         return physics_unit_step_means(
-            unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable()
+            unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable(), back_to_back=back_to_back
         )
+
+    def day_to_day(unit, steps, rng, unit_id, table):
+        # a cold start a day in a lab whose temperature differs by 2 degC (sd) between days
+        return physics_unit_step_means(
+            unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable(), ambient_sd_c=2.0
+        )
+
+    def back_to_back(unit, steps, rng, unit_id, table):
+        # the five repetitions on one warm-up: temperature differs between repetitions
+        return step_means_of(unit, steps, rng, unit_id, table, back_to_back=True)
 
     default = protocols.default_session()
     whole = protocols.whole_turn_session()
@@ -71,17 +81,22 @@ def main(n_units: int = 40, sections: str = "") -> None:
     )
     print("|---|---|---|---|---|---|---|")
     fast = WarmUp(rise_c=10.0, tau_s=150.0)
-    for name, seed, warm, label in (
-        ("thermal_scale_drift", 21, WarmUp(), ", 10 degC warm-up (600 s)"),
-        ("thermal_bias_drift", 22, WarmUp(), ", 10 degC warm-up (600 s)"),
-        ("bias_time_drift", 23, WarmUp(), ", 10 degC warm-up (600 s)"),
-        ("thermal_bias_drift", 24, fast, ", warm-up time constant 150 s"),
-        ("bias_time_drift", 25, fast, ", warm-up time constant 150 s"),
+    cold, b2b = step_means_of, back_to_back
+    for name, seed, warm, reps, label in (
+        ("thermal_scale_drift", 21, WarmUp(), cold, ", 10 degC warm-up (600 s)"),
+        ("thermal_bias_drift", 22, WarmUp(), cold, ", 10 degC warm-up (600 s)"),
+        ("bias_time_drift", 23, WarmUp(), cold, ", 10 degC warm-up (600 s)"),
+        ("thermal_bias_drift", 24, fast, cold, ", warm-up time constant 150 s"),
+        ("bias_time_drift", 25, fast, cold, ", warm-up time constant 150 s"),
+        ("thermal_scale_drift", 29, WarmUp(), day_to_day, ", cold starts, ambient 2 degC sd between days"),
+        ("thermal_scale_drift", 26, WarmUp(), b2b, ", repetitions back to back on one warm-up"),
+        ("thermal_bias_drift", 27, WarmUp(), b2b, ", repetitions back to back on one warm-up"),
+        ("bias_time_drift", 28, WarmUp(), b2b, ", repetitions back to back on one warm-up"),
     ):
         if sections and name not in sections.split(","):
             continue
         t0 = time.perf_counter()
-        o = sensor_effect_scenario(step_means_of, default, name, n_units, seed, warm_up=warm)
+        o = sensor_effect_scenario(reps, default, name, n_units, seed, warm_up=warm)
         print(
             f"| {name}{label} | {o.n} | {o.pct(o.named_alone):.0f} % | {o.pct(o.confounded):.0f} % | "
             f"{o.pct(o.named):.0f} % | {o.right_axis}/{o.named} | {o.pct(o.other_named):.0f} % |"
@@ -104,9 +119,13 @@ def main(n_units: int = 40, sections: str = "") -> None:
     )
     print("|---|---|---|---|---|---|")
     pair = ("gyro_scale_nonlinearity", "thermal_bias_drift")
-    for warm, label, seed in ((WarmUp(), "10 degC warm-up (600 s)", 31), (fast, "warm-up 150 s", 32)):
+    for warm, reps, label, seed in (
+        (WarmUp(), step_means_of, "10 degC warm-up (600 s)", 31),
+        (fast, step_means_of, "warm-up 150 s", 32),
+        (WarmUp(), back_to_back, "repetitions back to back", 33),
+    ):
         t0 = time.perf_counter()
-        o = pair_scenario(step_means_of, default, pair, n_units, seed, warm_up=warm)
+        o = pair_scenario(reps, default, pair, n_units, seed, warm_up=warm)
         print(
             f"| {' + '.join(pair)}, {label} | {o.n} | {o.pct(o.named):.0f} % | {o.pct(o.found):.0f} % | "
             f"{o.pct(o.confounded):.0f} % | {o.pct(o.other_named):.0f} % |"

@@ -1,10 +1,13 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/model_discovery_figures.py physics [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES]]]]]
+    .venv/bin/python docs/model_discovery_figures.py physics \
+        [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES [REPS]]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
         # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS (5th
         # argument): comma-separated catalogue effects, the rows of the effects table ("all":
-        # every one); SCALES (6th): comma-separated sizes of its columns, e.g. 0.25,1
+        # every one); SCALES (6th): comma-separated sizes of its columns, e.g. 0.25,1;
+        # REPS (7th): "cold" (default: each repetition a cold start, one a day) or
+        # "back-to-back" (the five repetitions run on one warm-up)
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -23,6 +26,7 @@ def physics(
     sections: str = "effects,pairs,clean,ooc",
     scales=(0.25, 0.5, 1.0),
     effects: tuple[str, ...] = (),
+    back_to_back: bool = False,
 ) -> None:
     """The Done-when figures of the discovery on the independent physics simulator
     (``effects``: the rows of those catalogue effects only; empty: every one)."""
@@ -35,7 +39,9 @@ def physics(
 
     def step_means_of(unit, steps, rng, unit_id, table=None):
         kw = {} if table is None else {"table": table}
-        return physics_unit_step_means(unit, steps, rng, n_reps=5, unit_id=unit_id, **kw)
+        return physics_unit_step_means(
+            unit, steps, rng, n_reps=5, unit_id=unit_id, back_to_back=back_to_back, **kw
+        )
 
     def seed(*parts) -> int:
         return sum(ord(ch) for p in parts for ch in str(p)) * 7919 % 2**31
@@ -140,7 +146,12 @@ if __name__ == "__main__":
             n_clean=int(args[1]) if len(args) > 1 else 200,
             sections=args[2] if len(args) > 2 else "effects,pairs,clean,ooc",
             effects=tuple(args[3].split(",")) if len(args) > 3 and args[3] != "all" else (),
-            scales=tuple(float(x) for x in args[4].split(",")) if len(args) > 4 else (0.25, 0.5, 1.0),
+            scales=(
+                tuple(float(x) for x in args[4].split(","))
+                if len(args) > 4 and args[4] != "all"
+                else (0.25, 0.5, 1.0)
+            ),
+            back_to_back={"cold": False, "back-to-back": True}[args[5] if len(args) > 5 else "cold"],
         )
     else:
         {"xu2016": xu2016}[what]()

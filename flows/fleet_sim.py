@@ -293,13 +293,16 @@ def simulate_physics_fleet(
     tilted: bool = True,
     latitude_deg: float | None = None,
     declare_location: bool = False,
+    back_to_back: bool = False,
 ) -> dict:
     """A fleet of :mod:`calib_core.sim.physics` units (each sensor its own misaligned axis,
     noise processes, warm-up ramp) with the catalogue effects ``hide`` = ((name, scale), ...)
     hidden in every unit at ``scale`` times a realistic size, written in the contract with
     the manifest ``out/fleet.json`` (the hidden parameters per unit). ``tilted=False`` leaves
     out zhang2017's dynamic steps on the 45-degree diagonals; ``latitude_deg`` adds the Earth
-    rate (and writes the location into the metadata with ``declare_location``)."""
+    rate (and writes the location into the metadata with ``declare_location``);
+    ``back_to_back`` runs a unit's repetitions one after the other on one warm-up (each at
+    its own temperature) instead of a cold start a day."""
     from calib_core.effects import get_effect
     from calib_core.sim.physics import Turntable, typical_physics_unit
     from schemas.physics_sessions import write_physics_unit
@@ -326,6 +329,7 @@ def simulate_physics_fleet(
         "tilted_steps": tilted,
         "latitude_deg": latitude_deg,
         "declare_location": declare_location,
+        "repetitions": "back to back on one warm-up" if back_to_back else "a cold start each",
         "file_units": {"gyro": "deg/s", "accel": "g"},
         "hidden": [{"effect": t.name, "scale": s} for t, s in terms],
         "units": [],
@@ -350,7 +354,16 @@ def simulate_physics_fleet(
                 }
             )
         write_physics_unit(
-            out, unit, steps, rng, n_reps=reps, rate_hz=sample_rate_hz, table=table, lot=lot, unit_id=unit_id
+            out,
+            unit,
+            steps,
+            rng,
+            n_reps=reps,
+            rate_hz=sample_rate_hz,
+            table=table,
+            lot=lot,
+            unit_id=unit_id,
+            back_to_back=back_to_back,
         )
         manifest["units"].append({"lot": lot, "unit": unit_id, "hidden": effects})
     _write_json_atomic(out / MANIFEST, manifest)

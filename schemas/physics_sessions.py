@@ -7,6 +7,7 @@ Why here and not in calib_core: turning samples into step means is the reader's 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,34 @@ def _session_start(rep: int) -> str:
     return f"2026-11-{min(rep, 28):02d}T02:00:00Z"
 
 
+def _sessions(unit, steps, rng, n_reps, rate_hz, table, back_to_back, rep_gap_s, ambient_sd_c=0.0):
+    """(rep, samples, metadata) of each repetition: one a day from a cold start, or
+    ``back_to_back`` after one power-on (each ``rep_gap_s`` after the last ended; the unit
+    stays warm, a new turn-on bias is drawn). ``ambient_sd_c``: each cold start's ambient
+    (the warm-up's start) drawn around the unit's, a lab whose temperature differs from day
+    to day."""
+    power_on = 0.0
+    t0 = pd.Timestamp("2026-11-01T02:00:00Z")
+    for rep in range(1, n_reps + 1):
+        start = (t0 + pd.Timedelta(seconds=power_on)).strftime("%Y-%m-%dT%H:%M:%SZ")
+        today = unit
+        if ambient_sd_c and unit.temperature is not None and not back_to_back:
+            warm = replace(unit.temperature, start_c=unit.temperature.start_c + rng.normal(0.0, ambient_sd_c))
+            today = replace(unit, temperature=warm)
+        samples, md = simulate_physics_session(
+            today,
+            steps,
+            rng,
+            rate_hz=rate_hz,
+            table=table,
+            session_start=start if back_to_back else _session_start(rep),
+            power_on_s=power_on if back_to_back else 0.0,
+        )
+        if back_to_back:
+            power_on += float(samples["t"].iloc[-1]) + 1.0 / rate_hz + rep_gap_s
+        yield rep, samples, md
+
+
 def physics_unit_step_means(
     unit: PhysicsUnit,
     steps: pd.DataFrame,
@@ -32,14 +61,16 @@ def physics_unit_step_means(
     table: Turntable = Turntable(),
     lot: str = "PHYS",
     unit_id: str = "U000",
+    back_to_back: bool = False,
+    rep_gap_s: float = 60.0,
+    ambient_sd_c: float = 0.0,
 ) -> list[StepMeans]:
-    """Step means of ``n_reps`` repetitions (each a cold start with its own turn-on biases
-    and noise), averaged by :func:`schemas.averaging.step_means_from_tables`."""
+    """Step means of ``n_reps`` repetitions (each with its own turn-on biases and noise; a
+    cold start each, at an ambient drawn with ``ambient_sd_c``, or ``back_to_back`` on one
+    warm-up), averaged by :func:`schemas.averaging.step_means_from_tables`."""
     out = []
-    for rep in range(1, n_reps + 1):
-        samples, md = simulate_physics_session(
-            unit, steps, rng, rate_hz=rate_hz, table=table, session_start=_session_start(rep)
-        )
+    reps = _sessions(unit, steps, rng, n_reps, rate_hz, table, back_to_back, rep_gap_s, ambient_sd_c)
+    for rep, samples, md in reps:
         sm, _warnings = step_means_from_tables(SessionKey(lot, unit_id, rep), steps, samples, md)
         out.append(sm)
     return out
@@ -55,12 +86,11 @@ def write_physics_unit(
     table: Turntable = Turntable(),
     lot: str = "PHYS",
     unit_id: str = "U000",
+    back_to_back: bool = False,
+    rep_gap_s: float = 60.0,
 ) -> list[Path]:
     """Write ``n_reps`` repetitions of one unit in the acquisition contract under ``root``."""
-    dirs = []
-    for rep in range(1, n_reps + 1):
-        samples, md = simulate_physics_session(
-            unit, steps, rng, rate_hz=rate_hz, table=table, session_start=_session_start(rep)
-        )
-        dirs.append(write_session(root, SessionKey(lot, unit_id, rep), steps, samples, md))
-    return dirs
+    return [
+        write_session(root, SessionKey(lot, unit_id, rep), steps, samples, md)
+        for rep, samples, md in _sessions(unit, steps, rng, n_reps, rate_hz, table, back_to_back, rep_gap_s)
+    ]

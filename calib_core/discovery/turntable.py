@@ -84,6 +84,10 @@ _RCOND = 1e-10
 # terms whose columns share a direction up to this sine of angle (the part of a column the
 # others do not explain is below 5 % of it) are tested together: calib_core.discovery.identifiability
 CONFOUNDING_TOL = 0.05
+# a term column's part that differs between the repetitions, relative to the column, below
+# which the between-repetition test does not run (the recorded temperature's noise alone
+# makes a few parts in 1e3)
+REP_VARYING_MIN = 0.05
 
 
 # -- one unit on a (repetition, step) grid ----------------------------------------------
@@ -950,12 +954,35 @@ class _Discovery:
         f = self.fit(names)
         return f.K, np.einsum("crnk,ck->rnc", self.Mc, f.v)
 
+    @property
+    def noise_params(self) -> np.ndarray:
+        """Parameters (6,) of the noise model fitted to the repetitions' scatter, per channel:
+        a step-mean variance per test group with its own (a pooled one for the groups that
+        borrow it), and with serial noise its share ``lam`` and a third of the triad's time
+        constant. They are fitted to the pure error that the tests then divide by, so they
+        spend as many of its degrees of freedom: counted as such, the lack-of-fit F of clean
+        units has the F distribution's mean (without, 1.035 / 1.019 / 1.007 on 3 / 5 / 10
+        repetitions, an optimism of about 7 % / (R - 1) that the overall test's 700
+        numerator dof turn into 3x its share of false alarms at alpha / 4)."""
+        own = np.zeros(6)
+        borrow = np.zeros(6, bool)
+        for ch, _group, d, *_ in self._noise_rows:
+            c = CHANNELS.index(ch)
+            if d >= MIN_POOL_DOF:
+                own[c] += 1
+            else:
+                borrow[c] = True
+        serial = (1.0 + 1.0 / 3.0) if self.serial.correlated else 0.0
+        return own + borrow + serial
+
     def pure(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Pure-error sum of squares and dof per channel of a model's weighted residual: its
-        repetition-to-repetition scatter of the same step. Computed per model because the
-        noise reaches the residual through that model's own K."""
+        repetition-to-repetition scatter of the same step (dof net of the noise model's
+        parameters, :attr:`noise_params`). Computed per model because the noise reaches the
+        residual through that model's own K."""
         f = self.fit(names)
-        return f.pure_channel, np.full(6, int(self.pure_dof.sum()), np.int64)
+        dof = int(self.pure_dof.sum()) - np.round(self.noise_params)
+        return f.pure_channel, dof.astype(np.int64)
 
     def heldout_ss(self, names: tuple[str, ...]) -> np.ndarray:
         """Sum of squares of the held-out normalised residual per channel (each repetition
@@ -1074,7 +1101,8 @@ class _Discovery:
             dev = resid - rbar
             dev = dev - (dev @ Ub) @ Ub.T
             dof = X.shape[0] - Ub.shape[1]
-            out[c] = (R * float(e @ e), dof, float(np.sum(dev**2)), (R - 1) * dof, _dof_inflation(dev))
+            dof_pure = (R - 1) * dof - self.noise_params[c]
+            out[c] = (R * float(e @ e), dof, float(np.sum(dev**2)), dof_pure, _dof_inflation(dev))
         self._tests[key] = out
         return out
 
@@ -1096,6 +1124,66 @@ class _Discovery:
             int(np.sum(a[:, 3] - b[:, 3])),
             threshold,
         )
+
+    def between_repetition_test(self, names: tuple[str, ...], threshold: float) -> FTest | None:
+        """F test of the part of the terms ``names`` that differs between the repetitions,
+        on the affine model: does it explain the repetitions' scatter about their mean?
+
+        Why: the lack-of-fit tests and :meth:`targeted_test` compare the repetitions' mean
+        with the model, and take their scatter as the noise. An effect driven by something
+        that differs from one repetition to the next (the temperature of repetitions run
+        back to back on one warm-up, or on days of different ambient: xu2016's k_g33 drift
+        between repetitions) lands in that scatter, so those tests cannot see it, however
+        large it is. Here each repetition's deviation from the mean (the mean model's
+        columns projected out) is regressed on the deviation of the terms' columns; the
+        rest of the scatter is the noise. ``None`` when no column of the terms differs
+        between the repetitions by ``REP_VARYING_MIN`` of its size (nothing to test: the
+        test would take a share of alpha for no power). Balanced grids only."""
+        if not self.g.balanced:
+            return None
+        key = ("between", tuple(sorted(names)))
+        if key not in self._tests:
+            self._tests[key] = self._between_repetition_sums(names)
+        sums = self._tests[key]
+        return None if sums is None else f_test(*sums, threshold)
+
+    def _between_repetition_sums(self, names: tuple[str, ...]) -> tuple[float, int, float, int] | None:
+        g, R = self.g, self.g.R
+        cols = g.cols(tuple(sorted(names)))
+        f = self.fit(())
+        ss_num = ss_den = 0.0
+        dof_num = dof_den = 0
+        for c in range(6):
+            local = 3 + np.flatnonzero(np.isin(g.colmap[c], cols))
+            if not local.size:
+                continue
+            A = self.A[c]  # (R, n, k)
+            wb = self.A_bias[c]
+            coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
+            A = A - wb[..., None] * coef[:, None, :]
+            # the scale factors are shared by the repetitions: a repetition's own scale
+            # (what a temperature offset between repetitions makes) stays in its deviation
+            resid = A @ f.v[c]
+            dev = resid - resid.mean(axis=0)
+            D = A[..., local] - A[..., local].mean(axis=0)
+            # whether a column differs between the repetitions is a question about the
+            # physical column, not about the weights (each repetition's own step sigmas)
+            M = self.Mc[c][..., local]
+            size = np.sqrt(np.sum(M**2, axis=(0, 1)))
+            spread = np.sqrt(np.sum((M - M.mean(axis=0)) ** 2, axis=(0, 1)))
+            varying = spread > REP_VARYING_MIN * np.maximum(size, 1e-300)
+            ss_c = float(np.sum(dev**2))
+            dof_c = (R - 1) * (int(g.real.sum()) // R - 1) - int(round(float(self.noise_params[c])))
+            if varying.any():
+                Z = D[..., varying].reshape(-1, int(varying.sum()))
+                beta, *_ = np.linalg.lstsq(Z, dev.reshape(-1), rcond=None)
+                rank = int(np.linalg.matrix_rank(Z))
+                explained = float(np.sum((Z @ beta) ** 2))
+                ss_num += explained
+                dof_num += rank
+                ss_den += ss_c - explained
+                dof_den += dof_c - rank
+        return (ss_num, dof_num, ss_den, dof_den) if dof_num else None
 
     def term_test(self, current: tuple[str, ...], name: str, threshold: float) -> FTest:
         return self.group_test(current, (name,), threshold)
@@ -1278,9 +1366,14 @@ class _Discovery:
         targeted part of "the unit misfits"."""
         if "_misfit_terms" not in self.__dict__:
             groups = self.test_groups()
-            thr = self.term_alpha / len(groups)
+            # the between-repetition tests share the candidates' alpha only where they run
+            varying = [g for g in groups if self.between_repetition_test(g, 1.0) is not None]
+            thr = self.term_alpha / (len(groups) + len(varying))
             self.__dict__["_misfit_terms"] = [
-                "+".join(g) for g in groups if self.targeted_test(g, thr).rejects
+                "+".join(g)
+                for g in groups
+                if self.targeted_test(g, thr).rejects
+                or (g in varying and self.between_repetition_test(g, thr).rejects)
             ]
         return self.__dict__["_misfit_terms"]
 
@@ -1333,7 +1426,16 @@ class _Discovery:
             return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         bad = [c for c in sensors if c in self.misfit_channels()]
         if not bad:
-            return "negligible", 1.0, ()
+            # another effect made other channels misfit; on its own sensors this term is
+            # judged as when no channel misfits: by its own targeted or between-repetition
+            # test (a drift between repetitions never makes a channel's lack of fit reject)
+            if not any(set(item) & set(lab.split("+")) for lab in self.misfit_terms()):
+                return "negligible", 1.0, ()
+            ch = tuple(
+                sorted({c for n in item for c in self.significant_channels(list(chosen), n)})
+            ) or tuple(sensors)
+            gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
+            return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         without = self.channel_lack_of_fit(others, self.channel_alpha)
         with_ = self.channel_lack_of_fit(tuple(chosen), self.channel_alpha)
         fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects and not with_[CHANNELS[c]].rejects)

@@ -39,8 +39,11 @@ true north). A rotating step turns the body about its rotation axis from there (
 after a linear ramp over the first half of the settling time (the ramp's angular acceleration
 is physical: the accelerometers see dw/dt x r there).
 
-Temperature: each repetition is a cold start: ``WarmUp`` from ``start_c`` towards
-``start_c + rise_c`` with time constant ``tau_s``; the recorded ``temp_c`` adds sensor noise.
+Temperature: ``WarmUp`` from ``start_c`` towards ``start_c + rise_c`` with time constant
+``tau_s`` after power-on; the recorded ``temp_c`` adds sensor noise. A session starts
+``power_on_s`` after power-on: 0 for a cold start (one repetition a day), the time already
+run for repetitions run back to back (the unit stays warm; a new turn-on bias is still
+drawn, as after a power cycle). The bias trend counts from power-on too.
 
 Outputs: the contract's samples columns (raw units ``deg/s``/``g``, or ``LSB`` with
 quantisation) and key-value metadata. Physical outputs saturate at the declared ranges.
@@ -347,19 +350,22 @@ def simulate_physics_session(
     gap_s: float = 0.2,
     session_start: str = "2026-11-20T02:00:00Z",
     dtype=np.float32,
+    power_on_s: float = 0.0,
 ) -> tuple[pd.DataFrame, dict[str, str]]:
-    """Raw samples (the contract's columns) and metadata of one repetition (a cold start)."""
+    """Raw samples (the contract's columns) and metadata of one repetition that starts
+    ``power_on_s`` after power-on (0: a cold start)."""
     step_of, t, w_table, dwdt, up, north = _motion(steps, rate_hz, gap_s, table)
     w = w_table.copy()
     if table.latitude_deg is not None:
         w += earth_rate_body(up, north, table.latitude_deg)
-    temp = unit.temperature.at(t) if unit.temperature is not None else np.full(len(t), REF_TEMP_C)
+    t_on = t + power_on_s  # time since power-on: what warms the sensor and ages its bias
+    temp = unit.temperature.at(t_on) if unit.temperature is not None else np.full(len(t), REF_TEMP_C)
     f_centre = up  # specific force at rest is the up direction, 1 g
     w_rad, a_rad = w * DEG, dwdt * DEG
     raw = {}
     for i, (name, g) in enumerate(zip(("gx", "gy", "gz"), unit.gyros)):
         u = w @ np.asarray(g.axis)
-        out = g.transfer(u, temp) + f_centre @ np.asarray(g.g_sens) + g.bias_per_h * t / 3600.0
+        out = g.transfer(u, temp) + f_centre @ np.asarray(g.g_sens) + g.bias_per_h * t_on / 3600.0
         if g.periodic_amp:
             out += g.periodic_amp * np.sin(2.0 * np.pi * u / g.periodic_period_dps)
         out += (w**2) @ np.asarray(g.cross_quad)
@@ -371,7 +377,8 @@ def simulate_physics_session(
         centripetal = np.cross(w_rad, np.cross(w_rad, np.broadcast_to(r, w.shape)))
         tangential = np.cross(a_rad, np.broadcast_to(r, w.shape))
         f = f_centre + (centripetal + tangential) / unit.g_local
-        out = a.transfer(f @ np.asarray(a.axis), temp) + a.bias_per_h * t / 3600.0 + a.noise(t, rate_hz, rng)
+        out = a.transfer(f @ np.asarray(a.axis), temp) + a.bias_per_h * t_on / 3600.0
+        out += a.noise(t, rate_hz, rng)
         lim = unit.accel_range_g[i]
         raw[name] = a.scale * np.clip(out, -lim, lim)
     for names, quant in (

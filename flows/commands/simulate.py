@@ -82,6 +82,12 @@ def register(sub) -> None:
         help="with --physics: add the Earth rate at this latitude",
     )
     p.add_argument(
+        "--back-to-back",
+        action="store_true",
+        help="with --physics: run each unit's repetitions one after the other on one "
+        "warm-up (each at its own temperature) instead of a cold start a day",
+    )
+    p.add_argument(
         "--declare-location",
         action="store_true",
         help="with --latitude: write latitude_deg/table_heading_deg into the metadata",
@@ -125,8 +131,10 @@ def run(args) -> int:
     start = time.perf_counter()
     if args.physics:
         return _run_physics(args, out, start)
-    if args.hide or args.no_tilted or args.latitude is not None or args.declare_location:
-        raise CliError("--hide, --no-tilted, --latitude and --declare-location need --physics")
+    if args.hide or args.no_tilted or args.latitude is not None or args.declare_location or args.back_to_back:
+        raise CliError(
+            "--hide, --no-tilted, --latitude, --declare-location and --back-to-back need --physics"
+        )
     try:
         manifest = simulate_fleet(
             out,
@@ -180,7 +188,7 @@ def _run_physics(args, out: Path, start: float) -> int:
     if args.outliers or args.bad_sessions or args.verification or args.gyro_unit or args.accel_unit:
         raise CliError(
             "--physics takes --lots/--units/--reps/--seed/--rate/--hide/--no-tilted/"
-            "--latitude/--declare-location only"
+            "--latitude/--declare-location/--back-to-back only"
         )
     hide = _parse_hide(args.hide)
     rate = args.rate if args.rate != 100.0 else 50.0  # the physics units' noise is set at 50 Hz
@@ -195,6 +203,7 @@ def _run_physics(args, out: Path, start: float) -> int:
         tilted=not args.no_tilted,
         latitude_deg=args.latitude,
         declare_location=args.declare_location,
+        back_to_back=args.back_to_back,
     )
     n = args.lots * args.units * args.reps
     hidden = ", ".join(f"{h['effect']} x{h['scale']:g}" for h in manifest["hidden"]) or "none"
