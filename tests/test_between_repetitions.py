@@ -104,7 +104,9 @@ def test_an_accelerometer_scale_drift_between_repetitions_is_named_on_its_sensor
     temperatures differ by up to 7 degC and the between-repetition test sees the scale move."""
     term = get_effect("thermal_scale_drift")
     steps = protocols.default_session()
-    named = 0
+    from flows.commands.diagnose import summary_lines
+
+    named, texts = 0, []
     for k, sensor in enumerate((3, 4, 5, 3, 4, 5)):
         rng = np.random.default_rng(300 + k)
         theta = np.zeros(6)
@@ -113,11 +115,16 @@ def test_an_accelerometer_scale_drift_between_repetitions_is_named_on_its_sensor
         for (kind, i), changes in term.physics_knobs(theta).items():
             unit = getattr(unit, f"replace_{kind}")(i, **changes)
         d = diagnose_unit(back_to_back(unit, steps, rng, f"A{k}"), tables=False)
+        texts += summary_lines(d)
+        assert "thermal_scale_drift" in d.misfit_between, d.to_dict()["misfit_terms"]
         if [e.name for e in d.effects] == ["thermal_scale_drift"]:
             e = d.effects[0]
             right = term.param_names[sensor]
             named += abs(e.estimate[right] - theta[sensor]) < 3 * e.stderr[right]
     assert named >= 5
+    # where no lack-of-fit test rejects, the text says which test found the misfit
+    verdict = "MISFIT (between-repetition test of thermal_scale_drift; no lack-of-fit test rejects)"
+    assert any(verdict in line for line in texts)
 
 
 @pytest.mark.slow

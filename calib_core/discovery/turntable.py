@@ -630,8 +630,10 @@ class Diagnosis:
     confounded: list[ConfoundedFinding] = field(default_factory=list)
     confounded_set_aside: list[list[str]] = field(default_factory=list)  # partial/negligible
     advice: list[str] = field(default_factory=list)  # which steps would separate them
-    # candidates whose targeted test on the affine model rejects (part of "misfit")
+    # candidates whose targeted (or between-repetition) test on the affine model rejects
+    # (part of "misfit"); those of them whose between-repetition test rejects
     misfit_terms: list[str] = field(default_factory=list)
+    misfit_between: list[str] = field(default_factory=list)
     # the series behind each finding's figure (calib_core.discovery.presentation)
     evidence: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
 
@@ -662,6 +664,7 @@ class Diagnosis:
                 "confounded_set_aside": [list(g) for g in self.confounded_set_aside],
                 "advice": list(self.advice),
                 "misfit_terms": list(self.misfit_terms),
+                "misfit_between": list(self.misfit_between),
                 "lack_of_fit_before": self.lack_of_fit_before.to_dict(),
                 "lack_of_fit_after": self.lack_of_fit_after.to_dict(),
                 "misfit_channels_before": [c for c, t in self.channel_misfit_before.items() if t.rejects],
@@ -1362,19 +1365,26 @@ class _Discovery:
 
     def misfit_terms(self) -> list[str]:
         """Candidates (:meth:`test_groups`, joined by "+") whose targeted test on the affine
-        model (:meth:`targeted_test`) rejects at ``term_alpha`` over the candidates: the
-        targeted part of "the unit misfits"."""
+        model (:meth:`targeted_test`) or between-repetition test
+        (:meth:`between_repetition_test`) rejects at ``term_alpha`` over the tests that run:
+        the targeted part of "the unit misfits"."""
+        return self._misfit_tests()[0]
+
+    def misfit_between_terms(self) -> list[str]:
+        """The candidates of :meth:`misfit_terms` whose between-repetition test rejects."""
+        return self._misfit_tests()[1]
+
+    def _misfit_tests(self) -> tuple[list[str], list[str]]:
         if "_misfit_terms" not in self.__dict__:
             groups = self.test_groups()
             # the between-repetition tests share the candidates' alpha only where they run
             varying = [g for g in groups if self.between_repetition_test(g, 1.0) is not None]
             thr = self.term_alpha / (len(groups) + len(varying))
-            self.__dict__["_misfit_terms"] = [
-                "+".join(g)
-                for g in groups
-                if self.targeted_test(g, thr).rejects
-                or (g in varying and self.between_repetition_test(g, thr).rejects)
-            ]
+            between = ["+".join(g) for g in varying if self.between_repetition_test(g, thr).rejects]
+            self.__dict__["_misfit_terms"] = (
+                ["+".join(g) for g in groups if self.targeted_test(g, thr).rejects or "+".join(g) in between],
+                between,
+            )
         return self.__dict__["_misfit_terms"]
 
     def unit_misfits(self) -> bool:
@@ -1687,6 +1697,7 @@ def _diagnose_unit(
         relinearisations=moves,
         confounded=confounded,
         misfit_terms=list(d.misfit_terms()),
+        misfit_between=list(d.misfit_between_terms()),
         confounded_set_aside=[list(i) for k in ("partial", "negligible") for i in items[k] if len(i) > 1],
         advice=[
             a.describe()

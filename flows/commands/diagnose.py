@@ -71,8 +71,12 @@ def summary_lines(diag) -> list[str]:
     elif lb.rejects:
         verdict = " -> MISFIT (overall lack of fit; no single channel rejects)"
     else:
-        terms = ", ".join(getattr(diag, "misfit_terms", [])) or "a term"
-        verdict = f" -> MISFIT (targeted test of {terms}; no lack-of-fit test rejects)"
+        between = list(getattr(diag, "misfit_between", []))
+        targeted = [t for t in getattr(diag, "misfit_terms", []) if t not in between]
+        tests = ([f"targeted test of {', '.join(targeted)}"] if targeted else []) + (
+            [f"between-repetition test of {', '.join(between)}"] if between else []
+        )
+        verdict = f" -> MISFIT ({'; '.join(tests) or 'targeted test of a term'}; no lack-of-fit test rejects)"
     lines.append(
         f"affine model: lack of fit F={lb.statistic:.3g} ({lb.dof1}, {lb.dof2}), "
         f"{_fmt_p(lb.p_value)}" + verdict
