@@ -26,7 +26,7 @@ from flows.commands.diagnose import summary_lines
 from schemas.physics_sessions import physics_unit_step_means
 
 CURVED = WarmUp(rise_c=10.0, tau_s=150.0)
-WARM_UP_LABEL, SOAK_LABEL = TEMPERATURE_CHANGES
+WARM_UP_LABEL, SOAK_LABEL, BACK_TO_BACK_LABEL = TEMPERATURE_CHANGES
 
 
 def step_means_of(unit, steps, rng, unit_id, table=None):
@@ -56,7 +56,7 @@ def test_plan_says_a_curved_warm_up_or_a_soak_separates_temperature_from_time():
     steps = protocols.default_session()
     advice = {a.terms: a.separated_by for a in advise(steps)}
     sep = advice[("bias_time_drift", "thermal_bias_drift")]
-    assert WARM_UP_LABEL in sep and SOAK_LABEL in sep
+    assert WARM_UP_LABEL in sep and SOAK_LABEL in sep and BACK_TO_BACK_LABEL in sep
     # the curved warm-up really separates them on the plan's own design
     base, terms, pnames = design(_curved_warm_up(steps))
     ident = analyse(base, terms, pnames)

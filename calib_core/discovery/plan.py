@@ -231,6 +231,20 @@ def _soak(steps: pd.DataFrame) -> pd.DataFrame:
     return _with_temperature(steps, WARM_UP_C[2], rows)
 
 
+REPEAT_GAP_S = 60.0  # between two passes of the protocol run back to back
+
+
+def _repeated_on_one_warm_up(steps: pd.DataFrame) -> pd.DataFrame:
+    # the whole protocol again right after the first pass, on the same warm-up: the second
+    # pass is warmer and warms more slowly, while time runs on at the same rate (what
+    # repetitions run back to back after one power-on give)
+    first = _with_temperature(steps, WARM_UP_C[2])
+    rows = steps.drop(columns=["step"]).reset_index(drop=True)
+    end = float(first["t_mid"].max()) + DEFAULT_DURATION_S
+    rows["t_mid"] = end + REPEAT_GAP_S + first["t_mid"].to_numpy(float)
+    return _with_temperature(steps, WARM_UP_C[2], rows)
+
+
 # changes of *when* the steps run (the temperature they see), beside the step sets of
 # :data:`calib_core.sim.protocols.STEP_SETS`: what tells a drift in temperature from one in time
 TEMPERATURE_CHANGES = {
@@ -238,6 +252,8 @@ TEMPERATURE_CHANGES = {
     "temperature still rises fast, time constant about 150 s)": _curved_warm_up,
     "a temperature soak at a different time (the stationary steps repeated once the unit "
     "has settled, an hour after power-on)": _soak,
+    "repetitions run back to back on one warm-up (the protocol again right after, each "
+    "pass at its own temperature)": _repeated_on_one_warm_up,
 }
 
 
