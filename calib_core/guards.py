@@ -123,6 +123,49 @@ _BISQUARE_C = 4.685
 _IRLS_ITERATIONS = 8
 
 
+# the shared scale temperature coefficient is estimated from the (step, repetition) pairs
+# whose input is at least this share of the channel's largest and whose temperature differs
+# from the step's median repetition by at least _THERMAL_MIN_DT_C
+_THERMAL_MIN_INPUT = 0.25
+_THERMAL_MIN_DT_C = 0.5
+_THERMAL_MIN_PAIRS = 8
+
+
+def _without_shared_thermal_scale(
+    values: np.ndarray, temp: np.ndarray, w_ref: np.ndarray, f_ref: np.ndarray, shared: np.ndarray
+) -> np.ndarray:
+    """``values`` (R, S, 6) with each channel's scale temperature coefficient, shared by the
+    repetitions, taken out: value - c * input * (T - the step's median T over repetitions).
+
+    Why: repetitions at different temperatures (run back to back on one warm-up) see a scale
+    with a temperature coefficient move between and *within* them; the per-repetition
+    alignment takes one scale per repetition, so the fastest steps would look damaged. A
+    coefficient is a property of the unit: one number per channel, the median of the
+    (deviation from the step's median) / (input x temperature difference) over the pairs
+    where both are large (a Theil-Sen-like estimate a few damaged steps cannot move; the
+    turn-on bias differences cancel between a rate and its negative). Sessions without
+    temperature, or whose repetitions share one temperature history: unchanged."""
+    if not np.all(np.isfinite(temp[:, shared])):
+        return values
+    with np.errstate(invalid="ignore"):
+        dT = temp - np.nanmedian(np.where(shared[None], temp, np.nan), axis=0)
+    if not np.any(np.abs(dT[:, shared]) >= _THERMAL_MIN_DT_C):
+        return values
+    out = values.copy()
+    med = np.nanmedian(values, axis=0)  # (S, 6)
+    for c in range(6):
+        u = (w_ref[:, c] if c < 3 else f_ref[:, c - 3]).astype(float)  # the nominal input
+        big = shared & (np.abs(u) >= _THERMAL_MIN_INPUT * max(np.abs(u).max(initial=0.0), 1e-300))
+        pairs = big[None] & (np.abs(dT) >= _THERMAL_MIN_DT_C) & np.isfinite(values[..., c])
+        if np.count_nonzero(pairs) < _THERMAL_MIN_PAIRS or not np.any(u):
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = (values[..., c] - med[None, :, c]) / (u[None] * dT)
+        coef = float(np.median(ratio[pairs]))
+        out[..., c] = values[..., c] - coef * u[None] * np.nan_to_num(dT)
+    return out
+
+
 def _same_layout(a: StepMeans, b: StepMeans) -> bool:
     return all(
         getattr(a, f).dtype == getattr(b, f).dtype
@@ -241,15 +284,18 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
     n_col = len(step_id)
     values = np.full((n_rep, n_col, 6), np.nan)
     t_mid = np.full((n_rep, n_col), np.nan)
+    temp = np.full((n_rep, n_col), np.nan)
     for r, (sm, cols) in enumerate(zip(sms, cols_of)):
         values[r, cols, :3] = sm.gyro
         values[r, cols, 3:] = sm.accel
         t_mid[r, cols] = sm.t_mid
+        temp[r, cols] = sm.temp_c
     present = np.isfinite(values[..., 0])
     shared = present.sum(axis=0) >= 2  # a step seen in one repetition has nothing to compare
     if np.count_nonzero(shared) < 8:
         return []
     values[:, ~shared] = np.nan
+    values = _without_shared_thermal_scale(values, temp, w_ref, f_ref, shared)
     median = np.full((n_col, 6), np.nan)  # over the repetitions that have the step
     median[shared] = np.nanmedian(values[:, shared], axis=0)
     # the problems: each repetition (two: the first only, the second is its mirror) and channel

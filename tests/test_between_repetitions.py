@@ -134,3 +134,24 @@ def test_back_to_back_repetitions_tell_time_drift_from_temperature():
     named alone."""
     o = sensor_effect_scenario(back_to_back, protocols.default_session(), "bias_time_drift", 6, seed=28)
     assert o.named_alone >= 5 and o.other_named == 0, o.notes
+
+
+def test_step_consistency_check_takes_out_a_scale_temperature_coefficient_shared_by_the_repetitions():
+    """Back to back, a gyro of 254 ppm/degC has its fast steps differ between repetitions by
+    up to 7 deg/s, moving within each repetition too: none is taken for damage (before the
+    shared coefficient was taken out, fast steps of several repetitions were), while a step
+    damaged by 1 deg/s in one repetition still is."""
+    from dataclasses import replace as dc_replace
+
+    from calib_core.guards import inconsistent_steps
+
+    rng = np.random.default_rng(9)
+    unit = typical_physics_unit(rng).replace_gyro(2, scale_tc_ppm=254.0)
+    sms = back_to_back(unit, protocols.default_session(), rng, "T")
+    assert inconsistent_steps(sms) == []
+    i = int(np.flatnonzero(sms[1].rate_dps == 1000.0)[0])
+    gyro = sms[1].gyro.copy()
+    gyro[i, 2] += 1.0
+    sms[1] = dc_replace(sms[1], gyro=gyro)
+    found = inconsistent_steps(sms)
+    assert [(f.index, f.step, f.channel) for f in found] == [(1, int(sms[1].step[i]), "gz")]
