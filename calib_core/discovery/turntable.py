@@ -1137,9 +1137,10 @@ class _Discovery:
         that differs from one repetition to the next (the temperature of repetitions run
         back to back on one warm-up, or on days of different ambient: xu2016's k_g33 drift
         between repetitions) lands in that scatter, so those tests cannot see it, however
-        large it is. Here each repetition's deviation from the mean (the mean model's
-        columns projected out) is regressed on the deviation of the terms' columns; the
-        rest of the scatter is the noise. ``None`` when no column of the terms differs
+        large it is. Here each repetition's residual (its own bias removed) minus the
+        repetitions' mean residual is regressed on the same deviation of the terms'
+        columns; the rest of that scatter is the noise (its dof net of the noise model's
+        parameters, :attr:`noise_params`). ``None`` when no column of the terms differs
         between the repetitions by ``REP_VARYING_MIN`` of its size (nothing to test: the
         test would take a share of alpha for no power). Balanced grids only."""
         if not self.g.balanced:
