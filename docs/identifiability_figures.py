@@ -26,20 +26,19 @@ def main(n_units: int = 40, sections: str = "") -> None:
     from calib_core.sim.physics import Turntable, WarmUp
     from schemas.physics_sessions import physics_unit_step_means
 
-    def step_means_of(unit, steps, rng, unit_id, table, back_to_back=False):
-        return physics_unit_step_means(
-            unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable(), back_to_back=back_to_back
-        )
+    def repetitions(**how):
+        """Step means of 5 repetitions run ``how`` (physics_unit_step_means' options)."""
 
-    def day_to_day(unit, steps, rng, unit_id, table):
-        # a cold start a day in a lab whose temperature differs by 2 degC (sd) between days
-        return physics_unit_step_means(
-            unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable(), ambient_sd_c=2.0
-        )
+        def step_means_of(unit, steps, rng, unit_id, table):
+            return physics_unit_step_means(
+                unit, steps, rng, n_reps=5, unit_id=unit_id, table=table or Turntable(), **how
+            )
 
-    def back_to_back(unit, steps, rng, unit_id, table):
-        # the five repetitions on one warm-up: temperature differs between repetitions
-        return step_means_of(unit, steps, rng, unit_id, table, back_to_back=True)
+        return step_means_of
+
+    step_means_of = repetitions()  # a cold start a day
+    day_to_day = repetitions(ambient_sd_c=2.0)  # ... in a lab 2 degC (sd) different each day
+    back_to_back = repetitions(back_to_back=True)  # the five on one warm-up
 
     default = protocols.default_session()
     whole = protocols.whole_turn_session()

@@ -1062,6 +1062,13 @@ class _Discovery:
             )
         return out
 
+    def _bias_removed(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """Channel ``c``'s whitened design (R, n, k) with each repetition's own bias removed
+        from every column, and the whitened bias column (R, n)."""
+        A, wb = self.A[c], self.A_bias[c]
+        coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
+        return A - wb[..., None] * coef[:, None, :], wb
+
     def projected_lack_of_fit(self, names: tuple[str, ...]) -> np.ndarray:
         """Per channel (6, 5): (SS_lof, dof_lof, SS_pure, dof_pure, inflation) of the
         lack-of-fit test
@@ -1089,11 +1096,7 @@ class _Discovery:
         f = self.fit(names)
         out = np.zeros((6, 5))
         for c in range(6):
-            A = self.A[c]  # (R, n, k)
-            wb = self.A_bias[c]  # (R, n)
-            # each repetition's own bias removed from every column
-            coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
-            A = A - wb[..., None] * coef[:, None, :]
+            A, wb = self._bias_removed(c)  # (R, n, k), (R, n)
             resid = A @ f.v[c]  # (R, n)
             local = 3 + np.flatnonzero(np.isin(g.colmap[c], cols))
             X = np.concatenate([A[..., :3], A[..., local], wb[..., None]], axis=-1).mean(axis=0)
@@ -1161,10 +1164,7 @@ class _Discovery:
             local = 3 + np.flatnonzero(np.isin(g.colmap[c], cols))
             if not local.size:
                 continue
-            A = self.A[c]  # (R, n, k)
-            wb = self.A_bias[c]
-            coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
-            A = A - wb[..., None] * coef[:, None, :]
+            A, _ = self._bias_removed(c)
             # the scale factors are shared by the repetitions: a repetition's own scale
             # (what a temperature offset between repetitions makes) stays in its deviation
             resid = A @ f.v[c]
