@@ -113,7 +113,9 @@ class Identifiability:
         }
 
 
-def _orth(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+def orthonormal_basis(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+    """Orthonormal columns spanning the columns of ``A`` (singular values above ``rcond``
+    of the largest)."""
     if A.size == 0:
         return np.zeros((A.shape[0], 0))
     u, s, _ = np.linalg.svd(A, full_matrices=False)
@@ -130,7 +132,7 @@ def analyse(
     """Identifiability of each term's columns (``terms[name]``, (N, p)) against the base
     model's columns ``base`` (N, q) and against each other. Rows must already carry the noise
     weights the fit would use (1/sigma), so that every row counts as the fit counts it."""
-    Qb = _orth(np.asarray(base, float))
+    Qb = orthonormal_basis(np.asarray(base, float))
     names = tuple(terms)
     undetermined: list[Undetermined] = []
     spans: dict[str, np.ndarray] = {}
@@ -162,7 +164,7 @@ def analyse(
                     name, tuple(param_names[name][i] for i in big), tuple(float(v[i]) for i in big), left
                 )
             )
-        spans[name] = _orth(X @ determined.T) if len(determined) else np.zeros((len(Zn), 0))
+        spans[name] = orthonormal_basis(X @ determined.T) if len(determined) else np.zeros((len(Zn), 0))
         rank[name] = spans[name].shape[1]
     confounded: list[Confounded] = []
     seen: set[tuple[str, ...]] = set()
@@ -171,7 +173,7 @@ def analyse(
         others = [o for o in names if o != name and spans[o].shape[1]]
         if not Q.shape[1] or not others:
             continue
-        Qo = _orth(np.hstack([spans[o] for o in others]))
+        Qo = orthonormal_basis(np.hstack([spans[o] for o in others]))
         if not Qo.shape[1]:
             continue
         u, cos, _ = np.linalg.svd(Q.T @ Qo, full_matrices=False)
@@ -217,7 +219,7 @@ def near_confounded(
         Z = np.asarray(Z, float)
         norms = np.linalg.norm(Z, axis=0)
         if Z.size and (norms > 0).any():
-            spans[name] = _orth(Z[:, norms > 0] / norms[norms > 0])
+            spans[name] = orthonormal_basis(Z[:, norms > 0] / norms[norms > 0])
     names = sorted(n for n, q in spans.items() if q.shape[1])
     out = []
     for i, a in enumerate(names):

@@ -32,6 +32,7 @@ from calib_core.discovery.identifiability import (
     Identifiability,
     analyse,
     near_confounded,
+    orthonormal_basis,
 )
 from calib_core.effects import MotionContext, catalogue, get_effect
 
@@ -164,7 +165,7 @@ def own_directions(
 ) -> int:
     """Directions of ``term``'s columns that neither the base model nor ``others`` explain
     (the part left above ``tol``): what a test of ``term`` given the others can see."""
-    Q = _orth(np.hstack([base] + [terms[o] for o in others if o in terms]))
+    Q = orthonormal_basis(np.hstack([base] + [terms[o] for o in others if o in terms]))
     if term not in terms:
         return 0
     Z = terms[term]
@@ -190,14 +191,9 @@ def near_pairs(
     """Near-collinear pairs of terms (:func:`calib_core.discovery.identifiability.near_confounded`)
     once the base model is projected out of their columns; pairs inside a ``confounded``
     set are that set's business, not listed."""
-    Q = _orth(base)
+    Q = orthonormal_basis(base)
     pairs = near_confounded({n: Z - Q @ (Q.T @ Z) for n, Z in terms.items()}, tol)
     return tuple(c for c in pairs if not any(set(c.terms) <= set(g.terms) for g in confounded))
-
-
-def _orth(A: np.ndarray) -> np.ndarray:
-    u, s, _ = np.linalg.svd(A, full_matrices=False)
-    return u[:, s > 1e-10 * max(s.max(initial=0.0), 1e-300)]
 
 
 SOAK_AFTER_S = 3600.0  # a temperature soak: the unit has settled an hour after power-on

@@ -37,13 +37,15 @@ class FTest:
         }
 
 
-def f_test(ss_num: float, dof_num: int, ss_den: float, dof_den: int, threshold: float) -> FTest:
-    """F = (ss_num / dof_num) / (ss_den / dof_den) against F(dof_num, dof_den)."""
+def f_test(ss_num: float, dof_num: float, ss_den: float, dof_den: float, threshold: float) -> FTest:
+    """F = (ss_num / dof_num) / (ss_den / dof_den) against F(dof_num, dof_den) (dof may be
+    fractional: Satterthwaite's and Box's effective dof)."""
     if dof_num <= 0 or dof_den <= 0 or ss_den <= 0:
-        return FTest(float("nan"), int(dof_num), int(dof_den), 1.0, threshold)
+        return FTest(float("nan"), round(dof_num), round(dof_den), 1.0, threshold)
     F = (max(ss_num, 0.0) / dof_num) / (ss_den / dof_den)
     # special.fdtrc is what stats.f.sf evaluates, without its argument checking overhead
-    return FTest(float(F), int(dof_num), int(dof_den), float(special.fdtrc(dof_num, dof_den, F)), threshold)
+    p = float(special.fdtrc(dof_num, dof_den, F))
+    return FTest(float(F), round(dof_num), round(dof_den), p, threshold)
 
 
 @dataclass(frozen=True)
