@@ -1160,7 +1160,7 @@ class _Discovery:
         a, b = self.projected_lack_of_fit(()), self.projected_lack_of_fit(tuple(names))
         # F(p, (R-1) p) holds when the noise is spherical in the terms' p directions; a
         # channel noisier than another along them, or a wander left along a slow one, makes
-        # both sums spread like fewer dof (the heavier tail gave 1.2 % false alarms at 1 %)
+        # both sums spread like fewer dof (on clean units 1.35 % of p-values fell below 0.01)
         eps = _sphericity_epsilon(self._term_deviations(tuple(names)))
         return f_test(
             float(np.sum(a[:, 0] - b[:, 0])),
