@@ -94,6 +94,11 @@ CONFOUNDING_TOL = 0.05
 # which the between-repetition test does not run (the recorded temperature's noise alone
 # makes a few parts in 1e3)
 REP_VARYING_MIN = 0.05
+# a triad's summed lag-1 correlation of the pure error, in standard errors of white noise,
+# above which its steps are modelled as serially correlated (one-sided, 0.13 % per triad):
+# without a gate the sign of two noisy correlations switched the model on for 44 % of
+# units with white noise only
+SERIAL_MIN_Z = 3.0
 
 
 # -- one unit on a (repetition, step) grid ----------------------------------------------
@@ -368,7 +373,9 @@ def _serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> _SerialNois
     with every step's mean over the repetitions (any systematic error) and every
     repetition's mean (its turn-on bias) removed. Lag-1 and lag-2 correlations between
     consecutive steps give the decay per step (r2 / r1, pooled over a sensor triad) and the
-    wandering share (r1 / decay); ``t`` (R, n) step times give the time constant."""
+    wandering share (r1 / decay); ``t`` (R, n) step times give the time constant. A triad
+    whose summed lag-1 correlation is within ``SERIAL_MIN_Z`` standard errors of white
+    noise is left white."""
     m = real[..., None].astype(float)
     z = z * m
     z = (z - z.sum(axis=0) / np.maximum(m.sum(axis=0), 1.0)) * m
@@ -390,7 +397,7 @@ def _serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> _SerialNois
         r2 = np.where(c0 > 0, (c2 + var_mean) / np.where(c0 > 0, c0 + var_mean, 1.0), 0.0)
         for tri in (slice(0, 3), slice(3, 6)):
             s1, s2 = r1[tri].sum(), r2[tri].sum()
-            if s1 <= 0 or s2 <= 0:
+            if s1 <= SERIAL_MIN_Z * np.sqrt(3.0 / cnt[1]) or s2 <= 0:
                 lam[tri] = 0.0
                 continue
             decay = float(np.clip(s2 / s1, 0.05, 0.98))
@@ -997,7 +1004,7 @@ class _Discovery:
     def noise_params(self) -> np.ndarray:
         """Parameters (6,) of the noise model fitted to the repetitions' scatter, per channel:
         a step-mean variance per test group with its own (a pooled one for the groups that
-        borrow it), and with serial noise its share ``lam`` and a third of the triad's time
+        borrow it), and on a triad with serial noise its share ``lam`` and a third of the triad's time
         constant. They are fitted to the pure error that the tests then divide by, so they
         spend as many of its degrees of freedom: counted as such, the lack-of-fit F of clean
         units has the F distribution's mean (without, 1.035 / 1.019 / 1.007 on 3 / 5 / 10
@@ -1011,7 +1018,7 @@ class _Discovery:
                 own[c] += 1
             else:
                 borrow[c] = True
-        serial = (1.0 + 1.0 / 3.0) if self.serial.correlated else 0.0
+        serial = np.where(self.serial.lam > 0, 1.0 + 1.0 / 3.0, 0.0)  # its triads only
         return own + borrow + serial
 
     def pure(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
