@@ -1181,6 +1181,9 @@ class _Discovery:
         """Per channel the terms act on, the repetitions' deviations (R, p_c) of the affine
         model's residual in an orthonormal basis of the terms' directions that the affine
         model's own columns do not span: the noise the targeted test divides by."""
+        key = ("term_deviations", tuple(sorted(names)))
+        if key in self._tests:  # selection and the report ask again at other thresholds
+            return self._tests[key]
         g = self.g
         cols = g.cols(tuple(sorted(names)))
         f = self.fit(())
@@ -1200,6 +1203,7 @@ class _Discovery:
                 continue
             resid = A @ f.v[c]
             out.append((resid - resid.mean(axis=0)) @ Ut)
+        self._tests[key] = out
         return out
 
     def between_repetition_test(self, names: tuple[str, ...], threshold: float) -> FTest | None:
