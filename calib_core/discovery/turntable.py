@@ -1501,11 +1501,7 @@ class _Discovery:
             targeted = any(set(item) & set(lab.split("+")) for lab in self.misfit_terms())
             if not (overall_fixed or targeted):
                 return "negligible", 1.0, ()
-            # (a confounded group's members have no individually significant parameter:
-            # its gain counts on all its sensors)
-            ch = tuple(
-                sorted({c for n in item for c in self.significant_channels(list(chosen), n)})
-            ) or tuple(sensors)
+            ch = self.item_channels(list(chosen), item) or tuple(sensors)
             if not ch:
                 return "negligible", 1.0, ()
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
@@ -1517,9 +1513,7 @@ class _Discovery:
             # test (a drift between repetitions never makes a channel's lack of fit reject)
             if not any(set(item) & set(lab.split("+")) for lab in self.misfit_terms()):
                 return "negligible", 1.0, ()
-            ch = tuple(
-                sorted({c for n in item for c in self.significant_channels(list(chosen), n)})
-            ) or tuple(sensors)
+            ch = self.item_channels(list(chosen), item) or tuple(sensors)
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
             return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         without = self.channel_lack_of_fit(others, self.channel_alpha)
@@ -1552,6 +1546,39 @@ class _Discovery:
         """Channels of the sensors the term's individually significant parameters act on."""
         _, _, sig = self._param_t(chosen, name)
         return tuple(sorted({int(c) for c in get_effect(name).param_sensor()[sig]}))
+
+    def item_channels(self, chosen: list[str], item: tuple[str, ...]) -> tuple[int, ...]:
+        """Channels a term (:meth:`significant_channels`) or a confounded group acts on
+        significantly. A group's members are near-collinear, so in their joint fit no single
+        parameter need be significant while their sum on a sensor is: each sensor's
+        parameters of the group are Wald-tested together (Bonferroni over the sensors), and
+        the sensor with the largest statistic stands in when none passes."""
+        if len(item) == 1:
+            return self.significant_channels(chosen, item[0])
+        full = tuple(chosen)
+        f = self.fit(full)
+        cov = f.cov * self._scale(full)
+        names_sorted = sorted(full)
+        idx, sensor = [], []
+        for n in item:
+            off = sum(get_effect(m).n_params for m in names_sorted[: names_sorted.index(n)])
+            idx.extend(off + np.arange(get_effect(n).n_params))
+            sensor.extend(get_effect(n).param_sensor())
+        idx, sensor = np.asarray(idx), np.asarray(sensor)
+        wald: dict[int, float] = {}
+        for c in np.unique(sensor):
+            k = idx[sensor == c]
+            C = cov[np.ix_(k, k)]
+            if not np.all(np.isfinite(C)):
+                continue
+            w = np.linalg.pinv(C, rcond=1e-10, hermitian=True)
+            rank = int(np.linalg.matrix_rank(C, hermitian=True))
+            if rank:
+                wald[int(c)] = float(stats.chi2.sf(f.theta[k] @ w @ f.theta[k], rank))
+        if not wald:
+            return ()
+        hit = tuple(sorted(c for c, p in wald.items() if p < self.alpha / len(wald)))
+        return hit or (min(wald, key=wald.get),)
 
     def finding(self, chosen: list[str], name: str, threshold: float) -> EffectFinding:
         others = tuple(x for x in chosen if x != name)
@@ -1592,7 +1619,9 @@ class _Discovery:
         """A group the steps cannot tell apart, fitted together with ``chosen``."""
         full = list(chosen) + [n for n in item if n not in chosen]
         others = tuple(n for n in full if n not in item)
-        ch = tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
+        # the channels its verdict judged it on (as a single term's finding), else all its sensors'
+        _, _, fixed = self._verdict(full, tuple(item))
+        ch = fixed or tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
         sin = min(
             (
                 c.sin_angle
