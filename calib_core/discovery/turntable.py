@@ -434,6 +434,29 @@ def _dof_inflation(dev: np.ndarray) -> float:
     return float(max(hetero, 1.0) * (1.0 + 2.0 * rho2))
 
 
+def _variance_dof_cost(dof: float, white_share: float) -> float:
+    """Pure-error dof (0..2) that one step-mean variance costs when it is estimated from
+    ``dof`` dof of the pure error and then weights the rows that test against that pure
+    error. The weight is 1 / max(s^2, w^2) (the within-step white part w^2 is known, only the
+    excess over it is estimated; ``white_share`` = w^2 / s^2), so with q = s^2 / sigma^2 ~
+    chi2_d / d and W the white share, a group's weighted pure error is d E[q / max(q, W)]
+    and its weighted lack of fit scales as E[1 / max(q, W)]: the F's mean is right when the
+    pure dof are d E[q / max(q, W)] / E[1 / max(q, W)], i.e. net of this cost. Estimated
+    weights (W -> 0) cost 2, because E[1 / q] = d / (d - 2), not the 1 of a fitted
+    parameter; a variance that is mostly the known white part (W >= 1) costs nothing.
+    Both expectations in closed form: E[chi2_d; chi2_d < x] = d F_(d+2)(x) and
+    E[1 / chi2_d; chi2_d >= x] = (1 - F_(d-2)(x)) / (d - 2)."""
+    d = float(dof)
+    if d <= 2.0:
+        return 0.0
+    W = max(float(white_share), 1e-12)
+    x = d * W
+    below = stats.chi2.cdf(x, d)
+    ratio_mean = (1.0 - below) + stats.chi2.cdf(x, d + 2) / W  # E[q / max(q, W)]
+    inv_mean = d / (d - 2) * stats.chi2.sf(x, d - 2) + below / W  # E[1 / max(q, W)]
+    return float(np.clip(d * (1.0 - ratio_mean / inv_mean), 0.0, 2.0))
+
+
 def _sphericity_epsilon(blocks: list[np.ndarray]) -> float:
     """Share (1/p .. 1) of its p degrees of freedom that a sum of squares over p directions
     keeps when its noise is not spherical in them: tr(S)^2 / (p tr(S^2)), S the noise
@@ -1002,24 +1025,40 @@ class _Discovery:
 
     @property
     def noise_params(self) -> np.ndarray:
-        """Parameters (6,) of the noise model fitted to the repetitions' scatter, per channel:
-        a step-mean variance per test group with its own (a pooled one for the groups that
-        borrow it), and on a triad with serial noise its share ``lam`` and a third of the triad's time
-        constant. They are fitted to the pure error that the tests then divide by, so they
-        spend as many of its degrees of freedom: counted as such, the lack-of-fit F of clean
-        units has the F distribution's mean (without, 1.035 / 1.019 / 1.007 on 3 / 5 / 10
-        repetitions, an optimism of about 7 % / (R - 1) that the overall test's 700
-        numerator dof turn into 3x its share of false alarms at alpha / 4)."""
-        own = np.zeros(6)
-        borrow = np.zeros(6, bool)
-        for ch, _group, d, *_ in self._noise_rows:
+        """Pure-error dof (6,) that the noise model fitted to the repetitions' scatter costs,
+        per channel. The model is fitted to the pure error that the tests then divide by, so
+        that pure error is smaller than an independent sample of the noise would be. Each
+        step-mean variance (one per test group with enough dof of its own, one pooled for
+        the groups that borrow it) costs :func:`_variance_dof_cost`: 2 when the wander
+        dominates the step (an estimated inverse weight: E[1 / q] = d / (d - 2)), 0 when the
+        known white part does. On a triad with serial noise, its share ``lam`` costs 2 as
+        well (the wander's variance is the inverse weight of the slow directions) and its
+        time constant, shared by the triad, a third of a parameter per channel. Counted so,
+        the lack-of-fit F of clean units has the F distribution's mean (uncounted, 1.035 /
+        1.019 / 1.007 on 3 / 5 / 10 repetitions; each variance counted 1, 1.0116 on 5)."""
+        if "_noise_params" in self.__dict__:  # asked by every test of every term set
+            return self.__dict__["_noise_params"]
+        cost = np.zeros(6)
+        pooled: dict[int, list[float]] = {}
+        dof_c = np.zeros(6)  # each channel's pooled dof: what a borrowed variance has
+        for row in self._noise_rows:
+            dof_c[CHANNELS.index(row[0])] += row[2]
+        for ch, _group, d, step_sd, wsd, *_ in self._noise_rows:
             c = CHANNELS.index(ch)
+            share = wsd**2 / step_sd**2 if step_sd > 0 else 1.0
             if d >= MIN_POOL_DOF:
-                own[c] += 1
-            else:
-                borrow[c] = True
-        serial = np.where(self.serial.lam > 0, 1.0 + 1.0 / 3.0, 0.0)  # its triads only
-        return own + borrow + serial
+                cost[c] += _variance_dof_cost(d, share)
+            else:  # the borrowed pooled variance: counted once, at the borrowers' white share
+                pooled.setdefault(c, []).append(share)
+        for c, shares in pooled.items():
+            cost[c] += _variance_dof_cost(dof_c[c], float(np.mean(shares)))
+        # the wander's share is a variance too (the inverse of the slow directions' weight):
+        # 2, as an estimated step variance; its time constant, shared by the triad, a third
+        serial = np.where(self.serial.lam > 0, 2.0 + 1.0 / 3.0, 0.0)  # its triads only
+        out = cost + serial
+        out.setflags(write=False)
+        self.__dict__["_noise_params"] = out
+        return out
 
     def pure(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Pure-error sum of squares and dof per channel of a model's weighted residual: its
