@@ -1547,16 +1547,17 @@ class _Discovery:
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
             return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         bad = [c for c in sensors if c in self.misfit_channels()]
-        if not bad:
-            # another effect made other channels misfit; on its own sensors this term is
-            # judged as when no channel misfits: by its own targeted or between-repetition
+        without = self.channel_lack_of_fit(others, self.channel_alpha) if bad else {}
+        if not any(without[CHANNELS[c]].rejects for c in bad):
+            # no channel of its sensors misfits, or the other chosen terms already fix every
+            # one that did (two effects on one sensor): on its own sensors this term is
+            # judged as when no channel misfits, by its own targeted or between-repetition
             # test (a drift between repetitions never makes a channel's lack of fit reject)
             if not any(set(item) & set(lab.split("+")) for lab in self.misfit_terms()):
                 return "negligible", 1.0, ()
             ch = self.item_channels(list(chosen), item) or tuple(sensors)
             gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
             return ("named" if gain >= self.min_gain else "negligible"), gain, ch
-        without = self.channel_lack_of_fit(others, self.channel_alpha)
         with_ = self.channel_lack_of_fit(tuple(chosen), self.channel_alpha)
         fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects and not with_[CHANNELS[c]].rejects)
         if not fixed:
