@@ -1572,16 +1572,23 @@ class _Discovery:
         parameters in the fit of ``chosen`` (which holds ``name``)."""
         full = tuple(chosen)
         f = self.fit(full)
-        names_sorted = sorted(full)
-        off = sum(get_effect(n).n_params for n in names_sorted[: names_sorted.index(name)])
-        p = get_effect(name).n_params
-        theta = f.theta[off : off + p]
-        se = np.sqrt(np.diag(f.cov)[off : off + p] * self._scale(full))
+        k = self._theta_index(full, name)
+        theta = f.theta[k]
+        se = np.sqrt(np.diag(f.cov)[k] * self._scale(full))
+        p = k.size
         t = np.abs(theta) / np.where(np.isfinite(se) & (se > 0), se, np.inf)
         sig = t > stats.norm.isf(self.alpha / (2 * p))
         if not sig.any() and np.isfinite(t).any() and np.nanmax(t) > 0:
             sig[int(np.nanargmax(t))] = True
         return theta, se, sig
+
+    @staticmethod
+    def _theta_index(full: tuple[str, ...], name: str) -> np.ndarray:
+        """Indices of the term ``name``'s parameters in the coefficients of the fit of
+        ``full`` (its terms in sorted order)."""
+        names_sorted = sorted(full)
+        off = sum(get_effect(m).n_params for m in names_sorted[: names_sorted.index(name)])
+        return off + np.arange(get_effect(name).n_params)
 
     def significant_channels(self, chosen: list[str], name: str) -> tuple[int, ...]:
         """Channels of the sensors the term's individually significant parameters act on."""
@@ -1599,23 +1606,20 @@ class _Discovery:
         full = tuple(chosen)
         f = self.fit(full)
         cov = f.cov * self._scale(full)
-        names_sorted = sorted(full)
-        idx, sensor = [], []
-        for n in item:
-            off = sum(get_effect(m).n_params for m in names_sorted[: names_sorted.index(n)])
-            idx.extend(off + np.arange(get_effect(n).n_params))
-            sensor.extend(get_effect(n).param_sensor())
-        idx, sensor = np.asarray(idx), np.asarray(sensor)
+        idx = np.concatenate([self._theta_index(full, n) for n in item])
+        sensor = np.concatenate([get_effect(n).param_sensor() for n in item])
         wald: dict[int, float] = {}
         for c in np.unique(sensor):
             k = idx[sensor == c]
             C = cov[np.ix_(k, k)]
             if not np.all(np.isfinite(C)):
                 continue
-            w = np.linalg.pinv(C, rcond=1e-10, hermitian=True)
-            rank = int(np.linalg.matrix_rank(C, hermitian=True))
-            if rank:
-                wald[int(c)] = float(stats.chi2.sf(f.theta[k] @ w @ f.theta[k], rank))
+            # the Wald statistic on the directions the covariance determines (one eigh)
+            lam, V = np.linalg.eigh(C)
+            keep = lam > 1e-10 * max(float(lam.max()), 0.0)
+            if keep.any():
+                z = V[:, keep].T @ f.theta[k]
+                wald[int(c)] = float(stats.chi2.sf(np.sum(z**2 / lam[keep]), int(keep.sum())))
         if not wald:
             return ()
         hit = tuple(sorted(c for c, p in wald.items() if p < self.alpha / len(wald)))
