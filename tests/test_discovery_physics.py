@@ -265,3 +265,33 @@ def test_each_effect_module_hides_what_its_term_models(name):
     for ch in range(6):
         fig = term.figure_variable(ctx, ch)
         assert fig.label and fig.unit and len(fig.values) == len(ctx)
+
+
+def test_held_out_gain_counts_on_the_steps_the_effect_acts_on(monkeypatch):
+    """A gyro nonlinearity at a quarter of its realistic size acts on the high-rate steps
+    only: counted there, its held-out gain passes min_gain and it is named; counted on every
+    step of its channel (EXCITED_SHARE 1), the steps where it is zero dilute it below."""
+    from calib_core.discovery import turntable
+    from calib_core.discovery.presentation import finding_rows
+    from flows.commands.diagnose import summary_lines
+
+    rng = np.random.default_rng(114)
+    unit, _, where = get_effect("gyro_scale_nonlinearity").hide(typical_physics_unit(rng), rng, 0.25)
+    assert where == "gyro y"
+    sessions = step_means_of(unit, STEPS, rng, "Q1")
+    d = diagnose_unit(sessions, tables=False)
+    assert [e.name for e in d.effects] == ["gyro_scale_nonlinearity"] and not d.negligible
+    e = d.effects[0]
+    counted, total = e.heldout_steps
+    assert e.channels == ("gy",) and total == 5 * len(STEPS)
+    assert counted < total / 3  # the high-rate steps
+    assert e.gain >= 1.05
+    assert f"held-out rms on gy ({counted} of {total} step means) " in "\n".join(summary_lines(d))
+    assert d.to_dict()["effects"][0]["heldout_steps"] == [counted, total]
+    assert finding_rows(d)[0]["channels"] == f"gy ({counted} of {total} step means)"  # the report's cell
+
+    monkeypatch.setattr(turntable, "EXCITED_SHARE", 1.0)
+    diluted = diagnose_unit(sessions, tables=False)
+    assert not diluted.effects and [e.name for e in diluted.negligible] == ["gyro_scale_nonlinearity"]
+    assert diluted.negligible[0].heldout_steps == (total, total)
+    assert 1.0 < diluted.negligible[0].gain < 1.05 < e.gain

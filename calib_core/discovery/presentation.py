@@ -62,6 +62,16 @@ def evidence_text(t) -> str:
     return f"F = {t.statistic:.3g} ({t.dof1}, {t.dof2}), {p}"
 
 
+def channels_text(finding) -> str:
+    """The channels a finding's held-out gain counts on, and on how many of their step means
+    when only some carry the effect: "gy (95 of 590 step means)"."""
+    text = ",".join(finding.channels)
+    steps = getattr(finding, "heldout_steps", None)
+    if steps is not None and steps[0] < steps[1]:
+        text += f" ({steps[0]} of {steps[1]} step means)"
+    return text
+
+
 def _row(diag, kind: str, effect: str, **kw) -> dict[str, Any]:
     return {
         "lot": diag.lot,
@@ -90,7 +100,7 @@ def finding_rows(diag) -> list[dict[str, Any]]:
             kind,
             e.name,
             axes=",".join(e.axes),
-            channels=",".join(e.channels),
+            channels=channels_text(e),
             estimates=estimates_text(e),
             evidence=evidence_text(e.evidence),
             evidence_p=float(e.evidence.p_value),
@@ -110,7 +120,7 @@ def finding_rows(diag) -> list[dict[str, Any]]:
                 "confounded",
                 "confounded: " + ", ".join(c.terms),
                 axes="",
-                channels=",".join(c.channels),
+                channels=channels_text(c),
                 estimates=est,
                 evidence=evidence_text(c.evidence),
                 evidence_p=float(c.evidence.p_value),

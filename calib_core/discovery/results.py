@@ -52,7 +52,9 @@ def f_test(ss_num: float, dof_num: float, ss_den: float, dof_den: float, thresho
 class EffectFinding:
     """One catalogue term tested on a unit or recording: its estimate, evidence and
     held-out gain. ``estimate``/``stderr`` are None for an undetermined parameter, whose
-    reason is in ``undetermined``. ``channels``: where the held-out rms was measured.
+    reason is in ``undetermined``. ``channels``: where the held-out rms was measured;
+    ``heldout_steps``: (step means counted, step means on those channels), the ones that carry
+    most of the term's effect (turntable; None: all of them).
     ``block`` (static poses: "gyro" or "accel") and ``heldout_unit`` say what the held-out
     rms is in (turntable: units of the noise, sigma)."""
 
@@ -68,6 +70,7 @@ class EffectFinding:
     undetermined: dict[str, str] = field(default_factory=dict)
     block: str | None = None
     heldout_unit: str = "sigma"
+    heldout_steps: tuple[int, int] | None = None
 
     @property
     def gain(self) -> float:
@@ -87,6 +90,7 @@ class EffectFinding:
             "heldout_channels": list(self.channels),
             "heldout_rms_before": self.heldout_rms_before,
             "heldout_rms_after": self.heldout_rms_after,
+            "heldout_steps": None if self.heldout_steps is None else list(self.heldout_steps),
             "gain": self.gain,
             "undetermined": dict(self.undetermined),
         }
@@ -117,6 +121,7 @@ class ConfoundedFinding:
     separated_by: tuple[str, ...] = ()
     separable: bool = False  # the protocol sees a part of each (calib_core.discovery.plan.separable)
     heldout_unit: str = "sigma"
+    heldout_steps: tuple[int, int] | None = None  # as EffectFinding's
 
     @property
     def name(self) -> str:
@@ -148,6 +153,7 @@ class ConfoundedFinding:
             "heldout_channels": list(self.channels),
             "heldout_rms_before": self.heldout_rms_before,
             "heldout_rms_after": self.heldout_rms_after,
+            "heldout_steps": None if self.heldout_steps is None else list(self.heldout_steps),
             "gain": self.gain,
             "sin_angle": self.sin_angle,
             "separated_by": list(self.separated_by),

@@ -49,7 +49,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -744,6 +744,23 @@ class Diagnosis:
 
 
 # -- the procedure ----------------------------------------------------------------------
+# a term's held-out gain counts on the steps that carry this share of its effect: an effect
+# that only some steps excite (a scale nonlinearity at the high rates, the accelerometer's at
+# 4 g) is judged where it acts, not diluted by the steps where it is zero
+EXCITED_SHARE = 0.9
+
+
+class _HeldOutScore(NamedTuple):
+    before: float  # held-out rms without the item, sigma
+    after: float  # with it
+    steps: int  # step means counted
+    steps_total: int  # step means on its channels
+
+    @property
+    def gain(self) -> float:
+        return self.before / self.after if self.after > 0 else float("inf")
+
+
 class _Discovery:
     def __init__(
         self,
@@ -918,6 +935,7 @@ class _Discovery:
         # the held-out score is the residual a user sees, residual / sigma, not whitened: a
         # slow effect (thermal drift) matters by its size, not by how far it is from the wander
         self.Rrep_seen = self.Rrep if A is A_raw else _qr_r(A_raw)
+        self.A_seen = A_raw
         folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
         folds[:, np.arange(1, R + 1), np.arange(R)] = 0.0
         self.Rf = _qr_r(folds.reshape(6, R + 1, R * k, k))  # (6, R+1, k, k)
@@ -1070,25 +1088,65 @@ class _Discovery:
         dof = int(self.pure_dof.sum()) - np.round(self.noise_params)
         return f.pure_channel, dof.astype(np.int64)
 
-    def heldout_ss(self, names: tuple[str, ...]) -> np.ndarray:
-        """Sum of squares of the held-out normalised residual per channel (each repetition
-        predicted by the fold holding it out, its own biases fitted on itself); the R
-        folds' fits are solved together."""
-        key = tuple(sorted(names))
+    def _heldout_v(self, names: tuple[str, ...]) -> np.ndarray:
+        """(6, R, k) each fold's coefficient vector [-K | -terms | 1] of channel c, fold h
+        (repetitions but h): repetition h's rows times it are its held-out residual (its own
+        biases fitted on itself); the R folds' fits are solved together."""
+        key = ("v",) + tuple(sorted(names))
         if key not in self._heldout:
             g, P, R = self.g, self.g.P, self.g.R
             Rg = self.Rg[1:]  # (R, P+1, P+1) the folds leaving one repetition out
-            cols = g.cols(key)
+            cols = g.cols(key[1:])
             theta_ext = np.zeros((R, P + 2))
             if cols.size:
                 theta_ext[:, cols] = _lstsq_theta_stack(Rg[:, :P][:, :, cols], Rg[:, :P, P])
             tc = theta_ext[:, g.colmap]  # (R, 6, k - 4)
             KS = self.K_solve[:, 1:]  # (6, R, 3, k - 3)
             K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
-            v = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
-            z = np.einsum("chij,chj->chi", self.Rrep_seen, v)  # [:, h]: repetition h's factor
+            self._heldout[key] = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
+        return self._heldout[key]
+
+    def heldout_ss(self, names: tuple[str, ...]) -> np.ndarray:
+        """Sum of squares of the held-out normalised residual per channel (each repetition
+        predicted by the fold holding it out)."""
+        key = tuple(sorted(names))
+        if key not in self._heldout:
+            # [:, h]: repetition h's R factor times fold h's coefficients
+            z = np.einsum("chij,chj->chi", self.Rrep_seen, self._heldout_v(key))
             self._heldout[key] = np.sum(z**2, axis=(1, 2))
         return self._heldout[key]
+
+    def heldout_rows(self, names: tuple[str, ...]) -> np.ndarray:
+        """(6, R, n) held-out normalised residual of every step (0 on padding)."""
+        key = ("rows",) + tuple(sorted(names))
+        if key not in self._heldout:
+            self._heldout[key] = np.einsum("chnj,chj->chn", self.A_seen, self._heldout_v(key[1:]))
+        return self._heldout[key]
+
+    def heldout_score(
+        self, without: tuple[str, ...], with_: tuple[str, ...], channels: tuple[int, ...]
+    ) -> _HeldOutScore:
+        """Held-out rms without and with an item on ``channels``, counted on the steps that
+        excite it: the fewest step means that carry EXCITED_SHARE of the squared change it
+        makes to the held-out prediction. That change is the other repetitions' fit applied
+        to the held-out steps' inputs: the steps are chosen by where the item acts, not by
+        the held-out residual. An effect on every step is judged on nearly all of them."""
+        ch = list(channels)
+        zo = self.heldout_rows(without)[ch].ravel()
+        zf = self.heldout_rows(with_)[ch].ravel()
+        total = self.rows_channel * len(ch)
+        d2 = (zo - zf) ** 2  # 0 on padding
+        tot = float(d2.sum())
+        if tot <= 0:
+            return _HeldOutScore(
+                float(np.sqrt(np.sum(zo**2) / total)), float(np.sqrt(np.sum(zf**2) / total)), total, total
+            )
+        order = np.argsort(d2)[::-1]
+        m = min(int(np.searchsorted(np.cumsum(d2[order]), EXCITED_SHARE * tot)) + 1, total)
+        rows = order[:m]
+        return _HeldOutScore(
+            float(np.sqrt(np.mean(zo[rows] ** 2))), float(np.sqrt(np.mean(zf[rows] ** 2))), m, total
+        )
 
     def heldout_rms(self, names: tuple[str, ...], channels: tuple[int, ...] | None = None) -> float:
         ss = self.heldout_ss(names)
@@ -1523,7 +1581,7 @@ class _Discovery:
         others = tuple(x for x in chosen if x not in item)
         if any(get_effect(n).named_when_significant for n in item):
             ch = tuple(sorted({c for n in item for c in self.sensor_channels(n)}))
-            gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
+            gain = self._gain(others, tuple(chosen), ch)
             return ("named" if gain > 1.0 else "negligible"), gain, ch
         sensors = sorted({c for n in item for c in self.sensor_channels(n)})
         if not self.unit_misfits():
@@ -1544,7 +1602,7 @@ class _Discovery:
             ch = self.item_channels(list(chosen), item) or tuple(sensors)
             if not ch:
                 return "negligible", 1.0, ()
-            gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
+            gain = self._gain(others, tuple(chosen), ch)
             return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         bad = [c for c in sensors if c in self.misfit_channels()]
         without = self.channel_lack_of_fit(others, self.channel_alpha) if bad else {}
@@ -1556,7 +1614,7 @@ class _Discovery:
             if not any(set(item) & set(lab.split("+")) for lab in self.misfit_terms()):
                 return "negligible", 1.0, ()
             ch = self.item_channels(list(chosen), item) or tuple(sensors)
-            gain = self.heldout_rms(others, ch) / self.heldout_rms(tuple(chosen), ch)
+            gain = self._gain(others, tuple(chosen), ch)
             return ("named" if gain >= self.min_gain else "negligible"), gain, ch
         with_ = self.channel_lack_of_fit(tuple(chosen), self.channel_alpha)
         fixed = tuple(c for c in bad if without[CHANNELS[c]].rejects and not with_[CHANNELS[c]].rejects)
@@ -1564,8 +1622,11 @@ class _Discovery:
             if all(with_[CHANNELS[c]].rejects for c in bad):
                 return "partial", 1.0, ()
             return "negligible", 1.0, ()
-        gain = self.heldout_rms(others, fixed) / self.heldout_rms(tuple(chosen), fixed)
+        gain = self._gain(others, tuple(chosen), fixed)
         return ("named" if gain >= self.min_gain else "negligible"), gain, fixed
+
+    def _gain(self, without: tuple[str, ...], with_: tuple[str, ...], channels: tuple[int, ...]) -> float:
+        return self.heldout_score(without, with_, channels).gain
 
     def _param_t(self, chosen: list[str], name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(theta, stderr, |t| > the Bonferroni-corrected normal quantile) of the term's
@@ -1648,8 +1709,9 @@ class _Discovery:
             stderr={n: number(n, v) for n, v in zip(term.param_names, se)},
             units=dict(zip(term.param_names, term.param_units)),
             evidence=self.term_test(others, name, threshold),
-            heldout_rms_before=self.heldout_rms(others, ch),
-            heldout_rms_after=self.heldout_rms(full, ch),
+            heldout_rms_before=(score := self.heldout_score(others, full, ch)).before,
+            heldout_rms_after=score.after,
+            heldout_steps=(score.steps, score.steps_total),
             channels=tuple(CHANNELS[c] for c in ch),
             undetermined=undet,
         )
@@ -1681,8 +1743,9 @@ class _Discovery:
             terms=tuple(item),
             members=tuple(self.finding(list(others) + [n], n, threshold) for n in item),
             evidence=self.group_test(others, item, threshold),
-            heldout_rms_before=self.heldout_rms(others, ch),
-            heldout_rms_after=self.heldout_rms(tuple(full), ch),
+            heldout_rms_before=(score := self.heldout_score(others, tuple(full), ch)).before,
+            heldout_rms_after=score.after,
+            heldout_steps=(score.steps, score.steps_total),
             channels=tuple(CHANNELS[c] for c in ch),
             sin_angle=float(sin),
             separated_by=tuple(separated_by or ()),

@@ -51,6 +51,8 @@ def _fmt_p(p: float) -> str:
 
 def summary_lines(diag) -> list[str]:
     """A readable account of a :class:`calib_core.discovery.Diagnosis`."""
+    from calib_core.discovery.presentation import channels_text
+
     lines = [
         f"unit {diag.unit} (lot {diag.lot}): {diag.n_reps} repetitions, false-alarm "
         f"rate {diag.alpha:g} per unit"
@@ -102,7 +104,7 @@ def summary_lines(diag) -> list[str]:
         for n, why in e.undetermined.items():
             lines.append(f"      {n}: undetermined ({why})")
         ev = e.evidence
-        on = f" on {','.join(e.channels)}" if e.channels else ""
+        on = f" on {channels_text(e)}" if e.channels else ""
         lines.append(
             f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
             f"{_fmt_p(ev.p_value)} (threshold {ev.threshold:.2g}); held-out rms{on} "
@@ -111,7 +113,7 @@ def summary_lines(diag) -> list[str]:
         )
     for c in getattr(diag, "confounded", []):
         ev = c.evidence
-        on = f" on {','.join(c.channels)}" if c.channels else ""
+        on = f" on {channels_text(c)}" if c.channels else ""
         lines.append(f"  confounded: [{', '.join(c.terms)}] (combined fit applied; none named)")
         lines.append(
             f"      evidence F={ev.statistic:.3g} ({ev.dof1}, {ev.dof2}), "
