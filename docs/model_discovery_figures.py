@@ -1,13 +1,14 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
     .venv/bin/python docs/model_discovery_figures.py physics \
-        [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES [REPS]]]]]]
+        [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES [REPS [N_REPS]]]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
         # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS (5th
         # argument): comma-separated catalogue effects, the rows of the effects table ("all":
         # every one); SCALES (6th): comma-separated sizes of its columns, e.g. 0.25,1;
         # REPS (7th): "cold" (default: each repetition a cold start, one a day) or
-        # "back-to-back" (the five repetitions run on one warm-up)
+        # "back-to-back" (the repetitions run on one warm-up); N_REPS (8th): repetitions
+        # per unit (default 5, the production protocol)
     .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
@@ -27,6 +28,7 @@ def physics(
     scales=(0.25, 0.5, 1.0),
     effects: tuple[str, ...] = (),
     back_to_back: bool = False,
+    n_reps: int = 5,
 ) -> None:
     """The Done-when figures of the discovery on the independent physics simulator
     (``effects``: the rows of those catalogue effects only; empty: every one)."""
@@ -40,7 +42,7 @@ def physics(
     def step_means_of(unit, steps, rng, unit_id, table=None):
         kw = {} if table is None else {"table": table}
         return physics_unit_step_means(
-            unit, steps, rng, n_reps=5, unit_id=unit_id, back_to_back=back_to_back, **kw
+            unit, steps, rng, n_reps=n_reps, unit_id=unit_id, back_to_back=back_to_back, **kw
         )
 
     def seed(*parts) -> int:
@@ -152,6 +154,7 @@ if __name__ == "__main__":
                 else (0.25, 0.5, 1.0)
             ),
             back_to_back={"cold": False, "back-to-back": True}[args[5] if len(args) > 5 else "cold"],
+            n_reps=int(args[6]) if len(args) > 6 else 5,
         )
     else:
         {"xu2016": xu2016}[what]()
