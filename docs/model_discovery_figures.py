@@ -3,7 +3,9 @@
     .venv/bin/python docs/model_discovery_figures.py physics \
         [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES [REPS [N_REPS]]]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
-        # SECTIONS: comma-separated subset of effects,pairs,clean,ooc; EFFECTS (5th
+        # SECTIONS: comma-separated subset of effects,pairs,clean,ooc,limits ("limits": the
+        # detection limits' prediction of each effects cell, no simulation; not in the
+        # default); EFFECTS (5th
         # argument): comma-separated catalogue effects, the rows of the effects table ("all":
         # every one); SCALES (6th): comma-separated sizes of its columns, e.g. 0.25,1;
         # REPS (7th): "cold" (default: each repetition a cold start, one a day) or
@@ -49,6 +51,8 @@ def physics(
         return sum(ord(ch) for p in parts for ch in str(p)) * 7919 % 2**31
 
     misses = []
+    if "limits" in sections:
+        limits_table(steps, scales, effects, n_reps)
     if "effects" in sections:
         print(
             "| effect | "
@@ -107,6 +111,32 @@ def physics(
         print("\nmisses:")
         for m in misses:
             print("  " + m)
+
+
+def limits_table(steps, scales, effects, n_reps: int, draws: int = 4000) -> None:
+    """Each effects cell as :mod:`calib_core.discovery.detection` predicts it: over ``draws``
+    realistic draws of the hidden effect, the mean probability that its term's test detects
+    it / that it is detected and its expected held-out gain reaches min_gain."""
+    from calib_core.discovery.detection import detection_limits
+    from calib_core.effects import catalogue, get_effect
+
+    limits = detection_limits(steps, n_reps=n_reps)
+    print(f"predicted ({n_reps} repetitions): detected / detected and worth naming")
+    print("| effect | " + " | ".join(f"{s:g}x" for s in scales) + " |")
+    print("|---|" + "---|" * len(scales))
+    rng = np.random.default_rng(20261128)
+    for name in sorted(catalogue()):
+        if (effects and name not in effects) or name not in limits.terms:
+            continue
+        term, det = get_effect(name), limits.terms[name]
+        cells = []
+        for scale in scales:
+            thetas = [term.realistic(rng, scale)[0] for _ in range(draws)]
+            power = np.array([det.power(t) for t in thetas])
+            worth = np.array([det.gain(t) >= det.min_gain for t in thetas])
+            cells.append(f"{100 * power.mean():.0f} % / {100 * np.mean(power * worth):.0f} %")
+        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+    print()
 
 
 def xu2016() -> None:

@@ -12,6 +12,10 @@ from calib_core.results import to_jsonable
 
 DEFAULT_ALPHA = 0.01
 DEFAULT_MIN_GAIN = 1.05  # a named term must cut the held-out rms of its channels by 5 %
+# a term's held-out gain counts on the steps that carry this share of its effect: an effect
+# that only some steps excite (a scale nonlinearity at the high rates, the accelerometer's at
+# 4 g) is judged where it acts, not diluted by the steps where it is zero
+EXCITED_SHARE = 0.9
 
 
 @dataclass(frozen=True)

@@ -75,6 +75,7 @@ from calib_core.discovery.replay import (
 from calib_core.discovery.results import (
     DEFAULT_ALPHA,
     DEFAULT_MIN_GAIN,
+    EXCITED_SHARE,
     ConfoundedFinding,
     EffectFinding,
     FTest,
@@ -744,10 +745,6 @@ class Diagnosis:
 
 
 # -- the procedure ----------------------------------------------------------------------
-# a term's held-out gain counts on the steps that carry this share of its effect: an effect
-# that only some steps excite (a scale nonlinearity at the high rates, the accelerometer's at
-# 4 g) is judged where it acts, not diluted by the steps where it is zero
-EXCITED_SHARE = 0.9
 
 
 class _HeldOutScore(NamedTuple):

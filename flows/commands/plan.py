@@ -4,7 +4,10 @@ can and cannot identify, before anyone runs the turntable.
 Every catalogue term's columns on the steps (nominal unit and noise, a nominal warm-up) are
 analysed with the affine calibration projected out (:mod:`calib_core.discovery.plan`): which terms are
 determined, which parameters are not, which terms are confounded, and which step sets of the
-library would separate them. See docs/model-discovery.md, "Identifiability".
+library would separate them; then the smallest size of each parameter that discovery finds
+on these steps with ``--reps`` repetitions of a MEMS unit's noise
+(:mod:`calib_core.discovery.detection`). See docs/model-discovery.md, "Identifiability" and
+"Detection limits".
 """
 
 from __future__ import annotations
@@ -44,6 +47,13 @@ def register(sub) -> None:
         default=0.05,
         help="confounded / undetermined below this sine of angle (default 0.05)",
     )
+    p.add_argument(
+        "--reps",
+        type=int,
+        default=5,
+        metavar="N",
+        help="repetitions per unit for the detection limits (default 5, the production protocol)",
+    )
     p.set_defaults(func=run)
 
 
@@ -76,11 +86,17 @@ def read_steps_table(path: Path):
 
 
 def run(args) -> int:
+    from calib_core.discovery.detection import detection_limits
     from calib_core.discovery.plan import plan
 
     if not 0 < args.tol < 1:
         raise CliError(f"--tol must be between 0 and 1, got {args.tol}")
+    if args.reps < 2:
+        raise CliError(f"--reps must be at least 2 (the noise is the repetitions' scatter), got {args.reps}")
     steps = read_steps_table(args.steps)
     result = plan(steps, tol=args.tol, latitude_deg=args.latitude, table_heading_deg=args.table_heading)
-    print("\n".join(result.lines()))
+    limits = detection_limits(
+        steps, n_reps=args.reps, latitude_deg=args.latitude, table_heading_deg=args.table_heading
+    )
+    print("\n".join(result.lines() + limits.lines()))
     return 0

@@ -1,0 +1,116 @@
+"""Detection limits (`calib_core.discovery.detection`, `mimucal plan --reps`): the power the
+analytic noncentral F predicts is the rate at which discovery's targeted test finds the effect
+on the physics simulator, which knows nothing of the catalogue's terms nor of this module
+(each unit a MEMS unit misaligned by 0.5 deg, turn-on biases, bias instability, warm-up)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from scipy import optimize
+
+from calib_core.discovery.detection import StepNoise, detection_limits
+from calib_core.discovery.turntable import _Discovery, _single_thread_blas
+from calib_core.effects import get_effect
+from calib_core.sim import protocols
+from calib_core.sim.physics import typical_physics_unit
+from flows.cli import main
+from schemas.physics_sessions import physics_unit_step_means
+from schemas.writer import steps_table
+
+STEPS = protocols.default_session()
+
+
+def targeted_rate(name: str, param: str, theta0: float, n_units: int, seed: int) -> float:
+    """Share of physics units with ``param`` = +/- theta0 (alone) on which discovery's
+    targeted test of the term rejects (its part of "the unit misfits", on the first pass)."""
+    term = get_effect(name)
+    j = term.param_names.index(param)
+    rng = np.random.default_rng(seed)
+    hits = 0
+    for u in range(n_units):
+        unit = typical_physics_unit(rng)
+        theta = np.zeros(term.n_params)
+        theta[j] = theta0 * rng.choice([-1.0, 1.0])
+        for (kind, i), changes in term.physics_knobs(theta).items():
+            unit = getattr(unit, f"replace_{kind}")(i, **changes)
+        sessions = physics_unit_step_means(unit, STEPS, rng, n_reps=5, unit_id=f"U{u:03d}")
+        with _single_thread_blas():
+            hits += any(name in g.split("+") for g in _Discovery(sessions, 0.01).misfit_terms())
+    return hits / n_units
+
+
+@pytest.mark.parametrize(
+    "name,param,seed",
+    [("accel_scale_nonlinearity", "k2_z", 11), ("gyro_scale_asymmetry", "a_x", 12)],
+)
+def test_predicted_power_is_the_rate_discovery_finds_on_the_physics_simulator(name, param, seed):
+    det = detection_limits(STEPS).terms[name]
+    one = np.zeros(len(det.params))
+    one[det.params.index(param)] = 1.0
+
+    def size_at(power: float) -> float:
+        return optimize.brentq(lambda th: det.power(one * th) - power, 1e-12, 1e6)
+
+    n = 24
+    # at the 50 % size: within 3 binomial sd of a half (measured on 40 units: 0.42 and 0.55)
+    half = targeted_rate(name, param, size_at(0.5), n, seed)
+    assert abs(half - 0.5) <= 3 * np.sqrt(0.25 / n), half
+    # at the 95 % size: most units (measured on 40 units: 0.90 and 0.90); at the 5 % size,
+    # few: the prediction follows the size, it does not say "always"
+    assert targeted_rate(name, param, size_at(0.95), n, seed + 100) >= 0.75
+    assert targeted_rate(name, param, size_at(0.05), n, seed + 200) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / n)
+
+
+def test_limits_follow_the_noise_and_the_repetitions():
+    base = detection_limits(STEPS, names=["accel_scale_nonlinearity", "gyro_g_sensitivity"])
+    noisy = detection_limits(
+        STEPS,
+        names=["accel_scale_nonlinearity", "gyro_g_sensitivity"],
+        noise=StepNoise(white_density=2 * StepNoise().white_density, instability=2 * StepNoise().instability),
+    )
+    more = detection_limits(STEPS, n_reps=10, names=["accel_scale_nonlinearity", "gyro_g_sensitivity"])
+    for a, b, c in zip(base.limits, noisy.limits, more.limits):
+        # twice the noise: twice each size (both are linear in the noise's sd)
+        assert b.detectable == pytest.approx(2 * a.detectable, rel=1e-6)
+        assert b.worth_naming == pytest.approx(2 * a.worth_naming, rel=1e-6)
+        # twice the repetitions: at least 1/sqrt(2) smaller to detect (the noncentrality
+        # doubles and the test's dof grow); the held-out gain does not depend on them
+        assert c.detectable < a.detectable / np.sqrt(2)
+        assert c.worth_naming == pytest.approx(a.worth_naming, rel=1e-9)
+
+
+def test_long_static_steps_average_the_white_noise_down():
+    """zhang2017's 60 s poses: the accelerometer nonlinearity's held-out gain reaches 1.05 at
+    a smaller size than on 3 s steps (the white part of a step mean falls as 1 / window)."""
+    short = detection_limits(STEPS, names=["accel_scale_nonlinearity"]).of("accel_scale_nonlinearity", "k2_z")
+    long = detection_limits(protocols.zhang2017_session(), names=["accel_scale_nonlinearity"]).of(
+        "accel_scale_nonlinearity", "k2_z"
+    )
+    assert long.worth_naming < 0.5 * short.worth_naming
+
+
+def test_terms_the_steps_do_not_excite_have_no_limit():
+    static = protocols.to_frame(protocols.xu2016_multiposition() + protocols.zhang2017_six_position())
+    limits = detection_limits(static)
+    assert "lever_arm" not in limits.terms and "gyro_scale_nonlinearity" not in limits.terms
+    assert "accel_scale_nonlinearity" in limits.terms
+    with pytest.raises(KeyError, match="lever_arm"):
+        limits.of("lever_arm", "r1x")
+    with pytest.raises(ValueError, match="2 repetitions"):
+        detection_limits(static, n_reps=1)
+
+
+def test_cli_plan_prints_the_limits_for_the_repetitions_asked(tmp_path, capsys):
+    path = tmp_path / "steps.parquet"
+    pq.write_table(steps_table(STEPS), path)
+    assert main(["plan", str(path), "--reps", "10"]) == 0
+    out = capsys.readouterr().out
+    assert "smallest effect found, each parameter alone, 10 repetitions" in out
+    limits = out.split("smallest effect found")[1]
+    line = next(x for x in limits.splitlines() if x.strip().startswith("accel_scale_nonlinearity:"))
+    assert "[mg per g^2]" in line and "k2_z" in line
+    assert main(["plan", str(path), "--reps", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--reps must be at least 2" in err and len(err.strip().splitlines()) == 1
