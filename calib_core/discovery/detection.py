@@ -3,29 +3,32 @@
 For every excited parameter of every catalogue term, alone on a unit, two sizes:
 
 - **detectable**: the size at which the term's targeted test (:meth:`calib_core.discovery.
-  turntable._Discovery.targeted_test`: its F on the mean of the R repetitions, divided by
-  the repetitions' own scatter along the term's p directions, F(p, (R-1) p)) rejects at the
-  share of alpha discovery gives it (alpha / 2 over the candidate groups) with probability
-  ``power``. The noncentrality of that F is R |P W x|^2 theta^2: x the parameter's column
-  on the steps, W the step means' whitening (white noise falling with each step's averaging
-  window plus a Gauss-Markov wander of the bias, :class:`StepNoise`, as discovery models
-  them), P the projection that removes each channel's affine calibration. A term confounded
-  with others (an identifiability group) is tested with them: p counts the group's
-  directions;
+  turntable._Discovery.targeted_test`: the repetitions' mean residual on the term's p joint
+  directions against the repetitions' own scatter along every channel's copy of them)
+  rejects at the share of alpha discovery gives it (alpha / 2 over the candidate groups)
+  with probability ``power``. The noncentrality of that F is R |P W x|^2 theta^2: x the
+  parameter's column on the steps, W the step means' whitening (white noise falling with
+  each step's averaging window plus a Gauss-Markov wander of the bias, :class:`StepNoise`,
+  as discovery models them), P the projection that removes each channel's affine
+  calibration. A term confounded with others (an identifiability group) is tested with
+  them: p counts the group's directions. The denominator's dof are (R - 1) per channel's
+  copy, counted under a geometry 0.5 deg off nominal (a real unit's sensor column reaches
+  every channel of its triad);
 - **worth naming**: the size at which the held-out gain reaches ``min_gain``: gain^2 =
-  1 + theta^2 mean((P_s x / sd)^2) over the step means that carry
-  :data:`~calib_core.discovery.results.EXCITED_SHARE` of the effect (P_s the affine
-  projection in units of each step's sd; the held-out residual is not whitened, as
-  discovery scores it).
+  1 + theta^2 mean((r / sd)^2) over the step means that carry
+  :data:`~calib_core.discovery.results.EXCITED_SHARE` of the effect, r the residual of the
+  column after the affine model's generalised least-squares fit, seen unwhitened (as
+  discovery scores the held-out residual).
 
 Discovery names an effect when it is above both (and it is selected among the candidates), so
 ``limit`` = the larger is the size below which a unit's effect is expected to stay unnamed.
-Approximations, stated: the nominal unit's sensing geometry (a 0.5 deg misalignment lets a
-lever arm's tangential components leak into the sensed centripetal acceleration: found at
-sizes smaller than predicted); the test's nominal dof (discovery's Box epsilon lowers them a
-little); the held-out residual's noise taken as one sd. Checked against the physics
-simulator, which knows nothing of this module, in ``tests/test_detection_limits.py`` and
-docs/model-discovery.md ("Detection limits").
+Approximations, stated: the nominal unit's sensing geometry for the sizes (a 0.5 deg
+misalignment lets a lever arm's tangential components leak into the sensed centripetal
+acceleration: found at sizes smaller than predicted); the test's nominal dof (discovery's Box
+epsilon lowers them a little); the held-out residual's noise taken as one sd and the fold's
+estimation noise left out (a realised gain scatters by a few hundredths around the
+expected). Checked against the physics simulator, which knows nothing of this module, in
+``tests/test_detection_limits.py`` and docs/model-discovery.md ("Detection limits").
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ from scipy import optimize, stats
 
 from calib_core.discovery.identifiability import orthonormal_basis
 from calib_core.discovery.results import DEFAULT_ALPHA, DEFAULT_MIN_GAIN, EXCITED_SHARE
-from calib_core.effects import catalogue, get_effect
+from calib_core.effects import SensingGeometry, catalogue, get_effect
 
 DEFAULT_POWER = 0.95
 
@@ -98,7 +101,8 @@ class TermDetection:
     live: np.ndarray  # (n_params,) bool: which of the term's parameters the steps excite
     white: np.ndarray
     plain: np.ndarray
-    p: int  # the term's directions beyond the affine model: its test is F(p, (R - 1) p)
+    p: int  # the term's joint directions beyond the affine model: its test is F(p, dof_den)
+    dof_den: int  # (R - 1) per channel's own copy of the term's directions
     n_reps: int
     alpha: float  # the test's share of the per-unit false-alarm rate
     min_gain: float
@@ -115,9 +119,8 @@ class TermDetection:
 
     def power(self, theta) -> float:
         """Probability that the term's test rejects at its share of alpha."""
-        dof = (self.n_reps - 1) * self.p
-        crit = stats.f.isf(self.alpha, self.p, dof)
-        return float(stats.ncf.sf(crit, self.p, dof, self.noncentrality(theta)))
+        crit = stats.f.isf(self.alpha, self.p, self.dof_den)
+        return float(stats.ncf.sf(crit, self.p, self.dof_den, self.noncentrality(theta)))
 
     def gain(self, theta) -> float:
         """Held-out gain of the term on its channels, counted on the step means that carry
@@ -130,7 +133,7 @@ class TermDetection:
         return float(np.sqrt(1.0 + np.mean(d2[:m])))
 
     def limits(self, power: float) -> tuple[DetectionLimit, ...]:
-        lam = required_noncentrality(self.p, (self.n_reps - 1) * self.p, self.alpha, power)
+        lam = required_noncentrality(self.p, self.dof_den, self.alpha, power)
         out = []
         for j, (param, unit) in enumerate(zip(self.params, self.units)):
             one = np.zeros(len(self.params))
@@ -183,11 +186,20 @@ class DetectionLimits:
         return out
 
 
+# a unit whose sensors are each about 0.5 deg off their nominal axes, in fixed directions
+_TILT = 0.5 * np.pi / 180.0 * np.array([[0.0, 1.0, -1.0], [-1.0, 0.0, 1.0], [1.0, -1.0, 0.0]])
+_MISALIGNED = SensingGeometry(
+    (np.eye(3) + _TILT) / np.linalg.norm(np.eye(3) + _TILT, axis=1, keepdims=True),
+    (np.eye(3) - _TILT) / np.linalg.norm(np.eye(3) - _TILT, axis=1, keepdims=True),
+)
+
+
 def _rank(z: np.ndarray) -> int:
-    """Directions spanned by columns (k, 6, n)."""
+    """Directions spanned by columns (k, [6,] n), at discovery's tolerance (1e-8 of the
+    largest)."""
     flat = z.reshape(len(z), -1)
     size = np.linalg.norm(flat, axis=1).max(initial=0.0)
-    return int(np.linalg.matrix_rank(flat, tol=1e-9 * size)) if size > 0 else 0
+    return int(np.linalg.matrix_rank(flat, tol=1e-8 * size)) if size > 0 else 0
 
 
 def _fmt(x: float) -> str:
@@ -238,9 +250,10 @@ def detection_limits(
     settle = steps["settle_s"].to_numpy(float) if "settle_s" in steps else np.zeros(n)
     window = np.where(np.isfinite(dur), dur, DEFAULT_DURATION_S) - np.nan_to_num(settle)
     # per channel: the whitening (generalised least squares, as discovery's) with the affine
-    # model projected out for the test; each step's sd with the affine model projected out
-    # for the held-out gain (residual / sigma, not whitened, as discovery scores it)
-    white, sd, Q_white, Q_plain = [], [], [], []
+    # model projected out for the test; for the held-out gain, the residual of the same
+    # generalised least-squares fit of the affine model, seen unwhitened in units of each
+    # step's sd (as discovery scores it)
+    white, sd, Q_white, gls_fit = [], [], [], []
     for c in range(6):
         ref = ctx.w if c < 3 else ctx.f
         base = np.column_stack([ref, np.ones(n)])
@@ -249,18 +262,17 @@ def detection_limits(
         white.append(Linv)
         sd.append(np.sqrt(np.diag(C)))
         Q_white.append(orthonormal_basis(Linv @ base))
-        Q_plain.append(orthonormal_basis(base / sd[c][:, None]))
+        gls_fit.append(base @ np.linalg.pinv(Linv @ base) @ Linv)
 
-    def columns(name: str) -> tuple[np.ndarray, np.ndarray]:
+    def columns(name: str, geometry: SensingGeometry | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(n_params, 6, n) the term's columns whitened, and in sigma, affine removed."""
-        E = get_effect(name).regressors(ctx)  # (n, 6, p): each parameter's effect per channel
+        E = get_effect(name).regressors(ctx, geometry)  # (n, 6, p): each parameter's effect per channel
         zw = np.zeros((E.shape[-1], 6, n))
         zs = np.zeros((E.shape[-1], 6, n))
         for c in range(6):
             w = white[c] @ E[:, c, :]
-            x = E[:, c, :] / sd[c][:, None]
             zw[:, c] = (w - Q_white[c] @ (Q_white[c].T @ w)).T
-            zs[:, c] = (x - Q_plain[c] @ (Q_plain[c].T @ x)).T
+            zs[:, c] = ((E[:, c, :] - gls_fit[c] @ E[:, c, :]) / sd[c][:, None]).T
         return zw, zs
 
     terms = {}
@@ -274,6 +286,11 @@ def detection_limits(
         group = next((g for g in ident.groups() if name in g), (name,))
         # a term confounded with others is tested with them: the group's directions
         p = _rank(np.concatenate([zw[live]] + [columns(m)[0] for m in group if m != name]))
+        # discovery's denominator: the repetitions' scatter along every channel's own copy of
+        # the columns; on a real unit each sensor is a little off its axis, so a sensor's
+        # column reaches every channel of its triad (counted, not sized, under _MISALIGNED)
+        tilted = np.concatenate([columns(m, _MISALIGNED)[0] for m in group])
+        p_den = sum(_rank(tilted[:, c]) for c in range(6))
         terms[name] = TermDetection(
             name,
             tuple(np.array(term.param_names)[live]),
@@ -282,6 +299,7 @@ def detection_limits(
             zw[live],
             zs[live],
             p,
+            (n_reps - 1) * max(p_den, p),
             n_reps,
             alpha_term,
             # a term named as soon as it is significant (an effect of where the table stands)
