@@ -41,6 +41,48 @@ def test_lack_of_fit_p_values_of_clean_units_are_calibrated():
 
 
 @pytest.mark.slow
+def test_targeted_test_p_values_of_clean_units_are_calibrated():
+    """Every candidate's targeted test (its numerator on the term's joint directions, its
+    denominator on every channel's copy of them, each with its own Box epsilon) on 40 clean
+    units: 5 % of the p-values below 0.05 (binomial over 40 units x 8 candidates: 16 +/- 3.9;
+    three sd allowed each way)."""
+    rng = np.random.default_rng(2025)
+    p = []
+    for u in range(40):
+        d = _Discovery(step_means_of(typical_physics_unit(rng), STEPS, rng, f"T{u}"), 0.01)
+        p += [d.targeted_test(g, 1.0).p_value for g in d.test_groups()]
+    p = np.asarray(p)
+    expected = 0.05 * len(p)
+    sd = np.sqrt(len(p) * 0.05 * 0.95)
+    assert abs(np.sum(p < 0.05) - expected) <= 3 * sd, (np.sum(p < 0.05), expected)
+
+
+def test_targeted_test_epsilons_change_the_dof_not_the_f():
+    """The targeted test's F is the ratio of its mean squares, (joint sum / p) / (scatter /
+    its dof); Box's epsilons (one per sum, from different directions) only lower the dof of
+    the F it is referred to. A misaligned unit's thermal scale drift has 6 joint directions
+    and 18 per-channel ones, whose epsilons differ."""
+    from scipy import stats
+
+    from calib_core.discovery.turntable import _sphericity_epsilon
+
+    rng = np.random.default_rng(31)
+    d = _Discovery(step_means_of(typical_physics_unit(rng), STEPS, rng, "J0"), 0.01)
+    name = ("thermal_scale_drift",)
+    parts = d._targeted_parts(name)
+    e_num = _sphericity_epsilon([parts.joint_deviations])
+    e_den = _sphericity_epsilon(parts.blocks)
+    assert parts.joint_dof == 6 and sum(b.shape[1] for b in parts.blocks) == 18
+    assert abs(e_num - e_den) > 0.01  # the case where a mixed-up scaling would show
+    den = sum(float(np.sum(b**2)) for b in parts.blocks)
+    dof = (d.g.R - 1) * 18
+    F = (parts.joint_ss / 6) / (den / dof)
+    t = d.targeted_test(name, 1.0)
+    assert t.statistic == pytest.approx(F, rel=1e-9)
+    assert t.p_value == pytest.approx(stats.f.sf(F, e_num * 6, e_den * dof), rel=1e-6)
+
+
+@pytest.mark.slow
 def test_lack_of_fit_f_of_clean_units_has_the_f_mean_once_the_noise_model_is_counted():
     """The noise model is fitted to the pure error the tests divide by: counted in its dof
     (each estimated variance 2, :func:`_variance_dof_cost`), the overall lack-of-fit F of 160
