@@ -92,8 +92,9 @@ class DetectionLimit:
 @dataclass(frozen=True)
 class TermDetection:
     """One term on a protocol: its excited parameters' columns on the steps, whitened with
-    the affine model removed (``white``, for the test) and in sigma with the affine model
-    removed (``plain``, for the held-out gain), each (p_live, 6, n)."""
+    the affine model projected out (``white``, for the test) and, for the held-out gain, the
+    residual of the affine model's generalised least-squares fit seen unwhitened in units of
+    each step's sd (``plain``), each (p_live, 6, n)."""
 
     name: str
     params: tuple[str, ...]  # the excited ones, in the term's order

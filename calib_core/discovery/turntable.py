@@ -23,8 +23,9 @@ Tests (alpha is the family-wise false-alarm rate per unit, default 1%):
   (:meth:`_Discovery.projected_lack_of_fit`): F = (SS_lof/dof_lof) / (SS_pure/dof_pure)
   against F with Satterthwaite dof. A systematic error common to the repetitions inflates
   SS_lof only. "The unit misfits" is the union of the overall test (alpha / 4), the six
-  channels' (alpha / 24 each) and every candidate's targeted test (the same projected sums
-  with and without it, alpha / 2 over the candidates): at most alpha on a unit that fits.
+  channels' (alpha / 24 each) and every candidate's targeted test (its mean residual on the
+  term's joint directions against the repetitions' scatter along every channel's copy of
+  them, alpha / 2 over the candidates): at most alpha on a unit that fits.
 - **a term** T added to the current set S: F = (dSS/p) / (SS_pure/dof_pure) against
   F(p, dof_pure) (p = rank gained), at alpha / 2 / (number of candidate terms) (Bonferroni
   over the catalogue), *and* its leave-one-repetition-out held-out rms must drop (gain > 1).
