@@ -41,7 +41,13 @@ def test_clean_units_get_no_named_effect():
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "name",
-    ["accel_scale_nonlinearity", "gyro_g_sensitivity", "gyro_scale_asymmetry", "gyro_scale_nonlinearity"],
+    [
+        "accel_scale_nonlinearity",
+        "gyro_g_sensitivity",
+        "gyro_scale_asymmetry",
+        "gyro_scale_nonlinearity",
+        "lever_arm",
+    ],
 )
 def test_hidden_effect_is_named_alone(name):
     t = run_scenario(step_means_of, STEPS, 6, seed=500 + len(name), hidden=(name,))
