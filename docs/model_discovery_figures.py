@@ -34,6 +34,7 @@ def physics(
 ) -> None:
     """The Done-when figures of the discovery on the independent physics simulator
     (``effects``: the rows of those catalogue effects only; empty: every one)."""
+    from calib_core.discovery.detection import detection_limits
     from calib_core.discovery.evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
     from calib_core.effects import catalogue
     from calib_core.sim import protocols
@@ -54,25 +55,48 @@ def physics(
     if "limits" in sections:
         limits_table(steps, scales, effects, n_reps)
     if "effects" in sections:
+        # each unit's hidden effect against the protocol's detection limit (no random draw:
+        # the units and the figures are the same with or without it)
+        limits = detection_limits(steps, n_reps=n_reps)
         print(
             "| effect | "
             + " | ".join(f"{s:g}x: exactly right / extra term / median gain" for s in scales)
             + " |"
         )
         print("|---|" + "---|" * len(scales))
+        within = []
         for name in sorted(catalogue()):
             if effects and name not in effects:
                 continue
-            cells = []
+            cells, wcells = [], []
             for scale in scales:
-                t = run_scenario(step_means_of, steps, n_units, seed(name, scale), (name,), scale)
+                t = run_scenario(
+                    step_means_of, steps, n_units, seed(name, scale), (name,), scale, limits=limits
+                )
                 g = f"{np.median(t.gains):.3g}" if t.gains else "-"
                 # a hidden effect reported in a confounded group (combined fit applied, no
                 # name picked) is neither right nor an extra term: shown beside
                 conf = f" (confounded {t.pct(t.confounded_hidden):.0f} %)" if t.confounded_hidden else ""
                 cells.append(f"{t.pct(t.exact):.0f} % / {t.pct(t.extra):.0f} % / {g}{conf}")
+                wcells.append(
+                    f"{t.within_exact}/{t.within}"
+                    + (f" (confounded {t.within_confounded})" if t.within_confounded else "")
+                    + f" / {t.n - t.within} / {t.below_extra}"
+                    if name in limits.terms
+                    else "not excited"
+                )
                 misses += [f"{name} {scale:g}x {m}" for m in t.misses]
             print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+            within.append(f"| {name} | " + " | ".join(wcells) + " |")
+        print()
+        print(
+            "above the protocol's detection limit (detected with 95 % power, expected gain >= "
+            "min_gain): exactly right / units above (reported confounded instead); units below; "
+            "below and another effect named"
+        )
+        print("| effect | " + " | ".join(f"{s:g}x" for s in scales) + " |")
+        print("|---|" + "---|" * len(scales))
+        print("\n".join(within))
         print()
     if "pairs" in sections:
         print("| effects hidden (1x) | both named, nothing else | extra term |")

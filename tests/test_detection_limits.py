@@ -114,3 +114,33 @@ def test_cli_plan_prints_the_limits_for_the_repetitions_asked(tmp_path, capsys):
     assert main(["plan", str(path), "--reps", "1"]) == 2
     err = capsys.readouterr().err
     assert "--reps must be at least 2" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_scenario_counts_each_hidden_effect_against_the_protocols_limit():
+    """The effects table's "above the limit" split: a unit counts as within the protocol's
+    limit when its hidden effect, as hidden, is detected with the limits' power and worth
+    naming; the count is the prediction's, whatever discovery then does."""
+    from calib_core.discovery.evaluation import _within, run_scenario
+    from schemas.physics_sessions import physics_unit_step_means as means
+
+    limits = detection_limits(STEPS)
+    det = limits.terms["gyro_scale_nonlinearity"]
+    one = np.zeros(get_effect("gyro_scale_nonlinearity").n_params)
+    one[list(get_effect("gyro_scale_nonlinearity").param_names).index("c_x")] = 1.0
+    c95 = limits.of("gyro_scale_nonlinearity", "c_x").limit
+    assert _within(limits, {"gyro_scale_nonlinearity": 1.2 * c95 * one})
+    assert not _within(limits, {"gyro_scale_nonlinearity": 0.8 * c95 * one})
+    assert det.power(0.8 * c95 * one) < limits.power or det.gain(0.8 * c95 * one) < det.min_gain
+    assert _within(None, {"gyro_scale_nonlinearity": one}) is None
+    assert _within(limits, {"lever_arm": one[:1], "gyro_scale_nonlinearity": one}) is None
+
+    def step_means_of(unit, steps, rng, unit_id, table=None):
+        return means(unit, steps, rng, n_reps=5, unit_id=unit_id)
+
+    # a realistic nonlinearity at 1x is far above the default protocol's limit, at 1 % of it
+    # far below: every unit counted on its side, and none of the small ones named otherwise
+    big = run_scenario(step_means_of, STEPS, 2, 31, ("gyro_scale_nonlinearity",), 1.0, limits=limits)
+    small = run_scenario(step_means_of, STEPS, 2, 32, ("gyro_scale_nonlinearity",), 0.01, limits=limits)
+    assert (big.within, big.within_exact) == (2, big.exact) and big.exact >= 1
+    assert (small.within, small.within_exact, small.below_extra) == (0, 0, 0)
+    assert len(small.misses) == 2 and all("[below the limit]" in m for m in small.misses)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from calib_core.discovery.detection import DetectionLimits
 from calib_core.discovery.turntable import diagnose_unit
 from calib_core.effects import get_effect
 from calib_core.sim.physics import PhysicsUnit, Turntable, typical_physics_unit
@@ -77,8 +78,15 @@ class Tally:
     gains: list[float] = field(default_factory=list)
     seconds: float = 0.0
     misses: list[str] = field(default_factory=list)  # what was named instead, per miss
+    # the hidden effect against the protocol's detection limit (run_scenario's ``limits``):
+    # units whose effect is detected with the limits' power and worth naming, and of them
+    # those named exactly right; below the limit, the units given another catalogue name
+    within: int = 0
+    within_exact: int = 0
+    within_confounded: int = 0  # ... reported in a confounded group instead, nothing named
+    below_extra: int = 0
 
-    def add(self, d, what: str) -> None:
+    def add(self, d, what: str, within: bool | None = None) -> None:
         named = sorted(e.name for e in d.effects)
         self.n += 1
         ok = named == sorted(self.hidden)
@@ -89,11 +97,18 @@ class Tally:
         self.any_named += bool(named)
         groups = [set(c.terms) for c in getattr(d, "confounded", [])]
         self.confounded += bool(groups)
-        self.confounded_hidden += bool(not named and any(set(self.hidden) <= g for g in groups))
+        in_group = not named and any(set(self.hidden) <= g for g in groups)
+        self.confounded_hidden += in_group
+        if within is not None:
+            self.within += within
+            self.within_exact += within and ok
+            self.within_confounded += within and in_group
+            self.below_extra += not within and bool(set(named) - set(self.hidden))
         self.gains += [e.gain for e in d.effects if e.name in self.hidden]
         if not ok:
+            where = {None: "", True: " [above the limit]", False: " [below the limit]"}[within]
             self.misses.append(
-                f"{what}: named {named or '-'}, confounded "
+                f"{what}{where}: named {named or '-'}, confounded "
                 f"{[sorted(g) for g in groups] or '-'}, partial "
                 f"{[e.name for e in d.partial] or '-'}, negligible "
                 f"{[e.name for e in d.negligible] or '-'}"
@@ -101,6 +116,18 @@ class Tally:
 
     def pct(self, k: int) -> float:
         return 100.0 * k / max(self.n, 1)
+
+
+def _within(limits: DetectionLimits | None, thetas: dict[str, np.ndarray]) -> bool | None:
+    """Whether the one hidden effect is above the protocol's detection limit (None: no
+    limits, or not exactly one hidden effect the steps excite)."""
+    if limits is None or len(thetas) != 1:
+        return None
+    ((name, theta),) = thetas.items()
+    det = limits.terms.get(name)
+    if det is None:
+        return None
+    return det.power(theta) >= limits.power and det.gain(theta) >= det.min_gain
 
 
 def run_scenario(
@@ -112,18 +139,25 @@ def run_scenario(
     scale: float = 1.0,
     out_of_catalogue: str | None = None,
     alpha: float = 0.01,
+    limits: DetectionLimits | None = None,
 ) -> Tally:
     """Diagnose ``n_units`` physics-simulated units with the catalogue effects ``hidden``
-    (or the physical error ``out_of_catalogue``) at ``scale`` times a realistic size."""
+    (or the physical error ``out_of_catalogue``) at ``scale`` times a realistic size.
+
+    With ``limits`` (:func:`calib_core.discovery.detection.detection_limits` of ``steps``)
+    and one hidden effect, each unit is also counted against the protocol's limit: whether
+    its effect, as hidden, is detected with the limits' power and its expected held-out gain
+    reaches min_gain (``Tally.within``): what discovery can be asked to name on that unit."""
     import time
 
     rng = np.random.default_rng(seed)
     tally = Tally(tuple(hidden))
     for u in range(n_units):
         unit = typical_physics_unit(rng)
-        what, table = [], {}
+        what, table, thetas = [], {}, {}
         for name in hidden:
             unit, theta, w = get_effect(name).hide(unit, rng, scale)
+            thetas[name] = theta
             table.update(get_effect(name).table_knobs(theta))  # where the table stands
             what.append(f"{name} on {w}")
         if out_of_catalogue is not None:
@@ -137,5 +171,5 @@ def run_scenario(
         t0 = time.perf_counter()
         d = diagnose_unit(sessions, alpha=alpha, tables=False)
         tally.seconds += time.perf_counter() - t0
-        tally.add(d, f"unit {u} ({'; '.join(what) or 'clean'})")
+        tally.add(d, f"unit {u} ({'; '.join(what) or 'clean'})", _within(limits, thetas))
     return tally
