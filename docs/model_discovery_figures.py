@@ -145,24 +145,15 @@ def limits_table(steps, scales, effects, n_reps: int, draws: int = 4000) -> None
     realistic draws of the hidden effect, the mean probability that its term's test detects
     it / that it is detected and its expected held-out gain reaches min_gain."""
     from calib_core.discovery.detection import detection_limits
-    from calib_core.effects import catalogue, get_effect
 
-    limits = detection_limits(steps, n_reps=n_reps)
+    coverage = detection_limits(steps, n_reps=n_reps).coverage(scales, draws)
     print(f"predicted ({n_reps} repetitions): detected / detected and worth naming")
     print("| effect | " + " | ".join(f"{s:g}x" for s in scales) + " |")
     print("|---|" + "---|" * len(scales))
-    rng = np.random.default_rng(20261128)
-    for name in sorted(catalogue()):
-        if (effects and name not in effects) or name not in limits.terms:
+    for name, cells in coverage.items():
+        if effects and name not in effects:
             continue
-        term, det = get_effect(name), limits.terms[name]
-        cells = []
-        for scale in scales:
-            thetas = [term.realistic(rng, scale)[0] for _ in range(draws)]
-            power = np.array([det.power(t) for t in thetas])
-            worth = np.array([det.gain(t) >= det.min_gain for t in thetas])
-            cells.append(f"{100 * power.mean():.0f} % / {100 * np.mean(power * worth):.0f} %")
-        print(f"| {name} | " + " | ".join(cells) + " |", flush=True)
+        print(f"| {name} | " + " | ".join(f"{100 * d:.0f} % / {100 * n:.0f} %" for d, n in cells) + " |")
     print()
 
 

@@ -44,6 +44,7 @@ from calib_core.discovery.results import DEFAULT_ALPHA, DEFAULT_MIN_GAIN, EXCITE
 from calib_core.effects import SensingGeometry, catalogue, get_effect
 
 DEFAULT_POWER = 0.95
+COVERAGE_SCALES = (0.25, 0.5, 1.0)  # sizes of the realistic effects the coverage counts
 
 
 @dataclass(frozen=True)
@@ -184,6 +185,40 @@ class DetectionLimits:
                     f"{d.param} {_fmt(d.detectable)} / {_fmt(d.worth_naming)}"
                 )
             out.append(f"  {name}: " + "; ".join(f"[{u}] {', '.join(c)}" for u, c in by_unit.items()))
+        return out
+
+    def coverage(
+        self, scales=COVERAGE_SCALES, draws: int = 1000, seed: int = 20261128
+    ) -> dict[str, list[tuple[float, float]]]:
+        """Per term, per scale: over ``draws`` realistic draws of the effect at that scale
+        (its module's :meth:`~calib_core.effects.EffectTerm.realistic`, on random sensors),
+        the mean probability that its test detects it, and that it is detected and its
+        expected held-out gain reaches min_gain (what discovery names): the share of such
+        effects a unit on this protocol is expected to have found. Seeded."""
+        rng = np.random.default_rng(seed)
+        out: dict[str, list[tuple[float, float]]] = {}
+        for name, det in sorted(self.terms.items()):
+            term = get_effect(name)
+            cells = []
+            for scale in scales:
+                thetas = [term.realistic(rng, scale)[0] for _ in range(draws)]
+                power = np.array([det.power(t) for t in thetas])
+                worth = np.array([det.gain(t) >= det.min_gain for t in thetas])
+                cells.append((float(power.mean()), float(np.mean(power * worth))))
+            out[name] = cells
+        return out
+
+    def coverage_lines(self, scales=COVERAGE_SCALES, draws: int = 1000) -> list[str]:
+        cov = self.coverage(scales, draws)
+        head = " / ".join(f"{s:g}x" for s in scales)
+        out = [
+            f"realistic effects found, {self.n_reps} repetitions (named, at {head} of each "
+            "effect module's realistic size; in brackets: detected by its test)"
+        ]
+        for name, cells in cov.items():
+            named = " / ".join(f"{100 * n:.0f}" for _, n in cells)
+            det = " / ".join(f"{100 * d:.0f}" for d, _ in cells)
+            out.append(f"  {name}: {named} % ({det} %)")
         return out
 
 

@@ -5,7 +5,8 @@ Every catalogue term's columns on the steps (nominal unit and noise, a nominal w
 analysed with the affine calibration projected out (:mod:`calib_core.discovery.plan`): which terms are
 determined, which parameters are not, which terms are confounded, and which step sets of the
 library would separate them; then the smallest size of each parameter that discovery finds
-on these steps with ``--reps`` repetitions of a MEMS unit's noise
+on these steps with ``--reps`` repetitions of a MEMS unit's noise, and the share of each
+effect's realistic sizes (0.25x, 0.5x, 1x) it would name
 (:mod:`calib_core.discovery.detection`). See docs/model-discovery.md, "Identifiability" and
 "Detection limits".
 """
@@ -98,5 +99,5 @@ def run(args) -> int:
     limits = detection_limits(
         steps, n_reps=args.reps, latitude_deg=args.latitude, table_heading_deg=args.table_heading
     )
-    print("\n".join(result.lines() + limits.lines()))
+    print("\n".join(result.lines() + limits.lines() + limits.coverage_lines()))
     return 0
