@@ -187,6 +187,15 @@ class DetectionLimits:
             out.append(f"  {name}: " + "; ".join(f"[{u}] {', '.join(c)}" for u, c in by_unit.items()))
         return out
 
+    def above(self, term: str, theta) -> bool | None:
+        """Whether a unit whose term ``term`` has parameters ``theta`` (alone) is above the
+        protocol's limit: detected with ``power`` and its expected held-out gain at least
+        min_gain (None: the steps do not excite the term)."""
+        det = self.terms.get(term)
+        if det is None:
+            return None
+        return det.power(theta) >= self.power and det.gain(theta) >= det.min_gain
+
     def coverage(
         self, scales=COVERAGE_SCALES, draws: int = 1000, seed: int = 20261128
     ) -> dict[str, list[tuple[float, float]]]:

@@ -124,10 +124,7 @@ def _within(limits: DetectionLimits | None, thetas: dict[str, np.ndarray]) -> bo
     if limits is None or len(thetas) != 1:
         return None
     ((name, theta),) = thetas.items()
-    det = limits.terms.get(name)
-    if det is None:
-        return None
-    return det.power(theta) >= limits.power and det.gain(theta) >= det.min_gain
+    return limits.above(name, theta)
 
 
 def run_scenario(

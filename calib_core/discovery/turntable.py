@@ -1512,7 +1512,7 @@ class _Discovery:
             ch = self.item_channels(list(cur + item), item) or tuple(
                 sorted({c for n in item for c in self.channels_of(n)})
             )
-            return self.heldout_score(cur, cur + item, ch).gain > 1.0
+            return self._gain(cur, cur + item, ch) > 1.0
 
         labels = stepwise(list(groups), test, improves, self.term_alpha)
         chosen = self._settle_near_confounded(self._resolve([groups[lab] for lab in labels]))
