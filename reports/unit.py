@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from calib_core.figure_statistics import changes_since_first
+from reports.context import LotContext
 from reports.history import KEY_ELEMENTS, history_frame
 from reports.html import (
     CASE_COLOURS,
@@ -28,7 +29,9 @@ from reports.html import (
     write_atomic,
 )
 from reports.lot import ReportError, safe_name
-from reports.sections import LotContext, kpi_block, qa_badge, unit_qa_note, unit_section
+from reports.sections import unit_section
+from reports.sections.common import qa_badge
+from reports.sections.summary import kpi_block, unit_qa_note
 from reports.store import StoreView
 from schemas.display import spread_unit
 

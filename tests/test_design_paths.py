@@ -10,8 +10,6 @@ import types
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
-import pyarrow as pa
 import pytest
 
 from calib_core.effects import MotionContext, SensingGeometry, catalogue, get_effect, unregister_effect
@@ -19,7 +17,6 @@ from calib_core.models import pipeline
 from calib_core.results import UnitCalibration
 from calib_core.sim import protocols, simulator
 from calib_core.steps import SessionKey
-from schemas.store_tables import TABLE_SCHEMAS
 
 DESIGN = Path(__file__).resolve().parents[1] / "docs" / "DESIGN.md"
 
@@ -94,22 +91,53 @@ def test_the_example_method_is_fitted_stored_and_averaged_through_its_one_line(m
     assert any(w.startswith("W_GYRO_REST_SKIPPED") for w in alone.calibration.warnings)
 
 
-def test_the_example_report_section_shows_the_stored_rows():
-    from reports.html import esc, missing, table
+def design_diff(first_line: str) -> list[str]:
+    """The lines of the ```diff block of DESIGN.md whose first line is ``first_line``."""
+    blocks = re.findall(r"```diff\n(.*?)```", DESIGN.read_text(), re.S)
+    found = [b.splitlines() for b in blocks if b.splitlines()[0] == first_line]
+    assert len(found) == 1, f"DESIGN.md has {len(found)} diff blocks starting {first_line!r}"
+    return found[0]
 
-    section = run_block(
-        "# reports/sections.py (added)",
-        "runs_section",
-        {"LotContext": object, "esc": esc, "missing": missing, "table": table},
-    ).runs_section
-    schema = TABLE_SCHEMAS["sessions"]
-    rows = [
-        {"lot": "L1", "unit": "U2", "rep": 1, "run_id": "run-b", "calibrated_at": "2026-11-24T02:00:00Z"},
-        {"lot": "L1", "unit": "U1", "rep": 2, "run_id": "run-a", "calibrated_at": "2026-11-23T02:00:00Z"},
+
+def test_the_example_report_section_is_one_builder_and_one_list_entry(tmp_path, monkeypatch):
+    """The example runs as written (its own imports, nothing injected), and its one line in
+    LOT_SECTIONS puts it in the lot report where the diff says."""
+    from reports import sections
+    from reports.lot import render_lot_report
+    from reports.synthetic import build_synthetic_store
+
+    diff = design_diff(" # reports/sections/__init__.py")
+    real = (Path(sections.__file__)).read_text().splitlines()
+    for line in diff[1:]:  # the lines the diff keeps or removes are the file's
+        if line.startswith((" ", "-")) and line.strip() != "...":
+            assert line[1:] in real, line
+    runs = run_block("# reports/sections/runs.py (new)", "runs")
+    monkeypatch.setitem(sys.modules, "reports.sections.runs", runs)
+    added = [
+        line[1:].strip().rstrip(",") for line in diff if line.startswith("+Section") or "+    Section" in line
     ]
-    sessions = pa.Table.from_pylist(rows, schema=schema).to_pandas()  # the store's columns
-    html = section(types.SimpleNamespace(sessions=sessions))
-    assert html.index("run-a") < html.index("run-b")  # sorted by unit
-    assert "2026-11-24T02:00:00Z" in html
-    assert "not available" in section(types.SimpleNamespace(sessions=None))
-    assert isinstance(sessions, pd.DataFrame)
+    assert added == ['Section("runs", "Runs", runs.build)']
+    after = next(i for i, s in enumerate(sections.LOT_SECTIONS) if s.id == "sessions")
+    monkeypatch.setattr(
+        sections,
+        "LOT_SECTIONS",
+        [
+            *sections.LOT_SECTIONS[: after + 1],
+            sections.Section("runs", "Runs", runs.build),
+            *sections.LOT_SECTIONS[after + 1 :],
+        ],
+    )
+    import reports.lot
+
+    monkeypatch.setattr(reports.lot, "LOT_SECTIONS", sections.LOT_SECTIONS)
+    truth = build_synthetic_store(
+        tmp_path, n_units=3, n_reps=2, n_outliers=0, n_failed=0, discovery=False, navigation=False
+    )
+    html = render_lot_report(tmp_path, truth.lot)
+    at = html.index('<section id="runs"><h2>Runs</h2>')
+    assert html.index('<section id="sessions">') < at < html.index('<section id="units">')
+    body = html[at : html.index("</section>", at)]
+    assert body.index(">U001<") < body.index(">U002<") < body.index(">U003<")  # sorted by unit
+    assert "run-20261121T020000Z" in body
+    # a store without the table: the section says so instead of failing
+    assert "not available" in runs.build(types.SimpleNamespace(sessions=None), None, None)

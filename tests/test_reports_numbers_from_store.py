@@ -33,8 +33,8 @@ from calib_core.outliers import OutlierConfig  # noqa: E402
 from flows.fleet_sim import simulate_fleet  # noqa: E402
 from flows.nightly import store_results  # noqa: E402
 from flows.unit_pipeline import UnitJob, calibrate_batch  # noqa: E402
+from reports.context import LotContext  # noqa: E402
 from reports.lot import write_lot_report  # noqa: E402
-from reports.sections import LotContext  # noqa: E402
 from reports.store import StoreView  # noqa: E402
 from schemas.dataset import find_sessions  # noqa: E402
 from schemas.flagging import reflag_after_update  # noqa: E402
@@ -98,7 +98,7 @@ def _numeric_sites(path: Path) -> list[str]:
 
 
 def test_reports_reduce_no_data_and_convert_no_unit():
-    modules = sorted(p for p in REPORTS.glob("*.py") if p.name not in NOT_REPORTS)
+    modules = sorted(p for p in REPORTS.rglob("*.py") if p.name not in NOT_REPORTS)
     assert len(modules) >= 10  # the check reads the package, not an empty glob
     sites = [s for p in modules for s in _numeric_sites(p)]
     assert not sites, "numbers computed in reports/ (compute them in calib_core, store them):\n" + "\n".join(
@@ -225,14 +225,15 @@ def test_an_older_store_gets_stderr_of_mean_from_its_parameters(run_store, tmp_p
 def test_the_reports_parameter_names_are_the_fits():
     """Every parameter the reports order or title is one a fit produces (no name declared
     for a parameter that no model has), and every model the pipeline fits has its order."""
+    from calib_core.models.display import param_orders
     from calib_core.models.pipeline import calibrate_repetitions
-    from reports.sections import PARAM_ORDER
 
     from conftest import unit_step_means
 
     fitted: dict[str, list[str]] = {}
     for p in calibrate_repetitions(unit_step_means(1, 7))[0].calibration.parameters():
         fitted.setdefault(p.model, []).append(p.name)
-    assert set(PARAM_ORDER) == set(fitted)
-    for model, names in PARAM_ORDER.items():
+    orders = param_orders()
+    assert set(orders) == set(fitted)
+    for model, names in orders.items():
         assert sorted(names) == sorted(fitted[model]), model

@@ -12,7 +12,7 @@ import pytest
 
 from reports.browser import Chromium, find_chromium
 from reports.lot import write_lot_report
-from reports.sections import rates_span_decades, symlog, symlog_axis
+from reports.sections.residuals import rates_span_decades, symlog, symlog_axis
 from reports.synthetic import build_synthetic_store
 
 

@@ -16,7 +16,7 @@ import pytest
 from calib_core.figure_statistics import residual_envelope
 from reports.html import DASH, MINUS, fmt, td_numbers
 from reports.lot import render_lot_report
-from reports.sections import LotContext, ResidualIndex
+from reports.context import LotContext, ResidualIndex
 from reports.store import StoreView
 from reports.synthetic import build_synthetic_store
 from reports.unit import navigation_figure
@@ -181,7 +181,7 @@ def test_residual_figures_hold_the_mean_and_envelope_per_step(store, lot_text):
             .sort_values(["rate", "step"])
         )
         # the rates (6 to 300 deg/s) span more than a decade: a symlog axis, the rate on hover
-        from reports.sections import symlog
+        from reports.sections.residuals import symlog
 
         rate = np.array(trace["customdata"], float)
         assert np.allclose(_decode(trace["x"]), symlog(rate).astype(np.float32), rtol=1e-6)

@@ -33,6 +33,7 @@ import pandas as pd
 
 from calib_core.errors import DesignError
 from calib_core.linalg import solve_lstsq_stack
+from calib_core.models.display import MATRIX, ModelDisplay, matrix_symbols, register_display, vector_symbols
 from calib_core.results import Param, ParamBlock, matrix_names, params_of_blocks
 from calib_core.steps import StepMeans, stack_field
 from calib_core.tables import CodedStrings, ColumnTable
@@ -513,3 +514,46 @@ def _rotation_groups(sm: StepMeans, tests: tuple[str, ...]):
     order = np.argsort(axis, kind="stable")  # within a group, steps keep their order
     present, starts, n_steps = np.unique(axis[order], return_index=True, return_counts=True)
     return idx[order], starts, np.array(list(AXES))[present], n_steps.astype(np.int64)
+
+
+# How the reports show the four models of this module (calib_core.models.display).
+register_display(
+    ModelDisplay(
+        "gyro",
+        "Table 1 · gyroscope output model (multirate)",
+        tuple(f"k_g{m}" for m in MATRIX) + ("w0_x", "w0_y", "w0_z"),
+        rank=0,
+        key_title="Gyroscope K<sub>g</sub>, ω<sub>0</sub> (ω = K<sub>g</sub> G + ω<sub>0</sub>: "
+        "turntable multirate or field poses)",
+        symbols={**matrix_symbols("k_g"), **vector_symbols("w0_", "ω", "0")},
+    )
+)
+register_display(
+    ModelDisplay(
+        "accel",
+        "Table 2 · accelerometer output model (multiposition)",
+        tuple(f"k_a{m}" for m in MATRIX) + ("f0_x", "f0_y", "f0_z"),
+        rank=1,
+        key_title="Accelerometer K<sub>a</sub>, f<sub>0</sub> (f = K<sub>a</sub> A + f<sub>0</sub>: "
+        "turntable multiposition or field poses)",
+        symbols={**matrix_symbols("k_a"), **vector_symbols("f0_", "f", "0")},
+    )
+)
+register_display(
+    ModelDisplay(
+        "gyro_traditional",
+        "Gyroscope, traditional inverse model",
+        tuple(f"s_g{m}" for m in MATRIX) + tuple(f"b_g_{a}" for a in "xyz"),
+        rank=10,
+        symbols=matrix_symbols("s_g"),
+    )
+)
+register_display(
+    ModelDisplay(
+        "accel_traditional",
+        "Accelerometer, traditional inverse model",
+        tuple(f"s_a{m}" for m in MATRIX) + tuple(f"b_a_{a}" for a in "xyz"),
+        rank=11,
+        symbols=matrix_symbols("s_a"),
+    )
+)

@@ -24,6 +24,7 @@ from scipy.linalg.lapack import dgeqp3 as _geqp3
 
 from calib_core.effects import DEG, skew
 from calib_core.errors import DesignError
+from calib_core.models.display import ModelDisplay, register_display
 from calib_core.models.zhang2017.static import AXES, AccelStaticFit
 from calib_core.results import Param, ParamBlock, params_of_blocks
 from calib_core.steps import StepMeans, stack_field
@@ -588,3 +589,16 @@ def compensate_specific_force(
         return np.linalg.solve(static.C.T, a.T).T - np.einsum("nik,ik->ni", W, r)
     a = a - np.einsum("ji,njk,ik->ni", static.C, W, r)
     return np.linalg.solve(static.C.T, a.T).T
+
+
+# How the reports show this model (calib_core.models.display).
+register_display(
+    ModelDisplay(
+        "lever_arm",
+        "Accelerometer lever arms (zhang2017 dynamic)",
+        tuple(f"r{i}{a}" for i in (1, 2, 3) for a in "xyz"),
+        rank=3,
+        key_title="Accelerometer lever arms (zhang2017 dynamic)",
+        symbols={f"r{i}{a}": ("r", f"{i}{a}") for i in (1, 2, 3) for a in "xyz"},
+    )
+)

@@ -21,6 +21,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from calib_core.errors import DesignError
+from calib_core.models.display import ModelDisplay, register_display
 from calib_core.results import Param, ParamBlock, params_of_blocks
 from calib_core.steps import StepMeans, stack_field
 
@@ -227,3 +228,18 @@ def fit_accel_static_stack(
         )
         for r in range(len(sms))
     ]
+
+
+# How the reports show this model (calib_core.models.display): zero biases, scale factors,
+# installation angles.
+register_display(
+    ModelDisplay(
+        "accel_static",
+        "Accelerometer static model (zhang2017)",
+        tuple(f"u0_{a}" for a in "xyz")
+        + tuple(f"k_{a}" for a in "xyz")
+        + tuple(f"theta_{a}{b}" for a in "xyz" for b in "xyz"),
+        rank=2,
+        key_title="Accelerometer static model (zhang2017, 15 parameters)",
+    )
+)
