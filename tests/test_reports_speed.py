@@ -14,9 +14,9 @@ import pandas as pd
 import pytest
 
 from calib_core.figure_statistics import residual_envelope
+from reports.context import LotContext, ResidualIndex
 from reports.html import DASH, MINUS, fmt, td_numbers
 from reports.lot import render_lot_report
-from reports.context import LotContext, ResidualIndex
 from reports.store import StoreView
 from reports.synthetic import build_synthetic_store
 from reports.unit import navigation_figure
