@@ -129,6 +129,9 @@ class RepetitionCalibration:
     # values needed to apply the calibration that are not reported parameters (e.g. the
     # lever arms re-fitted in the body-axis projection that Calibration.apply subtracts)
     derived: dict[str, Any] = field(default_factory=dict)
+    # facts about the protocol (its steps), not about this session: the same for every
+    # session of the protocol, said once per lot ("P_<CODE>: ..."); they do not warn a session
+    protocol_notes: list[str] = field(default_factory=list)
 
     def parameters(self) -> list[Param]:
         # listed again by summarise, the results store and the unit document: kept while

@@ -65,6 +65,7 @@ from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and to
 from schemas.dataset import DigestCache, SessionRef, find_sessions, plan_units  # noqa: E402,F401  (plan_units re-exported)
 from schemas.flagging import reflag_after_update  # noqa: E402
 from schemas.limits import resolve_config, save_config  # noqa: E402
+from schemas.protocol_notes import notes_of  # noqa: E402
 from schemas.results_store import (  # noqa: E402
     ResultsStore,
     iso,
@@ -135,6 +136,8 @@ class RunTally:
     failed_sessions: list[tuple[tuple, dict[str, Any]]] = field(default_factory=list)
     discovery_notes: set[str] = field(default_factory=set)
     lots: set[str] = field(default_factory=set)
+    # lot -> (unit, protocol notes) of each calibrated session that has some
+    protocol_notes: dict[str, list[tuple[str, list[str]]]] = field(default_factory=dict)
 
     def add(self, results: list[UnitResult], stored: dict[str, Any]) -> None:
         self.calibrated.extend(stored["calibrated"])
@@ -159,6 +162,10 @@ class RunTally:
             if s.status == "failed"
         )
         self.discovery_notes.update(r.discovery_note for r in results if r.discovery_note)
+        for r in results:
+            for s in r.outcome.sessions:
+                if s.status != "failed" and s.protocol_notes:
+                    self.protocol_notes.setdefault(r.lot, []).append((r.unit, list(s.protocol_notes)))
 
     def log_fields(self) -> dict[str, Any]:
         # sorted as the run log had them when every unit was stored at once
@@ -169,6 +176,12 @@ class RunTally:
             "unit_errors": sorted(self.unit_errors, key=lambda e: e["unit"]),
             "sessions_calibrated": self.sessions_calibrated,
             "failed_sessions": [f for _, f in sorted(self.failed_sessions, key=lambda x: x[0])],
+            # what each lot's protocol cannot observe, once per lot (not a session warning)
+            "protocol_notes": [
+                {"lot": lot, "note": n.text, "sessions": n.sessions, "units": n.units}
+                for lot in sorted(self.protocol_notes)
+                for n in notes_of(self.protocol_notes[lot])
+            ],
         }
 
 

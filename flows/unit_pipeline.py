@@ -41,6 +41,8 @@ class SessionOutcome:
     residual_table: ColumnTable | None = None
     compensation_table: ColumnTable | None = None
     step_means: StepMeans | None = None  # kept for discovery; dropped before storing
+    # facts about the protocol (P_...), not warnings: said once per lot, the session stays ok
+    protocol_notes: list[str] = field(default_factory=list)
 
     @property
     def succeeded(self) -> bool:
@@ -111,6 +113,7 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             fit.residual_table,
             fit.compensation_table,
             sm if keep_step_means else None,
+            list(fit.calibration.protocol_notes),
         )
     return outcomes
 

@@ -31,7 +31,7 @@ from reports.html import (
 from reports.lot import ReportError, safe_name
 from reports.sections import unit_section
 from reports.sections.common import qa_badge
-from reports.sections.summary import kpi_block, unit_qa_note
+from reports.sections.summary import kpi_block, protocol_notes_note, unit_qa_note
 from reports.store import StoreView
 from schemas.display import spread_unit
 
@@ -193,7 +193,8 @@ def render_unit_report(results_root: str | Path, unit: str, view: StoreView | No
     if lot is not None:
         ctx = LotContext.load(view, lot, unit=unit)
         body.append(
-            f'<section id="summary"><h2>Summary</h2>{kpi_block(ctx, unit)}{unit_qa_note(ctx, unit)}</section>'
+            '<section id="summary"><h2>Summary</h2>'
+            f"{kpi_block(ctx, unit)}{protocol_notes_note(ctx, unit)}{unit_qa_note(ctx, unit)}</section>"
         )
         body.append(
             f'<section id="unit"><h2>Calibration of {esc(unit)}</h2>'

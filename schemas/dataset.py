@@ -11,44 +11,24 @@ from __future__ import annotations
 
 import hashlib
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_FILE, STEPS_FILE
 from schemas.errors import E_BAD_PATH, SessionError
-from schemas.field_dataset import FIELD_DIR
-
-# Lot and unit ids are directory and file names in the results store (calibrations/<unit>/,
-# reports/units/<unit>.html): full-string matches (\A...\Z: a trailing newline does not pass,
-# as it would with ``$``), a letter or digit first (no ``.``, ``..``, hidden or option-like
-# names), no ``.`` last (dropped by some file systems), at most 128 characters, and none of
-# the names Windows reserves. Control characters, separators and spaces never match.
-ID_RULE = "[A-Za-z0-9][A-Za-z0-9_.-]* (at most 128 characters, not ending with '.')"
-ID_PATTERN = re.compile(r"\A[A-Za-z0-9](?:[A-Za-z0-9_.-]{0,126}[A-Za-z0-9_-])?\Z")
-REP_PATTERN = re.compile(r"\A[1-9][0-9]{0,8}\Z")
-_RESERVED_NAMES = frozenset(
-    {"CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)), *(f"LPT{i}" for i in range(1, 10))}
+from schemas.hive import (  # noqa: F401  (the id rule re-exported: callers check ids here)
+    FIELD_DIR,
+    ID_PATTERN,
+    ID_RULE,
+    REP_PATTERN,
+    check_id,
+    file_digest,
+    id_problem,
 )
-
-
-def id_problem(value: str, field: str) -> str | None:
-    """Why ``value`` is not a valid ``field`` (lot/unit) id, or None when it is."""
-    if not isinstance(value, str) or not ID_PATTERN.match(value):
-        return f"{field} id {value!r} must match {ID_RULE}"
-    if value.split(".")[0].upper() in _RESERVED_NAMES:
-        return f"{field} id {value!r} is a name the file system reserves"
-    return None
-
-
-def check_id(value: str, field: str) -> str:
-    """``value`` when it is a valid lot/unit id; ValueError naming the rule otherwise (the
-    check every ``--lot``/``--unit`` argument goes through, as directory names do)."""
-    why = id_problem(value, field)
-    if why:
-        raise ValueError(why)
-    return value
+from schemas.hive import bad_path as _bad
+from schemas.hive import parse_part as _parse_part
+from schemas.hive import visible_dirs as _visible_dirs
 
 
 @dataclass(frozen=True)
@@ -72,36 +52,6 @@ class SessionRef:
 
 def session_dir(root: Path | str, key: SessionKey) -> Path:
     return Path(root) / f"lot={key.lot}" / f"unit={key.unit}" / f"rep={key.rep}"
-
-
-def _visible_dirs(path: Path) -> list[Path]:
-    try:
-        entries = sorted(path.iterdir(), key=lambda p: p.name)
-    except OSError:
-        return []
-    return [p for p in entries if p.is_dir() and not p.name.startswith((".", "_"))]
-
-
-def _parse_part(name: str, field: str) -> tuple[str | None, str | None]:
-    """``lot=L01`` -> ("L01", None); a bad name -> (None, reason)."""
-    prefix = f"{field}="
-    if not name.startswith(prefix):
-        return None, f"directory name {name!r} does not parse: expected '{prefix}<id>'"
-    value = name[len(prefix) :]
-    if field == "rep":
-        if not REP_PATTERN.match(value):
-            return None, (
-                f"directory name {name!r} does not parse: rep must be an integer >= 1 without leading zeros"
-            )
-        return value, None
-    why = id_problem(value, field)
-    if why:
-        return None, f"directory name {name!r} does not parse: {why}"
-    return value, None
-
-
-def _bad(path: Path, reason: str) -> SessionError:
-    return SessionError(E_BAD_PATH, str(path), path.name, reason)
 
 
 def find_sessions(
@@ -199,18 +149,6 @@ def count_unit_dirs(root: Path | str) -> int:
         for lot_dir in _visible_dirs(Path(root))
         if lot_dir.name.startswith("lot=")
     )
-
-
-_CHUNK = 1 << 20
-
-
-def file_digest(path: str) -> str:
-    """blake2b (128 bit) of a file's bytes."""
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as fh:
-        while chunk := fh.read(_CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 class DigestCache:

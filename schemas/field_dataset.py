@@ -32,8 +32,10 @@ from typing import Any
 
 from calib_core.steps import SessionKey
 from schemas.errors import E_BAD_PATH, SessionError
+from schemas.hive import FIELD_DIR, file_digest
+from schemas.hive import parse_part as _parse_part
+from schemas.hive import visible_dirs as _visible_dirs
 
-FIELD_DIR = "field"  # the directory of a unit's field recordings
 OPTIONS_FILE = "field.json"  # the options shared by a unit's (in field/) or a lot's recordings
 IMUTK_PAIR = ("acc.txt", "gyro.txt")  # a recording directory: IMU-TK's two files
 
@@ -125,8 +127,6 @@ def find_field_recordings(
     :func:`schemas.dataset.find_sessions` checks them), sorted by lot, unit, rep; one
     ``E_BAD_PATH`` error per unreadable options file or recording directory that is not an
     IMU-TK pair (the unit's other recordings are still found)."""
-    from schemas.dataset import _parse_part, _visible_dirs
-
     root = Path(root)
     refs: list[FieldRecordingRef] = []
     errors: list[SessionError] = []
@@ -190,8 +190,6 @@ def field_fingerprint(ref: FieldRecordingRef) -> str:
     """Identity of a recording's content: its file(s) and options files, name, size and
     blake2b digest each (as :func:`schemas.dataset.fingerprint` for a session): a changed
     byte of the log or of an option recalibrates the unit."""
-    from schemas.dataset import file_digest
-
     h = hashlib.sha256()
     h.update(f"field:{ref.name};".encode())
     for p in (*ref.files, *ref.option_files):

@@ -168,6 +168,7 @@ def unit_store_rows(
                 "run_id": run_id,
                 "path": str(s.path),
                 "calibrated_at": stamp,
+                "protocol_notes": list(getattr(s, "protocol_notes", [])),
             }
         )
     base = {

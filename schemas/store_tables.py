@@ -40,6 +40,8 @@ TABLE_SCHEMAS: dict[str, pa.Schema] = {
         ("run_id", _S),
         ("path", _S),
         ("calibrated_at", _S),
+        # facts about the protocol, the same for every session of it (P_...): not warnings
+        ("protocol_notes", pa.list_(pa.string())),
     ),
     "parameters": _schema(
         *_KEYS,

@@ -65,7 +65,7 @@ def _stack(reps: list[dict], key: str, fn):
 
 def _mean_over_reps(a: np.ndarray) -> np.ndarray:
     """Mean over repetitions (axis 0) of the finite values; NaN where none is finite (a lever
-    arm component no repetition could observe, named by W_LEVER_ARM_UNDETERMINED), computed
+    arm component no repetition could observe, named by the protocol note P_LEVER_ARM_UNOBSERVED), computed
     without NumPy's empty-slice warning."""
     finite = np.isfinite(a)
     n = finite.sum(axis=0)

@@ -127,7 +127,7 @@ def test_a_session_with_a_step_missing_has_its_own_layout():
     _check_against_alone(sms)
 
 
-def test_undetermined_lever_arms_warn_per_session():
+def test_undetermined_lever_arms_are_a_protocol_note_not_a_warning():
     steps = protocols.to_frame(
         protocols.xu2016_multirate()
         + protocols.xu2016_multiposition()
@@ -136,7 +136,8 @@ def test_undetermined_lever_arms_warn_per_session():
     sms = unit_step_means(seed=10, steps=steps)
     out = _check_against_alone(sms)
     for f in out:
-        assert any(w.startswith("W_LEVER_ARM_UNDETERMINED") for w in f.calibration.warnings)
+        assert any(n.startswith("P_LEVER_ARM_UNOBSERVED") for n in f.calibration.protocol_notes)
+        assert not any("LEVER_ARM" in w for w in f.calibration.warnings)
         assert np.isnan(f.calibration.fits["lever_arm"].lever_arm_mm).any()
 
 

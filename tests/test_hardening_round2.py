@@ -634,7 +634,7 @@ def test_numpy_runtime_warnings_never_reach_the_terminal_and_become_named_warnin
     """``mimucal calibrate`` (real processes: pytest's own warning capture would hide them
     in-process), with and without --debug: (1) a unit whose lever-arm components are partly
     unobservable (their repetitions' mean was NumPy's 'Mean of empty slice'): no
-    RuntimeWarning, the components named by W_LEVER_ARM_UNDETERMINED; (2) a float64 sample
+    RuntimeWarning, the components named by the protocol note P_LEVER_ARM_UNOBSERVED; (2) a float64 sample
     damaged to 1e160 deg/s (its square overflows in the step's standard deviation): no
     RuntimeWarning, the session warned with W_NUMERIC (and its step W_SATURATED)."""
     import subprocess
@@ -679,7 +679,9 @@ def test_numpy_runtime_warnings_never_reach_the_terminal_and_become_named_warnin
 
     for extra in ((), ("--debug",)):
         text = calibrate("d", *extra).stdout
-        assert "warning rep 1: W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe" in text, text
+        # a fact of the protocol, said once, not a repetition's warning
+        assert "protocol: P_LEVER_ARM_UNOBSERVED: these dynamic steps do not observe" in text, text
+        assert "LEVER_ARM" not in "".join(ln for ln in text.splitlines() if ln.startswith("warning")), text
     text = calibrate("o", "--debug").stdout
     assert "warning rep 1: [W_SATURATED] lot=L01/unit=U0001/rep=1: step 20 " in text
     assert (

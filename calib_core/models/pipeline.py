@@ -153,7 +153,8 @@ def _calibrate_together(
             warnings[0].append(f"W_{name.upper()}_SKIPPED: {exc.reason}")
     lap("xu2016")
     derived: list[dict] = [{} for _ in sms]
-    _fit_zhang2017(sms, fits, warnings, derived, lap)
+    notes: list[list[str]] = [[] for _ in sms]
+    _fit_zhang2017(sms, fits, warnings, derived, lap, notes)
     sm = sms[0]
     source = ("verification",) if (sm.test == "verification").any() else ("multirate",)
     comps = xu2016.compensation_error_tables(
@@ -161,7 +162,7 @@ def _calibrate_together(
     )
     residuals = residual_tables(sms, [calibration_from_fits(f, s) for f, s in zip(fits, sms)])
     out = []
-    for sm, f, w, d, comp, res in zip(sms, fits, warnings, derived, comps, residuals):
+    for sm, f, w, d, n, comp, res in zip(sms, fits, warnings, derived, notes, comps, residuals):
         key = sm.key
         rep = RepetitionCalibration(
             lot=key.lot,
@@ -171,6 +172,7 @@ def _calibrate_together(
             warnings=w,
             provenance=dict(sm.metadata),
             derived=d,
+            protocol_notes=n,
         )
         out.append(SessionFit(rep, comp, res))
     lap("tables")
@@ -200,10 +202,14 @@ def _fit_zhang2017(
     warnings: list[list[str]],
     derived: list[dict],
     lap: _Lap | None = None,
+    notes: list[list[str]] | None = None,
 ) -> None:
     """The 15-parameter static model and, with dynamic steps, the lever arms, of sessions
     that share a step layout (as :func:`_calibrate_together`: with several sessions, a
-    DesignError raises instead of becoming the sessions' warning)."""
+    DesignError raises instead of becoming the sessions' warning). Lever-arm components the
+    dynamic steps cannot observe are a fact of the protocol: ``notes`` (each session's
+    protocol notes) say so, ``P_LEVER_ARM_UNOBSERVED``."""
+    notes = notes if notes is not None else [[] for _ in sms]
     lap = lap if lap is not None else _Lap(None)
     try:
         from calib_core.models import zhang2017
@@ -232,14 +238,10 @@ def _fit_zhang2017(
             inputs = zhang2017.lever_arm_inputs_stack(
                 sms, statics, gyro_Ks=[f["gyro"].K for f in fits], gyro_w0s=[f["gyro"].w0 for f in fits]
             )
-            for f, w, lever in zip(fits, warnings, zhang2017.fit_lever_arm_from_stack(inputs)):
+            for f, n, lever in zip(fits, notes, zhang2017.fit_lever_arm_from_stack(inputs)):
                 f["lever_arm"] = lever
-                if lever.undetermined:  # stored as NaN; say why in the session's warnings
-                    w.append(
-                        "W_LEVER_ARM_UNDETERMINED: the dynamic steps cannot observe "
-                        + ", ".join(lever.undetermined)
-                        + " (add tilted steps)"
-                    )
+                if lever.undetermined:  # stored as NaN; the protocol's note says why
+                    n.append(lever_arm_unobserved_note(lever.undetermined))
             for d, f in zip(derived, fits):
                 d["lever_arm_mm"] = f["lever_arm"].lever_arm_mm
         except DesignError as exc:
@@ -247,6 +249,18 @@ def _fit_zhang2017(
                 raise
             warnings[0].append(f"W_LEVER_ARM_SKIPPED: {exc.reason}")
         lap("lever_arm")
+
+
+LEVER_ARM_UNOBSERVED = "P_LEVER_ARM_UNOBSERVED"
+
+
+def lever_arm_unobserved_note(components) -> str:
+    """The protocol note of lever-arm components its dynamic steps cannot observe."""
+    return (
+        f"{LEVER_ARM_UNOBSERVED}: these dynamic steps do not observe "
+        + ", ".join(components)
+        + ": add tilted steps"
+    )
 
 
 def calibration_from_fits(fits: dict, sm: StepMeans, terms: tuple[TermValue, ...] = ()) -> Calibration:

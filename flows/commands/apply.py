@@ -15,7 +15,8 @@ Refuses (exit 2) when the raw units of the data are not the ones the calibration
 (its ``raw_units``), e.g. LSB data with a calibration fitted on deg/s: the result would be
 meaningless, so ``--force`` does not override this. Refuses (exit 2) a ``samples.parquet``
 whose metadata names another unit than the calibration's (``provenance.unit``), unless
-``--force`` (then a warning on stderr). Warns on stderr when the calibration's QA status is
+``--force`` (then a warning on stderr); the same for a file whose hive path
+(``.../unit=<id>/...``) names another unit. Warns on stderr when the calibration's QA status is
 ``flagged`` or ``limits``."""
 
 from __future__ import annotations
@@ -58,24 +59,36 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="CSV only: unit of acc_* (default m/s^2)",
     )
     p.add_argument(
-        "--force", action="store_true", help="apply even if the raw file's metadata names another unit"
+        "--force",
+        action="store_true",
+        help="apply even if the raw file's hive path or metadata names another unit",
     )
     p.set_defaults(func=run)
 
 
-def _check_unit_id(doc: dict, md: dict, src: str, force: bool) -> None:
-    """The unit named by the raw file's metadata against the calibration's unit."""
+def _check_unit_id(doc: dict, md: dict, raw: Path, force: bool) -> None:
+    """The unit the raw file names, by its hive path (``unit=<id>``, the dataset's key) and by
+    its metadata, against the calibration's unit: another unit is refused in one line unless
+    ``force`` (then a warning on stderr)."""
     import sys
 
+    from schemas.hive import hive_keys
+
     cal_unit = (doc.get("provenance") or {}).get("unit") or (doc.get("metadata") or {}).get("unit")
-    raw_unit = md.get("unit")
-    if cal_unit and raw_unit and str(cal_unit) != str(raw_unit):
-        msg = (
-            f"{src}: the raw file's metadata names unit {raw_unit!r}, the calibration is of unit {cal_unit!r}"
-        )
-        if not force:
-            raise CliError(msg + "; pass --force to apply it anyway")
-        print(f"mimucal apply: warning: {msg} (--force)", file=sys.stderr)
+    if not cal_unit:
+        return
+    named = {"hive path": hive_keys(raw.resolve()).get("unit"), "metadata": md.get("unit")}
+    other = {where: str(u) for where, u in named.items() if u and str(u) != str(cal_unit)}
+    if not other:
+        return
+    units = sorted(set(other.values()))
+    msg = (
+        f"{raw}: the raw file's {' and '.join(other)} name{'s' if len(other) == 1 else ''} unit "
+        f"{' / '.join(repr(u) for u in units)}, the calibration is of unit {str(cal_unit)!r}"
+    )
+    if not force:
+        raise CliError(msg + "; pass --force to apply it anyway")
+    print(f"mimucal apply: warning: {msg} (--force)", file=sys.stderr)
 
 
 def _warn_qa(doc: dict, path: str) -> None:
@@ -159,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"{raw}: missing column(s) {', '.join(missing)} (contract samples.parquet)")
         if "gyro_unit" not in md or "accel_unit" not in md:
             raise CliError(f"{raw}: metadata gyro_unit/accel_unit missing; cannot tell the raw units")
-        _check_unit_id(doc, md, str(raw), args.force)
+        _check_unit_id(doc, md, raw, args.force)
         df = table.to_pandas()
         df.attrs = {"g_local": float(md.get("g_local", G_LOCAL_DEFAULT))}
         try:  # the unit id was checked above (--force may override it)
@@ -184,6 +197,7 @@ def run(args: argparse.Namespace) -> int:
         }
         units = "w_* deg/s, f_* g"
     elif suffix == ".csv":
+        _check_unit_id(doc, {}, raw, args.force)
         try:
             df = pd.read_csv(raw)
         except Exception as exc:

@@ -64,6 +64,7 @@ def summary_lines(ur, failed: list[dict], n_reps: int) -> list[str]:
     import numpy as np
 
     from schemas.display import spread_text, value_text
+    from schemas.protocol_notes import notes_of
 
     out = ur.outcome
     lines = [f"unit {ur.unit} (lot {ur.lot}): {n_reps} repetition(s) calibrated, {len(failed)} failed"]
@@ -98,6 +99,9 @@ def summary_lines(ur, failed: list[dict], n_reps: int) -> list[str]:
         lines.append(ur.discovery_note)
     for s in out.sessions:  # what was left out of a used session, or went wrong in its numbers
         lines += [f"warning rep {s.key.rep}: {w}" for w in s.warnings if s.succeeded]
+    # what the protocol cannot observe: once, not as each repetition's warning
+    for n in notes_of((ur.unit, s.protocol_notes) for s in out.sessions if s.succeeded):
+        lines.append(f"protocol: {n.text} ({n.sessions} repetition(s))")
     for f in failed:
         msg = f["message"] or ""
         lines.append(f"failed rep {f['rep']}: " + (msg if msg.startswith("[") else f"[{f['code']}] {msg}"))

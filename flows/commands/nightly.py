@@ -180,6 +180,8 @@ def print_outcome(log: dict) -> None:
             print(f"flag {f['lot']}/{f['unit']}: [{f['kind']}] {f['reason']}")
     for p in log.get("report_problems", []):
         print(f"report: {p}", file=sys.stderr)
+    for n in log.get("protocol_notes", []):  # once per lot: a fact of its protocol
+        print(f"protocol of lot {n['lot']}: {n['note']} ({n['sessions']} session(s), {n['units']} unit(s))")
     print(summary_with_wall_time(log))
     reports = log.get("reports") or []
     units = [r for r in reports if Path(r).parent.name == "units"]

@@ -22,6 +22,7 @@ from reports.html import (
     with_unit,
 )
 from reports.sections.common import kind_badges, pretty_param, qa_badge
+from schemas.protocol_notes import lot_notes
 
 
 def run_facts(ctx: LotContext) -> tuple[str, str, list[str]]:
@@ -173,11 +174,21 @@ def qa_reference_note(ctx: LotContext) -> str:
     return f'<p class="note qa-reference">{" ".join(parts)}</p>'
 
 
+def protocol_notes_note(ctx: LotContext, unit: str | None = None) -> str:
+    """What the lot's protocol cannot observe (schemas.protocol_notes), once for the lot or
+    the unit, with the sessions it concerns ("" when the protocol has no such note)."""
+    sessions = ctx.sessions if unit is None or ctx.sessions is None else ctx.unit_rows("sessions", unit)
+    notes = lot_notes(sessions)
+    if not notes:
+        return ""
+    return "".join(f'<p class="note protocol-note"><b>Protocol:</b> {esc(n.line())}</p>' for n in notes)
+
+
 def build(ctx: LotContext, page: Page, unit: str | None) -> str:
-    """The lot's summary: run facts and session counts, the reference its units were judged
-    against, the flags."""
+    """The lot's summary: run facts and session counts, what its protocol cannot observe,
+    the reference its units were judged against, the flags."""
     return (
-        f"{kpi_block(ctx)}<h3>Flags: limit failures and outliers</h3>"
+        f"{kpi_block(ctx)}{protocol_notes_note(ctx)}<h3>Flags: limit failures and outliers</h3>"
         f"{qa_reference_note(ctx)}{flags_list(ctx)}"
     )
 

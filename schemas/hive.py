@@ -1,0 +1,102 @@
+"""The hive layout's shared pieces: lot, unit and rep directory names (``lot=<id>``), the id
+rule, the unit a path names, and file digests. ``schemas.dataset`` (turntable sessions) and
+``schemas.field_dataset`` (field recordings) both build on it; neither imports the other's
+helpers."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+
+from schemas.errors import E_BAD_PATH, SessionError
+
+FIELD_DIR = "field"  # the directory of a unit's field recordings
+
+# Lot and unit ids are directory and file names in the results store (calibrations/<unit>/,
+# reports/units/<unit>.html): full-string matches (\A...\Z: a trailing newline does not pass,
+# as it would with ``$``), a letter or digit first (no ``.``, ``..``, hidden or option-like
+# names), no ``.`` last (dropped by some file systems), at most 128 characters, and none of
+# the names Windows reserves. Control characters, separators and spaces never match.
+ID_RULE = "[A-Za-z0-9][A-Za-z0-9_.-]* (at most 128 characters, not ending with '.')"
+ID_PATTERN = re.compile(r"\A[A-Za-z0-9](?:[A-Za-z0-9_.-]{0,126}[A-Za-z0-9_-])?\Z")
+REP_PATTERN = re.compile(r"\A[1-9][0-9]{0,8}\Z")
+_RESERVED_NAMES = frozenset(
+    {"CON", "PRN", "AUX", "NUL", *(f"COM{i}" for i in range(1, 10)), *(f"LPT{i}" for i in range(1, 10))}
+)
+
+
+def id_problem(value: str, field: str) -> str | None:
+    """Why ``value`` is not a valid ``field`` (lot/unit) id, or None when it is."""
+    if not isinstance(value, str) or not ID_PATTERN.match(value):
+        return f"{field} id {value!r} must match {ID_RULE}"
+    if value.split(".")[0].upper() in _RESERVED_NAMES:
+        return f"{field} id {value!r} is a name the file system reserves"
+    return None
+
+
+def check_id(value: str, field: str) -> str:
+    """``value`` when it is a valid lot/unit id; ValueError naming the rule otherwise (the
+    check every ``--lot``/``--unit`` argument goes through, as directory names do)."""
+    why = id_problem(value, field)
+    if why:
+        raise ValueError(why)
+    return value
+
+
+def visible_dirs(path: Path) -> list[Path]:
+    """The sub-directories of ``path`` by name, hidden and temp ones (``.``, ``_``) left out."""
+    try:
+        entries = sorted(path.iterdir(), key=lambda p: p.name)
+    except OSError:
+        return []
+    return [p for p in entries if p.is_dir() and not p.name.startswith((".", "_"))]
+
+
+def parse_part(name: str, field: str) -> tuple[str | None, str | None]:
+    """``lot=L01`` -> ("L01", None); a bad name -> (None, reason)."""
+    prefix = f"{field}="
+    if not name.startswith(prefix):
+        return None, f"directory name {name!r} does not parse: expected '{prefix}<id>'"
+    value = name[len(prefix) :]
+    if field == "rep":
+        if not REP_PATTERN.match(value):
+            return None, (
+                f"directory name {name!r} does not parse: rep must be an integer >= 1 without leading zeros"
+            )
+        return value, None
+    why = id_problem(value, field)
+    if why:
+        return None, f"directory name {name!r} does not parse: {why}"
+    return value, None
+
+
+def bad_path(path: Path, reason: str) -> SessionError:
+    """The ``E_BAD_PATH`` error of a directory or file that does not fit the layout."""
+    return SessionError(E_BAD_PATH, str(path), path.name, reason)
+
+
+def hive_keys(path: Path | str) -> dict[str, str]:
+    """The ``key=value`` directory names of a path, e.g. ``{"lot": "L01", "unit": "U0002",
+    "rep": "1"}`` of ``data/lot=L01/unit=U0002/rep=1/samples.parquet`` (the innermost wins);
+    names that do not parse as the layout's are left out."""
+    out: dict[str, str] = {}
+    for part in Path(path).parts:
+        key, sep, value = part.partition("=")
+        if sep and key in ("lot", "unit", "rep"):
+            got, why = parse_part(part, key)
+            if why is None and got is not None:
+                out[key] = got
+    return out
+
+
+_CHUNK = 1 << 20
+
+
+def file_digest(path: str) -> str:
+    """blake2b (128 bit) of a file's bytes."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        while chunk := fh.read(_CHUNK):
+            h.update(chunk)
+    return h.hexdigest()
