@@ -284,6 +284,10 @@ FORMAT_FILE = "store.json"
 _LOT_PREFIX = "lot="
 # rows whose lot is missing; ``quote`` never produces this name (it has no "lot=" prefix)
 _NO_LOT_FILE = "nolot.parquet"
+# a table without any row: no row, the declared schema, so that every table directory reads
+# as one table (pandas, pyarrow.dataset, DuckDB's ``read_parquet('tables/<name>/*.parquet')``);
+# not a partition, and removed once the table has a lot file
+EMPTY_FILE = "empty.parquet"
 
 
 def partition_file_name(lot: Any) -> str:
@@ -533,7 +537,18 @@ class ResultsStore:
                     continue
             write_parquet_atomic(part, path, name)
             written.append(lot)
+        self._keep_readable(name)
         return written
+
+    def _keep_readable(self, name: str) -> None:
+        """``tables/<name>/empty.parquet`` while the table has no lot file, none once it has
+        one (written after the lot files, so a reader always finds a file with the schema)."""
+        empty = self.table_dir(name) / EMPTY_FILE
+        if self.partitions(name):
+            if empty.exists():
+                empty.unlink()
+        elif not empty.exists():
+            write_parquet_atomic(_normalise(pd.DataFrame(), name), empty, name)
 
     def replace_units(
         self,
@@ -682,6 +697,7 @@ class ResultsStore:
                     path.unlink()
             for lot, part in by_lot.items():
                 write_parquet_atomic(part, self.partition_path(name, lot), name)
+            self._keep_readable(name)
             _fsync_dir(d)
             legacy.unlink()
             migrated.append(name)
@@ -996,8 +1012,11 @@ class ResultsStore:
             return problems
         units_ok = True
         for name in TABLES:
-            files = ([self.legacy_path(name)] if self.legacy_path(name).exists() else []) + list(
-                self.partitions(name).values()
+            empty = self.table_dir(name) / EMPTY_FILE
+            files = (
+                ([self.legacy_path(name)] if self.legacy_path(name).exists() else [])
+                + list(self.partitions(name).values())
+                + ([empty] if empty.exists() else [])
             )
             for path in files:
                 why = _unreadable(path, name)
