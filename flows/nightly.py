@@ -496,7 +496,9 @@ def _plan_night(
     digests = DigestCache(store.read_digest_cache())
     jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
     # units calibrated from field recordings (lot=L/unit=U/field/): flows.field_units
-    jobs, skipped, path_errors = add_field_units(dataset, store, force, refs, jobs, skipped, path_errors)
+    jobs, skipped, path_errors = add_field_units(
+        dataset, store, force, refs, jobs, skipped, path_errors, follow_symlinks
+    )
     current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
     if digests.read or set(digests.entries) - current:  # files of moved datasets go
         store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
@@ -751,7 +753,9 @@ def rerun_flow(
 
         preloaded = _await_preload()
         refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-        field_job = None if refs else field_unit_job(dataset, unit)  # a unit of field recordings
+        field_job = (
+            None if refs else field_unit_job(dataset, unit, follow_symlinks)
+        )  # a unit of field recordings
         if not refs and field_job is None:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
             raise LookupError(
@@ -898,7 +902,9 @@ def rerun_unit(
         ResultsStore(Path(results)).ensure_unlocked()
     ResultsStore(Path(results)).check()
     refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-    if not refs and field_unit_job(dataset, unit) is None:  # before Prefect: one line, no failed flow run
+    if (
+        not refs and field_unit_job(dataset, unit, follow_symlinks) is None
+    ):  # before Prefect: one line, no failed flow run
         why = "; ".join(str(e) for e in path_errors) or "no session directory found"
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
