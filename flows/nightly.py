@@ -443,6 +443,7 @@ def nightly_flow(
             }
         )
         store.write_run(run_id, log)
+        _STARTED_RUNS[str(results)] = (run_id, log)  # its outcome is recorded if the run fails
         # 2. calibrate them in batches, each lot stored as soon as its units are done
         night = _LotStorage(store, run_id, version, log, progress, jobs)
         t_cal = night.calibrate_and_store(jobs, batch_size, run_discovery, max_in_flight, runner) - t0
@@ -477,8 +478,10 @@ def nightly_flow(
                 "summary": None,
             }
         )
+        log["outcome"] = "failures" if run_had_failures(log) else "ok"
         log["summary"] = summary_line(log)
         store.write_run(run_id, log)
+        _STARTED_RUNS.pop(str(results), None)
         for rid in interrupted:  # recovered: later runs need not redo it
             doc = store.read_run(rid)
             doc.update({"interrupted": True, "recovered_by": run_id})
@@ -855,7 +858,7 @@ def nightly_fleet_calibration(
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
         prestart_unit_work_pool(kind, dataset)
-    with _preloading(), runtime.run_settings():
+    with _preloading(), runtime.run_settings(), _outcome_recorded(results):
         return nightly_flow.with_options(task_runner=task_runner)(
             str(dataset),
             str(results),
@@ -870,6 +873,48 @@ def nightly_fleet_calibration(
             unit_reports=unit_reports,
             follow_symlinks=follow_symlinks,
         )
+
+
+# results root -> (run id, run log) of a nightly run started in this process and not ended
+_STARTED_RUNS: dict[str, tuple[str, dict]] = {}
+
+
+def run_had_failures(log: dict) -> bool:
+    """Whether any session, unit or report of a run failed, or a directory did not parse
+    (exit code 1; the run log's ``outcome`` is ``failures``)."""
+    return bool(
+        log.get("failed_sessions")
+        or log.get("units_failed")
+        or log.get("path_errors")
+        or log.get("report_problems")
+        or log.get("unit_errors")
+    )
+
+
+@contextmanager
+def _outcome_recorded(results: str | Path):
+    """A nightly run that raises after its run log was written gets ``outcome: "run
+    failed"`` and the error (one line) in that log; it keeps no ``end``, so the next run
+    recovers it (its flags and reports). Exit code 5 (flows.cli) tells it from "some units
+    failed" (1)."""
+    try:
+        yield
+    except Exception as exc:
+        started = _STARTED_RUNS.pop(str(results), None)
+        if started is not None:
+            run_id, log = started
+            log.update(
+                {
+                    "outcome": "run failed",
+                    "failed_at": iso(utc_now()),
+                    "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:500],
+                }
+            )
+            try:
+                ResultsStore(Path(results)).write_run(run_id, log)
+            except Exception:  # noqa: BLE001 - the run's own error is the one to report
+                pass
+        raise
 
 
 def lot_quality_report(

@@ -153,15 +153,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def exit_code(log: dict) -> int:
-    """1 when any session, unit or report failed, or a directory did not parse; else 0."""
-    failed = (
-        log.get("failed_sessions")
-        or log.get("units_failed")
-        or log.get("path_errors")
-        or log.get("report_problems")
-        or log.get("unit_errors")
-    )
-    return 1 if failed else 0
+    """1 when any session, unit or report failed, or a directory did not parse; else 0 (5,
+    the run failed unexpectedly, is flows.cli's)."""
+    from flows.nightly import run_had_failures
+
+    return 1 if run_had_failures(log) else 0
 
 
 def print_outcome(log: dict) -> None:
