@@ -145,7 +145,7 @@ def parse_range(text: str, kind: str) -> float:
                 value = float(t[: -len(suf)])
             except ValueError:
                 break
-            if value > 0:
+            if 0 < value <= 1e6:  # finite: "infg" is no full scale
                 return value
     unit = "g, e.g. 2g" if kind == "accel" else "deg/s, e.g. 250dps"
     raise ValueError(f"{kind} range {text!r} is not a positive full scale in {unit}")
