@@ -87,6 +87,53 @@ def check_fits(fits: dict, sm: StepMeans) -> list[Implausible]:
     return out
 
 
+# --- field (hand-held) calibrations ------------------------------------------------------------
+# A field fit on real MPU-6050 data ends at 0.12 mg |f| RMS and 0.11 deg gravity direction RMS
+# (docs/real-data.md); a fit that ends 400x worse, or a gyro bias beyond any MEMS full scale, is
+# wrong options (g_local, a scale, a column mapping), not a sensor.
+FIELD_NORM_RMS_LIMIT_MG = 50.0
+FIELD_ANGLE_RMS_LIMIT_DEG = 10.0
+FIELD_GYRO_BIAS_LIMIT_DPS = 2000.0  # the largest MEMS gyro full scale is 2000-4000 deg/s
+FIELD_ACCEL_BIAS_LIMIT_G = 32.0
+
+
+def check_field_fit(
+    norm_rms_mg: float, angle_rms_deg: float, K_g: np.ndarray, w0: np.ndarray, K_a: np.ndarray, f0: np.ndarray
+) -> list[Implausible]:
+    """Checks on a field calibration (affine form: deg/s and g): every value finite, the
+    static |f| and gravity-direction RMS after the fit within the limits above, the biases
+    within a sensor's reach."""
+    out: list[Implausible] = []
+    for model, name, arr in (
+        ("gyro", "K", K_g),
+        ("gyro", "w0", w0),
+        ("accel", "K", K_a),
+        ("accel", "f0", f0),
+    ):
+        if not np.isfinite(np.asarray(arr, float)).all():
+            out.append(Implausible(model, name, float("nan"), "finite values"))
+    if out:
+        return out
+    if not (np.isfinite(norm_rms_mg) and norm_rms_mg <= FIELD_NORM_RMS_LIMIT_MG):
+        out.append(
+            Implausible("field_fit", "norm_rms_mg", float(norm_rms_mg), f"{FIELD_NORM_RMS_LIMIT_MG:g} mg")
+        )
+    if np.isfinite(angle_rms_deg) and angle_rms_deg > FIELD_ANGLE_RMS_LIMIT_DEG:
+        out.append(
+            Implausible(
+                "field_fit", "angle_rms_deg", float(angle_rms_deg), f"{FIELD_ANGLE_RMS_LIMIT_DEG:g} deg"
+            )
+        )
+    for model, prefix, x0, lim, unit in (
+        ("gyro", "w0", w0, FIELD_GYRO_BIAS_LIMIT_DPS, "deg/s"),
+        ("accel", "f0", f0, FIELD_ACCEL_BIAS_LIMIT_G, "g"),
+    ):
+        for i, axis in enumerate("xyz"):
+            if abs(float(x0[i])) > lim:
+                out.append(Implausible(model, f"{prefix}_{axis}", float(x0[i]), f"+/-{lim:g} {unit}"))
+    return out
+
+
 # --- steps whose content contradicts the unit's other repetitions -----------------------------
 # A step mean damaged into the sensor's range (bytes that still decode, no page checksum) is
 # invisible to the session's own fit: the structured model error the fit leaves out (lever

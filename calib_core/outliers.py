@@ -109,6 +109,10 @@ class OutlierConfig:
     history_location: str = "lot"
 
     def __post_init__(self) -> None:
+        for name in ("z_threshold", "family_alpha", "spread_factor"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise OutlierConfigError(f"{name} must be a finite number, got {v!r}")
         if self.scale_pool not in ("fleet", "lot"):
             raise OutlierConfigError("scale_pool must be 'fleet' or 'lot'")
         if not 0.0 <= self.family_alpha < 1.0:

@@ -20,6 +20,7 @@ import warnings
 from flows import commands
 
 EXIT_OK, EXIT_FAILURES, EXIT_USAGE, EXIT_NOTHING_TO_DO = 0, 1, 2, 3
+EXIT_RUN_FAILED = 5  # the run failed unexpectedly (a bug, Prefect down): not "some units failed"
 _ID_ARGUMENTS = (("unit", "unit"), ("lot", "lot"))
 
 
@@ -128,7 +129,7 @@ def _run(argv: list[str] | None) -> int:
             f"last good state; --debug shows the traceback)",
             file=sys.stderr,
         )
-        return EXIT_FAILURES
+        return EXIT_RUN_FAILED
 
 
 if __name__ == "__main__":

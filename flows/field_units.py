@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from calib_core.models.field.results import field_unit_calibration
 from flows.unit_pipeline import (
     STATUS_FAILED,
@@ -30,7 +32,7 @@ from flows.unit_pipeline import (
     UnitOutcome,
     UnitResult,
 )
-from schemas.errors import E_MIXED_UNITS
+from schemas.errors import E_IMPLAUSIBLE, E_MIXED_UNITS
 from schemas.field_dataset import FieldRecordingRef, field_fingerprint, find_field_recordings
 
 INIT_PREAMBLE_KEYS = ("initialization time", "init time", "initial rest", "tinit")
@@ -81,6 +83,15 @@ def starting_scales(
     return acc, gyr
 
 
+def field_fit_problems(gyro, accel, figures, move_ok) -> list:
+    """:func:`calib_core.guards.check_field_fit` on a fitted recording (its affine gyro and
+    accel fits and its figures after the fit): what makes it no working sensor's."""
+    from calib_core.guards import check_field_fit
+
+    s = figures.summary("", move_ok)
+    return check_field_fit(s["norm_rms_mg"], s["angle_rms_deg"], gyro.K, gyro.w0, accel.K, accel.f0)
+
+
 # --- planning -----------------------------------------------------------------------------------
 @dataclass
 class FieldUnitJob(UnitJob):
@@ -93,13 +104,14 @@ def plan_field_units(
     force: bool = False,
     turntable_units: set[str] | frozenset[str] = frozenset(),
     unit: str | None = None,
+    follow_symlinks: bool = False,
 ) -> tuple[list[FieldUnitJob], list[tuple[str, str]], list]:
     """Field units to calibrate (new, changed, or all with ``force``), units skipped because
     every recording's fingerprint is unchanged, and path errors (a unit that also has
     turntable sessions: a unit is calibrated one way, its field recordings are left out)."""
     from schemas.errors import E_BAD_PATH, SessionError
 
-    refs, errors = find_field_recordings(dataset, unit=unit)
+    refs, errors = find_field_recordings(dataset, unit=unit, follow_symlinks=follow_symlinks)
     by_unit: dict[tuple[str, str], list[FieldRecordingRef]] = {}
     for r in refs:
         if r.key.unit in turntable_units:
@@ -166,6 +178,8 @@ def calibrate_recording(ref: FieldRecordingRef) -> tuple[SessionOutcome, _Record
         fp = ""
     o = ref.options
     try:
+        if ref.error is not None:  # refused before any file is opened (schemas.field_dataset)
+            raise ref.error
         rec = read_field_recording(ref)
         acc_scale, gyro_scale = starting_scales(o, rec.gyro_unit, rec.accel_unit)
         det = detect_poses(
@@ -198,15 +212,23 @@ def calibrate_recording(ref: FieldRecordingRef) -> tuple[SessionOutcome, _Record
             accel_unit=rec.accel_unit,
             metadata={"source": rec.source},
         )
+        gyro, accel = affine_fits(fit)
+        figures = field_figures(fit.calibration, rec.t, rec.gyro, rec.accel, det.poses)
+        implausible = field_fit_problems(gyro, accel, figures, move_ok)
+        if implausible:
+            raise SessionError(
+                E_IMPLAUSIBLE,
+                str(ref.key),
+                ref.name,
+                "estimates are not those of a working sensor: " + "; ".join(map(str, implausible)),
+            )
     except SessionError as exc:
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, exc.code, str(exc), [], fp), None
-    except (DesignError, ValueError, KeyError) as exc:
+    except (DesignError, ValueError, KeyError, ArithmeticError, np.linalg.LinAlgError) as exc:
         code = getattr(exc, "code", "E_FIELD_FIT")
-        reason = getattr(exc, "reason", None) or str(exc)
+        reason = (getattr(exc, "reason", None) or str(exc))[:300]
         msg = f"[{code}] session {ref.key}, file {ref.name}: {reason}"
         return SessionOutcome(ref.key, ref.path, STATUS_FAILED, code, msg, [], fp), None
-    gyro, accel = affine_fits(fit)
-    figures = field_figures(fit.calibration, rec.t, rec.gyro, rec.accel, det.poses)
     warnings = []
     if (~move_ok).any():
         warnings.append(
@@ -269,7 +291,12 @@ def calibrate_field_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitRe
     t0 = time.perf_counter()
     outcomes, fitted = [], []
     for ref in sorted(job.refs, key=lambda r: r.key.rep):
-        o, r = calibrate_recording(ref)
+        try:
+            o, r = calibrate_recording(ref)
+        except Exception as exc:  # noqa: BLE001 - a bug on one recording fails that recording
+            why = f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+            msg = f"[E_INTERNAL] session {ref.key}, file {ref.name}: unexpected error ({why})"
+            o, r = SessionOutcome(ref.key, ref.path, STATUS_FAILED, "E_INTERNAL", msg, [], ""), None
         outcomes.append(o)
         if r is not None:
             fitted.append(r)
@@ -304,12 +331,25 @@ def calibrate_field_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitRe
     return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0)
 
 
-def add_field_units(dataset, store, force: bool, refs: list, jobs: list, skipped: list, path_errors: list):
+def add_field_units(
+    dataset,
+    store,
+    force: bool,
+    refs: list,
+    jobs: list,
+    skipped: list,
+    path_errors: list,
+    follow_symlinks: bool = False,
+):
     """The nightly's plan with the dataset's field units added: ``jobs`` (sorted by lot and
     unit), ``skipped`` and ``path_errors`` extended. ``refs``: the turntable sessions found
     (a unit that has them is not calibrated from field recordings)."""
     field_jobs, field_skipped, errors = plan_field_units(
-        dataset, store.fingerprints(), force, frozenset(r.key.unit for r in refs)
+        dataset,
+        store.fingerprints(),
+        force,
+        frozenset(r.key.unit for r in refs),
+        follow_symlinks=follow_symlinks,
     )
     return (
         sorted([*jobs, *field_jobs], key=lambda j: (j.lot, j.unit)),
@@ -318,9 +358,9 @@ def add_field_units(dataset, store, force: bool, refs: list, jobs: list, skipped
     )
 
 
-def field_unit_job(dataset, unit: str) -> FieldUnitJob | None:
+def field_unit_job(dataset, unit: str, follow_symlinks: bool = False) -> FieldUnitJob | None:
     """The rerun job of ``unit`` when it is a field unit (its recordings found), else None."""
-    jobs, _, _ = plan_field_units(dataset, {}, force=True, unit=unit)
+    jobs, _, _ = plan_field_units(dataset, {}, force=True, unit=unit, follow_symlinks=follow_symlinks)
     if not jobs:
         return None
     return FieldUnitJob(jobs[0].lot, unit, jobs[0].refs, "rerun")

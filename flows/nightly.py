@@ -456,6 +456,7 @@ def nightly_flow(
             }
         )
         store.write_run(run_id, log)
+        _STARTED_RUNS[str(results)] = (run_id, log)  # its outcome is recorded if the run fails
         # 2. calibrate them in batches, each lot stored as soon as its units are done
         night = _LotStorage(store, run_id, version, log, progress, jobs)
         t_cal = night.calibrate_and_store(jobs, batch_size, run_discovery, max_in_flight, runner) - t0
@@ -490,8 +491,10 @@ def nightly_flow(
                 "summary": None,
             }
         )
+        log["outcome"] = "failures" if run_had_failures(log) else "ok"
         log["summary"] = summary_line(log)
         store.write_run(run_id, log)
+        _STARTED_RUNS.pop(str(results), None)
         for rid in interrupted:  # recovered: later runs need not redo it
             doc = store.read_run(rid)
             doc.update({"interrupted": True, "recovered_by": run_id})
@@ -509,7 +512,9 @@ def _plan_night(
     digests = DigestCache(store.read_digest_cache())
     jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
     # units calibrated from field recordings (lot=L/unit=U/field/): flows.field_units
-    jobs, skipped, path_errors = add_field_units(dataset, store, force, refs, jobs, skipped, path_errors)
+    jobs, skipped, path_errors = add_field_units(
+        dataset, store, force, refs, jobs, skipped, path_errors, follow_symlinks
+    )
     current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
     if digests.read or set(digests.entries) - current:  # files of moved datasets go
         store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
@@ -764,7 +769,9 @@ def rerun_flow(
 
         preloaded = _await_preload()
         refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-        field_job = None if refs else field_unit_job(dataset, unit)  # a unit of field recordings
+        field_job = (
+            None if refs else field_unit_job(dataset, unit, follow_symlinks)
+        )  # a unit of field recordings
         if not refs and field_job is None:
             why = "; ".join(str(e) for e in path_errors) or "no session directory found"
             raise LookupError(
@@ -864,7 +871,7 @@ def nightly_fleet_calibration(
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
         prestart_unit_work_pool(kind, dataset)
-    with _preloading(), runtime.run_settings():
+    with _preloading(), runtime.run_settings(), _outcome_recorded(results):
         return nightly_flow.with_options(task_runner=task_runner)(
             str(dataset),
             str(results),
@@ -879,6 +886,48 @@ def nightly_fleet_calibration(
             unit_reports=unit_reports,
             follow_symlinks=follow_symlinks,
         )
+
+
+# results root -> (run id, run log) of a nightly run started in this process and not ended
+_STARTED_RUNS: dict[str, tuple[str, dict]] = {}
+
+
+def run_had_failures(log: dict) -> bool:
+    """Whether any session, unit or report of a run failed, or a directory did not parse
+    (exit code 1; the run log's ``outcome`` is ``failures``)."""
+    return bool(
+        log.get("failed_sessions")
+        or log.get("units_failed")
+        or log.get("path_errors")
+        or log.get("report_problems")
+        or log.get("unit_errors")
+    )
+
+
+@contextmanager
+def _outcome_recorded(results: str | Path):
+    """A nightly run that raises after its run log was written gets ``outcome: "run
+    failed"`` and the error (one line) in that log; it keeps no ``end``, so the next run
+    recovers it (its flags and reports). Exit code 5 (flows.cli) tells it from "some units
+    failed" (1)."""
+    try:
+        yield
+    except Exception as exc:
+        started = _STARTED_RUNS.pop(str(results), None)
+        if started is not None:
+            run_id, log = started
+            log.update(
+                {
+                    "outcome": "run failed",
+                    "failed_at": iso(utc_now()),
+                    "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:500],
+                }
+            )
+            try:
+                ResultsStore(Path(results)).write_run(run_id, log)
+            except Exception:  # noqa: BLE001 - the run's own error is the one to report
+                pass
+        raise
 
 
 def lot_quality_report(
@@ -911,7 +960,9 @@ def rerun_unit(
         ResultsStore(Path(results)).ensure_unlocked()
     ResultsStore(Path(results)).check()
     refs, path_errors = find_sessions(dataset, unit=unit, follow_symlinks=follow_symlinks)
-    if not refs and field_unit_job(dataset, unit) is None:  # before Prefect: one line, no failed flow run
+    if (
+        not refs and field_unit_job(dataset, unit, follow_symlinks) is None
+    ):  # before Prefect: one line, no failed flow run
         why = "; ".join(str(e) for e in path_errors) or "no session directory found"
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"

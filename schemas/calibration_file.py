@@ -312,6 +312,10 @@ def load_calibration(path: Path) -> Calibration:
         raise CalibrationFileError(f"{path}: no such calibration file") from None
     except json.JSONDecodeError as exc:
         raise CalibrationFileError(f"{path}: not valid JSON ({exc})") from exc
+    except (UnicodeDecodeError, RecursionError):
+        raise CalibrationFileError(f"{path}: not a JSON text (damaged or overwritten)") from None
+    except OSError as exc:
+        raise CalibrationFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     return calibration_from_dict(doc, source=str(path))
 
 
@@ -334,6 +338,10 @@ def read_calibration_document(path: Path) -> dict[str, Any]:
         raise CalibrationFileError(f"{path}: no such calibration file") from None
     except json.JSONDecodeError as exc:
         raise CalibrationFileError(f"{path}: not valid JSON ({exc})") from exc
+    except (UnicodeDecodeError, RecursionError):
+        raise CalibrationFileError(f"{path}: not a JSON text (damaged or overwritten)") from None
+    except OSError as exc:
+        raise CalibrationFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     if not isinstance(doc, dict):
         raise CalibrationFileError(f"{path}: not a mimucal calibration file")
     return doc

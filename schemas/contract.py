@@ -72,6 +72,9 @@ ALLOWED_UP_AXES = UP_AXES
 G_LOCAL_DEFAULT = 9.80665
 G_LOCAL_PLAUSIBLE = (9.70, 9.90)  # m/s^2 anywhere on Earth's surface (about 9.76-9.84)
 RAD_TO_DEG = 180.0 / math.pi
+# a session_start outside these years is a typo or hostile: refused (E_BAD_METADATA) before a
+# date reaches pandas (nanosecond timestamps end in 2262) or the store's tables
+SESSION_START_YEARS = (1970, 2200)
 
 REQUIRED_METADATA = ("gyro_unit", "accel_unit", "gyro_range_dps", "accel_range_g")
 # provenance keys that are pyarrow/pandas internals, not the acquisition system's
@@ -258,6 +261,32 @@ def _parse_positive(text: str, key: str, session: str, file: str) -> float:
     return value
 
 
+def session_start_problem(text: object) -> str | None:
+    """Why ``text`` is not a usable ``session_start`` (ISO 8601 date-time, years
+    :data:`SESSION_START_YEARS`), or None when it is."""
+    from datetime import datetime
+
+    if not isinstance(text, str) or len(text) > 64:
+        return "is not an ISO 8601 date-time (e.g. 2026-11-20T02:00:00Z)"
+    try:
+        dt = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        return f"{text[:40]!r} is not an ISO 8601 date-time (e.g. 2026-11-20T02:00:00Z)"
+    lo, hi = SESSION_START_YEARS
+    if not lo <= dt.year < hi:
+        return f"{text[:40]!r} is outside the years {lo}-{hi - 1}"
+    return None
+
+
+def _checked_session_start(text: str | None, session: str, file: str) -> str | None:
+    if text is None or not str(text).strip():
+        return None
+    why = session_start_problem(text)
+    if why:
+        raise SessionError(E_BAD_METADATA, session, file, f"metadata 'session_start' {why}")
+    return text
+
+
 def parse_metadata(raw: Mapping | None, session: str, file: str = SAMPLES_FILE) -> SessionMeta:
     """Validate and parse the key-value metadata of samples.parquet (E_BAD_METADATA,
     E_UNKNOWN_UNIT). Unknown keys are kept as provenance."""
@@ -330,7 +359,7 @@ def parse_metadata(raw: Mapping | None, session: str, file: str = SAMPLES_FILE) 
         accel_range_g=parse_triple(md["accel_range_g"], "accel_range_g", session, file),
         g_local=g_local,
         sample_rate_hz=rate,
-        session_start=md.get("session_start"),
+        session_start=_checked_session_start(md.get("session_start"), session, file),
         gyro_full_scale_raw=fs_g,
         accel_full_scale_raw=fs_a,
         provenance=md,

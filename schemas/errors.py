@@ -31,6 +31,8 @@ E_STEP_NOT_CONTIGUOUS = "E_STEP_NOT_CONTIGUOUS"  # a step id reappears after ano
 E_TOO_MANY_STEPS_LOST = "E_TOO_MANY_STEPS_LOST"  # more than the allowed share left out
 E_CHECKSUM = "E_CHECKSUM"  # a Parquet page's CRC does not match its bytes
 E_MIXED_UNITS = "E_MIXED_UNITS"  # a field recording in other raw units than its unit's first
+E_BAD_OPTION = "E_BAD_OPTION"  # a field options file: not a bounded JSON object, or a value out of range
+E_IMPLAUSIBLE = "E_IMPLAUSIBLE"  # estimates that are not those of a working sensor
 
 ERROR_CODES = (
     E_MISSING_FILE,
@@ -51,6 +53,8 @@ ERROR_CODES = (
     E_TOO_MANY_STEPS_LOST,
     E_CHECKSUM,
     E_MIXED_UNITS,
+    E_BAD_OPTION,
+    E_IMPLAUSIBLE,
 )
 
 # --- warning codes ------------------------------------------------------------------------

@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Any
 
 from calib_core.steps import SessionKey
-from schemas.errors import E_BAD_PATH, SessionError
+from schemas.contract import G_LOCAL_PLAUSIBLE, session_start_problem
+from schemas.errors import E_BAD_METADATA, E_BAD_OPTION, E_BAD_PATH, SessionError
 from schemas.hive import FIELD_DIR, file_digest
 from schemas.hive import parse_part as _parse_part
 from schemas.hive import visible_dirs as _visible_dirs
@@ -73,6 +74,7 @@ class FieldRecordingRef:
     files: tuple[Path, ...]
     options: dict[str, Any] = field(default_factory=dict)
     option_files: tuple[Path, ...] = ()
+    error: SessionError | None = None  # why the recording cannot be used (it fails by name)
 
     @property
     def name(self) -> str:
@@ -82,31 +84,210 @@ class FieldRecordingRef:
         return f"{self.key} (field recording {self.name})"
 
 
-def _bad(path: Path, reason: str) -> SessionError:
-    return SessionError(E_BAD_PATH, str(path), path.name, reason)
+def _bad(path: Path, reason: str, code: str = E_BAD_PATH) -> SessionError:
+    return SessionError(code, str(path), path.name, reason)
 
 
-def read_options(path: Path) -> dict[str, Any]:
-    """An options file: a JSON object of known options of the right types (ValueError
-    naming the file and the problem otherwise)."""
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"options file {path}: not readable JSON ({exc})") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"options file {path}: expected a JSON object")
+class OptionError(ValueError):
+    """An options file or value that cannot be used: ``code`` (``E_BAD_OPTION``,
+    ``E_BAD_METADATA`` for a bad ``session_start``, ``E_BAD_PATH`` for a refused file) and a
+    one-line reason naming the file and the option. Never quotes more of the file than a short
+    escaped excerpt."""
+
+    def __init__(self, reason: str, code: str = E_BAD_OPTION):
+        self.code = code
+        super().__init__(reason)
+
+
+MAX_OPTIONS_BYTES = 64 * 1024  # an options file is a few lines
+MAX_JSON_DEPTH = 16  # an options document is one object of scalars
+MAX_OPTION_TEXT = 256  # characters of one string option
+
+# option -> (low, high, low inclusive): numbers must be finite and inside
+OPTION_RANGES: dict[str, tuple[float, float, bool]] = {
+    "rate": (0.0, 1e5, False),  # Hz
+    "time_scale": (0.0, 1e6, False),
+    "g_local": (G_LOCAL_PLAUSIBLE[0], G_LOCAL_PLAUSIBLE[1], True),  # m/s^2, anywhere on Earth
+    "init_static": (0.0, 86400.0, True),  # s; 0: no initial rest
+    "acc_bias": (-1e9, 1e9, True),  # raw units
+    "acc_scale": (0.0, 1e6, False),  # m/s^2 per raw unit: a zero scale is no sensor
+    "gyro_scale": (0.0, 1e6, False),  # rad/s per raw unit
+    "window": (0.0, 60.0, False),  # s
+    "min_pose": (0.0, 3600.0, False),  # s
+    "multiplier": (0.0, 1e3, False),
+    "misalignment_prior": (0.0, 1.0, True),  # rad; 0: no prior
+}
+ON_OFF_AUTO = ("auto", "on", "off")
+GYRO_UNITS_IN = ("deg/s", "dps", "rad/s", "LSB", "counts", "V")
+ACCEL_UNITS_IN = ("g", "mg", "m/s^2", "m/s2", "LSB", "counts", "V")
+
+
+def loads_bounded(text: str, max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """``json.loads`` of a document nested at most ``max_depth`` arrays/objects deep
+    (ValueError otherwise): the depth is counted in one pass before decoding, so a hostile
+    100,000-deep document never reaches the recursive decoder."""
+    depth, in_str, esc = 0, False, False
+    for ch in text:
+        if in_str:
+            if esc:
+                esc = False
+            elif ch == "\\":
+                esc = True
+            elif ch == '"':
+                in_str = False
+        elif ch == '"':
+            in_str = True
+        elif ch in "[{":
+            depth += 1
+            if depth > max_depth:
+                raise ValueError(f"nested more than {max_depth} levels deep")
+        elif ch in "]}":
+            depth -= 1
+    return json.loads(text)
+
+
+def option_problem(name: str, value: Any) -> str | None:
+    """Why ``value`` is not a usable value of option ``name`` (type, finite, range, known
+    words, a column mapping sending two channels to one column), or None when it is."""
+    import math
+
+    from schemas.importers import parse_column_mapping, parse_range
+
+    kind = FIELD_OPTIONS[name][0]
+    if value is None:
+        return None
+    if not isinstance(value, kind) or isinstance(value, bool):
+        return f"has the wrong type ({type(value).__name__})"
+    if isinstance(value, str):
+        if len(value) > MAX_OPTION_TEXT:
+            return f"is longer than {MAX_OPTION_TEXT} characters"
+        if name == "session_start":
+            return session_start_problem(value)
+        if name in ("drift", "gyro_g_sensitivity") and value not in ON_OFF_AUTO:
+            return f"{value!r} is not one of {', '.join(ON_OFF_AUTO)}"
+        if name == "gyro_unit" and value not in GYRO_UNITS_IN:
+            return f"{value!r} is not one of {', '.join(GYRO_UNITS_IN)}"
+        if name == "accel_unit" and value not in ACCEL_UNITS_IN:
+            return f"{value!r} is not one of {', '.join(ACCEL_UNITS_IN)}"
+        try:
+            if name in ("accel_range", "gyro_range"):
+                parse_range(value, "accel" if name == "accel_range" else "gyro")
+            if name == "columns":
+                mapping = parse_column_mapping(value)
+                sources: dict[str, list[str]] = {}
+                for ch, src in mapping.items():
+                    sources.setdefault(src, []).append(ch)
+                shared = {src: chs for src, chs in sources.items() if len(chs) > 1}
+                if shared:
+                    src, chs = next(iter(shared.items()))
+                    return (
+                        f"maps {', '.join(chs)} to the same column {src[:40]!r}; each channel needs its own"
+                    )
+        except ValueError as exc:
+            return str(exc)[:200]
+        return None
+    v = float(value)
+    lo, hi, lo_in = OPTION_RANGES[name]
+    if not math.isfinite(v):
+        return f"= {value!r} is not a finite number"
+    if v > hi or v < lo or (v == lo and not lo_in):
+        left = "[" if lo_in else "("
+        return f"= {value!r} is outside {left}{lo:g}, {hi:g}]"
+    return None
+
+
+def check_options(doc: dict[str, Any], where: str) -> dict[str, Any]:
+    """``doc`` when every option is known and its value usable; :class:`OptionError` naming
+    ``where`` and the option otherwise (``E_BAD_METADATA`` for ``session_start``)."""
     for k, v in doc.items():
         if k not in FIELD_OPTIONS:
-            raise ValueError(f"options file {path}: unknown option {k!r} (known: {', '.join(FIELD_OPTIONS)})")
+            raise OptionError(f"{where}: unknown option {str(k)[:40]!r} (known: {', '.join(FIELD_OPTIONS)})")
         kind = FIELD_OPTIONS[k][0]
         if isinstance(v, str) and kind == (int, float):  # "1/6258", as on the command line
             try:
-                v = doc[k] = float(Fraction(v.strip()))
-            except (ValueError, ZeroDivisionError):
-                raise ValueError(f"options file {path}: option {k!r} is not a number ({v!r})") from None
-        if v is not None and (not isinstance(v, kind) or isinstance(v, bool)):
-            raise ValueError(f"options file {path}: option {k!r} has the wrong type ({type(v).__name__})")
+                v = doc[k] = float(Fraction(v.strip()[:MAX_OPTION_TEXT]))
+            except (ValueError, ZeroDivisionError, OverflowError):
+                raise OptionError(f"{where}: option {k!r} is not a number ({v[:40]!r})") from None
+        why = option_problem(k, v)
+        if why:
+            code = E_BAD_METADATA if k == "session_start" else E_BAD_OPTION
+            raise OptionError(f"{where}: option {k!r} {why}", code)
     return doc
+
+
+def file_problem(path: Path, root: Path | None, follow_symlinks: bool, want_dir: bool = False) -> str | None:
+    """Why the dataset file ``path`` must not be opened, or None: a symbolic link on its way
+    below ``root`` (refused unless ``follow_symlinks``; followed, it must stay inside
+    ``root``), or not a regular file (a FIFO, a device such as ``/dev/zero``) or directory
+    (``want_dir``). Looks only at the file's metadata, never opens it."""
+    import stat
+
+    if root is not None:
+        real_root = root.resolve()
+        try:
+            rel = path.relative_to(root)
+        except ValueError:
+            rel = None
+        links = []
+        if rel is not None:
+            cur = root
+            for part in rel.parts:
+                cur = cur / part
+                if cur.is_symlink():
+                    links.append(cur)
+        if links:
+            target = path.resolve()
+            if not follow_symlinks:
+                return (
+                    f"{links[0].name} is a symbolic link (to {target}); dataset files are not read "
+                    "through links: pass --follow-symlinks to read links inside the dataset"
+                )
+            if not target.is_relative_to(real_root):
+                return f"{links[0].name} is a symbolic link to {target}, outside the dataset root {real_root}"
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or type(exc).__name__})"
+    if want_dir:
+        return None if stat.S_ISDIR(st.st_mode) else "is not a directory"
+    if not stat.S_ISREG(st.st_mode):
+        kind = (
+            "a FIFO"
+            if stat.S_ISFIFO(st.st_mode)
+            else "a device"
+            if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+            else "a directory"
+            if stat.S_ISDIR(st.st_mode)
+            else "not a regular file"
+        )
+        return f"is {kind}, not a regular file: only regular files are read"
+    return None
+
+
+def read_options(path: Path, root: Path | None = None, follow_symlinks: bool = False) -> dict[str, Any]:
+    """An options file: a JSON object (at most :data:`MAX_OPTIONS_BYTES`, nested at most
+    :data:`MAX_JSON_DEPTH` deep) of known options with usable values (:func:`check_options`);
+    :class:`OptionError` naming the file and the problem otherwise. ``root``: the dataset root
+    (:func:`file_problem`'s link rule)."""
+    why = file_problem(path, root, follow_symlinks)
+    if why:
+        raise OptionError(f"options file {path}: {why}", E_BAD_PATH)
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read(MAX_OPTIONS_BYTES + 1)
+    except OSError as exc:
+        raise OptionError(f"options file {path}: not readable ({exc.strerror or exc})") from None
+    if len(raw) > MAX_OPTIONS_BYTES:
+        raise OptionError(f"options file {path}: larger than {MAX_OPTIONS_BYTES} bytes")
+    try:
+        doc = loads_bounded(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        raise OptionError(f"options file {path}: not UTF-8 text") from None
+    except ValueError as exc:
+        raise OptionError(f"options file {path}: not readable JSON ({str(exc)[:120]})") from None
+    if not isinstance(doc, dict):
+        raise OptionError(f"options file {path}: expected a JSON object")
+    return check_options(doc, f"options file {path}")
 
 
 def default_options() -> dict[str, Any]:
@@ -121,12 +302,18 @@ def _visible(path: Path) -> list[Path]:
 
 
 def find_field_recordings(
-    root: Path | str, lot: str | None = None, unit: str | None = None
+    root: Path | str, lot: str | None = None, unit: str | None = None, follow_symlinks: bool = False
 ) -> tuple[list[FieldRecordingRef], list[SessionError]]:
     """Every unit's field recordings under ``root`` (lot and unit names as
-    :func:`schemas.dataset.find_sessions` checks them), sorted by lot, unit, rep; one
-    ``E_BAD_PATH`` error per unreadable options file or recording directory that is not an
-    IMU-TK pair (the unit's other recordings are still found)."""
+    :func:`schemas.dataset.find_sessions` checks them), sorted by lot, unit, rep, and one
+    ``E_BAD_PATH`` error per recording directory that is not an IMU-TK pair.
+
+    A recording that cannot be used is still returned, with its ``error`` set (the unit
+    fails by name in the night's tables): an options file that is not a bounded JSON object
+    of usable values (``E_BAD_OPTION``; ``E_BAD_METADATA`` for ``session_start``), a file
+    reached through a symbolic link without ``follow_symlinks`` or outside the dataset root
+    with it, a file that is not regular (``E_BAD_PATH``; :func:`file_problem`). Nothing
+    here opens a file that is not a regular file inside the dataset."""
     root = Path(root)
     refs: list[FieldRecordingRef] = []
     errors: list[SessionError] = []
@@ -142,15 +329,15 @@ def find_field_recordings(
             if why or (unit is not None and unit_id != unit) or not fdir.is_dir():
                 continue
             base = default_options()
-            option_files = []
+            option_files: list[Path] = []
+            unit_error: SessionError | None = None
             try:
                 for p in (lot_dir / OPTIONS_FILE, fdir / OPTIONS_FILE):
-                    if p.is_file():
-                        base.update(read_options(p))
+                    if os.path.lexists(p):
                         option_files.append(p)
-            except ValueError as exc:
-                errors.append(_bad(fdir, str(exc)))
-                continue
+                        base.update(read_options(p, root, follow_symlinks))
+            except OptionError as exc:
+                unit_error = _bad(option_files[-1], str(exc), exc.code)
             entries = _visible(fdir)
             names = {p.name for p in entries}
             recordings = [
@@ -158,11 +345,15 @@ def find_field_recordings(
                 for p in entries
                 if p.name != OPTIONS_FILE and not (p.suffix == ".json" and (p.name[: -len(".json")] in names))
             ]
+            if unit_error is not None and not recordings:
+                errors.append(unit_error)
+                continue
             for rep, rec in enumerate(recordings, start=1):
                 key = SessionKey(lot_id, unit_id, rep)
+                error = unit_error
                 if rec.is_dir():
                     files = tuple(rec / n for n in IMUTK_PAIR)
-                    if not all(f.is_file() for f in files):
+                    if not all(os.path.lexists(f) for f in files):
                         errors.append(
                             _bad(
                                 rec,
@@ -174,14 +365,21 @@ def find_field_recordings(
                     files = (rec,)
                 opts, used = dict(base), list(option_files)
                 own = rec.with_name(rec.name + ".json")
-                if own.is_file():
-                    try:
-                        opts.update(read_options(own))
-                    except ValueError as exc:
-                        errors.append(_bad(rec, str(exc)))
-                        continue
+                if error is None and os.path.lexists(own):
                     used.append(own)
-                refs.append(FieldRecordingRef(key, rec, files, opts, tuple(used)))
+                    try:
+                        opts.update(read_options(own, root, follow_symlinks))
+                    except OptionError as exc:
+                        error = _bad(own, str(exc), exc.code)
+                if error is None:
+                    for f in files:
+                        why = file_problem(f, root, follow_symlinks)
+                        if why:
+                            error = SessionError(E_BAD_PATH, str(key), f.name, f"recording {why}")
+                            break
+                if error is not None and str(key) not in error.session:
+                    error = SessionError(error.code, str(key), error.file, error.reason)
+                refs.append(FieldRecordingRef(key, rec, files, opts, tuple(used), error))
     refs.sort(key=lambda r: (r.key.lot, r.key.unit, r.key.rep))
     return refs, errors
 
@@ -192,12 +390,27 @@ def field_fingerprint(ref: FieldRecordingRef) -> str:
     byte of the log or of an option recalibrates the unit."""
     h = hashlib.sha256()
     h.update(f"field:{ref.name};".encode())
+    if ref.error is not None:  # a refused file is never opened: its metadata and the reason
+        h.update(f"error:{ref.error};".encode())
     for p in (*ref.files, *ref.option_files):
         try:
-            h.update(f"{p.name}:{os.stat(p).st_size}:{file_digest(str(p))};".encode())
+            st = os.lstat(p)
+            if ref.error is not None or not _regular(p):
+                h.update(f"{p.name}:{st.st_mode}:{st.st_size}:{st.st_mtime_ns};".encode())
+            else:
+                h.update(f"{p.name}:{os.stat(p).st_size}:{file_digest(str(p))};".encode())
         except FileNotFoundError:
             h.update(f"{p.name}:missing;".encode())
     return h.hexdigest()[:32]
+
+
+def _regular(path: Path) -> bool:
+    import stat
+
+    try:
+        return stat.S_ISREG(os.stat(path).st_mode)
+    except OSError:
+        return False
 
 
 def read_field_recording(ref: FieldRecordingRef):
@@ -205,6 +418,8 @@ def read_field_recording(ref: FieldRecordingRef):
     table). Raises :class:`SessionError` naming the session and the file."""
     from schemas.importers import parse_column_mapping, read_imutk_pair, read_table_recording
 
+    if ref.error is not None:
+        raise ref.error
     o = ref.options
     try:
         if len(ref.files) == 2:

@@ -6,7 +6,9 @@ helpers."""
 from __future__ import annotations
 
 import hashlib
+import os
 import re
+import stat
 from pathlib import Path
 
 from schemas.errors import E_BAD_PATH, SessionError
@@ -94,7 +96,11 @@ _CHUNK = 1 << 20
 
 
 def file_digest(path: str) -> str:
-    """blake2b (128 bit) of a file's bytes."""
+    """blake2b (128 bit) of a file's bytes; a FIFO or a device is never opened (its type
+    stands for its content: the reader refuses it)."""
+    mode = os.stat(path).st_mode
+    if not stat.S_ISREG(mode):
+        return f"not-a-regular-file:{mode:o}"
     h = hashlib.blake2b(digest_size=16)
     with open(path, "rb") as fh:
         while chunk := fh.read(_CHUNK):

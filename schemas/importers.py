@@ -145,7 +145,7 @@ def parse_range(text: str, kind: str) -> float:
                 value = float(t[: -len(suf)])
             except ValueError:
                 break
-            if value > 0:
+            if 0 < value <= 1e6:  # finite: "infg" is no full scale
                 return value
     unit = "g, e.g. 2g" if kind == "accel" else "deg/s, e.g. 250dps"
     raise ValueError(f"{kind} range {text!r} is not a positive full scale in {unit}")
@@ -321,7 +321,9 @@ def _numeric_column(df: pd.DataFrame, src: str, path: Path, channel: str) -> np.
         raise _err(
             E_MISSING_COLUMN,
             path,
-            f"column {src!r} (for {channel}) not found; columns are {', '.join(map(str, df.columns))}",
+            f"column {src[:40]!r} (for {channel}) not found; columns are "
+            + ", ".join(repr(str(c)[:24]) for c in list(df.columns)[:12])
+            + (f" and {len(df.columns) - 12} more" if len(df.columns) > 12 else ""),
             column=src,
         )
     try:

@@ -121,6 +121,8 @@ def parse_quantity(value: Any, kind: str, where: str) -> tuple[float, str]:
                 f'"{value} {next(iter(UNITS[kind]))}" (units for {kind}: '
                 f"{', '.join(UNITS[kind])})"
             )
+        if not math.isfinite(value):
+            raise LimitsError(f"{where}: {value!r} is not a finite number")
         return float(value), ""
     if not isinstance(value, str):
         raise LimitsError(f"{where}: {value!r} is not a number with a unit")
@@ -128,6 +130,8 @@ def parse_quantity(value: Any, kind: str, where: str) -> tuple[float, str]:
     if not m:
         raise LimitsError(f"{where}: {value!r} is not a number followed by a unit")
     number, unit = float(m.group(1)), m.group(2)
+    if not math.isfinite(number):  # "1e999 mg"
+        raise LimitsError(f"{where}: {value!r} is not a finite number")
     factors = UNITS[kind]
     if unit in factors:
         return number * factors[unit], STORED_UNIT[kind]
@@ -207,6 +211,9 @@ def parse_limits(doc: Any, source: str) -> tuple[Limit, ...]:
     return tuple(out)
 
 
+# models whose parameters the store's summary holds (robust_models names some of them)
+ROBUST_MODELS = (*PARAMETERS, "field_fit")
+
 OUTLIER_KEYS = {
     "z_threshold": float,
     "family_alpha": float,
@@ -242,13 +249,24 @@ def config_from_toml(text: str, source: str = "<config>") -> OutlierConfig:
             if want is list:
                 if not isinstance(value, list):
                     raise TypeError
+                unknown_models = [m for m in value if m not in ROBUST_MODELS]
+                if unknown_models or not value:
+                    raise LimitsError(
+                        f"{source}: [outliers] {key} = {value!r}: "
+                        + (f"unknown model(s) {unknown_models}" if unknown_models else "no model")
+                        + f"; known: {', '.join(ROBUST_MODELS)}"
+                    )
                 kwargs[key] = tuple(str(m) for m in value)
             elif want is str:
                 kwargs[key] = str(value)
             elif isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise TypeError
+            elif not math.isfinite(value):
+                raise LimitsError(f"{source}: [outliers] {key} = {value!r} is not a finite number")
             else:
                 kwargs[key] = want(value)
+        except LimitsError:
+            raise
         except (TypeError, ValueError):
             raise LimitsError(f"{source}: [outliers] {key} = {value!r} is not a {want.__name__}") from None
     kwargs["limits"] = parse_limits(doc.get("limits", {}), source)

@@ -798,6 +798,8 @@ class ResultsStore:
         out = []
         if d.is_dir():
             for p in d.glob("*.json"):
+                if not p.is_file():  # a directory where a file belongs: repair moves it away
+                    continue
                 try:
                     ts = datetime.strptime(p.stem, TIMESTAMP_FORMAT).replace(tzinfo=UTC)
                 except ValueError:
@@ -1027,12 +1029,65 @@ class ResultsStore:
             units = self.read("units", columns=["lot", "unit", "state", "calibration_file"])
             for r in units.itertuples():
                 f = r.calibration_file
-                if isinstance(f, str) and f and not (self.root / f).is_file():
+                if not (isinstance(f, str) and f):
+                    continue
+                if not (self.root / f).is_file() and not (self.root / f).is_dir():
                     problems.append(
                         f"unit {r.lot}/{r.unit}: its current calibration file "
                         f"{self.root / f} is missing; {hint}"
                     )
+                    continue
+                why = calibration_file_problem(self.root / f)
+                if why:
+                    problems.append(
+                        f"unit {r.lot}/{r.unit}: its current calibration file {self.root / f} {why}; {hint}"
+                    )
+        problems += [f"{p}; {hint}" for p in self.config_file_problems()]
         return problems
+
+    def config_file_problems(self) -> list[str]:
+        """``store.json`` and the stored QA configuration: present files that cannot be used
+        (not a regular file, not JSON with a format version, TOML that does not parse)."""
+        out = []
+        fp = self.format_path
+        if os.path.lexists(fp):
+            why = None
+            if not fp.is_file():
+                why = "is not a regular file"
+            else:
+                try:
+                    doc = json.loads(fp.read_bytes()[:65536].decode("utf-8"))
+                    if not isinstance(doc, dict) or not isinstance(doc.get("format_version"), str):
+                        why = "has no format_version"
+                except (OSError, ValueError):
+                    why = "is not JSON"
+            if why:
+                out.append(f"{fp} {why}")
+        qp = self.qa_config_path
+        if os.path.lexists(qp):
+            if not qp.is_file():
+                out.append(f"{qp} is not a regular file")
+            else:
+                from schemas.limits import config_from_toml
+
+                try:
+                    config_from_toml(qp.read_bytes()[: 1 << 20].decode("utf-8"), source=str(qp))
+                except (OSError, ValueError) as exc:
+                    out.append(f"QA configuration {str(exc)[:300]}")
+        return out
+
+    @property
+    def damaged_dir(self) -> Path:
+        return self.root / "damaged"
+
+    def move_damaged(self, path: Path) -> Path:
+        """Move a damaged file or directory of the store to ``damaged/<its relative
+        path>.<UTC time>`` (kept for a person to look at, out of every run's way)."""
+        rel = Path(path).relative_to(self.root)
+        dest = self.damaged_dir / rel.parent / f"{rel.name}.{utc_now().strftime(TIMESTAMP_FORMAT)}"
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(path, dest)
+        return dest
 
     def check(self) -> None:
         """:meth:`verify`, raising :class:`StoreError` with the first problem (and how many
@@ -1109,6 +1164,29 @@ def stat_is_regular(fd: int) -> bool:
     import stat
 
     return stat.S_ISREG(os.fstat(fd).st_mode)
+
+
+def calibration_file_problem(path: Path) -> str | None:
+    """Why a stored calibration file cannot be one the store wrote (None: it can be): not a
+    regular file, or not starting and ending as :func:`schemas.calibration_file.save_calibration`
+    writes them. Reads the first and last bytes only (every run checks each unit's current
+    file)."""
+    from schemas.calibration_file import FORMAT
+
+    path = Path(path)
+    if not path.is_file():
+        return "is not a regular file"
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(512)
+            size = os.fstat(fh.fileno()).st_size
+            fh.seek(max(size - 16, 0))
+            tail = fh.read()
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    if not head.startswith(b"{") or FORMAT.encode() not in head or not tail.rstrip().endswith(b"}"):
+        return "is not a mimucal calibration file (damaged or overwritten)"
+    return None
 
 
 def _unreadable(path: Path, name: str) -> str | None:

@@ -87,9 +87,11 @@ def summary_row(lot: str, unit: str, ps: ParamSummary, run_id: str) -> dict[str,
 def acquisition_time(session_starts) -> str | None:
     """The last of the sessions' ``session_start`` values (ISO 8601, UTC), None when none is
     readable: a calibration describes the unit as measured once its sessions are done."""
+    from schemas.contract import session_start_problem
+
     times = []
     for v in session_starts:
-        if isinstance(v, str) and v.strip():
+        if isinstance(v, str) and v.strip() and session_start_problem(v) is None:
             try:
                 times.append(parse_when(v))
             except ValueError:

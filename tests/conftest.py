@@ -9,6 +9,7 @@ Everything here is seeded by the caller's generator or a seed argument.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -75,3 +76,144 @@ def thresholds() -> ThresholdTable:
     """The robust-z thresholds of the test session, each lot layout simulated once (as one
     nightly run does with its own table): pass it to ``flag_lots(..., thresholds=...)``."""
     return ThresholdTable()
+
+
+# --- field units under hostile input (tests/test_hardening_field_corpus.py) --------------------
+# The real MPU-6050 recording of Tedaldi et al. (shared/data/real/mpu6050_tedaldi/, 10,245
+# samples at 100 Hz: ~0.4 s a fit). Each hostile unit of the lot below is a copy of it with one
+# thing made hostile; H0 stays the good one.
+REAL_FIELD_LOG = (
+    Path(__file__).resolve().parents[1].parent
+    / "shared"
+    / "data"
+    / "real"
+    / "mpu6050_tedaldi"
+    / "example_data_calibration.csv"
+)
+if not REAL_FIELD_LOG.is_file():
+    REAL_FIELD_LOG = Path("/work/shared/data/real/mpu6050_tedaldi/example_data_calibration.csv")
+FIELD_LOT_OPTIONS = {"accel_range": "2g", "gyro_range": "250dps"}
+PASSWD_MARKERS = (b"root:x:0:0", b"/bin/bash", b"nologin")  # what /etc/passwd holds, never quoted
+
+
+def _deep_json(depth: int) -> str:
+    return '{"columns": ' + "[" * depth + "]" * depth + "}"
+
+
+def _hostile_setups(outside: Path) -> dict:
+    """unit -> (what is hostile, how it is made: f(field_dir), expected code or None for
+    calibrated). ``outside``: a directory outside the dataset (link targets)."""
+    text = REAL_FIELD_LOG.read_text()
+    lines = text.splitlines()
+
+    def options(doc):
+        return lambda d: (d / "field.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
+
+    def log(data: bytes | str):
+        def make(d):
+            (d / "log.csv").unlink()
+            (d / "log.csv").write_bytes(data if isinstance(data, bytes) else data.encode())
+
+        return make
+
+    def link(target: Path, name: str = "log.csv"):
+        def make(d):
+            if name == "log.csv":
+                (d / "log.csv").unlink()
+            (d / name).symlink_to(target)
+
+        return make
+
+    def fifo(d):
+        (d / "log.csv").unlink()
+        os.mkfifo(d / "log.csv")
+
+    elsewhere = outside / "valid.csv"
+    elsewhere.write_text(text)
+    beyond = lines[:5] + [",".join(str(4 * int(v)) for v in ln.split(",")) for ln in lines[5:]]
+    return {
+        "H0": ("the good unit", lambda d: None, None),
+        "H1": (
+            "session_start 9999-12-31",
+            options({"session_start": "9999-12-31T23:59:59Z"}),
+            "E_BAD_METADATA",
+        ),
+        "H2": ("columns nested 20,000 deep (40 kB)", options(_deep_json(20_000)), "E_BAD_OPTION"),
+        "H3": ("columns nested 100,000 deep (200 kB)", options(_deep_json(100_000)), "E_BAD_OPTION"),
+        "H4": ("log.csv -> /etc/passwd", link(Path("/etc/passwd")), "E_BAD_PATH"),
+        "H5": ("field.json -> /etc/passwd", link(Path("/etc/passwd"), "field.json"), "E_BAD_PATH"),
+        "H6": ("log.csv -> a valid log outside the dataset", link(elsewhere), "E_BAD_PATH"),
+        "H7": ("g_local -9.8", options({"g_local": -9.8}), "E_BAD_OPTION"),
+        "H8": ("acc_scale 0", options({"acc_scale": 0}), "E_BAD_OPTION"),
+        "H9": (
+            "three axes mapped to one column",
+            options({"columns": "ax=ax,ay=ax,az=ax,gx=gx,gy=gx,gz=gx"}),
+            "E_BAD_OPTION",
+        ),
+        "H10": (
+            "gyro_scale 1000 rad/s per count: a fit no sensor gives",
+            options({"gyro_scale": 1000}),
+            "E_IMPLAUSIBLE",
+        ),
+        "H11": ("log.csv a FIFO", fifo, "E_BAD_PATH"),
+        "H12": ("log.csv -> /dev/zero", link(Path("/dev/zero")), "E_BAD_PATH"),
+        "H13": ("binary garbage", log(np.random.default_rng(35).bytes(4096)), "E_UNREADABLE_FILE"),
+        "H14": ("header only", log("\n".join(lines[:5]) + "\n"), "E_UNREADABLE_FILE"),
+        "H15": ("CRLF line ends", log(text.replace("\n", "\r\n")), None),
+        "H16": ("UTF-16", log(text.encode("utf-16")), "E_UNREADABLE_FILE"),
+        "H17": (
+            "constant data",
+            log("\n".join(lines[:5] + [lines[5]] * 3000) + "\n"),
+            "E_FIELD_TOO_FEW_POSES",
+        ),
+        "H18": (
+            "values 4x beyond the int16 full scale",
+            log("\n".join(beyond) + "\n"),
+            "E_FIELD_TOO_FEW_POSES",
+        ),
+        "H19": ("window NaN (JSON's NaN literal)", options('{"window": NaN}'), "E_BAD_OPTION"),
+    }
+
+
+def make_hostile_field_lot(root: Path, outside: Path, units: list[str] | None = None) -> dict:
+    """Lot F1 of copies of the real recording under ``root`` (lot options
+    :data:`FIELD_LOT_OPTIONS`), each unit made hostile as :func:`_hostile_setups` says
+    (``units``: only these). Returns unit -> (what, expected code)."""
+    setups = _hostile_setups(outside)
+    lot = root / "lot=F1"
+    lot.mkdir(parents=True)
+    (lot / "field.json").write_text(json.dumps(FIELD_LOT_OPTIONS))
+    out = {}
+    for u, (what, make, code) in setups.items():
+        if units is not None and u not in units:
+            continue
+        d = lot / f"unit={u}" / "field"
+        d.mkdir(parents=True)
+        (d / "log.csv").write_bytes(REAL_FIELD_LOG.read_bytes())
+        make(d)
+        out[u] = (what, code)
+    return out
+
+
+@pytest.fixture(scope="session")
+def hostile_field_night(tmp_path_factory):
+    """One ``mimucal nightly`` over the hostile field lot (20 units, threads): the dataset,
+    the results, the corpus, the exit code and stderr."""
+    if not REAL_FIELD_LOG.is_file():
+        pytest.skip(f"the real MPU-6050 recording is not at {REAL_FIELD_LOG}")
+    import contextlib
+    import io
+
+    from flows import runtime
+
+    runtime.ensure_environment()
+    from flows.cli import main as cli_main
+
+    base = tmp_path_factory.mktemp("hostile-field")
+    data, results, outside = base / "data", base / "results", base / "outside"
+    outside.mkdir()
+    corpus = make_hostile_field_lot(data, outside)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        rc = cli_main(["nightly", str(data), "--results", str(results), "--runner", "threads", "--quiet"])
+    return {"data": data, "results": results, "corpus": corpus, "rc": rc, "stderr": err.getvalue()}

@@ -99,10 +99,11 @@ def test_field_layout_options_merge_and_errors(tmp_path):
     (unit / "field").mkdir()
     _, terr = find_sessions(tmp_path)
     assert not [e for e in terr if "field" in str(e)]
-    # an unknown option names the file; the unit's recordings are not used
+    # an unknown option names the file; the unit's recordings fail by name with it
     (f / "field.json").write_text(json.dumps({"rates": 50}))
     refs, errors = find_field_recordings(tmp_path)
-    assert not refs and "unknown option 'rates'" in str(errors[0]) and "field.json" in str(errors[0])
+    assert refs and all(r.error is not None and r.error.code == "E_BAD_OPTION" for r in refs)
+    assert "unknown option 'rates'" in str(refs[0].error) and "field.json" in str(refs[0].error)
     # a changed option changes the recording's fingerprint
     (f / "field.json").write_text(json.dumps({"rate": 50}))
     refs, _ = find_field_recordings(tmp_path)
@@ -235,6 +236,6 @@ def test_numeric_options_take_the_command_lines_fractions(tmp_path):
     assert not errors
     assert ref.options["gyro_scale"] == 1 / 6258 and ref.options["acc_bias"] == 32768.0
     (f / "field.json").write_text(json.dumps({"gyro_scale": "fast"}))
-    refs, errors = find_field_recordings(tmp_path)
-    assert not refs and "option 'gyro_scale' is not a number ('fast')" in str(errors[0])
-    assert "field.json" in str(errors[0])
+    (ref,), errors = find_field_recordings(tmp_path)
+    assert not errors and "option 'gyro_scale' is not a number ('fast')" in str(ref.error)
+    assert "field.json" in str(ref.error)

@@ -22,6 +22,7 @@ whose metadata names another unit than the calibration's (``provenance.unit``), 
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from flows.cli import CliError
@@ -135,6 +136,16 @@ def write_output(res, out: Path, out_format: str, meta: dict[str, str]) -> None:
         raise
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file (the same path, or through links)."""
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return a.resolve() == b.resolve()
+
+
 def run(args: argparse.Namespace) -> int:
     import pandas as pd
     import pyarrow.parquet as pq
@@ -155,6 +166,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     _warn_qa(doc, args.calibration)
     raw, out = Path(args.raw), Path(args.out)
+    if _same_file(raw, out):
+        raise CliError(
+            f"{out}: OUT is the raw input RAW ({raw}); write the calibrated samples to another file"
+        )
     out_format = OUTPUT_FORMATS.get(out.suffix.lower())
     if out_format is None:
         raise CliError(f"{out}: output name must end in .parquet or .csv (the format written)")

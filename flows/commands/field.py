@@ -176,6 +176,39 @@ def _read(args):
     raise CliError("give ACC GYRO (IMU-TK text files) or one log file")
 
 
+def _check_options(args) -> None:
+    """The options as the nightly checks a unit's ``field.json`` (finite, in range, known
+    words, one column per channel): one line naming the option."""
+    from schemas.field_dataset import FIELD_OPTIONS, option_problem
+
+    for name in FIELD_OPTIONS:
+        value = getattr(args, name, None)
+        why = option_problem(name, value) if value is not None else None
+        if why:
+            raise CliError(f"--{name.replace('_', '-')} {why}")
+
+
+def _refuse_implausible(rec, cal, figures: dict) -> None:
+    """No calibration of a sensor that cannot be is written: ``E_IMPLAUSIBLE`` (exit 2) when
+    the fit fails :func:`calib_core.guards.check_field_fit`."""
+    from calib_core.guards import check_field_fit
+
+    bad = check_field_fit(
+        figures.get("after_norm_rms_mg", float("nan")),
+        figures.get("after_angle_rms_deg", float("nan")),
+        cal.K_g,
+        cal.w0,
+        cal.K_a,
+        cal.f0,
+    )
+    if bad:
+        raise CliError(
+            f"{rec.source}: [E_IMPLAUSIBLE] estimates are not those of a working sensor: "
+            + "; ".join(map(str, bad))
+            + "; check --g-local, the scales and --columns; no calibration written"
+        )
+
+
 def _init_static(args, rec) -> float | None:
     from flows.field_units import init_static_s
 
@@ -200,6 +233,7 @@ def run(args) -> int:
     from flows.field_units import INT16_LIMIT
     from schemas.calibration_file import save_calibration
 
+    _check_options(args)
     rec = _read(args)
     init_s = _init_static(args, rec)
     acc_scale, gyro_scale = _starting_scales(args, rec)
@@ -269,6 +303,7 @@ def run(args) -> int:
     except DesignError as exc:
         raise CliError(f"{rec.source}: {exc.reason}") from exc
     figures = {**after.summary("after_", move_ok)}
+    _refuse_implausible(rec, cal, figures)
     if before is not None:
         figures.update(before.summary("before_", move_ok))
     if held is not None:

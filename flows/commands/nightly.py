@@ -75,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--follow-symlinks",
         action="store_true",
         help="calibrate session directories reached through a symbolic link that "
-        "leads outside DATASET (refused by default)",
+        "leads outside DATASET (refused by default), and read field recordings and "
+        "options files through links that stay inside DATASET (never outside)",
     )
     p.set_defaults(func=run)
 
@@ -153,15 +154,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def exit_code(log: dict) -> int:
-    """1 when any session, unit or report failed, or a directory did not parse; else 0."""
-    failed = (
-        log.get("failed_sessions")
-        or log.get("units_failed")
-        or log.get("path_errors")
-        or log.get("report_problems")
-        or log.get("unit_errors")
-    )
-    return 1 if failed else 0
+    """1 when any session, unit or report failed, or a directory did not parse; else 0 (5,
+    the run failed unexpectedly, is flows.cli's)."""
+    from flows.nightly import run_had_failures
+
+    return 1 if run_had_failures(log) else 0
 
 
 def print_outcome(log: dict) -> None:

@@ -102,7 +102,10 @@ def repair_store(store) -> tuple[list[str], list[str]]:
             why = _unreadable(path, name)
             if not why:
                 continue
-            path.unlink()
+            if path.is_dir():  # a directory where the table file belongs
+                store.move_damaged(path)
+            else:
+                path.unlink()
             if path == store.legacy_path(name):  # a format-1.0 table: every lot
                 lots = set(store.table_lots("sessions")) | {None}
             else:
@@ -111,6 +114,7 @@ def repair_store(store) -> tuple[list[str], list[str]]:
             if name == "units":
                 units_damaged |= lots
             done.append(f"removed damaged {path} ({why})")
+    done += _move_damaged_files(store)
     for lot in sorted(units_damaged, key=lambda x: (x is None, x or "")):
         n = _rebuild_units_rows(store, lot)
         done.append(f"rebuilt the units rows of lot {lot or '(all)'} from {n} calibration file(s)")
@@ -167,6 +171,41 @@ def repair_store(store) -> tuple[list[str], list[str]]:
                 f"'mimucal nightly' recalibrates the lot's units from the dataset"
             )
     return done, not_done
+
+
+def _move_damaged_files(store) -> list[str]:
+    """Calibration files that are not the store's (random bytes, a directory where a file
+    belongs), a damaged ``store.json`` and a QA configuration that cannot be used: moved to
+    ``damaged/`` (kept, out of every run's way). A unit whose current file was moved points to
+    its newest remaining good file (the missing-file repair below); ``store.json`` is written
+    again; without the QA configuration runs use the defaults until ``--config`` sets one."""
+    from schemas.results_store import STORE_FORMAT_VERSION, calibration_file_problem, write_json_atomic
+
+    done = []
+    if store.calibrations_dir.is_dir():
+        for d in sorted(store.calibrations_dir.iterdir()):
+            if not d.is_dir():
+                continue
+            for p in sorted(d.glob("*.json")):
+                why = calibration_file_problem(p)
+                if why:
+                    dest = store.move_damaged(p)
+                    done.append(f"moved calibration file {p} ({why}) to {dest}")
+    problems = store.config_file_problems()
+    fp, qp = store.format_path, store.qa_config_path
+    if any(p.startswith(str(fp)) for p in problems):
+        dest = store.move_damaged(fp)
+        write_json_atomic(
+            fp, {"format_version": STORE_FORMAT_VERSION, "layout": "tables/<name>/lot=<lot>.parquet"}
+        )
+        done.append(f"moved damaged {fp} to {dest}; wrote it again (format {STORE_FORMAT_VERSION})")
+    if any(str(qp) in p for p in problems):
+        dest = store.move_damaged(qp)
+        done.append(
+            f"moved the QA configuration {qp}, which cannot be used, to {dest}; runs use the default "
+            "configuration until --config sets one"
+        )
+    return done
 
 
 def _rebuild_units_rows(store, lot: str | None) -> int:

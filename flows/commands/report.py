@@ -49,11 +49,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def check_pdf_path(pdf: Path, results: Path, lot: str) -> None:
+    """A ``--pdf FILE`` inside the results store is refused (it would overwrite a table, a
+    calibration or the lock), except the default ``reports/<lot>.pdf`` itself."""
+    from reports.lot import lot_report_path
+
+    target, root = pdf.resolve(), results.resolve()
+    if target == lot_report_path(results, lot).with_suffix(".pdf").resolve():
+        return
+    if target == root or target.is_relative_to(root):
+        raise CliError(
+            f"--pdf {pdf}: inside the results store {root}, whose files are the tool's own; "
+            "write the PDF elsewhere, or omit FILE for reports/<lot>.pdf"
+        )
+
+
 def run(args: argparse.Namespace) -> int:
     check_config(args.config)
     from flows.user_errors import check_lot
 
     check_lot(args.results, args.lot)  # answered before Prefect starts, with the lots there are
+    if args.pdf:
+        check_pdf_path(Path(args.pdf), Path(args.results), args.lot)
     if args.pdf is not None:
         from reports.pdf import PdfError, chromium_or_error
 

@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--follow-symlinks",
         action="store_true",
         help="calibrate session directories reached through a symbolic link that "
-        "leads outside DATASET (refused by default)",
+        "leads outside DATASET (refused by default), and read field recordings and "
+        "options files through links that stay inside DATASET (never outside)",
     )
     p.set_defaults(func=run)
 
