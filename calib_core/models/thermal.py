@@ -22,7 +22,9 @@ The method, in order:
    setpoint is left out in turn, the polynomial fitted on the others predicts it, and the
    order with the smallest weighted mean squared prediction error is kept unless a lower one
    is within ``ORDER_TOLERANCE`` of it (the extreme setpoints are never predicted: that would
-   score extrapolation).
+   score extrapolation); a higher order whose top coefficient is under ``ORDER_T`` standard
+   errors steps down (selection by held-out error alone takes noise for curvature on about
+   one linear parameter in seven).
 5. **Hysteresis.** With sessions reached by heating and by cooling, each bias (w0, f0) gets a
    heating-minus-cooling offset tested by its t statistic (Bonferroni over the six biases at
    ``HYSTERESIS_ALPHA`` for the unit). A named hysteresis stays in that parameter's fit (so its
@@ -56,6 +58,7 @@ SOAK_LIMIT_C = 10.0  # past this spread the session is an error, not a warning
 MIN_SETPOINTS = 3
 MAX_ORDER = 3
 ORDER_TOLERANCE = 0.10  # a lower order is kept when its held-out error is within 10 %
+ORDER_T = 2.5  # ... or when the top coefficient of the higher one is under 2.5 standard errors
 HYSTERESIS_ALPHA = 0.01  # the unit's chance of naming a hysteresis it does not have
 BIASES = ("w0_x", "w0_y", "w0_z", "f0_x", "f0_y", "f0_z")
 SWEEPS = {"heating": 1, "cooling": -1}
@@ -218,6 +221,14 @@ def fit_parameter(
         order = int(np.flatnonzero(heldout <= best * (1.0 + ORDER_TOLERANCE))[0])
     else:
         order = min(1, top)
+    # a higher order is kept only when its top coefficient is significant too: the held-out
+    # error of seven setpoints alone lets about one linear parameter in seven through as
+    # curved (selection by chance)
+    while order > 0:
+        ls = _wls(_design(T, d, order, both), y, w)
+        if abs(ls.coef[order]) >= ORDER_T * ls.stderr[order]:
+            break
+        order -= 1
     h = h_se = h_p = np.nan
     in_fit = False
     if both and len(y) > order + 2:
