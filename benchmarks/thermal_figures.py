@@ -201,18 +201,21 @@ def main(argv: list[str]) -> None:
     print(f"order of the K diagonals (1-2 linear / 3 cubic): {100 * gains:.1f} % of {sum(r.n_gains for r in res)}")
     print(f"hysteresis named where present: {sum(r.hysteresis_named for r in pres)}/{len(pres)}; "
           f"where absent: {sum(r.hysteresis_named for r in absent)}/{len(absent)}")
-    ratios = np.array([r.ratios for r in res])  # (units, temps, variants, measures)
-    errors = np.array([r.errors for r in res])
     names = ("rate steps", "static gyro", "static accel")
-    for v, label in enumerate(("as simulated (own turn-on bias)", "repeatability noise left out")):
-        print(f"compensation error, single (20 degC) / thermal, median over units, {label}:")
-        for i, t in enumerate(HELD_OUT_C):
-            cells = "  ".join(
-                f"{nm} {np.median(ratios[:, i, v, m]):.1f}x ({1e3 * np.median(errors[:, i, v, 0, m]):.3g} vs "
-                f"{1e3 * np.median(errors[:, i, v, 1, m]):.3g} m{'deg/s' if m < 2 else 'g'})"
-                for m, nm in enumerate(names)
-            )
-            print(f"  {t:+.0f} degC: {cells}")
+    for group, rs in (("units without hysteresis", absent), ("units with hysteresis", pres)):
+        if not rs:
+            continue
+        ratios = np.array([r.ratios for r in rs])  # (units, temps, variants, measures)
+        errors = np.array([r.errors for r in rs])
+        for v, label in enumerate(("as simulated (own turn-on bias)", "repeatability noise left out")):
+            print(f"compensation error, single (20 degC) / thermal, median over {len(rs)} {group}, {label}:")
+            for i, t in enumerate(HELD_OUT_C):
+                cells = "  ".join(
+                    f"{nm} {np.median(ratios[:, i, v, m]):.1f}x ({1e3 * np.median(errors[:, i, v, 0, m]):.3g} vs "
+                    f"{1e3 * np.median(errors[:, i, v, 1, m]):.3g} m{'deg/s' if m < 2 else 'g'})"
+                    for m, nm in enumerate(names)
+                )
+                print(f"  {t:+.0f} degC: {cells}")
     mc = monte_carlo(runs, seed)
     print(f"Monte Carlo ({runs} runs of one cubic unit): mean SE / sd of the estimates, median "
           f"{mc['median']:.2f} (10-90 %: {mc['p10']:.2f}-{mc['p90']:.2f}, {mc['n']} coefficients)")

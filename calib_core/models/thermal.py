@@ -59,7 +59,7 @@ MIN_SETPOINTS = 3
 MAX_ORDER = 3
 ORDER_TOLERANCE = 0.10  # a lower order is kept when its held-out error is within 10 %
 ORDER_T = 2.5  # ... or when the top coefficient of the higher one is under 2.5 standard errors
-HYSTERESIS_ALPHA = 0.01  # the unit's chance of naming a hysteresis it does not have
+HYSTERESIS_ALPHA = 0.001  # the unit's chance of naming a hysteresis it does not have
 BIASES = ("w0_x", "w0_y", "w0_z", "f0_x", "f0_y", "f0_z")
 SWEEPS = {"heating": 1, "cooling": -1}
 
