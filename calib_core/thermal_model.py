@@ -44,7 +44,8 @@ def coefficient_unit(param_unit: str, power: int) -> str:
     if power == 0:
         return param_unit
     per = "degC" if power == 1 else f"degC^{power}"
-    return f"1/{per}" if param_unit in ("", "1") else f"{param_unit}/{per}"
+    dimensionless = param_unit in ("", "1") or (" per " in param_unit and len(set(param_unit.split(" per "))) == 1)
+    return f"1/{per}" if dimensionless else f"{param_unit}/{per}"
 
 
 @dataclass(frozen=True)

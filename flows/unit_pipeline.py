@@ -314,6 +314,15 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
         unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
         unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: {type(exc).__name__}: {exc}")
         note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
+    try:  # chamber sessions (chamber_setpoint_c): the calibration over temperature
+        from flows.thermal_units import apply_thermal
+
+        thermal_note = apply_thermal(unit_out, unit_out.sessions)
+    except Exception as exc:  # noqa: BLE001 - the unit keeps its single-temperature calibration
+        thermal_note = f"E_INTERNAL: thermal calibration of unit {job.unit} failed: {type(exc).__name__}: {exc}"
+    if thermal_note:
+        unit_out.notes.append(thermal_note)
+        note = "; ".join(filter(None, [note, thermal_note]))
     for o in unit_out.sessions:  # step means are not kept past this point
         o.step_means = None
     return UnitResult(

@@ -88,6 +88,20 @@ def register(sub) -> None:
         "warm-up (each at its own temperature) instead of a cold start a day",
     )
     p.add_argument(
+        "--chamber",
+        action="store_true",
+        help="with --physics: thermal chamber runs (7 setpoints -40..85 degC, --reps "
+        "alternating heating/cooling sweeps, default 2; samples metadata chamber_setpoint_c; "
+        "docs/thermal.md)",
+    )
+    p.add_argument(
+        "--out-of-limit",
+        type=int,
+        default=0,
+        metavar="K",
+        help="with --chamber: K units (the first of a lot) get a gyro bias coefficient of 0.02 deg/s/degC",
+    )
+    p.add_argument(
         "--declare-location",
         action="store_true",
         help="with --latitude: write latitude_deg/table_heading_deg into the metadata",
@@ -129,6 +143,8 @@ def run(args) -> int:
             shutil.rmtree(p)
         (out / MANIFEST).unlink(missing_ok=True)
     start = time.perf_counter()
+    if args.chamber:
+        return _run_chamber(args, out, start)
     if args.physics:
         return _run_physics(args, out, start)
     if args.hide or args.no_tilted or args.latitude is not None or args.declare_location or args.back_to_back:
@@ -180,6 +196,27 @@ def _parse_hide(specs: list[str]) -> tuple[tuple[str, float], ...]:
             raise CliError(f"--hide {spec}: scale {scale!r} is not a number") from None
         out.append((name, value))
     return tuple(out)
+
+
+def _run_chamber(args, out: Path, start: float) -> int:
+    from flows.chamber_sim import simulate_chamber_fleet
+
+    if not args.physics:
+        raise CliError("--chamber needs --physics")
+    reps = args.reps if "--reps" in __import__("sys").argv else 2
+    rate = args.rate if args.rate != 100.0 else 50.0
+    doc = simulate_chamber_fleet(out, args.lots, args.units, args.seed, reps, rate, args.out_of_limit)
+    n = len(doc["units"]) * reps * len(doc["setpoints_c"])
+    print(
+        f"wrote {n} chamber sessions ({args.lots} lot(s) x {args.units} unit(s), "
+        f"{len(doc['setpoints_c'])} setpoints x {reps} sweep(s), {rate:g} Hz) to {out} in "
+        f"{time.perf_counter() - start:.1f} s"
+    )
+    for u in doc["units"]:
+        if u["out_of_limit"]:
+            print(f"  out of limit: lot={u['lot']}/unit={u['unit']} (gyro x bias 0.02 deg/s/degC)")
+    print(f"  truth: {out / 'fleet.json'}")
+    return 0
 
 
 def _run_physics(args, out: Path, start: float) -> int:
