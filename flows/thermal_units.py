@@ -121,6 +121,8 @@ def apply_thermal(unit_out, outcomes) -> str | None:
         for r in unit_out.calibration.reps:
             if (r.lot, r.unit, r.rep) == (first.key.lot, first.key.unit, first.key.rep):
                 r.fits["thermal"] = fit
+        c = unit_out.calibration
+        unit_out.calibration = type(c).from_reps(c.lot, c.unit, c.reps)  # the summary with them
     return "; ".join(fit.warnings) or None
 
 

@@ -79,7 +79,14 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             continue
         read.append((i, sm, warns))
     # steps that contradict the unit's other repetitions are left out before the fits
-    checked = leave_out_inconsistent_steps([(sm, warns) for _, sm, warns in read])
+    # (chamber sessions only against those of their own setpoint: the temperature moves them)
+    checked: list = [None] * len(read)
+    groups: dict = {}
+    for k, (_, sm, _) in enumerate(read):
+        groups.setdefault((sm.metadata or {}).get("chamber_setpoint_c"), []).append(k)
+    for ks in groups.values():
+        for k, item in zip(ks, leave_out_inconsistent_steps([read[k][1:] for k in ks])):
+            checked[k] = item
     kept = []
     for (i, _, _), item in zip(read, checked):
         if isinstance(item, SessionError):  # too many steps lost in all
