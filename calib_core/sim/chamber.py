@@ -99,8 +99,8 @@ def chamber_schedule(
     unsoaked: tuple[int, ...] = (),
 ) -> list[ChamberSession]:
     """The sessions of ``reps`` alternating sweeps (heating first). ``unsoaked``: acquisition
-    indices of sessions started right after the setpoint was reached (soak 0: the sensor is
-    still on its way from the previous setpoint)."""
+    indices of sessions started two time constants after the setpoint was reached (the
+    sensor is still on its way from the previous setpoint: a few degC during the session)."""
     out = []
     k = 0
     for r in range(reps):
@@ -111,7 +111,7 @@ def chamber_schedule(
             soak = ChamberSoak(
                 setpoint_c=float(sp),
                 from_c=float(prev),
-                soak_s=0.0 if k in unsoaked else soak_s,
+                soak_s=2.0 * tau_s if k in unsoaked else soak_s,
                 tau_s=tau_s,
                 self_heating_c=self_heating_c,
             )

@@ -1,0 +1,42 @@
+"""A nightly of a thermal lot (docs/thermal.md): the store, the calibration files (format
+1.1) and the report; a unit with an out-of-limit coefficient is flagged."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+
+from flows import runtime
+from flows.chamber_sim import simulate_chamber_fleet
+
+LIMITS = """
+[limits]
+w0_tc_x = {min = "-0.01 deg/s/degC", max = "0.01 deg/s/degC"}
+w0_tc_y = {min = "-0.01 deg/s/degC", max = "0.01 deg/s/degC"}
+w0_tc_z = {min = "-0.01 deg/s/degC", max = "0.01 deg/s/degC"}
+"""
+
+
+def test_nightly_of_a_thermal_lot(tmp_path):
+    from flows import nightly
+
+    data, results = tmp_path / "data", tmp_path / "results"
+    simulate_chamber_fleet(data, lots=1, units=2, seed=7, rate_hz=25.0, out_of_limit=1)
+    cfg = tmp_path / "qa.toml"
+    cfg.write_text(LIMITS)
+    with runtime.run_settings():
+        log = nightly.nightly_flow(
+            str(data), str(results), config=str(cfg), progress=False, runner="threads", run_discovery=False
+        )
+    assert log["units_calibrated"] == 2
+    files = {p.parent.name: json.loads(p.read_text()) for p in (results / "calibrations").glob("*/*.json")}
+    assert set(files) == {"U0001", "U0002"}
+    for doc in files.values():
+        assert doc["format_version"] == "1.1" and doc["kind"] == "thermal"
+        assert doc["thermal"]["range_c"][0] < -30 and doc["thermal"]["range_c"][1] > 80
+    assert files["U0001"]["qa"]["status"] == "limits" and files["U0002"]["qa"]["status"] == "pass"
+    summary = pd.read_parquet(results / "tables" / "summary")
+    tc = summary[(summary.model == "thermal") & (summary.parameter == "w0_tc_x")].set_index("unit")
+    assert tc.loc["U0001", "flagged"] and not tc.loc["U0002", "flagged"]
+    assert (results / "reports" / "T01.html").exists()
