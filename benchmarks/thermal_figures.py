@@ -36,7 +36,20 @@ from calib_core.sim.physics import PhysicsUnit
 from calib_core.steps import StepMeans
 from flows.chamber_sim import chamber_step_means, held_out_session
 
-ORDERED = ("k_g11", "k_g22", "k_g33", "w0_x", "w0_y", "w0_z", "k_a11", "k_a22", "k_a33", "f0_x", "f0_y", "f0_z")
+ORDERED = (
+    "k_g11",
+    "k_g22",
+    "k_g33",
+    "w0_x",
+    "w0_y",
+    "w0_z",
+    "k_a11",
+    "k_a22",
+    "k_a33",
+    "f0_x",
+    "f0_y",
+    "f0_z",
+)
 GAINS = ("k_g11", "k_g22", "k_g33", "k_a11", "k_a22", "k_a33")
 HELD_OUT_C = (-30.0, 10.0, 75.0)
 SINGLE_SETPOINT_C = 20.0
@@ -68,7 +81,9 @@ def single_temperature(fit: ThermalFit, setpoint_c: float = SINGLE_SETPOINT_C) -
 
 def thermal_calibration(fit: ThermalFit) -> Calibration:
     ref = fit.at_reference()
-    return Calibration(ref["K_g"], ref["w0"], ref["K_a"], ref["f0"], kind="thermal", thermal=fit.thermal_model())
+    return Calibration(
+        ref["K_g"], ref["w0"], ref["K_a"], ref["f0"], kind="thermal", thermal=fit.thermal_model()
+    )
 
 
 def compensation(sm: StepMeans, cal: Calibration) -> np.ndarray:
@@ -120,7 +135,9 @@ def evaluate_unit(rng: np.random.Generator, cubic: bool, hysteresis: bool, held_
     # the gains are the inverse of a scale factor linear in T on linear units: 1 / (1 + a dT)
     # has a curvature (a dT)^2 that the fits resolve (1e-5 at the ends on the z gyro), so
     # on linear units the gains count right at order 1 or 2, on cubic ones at 3
-    gains_right = sum((fit.params[nm].order == 3) if cubic else (fit.params[nm].order in (1, 2)) for nm in GAINS)
+    gains_right = sum(
+        (fit.params[nm].order == 3) if cubic else (fit.params[nm].order in (1, 2)) for nm in GAINS
+    )
     therm, single = thermal_calibration(fit), single_temperature(fit)
     errors = np.zeros((len(held_out), 2, 2, 3))
     for i, t in enumerate(held_out):
@@ -152,8 +169,11 @@ def population(n_units: int = 40, seed: int = 34, held_out=HELD_OUT_C, log=None)
         out.append(evaluate_unit(rng, cubic, hysteresis, held_out))
         if log:
             r = out[-1]
-            log(f"  unit {k + 1:2d} {r.kind:22s} within 3 SE {r.within3}/{r.n_coef}  order {r.order_right}/{r.n_order}"
-                f"  hysteresis named {r.hysteresis_named}")
+            log(
+                f"  unit {k + 1:2d} {r.kind:22s} within 3 SE {r.within3}/{r.n_coef}"
+                f"  order {r.order_right}/{r.n_order}"
+                f"  hysteresis named {r.hysteresis_named}"
+            )
     return out
 
 
@@ -177,7 +197,12 @@ def monte_carlo(runs: int = 30, seed: int = 34) -> dict[str, float]:
             c, s = np.array(coef[nm]), np.array(se[nm])
             ratios.extend(s.mean(axis=0) / c.std(axis=0, ddof=1))
     r = np.array(ratios)
-    return {"median": float(np.median(r)), "p10": float(np.percentile(r, 10)), "p90": float(np.percentile(r, 90)), "n": len(r)}
+    return {
+        "median": float(np.median(r)),
+        "p10": float(np.percentile(r, 10)),
+        "p90": float(np.percentile(r, 90)),
+        "n": len(r),
+    }
 
 
 def main(argv: list[str]) -> None:
@@ -194,13 +219,23 @@ def main(argv: list[str]) -> None:
     print(f"coefficients within 3 SE of the truth: {100 * within:.1f} % of {sum(r.n_coef for r in res)}")
     for kind in sorted({r.kind for r in res}):
         rs = [r for r in res if r.kind == kind]
-        print(f"  {kind:22s} within 3 SE {100 * sum(r.within3 for r in rs) / sum(r.n_coef for r in rs):.1f} %"
-              f"  order right {100 * sum(r.order_right for r in rs) / sum(r.n_order for r in rs):.1f} %")
-    print(f"order chosen right (1 linear / 3 cubic, the six biases): {100 * order:.1f} % of {sum(r.n_order for r in res)}")
+        print(
+            f"  {kind:22s} within 3 SE {100 * sum(r.within3 for r in rs) / sum(r.n_coef for r in rs):.1f} %"
+            f"  order right {100 * sum(r.order_right for r in rs) / sum(r.n_order for r in rs):.1f} %"
+        )
+    print(
+        f"order chosen right (1 linear / 3 cubic, the six biases): {100 * order:.1f} % "
+        f"of {sum(r.n_order for r in res)}"
+    )
     gains = sum(r.gains_right for r in res) / sum(r.n_gains for r in res)
-    print(f"order of the K diagonals (1-2 linear / 3 cubic): {100 * gains:.1f} % of {sum(r.n_gains for r in res)}")
-    print(f"hysteresis named where present: {sum(r.hysteresis_named for r in pres)}/{len(pres)}; "
-          f"where absent: {sum(r.hysteresis_named for r in absent)}/{len(absent)}")
+    print(
+        f"order of the K diagonals (1-2 linear / 3 cubic): {100 * gains:.1f} % "
+        f"of {sum(r.n_gains for r in res)}"
+    )
+    print(
+        f"hysteresis named where present: {sum(r.hysteresis_named for r in pres)}/{len(pres)}; "
+        f"where absent: {sum(r.hysteresis_named for r in absent)}/{len(absent)}"
+    )
     names = ("rate steps", "static gyro", "static accel")
     for group, rs in (("units without hysteresis", absent), ("units with hysteresis", pres)):
         if not rs:
@@ -211,14 +246,17 @@ def main(argv: list[str]) -> None:
             print(f"compensation error, single (20 degC) / thermal, median over {len(rs)} {group}, {label}:")
             for i, t in enumerate(HELD_OUT_C):
                 cells = "  ".join(
-                    f"{nm} {np.median(ratios[:, i, v, m]):.1f}x ({1e3 * np.median(errors[:, i, v, 0, m]):.3g} vs "
+                    f"{nm} {np.median(ratios[:, i, v, m]):.1f}x "
+                    f"({1e3 * np.median(errors[:, i, v, 0, m]):.3g} vs "
                     f"{1e3 * np.median(errors[:, i, v, 1, m]):.3g} m{'deg/s' if m < 2 else 'g'})"
                     for m, nm in enumerate(names)
                 )
                 print(f"  {t:+.0f} degC: {cells}")
     mc = monte_carlo(runs, seed)
-    print(f"Monte Carlo ({runs} runs of one cubic unit): mean SE / sd of the estimates, median "
-          f"{mc['median']:.2f} (10-90 %: {mc['p10']:.2f}-{mc['p90']:.2f}, {mc['n']} coefficients)")
+    print(
+        f"Monte Carlo ({runs} runs of one cubic unit): mean SE / sd of the estimates, median "
+        f"{mc['median']:.2f} (10-90 %: {mc['p10']:.2f}-{mc['p90']:.2f}, {mc['n']} coefficients)"
+    )
     print(f"({time.time() - t0:.0f} s)")
 
 

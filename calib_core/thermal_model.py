@@ -44,7 +44,9 @@ def coefficient_unit(param_unit: str, power: int) -> str:
     if power == 0:
         return param_unit
     per = "degC" if power == 1 else f"degC^{power}"
-    dimensionless = param_unit in ("", "1") or (" per " in param_unit and len(set(param_unit.split(" per "))) == 1)
+    dimensionless = param_unit in ("", "1") or (
+        " per " in param_unit and len(set(param_unit.split(" per "))) == 1
+    )
     return f"1/{per}" if dimensionless else f"{param_unit}/{per}"
 
 
@@ -109,4 +111,10 @@ class ThermalModel:
         lo, hi = (float(x) for x in doc["range_c"])
         if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
             raise ValueError(f"thermal range_c {doc['range_c']!r} is not [min, max]")
-        return cls(float(doc["t_ref_c"]), lo, hi, coefs, {k: float(v) for k, v in (doc.get("hysteresis") or {}).items()})
+        return cls(
+            float(doc["t_ref_c"]),
+            lo,
+            hi,
+            coefs,
+            {k: float(v) for k, v in (doc.get("hysteresis") or {}).items()},
+        )

@@ -128,8 +128,14 @@ def simulate_chamber_fleet(
     rng = np.random.default_rng(seed)
     schedule = chamber_schedule(reps=reps)
     steps = chamber_steps()
-    doc = {"format": "mimucal-chamber-fleet", "seed": seed, "setpoints_c": sorted({s.setpoint_c for s in schedule}),
-           "reps": reps, "sample_rate_hz": rate_hz, "units": []}
+    doc = {
+        "format": "mimucal-chamber-fleet",
+        "seed": seed,
+        "setpoints_c": sorted({s.setpoint_c for s in schedule}),
+        "reps": reps,
+        "sample_rate_hz": rate_hz,
+        "units": [],
+    }
     k = 0
     for lot_i in range(lots):
         lot = f"T{lot_i + 1:02d}"

@@ -51,12 +51,17 @@ def thermal_fit_of(outcomes) -> tuple[ThermalFit | None, str | None]:
     good = [
         o
         for o in outcomes
-        if o.succeeded and o.step_means is not None and o.calibration is not None
+        if o.succeeded
+        and o.step_means is not None
+        and o.calibration is not None
         and setpoint_of(o.step_means.metadata) is not None
     ]
     bad_meta = [
-        str(o.key) for o in outcomes
-        if o.succeeded and o.step_means is not None and SETPOINT_KEY in (o.step_means.metadata or {})
+        str(o.key)
+        for o in outcomes
+        if o.succeeded
+        and o.step_means is not None
+        and SETPOINT_KEY in (o.step_means.metadata or {})
         and setpoint_of(o.step_means.metadata) is None
     ]
     warnings = [f"W_BAD_SETPOINT: {k}: {SETPOINT_KEY} is not a number; left out" for k in bad_meta]

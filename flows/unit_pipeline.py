@@ -326,7 +326,9 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
 
         thermal_note = apply_thermal(unit_out, unit_out.sessions)
     except Exception as exc:  # noqa: BLE001 - the unit keeps its single-temperature calibration
-        thermal_note = f"E_INTERNAL: thermal calibration of unit {job.unit} failed: {type(exc).__name__}: {exc}"
+        thermal_note = (
+            f"E_INTERNAL: thermal calibration of unit {job.unit} failed: {type(exc).__name__}: {exc}"
+        )
     if thermal_note:
         unit_out.notes.append(thermal_note)
         note = "; ".join(filter(None, [note, thermal_note]))

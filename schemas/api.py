@@ -183,8 +183,9 @@ def check_temperatures(cal: Calibration, temp_c: np.ndarray | None, extrapolate:
     if out.any() and not extrapolate:
         raise TemperatureOutOfRange(
             f"{int(out.sum())} of {len(temp_c)} samples have temp_c outside the calibrated range "
-            f"{th.t_min_c:.1f}..{th.t_max_c:.1f} degC (samples {np.nanmin(temp_c):.1f}..{np.nanmax(temp_c):.1f} "
-            f"degC); pass --extrapolate (extrapolate=True) to apply the polynomials beyond it"
+            f"{th.t_min_c:.1f}..{th.t_max_c:.1f} degC (samples {np.nanmin(temp_c):.1f}.."
+            f"{np.nanmax(temp_c):.1f} degC); pass --extrapolate (extrapolate=True) to apply the "
+            "polynomials beyond it"
         )
 
 

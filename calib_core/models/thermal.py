@@ -296,7 +296,15 @@ class ThermalFit:
         out = []
         for n, p in self.params.items():
             for k in range(p.order + 1):
-                out.append(Param(self.model, coefficient_name(n, k), float(p.coef[k]), float(p.stderr[k]), coefficient_unit(p.unit, k)))
+                out.append(
+                    Param(
+                        self.model,
+                        coefficient_name(n, k),
+                        float(p.coef[k]),
+                        float(p.stderr[k]),
+                        coefficient_unit(p.unit, k),
+                    )
+                )
             out.append(Param(self.model, f"{n}_order", float(p.order), float("nan"), ""))
             if n in BIASES and np.isfinite(p.hysteresis):
                 hname = f"{n[:-2]}_hyst_{n[-1]}"
@@ -317,7 +325,13 @@ class ThermalFit:
                 if n in BIASES
             },
             "sessions": [
-                {"session": s.key, "setpoint_c": s.setpoint_c, "temp_c": s.mean_c, "spread_c": s.spread_c, "soaked": s.soaked}
+                {
+                    "session": s.key,
+                    "setpoint_c": s.setpoint_c,
+                    "temp_c": s.mean_c,
+                    "spread_c": s.spread_c,
+                    "soaked": s.soaked,
+                }
                 for s in self.soaks
             ],
             "warnings": list(self.warnings),
@@ -405,5 +419,7 @@ def calibrate_chamber(sessions: list[ChamberSessionInput]) -> ThermalFit:
         if isinstance(fit, Exception):
             warnings.append(f"W_THERMAL_SESSION_FAILED: {s.sm.key}: {fit}")
             continue
-        points.append(chamber_point(str(s.sm.key), s.setpoint_c, mean_t[str(s.sm.key)], s.sweep, fit.calibration.fits))
+        points.append(
+            chamber_point(str(s.sm.key), s.setpoint_c, mean_t[str(s.sm.key)], s.sweep, fit.calibration.fits)
+        )
     return fit_thermal(points, soaks, warnings)

@@ -29,7 +29,8 @@ SPAN_C = 60.0  # the size of each term is given by its contribution at 60 degC f
 def chamber_steps(duration_s: float = 3.0, settle_s: float = 0.5) -> pd.DataFrame:
     """The protocol run at each setpoint: xu2016 multirate + multiposition (74 steps)."""
     return protocols.to_frame(
-        protocols.xu2016_multirate(duration_s, settle_s) + protocols.xu2016_multiposition(duration_s, settle_s)
+        protocols.xu2016_multirate(duration_s, settle_s)
+        + protocols.xu2016_multiposition(duration_s, settle_s)
     )
 
 
@@ -129,10 +130,16 @@ def _affine_truth(sensors, temp_c: float, approach: float, physical_unit_per_raw
     dt = temp_c - REF_TEMP_C
     M = np.array([s.axis for s in sensors], float)
     scale = np.array(
-        [1.0 + 1e-6 * (s.scale_tc_ppm * dt + s.scale_tc2_ppm * dt**2 + s.scale_tc3_ppm * dt**3) for s in sensors]
+        [
+            1.0 + 1e-6 * (s.scale_tc_ppm * dt + s.scale_tc2_ppm * dt**2 + s.scale_tc3_ppm * dt**3)
+            for s in sensors
+        ]
     )
     bias = np.array(
-        [s.bias + s.bias_tc * dt + s.bias_tc2 * dt**2 + s.bias_tc3 * dt**3 + 0.5 * approach * s.bias_hyst for s in sensors]
+        [
+            s.bias + s.bias_tc * dt + s.bias_tc2 * dt**2 + s.bias_tc3 * dt**3 + 0.5 * approach * s.bias_hyst
+            for s in sensors
+        ]
     )
     c = np.array([s.scale for s in sensors], float)
     Minv = np.linalg.inv(M)

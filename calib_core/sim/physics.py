@@ -42,7 +42,8 @@ is physical: the accelerometers see dw/dt x r there).
 Temperature: ``ChamberSoak`` holds the sensor near a thermal chamber's setpoint (the
 bias and the scale factor follow cubic polynomials in temperature, ``bias_tc``..``bias_tc3``,
 ``scale_tc_ppm``..``scale_tc3_ppm``, and the bias keeps ``bias_hyst`` of the direction the
-temperature came from: heating or cooling); ``WarmUp`` from ``start_c`` towards ``start_c + rise_c`` with time constant
+temperature came from: heating or cooling); ``WarmUp`` from ``start_c`` towards
+``start_c + rise_c`` with time constant
 ``tau_s`` after power-on; the recorded ``temp_c`` adds sensor noise. A session starts
 ``power_on_s`` after power-on: 0 for a cold start (one repetition a day), the time already
 run for repetitions run back to back (the unit stays warm; a new turn-on bias is still
@@ -140,7 +141,9 @@ class _Sensor:
         (half the hysteresis each way)."""
         dt = temp_c - REF_TEMP_C
         shaped = u + self.k2 * u**2 + self.k3 * u**3 + 0.5 * self.asym * np.abs(u)
-        scale = 1.0 + 1e-6 * (self.scale_tc_ppm * dt + self.scale_tc2_ppm * dt**2 + self.scale_tc3_ppm * dt**3)
+        scale = 1.0 + 1e-6 * (
+            self.scale_tc_ppm * dt + self.scale_tc2_ppm * dt**2 + self.scale_tc3_ppm * dt**3
+        )
         bias = self.bias + self.bias_tc * dt + self.bias_tc2 * dt**2 + self.bias_tc3 * dt**3
         return shaped * scale + bias + 0.5 * approach * self.bias_hyst
 

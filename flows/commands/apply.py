@@ -170,7 +170,9 @@ def run(args: argparse.Namespace) -> int:
         df = table.to_pandas()
         df.attrs = {"g_local": float(md.get("g_local", G_LOCAL_DEFAULT))}
         try:  # the unit id was checked above (--force may override it)
-            out_cols = apply_to_frame(cal, df, md["gyro_unit"], md["accel_unit"], extrapolate=args.extrapolate)
+            out_cols = apply_to_frame(
+                cal, df, md["gyro_unit"], md["accel_unit"], extrapolate=args.extrapolate
+            )
         except TemperatureOutOfRange as exc:
             raise CliError(f"{raw}: {exc}") from None
         except CalibrationMismatch as exc:
@@ -205,7 +207,9 @@ def run(args: argparse.Namespace) -> int:
         raw_cols = dict(zip(CSV_GYRO + CSV_ACCEL, ("gx", "gy", "gz", "ax", "ay", "az")))
         samples = df[[c for c in ("t", "temp_c", *raw_cols) if c in df]].rename(columns=raw_cols)
         try:
-            out_cols = apply_to_frame(cal, samples, args.gyro_unit, args.accel_unit, extrapolate=args.extrapolate)
+            out_cols = apply_to_frame(
+                cal, samples, args.gyro_unit, args.accel_unit, extrapolate=args.extrapolate
+            )
         except TemperatureOutOfRange as exc:
             raise CliError(f"{raw}: {exc}") from None
         except CalibrationMismatch as exc:
