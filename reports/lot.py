@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from reports import thermal_section
 from reports.html import Page, esc, missing, write_atomic
 from reports.sections import (
     KEY_MODELS,
@@ -113,6 +114,9 @@ def render_lot_report(results_root: str | Path, lot: str, view: StoreView | None
         ]
         disc = f'<p class="note">{esc(" ".join(notes))}</p>' + discovery_table(d, with_unit_col=True)
     body.append(f'<section id="discovery"><h2>Model discovery</h2>{disc}</section>')
+    thermal = thermal_section.build(ctx, page, None)  # calibration over temperature
+    if thermal:
+        body.append(f'<section id="thermal"><h2>Calibration over temperature</h2>{thermal}</section>')
     body.append(f'<section id="sessions"><h2>Sessions</h2>{sessions_section(ctx)}</section>')
 
     units_html = "".join(unit_section(ctx, page, u) for u in ctx.units)

@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 
 from calib_core.figure_statistics import changes_since_first
+from reports import thermal_section
 from reports.history import KEY_ELEMENTS, history_frame
 from reports.html import (
     CASE_COLOURS,
@@ -197,6 +198,9 @@ def render_unit_report(results_root: str | Path, unit: str, view: StoreView | No
             + unit_section(ctx, page, unit, open_=True)
             + "</section>"
         )
+        thermal = thermal_section.build(ctx, page, unit)  # calibration over temperature
+        if thermal:
+            body.append(f'<section id="thermal"><h2>Calibration over temperature</h2>{thermal}</section>')
     else:
         body.append(missing("Current results", "the unit has calibration files but no rows in the tables"))
 

@@ -39,4 +39,5 @@ def test_nightly_of_a_thermal_lot(tmp_path):
     summary = pd.read_parquet(results / "tables" / "summary")
     tc = summary[(summary.model == "thermal") & (summary.parameter == "w0_tc_x")].set_index("unit")
     assert tc.loc["U0001", "flagged"] and not tc.loc["U0002", "flagged"]
-    assert (results / "reports" / "T01.html").exists()
+    report = (results / "reports" / "T01.html").read_text()
+    assert 'id="thermal"' in report and "w0_tc_x" in report and "U0001 (limit)" in report

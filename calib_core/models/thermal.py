@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from scipy import stats
 
 from calib_core.errors import DesignError
@@ -62,6 +63,22 @@ ORDER_T = 2.5  # ... or when the top coefficient of the higher one is under 2.5 
 HYSTERESIS_ALPHA = 0.001  # the unit's chance of naming a hysteresis it does not have
 BIASES = ("w0_x", "w0_y", "w0_z", "f0_x", "f0_y", "f0_z")
 SWEEPS = {"heating": 1, "cooling": -1}
+# the parameters the unit report draws against temperature (K diagonals and biases)
+PLOTTED = (
+    "k_g11",
+    "k_g22",
+    "k_g33",
+    "w0_x",
+    "w0_y",
+    "w0_z",
+    "k_a11",
+    "k_a22",
+    "k_a33",
+    "f0_x",
+    "f0_y",
+    "f0_z",
+)
+ROBUST_Z = 3.5  # a unit's coefficient this many robust sd from the lot median is an outlier
 
 
 @dataclass(frozen=True)
@@ -335,7 +352,38 @@ class ThermalFit:
                 for s in self.soaks
             ],
             "warnings": list(self.warnings),
+            "curves": self.curves(),
         }
+
+    def curves(self, names=PLOTTED, n_grid: int = 41, level: float = 0.95) -> dict[str, Any]:
+        """What the unit report draws per parameter: each session's estimate (temperature,
+        value, standard error, sweep), the fitted mid-line on a grid over the calibrated
+        range and its ``level`` confidence band (t quantile of the fit's dof)."""
+        grid = np.linspace(self.t_min_c, self.t_max_c, n_grid)
+        out = {}
+        for n in names:
+            p = self.params[n]
+            X = _design(grid, np.zeros_like(grid), p.order, False)
+            fit = X @ p.coef
+            half = stats.t.ppf(0.5 + level / 2, max(p.dof, 1)) * np.sqrt(
+                np.maximum(np.einsum("ij,jk,ik->i", X, p.cov, X), 0.0)
+            )
+            out[n] = {
+                "unit": p.unit,
+                "order": p.order,
+                "points": {
+                    "temp_c": [q.temp_c for q in self.points],
+                    "value": [q.values[n] for q in self.points],
+                    "stderr": [q.stderr[n] for q in self.points],
+                    "sweep": [q.sweep for q in self.points],
+                },
+                "grid_c": grid.tolist(),
+                "fit": fit.tolist(),
+                "lo": (fit - half).tolist(),
+                "hi": (fit + half).tolist(),
+                "level": level,
+            }
+        return out
 
 
 def fit_thermal(points: list[ChamberPoint], soaks: list[Soak] = (), warnings: list[str] = ()) -> ThermalFit:
@@ -423,3 +471,39 @@ def calibrate_chamber(sessions: list[ChamberSessionInput]) -> ThermalFit:
             chamber_point(str(s.sm.key), s.setpoint_c, mean_t[str(s.sm.key)], s.sweep, fit.calibration.fits)
         )
     return fit_thermal(points, soaks, warnings)
+
+
+def coefficient_spread(rows: pd.DataFrame) -> pd.DataFrame:
+    """The spread over a lot of each thermal coefficient: ``rows`` has one row per unit and
+    coefficient (``unit``, ``parameter``, ``value``, ``unit_of_measure``, ``flagged``).
+    Returns per coefficient: n, median, robust sd (1.4826 MAD), min, max, and ``outliers``:
+    the units more than ``ROBUST_Z`` robust sd from the median, or flagged (limits)."""
+    out = []
+    for name, g in rows.groupby("parameter", sort=False):
+        v = g["value"].to_numpy(float)
+        ok = np.isfinite(v)
+        if not ok.any():
+            continue
+        med = float(np.median(v[ok]))
+        rsd = float(1.4826 * np.median(np.abs(v[ok] - med)))
+        z = np.where(ok, (v - med) / rsd, 0.0) if rsd > 0 else np.zeros_like(v)
+        flagged = g["flagged"].fillna(False).to_numpy(bool) if "flagged" in g else np.zeros(len(g), bool)
+        units = g["unit"].astype(str).to_numpy()
+        outl = [
+            f"{u} ({'limit' if f else f'z {zz:+.1f}'})"
+            for u, zz, f in zip(units, z, flagged)
+            if f or abs(zz) > ROBUST_Z
+        ]
+        out.append(
+            {
+                "parameter": name,
+                "unit_of_measure": str(g["unit_of_measure"].iloc[0]) if "unit_of_measure" in g else "",
+                "n": int(ok.sum()),
+                "median": med,
+                "robust_sd": rsd,
+                "min": float(v[ok].min()),
+                "max": float(v[ok].max()),
+                "outliers": outl,
+            }
+        )
+    return pd.DataFrame(out)
