@@ -78,9 +78,10 @@ def thermal_fit_of(outcomes) -> tuple[ThermalFit | None, str | None]:
         sweep = {"heating": 1, "cooling": -1}.get(declared, guess)
         try:
             soak = soak_of(o.step_means, sp)
-        except DesignError as exc:
+        except DesignError as exc:  # past the limit: the session fails (not a chamber soak)
             warnings.append(f"{exc.code}: {exc.reason}")
-            o.warnings.append(f"{exc.code}: {exc.reason}")
+            o.status, o.code = "failed", exc.code
+            o.message = f"[{exc.code}] session {o.key}, file samples.parquet: {exc.reason}"
             continue
         soaks.append(soak)
         if not soak.soaked:
@@ -104,6 +105,19 @@ def apply_thermal(unit_out, outcomes) -> str | None:
     if unit_out.applied is None or not is_chamber_unit(outcomes):
         return None
     fit, why = thermal_fit_of(outcomes)
+    failed = {(o.key.lot, o.key.unit, o.key.rep) for o in outcomes if not o.succeeded}
+    c = unit_out.calibration
+    if c is not None and any((r.lot, r.unit, r.rep) in failed for r in c.reps):
+        # sessions failed here (E_NOT_SOAKED) leave the unit's repetitions
+        kept = [r for r in c.reps if (r.lot, r.unit, r.rep) not in failed]
+        unit_out.calibration = type(c).from_reps(c.lot, c.unit, kept) if kept else None
+        if not kept:
+            unit_out.applied = None
+            return f"unit {unit_out.unit}: no session left; no calibration produced"
+        if fit is None:
+            from calib_core.models.pipeline import calibration_from_unit
+
+            unit_out.applied = calibration_from_unit(unit_out.calibration)
     if fit is None:
         return f"thermal calibration not made: {why}; the unit keeps its single-temperature calibration"
     ref = fit.at_reference()

@@ -41,3 +41,32 @@ def test_nightly_of_a_thermal_lot(tmp_path):
     assert tc.loc["U0001", "flagged"] and not tc.loc["U0002", "flagged"]
     report = (results / "reports" / "T01.html").read_text()
     assert 'id="thermal"' in report and "w0_tc_x" in report and "U0001 (limit)" in report
+
+
+def test_a_session_far_from_soaked_fails_and_leaves_the_unit():
+    """Past the soak limit (10 degC over the steps) a session is an error of its own, not
+    pooled, not averaged; the others make the thermal calibration."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from calib_core.models.pipeline import calibrate_repetitions
+    from calib_core.sim.chamber import chamber_schedule, thermal_physics_unit
+    from flows.chamber_sim import chamber_step_means
+    from flows.thermal_units import apply_thermal
+    from flows.unit_pipeline import SessionOutcome, aggregate_unit
+
+    rng = np.random.default_rng(3)
+    sched = chamber_schedule(setpoints=(-20.0, 10.0, 40.0, 70.0), reps=1)
+    sched[2] = replace(sched[2], soak=replace(sched[2].soak, soak_s=0.0))  # 40 degC, straight from 10
+    sessions = chamber_step_means(thermal_physics_unit(rng), rng, sched)
+    outcomes = []
+    for s, fit in zip(sessions, calibrate_repetitions([s.sm for s in sessions])):
+        sm = replace(s.sm, metadata={**s.sm.metadata, "chamber_setpoint_c": f"{s.setpoint_c:g}"})
+        outcomes.append(SessionOutcome(sm.key, None, "ok", None, None, [], "", fit.calibration, step_means=sm))
+    unit_out = aggregate_unit("CH", "U000", outcomes)
+    apply_thermal(unit_out, unit_out.sessions)
+    bad = unit_out.sessions[2]
+    assert bad.status == "failed" and bad.code == "E_NOT_SOAKED" and "rep=3" in bad.message
+    assert [r.rep for r in unit_out.calibration.reps] == [1, 2, 4]
+    assert unit_out.applied.kind == "thermal" and unit_out.applied.thermal is not None
