@@ -63,7 +63,9 @@ def test_a_session_far_from_soaked_fails_and_leaves_the_unit():
     outcomes = []
     for s, fit in zip(sessions, calibrate_repetitions([s.sm for s in sessions])):
         sm = replace(s.sm, metadata={**s.sm.metadata, "chamber_setpoint_c": f"{s.setpoint_c:g}"})
-        outcomes.append(SessionOutcome(sm.key, None, "ok", None, None, [], "", fit.calibration, step_means=sm))
+        outcomes.append(
+            SessionOutcome(sm.key, None, "ok", None, None, [], "", fit.calibration, step_means=sm)
+        )
     unit_out = aggregate_unit("CH", "U000", outcomes)
     apply_thermal(unit_out, unit_out.sessions)
     bad = unit_out.sessions[2]
