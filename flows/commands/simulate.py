@@ -21,7 +21,12 @@ def register(sub) -> None:
     p.add_argument("out", type=Path, metavar="OUT", help="output dataset root")
     p.add_argument("--lots", type=int, default=1, help="number of lots (default 1)")
     p.add_argument("--units", type=int, default=4, help="units per lot (default 4)")
-    p.add_argument("--reps", type=int, default=5, help="repetitions per unit (default 5)")
+    p.add_argument(
+        "--reps",
+        type=int,
+        default=None,
+        help="repetitions per unit (default 5; with --chamber: sweeps, default 2)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--rate", type=float, default=100.0, metavar="HZ", help="sample rate in Hz (default 100)")
     p.add_argument(
@@ -119,6 +124,8 @@ def register(sub) -> None:
 def run(args) -> int:
     from flows.fleet_sim import MANIFEST, simulate_fleet
 
+    if args.reps is None:
+        args.reps = 2 if args.chamber else 5
     for name in ("lots", "units", "reps"):
         if getattr(args, name) < 1:
             raise CliError(f"--{name} must be >= 1")
@@ -203,7 +210,7 @@ def _run_chamber(args, out: Path, start: float) -> int:
 
     if not args.physics:
         raise CliError("--chamber needs --physics")
-    reps = args.reps if "--reps" in __import__("sys").argv else 2
+    reps = args.reps
     rate = args.rate if args.rate != 100.0 else 50.0
     doc = simulate_chamber_fleet(out, args.lots, args.units, args.seed, reps, rate, args.out_of_limit)
     n = len(doc["units"]) * reps * len(doc["setpoints_c"])
