@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from calib_core.effects import MotionContext, SensingGeometry, get_effect
+from calib_core.thermal_model import ThermalModel
 
 
 @dataclass(frozen=True)
@@ -67,8 +68,12 @@ class Calibration:
     accel_unit: str = "g"
     terms: tuple[TermValue, ...] = ()
     g_local: float = 9.80665
-    kind: str = "turntable"  # turntable | ferraris | field
+    kind: str = "turntable"  # turntable | ferraris | field | thermal
     metadata: dict[str, Any] = field(default_factory=dict)
+    # a chamber calibration: the affine parameters as polynomials in the sensor temperature
+    # (K_g, w0, K_a, f0 above are their values at thermal.t_ref_c); applied per sample when
+    # the temperature is given, the fields above when it is not
+    thermal: ThermalModel | None = None
 
     @property
     def geometry(self) -> SensingGeometry:
@@ -76,9 +81,13 @@ class Calibration:
         through."""
         return SensingGeometry.from_gains(self.K_g, self.K_a)
 
-    def apply_affine(self, G: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def apply_affine(
+        self, G: np.ndarray, A: np.ndarray, temp_c: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         G = np.atleast_2d(G)
         A = np.atleast_2d(A)
+        if self.thermal is not None and temp_c is not None:
+            return self.thermal.apply(G, A, np.broadcast_to(np.asarray(temp_c, float), (len(G),)))
         return G @ self.K_g.T + self.w0, A @ self.K_a.T + self.f0
 
     def raw_inputs(
@@ -127,7 +136,7 @@ class Calibration:
         rates (``t`` [s], at least 3 samples; without them the terms see none)."""
         dwdt = None
         if self.terms and t is not None and len(t) > 2:
-            w_affine, _ = self.apply_affine(G, A)
+            w_affine, _ = self.apply_affine(G, A, temp_c)
             dwdt = np.gradient(w_affine, t, axis=0)
         return self.apply(G, A, dwdt=dwdt, temp_c=temp_c, t=t)
 
@@ -149,7 +158,7 @@ class Calibration:
         Extension terms depend on the true motion, which is estimated by the affine part and
         refined by a fixed-point iteration (terms are small: two iterations reach noise)."""
         G, A = self.raw_inputs(G, A, gyro_unit, accel_unit)
-        w, f = self.apply_affine(G, A)
+        w, f = self.apply_affine(G, A, temp_c)
         if not self.terms:
             return w, f
         w_aff, f_aff = w, f

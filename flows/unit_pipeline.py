@@ -81,7 +81,14 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             continue
         read.append((i, sm, warns))
     # steps that contradict the unit's other repetitions are left out before the fits
-    checked = leave_out_inconsistent_steps([(sm, warns) for _, sm, warns in read])
+    # (chamber sessions only against those of their own setpoint: the temperature moves them)
+    checked: list = [None] * len(read)
+    groups: dict = {}
+    for k, (_, sm, _) in enumerate(read):
+        groups.setdefault((sm.metadata or {}).get("chamber_setpoint_c"), []).append(k)
+    for ks in groups.values():
+        for k, item in zip(ks, leave_out_inconsistent_steps([read[k][1:] for k in ks])):
+            checked[k] = item
     kept = []
     for (i, _, _), item in zip(read, checked):
         if isinstance(item, SessionError):  # too many steps lost in all
@@ -317,6 +324,17 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
         unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
         unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: {type(exc).__name__}: {exc}")
         note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
+    try:  # chamber sessions (chamber_setpoint_c): the calibration over temperature
+        from flows.thermal_units import apply_thermal
+
+        thermal_note = apply_thermal(unit_out, unit_out.sessions)
+    except Exception as exc:  # noqa: BLE001 - the unit keeps its single-temperature calibration
+        thermal_note = (
+            f"E_INTERNAL: thermal calibration of unit {job.unit} failed: {type(exc).__name__}: {exc}"
+        )
+    if thermal_note:
+        unit_out.notes.append(thermal_note)
+        note = "; ".join(filter(None, [note, thermal_note]))
     for o in unit_out.sessions:  # step means are not kept past this point
         o.step_means = None
     return UnitResult(

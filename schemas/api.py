@@ -167,14 +167,41 @@ def read_samples(path: str | Path) -> pd.DataFrame:
 
 
 # --- applying ------------------------------------------------------------------------------------
+class TemperatureOutOfRange(ValueError):
+    """Samples a thermal calibration cannot take: no temperature, or one outside its range."""
+
+
+def check_temperatures(cal: Calibration, temp_c: np.ndarray | None, extrapolate: bool = False) -> None:
+    """One-line refusal of samples a thermal calibration was not made for (module text)."""
+    th = cal.thermal
+    if temp_c is None:
+        raise TemperatureOutOfRange("the calibration is thermal and the samples have no temp_c column")
+    temp_c = np.asarray(temp_c, float)
+    if not np.isfinite(temp_c).all():
+        raise TemperatureOutOfRange(f"{int((~np.isfinite(temp_c)).sum())} sample(s) have no finite temp_c")
+    out = th.outside(temp_c)
+    if out.any() and not extrapolate:
+        raise TemperatureOutOfRange(
+            f"{int(out.sum())} of {len(temp_c)} samples have temp_c outside the calibrated range "
+            f"{th.t_min_c:.1f}..{th.t_max_c:.1f} degC (samples {np.nanmin(temp_c):.1f}.."
+            f"{np.nanmax(temp_c):.1f} degC); pass --extrapolate (extrapolate=True) to apply the "
+            "polynomials beyond it"
+        )
+
+
 def apply_to_frame(
     cal: Calibration,
     df: pd.DataFrame,
     gyro_unit: str | None = None,
     accel_unit: str | None = None,
     unit: str | None = None,
+    extrapolate: bool = False,
 ) -> pd.DataFrame:
     """Calibrated rates and specific forces of the raw samples in ``df``.
+
+    A thermal calibration (format 1.1, ``cal.thermal``) takes each sample's parameters at its
+    own ``temp_c``: it needs the column, and refuses (:class:`TemperatureOutOfRange`)
+    temperatures outside its calibrated range unless ``extrapolate``.
 
     ``df`` has the contract's columns ``gx, gy, gz`` and ``ax, ay, az`` (raw outputs) and
     optionally ``t`` [s], ``step``, ``temp_c``. The raw units are named: ``gyro_unit`` /
@@ -218,6 +245,8 @@ def apply_to_frame(
         )
     t = df["t"].to_numpy(float) if "t" in df else None
     temp = df["temp_c"].to_numpy(float) if "temp_c" in df else None
+    if cal.thermal is not None:
+        check_temperatures(cal, temp, extrapolate)
     w, f = cal.apply_recording(G, A, t=t, temp_c=temp)
     out = pd.DataFrame({c: df[c] for c in ("t", "step", "temp_c") if c in df}, index=df.index)
     for i, ax in enumerate("xyz"):

@@ -19,10 +19,15 @@ import numpy as np
 from calib_core.calibration import Calibration, TermValue
 from calib_core.effects import get_effect
 from calib_core.results import to_jsonable
+from calib_core.thermal_model import ThermalModel
 
 FORMAT = "mimucal-calibration"
+# 1.1 adds ``thermal`` (a chamber calibration: each parameter a polynomial in the sensor
+# temperature, docs/thermal.md); a calibration without it is written as 1.0, the same
+# document as before, so tools that read 1.0 keep reading every file they can apply
 FORMAT_VERSION = "1.0"
-SUPPORTED_VERSIONS = ("1.0",)
+THERMAL_FORMAT_VERSION = "1.1"
+SUPPORTED_VERSIONS = ("1.0", "1.1")
 
 
 class CalibrationFileError(ValueError):
@@ -51,6 +56,10 @@ def calibration_to_dict(cal: Calibration, extra: dict[str, Any] | None = None) -
         "terms": [tv.to_dict() for tv in cal.terms],
         "metadata": cal.metadata,
     }
+    if cal.thermal is not None:
+        doc["format_version"] = THERMAL_FORMAT_VERSION
+        doc["model"] = "as 1.0 with K_g, w0, K_a, f0 = thermal polynomials at each sample's temp_c"
+        doc["thermal"] = cal.thermal.to_dict()
     if extra:
         doc.update(extra)
     return doc
@@ -96,6 +105,7 @@ def calibration_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Calibr
             g_local=float(doc.get("g_local", 9.80665)),
             kind=doc.get("kind", "turntable"),
             metadata=doc.get("metadata", {}),
+            thermal=ThermalModel.from_dict(doc["thermal"]) if doc.get("thermal") is not None else None,
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationFileError(f"{source}: malformed calibration ({exc})") from exc

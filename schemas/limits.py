@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from calib_core.outliers import Limit, OutlierConfig, OutlierConfigError
+from calib_core.thermal_model import coefficient_name
 
 if TYPE_CHECKING:  # the store module imports more than a configuration needs
     from schemas.results_store import ResultsStore
@@ -71,6 +72,16 @@ UNITS: dict[str, dict[str, float]] = {
         "mrad": 0.18 / math.pi,
     },
     "length": {"mm": 1.0, "um": 1e-3, "cm": 10.0, "m": 1000.0},
+    # thermal coefficients (model "thermal", docs/thermal.md): per degC^k of the parameter
+    **{
+        f"{kind} per degC{sup}": {f"{u}/degC{sup}": f for u, f in units.items()}
+        for sup in ("", "^2", "^3")
+        for kind, units in (
+            ("angular rate", {"deg/s": 1.0, "mdeg/s": 1e-3, "deg/h": 1.0 / 3600.0}),
+            ("acceleration", {"g": 1.0, "mg": 1e-3, "ug": 1e-6}),
+            ("dimensionless", {"1": 1.0, "ppm": 1e-6}),
+        )
+    },
 }
 STORED_UNIT = {
     "dimensionless": "",
@@ -78,6 +89,11 @@ STORED_UNIT = {
     "angular rate": "deg/s",
     "angle": "deg",
     "length": "mm",
+    **{
+        f"{kind} per degC{sup}": f"{u}/degC{sup}"
+        for sup in ("", "^2", "^3")
+        for kind, u in (("angular rate", "deg/s"), ("acceleration", "g"), ("dimensionless", "1"))
+    },
 }
 
 # model -> parameter -> kind of quantity (the stored units when the raw units are deg/s and g;
@@ -99,6 +115,15 @@ PARAMETERS: dict[str, dict[str, str]] = {
         **{f"theta_{a}{b}": "angle" for a in _AX for b in _AX},
     },
     "lever_arm": {f"r{i}{a}": "length" for i in (1, 2, 3) for a in _AX},
+    # the thermal coefficients (flows.thermal_units): w0_tc_x, k_g11_tc2, f0_tc3_z, ...
+    "thermal": {
+        coefficient_name(p, k): f"{kind} per degC{sup}"
+        for k, sup in ((1, ""), (2, "^2"), (3, "^3"))
+        for p, kind in [(f"k_g{m}", "dimensionless") for m in _MAT]
+        + [(f"w0_{a}", "angular rate") for a in _AX]
+        + [(f"k_a{m}", "dimensionless") for m in _MAT]
+        + [(f"f0_{a}", "acceleration") for a in _AX]
+    },
 }
 MODEL_OF = {name: model for model, names in PARAMETERS.items() for name in names}
 

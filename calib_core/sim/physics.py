@@ -39,7 +39,11 @@ true north). A rotating step turns the body about its rotation axis from there (
 after a linear ramp over the first half of the settling time (the ramp's angular acceleration
 is physical: the accelerometers see dw/dt x r there).
 
-Temperature: ``WarmUp`` from ``start_c`` towards ``start_c + rise_c`` with time constant
+Temperature: ``ChamberSoak`` holds the sensor near a thermal chamber's setpoint (the
+bias and the scale factor follow cubic polynomials in temperature, ``bias_tc``..``bias_tc3``,
+``scale_tc_ppm``..``scale_tc3_ppm``, and the bias keeps ``bias_hyst`` of the direction the
+temperature came from: heating or cooling); ``WarmUp`` from ``start_c`` towards
+``start_c + rise_c`` with time constant
 ``tau_s`` after power-on; the recorded ``temp_c`` adds sensor noise. A session starts
 ``power_on_s`` after power-on: 0 for a cold start (one repetition a day), the time already
 run for repetitions run back to back (the unit stays warm; a new turn-on bias is still
@@ -82,6 +86,31 @@ class WarmUp:
 
 
 @dataclass(frozen=True)
+class ChamberSoak:
+    """Sensor temperature in a thermal chamber held at ``setpoint_c``: the sensor runs
+    ``self_heating_c`` above the chamber air and approaches it from ``from_c`` (the previous
+    setpoint) with time constant ``tau_s``; the session starts ``soak_s`` after the setpoint
+    was reached by the air. A long soak (several tau) gives a settled temperature; a short
+    one a session still drifting. ``approach``: +1 heating, -1 cooling (what hysteresis
+    depends on)."""
+
+    setpoint_c: float = 25.0
+    from_c: float = 25.0
+    soak_s: float = 3600.0
+    tau_s: float = 300.0
+    self_heating_c: float = 3.0
+    noise_c: float = 0.02
+
+    @property
+    def approach(self) -> float:
+        return float(np.sign(self.setpoint_c - self.from_c))
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        lag = (self.from_c - self.setpoint_c) * np.exp(-(np.asarray(t, float) + self.soak_s) / self.tau_s)
+        return self.setpoint_c + self.self_heating_c + lag
+
+
+@dataclass(frozen=True)
 class _Sensor:
     """What gyros and accelerometers share. Physical unit: deg/s (gyro) or g (accel)."""
 
@@ -99,12 +128,24 @@ class _Sensor:
     turn_on: float = 0.0  # sd of the bias drawn at each power-on (repetition)
     random_walk: float = 0.0  # per sqrt(s)
     bias_per_h: float = 0.0  # bias trend, per hour since power-on
+    # chamber calibration: higher orders of the temperature dependence and a hysteresis
+    bias_tc2: float = 0.0  # bias per degC^2 from REF_TEMP_C
+    bias_tc3: float = 0.0  # bias per degC^3
+    scale_tc2_ppm: float = 0.0  # scale factor, ppm per degC^2
+    scale_tc3_ppm: float = 0.0  # scale factor, ppm per degC^3
+    bias_hyst: float = 0.0  # bias reached by heating minus bias reached by cooling
 
-    def transfer(self, u: np.ndarray, temp_c: np.ndarray) -> np.ndarray:
-        """Deterministic response to the input along the sensor's own axis."""
+    def transfer(self, u: np.ndarray, temp_c: np.ndarray, approach: float = 0.0) -> np.ndarray:
+        """Deterministic response to the input along the sensor's own axis. ``approach``:
+        +1 when the sensor reached its temperature by heating, -1 by cooling, 0 unknown
+        (half the hysteresis each way)."""
         dt = temp_c - REF_TEMP_C
         shaped = u + self.k2 * u**2 + self.k3 * u**3 + 0.5 * self.asym * np.abs(u)
-        return shaped * (1.0 + 1e-6 * self.scale_tc_ppm * dt) + self.bias + self.bias_tc * dt
+        scale = 1.0 + 1e-6 * (
+            self.scale_tc_ppm * dt + self.scale_tc2_ppm * dt**2 + self.scale_tc3_ppm * dt**3
+        )
+        bias = self.bias + self.bias_tc * dt + self.bias_tc2 * dt**2 + self.bias_tc3 * dt**3
+        return shaped * scale + bias + 0.5 * approach * self.bias_hyst
 
     def noise(self, t: np.ndarray, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
         """White + Gauss-Markov instability + random walk + turn-on bias, one session."""
@@ -148,7 +189,7 @@ class PhysicsUnit:
     accel_unit: str = "g"  # g or LSB
     gyro_range_dps: tuple[float, float, float] = (350.0, 350.0, 4000.0)
     accel_range_g: tuple[float, float, float] = (50.0, 50.0, 50.0)
-    temperature: WarmUp | None = field(default_factory=WarmUp)
+    temperature: WarmUp | ChamberSoak | None = field(default_factory=WarmUp)
     g_local: float = 9.80665
 
     def replace_gyro(self, i: int, **changes) -> PhysicsUnit:
@@ -360,12 +401,13 @@ def simulate_physics_session(
         w += earth_rate_body(up, north, table.latitude_deg)
     t_on = t + power_on_s  # time since power-on: what warms the sensor and ages its bias
     temp = unit.temperature.at(t_on) if unit.temperature is not None else np.full(len(t), REF_TEMP_C)
+    approach = float(getattr(unit.temperature, "approach", 0.0))
     f_centre = up  # specific force at rest is the up direction, 1 g
     w_rad, a_rad = w * DEG, dwdt * DEG
     raw = {}
     for i, (name, g) in enumerate(zip(("gx", "gy", "gz"), unit.gyros)):
         u = w @ np.asarray(g.axis)
-        out = g.transfer(u, temp) + f_centre @ np.asarray(g.g_sens) + g.bias_per_h * t_on / 3600.0
+        out = g.transfer(u, temp, approach) + f_centre @ np.asarray(g.g_sens) + g.bias_per_h * t_on / 3600.0
         if g.periodic_amp:
             out += g.periodic_amp * np.sin(2.0 * np.pi * u / g.periodic_period_dps)
         out += (w**2) @ np.asarray(g.cross_quad)
@@ -377,7 +419,7 @@ def simulate_physics_session(
         centripetal = np.cross(w_rad, np.cross(w_rad, np.broadcast_to(r, w.shape)))
         tangential = np.cross(a_rad, np.broadcast_to(r, w.shape))
         f = f_centre + (centripetal + tangential) / unit.g_local
-        out = a.transfer(f @ np.asarray(a.axis), temp) + a.bias_per_h * t_on / 3600.0
+        out = a.transfer(f @ np.asarray(a.axis), temp, approach) + a.bias_per_h * t_on / 3600.0
         out += a.noise(t, rate_hz, rng)
         lim = unit.accel_range_g[i]
         raw[name] = a.scale * np.clip(out, -lim, lim)

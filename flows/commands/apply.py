@@ -17,7 +17,9 @@ meaningless, so ``--force`` does not override this. Refuses (exit 2) a ``samples
 whose metadata names another unit than the calibration's (``provenance.unit``), unless
 ``--force`` (then a warning on stderr); the same for a file whose hive path
 (``.../unit=<id>/...``) names another unit. Warns on stderr when the calibration's QA status is
-``flagged`` or ``limits``."""
+``flagged`` or ``limits``. A thermal calibration (format 1.1) takes each sample's parameters
+at its ``temp_c`` and refuses (exit 2, one line) samples without it or outside the calibrated
+temperature range, unless ``--extrapolate``."""
 
 from __future__ import annotations
 
@@ -63,6 +65,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--force",
         action="store_true",
         help="apply even if the raw file's hive path or metadata names another unit",
+    )
+    p.add_argument(
+        "--extrapolate",
+        action="store_true",
+        help="thermal calibration: apply the polynomials to temp_c outside the calibrated range",
     )
     p.set_defaults(func=run)
 
@@ -150,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
     import pandas as pd
     import pyarrow.parquet as pq
 
-    from schemas.api import CalibrationMismatch, apply_to_frame
+    from schemas.api import CalibrationMismatch, TemperatureOutOfRange, apply_to_frame
     from schemas.calibration_file import (
         CalibrationFileError,
         calibration_from_dict,
@@ -191,7 +198,11 @@ def run(args: argparse.Namespace) -> int:
         df = table.to_pandas()
         df.attrs = {"g_local": float(md.get("g_local", G_LOCAL_DEFAULT))}
         try:  # the unit id was checked above (--force may override it)
-            out_cols = apply_to_frame(cal, df, md["gyro_unit"], md["accel_unit"])
+            out_cols = apply_to_frame(
+                cal, df, md["gyro_unit"], md["accel_unit"], extrapolate=args.extrapolate
+            )
+        except TemperatureOutOfRange as exc:
+            raise CliError(f"{raw}: {exc}") from None
         except CalibrationMismatch as exc:
             raise CliError(
                 f"{raw}: {exc}; a calibration only applies to data in the units it was fitted on"
@@ -223,9 +234,13 @@ def run(args: argparse.Namespace) -> int:
                 f"{raw}: missing column(s) {', '.join(missing)} (need {', '.join(CSV_ACCEL + CSV_GYRO)})"
             )
         raw_cols = dict(zip(CSV_GYRO + CSV_ACCEL, ("gx", "gy", "gz", "ax", "ay", "az")))
-        samples = df[[c for c in ("t", *raw_cols) if c in df]].rename(columns=raw_cols)
+        samples = df[[c for c in ("t", "temp_c", *raw_cols) if c in df]].rename(columns=raw_cols)
         try:
-            out_cols = apply_to_frame(cal, samples, args.gyro_unit, args.accel_unit)
+            out_cols = apply_to_frame(
+                cal, samples, args.gyro_unit, args.accel_unit, extrapolate=args.extrapolate
+            )
+        except TemperatureOutOfRange as exc:
+            raise CliError(f"{raw}: {exc}") from None
         except CalibrationMismatch as exc:
             raise CliError(
                 f"{raw}: {exc}; a calibration only applies to data in the units it was fitted on"

@@ -21,7 +21,12 @@ def register(sub) -> None:
     p.add_argument("out", type=Path, metavar="OUT", help="output dataset root")
     p.add_argument("--lots", type=int, default=1, help="number of lots (default 1)")
     p.add_argument("--units", type=int, default=4, help="units per lot (default 4)")
-    p.add_argument("--reps", type=int, default=5, help="repetitions per unit (default 5)")
+    p.add_argument(
+        "--reps",
+        type=int,
+        default=None,
+        help="repetitions per unit (default 5; with --chamber: sweeps, default 2)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--rate", type=float, default=100.0, metavar="HZ", help="sample rate in Hz (default 100)")
     p.add_argument(
@@ -88,6 +93,20 @@ def register(sub) -> None:
         "warm-up (each at its own temperature) instead of a cold start a day",
     )
     p.add_argument(
+        "--chamber",
+        action="store_true",
+        help="with --physics: thermal chamber runs (7 setpoints -40..85 degC, --reps "
+        "alternating heating/cooling sweeps, default 2; samples metadata chamber_setpoint_c; "
+        "docs/thermal.md)",
+    )
+    p.add_argument(
+        "--out-of-limit",
+        type=int,
+        default=0,
+        metavar="K",
+        help="with --chamber: K units (the first of a lot) get a gyro bias coefficient of 0.02 deg/s/degC",
+    )
+    p.add_argument(
         "--declare-location",
         action="store_true",
         help="with --latitude: write latitude_deg/table_heading_deg into the metadata",
@@ -105,6 +124,8 @@ def register(sub) -> None:
 def run(args) -> int:
     from flows.fleet_sim import MANIFEST, simulate_fleet
 
+    if args.reps is None:
+        args.reps = 2 if args.chamber else 5
     for name in ("lots", "units", "reps"):
         if getattr(args, name) < 1:
             raise CliError(f"--{name} must be >= 1")
@@ -129,6 +150,8 @@ def run(args) -> int:
             shutil.rmtree(p)
         (out / MANIFEST).unlink(missing_ok=True)
     start = time.perf_counter()
+    if args.chamber:
+        return _run_chamber(args, out, start)
     if args.physics:
         return _run_physics(args, out, start)
     if args.hide or args.no_tilted or args.latitude is not None or args.declare_location or args.back_to_back:
@@ -180,6 +203,27 @@ def _parse_hide(specs: list[str]) -> tuple[tuple[str, float], ...]:
             raise CliError(f"--hide {spec}: scale {scale!r} is not a number") from None
         out.append((name, value))
     return tuple(out)
+
+
+def _run_chamber(args, out: Path, start: float) -> int:
+    from flows.chamber_sim import simulate_chamber_fleet
+
+    if not args.physics:
+        raise CliError("--chamber needs --physics")
+    reps = args.reps
+    rate = args.rate if args.rate != 100.0 else 50.0
+    doc = simulate_chamber_fleet(out, args.lots, args.units, args.seed, reps, rate, args.out_of_limit)
+    n = len(doc["units"]) * reps * len(doc["setpoints_c"])
+    print(
+        f"wrote {n} chamber sessions ({args.lots} lot(s) x {args.units} unit(s), "
+        f"{len(doc['setpoints_c'])} setpoints x {reps} sweep(s), {rate:g} Hz) to {out} in "
+        f"{time.perf_counter() - start:.1f} s"
+    )
+    for u in doc["units"]:
+        if u["out_of_limit"]:
+            print(f"  out of limit: lot={u['lot']}/unit={u['unit']} (gyro x bias 0.02 deg/s/degC)")
+    print(f"  truth: {out / 'fleet.json'}")
+    return 0
 
 
 def _run_physics(args, out: Path, start: float) -> int:

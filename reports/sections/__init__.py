@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from reports.context import KIND_OUTLIER, LotContext
 from reports.html import Page, esc
-from reports.sections import discovery, parameters, repetitions, residuals, sessions, spread, summary
+from reports.sections import discovery, parameters, repetitions, residuals, sessions, spread, summary, thermal
 from reports.sections.common import kind_badges
 
 Builder = Callable[[LotContext, Page, "str | None"], "str | None"]
@@ -45,6 +45,7 @@ UNIT_SECTIONS: list[Section] = [
     Section("residuals", "Residual plots", residuals.build_unit, heading=False),
     Section("models", "Other models", repetitions.build_other_models, heading=False),
     Section("discovery", "Model discovery", discovery.build_unit),
+    Section("thermal", "Calibration over temperature", thermal.build),
     Section("failed", "Failed sessions", sessions.build_unit_failed),
 ]
 
@@ -102,6 +103,7 @@ LOT_SECTIONS: list[Section] = [
     Section("spread", "Parameters across the lot", spread.build),
     Section("residuals", "Residuals across the lot", residuals.build),
     Section("discovery", "Model discovery", discovery.build),
+    Section("thermal", "Calibration over temperature", thermal.build),
     Section("sessions", "Sessions", sessions.build),
     Section("units", "Units", build_units),
 ]
