@@ -56,10 +56,14 @@ class UnitGrid:
         geometry: SensingGeometry | None = None,
         dropped: frozenset[int] = frozenset(),
         layout: Layout | None = None,
+        regressors: list[np.ndarray] | None = None,
     ) -> UnitGrid:
         """The unit's grid with the terms' columns through ``geometry`` (default: the
         nominal one); ``dropped`` term columns (undetermined parameters) are left at 0.
-        ``layout``: the sessions' :func:`protocol_layout` when the caller already has it."""
+        ``layout``: the sessions' :func:`protocol_layout` when the caller already has it;
+        ``regressors``: the terms' columns of a grid of the same sessions, terms and
+        geometry (:attr:`regressors`), not computed again. Without ``names`` the grid has
+        the affine model's columns alone (what the affine fit and the rank test use)."""
         lay = layout if layout is not None else protocol_layout(sessions)
         R, n = lay.real.shape
         raw = np.zeros((R, n, 6, 3))
@@ -70,9 +74,9 @@ class UnitGrid:
             raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
             std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
             count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
-        offset, live, live_mask, M, colmap = term_design(lay, names, geometry, dropped)
+        offset, live, live_mask, M, colmap, Zs = term_design(lay, names, geometry, dropped, regressors)
         M[..., :3] = np.moveaxis(raw, 2, 0)
-        return cls(
+        grid = cls(
             R,
             n,
             lay.real,
@@ -92,6 +96,14 @@ class UnitGrid:
             M,
             colmap,
         )
+        grid.__dict__["_regressors"] = Zs
+        return grid
+
+    @property
+    def regressors(self) -> list[np.ndarray]:
+        """Per repetition (n_r, 6, P): minus every term's regressors through the grid's
+        geometry, before undetermined columns are dropped (read-only)."""
+        return self.__dict__["_regressors"]
 
     @property
     def P(self) -> int:
@@ -109,6 +121,19 @@ class UnitGrid:
                 else np.zeros(0, np.int64)
             )
             out.setflags(write=False)
+            cache[names] = out
+        return out
+
+    def hits(self, names: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+        """Per channel, which of its term columns (positions in M's term block) belong to the
+        terms ``names`` (kept per grid, read-only)."""
+        cache = self.__dict__.setdefault("_hits", {})
+        out = cache.get(names)
+        if out is None:
+            cols = self.cols(names)
+            out = tuple(np.flatnonzero(np.isin(self.colmap[c], cols)) for c in range(6))
+            for x in out:
+                x.setflags(write=False)
             cache[names] = out
         return out
 
@@ -237,10 +262,17 @@ def _build_layout(sessions: list[StepMeans]) -> Layout:
     return Layout(real, step, gcode, groups, y, balanced, t, ctxs)
 
 
-def term_design(lay: Layout, names: list[str], geometry: SensingGeometry | None, dropped: frozenset[int]):
+def term_design(
+    lay: Layout,
+    names: list[str],
+    geometry: SensingGeometry | None,
+    dropped: frozenset[int],
+    regressors: list[np.ndarray] | None = None,
+):
     """The terms' columns of one unit: every term's regressors through the unit's sensing
-    geometry, per channel only the columns not identically 0 on it (``live``), laid out as
-    M (6, R, n, k) = [raw (filled by the caller) | live term columns | 0 | y]."""
+    geometry (or ``regressors``, computed before), per channel only the columns not
+    identically 0 on it (``live``), laid out as M (6, R, n, k) = [raw (filled by the
+    caller) | live term columns | 0 | y]; and the regressors, per repetition."""
     terms = [get_effect(nm) for nm in names]
     offset, off = {}, 0
     for nm, t in zip(names, terms):
@@ -248,11 +280,21 @@ def term_design(lay: Layout, names: list[str], geometry: SensingGeometry | None,
         off += t.n_params
     P = off
     R, n = lay.real.shape
+    if regressors is None:
+        regressors = []
+        for ctx in lay.ctx:
+            # minus the regressors: ref = K raw + b - E theta
+            Z = (
+                -np.concatenate([t.regressors(ctx, geometry) for t in terms], axis=-1)
+                if terms
+                else np.zeros((len(ctx), 6, 0))
+            )
+            Z.setflags(write=False)
+            regressors.append(Z)
     Zs, live_mask = [], np.zeros((6, P), bool)
-    for ctx in lay.ctx:
-        # minus the regressors: ref = K raw + b - E theta
-        Z = -np.concatenate([t.regressors(ctx, geometry) for t in terms], axis=-1)
+    for Z in regressors:
         if dropped:
+            Z = Z.copy()
             Z[..., sorted(dropped)] = 0.0
         Zs.append(Z)
         live_mask |= np.abs(Z).sum(axis=0) > 0
@@ -266,4 +308,4 @@ def term_design(lay: Layout, names: list[str], geometry: SensingGeometry | None,
         colmap[c, : len(L)] = L
         for r, Z in enumerate(Zs):
             M[c, r, : len(Z), 3 : 3 + len(L)] = Z[:, c, L]
-    return offset, live, live_mask, M, colmap
+    return offset, live, live_mask, M, colmap, regressors

@@ -196,7 +196,8 @@ def joint_model(
     names = sorted(catalogue())
     # one layout for every grid of this unit (its motion contexts keep the term columns)
     lay = protocol_layout(sessions)
-    g = UnitGrid.build(sessions, names, geometry, layout=lay)
+    # the affine fit needs no term columns: they are built once the geometry is known
+    g = UnitGrid.build(sessions, names if geometry is not None else [], geometry, layout=lay)
     if noise_fit is None:
         # affine fit weighted by within-step scatter only, to get K and residuals
         white = g.white_sigma(np.tile(np.eye(3), (2, 1)))
@@ -235,12 +236,17 @@ class JointModel:
         self.sigma = noise.sigma
         self.weight = noise.weight
         self.serial = noise.serial
-        self._factorise()
+        self._linv: dict[bytes, np.ndarray] = {}  # the whitening of each repetition's step times
+        check_rank(self.g, self.weight)  # before anything solves with the affine part
+        # which columns the steps determine needs the fold of all repetitions alone
+        self._factorise(all_folds=False)
         self.undetermined = self._undetermined()
         if self.undetermined:  # fitted as 0: rebuild the terms' columns without them
             dropped = frozenset(self.undetermined)
-            self.g = UnitGrid.build(self.sessions, self.names, geometry, dropped, self.layout)
-            self._factorise()
+            self.g = UnitGrid.build(
+                self.sessions, self.names, geometry, dropped, self.layout, self.g.regressors
+            )
+        self._factorise()
         self._fits: dict[tuple, JointFit] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
 
@@ -277,25 +283,33 @@ class JointModel:
                     )
         return out
 
-    def _factorise(self) -> None:
+    def _factorise(self, all_folds: bool = True) -> None:
         """Per channel c, the weighted bias-removed design A_c = [raw_c | live terms | y]:
         R factors per repetition (held-out residuals), per fold (repetitions but one;
         fold 0 = all, fold 1 + h leaves h out), of its pure-error part; per fold, the factor
-        of every term column with the affine model projected out (fits of any subset)."""
-        g, R, P = self.g, self.g.R, self.g.P
-        check_rank(self.g, self.weight)  # before anything solves with the affine part
+        of every term column with the affine model projected out (fits of any subset).
+        ``all_folds`` False: the fold of all repetitions' term factor alone (``Rg`` (1, P+1,
+        P+1)), what :meth:`_undetermined` needs."""
+        g, R = self.g, self.g.R
         w = np.moveaxis(self.weight, -1, 0)  # (6, R, n)
         Mc, self.mu = centre(g.M, w)  # (6, R, n, k), (6, R, k)
         Mc[:, ~g.real] = 0.0
         self.Mc = Mc
         A_raw = w[..., None] * Mc
-        A = prewhiten(A_raw, self.serial, g.real, g.t)
+        A = prewhiten(A_raw, self.serial, g.real, g.t, self._linv)
         self.A = A
         # each repetition's bias column, weighted and whitened as the rows (the lack-of-fit
         # test removes it per repetition)
-        self.A_bias = prewhiten(np.where(g.real, w, 0.0)[..., None], self.serial, g.real, g.t)[..., 0]
+        self.A_bias = prewhiten(np.where(g.real, w, 0.0)[..., None], self.serial, g.real, g.t, self._linv)[
+            ..., 0
+        ]
         k = A.shape[-1]
         self.Rrep = qr_r(A)  # (6, R, k, k)
+        self.__dict__.pop("_bias_removed", None)
+        if not all_folds:  # fold 0 stacks every repetition's factor
+            self.Rf = qr_r(self.Rrep.reshape(6, 1, R * k, k))
+            self.Rg = self._term_factor(1)
+            return
         # the held-out score is the residual a user sees, residual / sigma, not whitened: a
         # slow effect (thermal drift) matters by its size, not by how far it is from the wander
         self.Rrep_seen = self.Rrep if A is A_raw else qr_r(A_raw)
@@ -307,15 +321,20 @@ class JointModel:
         self.K_solve = np.linalg.solve(self.Rf[..., :3, :3], self.Rf[..., :3, 3:])
         e, _, self.pure_dof = g.two_way(A)
         self.Rpure = qr_r(e)  # (6, k, k)
-        # the affine model projected out: the trailing block of each fold's factor, every
-        # channel's term columns put back in their global place (P + 1: padding, dropped)
-        T = np.zeros((R + 1, 6, k - 3, P + 2))
-        for c in range(6):
-            T[:, c][..., np.append(g.colmap[c], P)] = self.Rf[c, :, 3:, 3:]
-        S = T.reshape(R + 1, 6 * (k - 3), P + 2)[..., : P + 1]
-        self.Rg = qr_r(S)  # (R+1, P+1, P+1): [R_terms c; 0 sqrt(ss_perp)] per fold
+        self.Rg = self._term_factor(R + 1)  # (R+1, P+1, P+1): [R_terms c; 0 sqrt(ss_perp)] per fold
         self.rows_channel = int(g.real.sum())
         self.base_rank = [3 + R] * 6
+
+    def _term_factor(self, n_folds: int) -> np.ndarray:
+        """The affine model projected out: the trailing block of each fold's factor, every
+        channel's term columns put back in their global place (P + 1: padding, dropped),
+        factorised per fold."""
+        g, P = self.g, self.g.P
+        k = self.Rf.shape[-1]
+        T = np.zeros((n_folds, 6, k - 3, P + 2))
+        for c in range(6):
+            T[:, c][..., np.append(g.colmap[c], P)] = self.Rf[c, :, 3:, 3:]
+        return qr_r(T.reshape(n_folds, 6 * (k - 3), P + 2)[..., : P + 1])
 
     # -- fits -----------------------------------------------------------------------------
     def fit(self, names: tuple[str, ...], fold: int | None = None) -> JointFit:
@@ -485,9 +504,16 @@ class JointModel:
     def bias_removed(self, c: int) -> tuple[np.ndarray, np.ndarray]:
         """Channel ``c``'s whitened design (R, n, k) with each repetition's own bias removed
         from every column, and the whitened bias column (R, n)."""
-        A, wb = self.A[c], self.A_bias[c]
-        coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
-        return A - wb[..., None] * coef[:, None, :], wb
+        cache = self.__dict__.setdefault("_bias_removed", {})  # asked by every test, per channel
+        out = cache.get(c)
+        if out is None:
+            A, wb = self.A[c], self.A_bias[c]
+            coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
+            out = (A - wb[..., None] * coef[:, None, :], wb)
+            for x in out:
+                x.setflags(write=False)
+            cache[c] = out
+        return out
 
     def variance_scale(self, names: tuple[str, ...]) -> float:
         """Variance factor of the weighted residual: the pure-error mean square."""

@@ -171,7 +171,9 @@ def sphericity_epsilon(blocks: list[np.ndarray]) -> float:
     return float(np.clip(t1sq / (p * t2), 1.0 / p, 1.0))
 
 
-def prewhiten(A: np.ndarray, noise: SerialNoise, real: np.ndarray, t: np.ndarray) -> np.ndarray:
+def prewhiten(
+    A: np.ndarray, noise: SerialNoise, real: np.ndarray, t: np.ndarray, cache: dict | None = None
+) -> np.ndarray:
     """Rows (6, R, n, k) of each repetition whitened for the serial correlation of
     :class:`SerialNoise` (generalised least squares: L^-1 with L L^T the correlation of the
     repetition's steps): the tests, fits and held-out scores then treat the wander of the
@@ -182,7 +184,9 @@ def prewhiten(A: np.ndarray, noise: SerialNoise, real: np.ndarray, t: np.ndarray
     out = np.zeros_like(A)
     lam = noise.lam[:, None, None]
     tau = noise.tau_s[:, None, None]
-    done: dict[bytes, np.ndarray] = {}  # repetitions on the same step times share L^-1
+    # repetitions on the same step times share L^-1; ``cache``: kept by the caller for its
+    # next rows whitened with the same noise
+    done: dict[bytes, np.ndarray] = {} if cache is None else cache
     for r in range(A.shape[1]):
         rows = np.flatnonzero(real[r])
         tr = t[r, rows]

@@ -121,13 +121,13 @@ class Significance:
         if key in self._tests:
             return self._tests[key]
         g, R = self.model.g, self.model.g.R
-        cols = g.cols(tuple(sorted(names)))
         f = self.model.fit(names)
+        hits = g.hits(tuple(sorted(names)))
         out = np.zeros((6, 5))
         for c in range(6):
             A, wb = self.model.bias_removed(c)  # (R, n, k), (R, n)
             resid = A @ f.v[c]  # (R, n)
-            local = 3 + np.flatnonzero(np.isin(g.colmap[c], cols))
+            local = 3 + hits[c]
             X = np.concatenate([A[..., :3], A[..., local], wb[..., None]], axis=-1).mean(axis=0)
             Ub = orthonormal_basis(X)
             rbar = resid.mean(axis=0)
@@ -189,17 +189,13 @@ class Significance:
         g, R = self.model.g, self.model.g.R
         cols = g.cols(tuple(sorted(names)))
         index = {int(k): j for j, k in enumerate(cols)}
-        f = self.model.fit(())
+        hits = g.hits(tuple(sorted(names)))
         blocks, means, devs, joint = [], [], [], []
         for c in range(6):
-            hit = np.flatnonzero(np.isin(g.colmap[c], cols))
+            hit = hits[c]
             if not hit.size:
                 continue
-            A, wb = self.model.bias_removed(c)
-            Ub = orthonormal_basis(np.concatenate([A[..., :3], wb[..., None]], axis=-1).mean(axis=0))
-            resid = A @ f.v[c]
-            rbar = resid.mean(axis=0)
-            dev = resid - rbar
+            A, Ub, rbar, dev = self._affine_channel(c)
             Xt = A[..., 3 + hit].mean(axis=0)
             size = float(np.linalg.norm(Xt, axis=0).max())
             Xt = Xt - Ub @ (Ub.T @ Xt)
@@ -221,6 +217,38 @@ class Significance:
             np.concatenate(devs, axis=1) @ Uj if Uj.size else np.zeros((R, 0)),
         )
         self._tests[key] = out
+        return out
+
+    def _affine_channel(self, c: int) -> tuple[np.ndarray, ...]:
+        """Channel ``c`` on the affine model, what the targeted and between-repetition tests
+        of every candidate share (kept): the bias-removed design A (R, n, k), an orthonormal
+        basis Ub of the affine model's mean columns, the mean residual rbar (n,) and the
+        repetitions' deviations from it (R, n)."""
+        key = ("affine channel", c)
+        out = self._tests.get(key)
+        if out is None:
+            A, wb = self.model.bias_removed(c)
+            Ub = orthonormal_basis(np.concatenate([A[..., :3], wb[..., None]], axis=-1).mean(axis=0))
+            resid = A @ self.model.fit(()).v[c]
+            rbar = resid.mean(axis=0)
+            out = self._tests[key] = (A, Ub, rbar, resid - rbar)
+        return out
+
+    def _between_channel(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """Channel ``c``'s term columns as the between-repetition test takes them (kept):
+        their deviations from the repetitions' mean (R, n, k - 3) and which of them differ
+        between the repetitions by ``REP_VARYING_MIN`` of their size. Whether a column
+        differs is a question about the physical column, not about the weights (each
+        repetition's own step sigmas)."""
+        key = ("between channel", c)
+        out = self._tests.get(key)
+        if out is None:
+            A, _ = self.model.bias_removed(c)
+            T = A[..., 3:-1]
+            M = self.model.Mc[c][..., 3:-1]
+            size = np.sqrt(np.sum(M**2, axis=(0, 1)))
+            spread = np.sqrt(np.sum((M - M.mean(axis=0)) ** 2, axis=(0, 1)))
+            out = self._tests[key] = (T - T.mean(axis=0), spread > REP_VARYING_MIN * np.maximum(size, 1e-300))
         return out
 
     def between_repetition_test(self, names: tuple[str, ...], threshold: float) -> FTest | None:
@@ -248,26 +276,19 @@ class Significance:
 
     def _between_repetition_sums(self, names: tuple[str, ...]) -> tuple[float, int, float, int] | None:
         g, R = self.model.g, self.model.g.R
-        cols = g.cols(tuple(sorted(names)))
-        f = self.model.fit(())
+        hits = g.hits(tuple(sorted(names)))
         ss_num = ss_den = 0.0
         dof_num = dof_den = 0
         for c in range(6):
-            local = 3 + np.flatnonzero(np.isin(g.colmap[c], cols))
+            local = 3 + hits[c]
             if not local.size:
                 continue
-            A, _ = self.model.bias_removed(c)
             # the scale factors are shared by the repetitions: a repetition's own scale
             # (what a temperature offset between repetitions makes) stays in its deviation
-            resid = A @ f.v[c]
-            dev = resid - resid.mean(axis=0)
-            D = A[..., local] - A[..., local].mean(axis=0)
-            # whether a column differs between the repetitions is a question about the
-            # physical column, not about the weights (each repetition's own step sigmas)
-            M = self.model.Mc[c][..., local]
-            size = np.sqrt(np.sum(M**2, axis=(0, 1)))
-            spread = np.sqrt(np.sum((M - M.mean(axis=0)) ** 2, axis=(0, 1)))
-            varying = spread > REP_VARYING_MIN * np.maximum(size, 1e-300)
+            _, _, _, dev = self._affine_channel(c)
+            D_all, varying_all = self._between_channel(c)
+            D = D_all[..., local - 3]
+            varying = varying_all[local - 3]
             ss_c = float(np.sum(dev**2))
             dof_c = (R - 1) * (int(g.real.sum()) // R - 1) - int(round(float(self.model.noise.params[c])))
             if varying.any():
