@@ -130,8 +130,9 @@ class UnitGrid:
         cache = self.__dict__.setdefault("_hits", {})
         out = cache.get(names)
         if out is None:
-            cols = self.cols(names)
-            out = tuple(np.flatnonzero(np.isin(self.colmap[c], cols)) for c in range(6))
+            member = np.zeros(self.P + 2, bool)  # colmap's P + 1 (padding) is never a member
+            member[self.cols(names)] = True
+            out = tuple(np.flatnonzero(member[self.colmap[c]]) for c in range(6))
             for x in out:
                 x.setflags(write=False)
             cache[names] = out
