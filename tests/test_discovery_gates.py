@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation import run_scenario
 from calib_core.discovery.turntable import _Discovery
 from calib_core.effects import CHANNELS, get_effect
 from calib_core.sim import protocols
 from calib_core.sim.physics import typical_physics_unit
 from schemas.physics_sessions import physics_unit_step_means
+from tools.discovery_evaluation import run_scenario
 
 STEPS = protocols.default_session()
 

@@ -1,7 +1,7 @@
 """Model discovery on the independent physics simulator (:mod:`calib_core.sim.physics`):
 sensors misaligned by about 0.5 deg, realistic noise with a wandering bias, warm-up ramp.
 Seeded small samples of the figures in docs/model-discovery.md
-(``docs/model_discovery_figures.py physics``)."""
+(``tools/model_discovery_figures.py physics``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation import run_scenario
 from calib_core.effects import (
     EffectTerm,
     FigureVariable,
@@ -24,6 +23,7 @@ from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from schemas.calibration_file import calibration_from_dict, calibration_to_dict
 from schemas.physics_sessions import physics_unit_step_means
+from tools.discovery_evaluation import run_scenario
 
 STEPS = protocols.default_session()
 

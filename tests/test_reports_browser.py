@@ -17,7 +17,7 @@ from reports.unit import write_unit_report
 pytestmark = [
     pytest.mark.browser,
     pytest.mark.skipif(
-        find_chromium() is None, reason="Debian's chromium is not installed (run scripts/install-browser.sh)"
+        find_chromium() is None, reason="Debian's chromium is not installed (run tools/install-browser.sh)"
     ),
 ]
 
