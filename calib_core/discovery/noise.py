@@ -222,9 +222,16 @@ class NoiseModel:
     (the pure-error dof per channel its estimation costs)."""
 
     def __init__(
-        self, grid: UnitGrid, rows: list[tuple], sigma: np.ndarray, serial: SerialNoise, estimated: bool
+        self,
+        grid: UnitGrid,
+        K: np.ndarray,
+        rows: list[tuple],
+        sigma: np.ndarray,
+        serial: SerialNoise,
+        estimated: bool,
     ):
         self.grid = grid
+        self.K = K  # the gain rows the within-step scatter reaches the step means through
         self.rows = rows
         self.sigma = sigma
         self.weight = np.where(grid.real[..., None], 1.0 / sigma, 0.0)
@@ -255,7 +262,7 @@ class NoiseModel:
                 rows.append((ch, gname, d, step_sd, w, inst[c, gi]))  # np.float64, as before
         sigma = cls._sigma(g, white, inst)
         weight = np.where(g.real[..., None], 1.0 / sigma, 0.0)
-        return cls(g, rows, sigma, serial_noise(resid * weight, g.real, g.t), True)
+        return cls(g, K, rows, sigma, serial_noise(resid * weight, g.real, g.t), True)
 
     @classmethod
     def from_description(cls, grid: UnitGrid, K: np.ndarray, description: NoiseDescription) -> NoiseModel:
@@ -266,9 +273,8 @@ class NoiseModel:
         white = g.white_sigma(K)
         lut = {(r[0], r[1]): float(r[5]) for r in description.rows}
         inst = np.array([[lut.get((ch, gn), 0.0) for gn in g.groups] for ch in CHANNELS], float)
-        return cls(
-            g, list(description.rows), cls._sigma(g, white, inst), description.serial, description.estimated
-        )
+        sigma = cls._sigma(g, white, inst)
+        return cls(g, K, list(description.rows), sigma, description.serial, description.estimated)
 
     @staticmethod
     def _sigma(g: UnitGrid, white: np.ndarray, inst: np.ndarray) -> np.ndarray:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from test_discovery_shortcuts import _unit  # a simulated unit's sessions
 
 from calib_core.discovery import design, fit
 from calib_core.discovery import turntable as disc
@@ -24,6 +23,8 @@ from calib_core.discovery.noise import NoiseModel
 from calib_core.discovery.replay import MIN_POOL_DOF
 from calib_core.effects import CHANNELS
 from calib_core.results import to_jsonable
+
+from conftest import discovery_unit as _unit  # a simulated unit's sessions
 
 
 def test_term_columns_are_kept_per_grid_and_read_only():

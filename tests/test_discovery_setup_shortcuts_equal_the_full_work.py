@@ -20,17 +20,10 @@ from calib_core.effects import catalogue
 from calib_core.errors import DesignError
 from calib_core.linalg import PINV_RCOND, lstsq_pinv_cov, qr_r
 from calib_core.sim import protocols
-from calib_core.sim import simulator as sim
-from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit
+
+from conftest import discovery_unit as _unit  # a simulated unit's sessions
 
 STEPS = protocols.default_session()
-
-
-def _unit(seed: int, n_reps: int = 3, unit: str = "U000"):
-    rng = np.random.default_rng(seed)
-    truth = sim.typical_truth(rng, **REALISTIC_NOISE)
-    sessions, _ = simulate_unit(truth, STEPS, rng, n_reps, unit=unit)
-    return sessions
 
 
 def _grid_fields(g: design.UnitGrid) -> dict:
