@@ -148,6 +148,12 @@ class PinvSolution:
     scale: np.ndarray
 
     @property
+    def cov_pinv(self) -> np.ndarray:
+        """(Z^T Z)^+ in the columns' own units, the pseudo-inverse on the determined
+        directions and nothing marked."""
+        return (self.Vt.T * self.inv_s**2) @ self.Vt / np.outer(self.scale, self.scale)
+
+    @property
     def cov(self) -> np.ndarray:
         """(Z^T Z)^+ in the columns' own units; a parameter with a component along an
         undetermined direction, or whose column is 0, is NaN (built once, on first use)."""
@@ -161,20 +167,27 @@ class PinvSolution:
         return self.__dict__["_cov"]
 
 
-def lstsq_pinv(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, PinvSolution]:
+def lstsq_pinv(
+    Z: np.ndarray, y: np.ndarray, rcond: float | None = None, live_rtol: float = 1e-12
+) -> tuple[np.ndarray, int, PinvSolution]:
     """Least squares with column scaling, the pseudo-inverse on directions the data do not
-    determine (singular values below sqrt(PINV_RCOND) of the largest): theta (0 on an
-    all-zero column), rank, and the SVD's parts for the covariance."""
+    determine (singular values below ``rcond`` of the largest; default sqrt(PINV_RCOND)):
+    theta, rank, and the SVD's parts for the covariance. A column whose norm is at most
+    ``live_rtol`` of the largest is not scaled and gets no estimate (theta 0); with
+    ``live_rtol`` 0, only an all-zero column is left unscaled and its theta is what the
+    pseudo-inverse gives."""
     norms = np.sqrt(np.add.reduce(Z * Z, axis=0))  # np.linalg.norm(Z, axis=0), its arithmetic
-    live = norms > 1e-12 * max(norms.max(), 1e-300)
+    live = norms > live_rtol * max(norms.max(), 1e-300) if live_rtol else norms > 0
     scale = np.where(live, norms, 1.0)
     U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)
-    keep = s > PINV_RCOND**0.5 * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
+    r = PINV_RCOND**0.5 if rcond is None else rcond
+    keep = s > r * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
     keep &= s > 0
     rank = int(keep.sum())
     inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
     theta = (Vt.T * inv_s) @ (U.T @ y) / scale
-    theta[~live] = 0.0
+    if live_rtol:
+        theta[~live] = 0.0
     return theta, rank, PinvSolution(Vt, inv_s, keep, live, scale)
 
 
