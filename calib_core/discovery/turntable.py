@@ -193,7 +193,7 @@ _BLAS_CONTROLLER: list = []  # threadpoolctl.ThreadpoolController, found once pe
 def _single_thread_blas():
     """Many small factorisations: BLAS threads only cost synchronisation here (6x slower
     on a loaded 2-core machine). threadpoolctl is optional. The controller is built once:
-    finding the loaded libraries (reading /proc/self/maps) cost ~5 ms per unit."""
+    finding the loaded libraries (reading /proc/self/maps) costs ~5 ms, once per process."""
     try:
         from threadpoolctl import ThreadpoolController
     except ImportError:  # pragma: no cover
