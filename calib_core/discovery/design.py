@@ -8,7 +8,7 @@ adds the unit's outputs and the terms' columns.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -203,6 +203,7 @@ class Layout:
     balanced: bool
     t: np.ndarray  # (R, n) step mid times
     ctx: list[MotionContext]  # per repetition
+    cache: dict = field(default_factory=dict, compare=False, repr=False)  # derived once
 
 
 def protocol_layout(sessions: list[StepMeans]) -> Layout:
@@ -263,6 +264,45 @@ def _build_layout(sessions: list[StepMeans]) -> Layout:
     return Layout(real, step, gcode, groups, y, balanced, t, ctxs)
 
 
+def _joint_context(lay: Layout) -> MotionContext | None:
+    """The repetitions' motion contexts as one (their rows stacked), when they share the
+    session-level values (g, latitude, table heading) and every per-row field; None
+    otherwise. Kept on the layout."""
+    if "joint" in lay.cache:
+        return lay.cache["joint"]
+    ctxs = lay.ctx
+    c0 = ctxs[0]
+    same = all(
+        c.g_local == c0.g_local
+        and c.latitude_deg == c0.latitude_deg
+        and c.table_heading_deg == c0.table_heading_deg
+        and (c.heading_deg is None) == (c0.heading_deg is None)
+        and (c.turned_deg is None) == (c0.turned_deg is None)
+        for c in ctxs
+    )
+    out = None
+    if same and len(ctxs) > 1:
+
+        def cat(name):
+            v = getattr(c0, name)
+            return None if v is None else np.concatenate([getattr(c, name) for c in ctxs])
+
+        out = MotionContext(
+            w=cat("w"),
+            f=cat("f"),
+            dwdt=cat("dwdt"),
+            temp_c=cat("temp_c"),
+            t=cat("t"),
+            g_local=c0.g_local,
+            heading_deg=cat("heading_deg"),
+            latitude_deg=c0.latitude_deg,
+            table_heading_deg=c0.table_heading_deg,
+            turned_deg=cat("turned_deg"),
+        )
+    lay.cache["joint"] = out
+    return out
+
+
 def term_design(
     lay: Layout,
     names: list[str],
@@ -283,15 +323,22 @@ def term_design(
     R, n = lay.real.shape
     if regressors is None:
         regressors = []
-        for ctx in lay.ctx:
+        joint = _joint_context(lay)
+        # every repetition's rows in one call per term when the repetitions share the
+        # session-level context (the terms act row by row); else one call per repetition
+        for ctx in [joint] if joint is not None else lay.ctx:
             # minus the regressors: ref = K raw + b - E theta
             Z = (
                 -np.concatenate([t.regressors(ctx, geometry) for t in terms], axis=-1)
                 if terms
                 else np.zeros((len(ctx), 6, 0))
             )
-            Z.setflags(write=False)
             regressors.append(Z)
+        if joint is not None:
+            ends = np.cumsum([len(c) for c in lay.ctx])[:-1]
+            regressors = np.split(regressors[0], ends)
+        for Z in regressors:
+            Z.setflags(write=False)
     Zs, live_mask = [], np.zeros((6, P), bool)
     for Z in regressors:
         if dropped:
