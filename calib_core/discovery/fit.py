@@ -239,14 +239,18 @@ class JointModel:
         self._linv: dict[bytes, np.ndarray] = {}  # the whitening of each repetition's step times
         check_rank(self.g, self.weight)  # before anything solves with the affine part
         # which columns the steps determine needs the fold of all repetitions alone
-        self._factorise(all_folds=False)
+        self._prepare()
+        self._first_fold()
         self.undetermined = self._undetermined()
-        if self.undetermined:  # fitted as 0: rebuild the terms' columns without them
+        if any(self.g.live_mask[:, k].any() for k in self.undetermined):
+            # fitted as 0: rebuild the terms' columns without them (a column no step excites
+            # is in no channel's columns already: the grid would be the same)
             dropped = frozenset(self.undetermined)
             self.g = UnitGrid.build(
                 self.sessions, self.names, geometry, dropped, self.layout, self.g.regressors
             )
-        self._factorise()
+            self._prepare()
+        self._complete()
         self._fits: dict[tuple, JointFit] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
 
@@ -283,14 +287,10 @@ class JointModel:
                     )
         return out
 
-    def _factorise(self, all_folds: bool = True) -> None:
-        """Per channel c, the weighted bias-removed design A_c = [raw_c | live terms | y]:
-        R factors per repetition (held-out residuals), per fold (repetitions but one;
-        fold 0 = all, fold 1 + h leaves h out), of its pure-error part; per fold, the factor
-        of every term column with the affine model projected out (fits of any subset).
-        ``all_folds`` False: the fold of all repetitions' term factor alone (``Rg`` (1, P+1,
-        P+1)), what :meth:`_undetermined` needs."""
-        g, R = self.g, self.g.R
+    def _prepare(self) -> None:
+        """Per channel c, the weighted bias-removed design A_c = [raw_c | live terms | y],
+        whitened, and its R factor per repetition."""
+        g = self.g
         w = np.moveaxis(self.weight, -1, 0)  # (6, R, n)
         Mc, self.mu = centre(g.M, w)  # (6, R, n, k), (6, R, k)
         Mc[:, ~g.real] = 0.0
@@ -298,22 +298,32 @@ class JointModel:
         A_raw = w[..., None] * Mc
         A = prewhiten(A_raw, self.serial, g.real, g.t, self._linv)
         self.A = A
+        self.A_seen = A_raw
         # each repetition's bias column, weighted and whitened as the rows (the lack-of-fit
         # test removes it per repetition)
         self.A_bias = prewhiten(np.where(g.real, w, 0.0)[..., None], self.serial, g.real, g.t, self._linv)[
             ..., 0
         ]
-        k = A.shape[-1]
         self.Rrep = qr_r(A)  # (6, R, k, k)
         self.__dict__.pop("_bias_removed", None)
-        if not all_folds:  # fold 0 stacks every repetition's factor
-            self.Rf = qr_r(self.Rrep.reshape(6, 1, R * k, k))
-            self.Rg = self._term_factor(1)
-            return
+
+    def _first_fold(self) -> None:
+        """The fold of all repetitions alone (it stacks every repetition's factor) and its
+        term factor (``Rg`` (1, P+1, P+1)): what :meth:`_undetermined` needs."""
+        R, k = self.g.R, self.Rrep.shape[-1]
+        self.Rf = qr_r(self.Rrep.reshape(6, 1, R * k, k))
+        self.Rg = self._term_factor(1)
+
+    def _complete(self) -> None:
+        """After :meth:`_prepare`: R factors per fold (repetitions but one; fold 0 = all,
+        fold 1 + h leaves h out), of the pure-error part; per fold, the factor of every term
+        column with the affine model projected out (fits of any subset)."""
+        g, R = self.g, self.g.R
+        A, A_raw = self.A, self.A_seen
+        k = A.shape[-1]
         # the held-out score is the residual a user sees, residual / sigma, not whitened: a
         # slow effect (thermal drift) matters by its size, not by how far it is from the wander
         self.Rrep_seen = self.Rrep if A is A_raw else qr_r(A_raw)
-        self.A_seen = A_raw
         folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
         folds[:, np.arange(1, R + 1), np.arange(R)] = 0.0
         self.Rf = qr_r(folds.reshape(6, R + 1, R * k, k))  # (6, R+1, k, k)
