@@ -1,6 +1,6 @@
 """Regenerate the confounding, Earth-rate and thermal figures of docs/model-discovery.md.
 
-    .venv/bin/python tools/identifiability_figures.py [N_UNITS [EFFECTS]]    # 40 units per row
+    .venv/bin/python -m tools.identifiability_figures [N_UNITS [EFFECTS]]    # 40 units per row
         # EFFECTS: "earth" (the Earth-rate rows only) or comma-separated thermal rows only,
         # e.g. thermal_bias_drift,bias_time_drift; "pairs": the nonlinearity + thermal pair
 

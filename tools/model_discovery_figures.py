@@ -1,6 +1,6 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python tools/model_discovery_figures.py physics \
+    .venv/bin/python -m tools.model_discovery_figures physics \
         [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES [REPS [N_REPS]]]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
         # SECTIONS: comma-separated subset of effects,pairs,clean,ooc,limits ("effects" also
@@ -12,7 +12,7 @@
         # REPS (7th): "cold" (default: each repetition a cold start, one a day) or
         # "back-to-back" (the repetitions run on one warm-up); N_REPS (8th): repetitions
         # per unit (default 5, the production protocol)
-    .venv/bin/python tools/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
+    .venv/bin/python -m tools.model_discovery_figures xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
 """
