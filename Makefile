@@ -18,7 +18,7 @@ setup: $(STAMP)
 
 # Debian's chromium for the browser tests of the HTML reports (skipped when absent).
 browser:
-	bash scripts/install-browser.sh
+	bash tools/install-browser.sh
 
 demo: setup
 	rm -rf $(DEMO)
@@ -35,7 +35,7 @@ demo: setup
 # The browser install is best effort here (no root: the browser tests skip and say why);
 # CI installs it first and must succeed (.ci/run).
 test: setup
-	-bash scripts/install-browser.sh
+	-bash tools/install-browser.sh
 	$(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=15
 
 test-fast: setup
@@ -43,7 +43,7 @@ test-fast: setup
 
 # ruff check + format check, no rewriting ([tool.ruff] in pyproject.toml)
 lint: setup
-	bash scripts/lint.sh
+	bash tools/lint.sh
 
 reproduce: setup
 	$(VENV)/bin/mimucal reproduce xu2016

@@ -128,3 +128,94 @@ def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> Lst
         np.broadcast_to(fac.cond, (n_problems,)),
         np.broadcast_to(fac.rank, (n_problems,)),
     )
+
+
+# -- small pseudo-inverse solves (model discovery's joint fit) --------------------------------------
+# Discovery solves many small problems on R factors (k x k, k ~ 10-40) whose columns may be
+# exactly 0 or not determined by the steps: the pseudo-inverse on the determined directions,
+# with the covariance built only when a caller asks for it.
+PINV_RCOND = 1e-10
+
+
+@dataclass
+class PinvSolution:
+    """What :func:`lstsq_pinv` keeps of its SVD for the covariance of the solution."""
+
+    Vt: np.ndarray
+    inv_s: np.ndarray
+    keep: np.ndarray
+    live: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def cov_pinv(self) -> np.ndarray:
+        """(Z^T Z)^+ in the columns' own units, the pseudo-inverse on the determined
+        directions and nothing marked."""
+        return (self.Vt.T * self.inv_s**2) @ self.Vt / np.outer(self.scale, self.scale)
+
+    @property
+    def cov(self) -> np.ndarray:
+        """(Z^T Z)^+ in the columns' own units; a parameter with a component along an
+        undetermined direction, or whose column is 0, is NaN (built once, on first use)."""
+        if "_cov" not in self.__dict__:
+            Vt, inv_s, keep, live, scale = self.Vt, self.inv_s, self.keep, self.live, self.scale
+            cov = (Vt.T * inv_s**2) @ Vt / np.outer(scale, scale)
+            undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live
+            cov[undetermined, :] = np.nan
+            cov[:, undetermined] = np.nan
+            self.__dict__["_cov"] = cov
+        return self.__dict__["_cov"]
+
+
+def lstsq_pinv(
+    Z: np.ndarray, y: np.ndarray, rcond: float | None = None, live_rtol: float = 1e-12
+) -> tuple[np.ndarray, int, PinvSolution]:
+    """Least squares with column scaling, the pseudo-inverse on directions the data do not
+    determine (singular values below ``rcond`` of the largest; default sqrt(PINV_RCOND)):
+    theta, rank, and the SVD's parts for the covariance. A column whose norm is at most
+    ``live_rtol`` of the largest is not scaled and gets no estimate (theta 0); with
+    ``live_rtol`` 0, only an all-zero column is left unscaled and its theta is what the
+    pseudo-inverse gives."""
+    norms = np.sqrt(np.add.reduce(Z * Z, axis=0))  # np.linalg.norm(Z, axis=0), its arithmetic
+    live = norms > live_rtol * max(norms.max(), 1e-300) if live_rtol else norms > 0
+    scale = np.where(live, norms, 1.0)
+    U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)
+    r = PINV_RCOND**0.5 if rcond is None else rcond
+    keep = s > r * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
+    keep &= s > 0
+    rank = int(keep.sum())
+    inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    theta = (Vt.T * inv_s) @ (U.T @ y) / scale
+    if live_rtol:
+        theta[~live] = 0.0
+    return theta, rank, PinvSolution(Vt, inv_s, keep, live, scale)
+
+
+def lstsq_pinv_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """:func:`lstsq_pinv` with its covariance: theta, (Z^T Z)^+ (NaN where undetermined), rank."""
+    theta, rank, solution = lstsq_pinv(Z, y)
+    return theta, solution.cov, rank
+
+
+def lstsq_pinv_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """theta of :func:`lstsq_pinv` for a stack of problems, Z (B, m, p), y (B, m): one batched
+    SVD."""
+    norms = np.linalg.norm(Z, axis=-2)  # (B, p)
+    live = norms > 1e-12 * np.maximum(norms.max(axis=-1, keepdims=True), 1e-300)
+    scale = np.where(live, norms, 1.0)
+    U, s, Vt = np.linalg.svd(Z / scale[:, None, :], full_matrices=False)
+    keep = (s > PINV_RCOND**0.5 * s[:, :1]) & (s[:, :1] > 0) & (s > 0)
+    inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    uy = np.einsum("bmk,bm->bk", U, y)
+    theta = np.einsum("bkp,bk->bp", Vt, inv_s * uy) / scale
+    return np.where(live, theta, 0.0)
+
+
+def qr_r(X: np.ndarray) -> np.ndarray:
+    """R factor of each matrix of a stack (..., m, k), padded with zero rows to (..., k, k)."""
+    Rf = np.linalg.qr(X, mode="r")
+    k = X.shape[-1]
+    if Rf.shape[-2] < k:
+        pad = np.zeros(Rf.shape[:-2] + (k - Rf.shape[-2], k))
+        Rf = np.concatenate([Rf, pad], axis=-2)
+    return Rf

@@ -89,7 +89,7 @@ class Chromium:
     ) -> None:
         self.executable = executable or find_chromium()
         if not self.executable:
-            raise BrowserError("chromium not found (install Debian's package: scripts/install-browser.sh)")
+            raise BrowserError("chromium not found (install Debian's package: tools/install-browser.sh)")
         self.width, self.height, self.timeout_s = width, height, timeout_s
         self.log = PageLog()
         self._id = 0

@@ -29,7 +29,7 @@ def chromium_or_error() -> str:
     if exe is None:
         raise PdfError(
             "printing a PDF needs Debian's chromium, which is not installed "
-            "(sudo apt-get install chromium, or bash scripts/install-browser.sh)"
+            "(sudo apt-get install chromium, or bash tools/install-browser.sh)"
         )
     return exe
 

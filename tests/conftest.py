@@ -62,6 +62,15 @@ def unit_step_means(n: int = 5, seed: int = 7, steps=STEPS_WITH_VERIFICATION, **
     ]
 
 
+def discovery_unit(seed: int, n_reps: int = 3, unit: str = "U000") -> list[StepMeans]:
+    """A typical unit with realistic noise on the default protocol, ``n_reps`` repetitions
+    from the fast simulator (seeded): what the discovery engine's bookkeeping tests take."""
+    rng = np.random.default_rng(seed)
+    truth = simulator.typical_truth(rng, **simulator.REALISTIC_NOISE)
+    sessions, _ = simulator.simulate_unit(truth, protocols.default_session(), rng, n_reps, unit=unit)
+    return sessions
+
+
 def load_manifest(fleet_dir: Path | str) -> dict:
     """The truth ``flows.fleet_sim.simulate_fleet`` wrote beside a simulated fleet."""
     # imported here: pytest imports this file before the test modules that set up the flows'
@@ -69,6 +78,17 @@ def load_manifest(fleet_dir: Path | str) -> dict:
     from flows.fleet_sim import MANIFEST
 
     return json.loads((Path(fleet_dir) / MANIFEST).read_text())
+
+
+@pytest.fixture(scope="session")
+def synthetic_store(tmp_path_factory):
+    """The 12-unit synthetic lot (2 outlier units, 1 failed session, seed 7) of
+    ``reports.synthetic``, built once per test session (per worker): the report tests that
+    read it only add report files to it."""
+    from reports.synthetic import build_synthetic_store
+
+    root = tmp_path_factory.mktemp("synthetic-store")
+    return build_synthetic_store(root, n_units=12, n_outliers=2, n_failed=1, seed=7, nav_samples=3000)
 
 
 @pytest.fixture(scope="session")

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation_ident import sensor_effect_scenario
 from calib_core.discovery.turntable import _Discovery
 from calib_core.effects import get_effect
 from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, WarmUp, typical_physics_unit
 from schemas.physics_sessions import _sessions, physics_unit_step_means
+from tools.discovery_evaluation_ident import sensor_effect_scenario
 
 
 def back_to_back(unit, steps, rng, unit_id, table=None):

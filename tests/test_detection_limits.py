@@ -124,8 +124,8 @@ def test_a_scenario_counts_each_hidden_effect_against_the_protocols_limit():
     """The effects table's "above the limit" split: a unit counts as within the protocol's
     limit when its hidden effect, as hidden, is detected with the limits' power and worth
     naming; the count is the prediction's, whatever discovery then does."""
-    from calib_core.discovery.evaluation import _within, run_scenario
     from schemas.physics_sessions import physics_unit_step_means as means
+    from tools.discovery_evaluation import _within, run_scenario
 
     limits = detection_limits(STEPS)
     det = limits.terms["gyro_scale_nonlinearity"]

@@ -10,7 +10,6 @@ import pytest
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation_ident import earth_rate_scenario, quiet_gyros, sensor_effect_scenario
 from calib_core.effects import get_effect
 from calib_core.effects.earth_rate import EARTH_RATE_DEG_H
 from calib_core.sim import protocols
@@ -22,6 +21,7 @@ from schemas.dataset import find_sessions
 from schemas.errors import SessionError
 from schemas.physics_sessions import physics_unit_step_means, write_physics_unit
 from schemas.reader import validate_steps
+from tools.discovery_evaluation_ident import earth_rate_scenario, quiet_gyros, sensor_effect_scenario
 
 
 def step_means_of(unit, steps, rng, unit_id, table):

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation import run_scenario
 from calib_core.discovery.turntable import _Discovery
 from calib_core.effects import CHANNELS, get_effect
 from calib_core.sim import protocols
 from calib_core.sim.physics import typical_physics_unit
 from schemas.physics_sessions import physics_unit_step_means
+from tools.discovery_evaluation import run_scenario
 
 STEPS = protocols.default_session()
 
@@ -64,7 +64,7 @@ def test_targeted_test_epsilons_change_the_dof_not_the_f():
     and 18 per-channel ones, whose epsilons differ."""
     from scipy import stats
 
-    from calib_core.discovery.turntable import _sphericity_epsilon
+    from calib_core.discovery.noise import sphericity_epsilon as _sphericity_epsilon
 
     rng = np.random.default_rng(31)
     d = _Discovery(step_means_of(typical_physics_unit(rng), STEPS, rng, "J0"), 0.01)
@@ -98,8 +98,10 @@ def test_lack_of_fit_f_of_clean_units_has_the_f_mean_once_the_noise_model_is_cou
         f.append(d.lack_of_fit((), 1.0).statistic)
         ss_lof, dof, ss_pure, dof_pure, inflation = d.projected_lack_of_fit(()).T
         # three step variances dominated by the wander (about 2 each) and the serial model's
-        assert np.all(d.noise_params > 5.0) and np.all(d.noise_params < 9.0)
-        f_uncounted.append((ss_lof.sum() / dof.sum()) / (ss_pure.sum() / (dof_pure + d.noise_params).sum()))
+        assert np.all(d.model.noise.params > 5.0) and np.all(d.model.noise.params < 9.0)
+        f_uncounted.append(
+            (ss_lof.sum() / dof.sum()) / (ss_pure.sum() / (dof_pure + d.model.noise.params).sum())
+        )
         d2 = float(np.sum(dof_pure / inflation))
         expected.append(d2 / (d2 - 2.0))  # the mean of F(d1, d2)
     f = np.asarray(f)

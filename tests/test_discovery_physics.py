@@ -1,7 +1,7 @@
 """Model discovery on the independent physics simulator (:mod:`calib_core.sim.physics`):
 sensors misaligned by about 0.5 deg, realistic noise with a wandering bias, warm-up ramp.
 Seeded small samples of the figures in docs/model-discovery.md
-(``docs/model_discovery_figures.py physics``)."""
+(``tools/model_discovery_figures.py physics``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation import run_scenario
 from calib_core.effects import (
     EffectTerm,
     FigureVariable,
@@ -24,6 +23,7 @@ from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from schemas.calibration_file import calibration_from_dict, calibration_to_dict
 from schemas.physics_sessions import physics_unit_step_means
+from tools.discovery_evaluation import run_scenario
 
 STEPS = protocols.default_session()
 
@@ -138,7 +138,7 @@ def test_white_step_noise_is_not_modelled_as_serial():
     offset as the residuals carry): the serial model stays off. Without the significance
     gate (SERIAL_MIN_Z) the signs of two noisy correlations switched it on for a triad on
     about 44 % of draws; with it, 2 triads x 0.13 % expected: at most 3 of 200 draws."""
-    from calib_core.discovery import turntable
+    from calib_core.discovery import noise
 
     rng = np.random.default_rng(11)
     R, n = 5, 120
@@ -147,7 +147,7 @@ def test_white_step_noise_is_not_modelled_as_serial():
     on = 0
     for _ in range(200):
         z = rng.normal(size=(R, n, 6)) + rng.normal(size=(1, n, 6)) * 3.0 + rng.normal(size=(R, 1, 6))
-        on += turntable._serial_noise(z, real, t).correlated
+        on += noise.serial_noise(z, real, t).correlated
     assert on <= 3, on
 
 
@@ -156,7 +156,7 @@ def test_serial_noise_is_recovered_and_whitened_away():
     """Step means of 5 repetitions with white noise plus a Gauss-Markov wander (share 0.7,
     time constant 20 s, steps 3.7 s apart): the estimate finds the share and the time
     constant, and the whitened rows are uncorrelated with unit variance."""
-    from calib_core.discovery import turntable
+    from calib_core.discovery import noise
 
     rng = np.random.default_rng(3)
     R, n, lam, tau = 5, 120, 0.7, 20.0
@@ -170,11 +170,11 @@ def test_serial_noise_is_recovered_and_whitened_away():
     for _ in range(20):
         z = np.einsum("ij,rjc->ric", L, rng.normal(size=(R, n, 6)))
         z += rng.normal(size=(1, n, 6)) * 3.0 + rng.normal(size=(R, 1, 6)) * 5.0  # step, rep
-        est = turntable._serial_noise(z, real, t)
+        est = noise.serial_noise(z, real, t)
         lams.append(est.lam)
         taus.append(est.tau_s)
         e = np.einsum("ij,rjc->ric", L, rng.normal(size=(R, n, 6)))
-        w = turntable._prewhiten(np.moveaxis(e, -1, 0)[..., None], est, real, t)[..., 0]
+        w = noise.prewhiten(np.moveaxis(e, -1, 0)[..., None], est, real, t)[..., 0]
         covs.append(
             [np.mean(w[c] ** 2) for c in range(6)] + [np.mean(w[c][:, 1:] * w[c][:, :-1]) for c in range(6)]
         )
@@ -277,7 +277,7 @@ def test_held_out_gain_counts_on_the_steps_the_effect_acts_on(monkeypatch):
     """A gyro nonlinearity at a quarter of its realistic size acts on the high-rate steps
     only: counted there, its held-out gain passes min_gain and it is named; counted on every
     step of its channel (EXCITED_SHARE 1), the steps where it is zero dilute it below."""
-    from calib_core.discovery import turntable
+    from calib_core.discovery import fit
     from calib_core.discovery.presentation import finding_rows
     from flows.commands.diagnose import summary_lines
 
@@ -296,7 +296,7 @@ def test_held_out_gain_counts_on_the_steps_the_effect_acts_on(monkeypatch):
     assert d.to_dict()["effects"][0]["heldout_steps"] == [counted, total]
     assert finding_rows(d)[0]["channels"] == f"gy ({counted} of {total} step means)"  # the report's cell
 
-    monkeypatch.setattr(turntable, "EXCITED_SHARE", 1.0)
+    monkeypatch.setattr(fit, "EXCITED_SHARE", 1.0)
     diluted = diagnose_unit(sessions, tables=False)
     assert not diluted.effects and [e.name for e in diluted.negligible] == ["gyro_scale_nonlinearity"]
     assert diluted.negligible[0].heldout_steps == (total, total)

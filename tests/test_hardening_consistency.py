@@ -57,7 +57,7 @@ def _physics_unit(seed: int, reps: int):
 def test_clean_units_lose_no_step(reps):
     """No clean unit of either simulator loses a step (measured on 1,000 project-simulator
     and 300 physics-simulator units per repetition count: largest robust z 10.8, limit 15,
-    docs/step_consistency_figures.py; here a sample of them)."""
+    tools/step_consistency_figures.py; here a sample of them)."""
     for seed in range(12):
         assert inconsistent_steps(_project_unit(seed, reps)) == []
     for seed in range(2):

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib_core.discovery.turntable import _variance_dof_cost
+from calib_core.discovery.noise import variance_dof_cost as _variance_dof_cost
 
 # the default protocol's test groups on 5 repetitions: pure-error dof and lack-of-fit dof
 PURE_DOF = np.array([92, 128, 240])

@@ -236,7 +236,7 @@ def test_lot_report_in_the_browser_draws_the_limits_and_both_badges(fleet):
     from reports.browser import Chromium, find_chromium
 
     if find_chromium() is None:
-        pytest.skip("Debian's chromium is not installed (run scripts/install-browser.sh)")
+        pytest.skip("Debian's chromium is not installed (run tools/install-browser.sh)")
     base, _, results = fleet
     # the limits again (an earlier test cleared them): the report is rebuilt with them
     assert (

@@ -11,13 +11,12 @@ import pytest
 from reports.browser import Chromium, find_chromium
 from reports.index import write_fleet_index
 from reports.lot import write_lot_report
-from reports.synthetic import build_synthetic_store
 from reports.unit import write_unit_report
 
 pytestmark = [
     pytest.mark.browser,
     pytest.mark.skipif(
-        find_chromium() is None, reason="Debian's chromium is not installed (run scripts/install-browser.sh)"
+        find_chromium() is None, reason="Debian's chromium is not installed (run tools/install-browser.sh)"
     ),
 ]
 
@@ -25,10 +24,8 @@ FLAGGED_RGB = "rgb(214, 39, 40)"  # reports.html.FLAGGED
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    root = tmp_path_factory.mktemp("browser-store")
-    truth = build_synthetic_store(root, n_units=12, n_outliers=2, n_failed=1, seed=7, nav_samples=3000)
-    return truth
+def store(synthetic_store):
+    return synthetic_store
 
 
 @pytest.fixture(scope="module")

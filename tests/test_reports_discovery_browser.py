@@ -16,8 +16,6 @@ import pandas as pd
 import pytest
 
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation import OUT_OF_CATALOGUE
-from calib_core.discovery.evaluation_ident import quiet_gyros
 from calib_core.discovery.presentation import finding_rows
 from calib_core.effects import get_effect
 from calib_core.sim import protocols
@@ -27,12 +25,14 @@ from reports.lot import write_lot_report
 from reports.synthetic import build_synthetic_store
 from schemas.physics_sessions import physics_unit_step_means
 from schemas.results_store import ResultsStore
+from tools.discovery_evaluation import OUT_OF_CATALOGUE
+from tools.discovery_evaluation_ident import quiet_gyros
 
 pytestmark = [
     pytest.mark.browser,
     pytest.mark.slow,
     pytest.mark.skipif(
-        find_chromium() is None, reason="Debian's chromium is not installed (run scripts/install-browser.sh)"
+        find_chromium() is None, reason="Debian's chromium is not installed (run tools/install-browser.sh)"
     ),
 ]
 SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "img" / "discovery-section.png"

@@ -13,7 +13,6 @@ import pytest
 from reports.browser import Chromium, find_chromium
 from reports.lot import write_lot_report
 from reports.sections.residuals import rates_span_decades, symlog, symlog_axis
-from reports.synthetic import build_synthetic_store
 
 
 def test_symlog_is_monotonic_signed_and_its_ticks_name_the_rates():
@@ -42,9 +41,8 @@ def test_symlog_is_monotonic_signed_and_its_ticks_name_the_rates():
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
-    root = tmp_path_factory.mktemp("scan-store")
-    return build_synthetic_store(root, n_units=12, n_outliers=2, n_failed=1, seed=7, nav_samples=3000)
+def store(synthetic_store):
+    return synthetic_store
 
 
 @pytest.fixture(scope="module")

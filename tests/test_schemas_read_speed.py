@@ -77,7 +77,7 @@ def _assert_matches_naive(sm, naive: pd.DataFrame, rtol: float = 1e-12) -> None:
 def test_steps_in_several_runs_average_like_pandas():
     """Steps split into many runs by between-step samples (id -1) inside them: several
     segments per step are added up per step. (Steps interleaved with each other are
-    E_STEP_NOT_CONTIGUOUS: tests/test_hardening_round2.py.)"""
+    E_STEP_NOT_CONTIGUOUS: tests/test_hardening_fault_injection_corpus.py.)"""
     steps, samples, md = _simulate(31, temperature=True)
     s = samples.copy()
     ids = s["step"].to_numpy().copy()

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import special
 
-from calib_core.discovery.turntable import _sphericity_epsilon
+from calib_core.discovery.noise import sphericity_epsilon as _sphericity_epsilon
 
 R = 5  # the production protocol's repetitions
 

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from calib_core.discovery import diagnose_unit
-from calib_core.discovery.evaluation_ident import sensor_effect_scenario
 from calib_core.discovery.identifiability import analyse, near_confounded
 from calib_core.discovery.plan import (
     TEMPERATURE_CHANGES,
@@ -24,6 +23,7 @@ from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, WarmUp, typical_physics_unit
 from flows.commands.diagnose import summary_lines
 from schemas.physics_sessions import physics_unit_step_means
+from tools.discovery_evaluation_ident import sensor_effect_scenario
 
 CURVED = WarmUp(rise_c=10.0, tau_s=150.0)
 WARM_UP_LABEL, SOAK_LABEL, BACK_TO_BACK_LABEL = TEMPERATURE_CHANGES

@@ -3,7 +3,7 @@
 For every excited parameter of every catalogue term, alone on a unit, two sizes:
 
 - **detectable**: the size at which the term's targeted test (:meth:`calib_core.discovery.
-  turntable._Discovery.targeted_test`: the repetitions' mean residual on the term's p joint
+  significance.Significance.targeted_test`: the repetitions' mean residual on the term's p joint
   directions against the repetitions' own scatter along every channel's copy of them)
   rejects at the share of alpha discovery gives it (alpha / 2 over the candidate groups)
   with probability ``power``. The noncentrality of that F is R |P W x|^2 theta^2: x the

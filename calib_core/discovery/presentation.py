@@ -242,18 +242,18 @@ def static_finding_rows(diag, lot: str, unit: str) -> list[dict[str, Any]]:
     return rows
 
 
-def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
-    """The series behind each figure, from the final :class:`_Discovery` ``d``: per finding
-    (named, confounded; the misfit left for unexplained), per channel it was judged on, every
-    repetition's steps: ``x`` (the variable that drives it, :meth:`EffectTerm.figure_variable`),
-    ``before`` (residual of the affine model), ``fitted`` (the finding's fitted effect, drawn
-    over ``before``), ``after`` (residual of the chosen model); gyro channels in deg/s,
-    accelerometer channels in mg."""
-    g = d.g
-    real = g.real
-    _, r_before = d.noise_model(())
-    f_after = d.fit(tuple(chosen))
-    r_after = np.einsum("crnk,ck->rnc", d.Mc, f_after.v)
+def evidence_frame(model, diag, chosen: list[str], items: dict) -> pd.DataFrame:
+    """The series behind each figure, from the final joint model's public results
+    (:class:`calib_core.discovery.fit.JointModel`: ``residual``, ``fitted_effect``,
+    ``steps``, ``contexts``): per finding (named, confounded; the misfit left for
+    unexplained), per channel it was judged on, every repetition's steps: ``x`` (the
+    variable that drives it, :meth:`EffectTerm.figure_variable`), ``before`` (residual of
+    the affine model), ``fitted`` (the finding's fitted effect, drawn over ``before``),
+    ``after`` (residual of the chosen model); gyro channels in deg/s, accelerometer
+    channels in mg."""
+    real, steps, contexts = model.real, model.steps, model.contexts
+    r_before = model.residual(())
+    r_after = model.residual(tuple(chosen))
     frames = []
 
     def add(
@@ -262,9 +262,8 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
         for ch in channels:
             c = CHANNELS.index(ch)
             scale = 1.0 if c < 3 else 1e3
-            for r in range(g.R):
+            for r, ctx in enumerate(contexts):
                 m = real[r]
-                ctx = _layout_ctx(d, r)
                 if names:
                     fv = get_effect(names[0]).figure_variable(ctx, c)
                 else:  # unexplained: against the channel's own reference
@@ -279,8 +278,8 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
                             "effect": effect,
                             "kind": kind,
                             "channel": ch,
-                            "rep": int(d.sessions[r].key.rep),
-                            "step": g.step[r, m].astype(np.int32),
+                            "rep": int(model.sessions[r].key.rep),
+                            "step": steps[r, m].astype(np.int32),
                             "x": np.asarray(fv.values, float)[:n].astype(np.float32),
                             "x_label": fv.label,
                             "x_unit": fv.unit,
@@ -295,13 +294,7 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
                 )
 
     for item in items["chosen"]:
-        v2 = f_after.v.copy()
-        cols = set(g.cols(tuple(sorted(item))).tolist())
-        for c in range(6):
-            for j, col in enumerate(g.colmap[c]):
-                if int(col) in cols:
-                    v2[c, 3 + j] = 0.0
-        fitted = np.einsum("crnk,ck->rnc", d.Mc, v2) - r_after
+        fitted = model.fitted_effect(tuple(chosen), item)
         if len(item) == 1:
             e = next(x for x in diag.effects if x.name == item[0])
             add(item[0], "named", item, e.channels, fitted)
@@ -316,7 +309,3 @@ def evidence_frame(d, diag, chosen: list[str], items: dict) -> pd.DataFrame:
     if not frames:
         return pd.DataFrame()
     return pd.concat(frames, ignore_index=True)
-
-
-def _layout_ctx(d, r: int):
-    return d.layout.ctx[r]

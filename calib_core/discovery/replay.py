@@ -25,6 +25,8 @@ would cry wolf on any unit with bias instability; :mod:`calib_core.discovery` re
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 
@@ -126,7 +128,7 @@ class NoiseEstimate:
 
     Built from a table or from its rows (:meth:`from_records`); the other form is made on
     first use: the nightly run only ever needs the rows (JSON), and a DataFrame round trip
-    cost ~2 ms per unit.
+    costs ~2 ms per unit.
     """
 
     def __init__(self, table: pd.DataFrame | None, from_repetitions: bool, records: list[dict] | None = None):
@@ -195,6 +197,28 @@ def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray) -> t
     return (e[:, 0] if flat else e), dof
 
 
+def pool_step_noise(
+    groups: list[str], dofs: list[int], ss: list[float], white_sd: list[float]
+) -> list[tuple[str, int, float, float, float]]:
+    """The noise of a step mean on one channel, per test group: (group, dof, step_sd,
+    white_sd, instability_sd) from each group's pure-error sum of squares ``ss`` on ``dofs``
+    and its within-step white sd. A group with fewer than ``MIN_POOL_DOF`` dof borrows the
+    channel's pooled variance; a channel without any dof (one repetition) has the white part
+    alone. The one pooling rule of the replayed tables and of discovery's noise model
+    (:class:`calib_core.discovery.noise.NoiseModel`), in Python floats."""
+    pooled_ss, pooled_dof = 0.0, 0
+    for v, d in zip(ss, dofs):
+        pooled_ss += v
+        pooled_dof += int(d)
+    pooled_var = pooled_ss / pooled_dof if pooled_dof else math.nan
+    out = []
+    for g, d, v, w in zip(groups, dofs, ss, white_sd):
+        var = v / int(d) if d >= MIN_POOL_DOF else pooled_var
+        step_sd = math.sqrt(var) if math.isfinite(var) else w
+        out.append((g, int(d), step_sd, w, math.sqrt(max(step_sd**2 - w**2, 0.0))))
+    return out
+
+
 def estimate_noise(table: pd.DataFrame) -> NoiseEstimate:
     """Pool the repetition scatter of each step's residual per channel and test group.
 
@@ -222,23 +246,19 @@ def estimate_noise_arrays(
     out = []
     for ch in CHANNELS:
         in_ch = channel == ch
-        pooled_ss, pooled_dof, rows = 0.0, 0, []
+        groups, dofs, sss, whites = [], [], [], []
         for g in sorted(set(group[in_ch])):
             m = in_ch & (group == g)
-            w = float(np.sqrt(np.mean(white[m] ** 2)))
             if multi:
                 e, dof = two_way_residual(residual[m], step[m], rep[m])
                 ss = float(e @ e)
             else:
                 ss, dof = 0.0, 0
-            pooled_ss += ss
-            pooled_dof += dof
-            rows.append([g, dof, ss, w])
-        pooled_var = pooled_ss / pooled_dof if pooled_dof else np.nan
-        for g, dof, ss, w in rows:
-            var = ss / dof if dof >= MIN_POOL_DOF else pooled_var
-            step_sd = float(np.sqrt(var)) if np.isfinite(var) else w
-            inst = float(np.sqrt(max(step_sd**2 - w**2, 0.0)))
+            groups.append(g)
+            dofs.append(dof)
+            sss.append(ss)
+            whites.append(float(np.sqrt(np.mean(white[m] ** 2))))
+        for g, dof, step_sd, w, inst in pool_step_noise(groups, dofs, sss, whites):
             out.append(
                 {
                     "channel": ch,

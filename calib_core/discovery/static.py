@@ -70,6 +70,7 @@ from calib_core.discovery.results import DEFAULT_ALPHA, EffectFinding, FTest, f_
 from calib_core.discovery.selection import stepwise
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
+from calib_core.linalg import lstsq_pinv
 
 EARTH_RATE_DPS = 360.0 / 86164.1  # 0.00418 deg/s, ignored (see the module docstring)
 BASE_RCOND = 3e-2  # base columns are O(1) unit-vector products: directions below this are noise
@@ -344,15 +345,9 @@ class _StaticDiscovery:
         X = np.hstack([blk.base @ V] + Zs)
         Xw = X[rows] * blk.weight[rows, None]
         yw = blk.y[rows] * blk.weight[rows]
-        scale = np.linalg.norm(Xw, axis=0)
-        scale = np.where(scale > 0, scale, 1.0)
-        U, sv, Wt = np.linalg.svd(Xw / scale, full_matrices=False)
-        keep = sv > 1e-8 * sv[0]
-        inv = np.where(keep, 1.0 / np.where(keep, sv, 1.0), 0.0)
-        coef = (Wt.T * inv) @ (U.T @ yw) / scale
-        cov = (Wt.T * inv**2) @ Wt / np.outer(scale, scale)
+        coef, rank, sol = lstsq_pinv(Xw, yw, rcond=1e-8, live_rtol=0.0)
         r = yw - Xw @ coef
-        out = (coef, cov, float(r @ r), int(keep.sum()), X, V.shape[1])
+        out = (coef, sol.cov_pinv, float(r @ r), rank, X, V.shape[1])
         self._cache[key] = out
         return out
 

@@ -15,7 +15,7 @@ and *other* published numbers, not used in that fit, test the explanation.
   itself read from Table 3's off-axis ranges), and how much of them a drift across
   repetitions (warm-up) explains.
 
-``python docs/model_discovery_figures.py xu2016`` regenerates the numbers of
+``python -m tools.model_discovery_figures xu2016`` regenerates the numbers of
 docs/model-discovery.md. Pure numerics.
 """
 

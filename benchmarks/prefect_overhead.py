@@ -3,7 +3,7 @@ task run for each task runner of :mod:`flows.task_runners` (thread pool, process
 LocalCluster of worker processes), with and without the shared API (a worker that reports to
 the flow's server vs one that starts its own).
 
-``python -m flows.prefect_overhead [--quick]`` prints a Markdown table
+``python -m benchmarks.prefect_overhead [--quick]`` prints a Markdown table
 (docs/flows.md records three runs). For each runner: the *fixed* cost of a flow run with
 that runner (pool or cluster start, worker imports, each worker's first Prefect client) =
 a 2-task flow minus an empty flow, the *per task* cost = the slope between the 2-task flow and

@@ -3,7 +3,7 @@ thermal terms, on the independent physics simulator (:mod:`calib_core.sim.physic
 
 Each scenario diagnoses ``n_units`` simulated units and counts outcomes. Step means come
 from a caller-given function ``step_means_of(unit, steps, rng, unit_id, table)`` (the
-reader's averaging lives in ``schemas.physics_sessions``, which calib_core may not import).
+reader's averaging lives in ``schemas.physics_sessions``).
 
 The Earth-rate scenarios use gyros whose bias instability (0.002 deg/s = 7 deg/h, white
 noise 0.002 deg/s/sqrt(Hz)) is below the Earth rate: with the typical MEMS unit of

@@ -1,9 +1,9 @@
 """Write the lot and unit reports of a demo store to a directory, or compare two such
 directories report by report and table by table.
 
-    python scripts/compare_reports.py write OUT STORE   # reports of the store STORE (a
+    python tools/compare_reports.py write OUT STORE   # reports of the store STORE (a
                                                         # synthetic 12-unit one when it is new)
-    python scripts/compare_reports.py compare BEFORE AFTER
+    python tools/compare_reports.py compare BEFORE AFTER
 
 A refactoring of reports/ leaves every report byte-identical but for the footer's generation
 time; when it does not, ``compare`` names the tables that differ and the section of the first

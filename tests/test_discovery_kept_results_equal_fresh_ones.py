@@ -16,12 +16,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from test_discovery_shortcuts import _unit  # a simulated unit's sessions
 
+from calib_core.discovery import design, fit
 from calib_core.discovery import turntable as disc
+from calib_core.discovery.noise import NoiseModel
 from calib_core.discovery.replay import MIN_POOL_DOF
 from calib_core.effects import CHANNELS
 from calib_core.results import to_jsonable
+
+from conftest import discovery_unit as _unit  # a simulated unit's sessions
 
 
 def test_term_columns_are_kept_per_grid_and_read_only():
@@ -96,13 +99,14 @@ def test_noise_pooling_equals_the_former_arithmetic(monkeypatch):
     resid = rng.normal(size=(g.R, g.n, 6)) * 1e-2
     for dof_override in (None, "small", "zero"):
         if dof_override is not None:  # groups below MIN_POOL_DOF borrow the pooled value
-            e, grp, dof = disc._UnitGrid.two_way(g, resid)
+            e, grp, dof = design.UnitGrid.two_way(g, resid)
             dof = dof.copy()
             dof[0] = 3 if dof_override == "small" else 0
             if dof_override == "zero":
                 dof[:] = 0
-            monkeypatch.setattr(disc._UnitGrid, "two_way", lambda self, X, _r=(e, grp, dof): _r)
-        rows, sigma = d._noise(K, resid)
+            monkeypatch.setattr(design.UnitGrid, "two_way", lambda self, X, _r=(e, grp, dof): _r)
+        noise = NoiseModel.from_residuals(g, K, resid)
+        rows, sigma = noise.rows, noise.sigma
         e, grp, dof = g.two_way(resid)
         white = g.white_sigma(K)
         ng = len(g.groups)
@@ -136,7 +140,7 @@ def test_rank_shortcut_folds_are_the_deleted_matrices(monkeypatch):
         D = rng.normal(size=(6, R, 7, 4))
         seen.clear()
         monkeypatch.setattr(np.linalg, "cholesky", spy)
-        disc._surely_full_rank(D)
+        fit._surely_full_rank(D)
         monkeypatch.undo()
         # the folds as the former code built them
         G = D.swapaxes(-1, -2) @ D
@@ -152,7 +156,7 @@ def test_rank_shortcut_folds_are_the_deleted_matrices(monkeypatch):
         ]
         held_out = np.concatenate(folds, axis=1)
         tr = np.trace(held_out, axis1=-2, axis2=-1)
-        expected = held_out - (disc.RANK_SURE_RATIO * tr)[..., None, None] * np.eye(2 + R)
+        expected = held_out - (fit.RANK_SURE_RATIO * tr)[..., None, None] * np.eye(2 + R)
         assert len(seen) == 2  # fold 0, then the held-out folds
         np.testing.assert_array_equal(seen[1], expected)
 

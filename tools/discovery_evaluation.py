@@ -1,12 +1,12 @@
 """How well discovery names effects hidden in the independent physics simulator
 (:mod:`calib_core.sim.physics`): the scenarios and the tally behind the figures of
-docs/model-discovery.md (``docs/model_discovery_figures.py physics``) and their seeded tests.
+docs/model-discovery.md (``tools/model_discovery_figures.py physics``) and their seeded tests.
 
 A scenario is a realistic clean unit (sensors misaligned by about 0.5 deg, warm-up ramp)
 with catalogue effects hidden in its sensors by each effect's own
 :meth:`calib_core.effects.EffectTerm.hide`, or with one physical error that no catalogue
 term models (:data:`OUT_OF_CATALOGUE`). Step means come from a caller-given function (the
-reader's averaging lives in ``schemas.physics_sessions``, which calib_core may not import).
+reader's averaging lives in ``schemas.physics_sessions``).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Regenerate the measured figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/model_discovery_figures.py physics \
+    .venv/bin/python -m tools.model_discovery_figures physics \
         [N_UNITS [N_CLEAN [SECTIONS [EFFECTS [SCALES [REPS [N_REPS]]]]]]]
         # the physics-simulator figures (40 units per cell, 200 clean units: ~20 min);
         # SECTIONS: comma-separated subset of effects,pairs,clean,ooc,limits ("effects" also
@@ -12,7 +12,7 @@
         # REPS (7th): "cold" (default: each repetition a cold start, one a day) or
         # "back-to-back" (the repetitions run on one warm-up); N_REPS (8th): repetitions
         # per unit (default 5, the production protocol)
-    .venv/bin/python docs/model_discovery_figures.py xu2016    # the paper's gaps (~40 s)
+    .venv/bin/python -m tools.model_discovery_figures xu2016    # the paper's gaps (~40 s)
 
 Seeded: the same numbers every run.
 """
@@ -36,10 +36,10 @@ def physics(
     """The Done-when figures of the discovery on the independent physics simulator
     (``effects``: the rows of those catalogue effects only; empty: every one)."""
     from calib_core.discovery.detection import detection_limits
-    from calib_core.discovery.evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
     from calib_core.effects import catalogue
     from calib_core.sim import protocols
     from schemas.physics_sessions import physics_unit_step_means
+    from tools.discovery_evaluation import OUT_OF_CATALOGUE, PAIRS, run_scenario
 
     steps = protocols.default_session()
 

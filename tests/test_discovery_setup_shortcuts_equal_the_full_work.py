@@ -1,9 +1,9 @@
 """Shortcuts of the discovery set-up (issue 7, fourth round) against the work they skip.
 
-- the grid's protocol part (:func:`calib_core.discovery.turntable._layout`) is read-only, and
+- the grid's protocol part (:func:`calib_core.discovery.design.protocol_layout`) is read-only, and
   a unit whose steps differ gets a layout of its own;
 - the rank test is skipped when every fold is far from losing rank
-  (:func:`calib_core.discovery._surely_full_rank`): it never skips a design that the exact
+  (:func:`calib_core.discovery.fit._surely_full_rank`): it never skips a design that the exact
   test (numpy's matrix_rank rule) finds deficient;
 - the covariance of a fit is built on first use, with the formula it had.
 """
@@ -15,23 +15,18 @@ import dataclasses
 import numpy as np
 import pytest
 
-from calib_core.discovery import diagnose_unit
-from calib_core.discovery import turntable as disc
+from calib_core.discovery import design, diagnose_unit, fit
+from calib_core.effects import catalogue
+from calib_core.errors import DesignError
+from calib_core.linalg import PINV_RCOND, lstsq_pinv_cov, qr_r
 from calib_core.sim import protocols
-from calib_core.sim import simulator as sim
-from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit
+
+from conftest import discovery_unit as _unit  # a simulated unit's sessions
 
 STEPS = protocols.default_session()
 
 
-def _unit(seed: int, n_reps: int = 3, unit: str = "U000"):
-    rng = np.random.default_rng(seed)
-    truth = sim.typical_truth(rng, **REALISTIC_NOISE)
-    sessions, _ = simulate_unit(truth, STEPS, rng, n_reps, unit=unit)
-    return sessions
-
-
-def _grid_fields(g: disc._UnitGrid) -> dict:
+def _grid_fields(g: design.UnitGrid) -> dict:
     return {f.name: getattr(g, f.name) for f in dataclasses.fields(g)}
 
 
@@ -48,7 +43,7 @@ def _assert_same(a, b):
 
 
 def test_the_layout_arrays_are_read_only_and_the_units_own_columns_are_not():
-    grid = disc._UnitGrid.build(_unit(1, unit="U001"), sorted(disc.catalogue()))
+    grid = design.UnitGrid.build(_unit(1, unit="U001"), sorted(catalogue()))
     assert not grid.real.flags.writeable and not grid.y.flags.writeable
     with pytest.raises(ValueError):
         grid.gcode[0, 0] = 1
@@ -56,14 +51,14 @@ def test_the_layout_arrays_are_read_only_and_the_units_own_columns_are_not():
 
 
 def test_a_unit_whose_steps_differ_gets_its_own_layout():
-    names = sorted(disc.catalogue())
+    names = sorted(catalogue())
     sessions = _unit(3)
     keep = np.ones(len(sessions[1]), bool)
     keep[[5, 50]] = False
     dropped = list(sessions)
     dropped[1] = sessions[1].select(keep)
-    a = disc._UnitGrid.build(sessions, names)
-    b = disc._UnitGrid.build(dropped, names)
+    a = design.UnitGrid.build(sessions, names)
+    b = design.UnitGrid.build(dropped, names)
     assert a.balanced and not b.balanced
     assert b.real[1].sum() == len(sessions[1]) - 2
 
@@ -71,7 +66,7 @@ def test_a_unit_whose_steps_differ_gets_its_own_layout():
 def _exact_full_rank(D: np.ndarray) -> bool:
     """_check_rank's exact test: numpy's matrix_rank rule on every channel and fold."""
     C, R = D.shape[:2]
-    R4 = disc._qr_r(D)
+    R4 = qr_r(D)
     Y = np.zeros((C, R + 1, R, 4, 3 + R))
     Y[..., :3] = R4[:, None, :, :, :3]
     for r in range(R):
@@ -106,7 +101,7 @@ def test_rank_shortcut_never_skips_a_deficient_design():
         if trial % 3 == 0:
             w[:, :, rng.integers(1, n) :] = 0.0  # padding rows (weight 0)
         D = np.concatenate([w * raw, w], axis=-1)
-        sure, exact = disc._surely_full_rank(D), _exact_full_rank(D)
+        sure, exact = fit._surely_full_rank(D), _exact_full_rank(D)
         assert not (sure and not exact), trial
         certified += sure
         deficient += not exact
@@ -116,12 +111,12 @@ def test_rank_shortcut_never_skips_a_deficient_design():
 
 def test_rank_shortcut_takes_a_real_unit_and_the_exact_error_stays():
     sessions = _unit(5)
-    d = disc._Discovery(sessions, 0.01)
+    d = fit.joint_model(sessions)
     w = np.moveaxis(d.weight, -1, 0)[..., None]
-    assert disc._surely_full_rank(np.concatenate([w * d.g.M[..., :3], w], axis=-1))
+    assert fit._surely_full_rank(np.concatenate([w * d.g.M[..., :3], w], axis=-1))
     for sm in sessions:  # gy constant within each repetition: the exact test's error
         sm.gyro[:, 1] = 1.0 + sm.key.rep
-    with pytest.raises(disc.DesignError) as err:
+    with pytest.raises(DesignError) as err:
         diagnose_unit(sessions, tables=False)
     assert err.value.code == "E_DISCOVERY_RANK" and "rank 5 < 6" in str(err.value)
 
@@ -134,13 +129,13 @@ def test_lazy_covariance_is_the_svd_formula():
             Z[:, 4] = 2.0 * Z[:, 0]
             Z[:, 3] = 0.0
         y = rng.normal(size=20)
-        theta, cov, rank = disc._lstsq_cov(Z, y)
+        theta, cov, rank = lstsq_pinv_cov(Z, y)
         # the formula, spelled out
         norms = np.linalg.norm(Z, axis=0)
         live = norms > 1e-12 * norms.max()
         scale = np.where(live, norms, 1.0)
         U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)
-        keep = (s > disc._RCOND**0.5 * s[0]) & (s > 0)
+        keep = (s > PINV_RCOND**0.5 * s[0]) & (s > 0)
         inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
         ref = (Vt.T * inv_s**2) @ Vt / np.outer(scale, scale)
         undetermined = (np.abs(Vt[~keep]) > 1e-6).any(axis=0) | ~live

@@ -1,7 +1,7 @@
 """Regenerate the comparison tables of docs/real-data.md: mimucal's hand-held field
 calibration vs the published reference of each real recording, on the same poses and moves.
 
-    PYTHONPATH=. python scripts/real_field_table.py [--real ../shared/data/real]
+    python -m tools.real_field_table [--real ../shared/data/real]
 
 Figures (calib_core.models.field.joint.field_figures): static |f| error RMS over the poses (mg) and
 the gravity-direction error across the moves, RMS (deg). mimucal's are shown in-sample and

@@ -1,6 +1,6 @@
 """Regenerate the confounding, Earth-rate and thermal figures of docs/model-discovery.md.
 
-    .venv/bin/python docs/identifiability_figures.py [N_UNITS [EFFECTS]]    # 40 units per row
+    .venv/bin/python -m tools.identifiability_figures [N_UNITS [EFFECTS]]    # 40 units per row
         # EFFECTS: "earth" (the Earth-rate rows only) or comma-separated thermal rows only,
         # e.g. thermal_bias_drift,bias_time_drift; "pairs": the nonlinearity + thermal pair
 
@@ -17,14 +17,14 @@ def main(n_units: int = 40, sections: str = "") -> None:
     """``sections``: "earth" for the Earth-rate rows only, or comma-separated effect names
     for those thermal rows only (with "pairs": the nonlinearity + thermal pair rows);
     empty: everything."""
-    from calib_core.discovery.evaluation_ident import (
+    from calib_core.sim import protocols
+    from calib_core.sim.physics import Turntable, WarmUp
+    from schemas.physics_sessions import physics_unit_step_means
+    from tools.discovery_evaluation_ident import (
         earth_rate_scenario,
         pair_scenario,
         sensor_effect_scenario,
     )
-    from calib_core.sim import protocols
-    from calib_core.sim.physics import Turntable, WarmUp
-    from schemas.physics_sessions import physics_unit_step_means
 
     def repetitions(**how):
         """Step means of 5 repetitions run ``how`` (physics_unit_step_means' options)."""

@@ -1,7 +1,7 @@
 """The fast discovery path (issue 7) against independent computations.
 
 Discovery fits every term subset on every leave-one-repetition-out fold from small R
-factors of each channel's bias-removed weighted design (:class:`calib_core.discovery._Discovery`).
+factors of each channel's bias-removed weighted design (:class:`calib_core.discovery.fit.JointModel`).
 Here each of its numbers is recomputed the plain way, one dense weighted least squares over
 every row with explicit bias columns, on balanced units and on units whose repetitions lost
 steps (the general two-way path), and the noise estimate is recomputed with
@@ -14,16 +14,12 @@ import pandas as pd
 import pytest
 
 from calib_core.discovery import replay
+from calib_core.discovery.noise import NoiseModel
 from calib_core.discovery.replay import NoiseEstimate, estimate_noise_arrays, two_way_residual
-from calib_core.discovery.turntable import (
-    _Discovery,
-    _lstsq_cov,
-    _lstsq_theta_stack,
-    diagnose_unit,
-    get_effect,
-)
-from calib_core.effects import CHANNELS, MotionContext
+from calib_core.discovery.turntable import _Discovery, diagnose_unit
+from calib_core.effects import CHANNELS, MotionContext, get_effect
 from calib_core.errors import DesignError
+from calib_core.linalg import lstsq_pinv_cov, lstsq_pinv_stack
 from calib_core.sim import protocols
 from calib_core.sim import simulator as sim
 from calib_core.sim.simulator import REALISTIC_NOISE, simulate_unit
@@ -100,11 +96,9 @@ def _dense_fit(L, train: np.ndarray, cols: np.ndarray, R: int):
 )
 def test_fits_equal_the_dense_weighted_least_squares(effect, theta, drop, monkeypatch):
     # the algebra on white rows (prewhitening is a row transform applied before it)
-    from calib_core.discovery import turntable
+    from calib_core.discovery import noise
 
-    monkeypatch.setattr(
-        turntable, "_serial_noise", lambda z, real, t: turntable._SerialNoise(np.zeros(6), np.ones(6))
-    )
+    monkeypatch.setattr(noise, "serial_noise", lambda z, real, t: noise.SerialNoise(np.zeros(6), np.ones(6)))
     sessions = _unit(11, effect, theta, drop=drop)
     d = _Discovery(sessions, 0.01)
     assert d.g.balanced is (not drop)
@@ -156,7 +150,7 @@ def test_noise_estimate_equals_the_replay_module():
     grp = np.array(d.g.groups)[np.broadcast_to(d.g.gcode[..., None], resid.shape)[real]]
     ch = np.broadcast_to(np.array(CHANNELS), resid.shape)[real]
     expected = estimate_noise_arrays(ch, grp, rep, step, resid[real], white[real]).table
-    rows, _ = d._noise(K, resid)
+    rows = NoiseModel.from_residuals(d.g, K, resid).rows
     got = NoiseEstimate.from_records([dict(zip(expected.columns, r)) for r in rows], True).table
     assert list(got["channel"]) == list(expected["channel"])
     assert list(got["group"]) == list(expected["group"])
@@ -191,9 +185,9 @@ def test_stacked_theta_equals_one_problem_at_a_time():
     Z[1, :, 2] = 0.0  # a dead column
     Z[2, :, 4] = Z[2, :, 0] * 3.0  # a direction the data do not determine
     y = rng.normal(size=(4, 12))
-    stacked = _lstsq_theta_stack(Z, y)
+    stacked = lstsq_pinv_stack(Z, y)
     for i in range(4):
-        theta, _, _ = _lstsq_cov(Z[i], y[i])
+        theta, _, _ = lstsq_pinv_cov(Z[i], y[i])
         np.testing.assert_allclose(stacked[i], theta, rtol=1e-12, atol=1e-14)
 
 

@@ -2,7 +2,7 @@
 its reference"): the largest robust z of clean units, and the catch rate of one sample damaged
 inside the full scale.
 
-    .venv/bin/python docs/step_consistency_figures.py [N_PROJECT [N_PHYSICS [N_CATCH]]]
+    .venv/bin/python -m tools.step_consistency_figures [N_PROJECT [N_PHYSICS [N_CATCH]]]
         # defaults 1000 300 300, as in the doc (~10 min + ~9 min + ~1 min on a loaded 2-core machine)
 
 Seeded: the same numbers every run. The units are those of tests/test_hardening_consistency.py
