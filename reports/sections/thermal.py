@@ -22,12 +22,19 @@ import pandas as pd
 
 from calib_core.models.thermal import coefficient_spread
 from reports.html import esc, fmt, table
+from schemas.display import Shown, spread_unit, value_unit
 
+# Biases are shown as values (deg/s, mg); a gain's change from 25 degC is a small
+# dimensionless change, shown as a spread is (ppm): the factors are schemas.display's.
 GROUPS = (
-    ("Gyro biases w0", ("w0_x", "w0_y", "w0_z"), 1.0, "deg/s"),
-    ("Accelerometer biases f0", ("f0_x", "f0_y", "f0_z"), 1e3, "mg"),
-    ("Gyro gains K_g (diagonal), change from 25 degC", ("k_g11", "k_g22", "k_g33"), 1e6, "ppm"),
-    ("Accelerometer gains K_a (diagonal), change from 25 degC", ("k_a11", "k_a22", "k_a33"), 1e6, "ppm"),
+    ("Gyro biases w0", ("w0_x", "w0_y", "w0_z"), value_unit("deg/s")),
+    ("Accelerometer biases f0", ("f0_x", "f0_y", "f0_z"), value_unit("g")),
+    ("Gyro gains K_g (diagonal), change from 25 degC", ("k_g11", "k_g22", "k_g33"), spread_unit("1")),
+    (
+        "Accelerometer gains K_a (diagonal), change from 25 degC",
+        ("k_a11", "k_a22", "k_a33"),
+        spread_unit("1"),
+    ),
 )
 COLOURS = ("#1f77b4", "#d62728", "#2ca02c")
 
@@ -91,7 +98,8 @@ def _lot_html(ctx, page) -> str | None:
     return "".join(body)
 
 
-def _figure(curves: dict[str, Any], names, factor: float, unit_label: str) -> dict:
+def _figure(curves: dict[str, Any], names, shown: Shown) -> dict:
+    factor, unit_label = shown.factor, shown.label
     data = []
     for n, colour in zip(names, COLOURS):
         c = curves.get(n)
@@ -192,8 +200,8 @@ def _unit_html(ctx, page, unit: str) -> str | None:
         )
         + "</p>"
     ]
-    for title, names, factor, label in GROUPS:
-        fig = _figure(curves, names, factor, label)
+    for title, names, shown in GROUPS:
+        fig = _figure(curves, names, shown)
         if fig["data"]:
             parts.append(
                 f"<h4>{esc(title)}</h4>" + page.figure(fig, height=300, name=f"{unit} thermal {names[0]}")
