@@ -385,12 +385,12 @@ def test_a_failed_table_write_leaves_no_new_calibration_file(small_fleet, tmp_pa
     nightly.store_results(store, calibrate_batch(jobs, False), "run1", "v")
     before = calibration_files(tmp_path)
     tables_before = {p: p.read_bytes() for p in (tmp_path / "tables").rglob("*.parquet")}
-    import schemas.results_store as rs
+    import schemas.store_io as io
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "tables"))
 
-    monkeypatch.setattr(rs, "write_table_atomic", full)
+    monkeypatch.setattr(io, "write_table_atomic", full)
     with pytest.raises(OSError):
         nightly.store_results(store, calibrate_batch(jobs, False), "run2", "v")
     assert calibration_files(tmp_path) == before
