@@ -339,7 +339,7 @@ def test_an_exception_in_one_units_calibration_fails_that_unit_only(small_fleet,
             raise ZeroDivisionError("injected")
         return real(job, run_discovery)
 
-    monkeypatch.setattr(unit_pipeline, "calibrate_unit_job", broken)
+    monkeypatch.setitem(unit_pipeline.UNIT_PIPELINES, "turntable", broken)  # the kind's pipeline
     res = calibrate_batch(jobs, run_discovery=False)
     assert [r.calibrated for r in res] == [True, False, True]
     assert res[1].error_code == "E_INTERNAL"
