@@ -54,6 +54,7 @@ class SpectralLine:
     ratio: float  # peak density / running median (whole record)
     ratio_halves: tuple[float, float]
     threshold: float
+    resolution_hz: float  # Welch bin width: the ratio depends on it
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,7 @@ class ChannelAnalysis:
                 "psd_ratio_to_median": ln.ratio,
                 "psd_ratio_halves": list(ln.ratio_halves),
                 "threshold": ln.threshold,
+                "spectral_resolution_hz": ln.resolution_hz,
             }
             for ln in self.lines
         ]
@@ -226,7 +228,9 @@ def find_lines(x: np.ndarray, rate_hz: float) -> list[SpectralLine]:
         span = slice(max(k - LINE_HALF_WIDTH, 1), k + LINE_HALF_WIDTH + 1)
         floor = base[span] * stats.chi2.median(nu) / nu
         power = float(np.sum(np.maximum(p[span] - floor, 0.0)) * (f[1] - f[0]))
-        lines.append(SpectralLine(freq, float(np.sqrt(2.0 * power)), float(ratio[k]), rh, float(thr)))
+        lines.append(
+            SpectralLine(freq, float(np.sqrt(2.0 * power)), float(ratio[k]), rh, float(thr), float(f[1]))
+        )
     return lines
 
 
