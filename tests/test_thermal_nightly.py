@@ -48,6 +48,26 @@ def test_nightly_of_a_thermal_lot(tmp_path, capsys):
     report = (results / "reports" / "T01.html").read_text()
     assert 'id="thermal"' in report and "w0_tc_x" in report and "U0001 (limit)" in report
     assert report.count("Gyro gains K_g (diagonal), change from 25 degC") == 2  # each unit's plots
+    # mimucal apply with the thermal file: in range applied per sample, out of range refused
+    # in one line (exit 2) unless --extrapolate
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from flows.cli import main as cli_main
+
+    cal = sorted((results / "calibrations" / "U0002").glob("*.json"))[-1]
+    raw = next(data.glob("**/unit=U0002/rep=1/samples.parquet"))
+    table = pq.read_table(raw)
+    hot_path = tmp_path / "hot.parquet"
+    i = table.schema.get_field_index("temp_c")
+    pq.write_table(table.set_column(i, "temp_c", pa.compute.add(table["temp_c"], 150.0)), hot_path)
+    assert cli_main(["apply", str(cal), str(raw), str(tmp_path / "ok.parquet")]) == 0
+    capsys.readouterr()
+    assert cli_main(["apply", str(cal), str(hot_path), str(tmp_path / "hot_out.parquet")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "outside the calibrated range" in err[0] and "--extrapolate" in err[0]
+    assert not (tmp_path / "hot_out.parquet").exists()
+    assert cli_main(["apply", str(cal), str(hot_path), str(tmp_path / "x.parquet"), "--extrapolate"]) == 0
 
 
 def test_a_session_far_from_soaked_fails_and_leaves_the_unit():
@@ -79,23 +99,3 @@ def test_a_session_far_from_soaked_fails_and_leaves_the_unit():
     assert bad.status == "failed" and bad.code == "E_NOT_SOAKED" and "rep=3" in bad.message
     assert [r.rep for r in unit_out.calibration.reps] == [1, 2, 4]
     assert unit_out.applied.kind == "thermal" and unit_out.applied.thermal is not None
-    # mimucal apply with the thermal file: in range applied per sample, out of range refused
-    # in one line (exit 2) unless --extrapolate
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from flows.cli import main as cli_main
-
-    cal = sorted((results / "calibrations" / "U0002").glob("*.json"))[-1]
-    raw = next(data.glob("**/unit=U0002/rep=1/samples.parquet"))
-    table = pq.read_table(raw)
-    hot_path = tmp_path / "hot.parquet"
-    i = table.schema.get_field_index("temp_c")
-    pq.write_table(table.set_column(i, "temp_c", pa.compute.add(table["temp_c"], 150.0)), hot_path)
-    assert cli_main(["apply", str(cal), str(raw), str(tmp_path / "ok.parquet")]) == 0
-    capsys.readouterr()
-    assert cli_main(["apply", str(cal), str(hot_path), str(tmp_path / "hot_out.parquet")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "outside the calibrated range" in err[0] and "--extrapolate" in err[0]
-    assert not (tmp_path / "hot_out.parquet").exists()
-    assert cli_main(["apply", str(cal), str(hot_path), str(tmp_path / "x.parquet"), "--extrapolate"]) == 0
