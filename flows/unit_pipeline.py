@@ -178,6 +178,7 @@ class UnitOutcome:
     terms: tuple[TermValue, ...] = ()
     diagnosis: object | None = None  # calib_core.discovery.Diagnosis when discovery ran
     notes: list[str] = field(default_factory=list)
+    noise: Any = None  # calib_core.noise_fleet.UnitNoise: the measured noise (flows.noise_units)
 
     def residuals_frame(self) -> pd.DataFrame | None:
         """The per-step residual rows of every successful session, one frame for the unit
@@ -335,6 +336,16 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     if thermal_note:
         unit_out.notes.append(thermal_note)
         note = "; ".join(filter(None, [note, thermal_note]))
+    try:  # the unit's noise model (lot=L/unit=U/noise/ or its static steps): flows.noise_units
+        from flows.noise_units import apply_noise
+
+        unit_dir = job.refs[0].path.parent if job.refs else None
+        noise_note = apply_noise(unit_out, unit_dir, getattr(job, "follow_symlinks", False))
+    except Exception as exc:  # noqa: BLE001 - the unit keeps its calibration without a noise model
+        noise_note = f"E_INTERNAL: noise model of unit {job.unit} failed: {type(exc).__name__}: {exc}"
+    if noise_note:
+        unit_out.notes.append(noise_note)
+        note = "; ".join(filter(None, [note, noise_note]))
     for o in unit_out.sessions:  # step means are not kept past this point
         o.step_means = None
     return UnitResult(
