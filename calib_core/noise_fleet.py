@@ -245,6 +245,9 @@ def judge_noise(
     n_units = len(set(units))
     notes = []
     if n_units >= min_units and groups:
+        # one threshold per lot (one simulated layout: the lot's units, its judged
+        # coefficients), used for every group, also those a unit or two lack
+        thr = thresholds.robust_z((n_units,), len(groups), z_threshold, family_alpha)
         for c, k in groups:
             idx = np.flatnonzero(usable & (chan == c) & (coef == k))
             if len(idx) < min_units:
@@ -257,7 +260,6 @@ def judge_noise(
             se = np.where(np.isfinite(se) & (se > 0), se, 0.0)
             denom = np.sqrt(s**2 + se**2)
             z = np.where(denom > 0, (x - med) / np.where(denom > 0, denom, 1.0), 0.0)
-            thr = thresholds.robust_z((len(idx),), len(groups), z_threshold, family_alpha)
             out.loc[out.index[idx], "score"] = z
             out.loc[out.index[idx], "lot_median"] = 10**med
             for j, i in enumerate(idx):
