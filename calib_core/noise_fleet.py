@@ -35,6 +35,8 @@ import pandas as pd
 from calib_core.outliers import KIND_LIMIT, Flag, Limit, ThresholdTable, robust_scale
 
 COEFFICIENTS = ("quantization", "white", "bias_instability", "random_walk", "ramp")
+# further processes the analysis may name (a row each when it does)
+OPTIONAL_COEFFICIENTS = ("gauss_markov",)
 CHANNELS = ("gx", "gy", "gz", "ax", "ay", "az")
 SENSOR_OF = {"gx": "gyro", "gy": "gyro", "gz": "gyro", "ax": "accel", "ay": "accel", "az": "accel"}
 # the coefficients static steps of a few seconds, each with its mean removed, can determine
@@ -120,7 +122,8 @@ def unit_noise(
         if not isinstance(ch_doc, dict):
             continue
         coefs = ch_doc.get("coefficients") or {}
-        for name in COEFFICIENTS:
+        names = list(COEFFICIENTS) + [c for c in OPTIONAL_COEFFICIENTS if isinstance(coefs.get(c), dict)]
+        for name in names:
             value, lo, hi, unit, reason = _coefficient(coefs.get(name))
             reason = reason or _reason_of(ch_doc, name)
             if static_steps_s is not None and name not in STATIC_ONLY:

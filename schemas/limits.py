@@ -44,7 +44,7 @@ if TYPE_CHECKING:  # the store module imports more than a configuration needs
 STANDARD_GRAVITY = 9.80665
 _SQRT_H = 60.0  # sqrt(3600 s)
 _RAD = 180.0 / math.pi
-NOISE_COEFFICIENTS = ("quantization", "white", "bias_instability", "random_walk", "ramp")
+NOISE_COEFFICIENTS = ("quantization", "white", "bias_instability", "random_walk", "ramp", "gauss_markov")
 # noise coefficient kinds -> {unit: factor to the unit the noise table holds (the first)}
 NOISE_UNITS: dict[str, dict[str, float]] = {
     "gyro quantization": {"deg": 1.0, "arcsec": 1.0 / 3600.0, "rad": _RAD, "urad": _RAD * 1e-6},
@@ -61,7 +61,8 @@ NOISE_UNITS: dict[str, dict[str, float]] = {
         "deg/s/sqrt(s)": 3600.0 * _SQRT_H,
         "rad/s^2/sqrt(Hz)": 3600.0 * _SQRT_H * _RAD,
     },
-    "gyro ramp": {"deg/h/h": 1.0, "deg/h^2": 1.0, "deg/s^2": 3600.0**2},
+    "gyro ramp": {"deg/h^2": 1.0, "deg/h/h": 1.0, "deg/s^2": 3600.0**2},
+    "gyro gauss_markov": {"deg/h": 1.0, "deg/s": 3600.0, "rad/s": 3600.0 * _RAD},
     "accel quantization": {"m/s": 1.0, "mm/s": 1e-3},
     "accel white": {
         "m/s/sqrt(h)": 1.0,
@@ -75,7 +76,8 @@ NOISE_UNITS: dict[str, dict[str, float]] = {
         "m/s^2/sqrt(s)": 3600.0 * _SQRT_H,
         "m/s^3/sqrt(Hz)": 3600.0 * _SQRT_H,
     },
-    "accel ramp": {"m/s/h/h": 1.0, "m/s/h^2": 1.0, "m/s^3": 3600.0**2},
+    "accel ramp": {"m/s/h^2": 1.0, "m/s/h/h": 1.0, "m/s^3": 3600.0**2},
+    "accel gauss_markov": {"mg": 1.0, "g": 1e3, "ug": 1e-3, "m/s^2": 1e3 / STANDARD_GRAVITY},
 }
 _MAT = [f"{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
 _AX = "xyz"
