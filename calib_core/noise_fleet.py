@@ -167,7 +167,7 @@ def unit_noise(
         a = ch_doc.get("allan") or {}
         tau = np.asarray(a.get("tau_s") or [], float)
         fit = ch_doc.get("fit") or {}
-        fit_adev = np.asarray(fit.get("adev") or [np.nan] * len(tau), float)
+        fit_adev = np.asarray(fit.get("model_adev") or [np.nan] * len(tau), float)
         if len(fit_adev) != len(tau):
             fit_adev = np.full(len(tau), np.nan)
         cols = {k: np.asarray(a.get(k) or [np.nan] * len(tau), float) for k in ("adev", "adev_lo", "adev_hi")}
@@ -223,7 +223,8 @@ def judge_noise(
     with a value: ``z = (log10 v - median) / sqrt(s^2 + se_i^2)``, ``s`` the robust scale of
     the lot's log10 values, ``se_i`` the unit's own (its 95 % interval in log10 / 3.92);
     flagged above the family-wise threshold for that many units and coefficients (both
-    directions: a sensor much quieter than its lot may be stuck). Lots with fewer than
+    directions: a sensor much quieter than its lot may be stuck). A value whose interval
+    reaches zero (a process the record cannot tell from none) is not judged so. Lots with fewer than
     ``min_units`` units get limits only. Limits of model ``noise`` (``gyro_white``: every
     gyro channel's white coefficient) in the unit the rows hold."""
     out = rows.copy()
@@ -243,18 +244,23 @@ def judge_noise(
     units = out["unit"].astype(str).to_numpy()
     uom = out["unit_of_measure"].astype(object).to_numpy()
     reasons: dict[int, list[str]] = {}
-    usable = np.isfinite(value) & (value > 0) & (coef != "periodic")
+    # a coefficient whose interval reaches zero is consistent with no such process: its log
+    # says nothing about the unit (limits still apply to it)
+    usable = np.isfinite(value) & (value > 0) & ~(lo <= 0) & (coef != "periodic")
     groups = sorted({(c, k) for c, k, u in zip(chan, coef, usable) if u})
+    groups = [(c, k) for c, k in groups if np.sum(usable & (chan == c) & (coef == k)) >= min_units]
     n_units = len(set(units))
     notes = []
     if n_units >= min_units and groups:
         # one threshold per lot (one simulated layout: the lot's units, its judged
         # coefficients), used for every group, also those a unit or two lack
         thr = thresholds.robust_z((n_units,), len(groups), z_threshold, family_alpha)
+        notes.append(
+            f"{len(groups)} noise coefficients judged against the lot: |robust z of log10| threshold "
+            f"{thr:.2f} (family-wise alpha={family_alpha:g})"
+        )
         for c, k in groups:
             idx = np.flatnonzero(usable & (chan == c) & (coef == k))
-            if len(idx) < min_units:
-                continue
             x = np.log10(value[idx])
             med = float(np.median(x))
             s = robust_scale(x)
@@ -333,3 +339,39 @@ def judge_noise(
         out.loc[out.index[i], "flagged"] = True
         out.loc[out.index[i], "flag_reason"] = "; ".join(rs)
     return out, flags, "; ".join(notes)
+
+
+def analyse_static_steps(
+    record: np.ndarray, rate_hz: float, shortest_s: float, channel_units: tuple[str, ...]
+) -> dict[str, Any]:
+    """The noise document (``mimucal noise --json``'s shape) of a :func:`static_step_record`
+    (n, 6): the Allan deviation (:func:`calib_core.noise.allan_curve`) at the octave cluster
+    sizes up to a quarter of the shortest step, and the composite fit
+    (:func:`calib_core.noise.fit_allan`) of the processes those clusters see, quantization
+    and white noise; quantization is named when its 95 % interval excludes zero. No noise
+    discovery and no spectral lines: their evidence is in what a step's mean removes, and
+    the full analysis of a recording costs ~0.3 s a unit, this ~10 ms."""
+    from calib_core.noise import ChannelAnalysis, ChannelNoise, allan_curve, fit_allan
+    from calib_core.noise.fit import Term
+
+    n = len(record)
+    m_max = max(1, int(shortest_s * rate_hz / 4))
+    m = 2 ** np.arange(int(np.floor(np.log2(m_max))) + 1)
+    channels = {}
+    why_slow = "the static steps cannot determine it (each step's mean removed)"
+    for i, (ch, unit) in enumerate(zip(CHANNELS, channel_units)):
+        curve = allan_curve(record[:, i], rate_hz, m)
+        fit = fit_allan(curve, (Term("quantization"), Term("white")))
+        coefficients, intervals, reasons = {}, {}, {}
+        for term, c in zip(fit.terms, fit.c):
+            lo, hi = fit.interval(term.name)
+            if term.name == "white" or lo > 0:
+                coefficients[term.name], intervals[term.name] = float(np.sqrt(c)), (lo, hi)
+            else:
+                reasons[term.name] = "not significant on the static steps (its 95 % interval reaches 0)"
+        for name in COEFFICIENTS:
+            if name not in STATIC_ONLY:
+                reasons[name] = why_slow
+        noise = ChannelNoise(unit, coefficients, intervals, reasons=reasons)
+        channels[ch] = ChannelAnalysis(ch, unit, curve, fit, (), (), noise).to_dict()
+    return {"rate_hz": float(rate_hz), "duration_s": n / float(rate_hz), "n_samples": n, "channels": channels}

@@ -334,17 +334,32 @@ class _MeasuredNoise:
 
         self.model = NoiseModel.from_dict(doc)
         self.source = str(doc.get("source") or doc.get("recording") or "a measured noise model")
+        default = MimuTruth()
         sd = []
-        for ch in ("gx", "gy", "gz", "ax", "ay", "az"):
-            white = ((doc.get("channels") or {}).get(ch) or {}).get("coefficients", {}).get("white") or {}
+        for i, ch in enumerate(("gx", "gy", "gz", "ax", "ay", "az")):
+            ch_doc = (doc.get("channels") or {}).get(ch)
+            if ch_doc is None:  # a channel the model lacks: the simulator's own white noise
+                sd.append(default.gyro_noise_dps if i < 3 else default.accel_noise_g)
+                continue
+            white = (ch_doc.get("coefficients") or {}).get("white") or {}
             sd.append(_white_sd_per_sample(white, ch, rate_hz))
         self.gyro_sd, self.accel_sd = np.array(sd[:3]), np.array(sd[3:])
 
-    def record(self, n: int, rate_hz: float, rng: np.random.Generator) -> np.ndarray:
+    def record(self, n: int, rate_hz: float, rng: np.random.Generator, fallback_sd: np.ndarray) -> np.ndarray:
+        """(n, 6) noise in deg/s and g; a channel the model lacks gets white noise of
+        ``fallback_sd``."""
         from calib_core.noise import synthesize
 
         chans = synthesize(self.model, n, rate_hz, rng)
-        return np.column_stack([np.asarray(chans[c], float) for c in ("gx", "gy", "gz", "ax", "ay", "az")])
+        out = np.empty((n, 6))
+        for i, c in enumerate(("gx", "gy", "gz", "ax", "ay", "az")):
+            if c not in chans:
+                out[:, i] = rng.normal(0.0, fallback_sd[i], n)
+                continue
+            unit = self.model.channels[c].unit
+            scale = {"rad/s": 180.0 / np.pi, "m/s^2": 1.0 / 9.80665, "m/s2": 1.0 / 9.80665}.get(unit, 1.0)
+            out[:, i] = np.asarray(chans[c], float) * scale
+        return out
 
 
 def _white_sd_per_sample(white: dict, channel: str, rate_hz: float) -> float:
@@ -382,7 +397,10 @@ def _noise_recordings(
     n = int(round(duration_s * rate_hz))
     noise = None
     if measured is not None:
-        noise = measured.record(n, rate_hz, rng)
+        fallback = np.concatenate(
+            [np.broadcast_to(truth.gyro_noise_dps, 3), np.broadcast_to(truth.accel_noise_g, 3)]
+        )
+        noise = measured.record(n, rate_hz, rng, fallback)
         if factor != 1.0:  # more white noise on the gyros: N^2 - 1 times its variance, added
             extra = np.sqrt(max(factor**2 - 1.0, 0.0)) * np.asarray(measured.gyro_sd)
             noise[:, :3] += rng.normal(0.0, 1.0, (n, 3)) * extra

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib_core.noise_fleet import CHANNELS, UnitNoise, static_step_record, unit_noise
+from calib_core.noise_fleet import CHANNELS, UnitNoise, analyse_static_steps, static_step_record, unit_noise
 from schemas.errors import SessionError
 
 GYRO_UNIT, ACCEL_UNIT = "deg/s", "g"  # what the unit's calibration outputs
@@ -59,7 +59,8 @@ def measure_unit_noise(unit_dir: Path, lot: str, unit: str, applied, sessions, f
         notes.append(f"unit {lot}/{unit}: no noise recording and no static step to measure the noise on")
         return None, notes
     record, shortest = static_step_record(segments)
-    doc = analyse_channels(record, rate)
+    units = tuple(GYRO_UNIT if c.startswith("g") else ACCEL_UNIT for c in CHANNELS)
+    doc = analyse_static_steps(record, rate, shortest / rate, units)
     source = f"static steps ({len(segments)} steps, {shortest / rate:.3g} s at the shortest)"
     return unit_noise(doc, source, static_steps_s=shortest / rate, notes=notes), notes
 

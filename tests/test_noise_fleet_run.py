@@ -29,7 +29,6 @@ import pytest
 from flows import runtime
 
 runtime.ensure_environment()
-pytest.importorskip("calib_core.noise")  # the noise analysis (branch noise) until it is merged
 
 from flows.fleet_sim import simulate_fleet  # noqa: E402
 from flows.nightly import store_results  # noqa: E402
