@@ -247,8 +247,8 @@ def judge_noise(
     # a coefficient whose interval reaches zero is consistent with no such process: its log
     # says nothing about the unit (limits still apply to it)
     usable = np.isfinite(value) & (value > 0) & ~(lo <= 0) & (coef != "periodic")
-    groups = sorted({(c, k) for c, k, u in zip(chan, coef, usable) if u})
-    groups = [(c, k) for c, k in groups if np.sum(usable & (chan == c) & (coef == k)) >= min_units]
+    judged = sorted({(c, k) for c, k, u in zip(chan, coef, usable) if u})
+    groups = [(c, k) for c, k in judged if np.sum(usable & (chan == c) & (coef == k)) >= min_units]
     n_units = len(set(units))
     notes = []
     if n_units >= min_units and groups:
@@ -294,7 +294,7 @@ def judge_noise(
                             why,
                         )
                     )
-    elif groups:
+    elif judged:
         notes.append(f"{n_units} unit(s): fewer than {min_units}, noise judged against limits only")
     for lim in limits:
         if lim.model != NOISE_MODEL:
