@@ -179,9 +179,20 @@ def simulate_fleet(
     accel_unit: str | None = None,
     protocol: pd.DataFrame | None = None,
     truth_factory: TruthFactory | None = None,
+    noise_recording_s: float = 0.0,
+    noisy_units: int = 0,
+    noise_factor: float = 3.0,
+    noise_from: dict | None = None,
 ) -> dict:
     """Write ``lots`` lots x ``units`` units per lot x ``reps`` repetitions under ``out`` and
     the manifest ``out/fleet.json``; return the manifest.
+
+    Noise (docs/noise.md): ``noise_recording_s`` > 0 writes a static recording of that length
+    per unit (``lot=L/unit=U/noise/static.parquet``, :func:`_noise_recordings`);
+    ``noisy_units`` distinct units get ``noise_factor`` times the lot's gyro white noise
+    (angle random walk) in their sessions and recordings; ``noise_from`` (a ``mimucal noise
+    --json`` document) makes the recordings' noise the measured model's (periodic lines and
+    quantization included) and the sessions' white noise its white coefficients.
 
     ``protocol``: a step table (default :func:`calib_core.sim.protocols.default_session`, with the
     verification sweep when ``verification``). ``truth_factory(rng, lot, unit)`` replaces the
@@ -206,6 +217,12 @@ def simulate_fleet(
     bad_flat = pick_rng.choice(n_units * reps, size=bad_sessions, replace=False).tolist()
     bad_kinds = list(BAD_KINDS)
     bad_of = {int(s): bad_kinds[i % len(bad_kinds)] for i, s in enumerate(sorted(bad_flat))}
+    if not 0 <= noisy_units <= n_units:
+        raise ValueError(f"noisy_units={noisy_units} must be between 0 and the {n_units} units")
+    if noisy_units and not noise_factor > 0:
+        raise ValueError(f"noise_factor={noise_factor} must be > 0")
+    noisy = set(pick_rng.choice(n_units, size=noisy_units, replace=False).tolist()) if noisy_units else set()
+    noise_model = _measured_noise(noise_from, sample_rate_hz) if noise_from is not None else None
 
     manifest: dict = {
         "format": MANIFEST_FORMAT,
@@ -225,6 +242,12 @@ def simulate_fleet(
         "units": [],
         "outliers": [],
         "bad_sessions": [],
+        "noise": {
+            "recording_s": noise_recording_s,
+            "noisy_units": [],
+            "noise_factor": noise_factor if noisy_units else None,
+            "noise_from": None if noise_model is None else noise_model.source,
+        },
     }
     for li, lot_seq in enumerate(lot_seqs):
         lot = f"L{li + 1:02d}"
@@ -241,6 +264,12 @@ def simulate_fleet(
                 truth = _inject_outlier(truth, kind)
                 outlier = {"param": kind[0], "shift": kind[3]}
                 manifest["outliers"].append({"lot": lot, "unit": unit, **outlier})
+            if noise_model is not None:
+                truth = replace(truth, gyro_noise_dps=noise_model.gyro_sd, accel_noise_g=noise_model.accel_sd)
+            factor = noise_factor if flat_unit in noisy else 1.0
+            if flat_unit in noisy:  # N times the lot's angle random walk
+                truth = replace(truth, gyro_noise_dps=np.asarray(truth.gyro_noise_dps, float) * factor)
+                manifest["noise"]["noisy_units"].append({"lot": lot, "unit": unit, "factor": factor})
             unit_doc = {"lot": lot, "unit": unit, "truth": _truth_doc(truth), "outlier": outlier, "reps": []}
             for rep in range(1, reps + 1):
                 key = SessionKey(lot, unit, rep)
@@ -277,9 +306,123 @@ def simulate_fleet(
                         {"session": str(key), "lot": lot, "unit": unit, "rep": rep, **bad}
                     )
                 unit_doc["reps"].append(rep_doc)
+            if noise_recording_s > 0:
+                unit_doc["noise_recording"] = _noise_recordings(
+                    out,
+                    lot,
+                    unit,
+                    truth,
+                    noise_recording_s,
+                    sample_rate_hz,
+                    unit_rng,
+                    noise_model,
+                    factor,
+                    seed,
+                )
             manifest["units"].append(unit_doc)
     _write_json_atomic(out / MANIFEST, manifest)
     return manifest
+
+
+class _MeasuredNoise:
+    """A ``mimucal noise --json`` document as the simulator uses it: the model
+    (:class:`calib_core.noise.NoiseModel`) and the per-sample white sd of each channel at
+    the fleet's sample rate (deg/s, g) for the sessions."""
+
+    def __init__(self, doc: dict, rate_hz: float) -> None:
+        from calib_core.noise import NoiseModel
+
+        self.model = NoiseModel.from_dict(doc)
+        self.source = str(doc.get("source") or doc.get("recording") or "a measured noise model")
+        default = MimuTruth()
+        sd = []
+        for i, ch in enumerate(("gx", "gy", "gz", "ax", "ay", "az")):
+            ch_doc = (doc.get("channels") or {}).get(ch)
+            if ch_doc is None:  # a channel the model lacks: the simulator's own white noise
+                sd.append(default.gyro_noise_dps if i < 3 else default.accel_noise_g)
+                continue
+            white = (ch_doc.get("coefficients") or {}).get("white") or {}
+            sd.append(_white_sd_per_sample(white, ch, rate_hz))
+        self.gyro_sd, self.accel_sd = np.array(sd[:3]), np.array(sd[3:])
+
+    def record(self, n: int, rate_hz: float, rng: np.random.Generator, fallback_sd: np.ndarray) -> np.ndarray:
+        """(n, 6) noise in deg/s and g; a channel the model lacks gets white noise of
+        ``fallback_sd``."""
+        from calib_core.noise import synthesize
+
+        chans = synthesize(self.model, n, rate_hz, rng)
+        out = np.empty((n, 6))
+        for i, c in enumerate(("gx", "gy", "gz", "ax", "ay", "az")):
+            if c not in chans:
+                out[:, i] = rng.normal(0.0, fallback_sd[i], n)
+                continue
+            unit = self.model.channels[c].unit
+            scale = {"rad/s": 180.0 / np.pi, "m/s^2": 1.0 / 9.80665, "m/s2": 1.0 / 9.80665}.get(unit, 1.0)
+            out[:, i] = np.asarray(chans[c], float) * scale
+        return out
+
+
+def _white_sd_per_sample(white: dict, channel: str, rate_hz: float) -> float:
+    """The per-sample sd (deg/s or g) of a white coefficient (deg/sqrt(h) or m/s/sqrt(h)) at
+    ``rate_hz``: density = coefficient / 60 per sqrt(Hz), sd = density sqrt(rate)."""
+    value = white.get("value")
+    if value is None:
+        return 0.0
+    density = float(value) / 60.0
+    if channel.startswith("a"):
+        density /= 9.80665  # m/s^2/sqrt(Hz) -> g/sqrt(Hz)
+    return density * np.sqrt(rate_hz)
+
+
+def _measured_noise(doc: dict, rate_hz: float) -> _MeasuredNoise:
+    return _MeasuredNoise(doc, rate_hz)
+
+
+def _noise_recordings(
+    out: Path,
+    lot: str,
+    unit: str,
+    truth: MimuTruth,
+    duration_s: float,
+    rate_hz: float,
+    rng: np.random.Generator,
+    measured: _MeasuredNoise | None,
+    factor: float,
+    seed: int,
+) -> dict:
+    """Write the unit's static recording ``noise/static.parquet``; its manifest entry."""
+    from calib_core.sim.noise_recording import static_noise_recording
+    from schemas.noise_recordings import write_noise_recording
+
+    n = int(round(duration_s * rate_hz))
+    noise = None
+    if measured is not None:
+        fallback = np.concatenate(
+            [np.broadcast_to(truth.gyro_noise_dps, 3), np.broadcast_to(truth.accel_noise_g, 3)]
+        )
+        noise = measured.record(n, rate_hz, rng, fallback)
+        if factor != 1.0:  # more white noise on the gyros: N^2 - 1 times its variance, added
+            extra = np.sqrt(max(factor**2 - 1.0, 0.0)) * np.asarray(measured.gyro_sd)
+            noise[:, :3] += rng.normal(0.0, 1.0, (n, 3)) * extra
+    samples = static_noise_recording(truth, duration_s, rate_hz, rng, noise=noise)
+    md = session_metadata(
+        truth,
+        rate_hz,
+        session_start=SIM_FIRST_SESSION.strftime("%Y-%m-%dT%H:%M:%SZ"),
+        lot=lot,
+        unit=unit,
+        seed=str(seed),
+        recording="static, unit at rest, z up",
+    )
+    path = write_noise_recording(out, lot, unit, "static", samples, md)
+    return {
+        "path": str(path.relative_to(out)),
+        "duration_s": duration_s,
+        "rate_hz": rate_hz,
+        "gyro_white_sd_dps": np.asarray(truth.gyro_noise_dps, float).tolist(),
+        "accel_white_sd_g": np.asarray(truth.accel_noise_g, float).tolist(),
+        "arw_factor": factor,
+    }
 
 
 def simulate_physics_fleet(

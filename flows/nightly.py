@@ -516,7 +516,12 @@ def _plan_night(
     digests = DigestCache(store.read_digest_cache())
     jobs, skipped, refused = plan_unit_jobs([*refs, *field_refs], store.fingerprints(), force, digests)
     path_errors = [*path_errors, *field_errors, *refused]
+    for j in jobs:  # its noise recordings (schemas.noise_recordings) follow the same rule
+        j.follow_symlinks = follow_symlinks
     current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
+    current |= {
+        p for p in digests.entries if os.path.basename(os.path.dirname(p)) == "noise" and os.path.exists(p)
+    }
     if digests.read or set(digests.entries) - current:  # files of moved datasets go
         store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})
     return refs, path_errors, jobs, skipped
@@ -779,7 +784,7 @@ def rerun_flow(
                 f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
             )
         lot = refs[0].key.lot if refs else field_job.lot
-        job = field_job or UnitJob(lot, unit, refs, "rerun")
+        job = field_job or UnitJob(lot, unit, refs, "rerun", follow_symlinks=follow_symlinks)
         log: dict[str, Any] = {
             "run_id": run_id,
             "kind": "rerun",

@@ -62,6 +62,7 @@ class UnitOutcome:
     terms: tuple[TermValue, ...] = ()
     diagnosis: object | None = None  # calib_core.discovery.Diagnosis when discovery ran
     notes: list[str] = field(default_factory=list)
+    noise: Any = None  # calib_core.noise_fleet.UnitNoise: the measured noise (flows.noise_units)
 
     def residuals_frame(self) -> pd.DataFrame | None:
         """The per-step residual rows of every successful session, one frame for the unit

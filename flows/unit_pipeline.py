@@ -17,6 +17,7 @@ from calib_core.results import UnitCalibration
 from calib_core.steps import StepMeans
 from calib_core.tables import ColumnTable
 from flows.field_units import calibrate_field_unit_job
+from flows.noise_units import apply_noise
 from flows.unit_outcomes import (  # noqa: F401  (re-exported: the unit pipeline's results)
     STATUS_FAILED,
     STATUS_OK,
@@ -240,6 +241,14 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     if thermal_note:
         unit_out.notes.append(thermal_note)
         note = "; ".join(filter(None, [note, thermal_note]))
+    try:  # the unit's noise model (lot=L/unit=U/noise/ or its static steps): flows.noise_units
+        unit_dir = job.refs[0].path.parent if job.refs else None
+        noise_note = apply_noise(unit_out, unit_dir, getattr(job, "follow_symlinks", False))
+    except Exception as exc:  # noqa: BLE001 - the unit keeps its calibration without a noise model
+        noise_note = f"E_INTERNAL: noise model of unit {job.unit} failed: {type(exc).__name__}: {exc}"
+    if noise_note:
+        unit_out.notes.append(noise_note)
+        note = "; ".join(filter(None, [note, noise_note]))
     for o in unit_out.sessions:  # step means are not kept past this point
         o.step_means = None
     return UnitResult(

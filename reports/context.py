@@ -60,7 +60,7 @@ def flag_kinds(reason: Any) -> set[str]:
     kinds = set()
     if "[limit]" in text:
         kinds.add(KIND_LIMITS)
-    if "[robust_z]" in text or "[spread]" in text:
+    if "[robust_z]" in text or "[spread]" in text or "[noise]" in text:  # noise: calib_core.noise_fleet
         kinds.add(KIND_OUTLIER)
     return kinds
 

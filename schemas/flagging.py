@@ -37,6 +37,7 @@ from calib_core.outliers import (
     pooling_rows,
 )
 from schemas.results_store import ResultsStore, iso, utc_now
+from schemas.store_noise import flag_noise
 
 
 def reflag_after_update(
@@ -105,6 +106,7 @@ def _flag(
     thresholds = ThresholdTable(cached)
     times = unit_times(store) if config.uses_history() else None
     lf = flag_lots(summary.astype({"lot": object, "unit": object}), config, todo, times, thresholds)
+    flag_noise(store, lf, config, thresholds)  # the noise table's outliers join the lots' flags
     now = thresholds.document()
     if now != cached:  # new lot layouts simulated: keep them for the next process
         store.write_outlier_thresholds(now)

@@ -42,6 +42,43 @@ if TYPE_CHECKING:  # the store module imports more than a configuration needs
     from schemas.results_store import ResultsStore
 
 STANDARD_GRAVITY = 9.80665
+_SQRT_H = 60.0  # sqrt(3600 s)
+_RAD = 180.0 / math.pi
+NOISE_COEFFICIENTS = ("quantization", "white", "bias_instability", "random_walk", "ramp", "gauss_markov")
+# noise coefficient kinds -> {unit: factor to the unit the noise table holds (the first)}
+NOISE_UNITS: dict[str, dict[str, float]] = {
+    "gyro quantization": {"deg": 1.0, "arcsec": 1.0 / 3600.0, "rad": _RAD, "urad": _RAD * 1e-6},
+    "gyro white": {
+        "deg/sqrt(h)": 1.0,
+        "deg/s/sqrt(Hz)": _SQRT_H,
+        "deg/h/sqrt(Hz)": _SQRT_H / 3600.0,
+        "mdeg/s/sqrt(Hz)": _SQRT_H * 1e-3,
+        "rad/s/sqrt(Hz)": _SQRT_H * _RAD,
+    },
+    "gyro bias_instability": {"deg/h": 1.0, "deg/s": 3600.0, "rad/s": 3600.0 * _RAD},
+    "gyro random_walk": {
+        "deg/h/sqrt(h)": 1.0,
+        "deg/s/sqrt(s)": 3600.0 * _SQRT_H,
+        "rad/s^2/sqrt(Hz)": 3600.0 * _SQRT_H * _RAD,
+    },
+    "gyro ramp": {"deg/h^2": 1.0, "deg/h/h": 1.0, "deg/s^2": 3600.0**2},
+    "gyro gauss_markov": {"deg/h": 1.0, "deg/s": 3600.0, "rad/s": 3600.0 * _RAD},
+    "accel quantization": {"m/s": 1.0, "mm/s": 1e-3},
+    "accel white": {
+        "m/s/sqrt(h)": 1.0,
+        "m/s^2/sqrt(Hz)": _SQRT_H,
+        "mg/sqrt(Hz)": _SQRT_H * STANDARD_GRAVITY * 1e-3,
+        "ug/sqrt(Hz)": _SQRT_H * STANDARD_GRAVITY * 1e-6,
+    },
+    "accel bias_instability": {"mg": 1.0, "g": 1e3, "ug": 1e-3, "m/s^2": 1e3 / STANDARD_GRAVITY},
+    "accel random_walk": {
+        "m/s/h/sqrt(h)": 1.0,
+        "m/s^2/sqrt(s)": 3600.0 * _SQRT_H,
+        "m/s^3/sqrt(Hz)": 3600.0 * _SQRT_H,
+    },
+    "accel ramp": {"m/s/h^2": 1.0, "m/s/h/h": 1.0, "m/s^3": 3600.0**2},
+    "accel gauss_markov": {"mg": 1.0, "g": 1e3, "ug": 1e-3, "m/s^2": 1e3 / STANDARD_GRAVITY},
+}
 _MAT = [f"{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
 _AX = "xyz"
 
@@ -82,6 +119,9 @@ UNITS: dict[str, dict[str, float]] = {
             ("dimensionless", {"1": 1.0, "ppm": 1e-6}),
         )
     },
+    # noise coefficients (model "noise", docs/noise.md): the IEEE 952 / 1293 units the noise
+    # table holds first; the continuous-time densities (Kalibr's) convert to them
+    **NOISE_UNITS,
 }
 STORED_UNIT = {
     "dimensionless": "",
@@ -94,6 +134,7 @@ STORED_UNIT = {
         for sup in ("", "^2", "^3")
         for kind, u in (("angular rate", "deg/s"), ("acceleration", "g"), ("dimensionless", "1"))
     },
+    **{kind: next(iter(units)) for kind, units in NOISE_UNITS.items()},
 }
 
 # model -> parameter -> kind of quantity (the stored units when the raw units are deg/s and g;
@@ -124,6 +165,8 @@ PARAMETERS: dict[str, dict[str, str]] = {
         + [(f"k_a{m}", "dimensionless") for m in _MAT]
         + [(f"f0_{a}", "acceleration") for a in _AX]
     },
+    # the noise coefficients (calib_core.noise_fleet): gyro_white applies to gx, gy and gz
+    "noise": {f"{sensor}_{c}": f"{sensor} {c}" for sensor in ("gyro", "accel") for c in NOISE_COEFFICIENTS},
 }
 MODEL_OF = {name: model for model, names in PARAMETERS.items() for name in names}
 

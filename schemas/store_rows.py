@@ -126,7 +126,7 @@ def calibration_file_extra(ur: Any, context: dict[str, Any]) -> dict[str, Any]:
     # when the unit was measured (its sessions' last session_start; None when no session
     # says it: then the time of the calibration is when it was produced)
     context = {**context, "acquired_at": acquisition_time(u["session_start"] for u in used)}
-    return calibration_file_sections(
+    doc = calibration_file_sections(
         ur.lot,
         ur.unit,
         out.calibration.reps,
@@ -136,6 +136,10 @@ def calibration_file_extra(ur: Any, context: dict[str, Any]) -> dict[str, Any]:
         ur.diagnosis,
         context,
     )
+    noise = getattr(out, "noise", None)  # the measured noise model (flows.noise_units)
+    if noise is not None:
+        doc["noise"] = noise.to_dict()
+    return doc
 
 
 def unit_store_rows(
@@ -355,6 +359,9 @@ def write_unit_tables(store: ResultsStore, results: list, rows: StoreRows) -> No
             pd.concat(rows.discovery_evidence, ignore_index=True) if rows.discovery_evidence else None,
             disc_units,
         )
+    from schemas.store_noise import write_noise_tables  # the noise and noise_allan tables
+
+    write_noise_tables(store, calibrated, next((r["run_id"] for r in rows.units), None))
     # the units table next to last: until it is written no table points to the new
     # calibration files, so a failure before it may remove them (flows.nightly.store_results)
     store.replace_units("units", _frame(rows.units), all_units)

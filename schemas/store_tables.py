@@ -242,3 +242,9 @@ def schema_problem(schema: pa.Schema, name: str) -> str | None:
         if not got.equals(f.type):
             return f"column {f.name!r} has type {got}, declared {f.type}"
     return None
+
+
+# the noise tables (docs/noise.md) are declared in their own module
+from schemas.store_noise import NOISE_TABLE_SCHEMAS  # noqa: E402
+
+TABLE_SCHEMAS.update(NOISE_TABLE_SCHEMAS)

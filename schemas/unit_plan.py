@@ -54,6 +54,7 @@ class UnitJob:
     refs: list
     reason: str
     kind: str = TURNTABLE
+    follow_symlinks: bool = False  # its noise recordings may be symbolic links (schemas.noise_recordings)
 
 
 def plan_unit_jobs(

@@ -61,6 +61,36 @@ def register(sub) -> None:
         help="unit of the written accelerometer samples (default g)",
     )
     p.add_argument(
+        "--noise-recordings",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="write a static recording of SECONDS per unit (lot=L/unit=U/noise/static.parquet): "
+        "the nightly measures each unit's noise model on it (docs/noise.md)",
+    )
+    p.add_argument(
+        "--noisy-units",
+        type=int,
+        default=0,
+        metavar="K",
+        help="K units get --noise-factor times the lot's gyro white noise (angle random walk)",
+    )
+    p.add_argument(
+        "--noise-factor",
+        type=float,
+        default=3.0,
+        metavar="N",
+        help="with --noisy-units: the factor on their angle random walk (default 3)",
+    )
+    p.add_argument(
+        "--noise-from",
+        type=Path,
+        default=None,
+        metavar="NOISE.json",
+        help="the units' noise is this measured model (a 'mimucal noise --json' file): the "
+        "recordings' noise, periodic lines and quantization included, and the sessions' white noise",
+    )
+    p.add_argument(
         "--physics",
         action="store_true",
         help="simulate with the independent physics simulator (each sensor its own "
@@ -158,6 +188,9 @@ def run(args) -> int:
         raise CliError(
             "--hide, --no-tilted, --latitude, --declare-location and --back-to-back need --physics"
         )
+    if args.noise_recordings < 0 or args.noisy_units < 0:
+        raise CliError("--noise-recordings and --noisy-units must be >= 0")
+    noise_from = _read_noise_json(args.noise_from) if args.noise_from is not None else None
     try:
         manifest = simulate_fleet(
             out,
@@ -171,6 +204,10 @@ def run(args) -> int:
             verification=args.verification,
             gyro_unit=args.gyro_unit,
             accel_unit=args.accel_unit,
+            noise_recording_s=args.noise_recordings,
+            noisy_units=args.noisy_units,
+            noise_factor=args.noise_factor,
+            noise_from=noise_from,
         )
     except ValueError as exc:
         raise CliError(str(exc)) from None
@@ -185,8 +222,28 @@ def run(args) -> int:
         print(f"  outlier: lot={o['lot']}/unit={o['unit']} ({o['param']} {o['shift']:+g})")
     for b in manifest["bad_sessions"]:
         print(f"  bad session: {b['session']} ({b['kind']}: expect {b['expected_code']})")
+    if args.noise_recordings:
+        print(f"  noise recordings: {args.noise_recordings:g} s per unit (lot=L/unit=U/noise/static.parquet)")
+    for u in manifest["noise"]["noisy_units"]:
+        print(f"  noisy unit: lot={u['lot']}/unit={u['unit']} ({u['factor']:g}x the angle random walk)")
     print(f"  truth: {out / MANIFEST}")
     return 0
+
+
+def _read_noise_json(path: Path) -> dict:
+    """A ``mimucal noise --json`` document, or a one-line error naming the file."""
+    import json
+
+    try:
+        doc = json.loads(path.read_text())
+    except OSError as exc:
+        raise CliError(f"--noise-from {path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise CliError(f"--noise-from {path}: not JSON ({exc})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("channels"), dict):
+        raise CliError(f"--noise-from {path}: not a 'mimucal noise --json' document (no 'channels')")
+    doc.setdefault("source", str(path))
+    return doc
 
 
 def _parse_hide(specs: list[str]) -> tuple[tuple[str, float], ...]:

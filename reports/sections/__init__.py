@@ -21,7 +21,17 @@ from dataclasses import dataclass
 
 from reports.context import KIND_OUTLIER, LotContext
 from reports.html import Page, esc
-from reports.sections import discovery, parameters, repetitions, residuals, sessions, spread, summary, thermal
+from reports.sections import (
+    discovery,
+    noise,
+    parameters,
+    repetitions,
+    residuals,
+    sessions,
+    spread,
+    summary,
+    thermal,
+)
 from reports.sections.common import kind_badges
 
 Builder = Callable[[LotContext, Page, "str | None"], "str | None"]
@@ -46,6 +56,7 @@ UNIT_SECTIONS: list[Section] = [
     Section("models", "Other models", repetitions.build_other_models, heading=False),
     Section("discovery", "Model discovery", discovery.build_unit),
     Section("thermal", "Calibration over temperature", thermal.build),
+    Section("noise", "Noise", noise.build),
     Section("failed", "Failed sessions", sessions.build_unit_failed),
 ]
 
@@ -104,6 +115,7 @@ LOT_SECTIONS: list[Section] = [
     Section("residuals", "Residuals across the lot", residuals.build),
     Section("discovery", "Model discovery", discovery.build),
     Section("thermal", "Calibration over temperature", thermal.build),
+    Section("noise", "Noise", noise.build),
     Section("sessions", "Sessions", sessions.build),
     Section("units", "Units", build_units),
 ]
