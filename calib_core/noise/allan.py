@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from functools import lru_cache
 
 import allantools
 import numpy as np
@@ -17,6 +18,9 @@ from scipy import stats
 ADEV_CONFIDENCE = 0.95  # two-sided level of adev_lo .. adev_hi
 MIN_CLUSTERS = 8  # the largest cluster size leaves >= 8 cluster lengths in the record
 MIN_NOISE_ID_POINTS = 32  # lag-1 autocorrelation noise ID needs ~30 averaged points
+# ...and gains nothing past ~65,000 (lag-1 autocorrelation to +-0.004): longer records are
+# identified on their first 65,536 averages, which keeps small cluster sizes cheap.
+MAX_NOISE_ID_POINTS = 65_536
 
 
 @dataclass(frozen=True)
@@ -75,11 +79,12 @@ def _detrend_linear(z: np.ndarray) -> np.ndarray:
 def identify_alpha(x: np.ndarray, m: int) -> int | None:
     """Power-law noise type of rate data x at cluster size m: the lag-1 autocorrelation noise
     ID of Riley & Greenhall as allantools' ``autocorr_noise_id`` (data_type="freq", dmax=2)
-    does it, on the m-averages with a linear trend removed. None when fewer than
-    :data:`MIN_NOISE_ID_POINTS` averages remain. Flicker PM (alpha = 1), which no process of
+    does it, on the m-averages with a linear trend removed (at most
+    :data:`MAX_NOISE_ID_POINTS` of them). None when fewer than :data:`MIN_NOISE_ID_POINTS`
+    averages remain. Flicker PM (alpha = 1), which no process of
     the model makes, is read as white (alpha = 0, the smaller edf); the result is clipped to
     the range Greenhall's edf accepts for the Allan variance (alpha > -3)."""
-    k = x.size // m
+    k = min(x.size // m, MAX_NOISE_ID_POINTS)
     if k < MIN_NOISE_ID_POINTS:
         return None
     z = _detrend_linear(x[: k * m].reshape(k, m).mean(axis=1))
@@ -97,6 +102,7 @@ def identify_alpha(x: np.ndarray, m: int) -> int | None:
     return int(np.clip(alpha, -2, 2))
 
 
+@lru_cache(maxsize=1024)
 def equivalent_dof(alpha: int, m: int, n_samples: int) -> float:
     """Greenhall's edf of the overlapping Allan variance (N phase points = n + 1)."""
     try:
@@ -126,7 +132,8 @@ def allan_curve(
     """Overlapping Allan deviation of rate samples ``x`` (any unit) at cluster sizes ``m``
     (default: octaves). ``alpha`` reuses noise types identified elsewhere (e.g. on the whole
     record for its halves); otherwise each cluster size's type is identified here, and where
-    too few points remain the last identified type is carried on."""
+    too few points remain the next redder type than the last identified one is taken (its
+    edf is the smaller: the interval errs wide where the type cannot be told)."""
     x = np.asarray(x, float)
     n = x.size
     if m is None:
@@ -142,10 +149,13 @@ def allan_curve(
     m = np.rint(taus * rate_hz).astype(int)
     if alpha is None:
         ids = []
-        last = 0
+        last, stepped = 0, False
         for mj in m:
             a = identify_alpha(y, int(mj))
-            last = last if a is None else a
+            if a is not None:
+                last = a
+            elif not stepped:  # too few averages to tell: the next redder type, smaller edf
+                last, stepped = max(last - 1, -2), True
             ids.append(last)
         alpha = np.array(ids, int)
     else:

@@ -40,6 +40,11 @@ LINE_ALPHA = 0.01
 LINE_MEDIAN_BINS = 33  # running-median window of the spectral baseline
 LINE_HALF_WIDTH = 3  # bins either side of a line's peak that hold its power (Hann window)
 MIN_SAMPLES = 256
+# A named coefficient's interval also holds its interval in the model that adds these
+# processes where discovery left them out: a random walk or quantization the record cannot
+# tell apart from bias instability or white noise widens their intervals instead of
+# biasing them unseen.
+UNCERTAINTY_TERMS = ("random_walk",)
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,7 @@ class SpectralLine:
     ratio: float  # peak density / running median (whole record)
     ratio_halves: tuple[float, float]
     threshold: float
+    resolution_hz: float  # Welch bin width: the ratio depends on it
 
 
 @dataclass(frozen=True)
@@ -99,6 +105,7 @@ class ChannelAnalysis:
                 "psd_ratio_to_median": ln.ratio,
                 "psd_ratio_halves": list(ln.ratio_halves),
                 "threshold": ln.threshold,
+                "spectral_resolution_hz": ln.resolution_hz,
             }
             for ln in self.lines
         ]
@@ -165,26 +172,46 @@ class NoiseAnalysis:
 # --- periodic lines -------------------------------------------------------------------
 
 
-def _welch(x: np.ndarray, rate_hz: float, nperseg: int):
-    f, p = signal.welch(x, fs=rate_hz, window="hann", nperseg=nperseg, detrend="linear")
-    segments = 1 + (x.size - nperseg) // (nperseg // 2)
-    nu = 2.0 * segments / 1.056  # Hann, 50 % overlap (Percival & Walden 7.3.3)
+def _segment_periodograms(x: np.ndarray, rate_hz: float, nperseg: int):
+    """Hann-windowed periodograms of half-overlapping segments (each mean removed), one-sided
+    density scaling as scipy.signal.welch: their average over any run of segments is Welch's
+    estimate of that run."""
+    step = nperseg // 2
+    k = 1 + (x.size - nperseg) // step
+    idx = np.arange(nperseg)[None, :] + step * np.arange(k)[:, None]
+    seg = x[idx]
+    seg = seg - seg.mean(axis=1, keepdims=True)
+    win = signal.windows.hann(nperseg, sym=False)
+    spec = np.abs(np.fft.rfft(seg * win, axis=1)) ** 2 / (rate_hz * float(win @ win))
+    spec[:, 1:] *= 2.0
+    if nperseg % 2 == 0:
+        spec[:, -1] /= 2.0
+    return np.fft.rfftfreq(nperseg, 1.0 / rate_hz), spec
+
+
+def _welch(spec: np.ndarray):
+    """Welch density from segment periodograms, its running-median baseline (scaled to the
+    mean) and its equivalent degrees of freedom."""
+    p = spec.mean(axis=0)
+    nu = 2.0 * spec.shape[0] / 1.056  # Hann, 50 % overlap (Percival & Walden 7.3.3)
     base = ndimage.median_filter(p, size=LINE_MEDIAN_BINS, mode="nearest")
     base = base / (stats.chi2.median(nu) / nu)  # the median of chi2_nu/nu is below 1
-    return f, p, base, nu
+    return p, base, nu
 
 
 def find_lines(x: np.ndarray, rate_hz: float) -> list[SpectralLine]:
     """Periodic lines the whole record and both halves show (see the module docstring)."""
     n = x.size
     nperseg = int(2 ** np.clip(np.floor(np.log2(n / 16)), 6, 12))
-    f, p, base, nu = _welch(x, rate_hz, nperseg)
+    f, spec = _segment_periodograms(x, rate_hz, nperseg)
+    p, base, nu = _welch(spec)
     bins = f.size
     lo_bin = LINE_MEDIAN_BINS  # the lowest bins sit on the steep red part of the spectrum
     thr = stats.chi2.ppf(1.0 - LINE_ALPHA / bins, nu) / nu
     ratio = p / base
-    halves = [_welch(h, rate_hz, nperseg) for h in (x[: n // 2], x[n // 2 :])]
-    half_ratio = [hp / hb for _, hp, hb, _ in halves]
+    k_half = spec.shape[0] // 2  # segments wholly in the first / second half (one may straddle)
+    halves = [_welch(spec[:k_half]), _welch(spec[-k_half:])]
+    half_ratio = [hp / hb for hp, hb, _ in halves]
     half_thr = [stats.chi2.ppf(1.0 - LINE_ALPHA / bins, hnu) / hnu for *_, hnu in halves]
     lines = []
     peaks, _ = signal.find_peaks(ratio)
@@ -199,10 +226,11 @@ def find_lines(x: np.ndarray, rate_hz: float) -> list[SpectralLine]:
         shift = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
         freq = float(f[k] + np.clip(shift, -0.5, 0.5) * (f[1] - f[0]))
         span = slice(max(k - LINE_HALF_WIDTH, 1), k + LINE_HALF_WIDTH + 1)
-        power = float(
-            np.sum(np.maximum(p[span] - base[span] * stats.chi2.median(nu) / nu, 0.0)) * (f[1] - f[0])
+        floor = base[span] * stats.chi2.median(nu) / nu
+        power = float(np.sum(np.maximum(p[span] - floor, 0.0)) * (f[1] - f[0]))
+        lines.append(
+            SpectralLine(freq, float(np.sqrt(2.0 * power)), float(ratio[k]), rh, float(thr), float(f[1]))
         )
-        lines.append(SpectralLine(freq, float(np.sqrt(2.0 * power)), float(ratio[k]), rh, float(thr)))
     return lines
 
 
@@ -210,27 +238,27 @@ def find_lines(x: np.ndarray, rate_hz: float) -> list[SpectralLine]:
 
 
 def _correlation_times(rate_hz: float, duration_s: float) -> list[float]:
+    """Gauss-Markov correlation times tried: 4 samples to 1/8 of the record, a factor 4 apart
+    (the Allan variance of a Gauss-Markov process changes little for a factor 2)."""
     lo, hi = 4.0 / rate_hz, duration_s / 8.0
     if hi <= lo:
         return []
-    return list(lo * 2.0 ** np.arange(int(np.floor(np.log2(hi / lo))) + 1))
+    return list(lo * 4.0 ** np.arange(int(np.floor(np.log(hi / lo) / np.log(4.0))) + 1))
 
 
-def _gain(shape: AllanCurve, other: AllanCurve, terms, extra: Term, lines) -> tuple[float, float]:
-    f0 = fit_allan(shape, terms, lines)
-    f1 = fit_allan(shape, terms + (extra,), lines)
-    held0 = weighted_chi2(other.avar, model_avar(f0, other.tau_s, other.rate_hz), other.edf)
-    held1 = weighted_chi2(other.avar, model_avar(f1, other.tau_s, other.rate_hz), other.edf)
-    return f0.chi2 - f1.chi2, held0 - held1
+def _held_chi2(fit: AllanFit, other: AllanCurve) -> float:
+    return weighted_chi2(other.avar, model_avar(fit, other.tau_s, other.rate_hz), other.edf, fit.correlation)
 
 
 def discover_terms(halves: tuple[AllanCurve, AllanCurve], lines: tuple[Line, ...], duration_s: float):
     """Forward selection of processes beyond white + bias instability (module docstring)."""
-    a, b = halves
     terms = BASE_TERMS
     steps: list[DiscoveryStep] = []
     thr_held = float(stats.chi2.ppf(1.0 - HELDOUT_ALPHA, 1))
+    pairs = (halves, halves[::-1])  # (half that shapes the fit, half that judges it)
     for rnd in range(len(CANDIDATES)):
+        base = [fit_allan(shape, terms, lines) for shape, _ in pairs]
+        base_held = [_held_chi2(f, other) for f, (_, other) in zip(base, pairs)]
         best = None
         named_names = {t.name for t in terms}
         round_steps = []
@@ -238,7 +266,7 @@ def discover_terms(halves: tuple[AllanCurve, AllanCurve], lines: tuple[Line, ...
             if name in named_names:
                 continue
             options = (
-                [Term(name, tc) for tc in _correlation_times(a.rate_hz, duration_s / 2.0)]
+                [Term(name, tc) for tc in _correlation_times(halves[0].rate_hz, duration_s / 2.0)]
                 if name == "gauss_markov"
                 else [Term(name)]
             )
@@ -247,9 +275,10 @@ def discover_terms(halves: tuple[AllanCurve, AllanCurve], lines: tuple[Line, ...
             thr_fit = float(stats.chi2.ppf(1.0 - SELECTION_ALPHA / len(options), 1))
             scored = []
             for term in options:
-                ga, ha = _gain(a, b, terms, term, lines)
-                gb, hb = _gain(b, a, terms, term, lines)
-                scored.append((min(ga, gb), term, (ga, gb), (ha, hb)))
+                fits = [fit_allan(shape, terms + (term,), lines) for shape, _ in pairs]
+                gfit = tuple(b.chi2 - f.chi2 for b, f in zip(base, fits))
+                ghel = tuple(bh - _held_chi2(f, other) for bh, f, (_, other) in zip(base_held, fits, pairs))
+                scored.append((min(gfit), term, gfit, ghel))
             _, term, gfit, ghelds = max(scored, key=lambda s: s[0])
             passes = min(gfit) > thr_fit and min(ghelds) > thr_held
             step = DiscoveryStep(rnd, name, term.correlation_time_s, gfit, ghelds, thr_fit, thr_held, False)
@@ -298,8 +327,12 @@ def analyse_channel(
     fit = fit_allan(curve, terms, lines)
     coefficients, intervals, reasons, upper = {}, {}, {}, {}
     gm = gm_interval = None
+    confounders = tuple(Term(p) for p in UNCERTAINTY_TERMS if p not in {t.name for t in terms})
+    wide = fit_allan(curve, terms + confounders, lines) if confounders else fit
     for term, c in zip(fit.terms, fit.c):
         lo, hi = fit.interval(term.name)
+        wlo, whi = wide.interval(term.name)
+        lo, hi = min(lo, wlo), max(hi, whi)
         if term.name == "gauss_markov":
             gm, gm_interval = (float(np.sqrt(c)), float(term.correlation_time_s)), (lo, hi)
         else:

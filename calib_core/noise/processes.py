@@ -17,8 +17,8 @@ periodic           amplitude A (U), frequency f      A^2 sin^4(pi f tau) / (m si
 =================  ================================  =====================================
 
 Where the sampled process differs from the continuous-time formula (the sinusoid near the
-Nyquist frequency, a flicker process band-limited at the Nyquist frequency at the first few
-cluster sizes), the discrete-time value is used, so that a record made by
+Nyquist frequency, a flicker process band-limited at the Nyquist frequency and a random walk
+of discrete steps at the first few cluster sizes), the discrete-time value is used, so that a record made by
 :mod:`calib_core.noise.synthesis` has exactly these Allan variances. Every basis function is
 the Allan variance for a coefficient of 1 (a ``periodic`` line: an amplitude of 1); the
 composite model is linear in the squared coefficients.
@@ -50,7 +50,7 @@ def _flicker_factor(m: int) -> float:
     (u m^2 sin^2(pi u)) du. It tends to 2 ln 2 / pi from below as m grows."""
     if m >= 64:
         return 2.0 * math.log(2.0) / math.pi
-    u = (np.arange(400_000) + 0.5) / 800_000.0  # midpoint rule on (0, 1/2]
+    u = (np.arange(40_000) + 0.5) / 80_000.0  # midpoint rule on (0, 1/2]: >= 600 points a period
     integrand = 2.0 * np.sin(np.pi * u * m) ** 4 / (u * m * m * np.sin(np.pi * u) ** 2)
     return float(integrand.sum() * (0.5 / u.size) / math.pi)
 
@@ -60,8 +60,11 @@ def bias_instability(tau: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.array([_flicker_factor(int(k)) for k in m])
 
 
-def random_walk(tau: np.ndarray) -> np.ndarray:
-    return np.asarray(tau, float) / 3.0
+def random_walk(tau: np.ndarray, rate_hz: float) -> np.ndarray:
+    """K^2 tau / 3 plus the sampled walk's own K^2 T^2 / (6 tau) (steps of variance K^2 T:
+    (2 m^2 + 1) / (6 m) K^2 T; 1.5 times tau/3 at m = 1)."""
+    tau = np.asarray(tau, float)
+    return tau / 3.0 + 1.0 / (6.0 * rate_hz**2 * tau)
 
 
 def ramp(tau: np.ndarray) -> np.ndarray:
@@ -101,7 +104,7 @@ def basis(name: str, tau: np.ndarray, rate_hz: float, correlation_time_s: float 
     if name == "bias_instability":
         return bias_instability(tau, rate_hz)
     if name == "random_walk":
-        return random_walk(tau)
+        return random_walk(tau, rate_hz)
     if name == "ramp":
         return ramp(tau)
     if name == "gauss_markov":
