@@ -46,7 +46,9 @@ def measure_unit_noise(unit_dir: Path, lot: str, unit: str, applied, sessions, f
             notes.append(str(exc))
     if recordings:
         rec = max(recordings, key=lambda r: len(r.t))
-        w, f = applied.apply(rec.gyro, rec.accel, t=rec.t)
+        # the affine part only: at rest the catalogue terms add a constant, which an Allan
+        # deviation does not see
+        w, f = applied.apply_affine(rec.gyro, rec.accel)
         doc = analyse_channels(np.hstack([w, f]), rec.rate_hz)
         others = [r.ref.name for r in recordings if r is not rec]
         if others:
@@ -81,14 +83,21 @@ def _static_segments(applied, sessions) -> tuple[list[np.ndarray], float]:
             continue
         steps = data.steps
         static = steps[steps["test"].isin(STATIC_TESTS) & (steps["rate_dps"].abs() == 0)]
-        w, f = applied.apply(data.gyro, data.accel)
-        both = np.hstack([w, f])
+        kept = []
         for sid, settle in zip(static["step"].to_numpy(), static["settle_s"].to_numpy(float)):
             idx = np.flatnonzero(data.step == sid)
-            if not len(idx):
-                continue
-            keep = idx[data.t[idx] - data.t[idx[0]] >= settle - 1e-6]
-            segments.append(both[keep])
+            if len(idx):
+                kept.append(idx[data.t[idx] - data.t[idx[0]] >= settle - 1e-6])
+        if not kept:
+            continue
+        # the affine part only: at rest the catalogue terms are constant over a step, and
+        # each step's mean is removed anyway (static_step_record)
+        w, f = applied.apply_affine(data.gyro[np.concatenate(kept)], data.accel[np.concatenate(kept)])
+        both = np.hstack([w, f])
+        start = 0
+        for k in kept:
+            segments.append(both[start : start + len(k)])
+            start += len(k)
         rates.append(data.sample_rate_hz)
     return segments, float(np.median(rates)) if rates else float("nan")
 
