@@ -207,3 +207,61 @@ def test_the_noise_section_renders_in_chromium(lot):
     gyro = facts[0]
     assert gyro["paths"] == 30 and gyro["xtype"] == "log"  # 10 units x 3 channels
     assert set(gyro["red"]) == {lot["noisy"]}
+
+
+MPU6050 = "../shared/data/real/mpu6050_tedaldi/example_data_tinit_calc.csv"
+
+
+def test_simulate_noise_from_the_real_mpu6050_model(tmp_path):
+    """``mimucal simulate --noise-from`` the real MPU-6050's measured model: the nightly's
+    measurement of each simulated unit gives that model back (white within the unit's
+    interval of the model's on most channels, the 38 Hz gyro-y line named with its
+    amplitude)."""
+    from pathlib import Path
+
+    from flows.cli import main
+
+    src = Path(__file__).resolve().parents[1] / MPU6050
+    if not src.exists():
+        pytest.skip(f"{MPU6050} is not there")
+    noise_json = tmp_path / "mpu.json"
+    args = ["noise", str(src), "--gyro-unit", "counts", "--accel-unit", "counts"]
+    assert main([*args, "--gyro-range", "250dps", "--accel-range", "2g", "--json", str(noise_json)]) == 0
+    model = json.loads(noise_json.read_text())
+    line = model["channels"]["gy"]["periodic"][0]
+    assert abs(line["frequency_hz"] - 38.0) < 0.1
+    assert (
+        main(
+            [
+                "simulate",
+                str(tmp_path / "data"),
+                "--units",
+                "3",
+                "--reps",
+                "2",
+                "--rate",
+                "100",
+                "--noise-recordings",
+                "300",
+                "--noise-from",
+                str(noise_json),
+                "--seed",
+                "4",
+            ]
+        )
+        == 0
+    )
+    refs, _ = find_sessions(tmp_path / "data")
+    jobs, _ = plan_units(refs, {})
+    results = calibrate_batch(jobs, run_discovery=False)
+    inside = []
+    for r in results:
+        doc = r.outcome.noise.model["channels"]
+        for ch in ("gx", "gy", "gz", "ax", "ay", "az"):
+            got = doc[ch]["coefficients"]["white"]
+            want = model["channels"][ch]["coefficients"]["white"]["value"]
+            assert got["value"] == pytest.approx(want, rel=0.05), (r.unit, ch)
+            inside.append(got["lo"] <= want <= got["hi"])
+        lines = [p for p in doc["gy"]["periodic"] if abs(p["frequency_hz"] - line["frequency_hz"]) < 0.1]
+        assert len(lines) == 1 and lines[0]["amplitude"] == pytest.approx(line["amplitude"], rel=0.3), r.unit
+    assert np.mean(inside) >= 0.75, inside
