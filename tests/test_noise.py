@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 from allantools import ci as allan_ci
 
-from calib_core.noise import ChannelNoise, NoiseModel, analyse_recording, synthesize
-from calib_core.noise import processes, units
+from calib_core.noise import ChannelNoise, NoiseModel, processes, synthesize, units
 from calib_core.noise.allan import allan_curve, identify_alpha
 from calib_core.noise.analysis import find_lines
 from calib_core.noise.fit import Term, fit_allan

@@ -18,8 +18,9 @@ periodic           amplitude A (U), frequency f      A^2 sin^4(pi f tau) / (m si
 
 Where the sampled process differs from the continuous-time formula (the sinusoid near the
 Nyquist frequency, a flicker process band-limited at the Nyquist frequency, a random walk of
-discrete steps and a sampled Gauss-Markov process at the first few cluster sizes), the discrete-time value is used, so that a record made by
-:mod:`calib_core.noise.synthesis` has exactly these Allan variances. Every basis function is
+discrete steps and a sampled Gauss-Markov process at the first few cluster sizes), the
+discrete-time value is used, so that a record made by :mod:`calib_core.noise.synthesis` has
+exactly these Allan variances. Every basis function is
 the Allan variance for a coefficient of 1 (a ``periodic`` line: an amplitude of 1); the
 composite model is linear in the squared coefficients.
 """
