@@ -14,7 +14,8 @@ Per channel:
    by the ``SELECTION_ALPHA`` quantile (Bonferroni over the correlation times tried) AND,
    with the coefficients fitted there, lower the other half's chi-square by the
    ``HELDOUT_ALPHA`` quantile; both ways round. The best such process is named, and the search
-   repeats until none passes.
+   repeats until none passes. A ramp or a Gauss-Markov process, which over one record look
+   like a random walk, wins over the random walk only by the held-out threshold.
 4. **Final fit** of the named processes (lines held at their spectral amplitude) to the whole
    curve (:mod:`calib_core.noise.fit`), with the goodness of fit. A process not named gets an
    upper bound from the fit that includes it.
@@ -34,6 +35,9 @@ from calib_core.noise.model import COEFFICIENTS, ChannelNoise, NoiseModel
 
 BASE_TERMS = (Term("white"), Term("bias_instability"))
 CANDIDATES = ("quantization", "random_walk", "ramp", "gauss_markov")
+# A ramp and a long Gauss-Markov process look like a random walk over one record: they are
+# named instead of it only when they beat it on held-out data by the held-out threshold.
+DISFAVOURED = ("ramp", "gauss_markov")
 SELECTION_ALPHA = 0.01
 HELDOUT_ALPHA = 0.05
 LINE_ALPHA = 0.01
@@ -283,8 +287,9 @@ def discover_terms(halves: tuple[AllanCurve, AllanCurve], lines: tuple[Line, ...
             passes = min(gfit) > thr_fit and min(ghelds) > thr_held
             step = DiscoveryStep(rnd, name, term.correlation_time_s, gfit, ghelds, thr_fit, thr_held, False)
             round_steps.append(step)
-            if passes and (best is None or min(ghelds) > min(best[1].gain_heldout)):
-                best = (term, step)
+            score = min(ghelds) - (thr_held if name in DISFAVOURED else 0.0)
+            if passes and (best is None or score > best[2]):
+                best = (term, step, score)
         if best is None:
             steps.extend(round_steps)
             break

@@ -1,0 +1,195 @@
+"""Measured noise (calib_core.noise): the Allan variance formulas against records simulated
+from each process's physics, the fit's intervals against known truth (seeded Monte Carlo),
+the line detector's false alarms, units, the JSON round trip and the synthesis round trip.
+The 200-recording figures are tools/noise_coverage.py's (docs/noise.md)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from allantools import ci as allan_ci
+
+from calib_core.noise import ChannelNoise, NoiseModel, processes, synthesize, units
+from calib_core.noise.allan import allan_curve, identify_alpha
+from calib_core.noise.analysis import find_lines
+from calib_core.noise.fit import Term, fit_allan
+
+RATE = 100.0
+
+
+def _mean_avar(noise: ChannelNoise, n: int, reps: int, seed: int):
+    rng = np.random.default_rng(seed)
+    model = NoiseModel(RATE, n / RATE, {"x": noise})
+    curves = [allan_curve(synthesize(model, n, RATE, rng)["x"], RATE) for _ in range(reps)]
+    return curves[0], np.mean([c.avar for c in curves], axis=0)
+
+
+@pytest.mark.parametrize(
+    "process, coefficient",
+    [
+        ("quantization", 1e-3),
+        ("white", 0.01),
+        ("bias_instability", 0.003),
+        ("random_walk", 1e-3),
+        ("ramp", 1e-4),
+    ],
+)
+def test_each_process_has_the_allan_variance_of_its_formula(process, coefficient):
+    """Mean Allan variance of 12 records simulated from the process's physics (synthesis.py:
+    uniform angle error, normal samples, 1/f spectrum, summed steps, a line) against the
+    formula of processes.py, where the 12 records pin it to a few percent."""
+    curve, avar = _mean_avar(ChannelNoise("deg/s", {process: coefficient}), 20_000, 12, seed=7)
+    expected = coefficient**2 * processes.basis(process, curve.tau_s, RATE)
+    rel_se = np.sqrt(2.0 / (12 * curve.edf))
+    if process == "ramp":  # deterministic: exact
+        rel_se = np.full_like(rel_se, 1e-3)
+    ok = np.abs(avar / expected - 1.0) < 4.0 * rel_se + 0.01
+    assert ok.all(), (process, np.round(avar / expected, 3), np.round(rel_se, 3))
+
+
+def test_gauss_markov_and_line_allan_variances():
+    gm = ChannelNoise("deg/s", gauss_markov=(0.01, 0.5))
+    curve, avar = _mean_avar(gm, 20_000, 12, seed=8)
+    expected = 1e-4 * processes.gauss_markov(curve.tau_s, 0.5, RATE)
+    assert np.all(np.abs(avar / expected - 1.0) < 4.0 * np.sqrt(2.0 / (12 * curve.edf)) + 0.02)
+    # a sinusoid near the Nyquist frequency: the discrete formula, not the continuous one
+    line = ChannelNoise("deg/s", periodic=((38.0, 0.02),))
+    curve, avar = _mean_avar(line, 4_000, 4, seed=9)
+    expected = 0.02**2 * processes.periodic(curve.tau_s, 38.0, RATE)
+    np.testing.assert_allclose(avar[:5], expected[:5], rtol=0.02)
+    continuous = 0.02**2 * np.sin(np.pi * 38.0 * 0.01) ** 4 / (np.pi * 38.0 * 0.01) ** 2
+    assert abs(avar[0] / continuous - 1.0) > 0.3  # the continuous formula would be wrong here
+
+
+def test_flicker_and_gauss_markov_limits():
+    big = processes.bias_instability(np.array([1.28, 100.0]), RATE)
+    np.testing.assert_allclose(big, 2 * math.log(2) / math.pi, rtol=1e-3)
+    assert math.isclose(processes.BIAS_INSTABILITY_FLOOR, 0.664, abs_tol=5e-4)  # IEEE 952
+    tau = np.array([1e-3, 1e3])
+    gm = processes.gauss_markov(tau, 1.0)
+    assert math.isclose(gm[0], 2.0 * 1e-3 / 3.0, rel_tol=1e-3)  # random walk K^2 = 2 sigma^2 / Tc
+    assert math.isclose(gm[1], 2.0 / 1e3, rel_tol=2e-3)  # white N^2 = 2 sigma^2 Tc
+    # the sampled AR(1) tends to the continuous process where a cluster holds many samples
+    tau = np.array([0.64, 1.28, 10.24])
+    np.testing.assert_allclose(
+        processes.gauss_markov(tau, 1.0, RATE), processes.gauss_markov(tau, 1.0), rtol=0.02
+    )
+
+
+def test_noise_id_is_allantools_lag1_algorithm():
+    rng = np.random.default_rng(3)
+    series = [rng.normal(size=3000), np.cumsum(rng.normal(size=3000)), np.diff(rng.normal(size=3001))]
+    for x in series:
+        for m in (1, 4, 16):
+            expected = allan_ci.autocorr_noise_id(x, m, data_type="freq", dmin=0, dmax=2)[0]
+            assert identify_alpha(x, m) == int(np.clip(0 if expected == 1 else expected, -2, 2))
+
+
+def test_coefficient_intervals_cover_the_truth_seeded():
+    """20 records of the five scenarios of tools/noise_coverage.py (seeded, 50,000 samples):
+    each coefficient's 95 % interval (or upper bound, when not named) covers the truth on at
+    least 80 % of the records where it is present (the 200-record figures, 93-98 %: docs/
+    noise.md); no line is named on the line-free records and the 38 Hz line always is."""
+    from tools.noise_coverage import SCENARIOS, evaluate, pooled_coverage
+
+    result = evaluate(n_recordings=20, n_samples=50_000, seed=2031)
+    for (process, present), (share, n) in pooled_coverage(result).items():
+        assert share >= (0.8 if present else 0.95), (process, present, share, n)
+    for name, r in result.items():
+        if SCENARIOS[name].periodic:
+            assert r["line_found"] == 1.0
+        else:
+            assert r["lines"] == 0.0, name
+
+
+def test_white_noise_estimate_against_its_standard_error():
+    """Monte Carlo spread of the white coefficient vs the fit's own interval width."""
+    rng = np.random.default_rng(11)
+    truth = ChannelNoise("deg/s", {"white": 0.01, "bias_instability": 0.002})
+    est, half_width = [], []
+    for _ in range(16):
+        x = synthesize(NoiseModel(RATE, 300.0, {"x": truth}), 30_000, RATE, rng)["x"]
+        fit = fit_allan(allan_curve(x, RATE), (Term("white"), Term("bias_instability")))
+        lo, hi = fit.interval("white")
+        est.append(fit.coefficient("white"))
+        half_width.append((hi - lo) / (2 * 1.96))
+    assert abs(np.mean(est) / 0.01 - 1.0) < 0.01
+    ratio = np.std(est, ddof=1) / np.mean(half_width)
+    assert 0.6 < ratio < 1.5, ratio
+
+
+def test_lines_found_and_not_invented():
+    rng = np.random.default_rng(4)
+    n = 40_000
+    white = rng.normal(0.0, 0.1, n)
+    assert find_lines(white, RATE) == []
+    t = np.arange(n) / RATE
+    lined = white + 0.02 * np.sin(2 * np.pi * 37.99 * t + 1.0)
+    (line,) = find_lines(lined, RATE)
+    assert abs(line.frequency_hz - 37.99) < 0.03
+    assert abs(line.amplitude / 0.02 - 1.0) < 0.15
+    # a line in one half only is not named
+    half = white.copy()
+    half[: n // 2] += 0.03 * np.sin(2 * np.pi * 21.0 * t[: n // 2])
+    assert [ln for ln in find_lines(half, RATE) if abs(ln.frequency_hz - 21.0) < 0.2] == []
+
+
+def test_units_ieee_and_kalibr():
+    # 1 deg/sqrt(h) = 1/60 deg/sqrt(s); 1 deg/h = 1/3600 deg/s
+    assert math.isclose(units.to_ieee("white", 1.0 / 60.0, "deg/s"), 1.0)
+    assert math.isclose(units.to_ieee("bias_instability", 1.0 / 3600.0, "deg/s"), 1.0)
+    assert math.isclose(units.to_ieee("random_walk", 1.0 / 216000.0, "deg/s"), 1.0)
+    assert math.isclose(units.to_ieee("bias_instability", 1e-3, "g"), 1.0)  # mg
+    assert math.isclose(units.to_ieee("white", 1.0 / 60.0, "m/s^2"), 1.0)  # m/s/sqrt(h)
+    assert math.isclose(units.to_ieee("white", 1.0 / 60.0 / 9.80665, "g"), 1.0)
+    assert math.isclose(units.kalibr_density("white", 1.0, "deg/s"), math.pi / 180.0)
+    assert math.isclose(units.kalibr_density("random_walk", 1.0, "g"), 9.80665)
+    assert math.isclose(units.from_unit("white", 0.5, "deg/sqrt(h)", "rad/s"), 0.5 / 60.0 * math.pi / 180.0)
+    with pytest.raises(ValueError, match="deg/sqrt"):
+        units.from_unit("white", 0.5, "m/s/sqrt(h)", "deg/s")
+    with pytest.raises(ValueError, match="physical channel unit"):
+        units.channel_kind("LSB")
+
+
+def test_model_json_round_trip():
+    ch = ChannelNoise(
+        "deg/s",
+        {"white": 0.011, "bias_instability": 0.0027, "random_walk": 1e-4},
+        {"white": (0.0109, 0.0111)},
+        gauss_markov=(0.001, 3.0),
+        periodic=((37.99, 0.017),),
+        resolution=250 / 32768,
+        reasons={"ramp": "not named"},
+        upper_bounds={"ramp": 1e-5},
+    )
+    acc = ChannelNoise("g", {"white": 2e-4})
+    model = NoiseModel(100.0, 449.3, {"gy": ch, "ax": acc})
+    doc = json.loads(json.dumps(model.to_dict()))
+    assert doc["channels"]["gy"]["coefficients"]["white"]["unit"] == "deg/sqrt(h)"
+    assert doc["channels"]["gy"]["coefficients"]["ramp"]["value"] is None
+    assert doc["channels"]["ax"]["coefficients"]["bias_instability"]["unit"] == "mg"
+    back = NoiseModel.from_dict(doc)
+    for name in ("gy", "ax"):
+        a, b = model.channels[name], back.channels[name]
+        assert a.coefficients.keys() == b.coefficients.keys()
+        for k in a.coefficients:
+            assert math.isclose(a.coefficients[k], b.coefficients[k], rel_tol=1e-12)
+    assert back.channels["gy"].periodic == ch.periodic
+    assert back.channels["gy"].gauss_markov == pytest.approx(ch.gauss_markov)
+    assert back.channels["gy"].upper_bounds["ramp"] == pytest.approx(1e-5)
+    with pytest.raises(ValueError, match="channel gy"):
+        bad = json.loads(json.dumps(doc))
+        bad["channels"]["gy"]["coefficients"]["white"]["unit"] = "furlong"
+        NoiseModel.from_dict(bad)
+
+
+def test_synthesis_has_quantization_lines_and_resolution():
+    ch = ChannelNoise("deg/s", {"white": 0.01}, periodic=((10.0, 0.05),), resolution=0.01)
+    x = synthesize(NoiseModel(RATE, 100.0, {"gx": ch}), 10_000, RATE, np.random.default_rng(1))["gx"]
+    steps = np.diff(np.unique(np.round(x, 9)))
+    assert np.allclose(steps, np.round(steps / 0.01) * 0.01, atol=1e-9)  # on a 0.01 grid
+    (line,) = find_lines(x - x.mean(), RATE)
+    assert abs(line.frequency_hz - 10.0) < 0.05
