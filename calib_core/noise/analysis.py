@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage, signal, stats
+from threadpoolctl import threadpool_limits
 
 from calib_core.noise import units
 from calib_core.noise.allan import AllanCurve, allan_curve
@@ -382,12 +383,15 @@ def analyse_recording(
     if n < MIN_SAMPLES:
         raise ValueError(f"{n} samples: a noise analysis needs at least {MIN_SAMPLES}")
     out = {}
-    for name, x in channels.items():
-        x = np.asarray(x, float)
-        if not np.isfinite(x).all():
-            raise ValueError(f"channel {name} holds non-finite values")
-        if name not in units_by_channel:
-            raise ValueError(f"no unit given for channel {name}")
-        res = (resolution or {}).get(name)
-        out[name] = analyse_channel(name, x, rate_hz, units_by_channel[name], res)
+    # one BLAS thread: the dot products here are of 10^4-10^6 numbers, where a second
+    # spinning BLAS thread costs more CPU than it saves (2.5 -> 1.3 s CPU for 1e6 x 6 samples)
+    with threadpool_limits(1):
+        for name, x in channels.items():
+            x = np.asarray(x, float)
+            if not np.isfinite(x).all():
+                raise ValueError(f"channel {name} holds non-finite values")
+            if name not in units_by_channel:
+                raise ValueError(f"no unit given for channel {name}")
+            res = (resolution or {}).get(name)
+            out[name] = analyse_channel(name, x, rate_hz, units_by_channel[name], res)
     return NoiseAnalysis(float(rate_hz), n / float(rate_hz), n, out)
