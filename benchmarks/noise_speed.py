@@ -79,9 +79,8 @@ def main(n: int = 1_000_000, repeats: int = 3) -> None:
     load1 = os.getloadavg()
     print(f"noise analysis of {n:,} samples x 6 channels at {RATE_HZ:g} Hz ({n / RATE_HZ / 3600:.1f} h)")
     print(f"best of {repeats}: wall {min(walls):.2f} s, CPU {min(cpus):.2f} s (target < {TARGET_S:g} s)")
-    print(
-        f"all runs: wall {', '.join(f'{v:.2f}' for v in walls)} s; CPU {', '.join(f'{v:.2f}' for v in cpus)} s"
-    )
+    wall_runs, cpu_runs = (", ".join(f"{v:.2f}" for v in runs) for runs in (walls, cpus))
+    print(f"all runs: wall {wall_runs} s; CPU {cpu_runs} s")
     print(f"load average at start {load0[0]:.1f}, at end {load1[0]:.1f} ({os.cpu_count()} cores)")
     print("one gyro channel, CPU by stage (one BLAS thread, as analyse_recording runs):")
     from threadpoolctl import threadpool_limits
