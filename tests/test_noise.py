@@ -90,14 +90,21 @@ def test_noise_id_is_allantools_lag1_algorithm():
 
 def test_coefficient_intervals_cover_the_truth_seeded():
     """20 records of the five scenarios of tools/noise_coverage.py (seeded, 50,000 samples):
-    each coefficient's 95 % interval (or upper bound, when not named) covers the truth on at
-    least 80 % of the records where it is present (the 200-record figures, 93-98 %: docs/
-    noise.md); no line is named on the line-free records and the 38 Hz line always is."""
+    95 % intervals (or upper bounds, when not named) cover the truth on >= 90 % of the
+    (record, coefficient) pairs where the process is present, no coefficient misses more than
+    twice (of 4-20), absent processes' bounds miss at most once; no line is named on the
+    line-free records and the 38 Hz line always is. (The 200-record figures, 93-98 % per
+    coefficient: docs/noise.md; seeds 2030-2039 give 94-100 % pooled here.)"""
     from tools.noise_coverage import SCENARIOS, evaluate, pooled_coverage
 
     result = evaluate(n_recordings=20, n_samples=50_000, seed=2031)
+    hits = total = 0
     for (process, present), (share, n) in pooled_coverage(result).items():
-        assert share >= (0.8 if present else 0.95), (process, present, share, n)
+        misses = round((1.0 - share) * n)
+        assert misses <= (2 if present else 1), (process, present, share, n)
+        if present:
+            hits, total = hits + share * n, total + n
+    assert hits / total >= 0.9, hits / total
     for name, r in result.items():
         if SCENARIOS[name].periodic:
             assert r["line_found"] == 1.0
