@@ -234,3 +234,37 @@ def test_discovery_names_the_processes_that_are_there(truth, named):
         sigma, tc = ch.noise.gauss_markov
         assert 1.0 <= tc <= 4.0 and abs(sigma / 0.02 - 1.0) < 0.25
     assert ch.fit.fraction_within_ci >= 0.85
+
+
+def test_channel_units_give_the_same_ieee_figures():
+    """The same accelerometer noise given in g and in m/s^2 (and a gyro in deg/s and rad/s):
+    the same IEEE figures and Kalibr densities."""
+    rng = np.random.default_rng(12)
+    acc_g = rng.normal(0.0, 1e-3, 20_000)
+    gyro = rng.normal(0.0, 0.05, 20_000)
+    a = analyse_recording({"ax": acc_g, "gx": gyro}, RATE, {"ax": "g", "gx": "deg/s"})
+    b = analyse_recording(
+        {"ax": acc_g * 9.80665, "gx": np.radians(gyro)}, RATE, {"ax": "m/s^2", "gx": "rad/s"}
+    )
+    da, db = a.to_dict()["channels"], b.to_dict()["channels"]
+    for ch in ("ax", "gx"):
+        wa, wb = da[ch]["coefficients"]["white"], db[ch]["coefficients"]["white"]
+        assert wa["unit"] == wb["unit"] and wa["value"] == pytest.approx(wb["value"], rel=1e-9)
+    ka, kb = a.kalibr(), b.kalibr()
+    for key in ("gyroscope_noise_density", "accelerometer_noise_density"):
+        assert ka[key] == pytest.approx(kb[key], rel=1e-9)
+    # 1e-3 g per sample at 100 Hz: N = 1e-4 g/sqrt(Hz) = 9.8e-4 m/s^2/sqrt(Hz)
+    assert ka["accelerometer_noise_density"] == pytest.approx(9.80665e-4, rel=0.03)
+
+
+def test_bad_channels_are_named():
+    with pytest.raises(ValueError, match="channel gy is constant"):
+        analyse_recording(
+            {"gx": np.random.default_rng(0).normal(size=1000), "gy": np.ones(1000)},
+            RATE,
+            {"gx": "deg/s", "gy": "deg/s"},
+        )
+    with pytest.raises(ValueError, match="physical channel unit"):
+        analyse_recording({"gx": np.random.default_rng(0).normal(size=1000)}, RATE, {"gx": "LSB"})
+    with pytest.raises(ValueError, match="at least 256"):
+        analyse_recording({"gx": np.zeros(100)}, RATE, {"gx": "deg/s"})

@@ -394,6 +394,8 @@ def analyse_recording(
             x = np.asarray(x, float)
             if not np.isfinite(x).all():
                 raise ValueError(f"channel {name} holds non-finite values")
+            if np.ptp(x) == 0:
+                raise ValueError(f"channel {name} is constant: no noise to measure (stuck or saturated?)")
             if name not in units:
                 raise ValueError(f"no unit given for channel {name}")
             res = (resolution or {}).get(name)
