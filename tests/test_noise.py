@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from allantools import ci as allan_ci
 
-from calib_core.noise import ChannelNoise, NoiseModel, processes, synthesize, units
+from calib_core.noise import ChannelNoise, NoiseModel, analyse_recording, processes, synthesize, units
 from calib_core.noise.allan import allan_curve, identify_alpha
 from calib_core.noise.analysis import find_lines
 from calib_core.noise.fit import Term, fit_allan
@@ -200,3 +200,71 @@ def test_synthesis_has_quantization_lines_and_resolution():
     assert np.allclose(steps, np.round(steps / 0.01) * 0.01, atol=1e-9)  # on a 0.01 grid
     (line,) = find_lines(x - x.mean(), RATE)
     assert abs(line.frequency_hz - 10.0) < 0.05
+
+
+@pytest.mark.parametrize(
+    "truth, named",
+    [
+        (ChannelNoise("deg/s", {"white": 0.01, "bias_instability": 0.003}), set()),
+        (
+            ChannelNoise("deg/s", {"white": 0.01, "bias_instability": 0.002, "quantization": 2e-3}),
+            {"quantization"},
+        ),
+        (
+            ChannelNoise("deg/s", {"white": 0.01, "bias_instability": 0.002, "random_walk": 5e-3}),
+            {"random_walk"},
+        ),
+        (
+            ChannelNoise("deg/s", {"white": 0.01, "bias_instability": 5e-4}, gauss_markov=(0.02, 2.0)),
+            {"gauss_markov"},
+        ),
+    ],
+    ids=["nothing", "quantization", "random_walk", "gauss_markov"],
+)
+def test_discovery_names_the_processes_that_are_there(truth, named):
+    """1,000 s records (seeded): discovery names exactly the process the record has beyond
+    white + bias instability; a Gauss-Markov process with its correlation time (2 s: the grid
+    is a factor 4 apart) and sigma within 25 %. The random walk is strong enough to show in
+    each half (named exactly on 29 of 30 records; at K = 2e-3, 85 %: docs/noise.md)."""
+    x = synthesize(NoiseModel(RATE, 1000.0, {"x": truth}), 100_000, RATE, np.random.default_rng(5))["x"]
+    ch = analyse_recording({"x": x}, RATE, {"x": truth.unit}).channels["x"]
+    extra = {t.name for t in ch.fit.terms} - {"white", "bias_instability"}
+    assert extra == named, [s.to_dict() for s in ch.steps]
+    if "gauss_markov" in named:
+        sigma, tc = ch.noise.gauss_markov
+        assert 1.0 <= tc <= 4.0 and abs(sigma / 0.02 - 1.0) < 0.25
+    assert ch.fit.fraction_within_ci >= 0.85
+
+
+def test_channel_units_give_the_same_ieee_figures():
+    """The same accelerometer noise given in g and in m/s^2 (and a gyro in deg/s and rad/s):
+    the same IEEE figures and Kalibr densities."""
+    rng = np.random.default_rng(12)
+    acc_g = rng.normal(0.0, 1e-3, 20_000)
+    gyro = rng.normal(0.0, 0.05, 20_000)
+    a = analyse_recording({"ax": acc_g, "gx": gyro}, RATE, {"ax": "g", "gx": "deg/s"})
+    b = analyse_recording(
+        {"ax": acc_g * 9.80665, "gx": np.radians(gyro)}, RATE, {"ax": "m/s^2", "gx": "rad/s"}
+    )
+    da, db = a.to_dict()["channels"], b.to_dict()["channels"]
+    for ch in ("ax", "gx"):
+        wa, wb = da[ch]["coefficients"]["white"], db[ch]["coefficients"]["white"]
+        assert wa["unit"] == wb["unit"] and wa["value"] == pytest.approx(wb["value"], rel=1e-9)
+    ka, kb = a.kalibr(), b.kalibr()
+    for key in ("gyroscope_noise_density", "accelerometer_noise_density"):
+        assert ka[key] == pytest.approx(kb[key], rel=1e-9)
+    # 1e-3 g per sample at 100 Hz: N = 1e-4 g/sqrt(Hz) = 9.8e-4 m/s^2/sqrt(Hz)
+    assert ka["accelerometer_noise_density"] == pytest.approx(9.80665e-4, rel=0.03)
+
+
+def test_bad_channels_are_named():
+    with pytest.raises(ValueError, match="channel gy is constant"):
+        analyse_recording(
+            {"gx": np.random.default_rng(0).normal(size=1000), "gy": np.ones(1000)},
+            RATE,
+            {"gx": "deg/s", "gy": "deg/s"},
+        )
+    with pytest.raises(ValueError, match="physical channel unit"):
+        analyse_recording({"gx": np.random.default_rng(0).normal(size=1000)}, RATE, {"gx": "LSB"})
+    with pytest.raises(ValueError, match="at least 256"):
+        analyse_recording({"gx": np.zeros(100)}, RATE, {"gx": "deg/s"})

@@ -34,10 +34,11 @@ from flows.fleet_sim import simulate_fleet  # noqa: E402
 from flows.nightly import store_results  # noqa: E402
 from flows.unit_pipeline import calibrate_batch  # noqa: E402
 from reports.lot import write_lot_report  # noqa: E402
-from schemas.dataset import find_sessions, plan_units  # noqa: E402
+from schemas.dataset import find_sessions  # noqa: E402
 from schemas.flagging import reflag_after_update  # noqa: E402
 from schemas.limits import config_from_toml  # noqa: E402
 from schemas.results_store import ResultsStore  # noqa: E402
+from schemas.unit_plan import plan_unit_jobs  # noqa: E402
 
 RATE_HZ = 10.0
 RECORDING_S = 900.0
@@ -64,7 +65,7 @@ def lot(tmp_path_factory):
     shutil.rmtree(root / "data" / "lot=L01" / f"unit={static_unit}" / "noise")
     refs, errors = find_sessions(root / "data")
     assert refs and not errors
-    jobs, _ = plan_units(refs, {})
+    jobs, _, _ = plan_unit_jobs(refs, {})
     results = calibrate_batch(jobs, run_discovery=False)
     store = ResultsStore(root / "results")
     store_results(store, results, "run-1", "test")
@@ -252,7 +253,7 @@ def test_simulate_noise_from_the_real_mpu6050_model(tmp_path):
         == 0
     )
     refs, _ = find_sessions(tmp_path / "data")
-    jobs, _ = plan_units(refs, {})
+    jobs, _, _ = plan_unit_jobs(refs, {})
     results = calibrate_batch(jobs, run_discovery=False)
     inside = []
     for r in results:

@@ -23,9 +23,10 @@ def run_lot(root: Path, seed: int, noisy: int, factor: float, rate_hz: float, re
     from flows.fleet_sim import simulate_fleet
     from flows.nightly import store_results
     from flows.unit_pipeline import calibrate_batch
-    from schemas.dataset import find_sessions, plan_units
+    from schemas.dataset import find_sessions
     from schemas.flagging import reflag_after_update
     from schemas.results_store import ResultsStore
+    from schemas.unit_plan import plan_unit_jobs
 
     m = simulate_fleet(
         root / "data",
@@ -40,7 +41,7 @@ def run_lot(root: Path, seed: int, noisy: int, factor: float, rate_hz: float, re
     )
     truth = {u["unit"] for u in m["noise"]["noisy_units"]}
     refs, _ = find_sessions(root / "data")
-    jobs, _ = plan_units(refs, {})
+    jobs, _, _ = plan_unit_jobs(refs, {})
     results = calibrate_batch(jobs, run_discovery=False)
     store = ResultsStore(root / "results")
     store_results(store, results, "run", "tools")

@@ -15,7 +15,8 @@ Per channel:
    with the coefficients fitted there, lower the other half's chi-square by the
    ``HELDOUT_ALPHA`` quantile; both ways round. The best such process is named, and the search
    repeats until none passes. A ramp or a Gauss-Markov process, which over one record look
-   like a random walk, wins over the random walk only by the held-out threshold.
+   like a random walk, wins over the random walk only by the held-out threshold
+   (Bonferroni-adjusted for the Gauss-Markov correlation times tried).
 4. **Final fit** of the named processes (lines held at their spectral amplitude) to the whole
    curve (:mod:`calib_core.noise.fit`), with the goodness of fit. A process not named gets an
    upper bound from the fit that includes it.
@@ -288,7 +289,10 @@ def discover_terms(halves: tuple[AllanCurve, AllanCurve], lines: tuple[Line, ...
             passes = min(gfit) > thr_fit and min(ghelds) > thr_held
             step = DiscoveryStep(rnd, name, term.correlation_time_s, gfit, ghelds, thr_fit, thr_held, False)
             round_steps.append(step)
-            score = min(ghelds) - (thr_held if name in DISFAVOURED else 0.0)
+            # the margin a ramp or Gauss-Markov process needs over the random walk; the
+            # Gauss-Markov's is Bonferroni-adjusted for the correlation times tried
+            margin = float(stats.chi2.ppf(1.0 - HELDOUT_ALPHA / len(options), 1))
+            score = min(ghelds) - (margin if name in DISFAVOURED else 0.0)
             if passes and (best is None or score > best[2]):
                 best = (term, step, score)
         if best is None:
@@ -390,6 +394,8 @@ def analyse_recording(
             x = np.asarray(x, float)
             if not np.isfinite(x).all():
                 raise ValueError(f"channel {name} holds non-finite values")
+            if np.ptp(x) == 0:
+                raise ValueError(f"channel {name} is constant: no noise to measure (stuck or saturated?)")
             if name not in units:
                 raise ValueError(f"no unit given for channel {name}")
             res = (resolution or {}).get(name)
