@@ -1,5 +1,5 @@
 """A unit's noise measured from its dataset: its long static recordings
-(``lot=L/unit=U/noise/``, :mod:`schemas.noise_recordings`) or, without them, its sessions'
+(``lot=L/unit=U/noise/``, :mod:`schemas.noise_dataset`) or, without them, its sessions'
 static steps, each through the unit's own calibration, analysed by :mod:`calib_core.noise`
 and kept as :class:`calib_core.noise_fleet.UnitNoise` (the store's ``noise`` rows, the
 calibration file's ``noise`` section). Used by the nightly (``flows.noise_units``) and the
@@ -36,7 +36,7 @@ def measure_unit_noise(
     recording, else from the static steps of ``sessions`` ((SessionKey, session directory)
     of its good sessions), each through the calibration ``applied`` (its affine part: at
     rest the catalogue terms add a constant, which an Allan deviation does not see)."""
-    from schemas.noise_recordings import find_noise_recordings, read_noise_recording
+    from schemas.noise_dataset import find_noise_recordings, read_noise_recording
 
     notes: list[str] = []
     refs, errors = find_noise_recordings(unit_dir, lot, unit, follow_symlinks)
