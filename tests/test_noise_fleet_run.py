@@ -179,6 +179,10 @@ def test_the_lot_report_overlays_the_curves_with_the_flagged_unit_in_red(lot):
     red = {t["meta"]["unit"] for t in spec["data"] if t["meta"]["flagged"]}
     grey = {t["meta"]["unit"] for t in spec["data"] if not t["meta"]["flagged"]}
     assert red == {lot["noisy"]} and len(grey) == 9
+    # each unit's block has its noise part: the noisy unit's names its flags
+    block = html[html.index(f'id="unit-{lot["noisy"]}"') :]
+    block = block[: block.index("</details>")]
+    assert "<h4>Noise</h4>" in block and "x the lot median" in block
 
 
 @pytest.mark.browser
