@@ -516,7 +516,7 @@ def _plan_night(
     digests = DigestCache(store.read_digest_cache())
     jobs, skipped, refused = plan_unit_jobs([*refs, *field_refs], store.fingerprints(), force, digests)
     path_errors = [*path_errors, *field_errors, *refused]
-    for j in jobs:  # its noise recordings (schemas.noise_recordings) follow the same rule
+    for j in jobs:  # its noise recordings (schemas.noise_dataset) follow the same rule
         j.follow_symlinks = follow_symlinks
     current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
     current |= {

@@ -270,6 +270,8 @@ class UnitCalibrationResult:
     failed: list[dict[str, Any]] = field(default_factory=list)  # {"rep", "code", "message"}
     diagnosis: Any = None  # calib_core.discovery.Diagnosis, None when not run
     sessions: list[dict[str, Any]] = field(default_factory=list)  # the sessions used
+    # the measured noise (calib_core.noise_fleet.UnitNoise, docs/noise.md), None when none
+    noise: Any = None
 
     @property
     def n_reps(self) -> int:
@@ -308,6 +310,8 @@ class UnitCalibrationResult:
             diag,
             {"run_id": None, "command": "schemas.api.calibrate_unit"},
         )
+        if self.noise is not None:
+            extra["noise"] = self.noise.to_dict()
         return save_calibration(self.calibration, Path(path), extra, extra_nonfinite="null", default=str)
 
 
@@ -395,7 +399,11 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> Uni
         diagnosis = diagnose_unit(good_sm, tables=False)
         if diagnosis.terms:
             cal = replace(diagnosis.calibration, metadata={**cal.metadata, "model": "discovery (joint fit)"})
-    return UnitCalibrationResult(lot, unit, cal, uc, failed, diagnosis, sessions)
+    from schemas.unit_noise import measure_unit_noise
+
+    good = [(ref.key, ref.path) for ref, _, _ in read if ref.key.rep in {s["rep"] for s in sessions}]
+    noise, _ = measure_unit_noise(Path(good[0][1]).parent, lot, unit, cal, good)
+    return UnitCalibrationResult(lot, unit, cal, uc, failed, diagnosis, sessions, noise)
 
 
 def discover_unit(dataset: str | Path, unit: str, alpha: float | None = None):

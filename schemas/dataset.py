@@ -92,7 +92,7 @@ def find_sessions(
             if unit is not None and unit_id != unit:
                 continue
             for rep_dir in _visible_dirs(unit_dir):
-                if rep_dir.name in (FIELD_DIR, NOISE_DIR):  # schemas.field_dataset, .noise_recordings
+                if rep_dir.name in (FIELD_DIR, NOISE_DIR):  # schemas.field_dataset, .noise_dataset
                     continue
                 rep, why = _parse_part(rep_dir.name, "rep")
                 if why:
@@ -194,9 +194,9 @@ def fingerprint(path: Path | str, cache: DigestCache | None = None) -> str:
             h.update(f"{name}:{os.stat(p).st_size}:{d};".encode())
         except FileNotFoundError:
             h.update(f"{name}:missing;".encode())
-    # the unit's noise recordings (schemas.noise_recordings): a unit without them keeps the
+    # the unit's noise recordings (schemas.noise_dataset): a unit without them keeps the
     # fingerprint it always had
-    from schemas.noise_recordings import noise_fingerprint
+    from schemas.noise_dataset import noise_fingerprint
 
     noise = noise_fingerprint(os.path.dirname(os.path.abspath(base)), cache)
     if noise is not None:

@@ -14,7 +14,7 @@ from pathlib import Path
 from schemas.errors import E_BAD_PATH, SessionError
 
 FIELD_DIR = "field"  # the directory of a unit's field recordings
-NOISE_DIR = "noise"  # a unit's long static recordings (schemas.noise_recordings)
+NOISE_DIR = "noise"  # a unit's long static recordings (schemas.noise_dataset)
 
 # Lot and unit ids are directory and file names in the results store (calibrations/<unit>/,
 # reports/units/<unit>.html): full-string matches (\A...\Z: a trailing newline does not pass,

@@ -54,7 +54,7 @@ class UnitJob:
     refs: list
     reason: str
     kind: str = TURNTABLE
-    follow_symlinks: bool = False  # its noise recordings may be symbolic links (schemas.noise_recordings)
+    follow_symlinks: bool = False  # its noise recordings may be symbolic links (schemas.noise_dataset)
 
 
 def plan_unit_jobs(

@@ -19,7 +19,7 @@ from calib_core.sim.simulator import MimuTruth
 from schemas.dataset import find_sessions
 from schemas.errors import SessionError
 from schemas.limits import LimitsError, config_from_toml
-from schemas.noise_recordings import find_noise_recordings, read_noise_recording, write_noise_recording
+from schemas.noise_dataset import find_noise_recordings, read_noise_recording, write_noise_recording
 
 MD = {"gyro_unit": "deg/s", "accel_unit": "g", "gyro_range_dps": "300,300,300", "accel_range_g": "8,8,8"}
 
@@ -209,3 +209,20 @@ def test_static_step_record_removes_each_steps_mean():
     rec, shortest = static_step_record(segs)
     assert rec.shape == (400, 6) and shortest == 50
     assert np.abs(rec.reshape(8, 50, 6).mean(axis=1)).max() < 1e-9
+
+
+def test_simulate_noise_options_refuse_what_they_cannot_do(tmp_path, capsys):
+    from flows.cli import main
+
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"rate_hz": 1, "duration_s": 1, "channels": {"gx": {"unit": "furlong"}}}')
+    cases = [
+        (["--physics", "--noise-recordings", "10"], "not --physics"),
+        (["--noise-from", str(bad), "--noise-recordings", "10"], "channel gx"),
+        (["--noise-from", str(tmp_path / "none.json")], "none.json"),
+        (["--noisy-units", "5", "--units", "2"], "noisy_units=5"),
+    ]
+    for i, (args, words) in enumerate(cases):
+        assert main(["simulate", str(tmp_path / f"out{i}"), *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err, err

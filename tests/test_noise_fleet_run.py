@@ -38,7 +38,7 @@ from schemas.dataset import find_sessions  # noqa: E402
 from schemas.flagging import reflag_after_update  # noqa: E402
 from schemas.limits import config_from_toml  # noqa: E402
 from schemas.results_store import ResultsStore  # noqa: E402
-from schemas.unit_plan import plan_units  # noqa: E402
+from schemas.unit_plan import plan_unit_jobs  # noqa: E402
 
 RATE_HZ = 10.0
 RECORDING_S = 900.0
@@ -65,7 +65,7 @@ def lot(tmp_path_factory):
     shutil.rmtree(root / "data" / "lot=L01" / f"unit={static_unit}" / "noise")
     refs, errors = find_sessions(root / "data")
     assert refs and not errors
-    jobs, _ = plan_units(refs, {})
+    jobs, _, _ = plan_unit_jobs(refs, {})
     results = calibrate_batch(jobs, run_discovery=False)
     store = ResultsStore(root / "results")
     store_results(store, results, "run-1", "test")
@@ -179,6 +179,10 @@ def test_the_lot_report_overlays_the_curves_with_the_flagged_unit_in_red(lot):
     red = {t["meta"]["unit"] for t in spec["data"] if t["meta"]["flagged"]}
     grey = {t["meta"]["unit"] for t in spec["data"] if not t["meta"]["flagged"]}
     assert red == {lot["noisy"]} and len(grey) == 9
+    # each unit's block has its noise part: the noisy unit's names its flags
+    block = html[html.index(f'id="unit-{lot["noisy"]}"') :]
+    block = block[: block.index("</details>")]
+    assert "<h4>Noise</h4>" in block and "x the lot median" in block
 
 
 @pytest.mark.browser
@@ -208,3 +212,61 @@ def test_the_noise_section_renders_in_chromium(lot):
     gyro = facts[0]
     assert gyro["paths"] == 30 and gyro["xtype"] == "log"  # 10 units x 3 channels
     assert set(gyro["red"]) == {lot["noisy"]}
+
+
+MPU6050 = "../shared/data/real/mpu6050_tedaldi/example_data_tinit_calc.csv"
+
+
+def test_simulate_noise_from_the_real_mpu6050_model(tmp_path):
+    """``mimucal simulate --noise-from`` the real MPU-6050's measured model: the nightly's
+    measurement of each simulated unit gives that model back (white within the unit's
+    interval of the model's on most channels, the 38 Hz gyro-y line named with its
+    amplitude)."""
+    from pathlib import Path
+
+    from flows.cli import main
+
+    src = Path(__file__).resolve().parents[1] / MPU6050
+    if not src.exists():
+        pytest.skip(f"{MPU6050} is not there")
+    noise_json = tmp_path / "mpu.json"
+    args = ["noise", str(src), "--gyro-unit", "counts", "--accel-unit", "counts"]
+    assert main([*args, "--gyro-range", "250dps", "--accel-range", "2g", "--json", str(noise_json)]) == 0
+    model = json.loads(noise_json.read_text())
+    line = model["channels"]["gy"]["periodic"][0]
+    assert abs(line["frequency_hz"] - 38.0) < 0.1
+    assert (
+        main(
+            [
+                "simulate",
+                str(tmp_path / "data"),
+                "--units",
+                "3",
+                "--reps",
+                "2",
+                "--rate",
+                "100",
+                "--noise-recordings",
+                "300",
+                "--noise-from",
+                str(noise_json),
+                "--seed",
+                "4",
+            ]
+        )
+        == 0
+    )
+    refs, _ = find_sessions(tmp_path / "data")
+    jobs, _, _ = plan_unit_jobs(refs, {})
+    results = calibrate_batch(jobs, run_discovery=False)
+    inside = []
+    for r in results:
+        doc = r.outcome.noise.model["channels"]
+        for ch in ("gx", "gy", "gz", "ax", "ay", "az"):
+            got = doc[ch]["coefficients"]["white"]
+            want = model["channels"][ch]["coefficients"]["white"]["value"]
+            assert got["value"] == pytest.approx(want, rel=0.05), (r.unit, ch)
+            inside.append(got["lo"] <= want <= got["hi"])
+        lines = [p for p in doc["gy"]["periodic"] if abs(p["frequency_hz"] - line["frequency_hz"]) < 0.1]
+        assert len(lines) == 1 and lines[0]["amplitude"] == pytest.approx(line["amplitude"], rel=0.3), r.unit
+    assert np.mean(inside) >= 0.75, inside

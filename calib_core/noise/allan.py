@@ -14,6 +14,7 @@ import allantools
 import numpy as np
 from allantools import ci as allan_ci
 from scipy import stats
+from threadpoolctl import threadpool_limits
 
 ADEV_CONFIDENCE = 0.95  # two-sided level of adev_lo .. adev_hi
 MIN_CLUSTERS = 8  # the largest cluster size leaves >= 8 cluster lengths in the record
@@ -142,6 +143,12 @@ def allan_curve(
     m = m[m <= max(1, n // MIN_CLUSTERS)]
     if m.size == 0 or n < 2 * MIN_CLUSTERS:
         raise ValueError(f"a record of {n} samples is too short for an Allan deviation")
+    with threadpool_limits(1):  # see analysis.analyse_recording: one BLAS thread is faster here
+        return _allan_curve(x, rate_hz, m, alpha)
+
+
+def _allan_curve(x: np.ndarray, rate_hz: float, m: np.ndarray, alpha: np.ndarray | None) -> AllanCurve:
+    n = x.size
     y = x - x.mean()
     taus, adev, _, _ = allantools.oadev(y, rate=rate_hz, data_type="freq", taus=m / rate_hz)
     keep = np.isin(np.rint(taus * rate_hz).astype(int), m)

@@ -12,14 +12,15 @@ white              N  (U / sqrt(Hz) = U sqrt(s))     N^2 / tau
 bias_instability   B  (U)                            flicker, floor (2 ln 2 / pi) B^2
 random_walk        K  (U / sqrt(s))                  K^2 tau / 3
 ramp               R  (U / s)                        R^2 tau^2 / 2
-gauss_markov       sigma (U), correlation time Tc    first-order Markov (IEEE 952 C.7)
+gauss_markov       sigma (U), correlation time Tc    first-order Markov (sampled AR(1))
 periodic           amplitude A (U), frequency f      A^2 sin^4(pi f tau) / (m sin(pi f T))^2
 =================  ================================  =====================================
 
 Where the sampled process differs from the continuous-time formula (the sinusoid near the
-Nyquist frequency, a flicker process band-limited at the Nyquist frequency and a random walk
-of discrete steps at the first few cluster sizes), the discrete-time value is used, so that a record made by
-:mod:`calib_core.noise.synthesis` has exactly these Allan variances. Every basis function is
+Nyquist frequency, a flicker process band-limited at the Nyquist frequency, a random walk of
+discrete steps and a sampled Gauss-Markov process at the first few cluster sizes), the
+discrete-time value is used, so that a record made by :mod:`calib_core.noise.synthesis` has
+exactly these Allan variances. Every basis function is
 the Allan variance for a coefficient of 1 (a ``periodic`` line: an amplitude of 1); the
 composite model is linear in the squared coefficients.
 """
@@ -71,11 +72,19 @@ def ramp(tau: np.ndarray) -> np.ndarray:
     return np.asarray(tau, float) ** 2 / 2.0
 
 
-def gauss_markov(tau: np.ndarray, correlation_time_s: float) -> np.ndarray:
-    """First-order Gauss-Markov of unit variance: 2 Tc / tau [1 - Tc / (2 tau) (3 - 4 e^-x +
+def gauss_markov(tau: np.ndarray, correlation_time_s: float, rate_hz: float | None = None) -> np.ndarray:
+    """First-order Gauss-Markov of unit variance. Sampled at rate_hz (an AR(1) with phi =
+    exp(-T / Tc)): exactly [m + 2 phi/(1-phi) (m - (1-phi^m)/(1-phi)) - phi (1-phi^m)^2 /
+    (1-phi)^2] / m^2. Continuous (rate_hz None): 2 Tc / tau [1 - Tc / (2 tau) (3 - 4 e^-x +
     e^-2x)], x = tau / Tc (random walk K^2 tau/3 with K^2 = 2/Tc below Tc, white above)."""
     tau = np.asarray(tau, float)
     tc = float(correlation_time_s)
+    if rate_hz is not None:
+        m = np.rint(tau * rate_hz)
+        a = -np.expm1(-1.0 / (rate_hz * tc))  # 1 - phi
+        phi = 1.0 - a
+        b = -np.expm1(-m / (rate_hz * tc))  # 1 - phi^m
+        return (m + 2.0 * phi / a * (m - b / a) - phi * (b / a) ** 2) / m**2
     x = tau / tc
     small = x < 1e-3
     out = np.empty_like(tau)
@@ -110,5 +119,5 @@ def basis(name: str, tau: np.ndarray, rate_hz: float, correlation_time_s: float 
     if name == "gauss_markov":
         if not correlation_time_s or correlation_time_s <= 0:
             raise ValueError("gauss_markov needs a positive correlation time")
-        return gauss_markov(tau, correlation_time_s)
+        return gauss_markov(tau, correlation_time_s, rate_hz)
     raise ValueError(f"unknown noise process {name!r}")

@@ -19,7 +19,7 @@ def register(sub) -> None:
         "whitespace log with a header or --columns), recorded at rest: overlapping Allan "
         "deviation with confidence intervals, the composite noise model fitted to the whole "
         "curve with the processes discovery names (quantization, white, bias instability, "
-        "random walk, ramp, Gauss-Markov) and their IEEE 952/1293 coefficients with 95%% "
+        "random walk, ramp, Gauss-Markov) and their IEEE 952/1293 coefficients with 95 % "
         "intervals, and the periodic lines the spectrum shows in both halves of the record. "
         "See docs/noise.md.",
     )

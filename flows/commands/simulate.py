@@ -180,6 +180,11 @@ def run(args) -> int:
             shutil.rmtree(p)
         (out / MANIFEST).unlink(missing_ok=True)
     start = time.perf_counter()
+    if (args.chamber or args.physics) and (args.noise_recordings or args.noisy_units or args.noise_from):
+        raise CliError(
+            "--noise-recordings, --noisy-units and --noise-from are options of the fast "
+            "simulator, not --physics"
+        )
     if args.chamber:
         return _run_chamber(args, out, start)
     if args.physics:
