@@ -872,6 +872,7 @@ def nightly_fleet_calibration(
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
         prestart_unit_work_pool(kind, dataset)
+    runtime.await_api_server()
     with _preloading(), runtime.run_settings(), _outcome_recorded(results):
         return nightly_flow.with_options(task_runner=task_runner)(
             str(dataset),
