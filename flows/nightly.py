@@ -969,6 +969,7 @@ def rerun_unit(
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
         )
+    runtime.await_api_server()
     with _preloading(), runtime.run_settings():
         return rerun_flow(
             str(dataset),
