@@ -877,6 +877,7 @@ def nightly_fleet_calibration(
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
         prestart_unit_work_pool(kind, dataset)
+    runtime.await_api_server()
     with _preloading(), runtime.run_settings(), _outcome_recorded(results):
         return nightly_flow.with_options(task_runner=task_runner)(
             str(dataset),
@@ -973,6 +974,7 @@ def rerun_unit(
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
         )
+    runtime.await_api_server()
     with _preloading(), runtime.run_settings():
         return rerun_flow(
             str(dataset),

@@ -24,6 +24,9 @@ results directory). Values the user already set in the environment win.
   ``~/.cache/mimucal/prefect-<version>.db`` (``$MIMUCAL_CACHE_DIR`` or ``$XDG_CACHE_HOME``),
   built once per Prefect version by the first command that has a results directory;
   ``MIMUCAL_PREFECT_TEMPLATE=off`` leaves new homes to the server.
+- the temporary API server is started early (:func:`start_api_server_early`), in a thread,
+  while the command imports the flow's modules and checks the store; the flow finds it up
+  (:func:`await_api_server`) instead of starting it when its first client is made.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -116,6 +120,41 @@ def seed_prefect_home(home: Path, build: bool = False) -> bool:
         return True
     except (OSError, subprocess.SubprocessError):
         return False
+
+
+_early_start: threading.Thread | None = None
+
+
+def start_api_server_early() -> None:
+    """Start Prefect's temporary API server now, in a daemon thread (the same server object
+    the flow's first client would start: ``SubprocessASGIServer`` is one per process);
+    nothing when a real server's ``PREFECT_API_URL`` is set or the temporary one is off. A
+    failure here is left to the flow, whose client starts the server and reports it."""
+    global _early_start
+    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
+
+    if _early_start is not None or PREFECT_API_URL.value() or not PREFECT_SERVER_EPHEMERAL_ENABLED.value():
+        return
+
+    def start() -> None:
+        from prefect.server.api.server import SubprocessASGIServer
+
+        try:
+            SubprocessASGIServer().start()
+        except Exception:  # noqa: BLE001 - the flow's client starts it again and says why
+            pass
+
+    _early_start = threading.Thread(target=start, name="mimucal-api-start", daemon=True)
+    _early_start.start()
+
+
+def await_api_server() -> None:
+    """Wait for :func:`start_api_server_early`'s server to answer (nothing when not started):
+    a client made meanwhile would find the server marked running but not yet listening."""
+    global _early_start
+    thread, _early_start = _early_start, None
+    if thread is not None:
+        thread.join()
 
 
 def _build_template(template: Path) -> None:

@@ -58,7 +58,15 @@ from schemas.store_archive import (
 )
 from schemas.store_caches import FLAG_STATE_METADATA_KEY, StoreCaches
 from schemas.store_check import StoreCheck, table_file_problem
-from schemas.store_frames import EMPTY_FILE, TABLE_COLUMNS, TABLES, lot_of_partition, partition_file_name
+from schemas.store_frames import (
+    EMPTY_FILE,
+    FORMAT_FILE,
+    TABLE_COLUMNS,
+    TABLES,
+    TABLES_DIR,
+    lot_of_partition,
+    partition_file_name,
+)
 from schemas.store_io import (
     REPAIR_HINT,
     ROW_GROUP_ROWS,
@@ -78,12 +86,14 @@ from schemas.store_runs import RunLogs
 
 __all__ = [
     "EMPTY_FILE",
+    "FORMAT_FILE",
     "FLAG_STATE_METADATA_KEY",
     "LEGACY_FORMAT_VERSION",
     "REPAIR_HINT",
     "ROW_GROUP_ROWS",
     "STORE_FORMAT_VERSION",
     "TABLES",
+    "TABLES_DIR",
     "TABLE_COLUMNS",
     "TIMESTAMP_FORMAT",
     "CalibrationNotFound",

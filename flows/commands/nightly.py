@@ -121,9 +121,14 @@ def run(args: argparse.Namespace) -> int:
         resolve_kind(args.runner)  # a bad $MIMUCAL_TASK_RUNNER is refused before start-up
     except ValueError as exc:
         raise CliError(str(exc)) from None
+    from schemas.results_store import ResultsStore, StoreLockedError
+
+    if not args.wait:  # refused before anything starts (the flow checks again)
+        ResultsStore(Path(args.results)).ensure_unlocked()
+    ResultsStore(Path(args.results)).check()
+    runtime.start_api_server_early()  # while the flow's modules are imported
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
-    from schemas.results_store import StoreLockedError
 
     try:
         log = nightly.nightly_fleet_calibration(
