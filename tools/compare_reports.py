@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def write(out: Path, store: Path) -> int:
     from reports.lot import render_lot_report
     from reports.store import StoreView
-    from reports.synthetic import build_synthetic_store
+    from tools.synthetic_store import build_synthetic_store
     from reports.unit import render_unit_report
 
     out.mkdir(parents=True, exist_ok=True)
