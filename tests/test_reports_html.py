@@ -13,8 +13,8 @@ from plotly.offline import get_plotlyjs
 from reports.html import decimals_for, decimate, display_unit, fmt
 from reports.index import write_fleet_index
 from reports.lot import ReportError, write_lot_report
-from tools.synthetic_store import build_synthetic_store
 from reports.unit import write_unit_report
+from tools.synthetic_store import build_synthetic_store
 
 
 @pytest.fixture(scope="module")
