@@ -23,6 +23,7 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import numpy as np
+from scipy import stats
 
 from calib_core.discovery.fit import JointModel
 from calib_core.discovery.identifiability import orthonormal_basis
@@ -34,6 +35,30 @@ from calib_core.effects import CHANNELS
 # which the between-repetition test does not run (the recorded temperature's noise alone
 # makes a few parts in 1e3)
 REP_VARYING_MIN = 0.05
+
+
+def nested_f_test(
+    ss_small: float,
+    rank_small: int,
+    ss_big: float,
+    rank_big: int,
+    ss_noise: float,
+    dof_noise: float,
+    threshold: float,
+) -> FTest:
+    """F test of the columns a bigger model adds to a nested smaller one: the drop of the
+    weighted residual sum of squares over the rank it adds, against a noise sum of squares
+    (the repetitions' pure error on a turntable; the bigger model's residual on static
+    poses) over its dof."""
+    return f_test(ss_small - ss_big, rank_big - rank_small, ss_noise, dof_noise, threshold)
+
+
+def significant_parameters(theta: np.ndarray, stderr: np.ndarray, alpha: float) -> np.ndarray:
+    """Which parameters of a term are individually significant: |theta| / stderr above the
+    normal quantile of ``alpha`` two-sided, Bonferroni over the term's parameters (an
+    undetermined or zero standard error is never significant)."""
+    t = np.abs(theta) / np.where(np.isfinite(stderr) & (stderr > 0), stderr, np.inf)
+    return t > stats.norm.isf(alpha / (2 * max(theta.size, 1)))
 
 
 class TargetedParts(NamedTuple):
@@ -310,5 +335,4 @@ class Significance:
         full = tuple(current) + tuple(n for n in names if n not in current)
         a, b = self.model.fit(current), self.model.fit(full)
         ps, pd_ = self.model.pure(full)
-        pss, pdof = ps.sum(), int(pd_.sum())
-        return f_test(a.ss - b.ss, b.rank - a.rank, pss, pdof, threshold)
+        return nested_f_test(a.ss, a.rank, b.ss, b.rank, ps.sum(), int(pd_.sum()), threshold)
