@@ -174,10 +174,9 @@ class Policy:
 
         def heldout(current: tuple[str, ...], lab: str) -> HeldOutScore:
             # the held-out score as the verdict counts it: on the channels the item acts on
-            # significantly, on the steps it acts on. Counted on every channel it could act
-            # on, the five parameters a one-sensor effect does not have are fitted noise:
-            # a thermal scale drift of 19 ppm/degC on gyro z, its targeted test at p = 3e-8,
-            # scored 0.9994 there (1.068 on its own channel) and was never chosen
+            # significantly, on the steps it acts on. On every channel it could act on, the
+            # parameters a one-sensor effect does not have add fitted noise that hides its
+            # gain on its own channel (docs/model-discovery.md, "Design choices")
             item, cur = groups[lab], flat(current)
             ch = self.item_channels(list(cur + item), item) or tuple(
                 sorted({c for n in item for c in self.channels_of(n)})

@@ -179,13 +179,11 @@ class Significance:
         every channel's own copy of the terms' columns (the per-channel directions, which
         span the joint ones: a sensor's column leaks into the other channels of its triad
         through the misalignment, so there are up to three times as many), (R - 1) per
-        direction. Testing the per-channel directions in the numerator too spent dof on
-        leakage columns that carry almost none of the effect (p 9 instead of 3 for the
-        accelerometer nonlinearity, 18 instead of 6 for the thermal scale drift) and cost a
-        third of the noncentrality it needs: a quarter of a realistic accelerometer
-        nonlinearity rejected on 75 % of 40 physics units that way, 97.5 % this way, at the
-        same false-alarm rate (0.45 % and 0.40 % of 2,000 clean units at the 0.5 % share).
-        Unbalanced grids: :meth:`group_test`."""
+        direction. The numerator takes the joint directions, not the per-channel ones: the
+        leakage columns carry almost none of the effect, and testing them would spend dof
+        (p 9 instead of 3 for the accelerometer nonlinearity, 18 instead of 6 for the
+        thermal scale drift) for no noncentrality (docs/model-discovery.md gives the power
+        and false-alarm figures). Unbalanced grids: :meth:`group_test`."""
         if not self.model.g.balanced:
             return self.group_test((), names, threshold)
         parts = self._targeted_parts(tuple(names))
