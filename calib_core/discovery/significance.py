@@ -30,6 +30,7 @@ from calib_core.discovery.identifiability import orthonormal_basis
 from calib_core.discovery.noise import dof_inflation, sphericity_epsilon
 from calib_core.discovery.results import FTest, f_test
 from calib_core.effects import CHANNELS
+from calib_core.linalg import lstsq_min_norm
 
 # a term column's part that differs between the repetitions, relative to the column, below
 # which the between-repetition test does not run (the recorded temperature's noise alone
@@ -316,9 +317,8 @@ class Significance:
             dof_c = (R - 1) * (int(g.real.sum()) // R - 1) - int(round(float(self.model.noise.params[c])))
             if varying.any():
                 Z = D[..., varying].reshape(-1, int(varying.sum()))
-                beta, *_ = np.linalg.lstsq(Z, dev.reshape(-1), rcond=None)
-                rank = int(np.linalg.matrix_rank(Z))
-                explained = float(np.sum((Z @ beta) ** 2))
+                _, rank, fitted = lstsq_min_norm(Z, dev.reshape(-1))
+                explained = float(np.sum(fitted**2))
                 ss_num += explained
                 dof_num += rank
                 ss_den += ss_c - explained

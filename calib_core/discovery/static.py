@@ -37,9 +37,13 @@ asymmetry) or lie in the span of the base model (e.g. the accelerometer nonlinea
 six axis-aligned poses, where ``u_i^3 = u_i``) is *not testable on this recording*, never
 "absent".
 
-The F test, the stepwise selection and the finding type are the turntable discovery's
-(:mod:`calib_core.discovery.results`, :mod:`calib_core.discovery.selection`); terms act
-through the sensing geometry of the calibration's own gains.
+The tests, the selection rule and the finding type are the turntable discovery's: the
+nested F test (:func:`calib_core.discovery.significance.nested_f_test`), the parameters'
+significance (:func:`calib_core.discovery.significance.significant_parameters`), the
+selection (:func:`calib_core.discovery.policy.select_terms`) on a
+:class:`calib_core.discovery.fit.HeldOutScore`, and
+:class:`calib_core.discovery.results.EffectFinding`; terms act through the sensing
+geometry of the calibration's own gains.
 
 Test: nested-model F test within the block, ``F = (dRSS / p) / (RSS_1 / (N - r_1))``, rows
 weighted by ``1 / sqrt(white^2 + tau_c^2)``: the white noise of a pose mean (within-pose
