@@ -517,7 +517,8 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
         # have smaller lots. Flatness in *fleet* size is judged from the smallest fleet with
         # the largest fleet's lot size; the growth from the smallest fleet is shown as well.
         lot_of = {n: _lot_size(R(n)) for n in rss}
-        base = min((n for n in rss if lot_of[n] and lot_of[n] == lot_of.get(big)), default=small)
+        # (no smaller fleet of the same lot size: the smallest fleet, whatever its lots)
+        base = min((n for n in rss if n != big and lot_of[n] and lot_of[n] == lot_of.get(big)), default=small)
         growth = rss[big] / rss[base] if len(rss) >= 2 else 1.0
         slope = ((rss[big] - rss[base]) / (big - base)) if big != base else 0.0
         ok = worst <= TARGETS["rss_mb"] and growth <= 1.25 and big != base
