@@ -20,9 +20,10 @@ Kinds:
   same process just before and just after (``floor_before``, ``floor_after``), so the ratio
   holds on a noisy machine. ``--no-discovery`` leaves discovery out.
 - ``stages``: the same split into read+validate and average (per session), fit (a unit's
-  repetitions together, as the nightly fits them) and aggregate, on the first ``--units``
-  units (where the fit phase time goes), after one untimed pass over the first unit (first-call
-  imports); all in ms per session.
+  repetitions together, as the nightly fits them), model discovery (diagnosis and the store's
+  rows, also in CPU ms per unit) and aggregate, on the first ``--units`` units (where the fit
+  phase time goes), after one untimed pass over the first unit (first-call imports); all in
+  ms per session.
 - ``nightly``: :func:`flows.nightly.nightly_fleet_calibration` end to end (``force=True``),
   with the local task runner ``--runner threads|processes`` (``--dask-workers 0``) or the
   ``dask`` runner with a ``LocalCluster`` of N single-threaded worker processes (started and
@@ -375,6 +376,8 @@ def do_fit(a) -> dict:
 
 
 def do_stages(a) -> dict:
+    from calib_core.discovery import diagnose_unit
+    from calib_core.discovery.presentation import finding_rows
     from calib_core.models.pipeline import calibrate_repetitions
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     from schemas.averaging import average_session
@@ -382,13 +385,14 @@ def do_stages(a) -> dict:
 
     units, _ = _units(a.dataset)
     units = units[: a.units]
-    t = {"read_validate": 0.0, "average": 0.0, "fit": 0.0, "aggregate": 0.0, "floor": 0.0}
-    n = 0
+    t = {"read_validate": 0.0, "average": 0.0, "fit": 0.0, "discovery": 0.0, "aggregate": 0.0, "floor": 0.0}
+    n, discovery_cpu = 0, 0.0
     import pyarrow.dataset as ds
 
     aggs = [(c, "mean") for c in SENSOR_COLUMNS]
     if units:  # one untimed pass first: the numerics' first-call imports are not a stage's
         calibrate_sessions(units[0], keep_step_means=False)
+        diagnose_unit([average_session(read_session(ref))[0] for ref in units[0]], tables=False)
     for refs in units:
         sms = []
         for ref in refs:
@@ -410,13 +414,24 @@ def do_stages(a) -> dict:
         t0 = time.perf_counter()
         calibrate_repetitions(sms)
         t["fit"] += time.perf_counter() - t0
+        # model discovery as the nightly runs it (diagnosis and the store's rows), CPU and wall
+        t0, c0 = time.perf_counter(), time.process_time()
+        finding_rows(diagnose_unit(sms, tables=False))
+        t["discovery"] += time.perf_counter() - t0
+        discovery_cpu += time.process_time() - c0
         outcomes = calibrate_sessions(refs, keep_step_means=False)
         t1 = time.perf_counter()
         aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
         t["aggregate"] += time.perf_counter() - t1
-    # per session: the unit-level fit and aggregate are spread over its sessions
+    # per session: the unit-level fit, discovery and aggregate are spread over its sessions
     per_session_ms = {k: 1e3 * v / max(1, n) for k, v in t.items()}
-    return {"sessions": n, "per_session_ms": per_session_ms}
+    return {
+        "sessions": n,
+        "units": len(units),
+        "per_session_ms": per_session_ms,
+        "discovery_ms_per_unit": 1e3 * t["discovery"] / max(1, len(units)),
+        "discovery_cpu_ms_per_unit": 1e3 * discovery_cpu / max(1, len(units)),
+    }
 
 
 def _prefect_env(results: str) -> None:

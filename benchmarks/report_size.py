@@ -24,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from reports.browser import Chromium, find_chromium  # noqa: E402
 from reports.index import write_fleet_index  # noqa: E402
 from reports.lot import write_lot_report  # noqa: E402
-from reports.synthetic import build_synthetic_store  # noqa: E402
 from reports.unit import write_unit_report  # noqa: E402
+from tools.synthetic_store import build_synthetic_store  # noqa: E402
 
 HEADER = (
     "| report | units | file size [MB] | write [s] | write CPU [s] | open, first time [s] | open again [s] "

@@ -191,6 +191,19 @@ def lstsq_pinv(
     return theta, rank, PinvSolution(Vt, inv_s, keep, live, scale)
 
 
+def lstsq_min_norm(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+    """Minimum-norm least squares by one SVD, with numpy's rank rule (singular values above
+    max(m, p) eps of the largest, as ``np.linalg.lstsq(rcond=None)`` and ``matrix_rank``):
+    theta (p,) or (p, q) for y (m,) or (m, q), the rank, and the fitted values Z theta (the
+    projection of y on the columns' span)."""
+    U, s, Vt = np.linalg.svd(Z, full_matrices=False)
+    keep = s > (s[0] if len(s) else 0.0) * max(Z.shape) * np.finfo(float).eps
+    Uk = U[:, keep]
+    uy = Uk.T @ y
+    theta = Vt[keep].T @ (uy / (s[keep] if uy.ndim == 1 else s[keep, None]))
+    return theta, int(keep.sum()), Uk @ uy
+
+
 def lstsq_pinv_cov(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """:func:`lstsq_pinv` with its covariance: theta, (Z^T Z)^+ (NaN where undetermined), rank."""
     theta, rank, solution = lstsq_pinv(Z, y)

@@ -83,9 +83,9 @@ def load_manifest(fleet_dir: Path | str) -> dict:
 @pytest.fixture(scope="session")
 def synthetic_store(tmp_path_factory):
     """The 12-unit synthetic lot (2 outlier units, 1 failed session, seed 7) of
-    ``reports.synthetic``, built once per test session (per worker): the report tests that
+    ``tools.synthetic_store``, built once per test session (per worker): the report tests that
     read it only add report files to it."""
-    from reports.synthetic import build_synthetic_store
+    from tools.synthetic_store import build_synthetic_store
 
     root = tmp_path_factory.mktemp("synthetic-store")
     return build_synthetic_store(root, n_units=12, n_outliers=2, n_failed=1, seed=7, nav_samples=3000)

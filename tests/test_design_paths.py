@@ -157,7 +157,7 @@ def test_the_example_report_section_is_one_builder_and_one_list_entry(tmp_path, 
     LOT_SECTIONS puts it in the lot report where the diff says."""
     from reports import sections
     from reports.lot import render_lot_report
-    from reports.synthetic import build_synthetic_store
+    from tools.synthetic_store import build_synthetic_store
 
     diff = design_diff(" # reports/sections/__init__.py")
     real = (Path(sections.__file__)).read_text().splitlines()

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib_core.paper.xu2016_gap import axis_hypotheses, bias_spreads, step_noise_from_table3
+from tools.xu2016_gap import axis_hypotheses, bias_spreads, step_noise_from_table3
 
 
 def test_bias_spreads_drift_on_y_repeatability_on_z():

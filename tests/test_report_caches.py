@@ -17,7 +17,7 @@ runtime.ensure_environment()
 
 from reports import history, index  # noqa: E402
 from reports.store import StoreView  # noqa: E402
-from reports.synthetic import build_synthetic_store  # noqa: E402
+from tools.synthetic_store import build_synthetic_store  # noqa: E402
 
 
 def _rows_from_tables(view: StoreView) -> dict[str, dict]:

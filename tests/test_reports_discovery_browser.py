@@ -22,11 +22,11 @@ from calib_core.sim import protocols
 from calib_core.sim.physics import Turntable, typical_physics_unit
 from reports.browser import Chromium, find_chromium
 from reports.lot import write_lot_report
-from reports.synthetic import build_synthetic_store
 from schemas.physics_sessions import physics_unit_step_means
 from schemas.results_store import ResultsStore
 from tools.discovery_evaluation import OUT_OF_CATALOGUE
 from tools.discovery_evaluation_ident import quiet_gyros
+from tools.synthetic_store import build_synthetic_store
 
 pytestmark = [
     pytest.mark.browser,

@@ -13,8 +13,8 @@ from plotly.offline import get_plotlyjs
 from reports.html import decimals_for, decimate, display_unit, fmt
 from reports.index import write_fleet_index
 from reports.lot import ReportError, write_lot_report
-from reports.synthetic import build_synthetic_store
 from reports.unit import write_unit_report
+from tools.synthetic_store import build_synthetic_store
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +113,7 @@ def test_lot_report_numbers_carry_units_and_precision(lot_store, lot_html):
 
 def drop_table(root, name):
     """Remove a table from a results store in either layout (format 1.0: one flat file at
-    the root, as reports.synthetic writes it; 2.0: a directory of lot files)."""
+    the root, as tools.synthetic_store writes it; 2.0: a directory of lot files)."""
     import shutil
 
     from schemas.results_store import ResultsStore

@@ -18,8 +18,8 @@ from reports.context import LotContext, ResidualIndex
 from reports.html import DASH, MINUS, fmt, td_numbers
 from reports.lot import render_lot_report
 from reports.store import StoreView
-from reports.synthetic import build_synthetic_store
 from reports.unit import navigation_figure
+from tools.synthetic_store import build_synthetic_store
 
 
 @pytest.fixture(scope="module")

@@ -18,9 +18,9 @@ from calib_core.flag_decisions import lots_with_new_flags  # noqa: E402
 from flows import nightly  # noqa: E402
 from reports.index import write_fleet_index  # noqa: E402
 from reports.lot import write_lot_report  # noqa: E402
-from reports.synthetic import build_synthetic_store  # noqa: E402
 from reports.unit import write_unit_report  # noqa: E402
 from schemas.results_store import ResultsStore  # noqa: E402
+from tools.synthetic_store import build_synthetic_store  # noqa: E402
 
 
 def _summary(rng: np.random.Generator, lots: list[str], units_per_lot: int = 6) -> pd.DataFrame:

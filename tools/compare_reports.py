@@ -23,8 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def write(out: Path, store: Path) -> int:
     from reports.lot import render_lot_report
     from reports.store import StoreView
-    from reports.synthetic import build_synthetic_store
     from reports.unit import render_unit_report
+    from tools.synthetic_store import build_synthetic_store
 
     out.mkdir(parents=True, exist_ok=True)
     if not (store / "sessions.parquet").exists() and not (store / "tables").exists():

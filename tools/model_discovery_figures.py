@@ -158,7 +158,7 @@ def limits_table(steps, scales, effects, n_reps: int, draws: int = 4000) -> None
 
 
 def xu2016() -> None:
-    from calib_core.paper.xu2016_gap import gap_analysis
+    from tools.xu2016_gap import gap_analysis
 
     r = gap_analysis()
     print("per-axis hypotheses (gyro_scale_nonlinearity fitted to the compensated range):")

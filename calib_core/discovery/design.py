@@ -328,8 +328,12 @@ def term_design(
         # session-level context (the terms act row by row); else one call per repetition
         for ctx in [joint] if joint is not None else lay.ctx:
             # minus the regressors: ref = K raw + b - E theta
+            # every term's sensor errors through the sensing geometry in one product
+            g = SensingGeometry.identity() if geometry is None else geometry
             Z = (
-                -np.concatenate([t.regressors(ctx, geometry) for t in terms], axis=-1)
+                -g.to_body(
+                    np.concatenate([np.asarray(t.sensor_regressors(ctx, g), float) for t in terms], axis=-1)
+                )
                 if terms
                 else np.zeros((len(ctx), 6, 0))
             )

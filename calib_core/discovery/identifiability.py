@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calib_core.linalg import lstsq_min_norm
+
 DEFAULT_TOL = 0.05
 # pairs whose own parts are below this (but above DEFAULT_TOL) are *near-confounded*: the
 # design still separates them, but an effect must be several times the noise before the
@@ -185,7 +187,7 @@ def analyse(
         # terms that carry it are those with a real part of it (not a chance projection)
         y = Q @ u[:, 0]
         H = np.hstack([spans[o] for o in others])
-        coef = np.linalg.lstsq(H, y, rcond=None)[0]
+        coef = lstsq_min_norm(H, y)[0]
         share, at = {}, 0
         for o in others:
             k = spans[o].shape[1]

@@ -31,8 +31,8 @@ from calib_core.errors import DesignError
 
 # a triad's summed lag-1 correlation of the pure error, in standard errors of white noise,
 # above which its steps are modelled as serially correlated (one-sided, 0.13 % per triad):
-# without a gate the sign of two noisy correlations switched the model on for 44 % of
-# units with white noise only
+# the gate keeps two noisy correlations from switching the serial model on for units with
+# white noise only (docs/model-discovery.md, "Design choices")
 SERIAL_MIN_Z = 3.0
 
 
@@ -309,8 +309,7 @@ class NoiseModel:
         triad with serial noise, its share ``lam`` costs 2 as well (the wander's variance is
         the inverse weight of the slow directions) and its time constant, shared by the
         triad, a third of a parameter per channel. Counted so, the lack-of-fit F of clean
-        units has the F distribution's mean (uncounted, 1.035 / 1.019 / 1.007 on 3 / 5 / 10
-        repetitions; each variance counted 1, 1.0116 on 5)."""
+        units has the F distribution's mean (docs/model-discovery.md gives the figures)."""
         if "_params" in self.__dict__:  # asked by every test of every term set
             return self.__dict__["_params"]
         if not self.estimated:

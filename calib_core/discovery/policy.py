@@ -17,10 +17,12 @@ chosen one is called.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import stats
 
-from calib_core.discovery.fit import JointModel
+from calib_core.discovery.fit import HeldOutScore, JointModel
 from calib_core.discovery.identifiability import (
     Confounded,
     Identifiability,
@@ -29,12 +31,34 @@ from calib_core.discovery.identifiability import (
 )
 from calib_core.discovery.results import ConfoundedFinding, EffectFinding, FTest
 from calib_core.discovery.selection import stepwise
-from calib_core.discovery.significance import Significance
+from calib_core.discovery.significance import Significance, significant_parameters
 from calib_core.effects import CHANNELS, get_effect
 
 # terms whose columns share a direction up to this sine of angle (the part of a column the
 # others do not explain is below 5 % of it) are tested together: calib_core.discovery.identifiability
 CONFOUNDING_TOL = 0.05
+
+
+def select_terms(
+    candidates: list[str],
+    test: Callable[[tuple[str, ...], str, float], FTest],
+    heldout: Callable[[tuple[str, ...], str], HeldOutScore],
+    alpha: float,
+    backward: bool = True,
+    bonferroni_over: int | None = None,
+) -> list[str]:
+    """Stepwise selection (:func:`stepwise`) of the candidates whose F test rejects and
+    whose held-out score improves (gain above 1): ``test(current, name, threshold)``,
+    ``heldout(current, name)`` the score of adding ``name`` to ``current``. The turntable
+    and the static-pose discovery select by this one rule."""
+    return stepwise(
+        candidates,
+        test,
+        lambda current, name: heldout(current, name).gain > 1.0,
+        alpha,
+        backward=backward,
+        bonferroni_over=bonferroni_over,
+    )
 
 
 class Policy:
@@ -148,19 +172,18 @@ class Policy:
         def test(current: tuple[str, ...], lab: str, threshold: float) -> FTest:
             return self.tests.group_test(flat(current), groups[lab], threshold)
 
-        def improves(current: tuple[str, ...], lab: str) -> bool:
+        def heldout(current: tuple[str, ...], lab: str) -> HeldOutScore:
             # the held-out score as the verdict counts it: on the channels the item acts on
-            # significantly, on the steps it acts on. Counted on every channel it could act
-            # on, the five parameters a one-sensor effect does not have are fitted noise:
-            # a thermal scale drift of 19 ppm/degC on gyro z, its targeted test at p = 3e-8,
-            # scored 0.9994 there (1.068 on its own channel) and was never chosen
+            # significantly, on the steps it acts on. On every channel it could act on, the
+            # parameters a one-sensor effect does not have add fitted noise that hides its
+            # gain on its own channel (docs/model-discovery.md, "Design choices")
             item, cur = groups[lab], flat(current)
             ch = self.item_channels(list(cur + item), item) or tuple(
                 sorted({c for n in item for c in self.channels_of(n)})
             )
-            return self._gain(cur, cur + item, ch) > 1.0
+            return self.model.heldout_score(cur, cur + item, ch)
 
-        labels = stepwise(list(groups), test, improves, self.term_alpha)
+        labels = select_terms(list(groups), test, heldout, self.term_alpha)
         chosen = self._settle_near_confounded(self._resolve([groups[lab] for lab in labels]))
         partial: list[tuple[str, ...]] = []
         negligible: list[tuple[str, ...]] = []
@@ -333,9 +356,8 @@ class Policy:
         k = self._theta_index(full, name)
         theta = f.theta[k]
         se = np.sqrt(np.diag(f.cov)[k] * self.model.variance_scale(full))
-        p = k.size
+        sig = significant_parameters(theta, se, self.alpha)
         t = np.abs(theta) / np.where(np.isfinite(se) & (se > 0), se, np.inf)
-        sig = t > stats.norm.isf(self.alpha / (2 * p))
         if not sig.any() and np.isfinite(t).any() and np.nanmax(t) > 0:
             sig[int(np.nanargmax(t))] = True
         return theta, se, sig

@@ -32,6 +32,7 @@ import pandas as pd
 
 from calib_core.calibration import Calibration
 from calib_core.effects import CHANNELS
+from calib_core.linalg import lstsq_min_norm
 from calib_core.steps import StepMeans
 
 CHANNEL_UNITS = ("deg/s",) * 3 + ("g",) * 3
@@ -192,8 +193,8 @@ def two_way_residual(values: np.ndarray, cell: np.ndarray, rep: np.ndarray) -> t
         D = np.zeros((n, len(ci) + len(ri)))
         D[np.arange(n), cell_idx] = 1.0
         D[np.arange(n), len(ci) + rep_idx] = 1.0
-        coef, _, rank, _ = np.linalg.lstsq(D, X, rcond=None)
-        e, dof = X - D @ coef, int(n - rank)
+        _, rank, fitted = lstsq_min_norm(D, X)
+        e, dof = X - fitted, int(n - rank)
     return (e[:, 0] if flat else e), dof
 
 

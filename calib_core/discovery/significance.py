@@ -23,17 +23,43 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import numpy as np
+from scipy import stats
 
 from calib_core.discovery.fit import JointModel
 from calib_core.discovery.identifiability import orthonormal_basis
 from calib_core.discovery.noise import dof_inflation, sphericity_epsilon
 from calib_core.discovery.results import FTest, f_test
 from calib_core.effects import CHANNELS
+from calib_core.linalg import lstsq_min_norm
 
 # a term column's part that differs between the repetitions, relative to the column, below
 # which the between-repetition test does not run (the recorded temperature's noise alone
 # makes a few parts in 1e3)
 REP_VARYING_MIN = 0.05
+
+
+def nested_f_test(
+    ss_small: float,
+    rank_small: int,
+    ss_big: float,
+    rank_big: int,
+    ss_noise: float,
+    dof_noise: float,
+    threshold: float,
+) -> FTest:
+    """F test of the columns a bigger model adds to a nested smaller one: the drop of the
+    weighted residual sum of squares over the rank it adds, against a noise sum of squares
+    (the repetitions' pure error on a turntable; the bigger model's residual on static
+    poses) over its dof."""
+    return f_test(ss_small - ss_big, rank_big - rank_small, ss_noise, dof_noise, threshold)
+
+
+def significant_parameters(theta: np.ndarray, stderr: np.ndarray, alpha: float) -> np.ndarray:
+    """Which parameters of a term are individually significant: |theta| / stderr above the
+    normal quantile of ``alpha`` two-sided, Bonferroni over the term's parameters (an
+    undetermined or zero standard error is never significant)."""
+    t = np.abs(theta) / np.where(np.isfinite(stderr) & (stderr > 0), stderr, np.inf)
+    return t > stats.norm.isf(alpha / (2 * max(theta.size, 1)))
 
 
 class TargetedParts(NamedTuple):
@@ -154,13 +180,11 @@ class Significance:
         every channel's own copy of the terms' columns (the per-channel directions, which
         span the joint ones: a sensor's column leaks into the other channels of its triad
         through the misalignment, so there are up to three times as many), (R - 1) per
-        direction. Testing the per-channel directions in the numerator too spent dof on
-        leakage columns that carry almost none of the effect (p 9 instead of 3 for the
-        accelerometer nonlinearity, 18 instead of 6 for the thermal scale drift) and cost a
-        third of the noncentrality it needs: a quarter of a realistic accelerometer
-        nonlinearity rejected on 75 % of 40 physics units that way, 97.5 % this way, at the
-        same false-alarm rate (0.45 % and 0.40 % of 2,000 clean units at the 0.5 % share).
-        Unbalanced grids: :meth:`group_test`."""
+        direction. The numerator takes the joint directions, not the per-channel ones: the
+        leakage columns carry almost none of the effect, and testing them would spend dof
+        (p 9 instead of 3 for the accelerometer nonlinearity, 18 instead of 6 for the
+        thermal scale drift) for no noncentrality (docs/model-discovery.md gives the power
+        and false-alarm figures). Unbalanced grids: :meth:`group_test`."""
         if not self.model.g.balanced:
             return self.group_test((), names, threshold)
         parts = self._targeted_parts(tuple(names))
@@ -293,9 +317,8 @@ class Significance:
             dof_c = (R - 1) * (int(g.real.sum()) // R - 1) - int(round(float(self.model.noise.params[c])))
             if varying.any():
                 Z = D[..., varying].reshape(-1, int(varying.sum()))
-                beta, *_ = np.linalg.lstsq(Z, dev.reshape(-1), rcond=None)
-                rank = int(np.linalg.matrix_rank(Z))
-                explained = float(np.sum((Z @ beta) ** 2))
+                _, rank, fitted = lstsq_min_norm(Z, dev.reshape(-1))
+                explained = float(np.sum(fitted**2))
                 ss_num += explained
                 dof_num += rank
                 ss_den += ss_c - explained
@@ -310,5 +333,4 @@ class Significance:
         full = tuple(current) + tuple(n for n in names if n not in current)
         a, b = self.model.fit(current), self.model.fit(full)
         ps, pd_ = self.model.pure(full)
-        pss, pdof = ps.sum(), int(pd_.sum())
-        return f_test(a.ss - b.ss, b.rank - a.rank, pss, pdof, threshold)
+        return nested_f_test(a.ss, a.rank, b.ss, b.rank, ps.sum(), int(pd_.sum()), threshold)

@@ -37,9 +37,13 @@ asymmetry) or lie in the span of the base model (e.g. the accelerometer nonlinea
 six axis-aligned poses, where ``u_i^3 = u_i``) is *not testable on this recording*, never
 "absent".
 
-The F test, the stepwise selection and the finding type are the turntable discovery's
-(:mod:`calib_core.discovery.results`, :mod:`calib_core.discovery.selection`); terms act
-through the sensing geometry of the calibration's own gains.
+The tests, the selection rule and the finding type are the turntable discovery's: the
+nested F test (:func:`calib_core.discovery.significance.nested_f_test`), the parameters'
+significance (:func:`calib_core.discovery.significance.significant_parameters`), the
+selection (:func:`calib_core.discovery.policy.select_terms`) on a
+:class:`calib_core.discovery.fit.HeldOutScore`, and
+:class:`calib_core.discovery.results.EffectFinding`; terms act through the sensing
+geometry of the calibration's own gains.
 
 Test: nested-model F test within the block, ``F = (dRSS / p) / (RSS_1 / (N - r_1))``, rows
 weighted by ``1 / sqrt(white^2 + tau_c^2)``: the white noise of a pose mean (within-pose
@@ -66,8 +70,10 @@ import pandas as pd
 from scipy import stats
 
 from calib_core.calibration import Calibration
-from calib_core.discovery.results import DEFAULT_ALPHA, EffectFinding, FTest, f_test, jsonable
-from calib_core.discovery.selection import stepwise
+from calib_core.discovery.fit import HeldOutScore
+from calib_core.discovery.policy import select_terms
+from calib_core.discovery.results import DEFAULT_ALPHA, EffectFinding, FTest, jsonable
+from calib_core.discovery.significance import nested_f_test, significant_parameters
 from calib_core.effects import CHANNELS, MotionContext, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
 from calib_core.linalg import lstsq_pinv
@@ -355,7 +361,7 @@ class _StaticDiscovery:
         blk = self.blocks[block]
         _, _, rss0, r0, _, _ = self.fit(block, current)
         _, _, rss1, r1, _, _ = self.fit(block, current + (name,))
-        return f_test(rss0 - rss1, r1 - r0, rss1, len(blk.y) - r1, threshold)
+        return nested_f_test(rss0, r0, rss1, r1, rss1, len(blk.y) - r1, threshold)
 
     def channels_of(self, block: str, names: tuple[str, ...]) -> np.ndarray:
         """Rows the terms act on (gyro: their channels; accel: all magnitude rows)."""
@@ -388,6 +394,14 @@ class _StaticDiscovery:
         z = self.heldout(block, names)[mask]
         return float(BLOCK_SCALE[block] * np.sqrt(np.nanmean(z**2)))
 
+    def heldout_score(self, block: str, without: tuple[str, ...], with_: tuple[str, ...], mask: np.ndarray):
+        """Held-out rms (the block's unit) without and with the terms ``with_`` adds, on the
+        rows ``mask``: every row counts (the poses excite a term alike)."""
+        n = int(mask.sum())
+        return HeldOutScore(
+            self.heldout_rms(block, without, mask), self.heldout_rms(block, with_, mask), n, n
+        )
+
     def finding(self, block: str, chosen: tuple[str, ...], name: str, threshold: float) -> EffectFinding:
         others = tuple(n for n in chosen if n != name)
         full = others + (name,)
@@ -399,11 +413,8 @@ class _StaticDiscovery:
         theta = coef[off : off + live.size]
         se = np.sqrt(np.maximum(np.diag(cov)[off : off + live.size], 0.0) * s2)
         mask = self.channels_of(block, (name,))
-        crit = stats.norm.isf(self.alpha / (2 * max(live.size, 1)))
-        axes = set()
-        for k, j in enumerate(live):
-            if se[k] > 0 and abs(theta[k]) > crit * se[k]:
-                axes.add(CHANNELS[int(term.param_sensor()[j])][1])
+        sig = significant_parameters(theta, se, self.alpha)
+        axes = {CHANNELS[int(term.param_sensor()[j])][1] for j in live[sig]}
         if not axes:
             axes = {CHANNELS[c][1] for c in np.unique(self.blocks[block].channel[mask]) if c >= 0}
         return EffectFinding(
@@ -414,31 +425,31 @@ class _StaticDiscovery:
             stderr={term.param_names[j]: float(v) for j, v in zip(live, se)},
             units={term.param_names[j]: term.param_units[j] for j in live},
             evidence=self.f_test(block, others, name, threshold),
-            heldout_rms_before=self.heldout_rms(block, others, mask),
-            heldout_rms_after=self.heldout_rms(block, full, mask),
+            heldout_rms_before=(score := self.heldout_score(block, others, full, mask)).before,
+            heldout_rms_after=score.after,
             heldout_unit=BLOCK_UNITS[block],
         )
 
 
 def _select(d: _StaticDiscovery, testable: list[tuple[str, str]], threshold: float) -> dict[str, list[str]]:
-    """Forward selection per block (:func:`calib_core.discovery.selection.stepwise`, the
-    threshold fixed at ``threshold``): the most significant term that also lowers the
-    held-out RMS on its channels, until none is left."""
+    """Forward selection per block by the turntable's rule
+    (:func:`calib_core.discovery.policy.select_terms`, the threshold fixed at
+    ``threshold``): the most significant term that also lowers the held-out RMS on its
+    channels, until none is left."""
     chosen: dict[str, list[str]] = {}
     n_tests = max(len(testable), 1)
     for b in BLOCKS:
 
-        def improves(current: tuple[str, ...], n: str, b: str = b) -> bool:
-            mask = d.channels_of(b, (n,))
-            return d.heldout_rms(b, current + (n,), mask) < d.heldout_rms(b, current, mask)
+        def heldout(current: tuple[str, ...], n: str, b: str = b) -> HeldOutScore:
+            return d.heldout_score(b, current, current + (n,), d.channels_of(b, (n,)))
 
         def test(current: tuple[str, ...], n: str, _thr: float, b: str = b) -> FTest:
             return d.f_test(b, current, n, threshold)
 
-        chosen[b] = stepwise(
+        chosen[b] = select_terms(
             [n for bb, n in testable if bb == b],
             test,
-            improves,
+            heldout,
             threshold * n_tests,
             backward=False,
             bonferroni_over=n_tests,

@@ -1,7 +1,7 @@
 """Screenshot of a lot report for the documentation (docs/img/lot-report.png).
 
-    .venv/bin/python -m reports.screenshot RESULTS LOT OUT.png [--height 1750]
-    .venv/bin/python -m reports.screenshot --synthetic OUT.png   # 12-unit synthetic lot
+    .venv/bin/python -m tools.screenshot RESULTS LOT OUT.png [--height 1750]
+    .venv/bin/python -m tools.screenshot --synthetic OUT.png   # 12-unit synthetic lot
 
 Writes the lot report if needed, opens it in headless Chromium, opens the first flagged
 unit's section below the lot overview and captures the top of the page.
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from reports.browser import Chromium
 from reports.lot import write_lot_report
-from reports.synthetic import build_synthetic_store
+from tools.synthetic_store import build_synthetic_store
 
 
 def main(argv: list[str] | None = None) -> int:
