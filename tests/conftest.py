@@ -148,6 +148,10 @@ def _hostile_setups(outside: Path) -> dict:
         (d / "log.csv").unlink()
         os.mkfifo(d / "log.csv")
 
+    def huge(d):
+        with open(d / "log.csv", "r+b") as fh:
+            fh.truncate(257 * 2**20)
+
     elsewhere = outside / "valid.csv"
     elsewhere.write_text(text)
     beyond = lines[:5] + [",".join(str(4 * int(v)) for v in ln.split(",")) for ln in lines[5:]]
@@ -192,6 +196,7 @@ def _hostile_setups(outside: Path) -> dict:
             "E_FIELD_TOO_FEW_POSES",
         ),
         "H19": ("window NaN (JSON's NaN literal)", options('{"window": NaN}'), "E_BAD_OPTION"),
+        "H20": ("a 257 MiB log (sparse: never read)", huge, "E_UNREADABLE_FILE"),
     }
 
 
@@ -217,7 +222,7 @@ def make_hostile_field_lot(root: Path, outside: Path, units: list[str] | None = 
 
 @pytest.fixture(scope="session")
 def hostile_field_night(tmp_path_factory):
-    """One ``mimucal nightly`` over the hostile field lot (20 units, threads): the dataset,
+    """One ``mimucal nightly`` over the hostile field lot (21 units, threads): the dataset,
     the results, the corpus, the exit code and stderr."""
     if not REAL_FIELD_LOG.is_file():
         pytest.skip(f"the real MPU-6050 recording is not at {REAL_FIELD_LOG}")
