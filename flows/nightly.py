@@ -626,12 +626,14 @@ OUTCOME_WORDS = {"ok": "all ok", "failures": "some units failed", "run failed": 
 
 
 def summary_line(log: dict, wall_s: float | None = None) -> str:
-    """One line: units, sessions, flags; the flow's time, or ``wall_s`` (the command's wall
-    time) with the flow's time in brackets; the outcome ("all ok", "some units failed" (exit
-    code 1) or "the run failed" (5))."""
+    """One line: the outcome ("all ok", "some units failed" (exit code 1) or "the run failed"
+    (5)), units, sessions, flags; the flow's time, or ``wall_s`` (the command's wall time)
+    with the flow's time in brackets."""
     outcome = OUTCOME_WORDS.get(log.get("outcome") or "", None)
     return (
-        f"{log.get('kind', 'run')} {log['run_id']}: {log.get('units_found', '?')} units "
+        f"{log.get('kind', 'run')} {log['run_id']}: "
+        + (f"{outcome}; " if outcome else "")
+        + f"{log.get('units_found', '?')} units "
         f"({log.get('units_calibrated', 0)} calibrated, {log.get('units_skipped', 0)} "
         f"unchanged, {len(log.get('units_failed', []))} failed, {len(log.get('units_stale', {}))}"
         f" stale), {log.get('sessions_calibrated', 0)} sessions ok, "
@@ -642,7 +644,6 @@ def summary_line(log: dict, wall_s: float | None = None) -> str:
             if wall_s is None
             else f"{wall_s:.1f} s wall ({log.get('elapsed_s', 0):.1f} s in the flow)"
         )
-        + (f"; {outcome}" if outcome else "")
     )
 
 
