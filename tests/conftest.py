@@ -242,3 +242,20 @@ def hostile_field_night(tmp_path_factory):
     with contextlib.redirect_stderr(err):
         rc = cli_main(["nightly", str(data), "--results", str(results), "--runner", "threads", "--quiet"])
     return {"data": data, "results": results, "corpus": corpus, "rc": rc, "stderr": err.getvalue()}
+
+
+# --- the order modules run in ---------------------------------------------------------------------
+# `make test` runs `-n 2 --dist loadfile --no-loadscope-reorder`: each module goes whole to the
+# next free worker, in collection order. The wall time is bounded by the module that starts
+# last, so the modules expected to take longest go first (longest-processing-time first): a
+# module's weight counts its tests that start a Prefect server, those marked slow, and the
+# rest (rough costs in seconds; the order, not the numbers, matters).
+_MODULE_WEIGHTS = {"server": 30.0, "slow": 10.0}
+
+
+def pytest_collection_modifyitems(session, config, items):
+    weight: dict[str, float] = {}
+    for item in items:
+        w = next((v for m, v in _MODULE_WEIGHTS.items() if item.get_closest_marker(m)), 0.5)
+        weight[item.nodeid.split("::")[0]] = weight.get(item.nodeid.split("::")[0], 0.0) + w
+    items.sort(key=lambda item: -weight[item.nodeid.split("::")[0]])  # stable: a module stays whole
