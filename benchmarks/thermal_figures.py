@@ -1,9 +1,10 @@
 """The acceptance figures of the calibration over temperature (docs/thermal.md).
 
-    PYTHONPATH=. python benchmarks/thermal_figures.py [UNITS] [SEED] [MC_RUNS]
+    PYTHONPATH=. python benchmarks/thermal_figures.py [UNITS] [SEED] [MC_RUNS] [SWEEPS]
 
-defaults 40 units, seed 34, 30 Monte Carlo runs. Physics-simulated chamber runs (7 setpoints
--40..85 degC, a heating and a cooling sweep: 2 repetitions each); a quarter of the units each
+defaults 40 units, seed 34, 30 Monte Carlo runs, 2 sweeps (MC_RUNS 0: no Monte Carlo).
+Physics-simulated chamber runs (7 setpoints -40..85 degC, heating and cooling sweeps
+alternately: one repetition of each setpoint per sweep); a quarter of the units each
 linear, linear with hysteresis, cubic, cubic with hysteresis. Prints:
 
 - the share of the thermal coefficients within 3 standard errors of the truth (the truth of
@@ -31,7 +32,7 @@ import numpy as np
 
 from calib_core.calibration import Calibration
 from calib_core.models.thermal import BIASES, ThermalFit, calibrate_chamber
-from calib_core.sim.chamber import thermal_physics_unit, true_parameters
+from calib_core.sim.chamber import chamber_schedule, thermal_physics_unit, true_parameters
 from calib_core.sim.physics import PhysicsUnit
 from calib_core.steps import StepMeans
 from flows.chamber_sim import chamber_step_means, held_out_session
@@ -100,11 +101,28 @@ def compensation(sm: StepMeans, cal: Calibration) -> np.ndarray:
     )
 
 
+def without_turn_on(unit: PhysicsUnit) -> PhysicsUnit:
+    """The unit without its turn-on bias (the bias drawn anew at each power-on: run-to-run
+    repeatability, the same offset for every calibration applied to that session)."""
+    gy = tuple(replace(g, turn_on=0.0) for g in unit.gyros)
+    ac = tuple(replace(a, turn_on=0.0) for a in unit.accels)
+    return replace(unit, gyros=gy, accels=ac)
+
+
 def quiet(unit: PhysicsUnit) -> PhysicsUnit:
     """The unit without the noise a session repeats differently (turn-on, instability)."""
     gy = tuple(replace(g, turn_on=0.0, instability=0.0) for g in unit.gyros)
     ac = tuple(replace(a, turn_on=0.0, instability=0.0) for a in unit.accels)
     return replace(unit, gyros=gy, accels=ac)
+
+
+# the held-out session as simulated, and the same session (same seed) without the parts of
+# its bias no calibration can know: its turn-on bias, then also its in-run instability
+VARIANTS = (
+    ("as simulated", lambda u: u),
+    ("its turn-on bias removed", without_turn_on),
+    ("turn-on and in-run instability removed", quiet),
+)
 
 
 @dataclass
@@ -118,13 +136,17 @@ class UnitResult:
     n_gains: int
     hysteresis_present: bool
     hysteresis_named: bool
-    ratios: np.ndarray  # (held-out temps, 2 variants, 3 measures) single / thermal
-    errors: np.ndarray  # (held-out temps, 2 variants, 2 calibrations, 3 measures)
+    ratios: np.ndarray  # (held-out temps, VARIANTS, 3 measures) single / thermal
+    errors: np.ndarray  # (held-out temps, VARIANTS, 2 calibrations, 3 measures)
 
 
-def evaluate_unit(rng: np.random.Generator, cubic: bool, hysteresis: bool, held_out=HELD_OUT_C) -> UnitResult:
+def evaluate_unit(
+    rng: np.random.Generator, cubic: bool, hysteresis: bool, held_out=HELD_OUT_C, reps: int = 2
+) -> UnitResult:
+    """One unit's chamber run (``reps`` alternating sweeps), its thermal fit against the
+    truth, and the held-out sessions' compensation errors."""
     unit = thermal_physics_unit(rng, cubic=cubic, hysteresis=hysteresis)
-    fit = calibrate_chamber(chamber_step_means(unit, rng))
+    fit = calibrate_chamber(chamber_step_means(unit, rng, chamber_schedule(reps=reps)))
     within = n = 0
     for name in fit.params:
         z = (fit.params[name].coef - truth_coefficients(unit, fit, name)) / fit.params[name].stderr
@@ -139,10 +161,11 @@ def evaluate_unit(rng: np.random.Generator, cubic: bool, hysteresis: bool, held_
         (fit.params[nm].order == 3) if cubic else (fit.params[nm].order in (1, 2)) for nm in GAINS
     )
     therm, single = thermal_calibration(fit), single_temperature(fit)
-    errors = np.zeros((len(held_out), 2, 2, 3))
+    errors = np.zeros((len(held_out), len(VARIANTS), 2, 3))
     for i, t in enumerate(held_out):
-        for v, u in enumerate((unit, quiet(unit))):
-            sm = held_out_session(u, rng, t)
+        seed = int(rng.integers(2**63))
+        for v, (_, variant) in enumerate(VARIANTS):
+            sm = held_out_session(variant(unit), np.random.default_rng(seed), t)
             errors[i, v, 0] = compensation(sm, therm)
             errors[i, v, 1] = compensation(sm, single)
     kind = ("cubic" if cubic else "linear") + (" + hysteresis" if hysteresis else "")
@@ -161,12 +184,14 @@ def evaluate_unit(rng: np.random.Generator, cubic: bool, hysteresis: bool, held_
     )
 
 
-def population(n_units: int = 40, seed: int = 34, held_out=HELD_OUT_C, log=None) -> list[UnitResult]:
+def population(
+    n_units: int = 40, seed: int = 34, held_out=HELD_OUT_C, log=None, reps: int = 2
+) -> list[UnitResult]:
     rng = np.random.default_rng(seed)
     out = []
     for k in range(n_units):
         cubic, hysteresis = bool(k % 4 >= 2), bool(k % 2)
-        out.append(evaluate_unit(rng, cubic, hysteresis, held_out))
+        out.append(evaluate_unit(rng, cubic, hysteresis, held_out, reps))
         if log:
             r = out[-1]
             log(
@@ -209,13 +234,14 @@ def main(argv: list[str]) -> None:
     n_units = int(argv[0]) if argv else 40
     seed = int(argv[1]) if len(argv) > 1 else 34
     runs = int(argv[2]) if len(argv) > 2 else 30
+    reps = int(argv[3]) if len(argv) > 3 else 2
     t0 = time.time()
-    res = population(n_units, seed, log=print)
+    res = population(n_units, seed, log=print, reps=reps)
     within = sum(r.within3 for r in res) / sum(r.n_coef for r in res)
     order = sum(r.order_right for r in res) / sum(r.n_order for r in res)
     pres = [r for r in res if r.hysteresis_present]
     absent = [r for r in res if not r.hysteresis_present]
-    print(f"\n{n_units} units, seed {seed}")
+    print(f"\n{n_units} units, seed {seed}, {reps} sweeps (repetitions per setpoint)")
     print(f"coefficients within 3 SE of the truth: {100 * within:.1f} % of {sum(r.n_coef for r in res)}")
     for kind in sorted({r.kind for r in res}):
         rs = [r for r in res if r.kind == kind]
@@ -242,16 +268,22 @@ def main(argv: list[str]) -> None:
             continue
         ratios = np.array([r.ratios for r in rs])  # (units, temps, variants, measures)
         errors = np.array([r.errors for r in rs])
-        for v, label in enumerate(("as simulated (own turn-on bias)", "repeatability noise left out")):
-            print(f"compensation error, single (20 degC) / thermal, median over {len(rs)} {group}, {label}:")
+        for v, (label, _) in enumerate(VARIANTS):
+            print(
+                f"compensation error, single (20 degC) / thermal, median over {len(rs)} {group} "
+                f"(share of units >= 10x), held-out session {label}:"
+            )
             for i, t in enumerate(HELD_OUT_C):
                 cells = "  ".join(
-                    f"{nm} {np.median(ratios[:, i, v, m]):.1f}x "
-                    f"({1e3 * np.median(errors[:, i, v, 0, m]):.3g} vs "
+                    f"{nm} {np.median(ratios[:, i, v, m]):.1f}x ({np.mean(ratios[:, i, v, m] >= 10):.0%}; "
+                    f"{1e3 * np.median(errors[:, i, v, 0, m]):.3g} vs "
                     f"{1e3 * np.median(errors[:, i, v, 1, m]):.3g} m{'deg/s' if m < 2 else 'g'})"
                     for m, nm in enumerate(names)
                 )
                 print(f"  {t:+.0f} degC: {cells}")
+    if runs < 2:
+        print(f"({time.time() - t0:.0f} s)")
+        return
     mc = monte_carlo(runs, seed)
     print(
         f"Monte Carlo ({runs} runs of one cubic unit): mean SE / sd of the estimates, median "

@@ -13,74 +13,26 @@ cannot be read or fitted is a failed session naming the recording, file and reas
 
 from __future__ import annotations
 
-import math
 import time
-from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from calib_core.models.field.discovery_choice import recording_for_discovery
 from calib_core.models.field.results import field_unit_calibration
-from flows.unit_pipeline import (
+from flows.unit_outcomes import (
     STATUS_FAILED,
     STATUS_OK,
     STATUS_WARNED,
     SessionOutcome,
-    UnitJob,
     UnitOutcome,
     UnitResult,
 )
 from schemas.errors import E_IMPLAUSIBLE, E_MIXED_UNITS
-from schemas.field_dataset import FieldRecordingRef, field_fingerprint, find_field_recordings
-
-INIT_PREAMBLE_KEYS = ("initialization time", "init time", "initial rest", "tinit")
-INT16_LIMIT = 32767.0  # an int16 output clips here
-MIN_DISCOVERY_POSES = 12  # 9 accel + 3 gyro base parameters and some degrees of freedom
-
-
-# --- the options of one recording (shared with ``mimucal field``) ------------------------------
-def init_static_s(opts: Mapping[str, Any], preamble: Mapping[str, str]) -> float | None:
-    """Seconds at rest at the start: the ``init_static`` option (0: none), else the log's
-    preamble ``Initialization time`` line, else None (the detector uses the quietest
-    windows)."""
-    v = opts.get("init_static")
-    if v is not None:
-        return float(v) if v > 0 else None
-    for key, value in preamble.items():
-        if key.strip().lower() in INIT_PREAMBLE_KEYS:
-            try:
-                return float(value)
-            except ValueError:
-                return None
-    return None
-
-
-def starting_scales(
-    opts: Mapping[str, Any], gyro_unit: str, accel_unit: str
-) -> tuple[float | None, float | None]:
-    """Starting accel scale (m/s^2 per raw unit) and gyro scale (rad/s per raw unit): the
-    ``acc_scale``/``gyro_scale`` options, else the int16 full-scale ranges, else identity
-    for data already in g / deg/s. ValueError when a range is given for physical units or
-    does not parse."""
-    from schemas.importers import FULL_SCALE_COUNTS, parse_range
-
-    acc, gyr = opts.get("acc_scale"), opts.get("gyro_scale")
-    g_local = float(opts.get("g_local") or 9.80665)
-    if acc is None and opts.get("accel_range"):
-        if accel_unit != "LSB":
-            raise ValueError("--accel-range applies to raw counts (--accel-unit LSB)")
-        acc = parse_range(opts["accel_range"], "accel") * g_local / FULL_SCALE_COUNTS
-    if gyr is None and opts.get("gyro_range"):
-        if gyro_unit != "LSB":
-            raise ValueError("--gyro-range applies to raw counts (--gyro-unit LSB)")
-        gyr = math.radians(parse_range(opts["gyro_range"], "gyro") / FULL_SCALE_COUNTS)
-    if acc is None and accel_unit == "g":  # already physical: identity is the start
-        acc = g_local
-    if gyr is None and gyro_unit == "deg/s":
-        gyr = math.radians(1.0)
-    return acc, gyr
+from schemas.field_dataset import FieldRecordingRef, field_fingerprint
+from schemas.field_options import clip_limit, init_static_s, starting_scales
+from schemas.unit_plan import FIELD, UnitJob, plan_field_units
 
 
 def field_fit_problems(gyro, accel, figures, move_ok) -> list:
@@ -90,67 +42,6 @@ def field_fit_problems(gyro, accel, figures, move_ok) -> list:
 
     s = figures.summary("", move_ok)
     return check_field_fit(s["norm_rms_mg"], s["angle_rms_deg"], gyro.K, gyro.w0, accel.K, accel.f0)
-
-
-# --- planning -----------------------------------------------------------------------------------
-@dataclass
-class FieldUnitJob(UnitJob):
-    """A unit calibrated from its field recordings (``refs``: FieldRecordingRef)."""
-
-
-def plan_field_units(
-    dataset: str | Path,
-    previous: dict[tuple[str, str, int], str],
-    force: bool = False,
-    turntable_units: set[str] | frozenset[str] = frozenset(),
-    unit: str | None = None,
-    follow_symlinks: bool = False,
-) -> tuple[list[FieldUnitJob], list[tuple[str, str]], list]:
-    """Field units to calibrate (new, changed, or all with ``force``), units skipped because
-    every recording's fingerprint is unchanged, and path errors (a unit that also has
-    turntable sessions: a unit is calibrated one way, its field recordings are left out)."""
-    from schemas.errors import E_BAD_PATH, SessionError
-
-    refs, errors = find_field_recordings(dataset, unit=unit, follow_symlinks=follow_symlinks)
-    by_unit: dict[tuple[str, str], list[FieldRecordingRef]] = {}
-    for r in refs:
-        if r.key.unit in turntable_units:
-            errors.append(
-                SessionError(
-                    E_BAD_PATH,
-                    str(r.key),
-                    r.name,
-                    f"unit {r.key.unit!r} has turntable sessions (rep=N) and field recordings; "
-                    "a unit is calibrated one way: the field recordings are not used",
-                )
-            )
-            continue
-        by_unit.setdefault((r.key.lot, r.key.unit), []).append(r)
-    lots_of: dict[str, set[str]] = {}
-    for lot, u in by_unit:
-        lots_of.setdefault(u, set()).add(lot)
-    jobs, skipped = [], []
-    for (lot, u), rs in sorted(by_unit.items()):
-        if len(lots_of[u]) > 1:
-            errors.append(
-                SessionError(
-                    E_BAD_PATH,
-                    f"{lot}/{u}",
-                    "field",
-                    f"unit {u!r} appears in lots {', '.join(sorted(lots_of[u]))}; a unit belongs to one lot",
-                )
-            )
-            continue
-        before = {rep: fp for (pl, pu, rep), fp in previous.items() if (pl, pu) == (lot, u)}
-        if force:
-            jobs.append(FieldUnitJob(lot, u, rs, "forced"))
-        elif not before:
-            jobs.append(FieldUnitJob(lot, u, rs, "new"))
-        elif {r.key.rep: field_fingerprint(r) for r in rs} != before:
-            jobs.append(FieldUnitJob(lot, u, rs, "changed field recordings"))
-        else:
-            skipped.append((lot, u))
-    return jobs, skipped, errors
 
 
 # --- one recording, one unit --------------------------------------------------------------------
@@ -191,9 +82,7 @@ def calibrate_recording(ref: FieldRecordingRef) -> tuple[SessionOutcome, _Record
             min_pose_s=o["min_pose"],
             multiplier=o["multiplier"],
         )
-        move_ok = usable_moves(
-            rec.gyro, det.poses, clipped_samples(rec.gyro, INT16_LIMIT if o["gyro_range"] else None)
-        )
+        move_ok = usable_moves(rec.gyro, det.poses, clipped_samples(rec.gyro, clip_limit(o)))
         on_off = {"auto": "auto", "on": True, "off": False}
         fit = fit_field(
             rec.t,
@@ -312,13 +201,10 @@ def calibrate_field_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitRe
     else:
         unit_out.notes.append(f"unit {job.unit}: no field recording succeeded; no calibration produced")
     if run_discovery and fitted:
-        best = max(range(len(fitted)), key=lambda i: len(fitted[i].pose_means))
+        best, note = recording_for_discovery([len(r.pose_means) for r in fitted])
         good = [o for o in outcomes if o.calibration is not None]
-        name = good[best].calibration.provenance["recording"]
-        if len(fitted[best].pose_means) < MIN_DISCOVERY_POSES:
-            n = len(fitted[best].pose_means)
-            note = f"model discovery skipped: {n} static poses, needs {MIN_DISCOVERY_POSES}"
-        else:
+        if best is not None:
+            name = good[best].calibration.provenance["recording"]
             try:
                 from calib_core.discovery.presentation import static_finding_rows
                 from calib_core.discovery.static import diagnose_static
@@ -331,36 +217,9 @@ def calibrate_field_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitRe
     return UnitResult(job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0)
 
 
-def add_field_units(
-    dataset,
-    store,
-    force: bool,
-    refs: list,
-    jobs: list,
-    skipped: list,
-    path_errors: list,
-    follow_symlinks: bool = False,
-):
-    """The nightly's plan with the dataset's field units added: ``jobs`` (sorted by lot and
-    unit), ``skipped`` and ``path_errors`` extended. ``refs``: the turntable sessions found
-    (a unit that has them is not calibrated from field recordings)."""
-    field_jobs, field_skipped, errors = plan_field_units(
-        dataset,
-        store.fingerprints(),
-        force,
-        frozenset(r.key.unit for r in refs),
-        follow_symlinks=follow_symlinks,
-    )
-    return (
-        sorted([*jobs, *field_jobs], key=lambda j: (j.lot, j.unit)),
-        [*skipped, *field_skipped],
-        [*path_errors, *errors],
-    )
-
-
-def field_unit_job(dataset, unit: str, follow_symlinks: bool = False) -> FieldUnitJob | None:
+def field_unit_job(dataset, unit: str, follow_symlinks: bool = False) -> UnitJob | None:
     """The rerun job of ``unit`` when it is a field unit (its recordings found), else None."""
     jobs, _, _ = plan_field_units(dataset, {}, force=True, unit=unit, follow_symlinks=follow_symlinks)
     if not jobs:
         return None
-    return FieldUnitJob(jobs[0].lot, unit, jobs[0].refs, "rerun")
+    return UnitJob(jobs[0].lot, unit, jobs[0].refs, "rerun", FIELD)

@@ -41,7 +41,7 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402
 from prefect.futures import as_completed  # noqa: E402
 
 from flows.compute_pool import run_in_pool  # noqa: E402
-from flows.field_units import add_field_units, field_unit_job  # noqa: E402
+from flows.field_units import field_unit_job  # noqa: E402
 from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
     DASK_ENV,
@@ -62,7 +62,8 @@ from flows.unit_pipeline import (  # noqa: E402,F401  (re-exported: tests and to
     calibrate_unit_job,
     failed_unit_result,
 )
-from schemas.dataset import DigestCache, SessionRef, find_sessions, plan_units  # noqa: E402,F401  (plan_units re-exported)
+from schemas.dataset import DigestCache, SessionRef, find_sessions  # noqa: E402
+from schemas.field_dataset import find_field_recordings  # noqa: E402
 from schemas.flagging import reflag_after_update  # noqa: E402
 from schemas.limits import resolve_config, save_config  # noqa: E402
 from schemas.protocol_notes import notes_of  # noqa: E402
@@ -73,6 +74,7 @@ from schemas.results_store import (  # noqa: E402
     utc_now,
 )
 from schemas.store_rows import StoreRows, remove_files, unit_store_rows, write_unit_tables  # noqa: E402
+from schemas.unit_plan import plan_unit_jobs, plan_units  # noqa: E402,F401  (plan_units re-exported)
 
 DEFAULT_BATCH_SIZE = 8
 
@@ -505,16 +507,15 @@ def nightly_flow(
 def _plan_night(
     store: ResultsStore, dataset: str, force: bool, follow_symlinks: bool
 ) -> tuple[list[SessionRef], list, list[UnitJob], list[tuple[str, str]]]:
-    """(sessions found, bad paths, units to calibrate, units unchanged): :func:`plan_units`
-    against the store's fingerprints; the store's digest cache keeps the files of the
-    dataset only."""
+    """(turntable sessions found, bad paths, units to calibrate, units unchanged): one plan
+    (:func:`schemas.unit_plan.plan_unit_jobs`) over the turntable sessions and the field
+    recordings (``lot=L/unit=U/field/``) against the store's fingerprints; the store's digest
+    cache keeps the files of the dataset only."""
     refs, path_errors = find_sessions(dataset, follow_symlinks=follow_symlinks)
+    field_refs, field_errors = find_field_recordings(dataset, follow_symlinks=follow_symlinks)
     digests = DigestCache(store.read_digest_cache())
-    jobs, skipped = plan_units(refs, store.fingerprints(), force, digests)
-    # units calibrated from field recordings (lot=L/unit=U/field/): flows.field_units
-    jobs, skipped, path_errors = add_field_units(
-        dataset, store, force, refs, jobs, skipped, path_errors, follow_symlinks
-    )
+    jobs, skipped, refused = plan_unit_jobs([*refs, *field_refs], store.fingerprints(), force, digests)
+    path_errors = [*path_errors, *field_errors, *refused]
     current = {os.path.join(str(r.path), n) for r in refs for n in ("steps.parquet", "samples.parquet")}
     if digests.read or set(digests.entries) - current:  # files of moved datasets go
         store.write_digest_cache({p: e for p, e in digests.entries.items() if p in current})

@@ -18,11 +18,20 @@ results directory). Values the user already set in the environment win.
   A ``PREFECT_LOGGING_SETTINGS_PATH`` of the user's wins.
 - the flow-run heartbeat is switched off with :func:`run_settings` (the environment cannot
   say "off"); it costs ~1 s per flow run when on.
+- a new home gets a copy of a migrated, empty ``prefect.db`` (:func:`seed_prefect_home`): the
+  temporary API server otherwise creates and migrates its database at start (~7.5 s CPU, 8-30 s
+  wall on a loaded 2-core machine, benchmarks/prefect_startup.py). The template is
+  ``~/.cache/mimucal/prefect-<version>.db`` (``$MIMUCAL_CACHE_DIR`` or ``$XDG_CACHE_HOME``),
+  built once per Prefect version by the first command that has a results directory;
+  ``MIMUCAL_PREFECT_TEMPLATE=off`` leaves new homes to the server.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import sys
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -59,7 +68,77 @@ def ensure_environment(results: Path | str | None = None, verbose: bool = False)
             home = Path(tempfile.mkdtemp(prefix="mimucal-prefect-"))
         home.mkdir(parents=True, exist_ok=True)
         os.environ["PREFECT_HOME"] = str(home)
+        seed_prefect_home(home, build=results is not None)
     return Path(os.environ["PREFECT_HOME"])
+
+
+PREFECT_DB = "prefect.db"  # the temporary API server's SQLite database, in PREFECT_HOME
+
+_BUILD_TEMPLATE = """
+import asyncio
+from prefect.server.database import provide_database_interface
+asyncio.run(provide_database_interface().create_db())
+"""
+
+
+def prefect_db_template() -> Path | None:
+    """Where the migrated, empty database of the installed Prefect version is kept (None:
+    Prefect is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        v = version("prefect")
+    except PackageNotFoundError:
+        return None
+    base = os.environ.get("MIMUCAL_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "mimucal"
+    )
+    return Path(base) / f"prefect-{v}.db"
+
+
+def seed_prefect_home(home: Path, build: bool = False) -> bool:
+    """Copy the template database into a home that has none (True when copied). ``build``:
+    make the template first when it is missing (a subprocess migrates an empty database in a
+    scratch home; held by a lock so that concurrent commands build it once). Any failure
+    leaves the home as it was: the server then creates its database itself."""
+    db = Path(home) / PREFECT_DB
+    template = prefect_db_template()
+    if template is None or db.exists() or os.environ.get("MIMUCAL_PREFECT_TEMPLATE") == "off":
+        return False
+    try:
+        if not template.is_file() and build:
+            _build_template(template)
+        if not template.is_file():
+            return False
+        tmp = db.with_name(f".{db.name}.{os.getpid()}.tmp")
+        shutil.copyfile(template, tmp)
+        os.replace(tmp, db)
+        return True
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+def _build_template(template: Path) -> None:
+    import fcntl
+
+    template.parent.mkdir(parents=True, exist_ok=True)
+    with open(template.with_name(template.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # another command building it: wait, then use it
+        if template.is_file():
+            return
+        with tempfile.TemporaryDirectory(prefix="mimucal-prefect-template-", dir=template.parent) as scratch:
+            env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+            env.update(
+                {"PREFECT_HOME": scratch, "DO_NOT_TRACK": "1", "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
+            )
+            subprocess.run(
+                [sys.executable, "-c", _BUILD_TEMPLATE],
+                env=env,
+                check=True,
+                capture_output=True,
+                timeout=600,
+            )
+            os.replace(Path(scratch) / PREFECT_DB, template)
 
 
 def route_prefect_logs(log_file: Path) -> Path | None:

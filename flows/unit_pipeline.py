@@ -6,56 +6,30 @@ from __future__ import annotations
 
 import time
 import traceback
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
-
-import pandas as pd
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import NumericEvents
 from calib_core.models.pipeline import calibrate_repetition, calibrate_repetitions, calibration_from_unit
-from calib_core.results import RepetitionCalibration, UnitCalibration
-from calib_core.steps import SessionKey, StepMeans
+from calib_core.results import UnitCalibration
+from calib_core.steps import StepMeans
 from calib_core.tables import ColumnTable
+from flows.field_units import calibrate_field_unit_job
+from flows.unit_outcomes import (  # noqa: F401  (re-exported: the unit pipeline's results)
+    STATUS_FAILED,
+    STATUS_OK,
+    STATUS_WARNED,
+    SessionOutcome,
+    UnitOutcome,
+    UnitResult,
+    failed_unit_result,
+)
 from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, read_step_means
-from schemas.dataset import SessionRef, UnitJob, fingerprint  # noqa: F401  (UnitJob re-exported)
+from schemas.dataset import SessionRef, fingerprint
 from schemas.errors import SessionError, from_design_error
-
-STATUS_OK, STATUS_WARNED, STATUS_FAILED = "ok", "warned", "failed"
-
-
-@dataclass
-class SessionOutcome:
-    key: SessionKey
-    path: Path
-    status: str
-    code: str | None
-    message: str | None
-    warnings: list[str]
-    fingerprint: str
-    calibration: RepetitionCalibration | None = None
-    # the session's tables as numpy columns: the unit builds one DataFrame of all its
-    # sessions (UnitOutcome.residuals_frame / compensation_frame), not one per session
-    residual_table: ColumnTable | None = None
-    compensation_table: ColumnTable | None = None
-    step_means: StepMeans | None = None  # kept for discovery; dropped before storing
-    # facts about the protocol (P_...), not warnings: said once per lot, the session stays ok
-    protocol_notes: list[str] = field(default_factory=list)
-
-    @property
-    def succeeded(self) -> bool:
-        return self.status != STATUS_FAILED
-
-    @property
-    def residuals(self) -> pd.DataFrame | None:
-        """This session's residual rows as a DataFrame (built on each call)."""
-        return None if self.residual_table is None else self.residual_table.to_frame()
-
-    @property
-    def compensation(self) -> pd.DataFrame | None:
-        return None if self.compensation_table is None else self.compensation_table.to_frame()
+from schemas.unit_plan import FIELD, TURNTABLE, UnitJob  # noqa: F401  (UnitJob re-exported)
 
 
 def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionOutcome:
@@ -168,44 +142,6 @@ def _safe_fingerprint(path: Path) -> str:
         return ""
 
 
-@dataclass
-class UnitOutcome:
-    lot: str
-    unit: str
-    sessions: list[SessionOutcome]
-    calibration: UnitCalibration | None = None
-    applied: Calibration | None = None
-    terms: tuple[TermValue, ...] = ()
-    diagnosis: object | None = None  # calib_core.discovery.Diagnosis when discovery ran
-    notes: list[str] = field(default_factory=list)
-
-    def residuals_frame(self) -> pd.DataFrame | None:
-        """The per-step residual rows of every successful session, one frame for the unit
-        (columns ``calib_core.models.pipeline.RESIDUAL_COLUMNS``), or None when there is none."""
-        return self._table("residual_table")
-
-    def compensation_frame(self) -> pd.DataFrame | None:
-        """The xu2016 Table 3 rows of every successful session, one frame for the unit."""
-        return self._table("compensation_table")
-
-    def _table(self, attr: str) -> pd.DataFrame | None:
-        tables = self.session_tables(attr)
-        return ColumnTable.concat(tables).to_frame() if tables else None
-
-    def session_tables(self, attr: str) -> list[ColumnTable]:
-        """The successful sessions' ``attr`` tables (``residual_table`` /
-        ``compensation_table``), each with lot, unit and rep as its leading columns."""
-        tables = []
-        for s in self.sessions:
-            t = getattr(s, attr)
-            if s.succeeded and s.calibration is not None and t is not None and len(t):
-                for c, v in (("lot", self.lot), ("unit", self.unit), ("rep", s.key.rep)):
-                    if c not in t.columns:  # each inserted first, as DataFrame.insert(0, ...)
-                        t = t.with_leading(c, v)
-                tables.append(t)
-        return tables
-
-
 def aggregate_unit(
     lot: str,
     unit: str,
@@ -246,34 +182,6 @@ def calibrate_unit(refs: list[SessionRef], keep_step_means: bool = True) -> Unit
     return aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
 
 
-# --- one unit as the nightly and rerun flows run it (discovery included) ---------------------
-@dataclass
-class UnitResult:
-    """What a task returns for one unit: the lead's UnitOutcome (step means dropped) plus
-    discovery."""
-
-    lot: str
-    unit: str
-    outcome: Any  # flows.unit_pipeline.UnitOutcome
-    diagnosis: dict | None = None
-    discovery_note: str | None = None
-    elapsed_s: float = 0.0
-    navigation: pd.DataFrame | None = None  # zhang2017 drift curves (reruns only)
-    discovery_evidence: pd.DataFrame | None = None  # the series behind discovery's figures
-    # a unit-level failure (an exception in its calibration, discovery or storage): its code
-    # (E_INTERNAL) and one-line message; the unit keeps its last good calibration
-    error_code: str | None = None
-    error: str | None = None
-
-    @property
-    def calibrated(self) -> bool:
-        return self.outcome is not None and self.outcome.applied is not None
-
-    @property
-    def n_failed(self) -> int:
-        return sum(1 for s in self.outcome.sessions if s.status == "failed")
-
-
 def _discovery_available() -> bool:
     try:
         import calib_core.discovery  # noqa: F401
@@ -287,7 +195,6 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
     from calib_core.models.pipeline import residual_table
-    from flows.unit_pipeline import aggregate_unit, calibrate_sessions
 
     t0 = time.perf_counter()
     outcomes = calibrate_sessions(sorted(job.refs, key=lambda r: r.key.rep))
@@ -319,8 +226,6 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     try:
         unit_out = aggregate_unit(job.lot, job.unit, outcomes, terms=terms, extended=extended)
     except Exception as exc:  # a bug in aggregation must not stop the fleet
-        from flows.unit_pipeline import UnitOutcome
-
         unit_out = UnitOutcome(job.lot, job.unit, sorted(outcomes, key=lambda o: o.key.rep))
         unit_out.notes.append(f"E_INTERNAL: aggregating unit {job.unit} failed: {type(exc).__name__}: {exc}")
         note = "; ".join(filter(None, [note, unit_out.notes[-1]]))
@@ -346,26 +251,15 @@ def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[Uni
     return [_isolated_unit_job(j, run_discovery) for j in jobs]
 
 
-def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
-    """:func:`calibrate_unit_job`, with any exception it lets through (a bug) turned into
-    the unit's failure: the rest of the batch and of the fleet goes on."""
-    try:
-        from flows.field_units import FieldUnitJob, calibrate_field_unit_job
+# the unit pipeline of each kind of reference (schemas.unit_plan.UnitJob.kind): a callable
+# (job, run_discovery) -> UnitResult that never raises on bad data
+UNIT_PIPELINES = {TURNTABLE: calibrate_unit_job, FIELD: calibrate_field_unit_job}
 
-        if isinstance(job, FieldUnitJob):  # a unit of field recordings
-            return calibrate_field_unit_job(job, run_discovery)
-        return calibrate_unit_job(job, run_discovery)
+
+def _isolated_unit_job(job: UnitJob, run_discovery: bool) -> UnitResult:
+    """The unit pipeline of the job's kind, with any exception it lets through (a bug)
+    turned into the unit's failure: the rest of the batch and of the fleet goes on."""
+    try:
+        return UNIT_PIPELINES[job.kind](job, run_discovery)
     except Exception as exc:  # noqa: BLE001 - one unit never fails the flow
         return failed_unit_result(job.lot, job.unit, "calibrating", exc)
-
-
-def failed_unit_result(
-    lot: str, unit: str, doing: str, exc: BaseException, outcome: UnitOutcome | None = None
-) -> UnitResult:
-    """The E_INTERNAL result of a unit whose work raised ``exc`` while ``doing`` it; its
-    sessions (when known) are kept, its calibration is not."""
-    why = traceback.format_exception_only(type(exc), exc)[-1].strip()
-    msg = f"[E_INTERNAL] unit {lot}/{unit}: unexpected error while {doing} ({why})"
-    sessions = outcome.sessions if outcome is not None else []
-    out = UnitOutcome(lot, unit, sessions, notes=[msg])
-    return UnitResult(lot, unit, out, error_code="E_INTERNAL", error=msg)

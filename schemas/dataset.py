@@ -13,6 +13,7 @@ import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_FILE, STEPS_FILE
@@ -38,6 +39,11 @@ class SessionRef:
 
     key: SessionKey
     path: Path
+    kind: ClassVar[str] = "turntable"  # the unit pipeline that calibrates it (flows.unit_pipeline)
+
+    def content_fingerprint(self, cache=None) -> str:
+        """:func:`fingerprint` of the session directory."""
+        return fingerprint(self.path, cache)
 
     @property
     def steps_path(self) -> Path:
@@ -183,49 +189,3 @@ def fingerprint(path: Path | str, cache: DigestCache | None = None) -> str:
         except FileNotFoundError:
             h.update(f"{name}:missing;".encode())
     return h.hexdigest()[:32]
-
-
-@dataclass
-class UnitJob:
-    lot: str
-    unit: str
-    refs: list[SessionRef]
-    reason: str  # why it is (re)calibrated: new, changed, forced, rerun
-
-
-def plan_units(
-    refs: list[SessionRef], previous: dict[tuple[str, str, int], str], force: bool = False, cache=None
-) -> tuple[list[UnitJob], list[tuple[str, str]]]:
-    """Units to calibrate (new, changed, or all with ``force``) and units skipped because
-    every session's fingerprint (a content hash, schemas.dataset.fingerprint) is unchanged
-    and no session appeared or disappeared. ``cache``: a schemas.dataset.DigestCache."""
-    by_unit: dict[tuple[str, str], list[SessionRef]] = {}
-    for r in refs:
-        by_unit.setdefault((r.key.lot, r.key.unit), []).append(r)
-    prev_reps: dict[tuple[str, str], set[int]] = {}
-    for lot, unit, rep in previous:
-        prev_reps.setdefault((lot, unit), set()).add(rep)
-    jobs, skipped = [], []
-    for (lot, unit), rs in sorted(by_unit.items()):
-        if force:
-            jobs.append(UnitJob(lot, unit, rs, "forced"))
-            continue
-        if (lot, unit) not in prev_reps:
-            jobs.append(UnitJob(lot, unit, rs, "new"))
-            continue
-        reps_now = {r.key.rep for r in rs}
-        changed = [
-            r.key.rep for r in rs if previous.get((lot, unit, r.key.rep)) != fingerprint(r.path, cache)
-        ]
-        if changed or reps_now != prev_reps[(lot, unit)]:
-            why = []
-            if changed:
-                why.append("changed rep " + ",".join(map(str, changed)))
-            if reps_now - prev_reps[(lot, unit)]:
-                why.append("new rep " + ",".join(map(str, sorted(reps_now - prev_reps[(lot, unit)]))))
-            if prev_reps[(lot, unit)] - reps_now:
-                why.append("removed rep " + ",".join(map(str, sorted(prev_reps[(lot, unit)] - reps_now))))
-            jobs.append(UnitJob(lot, unit, rs, "; ".join(why)))
-        else:
-            skipped.append((lot, unit))
-    return jobs, skipped

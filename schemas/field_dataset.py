@@ -28,12 +28,13 @@ import os
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from calib_core.steps import SessionKey
 from schemas.contract import G_LOCAL_PLAUSIBLE, session_start_problem
 from schemas.errors import E_BAD_METADATA, E_BAD_OPTION, E_BAD_PATH, E_UNREADABLE_FILE, SessionError
 from schemas.hive import FIELD_DIR, file_digest, link_problem
+from schemas.hive import bad_path as _bad
 from schemas.hive import parse_part as _parse_part
 from schemas.hive import visible_dirs as _visible_dirs
 
@@ -80,12 +81,14 @@ class FieldRecordingRef:
     def name(self) -> str:
         return self.path.name
 
+    kind: ClassVar[str] = "field"  # the unit pipeline that calibrates it (flows.unit_pipeline)
+
     def __str__(self) -> str:
         return f"{self.key} (field recording {self.name})"
 
-
-def _bad(path: Path, reason: str, code: str = E_BAD_PATH) -> SessionError:
-    return SessionError(code, str(path), path.name, reason)
+    def content_fingerprint(self, cache=None) -> str:
+        """:func:`field_fingerprint` (``cache`` unused: a recording is hashed whole)."""
+        return field_fingerprint(self)
 
 
 class OptionError(ValueError):

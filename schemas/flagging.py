@@ -137,7 +137,7 @@ def _write_flags(
     if len(units):
         units = units_with_flags(units, lf, todo)
         store.write("units", units, lots=lots, skip_unchanged=True, previous=units_before)
-        stamp_qa(store, units_before, units, lf, config)
+        stamp_qa(store, units_before, units, lf, config, flagged_summary)
     return flagged_units(units_before), flagged_units(units)
 
 
@@ -147,12 +147,15 @@ def stamp_qa(
     after: pd.DataFrame,
     lot_flags: list[LotFlags],
     config: OutlierConfig,
+    summary: pd.DataFrame | None = None,
 ) -> list[str]:
     """Write the QA status into the current calibration file of every unit of the lots
     re-flagged (``lot_flags``) whose status is new: freshly calibrated (no flags yet), or
     whose flags changed. Each file is rewritten atomically and keeps its earlier statuses
-    (``qa_history``); the lot's context goes to ``qa/<lot>.json``. Returns the files
-    rewritten."""
+    (``qa_history``); the lot's context goes to ``qa/<lot>.json``, with the spread and
+    outliers of its thermal coefficients (``thermal_spread``, from the flagged ``summary``
+    rows; lots calibrated over temperature only). Returns the files rewritten."""
+    from calib_core.models.thermal import lot_spread_records
     from schemas.calibration_file import CalibrationFileError, set_qa_status
 
     when = iso(utc_now())
@@ -164,18 +167,20 @@ def stamp_qa(
     )
     done = []
     for lf in lot_flags:
-        store.write_qa_lot(
-            lf.lot,
-            {
-                "lot": lf.lot,
-                "n_units": lf.n_units,
-                "reference": lf.reference,
-                "reference_detail": lf.reference_detail,
-                "z_threshold": lf.z_threshold_used,
-                "note": lf.note,
-                "judged_at": when,
-            },
-        )
+        doc = {
+            "lot": lf.lot,
+            "n_units": lf.n_units,
+            "reference": lf.reference,
+            "reference_detail": lf.reference_detail,
+            "z_threshold": lf.z_threshold_used,
+            "note": lf.note,
+            "judged_at": when,
+        }
+        if summary is not None and len(summary):
+            thermal = lot_spread_records(summary[summary["lot"].astype(str) == lf.lot])
+            if thermal:
+                doc["thermal_spread"] = thermal
+        store.write_qa_lot(lf.lot, doc)
     for r in after.itertuples():
         lot, unit = str(r.lot), str(r.unit)
         lf = by_lot.get(lot)

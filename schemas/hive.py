@@ -73,9 +73,10 @@ def parse_part(name: str, field: str) -> tuple[str | None, str | None]:
     return value, None
 
 
-def bad_path(path: Path, reason: str) -> SessionError:
-    """The ``E_BAD_PATH`` error of a directory or file that does not fit the layout."""
-    return SessionError(E_BAD_PATH, str(path), path.name, reason)
+def bad_path(path: Path, reason: str, code: str = E_BAD_PATH) -> SessionError:
+    """The error (``E_BAD_PATH`` unless ``code`` says otherwise) of a directory or file that
+    does not fit the layout or cannot be used."""
+    return SessionError(code, str(path), path.name, reason)
 
 
 def hive_keys(path: Path | str) -> dict[str, str]:

@@ -9,7 +9,7 @@ applied calibration plus the sections :func:`calibration_file_sections` builds f
                    "extension_terms", "model_discovery"},
     "averaged": {"mean", "std", "units"},
     "repetitions": [{"rep", "K_g", "w0", "K_a", "f0", "stderr": {same keys}, "warnings",
-                     "accel_static"?, "lever_arm_mm"?, "condition_numbers"}]
+                     "accel_static"?, "lever_arm_mm"? (each applied method's key), "condition_numbers"}]
 
 K matrices are 3x3 row-major lists (w = K_g G + w0, f = K_a A + f0); w0 in deg/s and f0 in g
 whatever the raw units (the boundary converts rad/s and m/s^2). Keys are only ever added.
@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from calib_core.models.applied import applied_fits
 from calib_core.results import FORMAT_VERSION, RepetitionCalibration
 
 BASE_KEYS = ("K_g", "w0", "K_a", "f0")
@@ -34,10 +35,9 @@ def _rep_values(rep: RepetitionCalibration) -> dict[str, Any]:
         st = rep.fits["accel_static"].to_dict()
         vals["accel_static"] = {k: np.asarray(st[k]) for k in ("scale", "bias", "angles_deg")}
         errs["accel_static"] = {k: np.asarray(st["stderr"][k]) for k in ("scale", "bias", "angles_deg")}
-    if "lever_arm" in rep.fits:
-        la = rep.fits["lever_arm"].to_dict()
-        vals["lever_arm_mm"] = np.asarray(la["lever_arm_mm"], dtype=float)
-        errs["lever_arm_mm"] = np.asarray(la["stderr"], dtype=float)
+    for fit in applied_fits(rep.fits).values():  # e.g. the lever arm (calib_core.models.applied)
+        vals[fit.document_key] = np.asarray(fit.applied_values(), dtype=float)
+        errs[fit.document_key] = np.asarray(fit.applied_stderr(), dtype=float)
     return {"values": vals, "stderr": errs}
 
 
@@ -98,9 +98,8 @@ def unit_document(
             m: float(f.condition_number) for m, f in r.fits.items() if hasattr(f, "condition_number")
         }
         doc_reps.append(entry)
-    keys = list(BASE_KEYS) + [
-        k for k in ("accel_static", "lever_arm_mm") if any(k in p["values"] for p in per)
-    ]
+    applied = {f.document_key: f.document_unit for r in reps for f in applied_fits(r.fits).values()}
+    keys = list(BASE_KEYS) + [k for k in ("accel_static", *applied) if any(k in p["values"] for p in per)]
     mean = {k: _tolist(_stack(per, k, _mean_over_reps)) for k in keys}
     std = {k: _tolist(_stack(per, k, _std_over_reps)) for k in keys}
     g, a = (reps[0].fits["gyro"], reps[0].fits["accel"]) if reps else (None, None)
@@ -112,8 +111,7 @@ def unit_document(
     }
     if "accel_static" in keys:
         units["accel_static"] = {"scale": f"{a.raw_unit} per g", "bias": a.raw_unit, "angles_deg": "deg"}
-    if "lever_arm_mm" in keys:
-        units["lever_arm_mm"] = "mm"
+    units.update({k: u for k, u in applied.items() if k in keys})
     return {
         "lot": lot,
         "unit": unit,

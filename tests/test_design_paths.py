@@ -91,6 +91,59 @@ def test_the_example_method_is_fitted_stored_and_averaged_through_its_one_line(m
     assert any(w.startswith("W_GYRO_REST_SKIPPED") for w in alone.calibration.warnings)
 
 
+def test_the_example_applied_method_is_fitted_applied_and_written_through_its_one_line(monkeypatch):
+    """The applied example of DESIGN.md, plugged in through its one OPTIONAL_FITS line: its
+    term reaches the unit's applied Calibration and the calibration file, and applying it
+    removes the g-sensitivity a simulated unit has (the truth's effect, not the fit's code,
+    makes the data)."""
+    from calib_core.effects import get_effect
+    from schemas.unit_document import calibration_file_sections
+
+    diffs = [b.splitlines() for b in re.findall(r"```diff\n(.*?)```", DESIGN.read_text(), re.S)]
+    (diff,) = [d for d in diffs if '+    ("gyro_g_rest", gyro_g_rest.fit_gyro_g_rest_stack),' in d]
+    real = Path(pipeline.__file__).read_text().splitlines()
+    for line in diff[1:]:  # the lines the diff keeps are the file's
+        if line.startswith(" ") and line.strip() != "...":
+            assert line[1:] in real, line
+    example = run_block("# calib_core/models/gyro_g_rest.py (new)", "gyro_g_rest")
+    monkeypatch.setattr(
+        pipeline, "OPTIONAL_FITS", (*pipeline.OPTIONAL_FITS, ("gyro_g_rest", example.fit_gyro_g_rest_stack))
+    )
+    rng = np.random.default_rng(11)
+    G_true = np.array([[0.04, 0.0, 0.0], [0.0, 0.0, -0.03], [0.02, 0.0, 0.0]])  # deg/s per g
+    truth = simulator.typical_truth(rng).with_effects((get_effect("gyro_g_sensitivity"), G_true.ravel()))
+    steps = protocols.default_session()
+    sms = [simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L1", "U1", r)) for r in (1, 2, 3)]
+    reps = [f.calibration for f in pipeline.calibrate_repetitions(sms)]
+    for rep in reps:  # each repetition's estimate within its standard errors of the truth
+        fit = rep.fits["gyro_g_rest"]
+        assert np.all(np.abs(fit.G - G_true) < 5 * fit.stderr + 1e-4), (fit.G, fit.stderr)
+    unit = UnitCalibration.from_reps("L1", "U1", reps)
+    applied = pipeline.calibration_from_unit(unit)
+    term = {tv.name: tv for tv in applied.terms}["gyro_g_sensitivity"]
+    assert np.allclose(term.params, np.mean([r.fits["gyro_g_rest"].G for r in reps], axis=0).ravel())
+    # applied: on a new session's multiposition steps the rate error no longer follows gravity
+    new = simulator.simulate_step_means(truth, steps, rng, key=SessionKey("L1", "U1", 9))
+    rest = new.test == "multiposition"
+    without = pipeline.calibration_from_unit(unit, ())
+    without = type(without)(**{**without.__dict__, "terms": ()})
+    spread = lambda cal: np.std(cal.apply(new.gyro[rest], new.accel[rest])[0], axis=0)  # noqa: E731
+    # (what remains, ~0.005 deg/s per gyro, is the step-to-step bias and the fit's errors;
+    # without the term 0.011-0.024 deg/s)
+    assert (spread(applied) ** 2).sum() < 0.2 * (spread(without) ** 2).sum(), (
+        spread(applied),
+        spread(without),
+    )
+    # the calibration file keeps it under its document key, in its unit
+    doc = calibration_file_sections("L1", "U1", reps, [], [], [], None, {})
+    assert np.allclose(doc["averaged"]["mean"]["gyro_g_sensitivity"], term.params.reshape(3, 3))
+    assert doc["averaged"]["units"]["gyro_g_sensitivity"] == "deg/s per g"
+    assert len(doc["repetitions"][0]["stderr"]["gyro_g_sensitivity"]) == 3
+    # a unit whose discovery already applies the effect does not get it twice
+    twice = pipeline.calibration_from_unit(unit, (term,))
+    assert [tv.name for tv in twice.terms].count("gyro_g_sensitivity") == 1
+
+
 def design_diff(first_line: str) -> list[str]:
     """The lines of the ```diff block of DESIGN.md whose first line is ``first_line``."""
     blocks = re.findall(r"```diff\n(.*?)```", DESIGN.read_text(), re.S)

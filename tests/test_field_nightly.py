@@ -19,10 +19,10 @@ runtime.ensure_environment()
 
 from calib_core.sim.hand_held import mpu6050_like_truth, simulate_hand_held  # noqa: E402
 from flows.cli import main as cli_main  # noqa: E402
-from flows.field_units import plan_field_units  # noqa: E402
 from schemas.dataset import find_sessions  # noqa: E402
 from schemas.field_dataset import field_fingerprint, find_field_recordings  # noqa: E402
 from schemas.results_store import ResultsStore  # noqa: E402
+from schemas.unit_plan import plan_field_units  # noqa: E402
 
 N_UNITS = 5
 BIASED_UNIT = "H4"  # its gyro z bias is beyond the acceptance limit of the test's configuration

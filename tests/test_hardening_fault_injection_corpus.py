@@ -351,7 +351,7 @@ def test_an_exception_in_one_units_calibration_fails_that_unit_only(small_fleet,
             raise ZeroDivisionError("injected")
         return real(job, run_discovery)
 
-    monkeypatch.setattr(unit_pipeline, "calibrate_unit_job", broken)
+    monkeypatch.setitem(unit_pipeline.UNIT_PIPELINES, "turntable", broken)  # the kind's pipeline
     res = calibrate_batch(jobs, run_discovery=False)
     assert [r.calibrated for r in res] == [True, False, True]
     assert res[1].error_code == "E_INTERNAL"
@@ -397,12 +397,12 @@ def test_a_failed_table_write_leaves_no_new_calibration_file(small_fleet, tmp_pa
     nightly.store_results(store, calibrate_batch(jobs, False), "run1", "v")
     before = calibration_files(tmp_path)
     tables_before = {p: p.read_bytes() for p in (tmp_path / "tables").rglob("*.parquet")}
-    import schemas.results_store as rs
+    import schemas.store_io as io
 
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "tables"))
 
-    monkeypatch.setattr(rs, "write_table_atomic", full)
+    monkeypatch.setattr(io, "write_table_atomic", full)
     with pytest.raises(OSError):
         nightly.store_results(store, calibrate_batch(jobs, False), "run2", "v")
     assert calibration_files(tmp_path) == before

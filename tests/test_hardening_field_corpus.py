@@ -30,7 +30,7 @@ from conftest import (
 runtime.ensure_environment()
 
 from flows.cli import main as cli_main  # noqa: E402
-from flows.field_units import calibrate_field_unit_job, calibrate_recording, plan_field_units  # noqa: E402
+from flows.field_units import calibrate_field_unit_job, calibrate_recording  # noqa: E402
 from schemas.contract import parse_metadata  # noqa: E402
 from schemas.errors import SessionError  # noqa: E402
 from schemas.field_dataset import (  # noqa: E402
@@ -42,6 +42,7 @@ from schemas.field_dataset import (  # noqa: E402
 )
 from schemas.limits import LimitsError, config_from_toml  # noqa: E402
 from schemas.results_store import ResultsStore  # noqa: E402
+from schemas.unit_plan import plan_field_units  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not REAL_FIELD_LOG.is_file(), reason="the real MPU-6050 recording is absent")
 

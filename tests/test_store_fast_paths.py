@@ -13,7 +13,8 @@ import pytest
 
 from calib_core.results import to_jsonable
 from schemas.calibration_file import dumps_json, write_json_atomic
-from schemas.results_store import ResultsStore, _normalise
+from schemas.results_store import ResultsStore
+from schemas.store_frames import normalise
 
 KEYS = ["lot", "unit", "rep", "model", "parameter", "effect"]
 
@@ -113,7 +114,7 @@ def expected_after(
 ) -> pd.DataFrame:
     keys = pd.Series(list(zip(before["lot"].astype(object), before["unit"].astype(object))))
     parts = [before[~keys.isin(units).to_numpy()]] + ([new] if new is not None else [])
-    df = _normalise(pd.concat(parts, ignore_index=True), name)
+    df = normalise(pd.concat(parts, ignore_index=True), name)
     return df.sort_values([c for c in KEYS if c in df], kind="stable").reset_index(drop=True)
 
 
@@ -147,7 +148,7 @@ def test_replace_units_merge_equals_pandas(tmp_path, case):
 
 
 def st_read_all(df: pd.DataFrame) -> pd.DataFrame:
-    df = _normalise(df, "residuals")
+    df = normalise(df, "residuals")
     return df.sort_values([c for c in KEYS if c in df], kind="stable").reset_index(drop=True)
 
 

@@ -17,9 +17,10 @@ from schemas.results_store import (
     STORE_FORMAT_VERSION,
     TABLES,
     ResultsStore,
-    _normalise,
+    StoreError,
     partition_file_name,
 )
+from schemas.store_frames import normalise
 
 LOTS = ("L01", "L02", "L10")
 
@@ -80,7 +81,7 @@ def fleet_tables() -> dict[str, pd.DataFrame]:
 
 def expected(df: pd.DataFrame, name: str) -> pd.DataFrame:
     """What format 1.0 gave back: the table normalised and sorted by its keys."""
-    df = _normalise(df.reset_index(drop=True), name)
+    df = normalise(df.reset_index(drop=True), name)
     keys = [c for c in ("lot", "unit", "rep", "model", "parameter", "effect") if c in df]
     return df.sort_values(keys, kind="stable").reset_index(drop=True)
 
@@ -264,6 +265,29 @@ def test_a_migration_that_died_half_way_is_redone_from_the_flat_file(tmp_path):
     units = st.read("units")
     assert units.loc[units["unit"] == "U0011", "reason"].tolist() == ["checked"]
     assert (units.loc[units["unit"] != "U0011", "reason"] == "").all()
+
+
+def test_a_store_of_a_newer_format_is_refused_in_one_line_and_left_alone(tmp_path):
+    st = ResultsStore(tmp_path)
+    st.write("units", v1_tables()["units"])
+    doc = json.loads((tmp_path / "store.json").read_text())
+    (tmp_path / "store.json").write_text(json.dumps({**doc, "format_version": "3.0"}))
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    fresh = ResultsStore(tmp_path)
+    for act in (
+        lambda: fresh.read("units"),
+        lambda: fresh.update_rows("units", {("L01", "U0000")}, reason="x"),
+        fresh.check,
+    ):
+        with pytest.raises(StoreError) as err:
+            act()
+        msg = str(err.value)
+        assert "\n" not in msg and "format 3.0" in msg and "newer" in msg and str(tmp_path) in msg
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    # an unknown older-looking version is refused as unknown, not migrated
+    (tmp_path / "store.json").write_text(json.dumps({**doc, "format_version": "0.9"}))
+    with pytest.raises(StoreError, match="unknown format '0.9'"):
+        ResultsStore(tmp_path).read("units")
 
 
 def test_stale_temp_files_in_table_directories_are_removed_by_the_lock_holder(tmp_path):

@@ -18,7 +18,7 @@ w0_tc_z = {min = "-0.01 deg/s/degC", max = "0.01 deg/s/degC"}
 """
 
 
-def test_nightly_of_a_thermal_lot(tmp_path):
+def test_nightly_of_a_thermal_lot(tmp_path, capsys):
     from flows import nightly
 
     data, results = tmp_path / "data", tmp_path / "results"
@@ -39,8 +39,35 @@ def test_nightly_of_a_thermal_lot(tmp_path):
     summary = pd.read_parquet(results / "tables" / "summary")
     tc = summary[(summary.model == "thermal") & (summary.parameter == "w0_tc_x")].set_index("unit")
     assert tc.loc["U0001", "flagged"] and not tc.loc["U0002", "flagged"]
+    # the lot's spread of the thermal coefficients is the re-flag's (qa/T01.json), not the report's
+    spread = {
+        r["parameter"]: r for r in json.loads((results / "qa" / "T01.json").read_text())["thermal_spread"]
+    }
+    assert spread["w0_tc_x"]["n"] == 2 and spread["w0_tc_x"]["outliers"] == ["U0001 (limit)"]
+    assert spread["w0_tc_x"]["min"] == tc["mean"].min() and spread["w0_tc_x"]["max"] == tc["mean"].max()
     report = (results / "reports" / "T01.html").read_text()
     assert 'id="thermal"' in report and "w0_tc_x" in report and "U0001 (limit)" in report
+    assert report.count("Gyro gains K_g (diagonal), change from 25 degC") == 2  # each unit's plots
+    # mimucal apply with the thermal file: in range applied per sample, out of range refused
+    # in one line (exit 2) unless --extrapolate
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from flows.cli import main as cli_main
+
+    cal = sorted((results / "calibrations" / "U0002").glob("*.json"))[-1]
+    raw = next(data.glob("**/unit=U0002/rep=1/samples.parquet"))
+    table = pq.read_table(raw)
+    hot_path = tmp_path / "hot.parquet"
+    i = table.schema.get_field_index("temp_c")
+    pq.write_table(table.set_column(i, "temp_c", pa.compute.add(table["temp_c"], 150.0)), hot_path)
+    assert cli_main(["apply", str(cal), str(raw), str(tmp_path / "ok.parquet")]) == 0
+    capsys.readouterr()
+    assert cli_main(["apply", str(cal), str(hot_path), str(tmp_path / "hot_out.parquet")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "outside the calibrated range" in err[0] and "--extrapolate" in err[0]
+    assert not (tmp_path / "hot_out.parquet").exists()
+    assert cli_main(["apply", str(cal), str(hot_path), str(tmp_path / "x.parquet"), "--extrapolate"]) == 0
 
 
 def test_a_session_far_from_soaked_fails_and_leaves_the_unit():

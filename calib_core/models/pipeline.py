@@ -20,6 +20,7 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
 from calib_core.guards import check_fits
 from calib_core.models import xu2016
+from calib_core.models.applied import applied_fits
 from calib_core.results import FitResult, RepetitionCalibration, UnitCalibration
 from calib_core.steps import StepMeans, stack_field
 from calib_core.tables import CodedStrings, ColumnTable
@@ -277,19 +278,33 @@ def calibration_from_fits(fits: dict, sm: StepMeans, terms: tuple[TermValue, ...
     )
 
 
+def applied_terms(
+    reps: list[RepetitionCalibration], already: set[str] = frozenset()
+) -> tuple[TermValue, ...]:
+    """The terms of the applied methods (:mod:`calib_core.models.applied`, e.g. zhang2017's
+    lever arm): per method the mean over repetitions of its parameters, when every
+    repetition has its fit and every mean is finite, and its effect is not in ``already``
+    (model discovery's terms)."""
+    out = []
+    for model, fit in applied_fits(reps[0].fits).items():
+        if fit.applied_term in already or not all(model in r.fits for r in reps):
+            continue
+        values = np.mean([np.asarray(r.fits[model].applied_values(), float) for r in reps], axis=0)
+        if np.isfinite(values).all():  # only a fully determined term is applied
+            out.append(TermValue(fit.applied_term, values.ravel()))
+    return tuple(out)
+
+
 def calibration_from_unit(unit: UnitCalibration, terms: tuple[TermValue, ...] = ()) -> Calibration:
-    """Average of the repetitions' K_g, w0, K_a, f0 (+ extension terms): what is applied."""
+    """Average of the repetitions' K_g, w0, K_a, f0 (+ extension terms, + the terms of the
+    applied methods, :func:`applied_terms`): what is applied."""
     reps = unit.reps
     if not reps:
         raise ValueError(f"unit {unit.unit}: no successful repetition to average")
     mean = lambda model, attr: np.mean([getattr(r.fits[model], attr) for r in reps], axis=0)  # noqa: E731
     first = reps[0].fits
     g_local = float(reps[0].provenance.get("g_local", 9.80665)) if reps[0].provenance else 9.80665
-    terms = tuple(terms)
-    if not any(t.name == "lever_arm" for t in terms) and all("lever_arm_mm" in r.derived for r in reps):
-        r_mm = np.mean([r.derived["lever_arm_mm"] for r in reps], axis=0)
-        if np.isfinite(r_mm).all():  # only a fully determined lever arm is applied
-            terms = terms + (TermValue("lever_arm", r_mm.ravel()),)
+    terms = tuple(terms) + applied_terms(reps, {t.name for t in terms})
     return Calibration(
         K_g=mean("gyro", "K"),
         w0=mean("gyro", "w0"),

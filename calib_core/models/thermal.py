@@ -358,7 +358,9 @@ class ThermalFit:
     def curves(self, names=PLOTTED, n_grid: int = 41, level: float = 0.95) -> dict[str, Any]:
         """What the unit report draws per parameter: each session's estimate (temperature,
         value, standard error, sweep), the fitted mid-line on a grid over the calibrated
-        range and its ``level`` confidence band (t quantile of the fit's dof)."""
+        range and its ``level`` confidence band (t quantile of the fit's dof); and the same
+        relative to the fitted value at ``T_REF_C`` (``reference``, the c0 coefficient):
+        ``change`` (points, fit, lo, hi), what a gain is drawn as (its change from 25 degC)."""
         grid = np.linspace(self.t_min_c, self.t_max_c, n_grid)
         out = {}
         for n in names:
@@ -368,12 +370,14 @@ class ThermalFit:
             half = stats.t.ppf(0.5 + level / 2, max(p.dof, 1)) * np.sqrt(
                 np.maximum(np.einsum("ij,jk,ik->i", X, p.cov, X), 0.0)
             )
+            values = np.array([q.values[n] for q in self.points], float)
+            ref = float(p.coef[0])
             out[n] = {
                 "unit": p.unit,
                 "order": p.order,
                 "points": {
                     "temp_c": [q.temp_c for q in self.points],
-                    "value": [q.values[n] for q in self.points],
+                    "value": values.tolist(),
                     "stderr": [q.stderr[n] for q in self.points],
                     "sweep": [q.sweep for q in self.points],
                 },
@@ -382,6 +386,14 @@ class ThermalFit:
                 "lo": (fit - half).tolist(),
                 "hi": (fit + half).tolist(),
                 "level": level,
+                "t_ref_c": T_REF_C,
+                "reference": ref,
+                "change": {
+                    "value": (values - ref).tolist(),
+                    "fit": (fit - ref).tolist(),
+                    "lo": (fit - half - ref).tolist(),
+                    "hi": (fit + half - ref).tolist(),
+                },
             }
         return out
 
@@ -507,3 +519,30 @@ def coefficient_spread(rows: pd.DataFrame) -> pd.DataFrame:
             }
         )
     return pd.DataFrame(out)
+
+
+def lot_spread_records(summary: pd.DataFrame) -> list[dict[str, Any]]:
+    """:func:`coefficient_spread` of a lot's stored summary rows of the model ``thermal``
+    (the temperature coefficients ``*_tc*``; ``mean`` is a unit's value, ``flagged`` its
+    limit or outlier flag), as JSON-ready records (what the lot report shows); [] without
+    thermal rows."""
+    if summary is None or not len(summary) or "model" not in summary:
+        return []
+    rows = summary[(summary["model"] == "thermal") & summary["parameter"].astype(str).str.contains("_tc")]
+    if not len(rows):
+        return []
+    spread = coefficient_spread(
+        pd.DataFrame(
+            {
+                "unit": rows["unit"].astype(str),
+                "parameter": rows["parameter"].astype(str),
+                "value": rows["mean"].astype(float),
+                "unit_of_measure": rows["unit_of_measure"] if "unit_of_measure" in rows else "",
+                "flagged": rows["flagged"] if "flagged" in rows else False,
+            }
+        )
+    )
+    return [
+        {k: (list(v) if k == "outliers" else v) for k, v in r.items()}
+        for r in spread.to_dict(orient="records")
+    ]

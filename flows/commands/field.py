@@ -210,13 +210,13 @@ def _refuse_implausible(rec, cal, figures: dict) -> None:
 
 
 def _init_static(args, rec) -> float | None:
-    from flows.field_units import init_static_s
+    from schemas.field_options import init_static_s
 
     return init_static_s(vars(args), rec.metadata.get("preamble", {}))
 
 
 def _starting_scales(args, rec) -> tuple[float | None, float | None]:
-    from flows.field_units import starting_scales
+    from schemas.field_options import starting_scales
 
     try:
         return starting_scales(vars(args), rec.gyro_unit, rec.accel_unit)
@@ -230,8 +230,8 @@ def run(args) -> int:
     from calib_core.errors import DesignError
     from calib_core.models.field.joint import Priors, field_figures, fit_field, held_out_figures, usable_moves
     from calib_core.models.field.static_detection import clipped_samples, detect_poses
-    from flows.field_units import INT16_LIMIT
     from schemas.calibration_file import save_calibration
+    from schemas.field_options import clip_limit
 
     _check_options(args)
     rec = _read(args)
@@ -249,7 +249,7 @@ def run(args) -> int:
         )
     except ValueError as exc:
         raise CliError(f"{rec.source}: {exc}") from exc
-    clipped = clipped_samples(rec.gyro, INT16_LIMIT if args.gyro_range else None)
+    clipped = clipped_samples(rec.gyro, clip_limit(vars(args)))
     move_ok = usable_moves(rec.gyro, det.poses, clipped)
     on_off = {"auto": "auto", "on": True, "off": False}
     kwargs = {

@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 def repair_store(store) -> tuple[list[str], list[str]]:
     """Repair ``store`` (held locked by the caller); returns (what was done, what could
     not be done), one line each."""
-    from schemas.results_store import TABLES, _unreadable
+    from schemas.results_store import TABLES, table_file_problem
 
     done: list[str] = []
     not_done: list[str] = []
@@ -99,7 +99,7 @@ def repair_store(store) -> tuple[list[str], list[str]]:
         files = [(None, store.legacy_path(name))] if store.legacy_path(name).exists() else []
         files += list(store.partitions(name).items())
         for lot, path in files:
-            why = _unreadable(path, name)
+            why = table_file_problem(path, name)
             if not why:
                 continue
             if path.is_dir():  # a directory where the table file belongs

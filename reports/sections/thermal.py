@@ -8,19 +8,17 @@ One builder with the sections' signature, ``build(ctx, page, unit)`` -> HTML or 
 - a unit: its parameters against temperature: each session's estimate (with its standard
   error, heating and cooling apart), the fitted polynomial and its 95 % confidence band.
 
-None when the lot (or unit) has no thermal calibration. The numbers come from the store's
-``summary`` rows of the model ``thermal`` and from the unit's latest calibration file
-(``metadata.thermal_fit.curves``); the statistics are :func:`calib_core.models.thermal.
-coefficient_spread`, computed there, not here.
+None when the lot (or unit) has no thermal calibration. The section computes no number: the
+lot's spread and outliers are the re-flag's (``qa/<lot>.json``, ``thermal_spread``: made by
+:func:`calib_core.models.thermal.lot_spread_records` from the flagged summary rows of the
+model ``thermal``), a unit's curves are its latest calibration file's
+(``metadata.thermal_fit.curves``, a gain's change from 25 degC included).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-import pandas as pd
-
-from calib_core.models.thermal import coefficient_spread
 from reports.html import esc, fmt, table
 from schemas.display import Shown, spread_unit, value_unit
 
@@ -39,16 +37,6 @@ GROUPS = (
 COLOURS = ("#1f77b4", "#d62728", "#2ca02c")
 
 
-def _thermal_rows(ctx, unit: str | None = None) -> pd.DataFrame | None:
-    s = ctx.summary
-    if s is None or not len(s) or "model" not in s:
-        return None
-    rows = s[(s["model"] == "thermal") & s["parameter"].astype(str).str.contains("_tc")]
-    if unit is not None:
-        rows = rows[rows["unit"] == unit]
-    return rows if len(rows) else None
-
-
 def _curves(ctx, unit: str) -> dict[str, Any] | None:
     hist = ctx.view.history(unit)
     for item in reversed(hist):
@@ -59,20 +47,9 @@ def _curves(ctx, unit: str) -> dict[str, Any] | None:
 
 
 def _lot_html(ctx, page) -> str | None:
-    rows = _thermal_rows(ctx)
-    if rows is None:
+    spread = (ctx.qa_lot or {}).get("thermal_spread")
+    if not spread:
         return None
-    spread = coefficient_spread(
-        pd.DataFrame(
-            {
-                "unit": rows["unit"],
-                "parameter": rows["parameter"],
-                "value": rows["mean"],
-                "unit_of_measure": rows.get("unit_of_measure", ""),
-                "flagged": rows.get("flagged", False),
-            }
-        )
-    )
     body = [
         '<p class="note">Each coefficient of the polynomials in the sensor temperature (about '
         "25 degC), over the lot's units: median, robust sd (1.4826 MAD), range, and the units "
@@ -81,16 +58,16 @@ def _lot_html(ctx, page) -> str | None:
             ["coefficient", "unit", "units", "median", "robust sd", "min", "max", "outliers"],
             (
                 [
-                    f'<span class="mono">{esc(r.parameter)}</span>',
-                    esc(r.unit_of_measure),
-                    str(r.n),
-                    fmt(r.median, sig=3),
-                    fmt(r.robust_sd, sig=2),
-                    fmt(r.min, sig=3),
-                    fmt(r.max, sig=3),
-                    esc(", ".join(r.outliers)),
+                    f'<span class="mono">{esc(r["parameter"])}</span>',
+                    esc(r["unit_of_measure"]),
+                    str(r["n"]),
+                    fmt(r["median"], sig=3),
+                    fmt(r["robust_sd"], sig=2),
+                    fmt(r["min"], sig=3),
+                    fmt(r["max"], sig=3),
+                    esc(", ".join(r["outliers"])),
                 ]
-                for r in spread.itertuples()
+                for r in spread
             ),
             text_cols=2,
         ),
@@ -105,10 +82,14 @@ def _figure(curves: dict[str, Any], names, shown: Shown) -> dict:
         c = curves.get(n)
         if c is None:
             continue
-        base = _at_25(c) if unit_label == "ppm" else 0.0  # a gain: its change from 25 degC
+        # a gain is drawn as its change from 25 degC (stored with the curve), a bias as is
+        gain = unit_label == "ppm"
+        if gain and "change" not in c:
+            continue  # a file written before the curves carried the change
 
-        def scale(v, base=base):
-            return [(x - base) * factor for x in v]
+        def scale(key, c=c, gain=gain):
+            v = c["change"][key] if gain else (c["points"]["value"] if key == "value" else c[key])
+            return [x * factor for x in v]
 
         def rel(v):
             return [x * factor for x in v]
@@ -128,7 +109,7 @@ def _figure(curves: dict[str, Any], names, shown: Shown) -> dict:
                     "mode": "markers",
                     "name": f"{n} {label}".strip(),
                     "x": [pts["temp_c"][i] for i in idx],
-                    "y": scale([pts["value"][i] for i in idx]),
+                    "y": [scale("value")[i] for i in idx],
                     "error_y": {
                         "type": "data",
                         "array": rel([pts["stderr"][i] for i in idx]),
@@ -144,7 +125,7 @@ def _figure(curves: dict[str, Any], names, shown: Shown) -> dict:
                 "mode": "lines",
                 "name": f"{n} fit (order {c['order']})",
                 "x": c["grid_c"] + c["grid_c"][::-1],
-                "y": scale(c["hi"]) + scale(c["lo"])[::-1],
+                "y": scale("hi") + scale("lo")[::-1],
                 "fill": "toself",
                 "line": {"width": 0},
                 "fillcolor": colour,
@@ -160,7 +141,7 @@ def _figure(curves: dict[str, Any], names, shown: Shown) -> dict:
                 "mode": "lines",
                 "name": f"{n} fit (order {c['order']})",
                 "x": c["grid_c"],
-                "y": scale(c["fit"]),
+                "y": scale("fit"),
                 "line": {"color": colour},
                 "legendgroup": n,
             }
@@ -174,13 +155,6 @@ def _figure(curves: dict[str, Any], names, shown: Shown) -> dict:
             "legend": {"orientation": "v", "x": 1.02, "y": 1.0},
         },
     }
-
-
-def _at_25(c: dict[str, Any]) -> float:
-    """The fitted value nearest 25 degC (what a gain's change is counted from)."""
-    grid = c["grid_c"]
-    i = min(range(len(grid)), key=lambda k: abs(grid[k] - 25.0))
-    return c["fit"][i]
 
 
 def _unit_html(ctx, page, unit: str) -> str | None:

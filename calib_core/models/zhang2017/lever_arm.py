@@ -65,6 +65,17 @@ class LeverArmFit:
     rate_source: str  # "w_ref" or "gyro"
     projection: str = "sensitive_axis"  # or "body_axis" (the catalogue's LeverArmTerm model)
     model: ClassVar[str] = "lever_arm"
+    # applied (calib_core.models.applied): the catalogue's lever arm, when fully determined
+    applied_term: ClassVar[str] = "lever_arm"
+    document_key: ClassVar[str] = "lever_arm_mm"
+    document_unit: ClassVar[str] = "mm"
+
+    def applied_values(self) -> np.ndarray:
+        """Row i is r_i, mm (raveled: the catalogue's parameter order); NaN: undetermined."""
+        return np.asarray(self.lever_arm_mm, dtype=float)
+
+    def applied_stderr(self) -> np.ndarray:
+        return np.asarray(self.stderr, dtype=float)
 
     @property
     def r_mm(self) -> np.ndarray:

@@ -1,0 +1,158 @@
+"""What Prefect's temporary API server costs a command, and which settings cut it.
+
+``python -m benchmarks.prefect_startup [--repeats N]`` runs each case in a fresh process
+(as a ``mimucal`` command starts) and prints a Markdown table: the seconds to ``import
+prefect``, the first (empty) flow run (the temporary server's start: uvicorn, the SQLite
+database created or checked and migrated, the flow run's records), and a second empty flow
+run in the same process (the per-run cost once the server is up). Cases:
+
+- ``new home``: an empty ``PREFECT_HOME`` (a new ``--results`` directory: mimucal keeps the
+  home in ``<results>/.prefect``), the database created and migrated at start;
+- ``existing home``: the same home a second time (the database is there; migrations are
+  checked);
+- ``new home, template db``: an empty home into which a migrated ``prefect.db`` of the same
+  Prefect version is copied first (what a cached template saves);
+- ``existing home, no migrate check``: ``PREFECT_SERVER_DATABASE_MIGRATE_ON_START=false``
+  (safe only on a database this Prefect version migrated).
+
+``--nightly N`` measures instead what a whole ``mimucal nightly`` of one simulated N-unit lot
+costs outside its flow: the command's wall time minus the flow body (the run log's
+``elapsed_s``), on a new results directory (a new home) and again with ``--force`` on the
+same one (an existing home), with and without mimucal's template database
+(:func:`flows.runtime.seed_prefect_home`).
+
+The heartbeat is off in every case (:func:`flows.runtime.run_settings`: ~1 s per flow run
+when on)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+_CHILD = r"""
+import json, time
+t0 = time.perf_counter()
+from flows import runtime
+runtime.ensure_environment()
+import prefect
+from prefect import flow
+t1 = time.perf_counter()
+
+@flow(persist_result=False)
+def empty():
+    return 1
+
+with runtime.run_settings():
+    empty()
+    t2 = time.perf_counter()
+    empty()
+    t3 = time.perf_counter()
+print(json.dumps({"import": t1 - t0, "first_flow": t2 - t1, "second_flow": t3 - t2}))
+"""
+
+
+def run_case(home: Path, extra_env: dict[str, str] | None = None) -> dict[str, float]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update({"PREFECT_HOME": str(home), "PYTHONPATH": str(ROOT), **(extra_env or {})})
+    t0 = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, "-c", _CHILD], env=env, cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    wall = time.perf_counter() - t0
+    doc = json.loads(out.stdout.strip().splitlines()[-1])
+    doc["process"] = wall
+    return doc
+
+
+def _mimucal(args: list[str], env: dict[str, str]) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(
+        [sys.executable, "-m", "flows.cli", *args], env=env, cwd=ROOT, capture_output=True, text=True
+    )
+    return time.perf_counter() - t0
+
+
+def nightly(n_units: int, repeats: int) -> int:
+    rows: dict[str, list[tuple[float, float]]] = {}
+    with tempfile.TemporaryDirectory(prefix="mimucal-prefect-bench-") as tmp:
+        tmp = Path(tmp)
+        env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+        env["PYTHONPATH"] = str(ROOT)
+        _mimucal(["simulate", str(tmp / "ds"), "--units", str(n_units), "--reps", "5", "--seed", "3"], env)
+        for i in range(repeats):
+            for template in ("no template", "template built by the command", "template"):
+                slug = template.replace(" ", "-")
+                cache = tmp / f"cache-{slug}-{i}"
+                if template == "template":  # built beforehand: what every later new home gets
+                    shutil.copytree(tmp / f"cache-template-built-by-the-command-{i}", cache)
+                run_env = {**env, "MIMUCAL_CACHE_DIR": str(cache)}
+                if template == "no template":  # the server creates and migrates its database
+                    run_env["MIMUCAL_PREFECT_TEMPLATE"] = "off"
+                results = tmp / f"res-{slug}-{i}"
+                for case, extra in (("new home", []), ("existing home", ["--force"])):
+                    wall = _mimucal(["nightly", str(tmp / "ds"), "--results", str(results), *extra], run_env)
+                    runs = sorted((results / "runs").glob("*.json"), key=lambda p: p.stat().st_mtime)
+                    log = json.loads(runs[-1].read_text())
+                    rows.setdefault(f"{case}, {template}", []).append((wall, float(log["elapsed_s"])))
+    print(f"| {n_units}-unit nightly | command wall (s) | flow body (s) | outside the flow (s) |")
+    print("|---|---|---|---|")
+    for case, runs in rows.items():
+        wall = statistics.median(w for w, _ in runs)
+        body = statistics.median(b for _, b in runs)
+        out = statistics.median(w - b for w, b in runs)
+        print(f"| {case} | {wall:.1f} | {body:.1f} | {out:.1f} |")
+    print(f"\nmedians of {repeats} run(s) each")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--nightly", type=int, metavar="N", help="a whole nightly of N units instead")
+    args = ap.parse_args(argv)
+    if args.nightly:
+        return nightly(args.nightly, args.repeats)
+    rows: dict[str, list[dict[str, float]]] = {}
+    with tempfile.TemporaryDirectory(prefix="mimucal-prefect-bench-") as tmp:
+        tmp = Path(tmp)
+        template = None
+        for i in range(args.repeats):
+            home = tmp / f"home{i}"
+            home.mkdir()
+            rows.setdefault("new home", []).append(run_case(home))
+            rows.setdefault("existing home", []).append(run_case(home))
+            rows.setdefault("existing home, no migrate check", []).append(
+                run_case(home, {"PREFECT_SERVER_DATABASE_MIGRATE_ON_START": "false"})
+            )
+            template = home / "prefect.db"
+            seeded = tmp / f"seeded{i}"
+            seeded.mkdir()
+            shutil.copy2(template, seeded / "prefect.db")
+            rows.setdefault("new home, template db", []).append(run_case(seeded))
+    print(
+        "| case | import prefect (s) | first flow run: server start (s) "
+        "| second flow run (s) | process wall (s) |"
+    )
+    print("|---|---|---|---|---|")
+    for case, runs in rows.items():
+        med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+        print(
+            f"| {case} | {med['import']:.2f} | {med['first_flow']:.2f} | {med['second_flow']:.2f} "
+            f"| {med['process']:.2f} |"
+        )
+    print(f"\nmedians of {args.repeats} run(s) each")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
