@@ -31,12 +31,13 @@ demo: setup
 	@echo "Unit reports: $$(ls $(DEMO)/results/reports/units/*.html 2>/dev/null | wc -l) in $(DEMO)/results/reports/units/"
 
 # --dist loadfile: a module's tests share one worker, so module fixtures (a 60-unit fleet,
-# a browser, a Prefect API) are built once, not once per worker.
+# a browser, a Prefect API) are built once, not once per worker. --no-loadscope-reorder keeps
+# the collection order tests/conftest.py gives: the longest modules first.
 # The browser install is best effort here (no root: the browser tests skip and say why);
 # CI installs it first and must succeed (.ci/run).
 test: setup
 	-bash tools/install-browser.sh
-	$(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=15
+	$(VENV)/bin/pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=15
 
 test-fast: setup
 	$(VENV)/bin/pytest -q -n 2 --dist loadfile -m "not slow and not browser and not server"

@@ -627,11 +627,19 @@ def interrupted_runs(store: ResultsStore) -> list[str]:
     return out
 
 
+# the run log's ``outcome`` as the summary line says it
+OUTCOME_WORDS = {"ok": "all ok", "failures": "some units failed", "run failed": "the run failed"}
+
+
 def summary_line(log: dict, wall_s: float | None = None) -> str:
-    """One line: units, sessions, flags; the flow's time, or ``wall_s`` (the command's wall
-    time) with the flow's time in brackets."""
+    """One line: the outcome ("all ok", "some units failed" (exit code 1) or "the run failed"
+    (5)), units, sessions, flags; the flow's time, or ``wall_s`` (the command's wall time)
+    with the flow's time in brackets."""
+    outcome = OUTCOME_WORDS.get(log.get("outcome") or "", None)
     return (
-        f"{log.get('kind', 'run')} {log['run_id']}: {log.get('units_found', '?')} units "
+        f"{log.get('kind', 'run')} {log['run_id']}: "
+        + (f"{outcome}; " if outcome else "")
+        + f"{log.get('units_found', '?')} units "
         f"({log.get('units_calibrated', 0)} calibrated, {log.get('units_skipped', 0)} "
         f"unchanged, {len(log.get('units_failed', []))} failed, {len(log.get('units_stale', {}))}"
         f" stale), {log.get('sessions_calibrated', 0)} sessions ok, "
@@ -800,6 +808,8 @@ def rerun_flow(
         }
         if preloaded is not None:
             log["preload"] = preloaded
+        store.write_run(run_id, log)
+        _STARTED_RUNS[str(results)] = (run_id, log)  # its outcome is recorded if the rerun fails
         res = calibrate_batch([job], run_discovery)
         for r in res:
             try:
@@ -845,8 +855,10 @@ def rerun_flow(
                 "phases_cpu_s": {k: round(v, 3) for k, v in cpu.items()},
             }
         )
+        log["outcome"] = "failures" if run_had_failures(log) else "ok"
         log["summary"] = summary_line(log)
         store.write_run(run_id, log)
+        _STARTED_RUNS.pop(str(results), None)
     return jsonable(log)
 
 
@@ -913,8 +925,8 @@ def run_had_failures(log: dict) -> bool:
 
 @contextmanager
 def _outcome_recorded(results: str | Path):
-    """A nightly run that raises after its run log was written gets ``outcome: "run
-    failed"`` and the error (one line) in that log; it keeps no ``end``, so the next run
+    """A nightly run or rerun that raises after its run log was written gets ``outcome: "run
+    failed"``, the error (one line) and a summary saying so in that log; it keeps no ``end``, so the next run
     recovers it (its flags and reports). Exit code 5 (flows.cli) tells it from "some units
     failed" (1)."""
     try:
@@ -930,6 +942,7 @@ def _outcome_recorded(results: str | Path):
                     "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:500],
                 }
             )
+            log["summary"] = summary_line(log)
             try:
                 ResultsStore(Path(results)).write_run(run_id, log)
             except Exception:  # noqa: BLE001 - the run's own error is the one to report
@@ -975,7 +988,7 @@ def rerun_unit(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
         )
     runtime.await_api_server()
-    with _preloading(), runtime.run_settings():
+    with _preloading(), runtime.run_settings(), _outcome_recorded(results):
         return rerun_flow(
             str(dataset),
             str(results),

@@ -27,6 +27,7 @@ from schemas.hive import (  # noqa: F401  (the id rule re-exported: callers chec
     check_id,
     file_digest,
     id_problem,
+    link_problem,
 )
 from schemas.hive import bad_path as _bad
 from schemas.hive import parse_part as _parse_part
@@ -68,14 +69,14 @@ def find_sessions(
     rep, and one E_BAD_PATH error per directory that does not parse or per session of a unit
     found in more than one lot. A missing root is an E_BAD_PATH error too.
 
-    A session directory reached through a symbolic link (its lot, unit or rep directory is
-    one) is recorded with its resolved path; when that path is outside the dataset root it is
-    an E_BAD_PATH error unless ``follow_symlinks``."""
+    A session reached through a symbolic link (its lot, unit or rep directory, or one of its
+    files) follows the dataset's link rule (:func:`schemas.hive.link_problem`): an E_BAD_PATH
+    error without ``follow_symlinks``, and with it too when the link leads outside the dataset
+    root; a followed directory link is recorded with its resolved path."""
     root = Path(root)
     errors: list[SessionError] = []
     if not root.is_dir():
         return [], [_bad(root, f"dataset root {str(root)!r} is not a directory")]
-    real_root = root.resolve()
     refs: list[SessionRef] = []
     for lot_dir in _visible_dirs(root):
         lot_id, why = _parse_part(lot_dir.name, "lot")
@@ -99,20 +100,14 @@ def find_sessions(
                     errors.append(_bad(rep_dir, why))
                     continue
                 path = rep_dir
+                why = link_problem(rep_dir / SAMPLES_FILE, root, follow_symlinks) or link_problem(
+                    rep_dir / STEPS_FILE, root, follow_symlinks
+                )
+                if why:
+                    errors.append(_bad(rep_dir, why))
+                    continue
                 if lot_dir.is_symlink() or unit_dir.is_symlink() or rep_dir.is_symlink():
                     path = rep_dir.resolve()
-                    if not follow_symlinks and not path.is_relative_to(real_root):
-                        errors.append(
-                            _bad(
-                                rep_dir,
-                                (
-                                    f"session directory is reached through a symbolic link to {path}, "
-                                    f"outside the dataset root {real_root}; pass --follow-symlinks to "
-                                    f"calibrate it"
-                                ),
-                            )
-                        )
-                        continue
                 refs.append(SessionRef(SessionKey(lot_id, unit_id, int(rep)), path))
     # a unit belongs to one lot: when it is found under several, none of its sessions is used
     # (which lot is right is not ours to guess). With a lot filter the other lots were not

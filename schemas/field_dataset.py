@@ -32,8 +32,8 @@ from typing import Any, ClassVar
 
 from calib_core.steps import SessionKey
 from schemas.contract import G_LOCAL_PLAUSIBLE, session_start_problem
-from schemas.errors import E_BAD_METADATA, E_BAD_OPTION, E_BAD_PATH, SessionError
-from schemas.hive import FIELD_DIR, file_digest
+from schemas.errors import E_BAD_METADATA, E_BAD_OPTION, E_BAD_PATH, E_UNREADABLE_FILE, SessionError
+from schemas.hive import FIELD_DIR, file_digest, link_problem
 from schemas.hive import bad_path as _bad
 from schemas.hive import parse_part as _parse_part
 from schemas.hive import visible_dirs as _visible_dirs
@@ -105,6 +105,10 @@ class OptionError(ValueError):
 MAX_OPTIONS_BYTES = 64 * 1024  # an options file is a few lines
 MAX_JSON_DEPTH = 16  # an options document is one object of scalars
 MAX_OPTION_TEXT = 256  # characters of one string option
+# A field calibration is minutes of hand-held poses (the real MPU-6050 log: 0.3 MB; IMU-TK's
+# Xsens pair: 2 x 3.2 MB). A log this large is not one: refused before it is read (parsing it
+# would take minutes and gigabytes), as is its digest (the fingerprint takes its size only).
+MAX_RECORDING_BYTES = 256 * 1024 * 1024
 
 # option -> (low, high, low inclusive): numbers must be finite and inside
 OPTION_RANGES: dict[str, tuple[float, float, bool]] = {
@@ -226,27 +230,9 @@ def file_problem(path: Path, root: Path | None, follow_symlinks: bool, want_dir:
     import stat
 
     if root is not None:
-        real_root = root.resolve()
-        try:
-            rel = path.relative_to(root)
-        except ValueError:
-            rel = None
-        links = []
-        if rel is not None:
-            cur = root
-            for part in rel.parts:
-                cur = cur / part
-                if cur.is_symlink():
-                    links.append(cur)
-        if links:
-            target = path.resolve()
-            if not follow_symlinks:
-                return (
-                    f"{links[0].name} is a symbolic link (to {target}); dataset files are not read "
-                    "through links: pass --follow-symlinks to read links inside the dataset"
-                )
-            if not target.is_relative_to(real_root):
-                return f"{links[0].name} is a symbolic link to {target}, outside the dataset root {real_root}"
+        why = link_problem(path, root, follow_symlinks)
+        if why:
+            return why
     try:
         st = os.stat(path)
     except OSError as exc:
@@ -315,8 +301,9 @@ def find_field_recordings(
     fails by name in the night's tables): an options file that is not a bounded JSON object
     of usable values (``E_BAD_OPTION``; ``E_BAD_METADATA`` for ``session_start``), a file
     reached through a symbolic link without ``follow_symlinks`` or outside the dataset root
-    with it, a file that is not regular (``E_BAD_PATH``; :func:`file_problem`). Nothing
-    here opens a file that is not a regular file inside the dataset."""
+    with it, a file that is not regular (``E_BAD_PATH``; :func:`file_problem`), a file larger
+    than :data:`MAX_RECORDING_BYTES` (``E_UNREADABLE_FILE``). Nothing here opens a file that
+    is not a regular file inside the dataset."""
     root = Path(root)
     refs: list[FieldRecordingRef] = []
     errors: list[SessionError] = []
@@ -379,6 +366,16 @@ def find_field_recordings(
                         why = file_problem(f, root, follow_symlinks)
                         if why:
                             error = SessionError(E_BAD_PATH, str(key), f.name, f"recording {why}")
+                            break
+                        size = os.stat(f).st_size
+                        if size > MAX_RECORDING_BYTES:
+                            error = SessionError(
+                                E_UNREADABLE_FILE,
+                                str(key),
+                                f.name,
+                                f"recording is {size / 2**20:.0f} MiB, more than a field recording's "
+                                f"{MAX_RECORDING_BYTES // 2**20} MiB: not read",
+                            )
                             break
                 if error is not None and str(key) not in error.session:
                     error = SessionError(error.code, str(key), error.file, error.reason)

@@ -94,6 +94,41 @@ def hive_keys(path: Path | str) -> dict[str, str]:
     return out
 
 
+def link_problem(path: Path, root: Path, follow_symlinks: bool) -> str | None:
+    """The dataset's one link rule, for turntable sessions and field files alike: why
+    ``path`` (below the dataset ``root``) must not be read because of a symbolic link on its
+    way down from ``root``, or None. Without ``follow_symlinks`` any link is refused; with
+    it, a link is followed only when everything it leads to stays inside ``root``. Looks
+    only at metadata, never opens the file."""
+    try:
+        rel = path.relative_to(root)
+    except ValueError:
+        return None
+    cur = root
+    link = None
+    for part in rel.parts:
+        cur = cur / part
+        if cur.is_symlink():
+            link = cur
+            break
+    if link is None:
+        return None
+    try:
+        target = link.resolve()
+        real_path = path.resolve()
+        real_root = root.resolve()
+    except (OSError, RuntimeError):  # a link loop
+        return f"{link.name} is a symbolic link that does not resolve (a loop?)"
+    if not follow_symlinks:
+        return (
+            f"{link.name} is a symbolic link (to {target}); dataset files are not read "
+            "through links: pass --follow-symlinks to read links inside the dataset"
+        )
+    if not real_path.is_relative_to(real_root):
+        return f"{link.name} is a symbolic link to {target}, outside the dataset root {real_root}"
+    return None
+
+
 _CHUNK = 1 << 20
 
 

@@ -148,6 +148,10 @@ def _hostile_setups(outside: Path) -> dict:
         (d / "log.csv").unlink()
         os.mkfifo(d / "log.csv")
 
+    def huge(d):
+        with open(d / "log.csv", "r+b") as fh:
+            fh.truncate(257 * 2**20)
+
     elsewhere = outside / "valid.csv"
     elsewhere.write_text(text)
     beyond = lines[:5] + [",".join(str(4 * int(v)) for v in ln.split(",")) for ln in lines[5:]]
@@ -192,6 +196,7 @@ def _hostile_setups(outside: Path) -> dict:
             "E_FIELD_TOO_FEW_POSES",
         ),
         "H19": ("window NaN (JSON's NaN literal)", options('{"window": NaN}'), "E_BAD_OPTION"),
+        "H20": ("a 257 MiB log (sparse: never read)", huge, "E_UNREADABLE_FILE"),
     }
 
 
@@ -217,7 +222,7 @@ def make_hostile_field_lot(root: Path, outside: Path, units: list[str] | None = 
 
 @pytest.fixture(scope="session")
 def hostile_field_night(tmp_path_factory):
-    """One ``mimucal nightly`` over the hostile field lot (20 units, threads): the dataset,
+    """One ``mimucal nightly`` over the hostile field lot (21 units, threads): the dataset,
     the results, the corpus, the exit code and stderr."""
     if not REAL_FIELD_LOG.is_file():
         pytest.skip(f"the real MPU-6050 recording is not at {REAL_FIELD_LOG}")
@@ -237,3 +242,20 @@ def hostile_field_night(tmp_path_factory):
     with contextlib.redirect_stderr(err):
         rc = cli_main(["nightly", str(data), "--results", str(results), "--runner", "threads", "--quiet"])
     return {"data": data, "results": results, "corpus": corpus, "rc": rc, "stderr": err.getvalue()}
+
+
+# --- the order modules run in ---------------------------------------------------------------------
+# `make test` runs `-n 2 --dist loadfile --no-loadscope-reorder`: each module goes whole to the
+# next free worker, in collection order. The wall time is bounded by the module that starts
+# last, so the modules expected to take longest go first (longest-processing-time first): a
+# module's weight counts its tests that start a Prefect server, those marked slow, and the
+# rest (rough costs in seconds; the order, not the numbers, matters).
+_MODULE_WEIGHTS = {"server": 30.0, "slow": 10.0}
+
+
+def pytest_collection_modifyitems(session, config, items):
+    weight: dict[str, float] = {}
+    for item in items:
+        w = next((v for m, v in _MODULE_WEIGHTS.items() if item.get_closest_marker(m)), 0.5)
+        weight[item.nodeid.split("::")[0]] = weight.get(item.nodeid.split("::")[0], 0.0) + w
+    items.sort(key=lambda item: -weight[item.nodeid.split("::")[0]])  # stable: a module stays whole

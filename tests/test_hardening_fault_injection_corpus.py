@@ -147,22 +147,34 @@ def test_symlink_under_results_is_refused_by_the_check(tmp_path):
 
 
 def test_session_reached_through_a_symlink(tmp_path):
+    """The dataset's one link rule: any link refused without --follow-symlinks; with it, a
+    link inside the dataset root is followed, one leading outside never."""
     simulate_fleet(tmp_path / "other", 1, 1, 1, seed=2, sample_rate_hz=RATE_HZ)
     data = tmp_path / "data"
     (data / "lot=L01").mkdir(parents=True)
     (data / "lot=L01" / "unit=U0009").symlink_to(tmp_path / "other" / "lot=L01" / "unit=U0001")
-    refs, errs = find_sessions(data)
-    assert refs == [] and len(errs) == 1 and errs[0].code == E.E_BAD_PATH
-    assert "outside the dataset root" in str(errs[0]) and "--follow-symlinks" in str(errs[0])
-    refs, errs = find_sessions(data, follow_symlinks=True)
-    assert errs == [] and len(refs) == 1
-    assert refs[0].path == (tmp_path / "other" / "lot=L01" / "unit=U0001" / "rep=1").resolve()
-    # a link inside the dataset root is recorded with its resolved path, no error
+    for follow in (False, True):
+        refs, errs = find_sessions(data, follow_symlinks=follow)
+        assert refs == [] and len(errs) == 1 and errs[0].code == E.E_BAD_PATH
+        assert ("outside the dataset root" in str(errs[0])) == follow, str(errs[0])
+        assert ("--follow-symlinks" in str(errs[0])) != follow, str(errs[0])
+    # a link inside the dataset root: refused without the flag, followed (resolved) with it
     (data / "lot=L01" / "unit=U0009").unlink()
     shutil.copytree(tmp_path / "other" / "lot=L01" / "unit=U0001", data / "_real")
     (data / "lot=L01" / "unit=U0009").symlink_to(data / "_real")
     refs, errs = find_sessions(data)
+    assert refs == [] and "symbolic link" in str(errs[0]) and "--follow-symlinks" in str(errs[0])
+    refs, errs = find_sessions(data, follow_symlinks=True)
     assert errs == [] and refs[0].path == (data / "_real" / "rep=1").resolve()
+    # a session file linked out of the dataset: never read, with or without the flag
+    (data / "lot=L01" / "unit=U0009").unlink()
+    shutil.copytree(data / "_real", data / "lot=L01" / "unit=U0009")
+    samples = data / "lot=L01" / "unit=U0009" / "rep=1" / "samples.parquet"
+    samples.unlink()
+    samples.symlink_to(tmp_path / "other" / "lot=L01" / "unit=U0001" / "rep=1" / "samples.parquet")
+    for follow in (False, True):
+        refs, errs = find_sessions(data, follow_symlinks=follow)
+        assert refs == [] and errs[0].code == E.E_BAD_PATH and "samples.parquet" in str(errs[0])
 
 
 # --- data that is wrong although it decodes -----------------------------------------------------

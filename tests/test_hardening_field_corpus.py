@@ -1,6 +1,6 @@
 """Field units and the results store under hostile input (issue 35): one test per case.
 
-The whole-night cases share one ``mimucal nightly`` over a lot of 20 copies of the real
+The whole-night cases share one ``mimucal nightly`` over a lot of 21 copies of the real
 MPU-6050 recording, each unit but H0 made hostile in one way (``hostile_field_night``,
 tests/conftest.py); the rest run without Prefect. Each expects a named failure of the hostile
 unit (its code, one line), the good unit calibrated, the night's tables, reports and run log
@@ -86,6 +86,7 @@ def test_the_night_completes_with_every_hostile_unit_failed_by_name(hostile_fiel
     (log_path,) = (results / "runs").glob("*.json")
     log = json.loads(log_path.read_text())
     assert log["outcome"] == "failures" and log.get("end")
+    assert ": some units failed; " in log["summary"], log["summary"]
     assert len(log["failed_sessions"]) == sum(code is not None for _, code in night["corpus"].values())
     assert store.verify() == []
 
@@ -178,6 +179,10 @@ def test_values_beyond_full_scale_fail_their_unit(hostile_field_night):
 
 def test_a_json_nan_option_is_refused(hostile_field_night):
     _assert_failed(hostile_field_night, "H19", "E_BAD_OPTION", "'window' = nan is not a finite number")
+
+
+def test_a_log_beyond_the_size_limit_is_refused_unread(hostile_field_night):
+    _assert_failed(hostile_field_night, "H20", "E_UNREADABLE_FILE", "257 MiB, more than", "not read")
 
 
 # --- without Prefect ----------------------------------------------------------------------------
@@ -359,6 +364,31 @@ def test_store_json_qa_config_and_a_directory_for_a_table_are_checked_and_repair
     assert store.verify() == []
 
 
+def test_with_follow_symlinks_links_out_of_the_dataset_are_still_refused_and_the_rerun_says_so(
+    hostile_field_night, store_copy, capsys
+):
+    """--follow-symlinks follows links inside the dataset only: the unit whose log leads to
+    /etc/passwd fails again, by name (a valid log elsewhere, H6, likewise: see
+    test_links_inside_the_dataset_are_followed_only_with_follow_symlinks); the rerun's exit
+    code (1), run log and summary say "some units failed" (not "the run failed"), and
+    nothing of /etc/passwd reaches the results."""
+    argv = ["rerun", str(hostile_field_night["data"]), "--results", str(store_copy), "--unit", "H4"]
+    assert cli_main([*argv, "--follow-symlinks", "--no-discovery"]) == 1
+    out = capsys.readouterr()
+    assert "outside the dataset root" in out.err
+    assert ": some units failed; " in out.out, out.out
+    s = ResultsStore(store_copy).read("sessions").set_index("unit")
+    assert s.loc["H4", "error_code"] == "E_BAD_PATH" and "outside the dataset root" in s.loc["H4", "message"]
+    logs = [json.loads(p.read_text()) for p in (store_copy / "runs").glob("*.json")]
+    (rerun,) = [g for g in logs if g["kind"] == "rerun"]
+    assert rerun["outcome"] == "failures" and rerun.get("end")
+    assert ": some units failed; " in rerun["summary"]
+    markers = [m for m in PASSWD_MARKERS if m in Path("/etc/passwd").read_bytes()]
+    for p in store_copy.rglob("*"):
+        if p.is_file():
+            assert not any(m in p.read_bytes() for m in markers), p
+
+
 def test_apply_refuses_to_write_over_its_raw_input(store_copy, tmp_path, capsys):
     cal = ResultsStore(store_copy).calibration_files("H0")[0][1]
     raw = tmp_path / "raw.csv"
@@ -401,3 +431,4 @@ def test_a_run_that_fails_unexpectedly_exits_5_and_its_log_says_so(tmp_path, mon
     (log_path,) = (r / "runs").glob("*.json")
     log = json.loads(log_path.read_text())
     assert log["outcome"] == "run failed" and "injected" in log["error"] and "end" not in log
+    assert ": the run failed; " in log["summary"], log["summary"]

@@ -134,13 +134,17 @@ def simulate_hand_held(
                 w[sl, j] = np.sin(2 * np.pi * freq * tau + phase)[:, None] * axis
         k += count
     # orientation body->world at each sample time; specific force f = R^T [0, 0, g]
-    R = Rotation.from_rotvec(rng.normal(0, 1, 3))
-    quats = np.empty((n, 4))
-    for i in range(n):
-        quats[i] = R.as_quat()
-        for j in range(oversample):
-            R = R * Rotation.from_rotvec(w[i, j] * dt[i] / oversample)
-    f = Rotation.from_quat(quats).inv().apply([0.0, 0.0, truth.g_local])
+    # R_i = R_0 exp(w_00 dt_0/m) ... exp(w_(i-1)(m-1) dt_(i-1)/m): the running products of the
+    # sub-step rotations by a Hillis-Steele scan (log2 passes, order kept: the product is
+    # associative, not commutative)
+    R0 = Rotation.from_rotvec(rng.normal(0, 1, 3))
+    P = Rotation.from_rotvec((w * (dt / oversample)[:, None, None]).reshape(-1, 3))
+    d = 1
+    while d < len(P):
+        P = Rotation.concatenate([P[:d], P[:-d] * P[d:]])
+        d *= 2
+    R = Rotation.concatenate([R0, R0 * P[oversample * np.arange(1, n) - 1]])
+    f = R.inv().apply([0.0, 0.0, truth.g_local])
     w_sample = w.mean(axis=1)  # what a rate gyro averages over its sample interval
     A = np.linalg.solve(truth.accel_matrix, f.T).T + truth.acc_bias + rng.normal(0, acc_noise, f.shape)
     b_g = truth.gyro_bias + truth.gyro_drift * t[:, None]

@@ -74,9 +74,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--follow-symlinks",
         action="store_true",
-        help="calibrate session directories reached through a symbolic link that "
-        "leads outside DATASET (refused by default), and read field recordings and "
-        "options files through links that stay inside DATASET (never outside)",
+        help="read session directories and files, field recordings and options files "
+        "reached through a symbolic link that stays inside DATASET (refused by default; "
+        "a link leading outside DATASET is refused always)",
     )
     p.set_defaults(func=run)
 

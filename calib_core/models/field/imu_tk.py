@@ -199,6 +199,12 @@ class SegmentIntegrator:
                 owner.append(i)
         self.idx = np.array(rows)
         self.dt = np.where(self.idx >= 0, dt[np.maximum(self.idx, 0)], 0.0)
+        # the samples the segments integrate, and each chunk entry's place among them: a
+        # residual needs the angular rate at these samples only (rotations_at_samples)
+        self.samples = np.unique(self.idx[self.idx >= 0])
+        if not len(self.samples):
+            self.samples = np.zeros(1, int)
+        self._local = np.searchsorted(self.samples, np.maximum(self.idx, 0))
         owner = np.array(owner)
         n_seg = len(segments)
         per_seg = np.bincount(owner, minlength=n_seg)
@@ -215,7 +221,13 @@ class SegmentIntegrator:
 
     def rotations(self, w: np.ndarray) -> np.ndarray:
         """Quaternion of dR = prod_k exp(w_k dt_k) per segment; ``w`` (n, 3) in rad/s."""
-        v = w[np.maximum(self.idx, 0)] * self.dt[..., None]
+        return self._product(w[np.maximum(self.idx, 0)] * self.dt[..., None])
+
+    def rotations_at_samples(self, w_samples: np.ndarray) -> np.ndarray:
+        """As :meth:`rotations`, ``w_samples`` being the rate at :attr:`samples` only."""
+        return self._product(w_samples[self._local] * self.dt[..., None])
+
+    def _product(self, v: np.ndarray) -> np.ndarray:
         chunks = self._reduce(_quat_from_rotvec(v))
         chunks = np.vstack([chunks, [1.0, 0.0, 0.0, 0.0]])  # identity at index -1
         return self._reduce(chunks[self.chunk_pos])
@@ -238,7 +250,7 @@ def transition_angles_deg(
 ) -> np.ndarray:
     """Angle between the gravity direction predicted by the gyro and the one measured, per
     transition (deg)."""
-    q = integ.rotations(G_unbiased @ gyro_matrix(gyro_params).T)
+    q = integ.rotations_at_samples(G_unbiased[integ.samples] @ gyro_matrix(gyro_params).T)
     pred = _rotate_by_conjugate(q, u[:-1])
     c = np.clip(np.sum(pred * u[1:], axis=1) / np.linalg.norm(pred, axis=1), -1, 1)
     return np.degrees(np.arccos(c))
@@ -278,8 +290,10 @@ def fit_gyro_field(
             "E_FIELD_TOO_FEW_POSES", "fewer than 3 transitions selected", undetermined=GYRO_PARAM_NAMES
         )
 
+    G0_s = G0[integ.samples]
+
     def resid(p):
-        q = integ.rotations(G0 @ gyro_matrix(p).T)
+        q = integ.rotations_at_samples(G0_s @ gyro_matrix(p).T)
         return (_rotate_by_conjugate(q, u[:-1]) - u[1:])[use].ravel()
 
     if init_scale is None:  # isotropic scale from a coarse log grid (no datasheet value given)

@@ -342,29 +342,31 @@ def _gyro_residual_fn(t, G, F, integ, u, move_use, pm: PoseMeans, quiet_use, dri
     """Residual groups (moves, quiet poses) of the gyro model; ``F`` calibrated specific
     force (g) per sample, used by the g-sensitivity block. ``parts(p, u, F)`` takes other
     gravity directions / specific forces (the accelerometer's uncertainty propagation)."""
-    samples = np.unique(integ.idx[integ.idx >= 0])  # only the samples the moves integrate
-    G_s, t_s = G[samples], t[samples]
+    samples = integ.samples  # only the samples the moves integrate
+    G_s, t_s, F_s = G[samples], t[samples], F[samples]
     Gq, tq, se_q = pm.gyro[quiet_use], pm.t_mean[quiet_use], pm.gyro_se[quiet_use]
     j0, j1 = np.flatnonzero(move_use), np.flatnonzero(move_use) + 1
     k_s = 15 if drift else 12
     starts, ends = pm.start[quiet_use], pm.end[quiet_use]
     tangent = tangent_bases(u)
 
+    def pose_means(F_):
+        if not g_sens:
+            return np.zeros((len(Gq), 3))
+        return np.array([F_[a:b].mean(axis=0) for a, b in zip(starts, ends)]).reshape(-1, 3)
+
+    Fq_of_F = pose_means(F)  # F is fixed but in the accelerometer's uncertainty propagation
+
     def parts(p, u_=u, F_=F):
         M = gyro_matrix(p[:9])
         b0 = p[9:12]
         b1 = p[12:15] if drift else np.zeros(3)
         S = p[k_s : k_s + 9].reshape(3, 3) if g_sens else np.zeros((3, 3))
-        w = np.zeros((len(G), 3))
-        corr = F_[samples] @ S.T if g_sens else 0.0
-        w[samples] = (G_s - b0 - t_s[:, None] * b1 - corr) @ M.T
-        q = integ.rotations(w)
+        same_F = F_ is F
+        corr = ((F_s if same_F else F_[samples]) @ S.T) if g_sens else 0.0
+        q = integ.rotations_at_samples((G_s - b0 - t_s[:, None] * b1 - corr) @ M.T)
         r_move = np.einsum("mki,mk->mi", tangent[j1], _rotate_by_conjugate(q[j0], u_[j0]) - u_[j1]).ravel()
-        Fq = (
-            np.array([F_[a:b].mean(axis=0) for a, b in zip(starts, ends)]).reshape(-1, 3)
-            if g_sens
-            else np.zeros((len(Gq), 3))
-        )
+        Fq = Fq_of_F if same_F else pose_means(F_)
         r_quiet = ((Gq - b0 - tq[:, None] * b1 - Fq @ S.T) / se_q).ravel()
         return r_move, r_quiet
 
