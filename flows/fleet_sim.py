@@ -392,7 +392,7 @@ def _noise_recordings(
 ) -> dict:
     """Write the unit's static recording ``noise/static.parquet``; its manifest entry."""
     from calib_core.sim.noise_recording import static_noise_recording
-    from schemas.noise_dataset import write_noise_recording
+    from schemas.writer import write_noise_recording
 
     n = int(round(duration_s * rate_hz))
     noise = None

@@ -32,6 +32,7 @@ from schemas.hive import (  # noqa: F401  (the id rule re-exported: callers chec
 from schemas.hive import bad_path as _bad
 from schemas.hive import parse_part as _parse_part
 from schemas.hive import visible_dirs as _visible_dirs
+from schemas.noise_dataset import noise_fingerprint
 
 
 @dataclass(frozen=True)
@@ -191,8 +192,6 @@ def fingerprint(path: Path | str, cache: DigestCache | None = None) -> str:
             h.update(f"{name}:missing;".encode())
     # the unit's noise recordings (schemas.noise_dataset): a unit without them keeps the
     # fingerprint it always had
-    from schemas.noise_dataset import noise_fingerprint
-
     noise = noise_fingerprint(os.path.dirname(os.path.abspath(base)), cache)
     if noise is not None:
         h.update(f"noise:{noise};".encode())

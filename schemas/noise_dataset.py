@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pyarrow.parquet as pq
 
 from schemas.contract import SENSOR_COLUMNS, ColumnRule, SessionMeta, _is_float, check_columns, parse_metadata
@@ -243,23 +242,3 @@ def read_noise_recording(ref: NoiseRecordingRef) -> NoiseRecording:
     channels[3:] *= meta.accel_scale
     rate = meta.sample_rate_hz or 1.0 / step
     return NoiseRecording(ref, t, channels[:3].T.copy(), channels[3:].T.copy(), float(rate), meta)
-
-
-def write_noise_recording(
-    root: Path | str, lot: str, unit: str, name: str, samples: pd.DataFrame, metadata: dict[str, str]
-) -> Path:
-    """Write ``<root>/lot=<lot>/unit=<unit>/noise/<name>.parquet`` (atomically) from raw
-    samples (``t``, ``gx..az``; ``step`` written as -1 when absent) with the key-value
-    ``metadata`` of samples.parquet. Returns the file."""
-    from schemas.writer import _atomic_write, samples_table
-
-    for field_name, value in (("lot", lot), ("unit", unit), ("recording", name)):
-        why = id_problem(value, field_name)
-        if why:
-            raise ValueError(why)
-    df = samples if "step" in samples.columns else samples.assign(step=np.int32(-1))
-    out = Path(root) / f"lot={lot}" / f"unit={unit}" / NOISE_DIR
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{name}{NOISE_SUFFIX}"
-    _atomic_write(samples_table(df, metadata), path, compression="zstd", use_dictionary=False)
-    return path

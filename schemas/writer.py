@@ -36,6 +36,8 @@ from schemas.contract import (
     STEPS_SCHEMA,
 )
 from schemas.dataset import session_dir
+from schemas.hive import NOISE_DIR, id_problem
+from schemas.noise_dataset import NOISE_SUFFIX
 
 
 def _atomic_write(table: pa.Table, path: Path, **kwargs) -> None:
@@ -144,3 +146,21 @@ def write_session(
         use_dictionary=False,
     )
     return out
+
+
+def write_noise_recording(
+    root: Path | str, lot: str, unit: str, name: str, samples: pd.DataFrame, metadata: dict[str, str]
+) -> Path:
+    """Write ``<root>/lot=<lot>/unit=<unit>/noise/<name>.parquet`` (atomically) from raw
+    samples (``t``, ``gx..az``; ``step`` written as -1 when absent) with the key-value
+    ``metadata`` of samples.parquet. Returns the file."""
+    for field_name, value in (("lot", lot), ("unit", unit), ("recording", name)):
+        why = id_problem(value, field_name)
+        if why:
+            raise ValueError(why)
+    df = samples if "step" in samples.columns else samples.assign(step=np.int32(-1))
+    out = Path(root) / f"lot={lot}" / f"unit={unit}" / NOISE_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}{NOISE_SUFFIX}"
+    _atomic_write(samples_table(df, metadata), path, compression="zstd", use_dictionary=False)
+    return path

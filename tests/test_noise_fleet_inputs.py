@@ -19,7 +19,8 @@ from calib_core.sim.simulator import MimuTruth
 from schemas.dataset import find_sessions
 from schemas.errors import SessionError
 from schemas.limits import LimitsError, config_from_toml
-from schemas.noise_dataset import find_noise_recordings, read_noise_recording, write_noise_recording
+from schemas.noise_dataset import find_noise_recordings, read_noise_recording
+from schemas.writer import write_noise_recording
 
 MD = {"gyro_unit": "deg/s", "accel_unit": "g", "gyro_range_dps": "300,300,300", "accel_range_g": "8,8,8"}
 
