@@ -76,7 +76,7 @@ class NoiseRecording:
     """A validated noise recording: time (s), gyro (n, 3) in deg/s or raw, accel (n, 3) in
     g or raw (the session reader's conversions), its sample rate and metadata."""
 
-    ref: NoiseRecordingRef
+    ref: NoiseRecordingRef | None  # None: a file read outside a dataset (``mimucal noise``)
     t: np.ndarray
     gyro: np.ndarray
     accel: np.ndarray
@@ -174,9 +174,19 @@ def noise_fingerprint(unit_dir: Path | str, cache=None) -> str | None:
 
 
 def read_noise_recording(ref: NoiseRecordingRef) -> NoiseRecording:
-    """Open, check and convert one noise recording (the session reader's unit conversions:
-    rad/s -> deg/s, m/s^2 -> g of its ``g_local``). Raises :class:`SessionError`."""
-    label, path, file = ref.label, ref.path, ref.path.name
+    """Open, check and convert one noise recording of the dataset (:func:`read_static_parquet`).
+    Raises :class:`SessionError`."""
+    return read_static_parquet(ref.path, ref.label, ref)
+
+
+def read_static_parquet(path: Path, label: str, ref: NoiseRecordingRef | None = None) -> NoiseRecording:
+    """Open, check and convert one static Parquet recording with the contract's columns and
+    metadata: a regular file, at least ``MIN_NOISE_SAMPLES`` finite samples, uniformly
+    sampled, with the session reader's unit conversions (rad/s -> deg/s, m/s^2 -> g of its
+    ``g_local``; raw counts stay counts). The one reader of the fleet's noise recordings and
+    of ``mimucal noise``'s Parquet input. Raises :class:`SessionError` naming ``label``."""
+    path = Path(path)
+    file = path.name
     try:
         st = os.stat(path)
     except OSError as exc:

@@ -1,8 +1,9 @@
 """Static recordings for the noise analysis (``mimucal noise``), and its output files.
 
 A static recording is read from a contract ``samples.parquet`` (or any Parquet file with the
-contract's columns and metadata) or from a CSV/whitespace log through
-:func:`schemas.importers.read_table_recording`. Channels come out in the noise analysis'
+contract's columns and metadata) by the reader of the dataset's noise recordings
+(:func:`schemas.noise_dataset.read_static_parquet`: the same checks and conversions), or from
+a CSV/whitespace log through :func:`schemas.importers.read_table_recording`. Channels come out in the noise analysis'
 units: gyro deg/s, accelerometer g. Raw counts (``LSB``/``counts``) become physical with the
 sensor's full-scale range (``--gyro-range 250dps``, ``--accel-range 2g``; a contract file's
 ``gyro_range_dps``/``accel_range_g`` with ``*_full_scale_raw``), one count being range /
@@ -30,6 +31,7 @@ from schemas.importers import (
     GYRO_CHANNELS,
     read_table_recording,
 )
+from schemas.noise_dataset import read_static_parquet
 
 RAW_UNITS = ("LSB", "counts")
 
@@ -113,42 +115,13 @@ def read_static_recording(
 def _read_parquet(
     path: Path, rate_hz: float | None, gyro_range_dps: float | None, accel_range_g: float | None
 ) -> StaticRecording:
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
-    from schemas.contract import decode_metadata, parse_metadata
-
-    if not path.exists():
-        raise NoiseInputError(f"{path.name}: no such file")
-    try:
-        table = pq.read_table(path)
-    except (OSError, pa.ArrowException) as exc:
-        raise NoiseInputError(f"{path.name}: cannot read as Parquet ({exc})") from exc
-    missing = [c for c in CHANNELS if c not in table.column_names]
-    if missing:
-        raise NoiseInputError(f"{path.name}: no column {', '.join(missing)}")
-    try:
-        md = parse_metadata(decode_metadata(table.schema.metadata), path.name, str(path))
-    except SessionError as exc:
-        raise NoiseInputError(f"{path.name}: {exc.reason}") from exc
-    values = {}
-    for ch in CHANNELS:
-        try:
-            v = table.column(ch).to_numpy().astype(float)
-        except (TypeError, ValueError, pa.ArrowException) as exc:
-            raise NoiseInputError(f"{path.name}: column {ch} is not numeric") from exc
-        if not np.isfinite(v).all():
-            raise NoiseInputError(f"{path.name}: column {ch} holds non-finite values")
-        values[ch] = v
-    values.update({ch: values[ch] * md.gyro_scale for ch in GYRO_CHANNELS})
-    values.update({ch: values[ch] * md.accel_scale for ch in ACCEL_CHANNELS})
-    rate = rate_hz or md.sample_rate_hz
-    if not rate and "t" in table.column_names:
-        t = table.column("t").to_numpy().astype(float)
-        if t.size > 1 and t[-1] > t[0]:
-            rate = (t.size - 1) / (t[-1] - t[0])
-    if not rate or rate <= 0:
-        raise NoiseInputError(f"{path.name}: no sample rate in the file: give --rate")
+    """The fleet's reader of static Parquet recordings
+    (:func:`schemas.noise_dataset.read_static_parquet`: its checks and unit conversions),
+    then raw counts made physical with the ranges given or the file's."""
+    rec = read_static_parquet(path, path.name)
+    md = rec.meta
+    values = {ch: v for ch, v in zip(CHANNELS, np.hstack([rec.gyro, rec.accel]).T)}
+    rate = rate_hz or rec.rate_hz
 
     def count(range_arg, range_md, full_md):
         if range_arg is not None:

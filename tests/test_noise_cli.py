@@ -176,3 +176,21 @@ def test_contract_parquet_reads_like_the_csv(tmp_path):
         assert p[ch]["coefficients"]["white"]["value"] == pytest.approx(
             c[ch]["coefficients"]["white"]["value"]
         )
+
+
+def test_parquet_input_gets_the_fleet_readers_checks(tmp_path):
+    """``mimucal noise`` reads Parquet through the dataset's noise-recording reader: a gap in
+    the time column is refused in one line naming the file, as in the nightly."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    rng = np.random.default_rng(3)
+    t = np.arange(4000) / 100.0
+    t[2000:] += 5.0  # a 5 s gap: the Allan variance needs an unbroken record
+    cols = {c: rng.normal(0, 0.01, t.size) for c in ("gx", "gy", "gz", "ax", "ay")}
+    table = pa.table({"t": t, **cols, "az": 1 + rng.normal(0, 1e-3, t.size)})
+    meta = {"gyro_unit": "deg/s", "accel_unit": "g", "sample_rate_hz": "100"}
+    pq.write_table(table.replace_schema_metadata(meta), tmp_path / "gappy.parquet")
+    code, _, err = run_cli(tmp_path / "gappy.parquet")
+    assert code == 2 and err.count("\n") == 1
+    assert "gappy.parquet" in err and "gap" in err
