@@ -2,14 +2,15 @@
 
 A static recording is read from a contract ``samples.parquet`` (or any Parquet file with the
 contract's columns and metadata) by the reader of the dataset's noise recordings
-(:func:`schemas.noise_dataset.read_static_parquet`: the same checks and conversions), or from
-a CSV/whitespace log through :func:`schemas.importers.read_table_recording`. Channels come out
-in the noise analysis' units: gyro deg/s, accelerometer g. Raw counts (``LSB``/``counts``) become physical with the
-sensor's full-scale range (``--gyro-range 250dps``, ``--accel-range 2g``; a contract file's
-``gyro_range_dps``/``accel_range_g`` with ``*_full_scale_raw``), one count being range /
-32768 (a signed 16-bit output) unless the file says how many counts full scale is; the
-count is then the channel's output resolution. A recording in volts, or in counts without a
-range, cannot give noise in engineering units: a one-line error says so.
+(:func:`schemas.noise_dataset.read_static_parquet`: the same checks and conversions), or
+from a CSV/whitespace log through :func:`schemas.importers.read_table_recording`. Channels
+come out in the noise analysis' units: gyro deg/s, accelerometer g. Raw counts
+(``LSB``/``counts``) become physical with the sensor's full-scale range (``--gyro-range
+250dps``, ``--accel-range 2g``; a contract file's ``gyro_range_dps``/``accel_range_g`` with
+``*_full_scale_raw``), one count being range / 32768 (a signed 16-bit output) unless the
+file says how many counts full scale is; the count is then the channel's output resolution.
+A recording in volts, or in counts without a range, cannot give noise in engineering units:
+a one-line error says so.
 
 Outputs: the analysis JSON (:meth:`calib_core.noise.NoiseAnalysis.to_dict`) and Kalibr's
 ``imu.yaml`` noise figures, both written atomically.
