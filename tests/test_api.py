@@ -98,7 +98,7 @@ def test_calibrate_unit_recovers_the_truth_and_equals_the_cli(unit, tmp_path):
     # (OpenBLAS picks its kernels and threads per machine and process)
     for k in ("format", "format_version", "K_g", "w0", "K_a", "f0", "terms", "raw_units"):
         assert_same_numbers(cli[k], mine[k], k)
-    assert cli["repetitions"] == mine["repetitions"]
+    assert_same_numbers(cli["repetitions"], mine["repetitions"], "repetitions")
 
 
 def test_load_from_a_results_folder_by_date_and_the_unit_checks(unit, tmp_path):
