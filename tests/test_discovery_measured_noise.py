@@ -143,10 +143,9 @@ def test_a_measured_noise_costs_no_dof_and_sets_the_step_sigma():
     sessions, model = _measured_unit(3102)
     m = fit.joint_model(sessions, measured=MeasuredNoise(model, "recording static"))
     assert not m.noise.params.any()
-    # every step's sigma: the gyro's white step-mean variance (N^2 / T) plus the wander's
-    white = np.sqrt(
-        white_step_variance(model.channels["gx"], m.g.count[m.g.real], sessions[0].sample_rate_hz)
-    )
+    # every step's sigma: the gyro's white step-mean variance N^2 / T (N = 0.011 deg/s/sqrt(Hz),
+    # T the averaged duration) plus the wander's
+    white = 0.011 / np.sqrt(m.g.count[m.g.real] / sessions[0].sample_rate_hz)
     np.testing.assert_allclose(
         m.noise.sigma[..., 0][m.g.real], np.hypot(white, m.noise.rows[0][5]), rtol=1e-12
     )

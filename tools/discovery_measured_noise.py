@@ -1,7 +1,7 @@
 """Model discovery on measured noise: the misfit rate of clean units whose noise is a measured
 model's, with that model in discovery's null and with discovery's own estimate.
 
-    PYTHONPATH=. .venv/bin/python -m tools.discovery_measured_noise [N_UNITS [NOISE_JSON [JOBS]]]
+    PYTHONPATH=. .venv/bin/python -m tools.discovery_measured_noise [N_UNITS [NOISE_JSON [JOBS [NULL]]]]
 
 N_UNITS clean units (default 2,000) of the physics simulator (:mod:`calib_core.sim.physics`,
 ``typical_physics_unit``: its own noise processes off, turn-on biases kept), the default
@@ -16,7 +16,9 @@ each line's amplitude scaled by its own log-uniform factor in [1/3, 3], each lin
 dropped with probability 1/2. Discovery runs twice per unit, at alpha 1 %: with the unit's
 model as its null (:class:`calib_core.discovery.measured_noise.MeasuredNoise`) and with the
 noise it estimates from the repetitions. Prints the table of docs/model-discovery.md
-("Discovery on measured noise"); JOBS worker processes (default 1). Seeded.
+("Discovery on measured noise"); JOBS worker processes (default 1). NULL "mismatched": the
+measured model in discovery's null is the MPU-6050's as measured on every unit, whatever
+the variant its noise was drawn from (what a wrong measured model costs). Seeded.
 """
 
 from __future__ import annotations
@@ -119,7 +121,7 @@ def _fires(d) -> dict[str, bool]:
     }
 
 
-def run_units(first: int, count: int, doc: dict) -> list[dict]:
+def run_units(first: int, count: int, doc: dict, mismatched: bool = False) -> list[dict]:
     """Units first..first + count - 1 (each seeded by its index): per unit and null, the
     misfit flag, the effects named and which tests fire."""
     from calib_core.discovery import diagnose_unit
@@ -137,7 +139,11 @@ def run_units(first: int, count: int, doc: dict) -> list[dict]:
         unit = quiet_unit(rng)
         sessions = step_means_with_noise(unit, model, steps, rng, f"U{u:04d}")
         row = {"unit": u, "model": "mpu6050" if mpu else "variant"}
-        for null, measured in (("measured", MeasuredNoise(model, "recording mpu6050")), ("estimated", None)):
+        in_null = base if mismatched else model
+        for null, measured in (
+            ("measured", MeasuredNoise(in_null, "recording mpu6050")),
+            ("estimated", None),
+        ):
             t0 = time.process_time()
             d = diagnose_unit(sessions, alpha=ALPHA, tables=False, measured_noise=measured)
             row[null] = {
@@ -184,17 +190,18 @@ def main(argv: list[str]) -> None:
     n = int(argv[0]) if argv else 2000
     doc = mpu6050_model(Path(argv[1]) if len(argv) > 1 else None)
     jobs = int(argv[2]) if len(argv) > 2 else 1
+    mismatched = len(argv) > 3 and argv[3] == "mismatched"
     t0 = time.perf_counter()
     chunk = 50
     parts = [(i, min(chunk, n - i)) for i in range(0, n, chunk)]
     rows: list[dict] = []
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as ex:
-            for part in ex.map(run_units, *zip(*parts), [doc] * len(parts)):
+            for part in ex.map(run_units, *zip(*parts), [doc] * len(parts), [mismatched] * len(parts)):
                 rows += part
     else:
         for first, count in parts:
-            rows += run_units(first, count, doc)
+            rows += run_units(first, count, doc, mismatched)
     print(table(rows))
     print(
         "\n(overall p < 10 %: the share of units whose overall lack-of-fit p-value is below 0.1, "
