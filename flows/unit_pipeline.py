@@ -226,13 +226,23 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
             from calib_core.discovery.measured_noise import MeasuredNoise
             from calib_core.discovery.presentation import finding_rows
 
-            recorded = _recorded_noise(job, outcomes)
+            try:  # a recording that cannot be measured leaves discovery its own estimate
+                recorded = _recorded_noise(job, outcomes)
+            except Exception as exc:  # noqa: BLE001
+                note = f"noise recording not used by discovery: {type(exc).__name__}: {exc}"
             measured = (
                 None
                 if recorded is None
                 else MeasuredNoise.from_document(recorded[0].model, recorded[0].source)
             )
-            diag = diagnose_unit(good_sm, tables=False, measured_noise=measured)
+            try:
+                diag = diagnose_unit(good_sm, tables=False, measured_noise=measured)
+            except ValueError as exc:  # DesignError included
+                if measured is None:
+                    raise
+                # a recording's model discovery cannot use (e.g. a channel without noise)
+                note = f"noise recording not used by discovery: {exc}"
+                diag = diagnose_unit(good_sm, tables=False)
             diag_doc = diag.to_dict()
             diag_doc["rows"] = finding_rows(diag)  # the store's discovery rows
             evidence = diag.evidence if len(diag.evidence) else None

@@ -172,3 +172,10 @@ def test_the_nightly_hands_a_noise_recording_to_discovery(tmp_path):
     assert with_rec.outcome.noise.source == "recording static"
     assert without.diagnosis["noise_source"] == ESTIMATED_SOURCE
     assert without.outcome.noise.source.startswith("static steps")
+
+
+def test_a_measured_model_without_noise_on_a_channel_is_refused_by_name():
+    silent = {c: ChannelNoise("deg/s", {"white": 0.0 if c == "gy" else 0.01}) for c in ("gx", "gy", "gz")}
+    silent.update({c: ChannelNoise("g", {"white": 1e-4}) for c in ("ax", "ay", "az")})
+    with pytest.raises(ValueError, match="channel gy has no noise"):
+        step_noise_description(NoiseModel(RATE, 900.0, silent), _Grid(), RATE)

@@ -233,6 +233,8 @@ def step_noise_description(model: NoiseModel, grid: UnitGrid, rate_hz: float) ->
     for c, name in enumerate(CHANNELS):
         ch = model.channels[name]
         cov = centred_step_covariance(ch, starts, counts, rate_hz)
+        if not np.all(np.diag(cov) > 0):
+            raise ValueError(f"measured noise model: channel {name} has no noise on the steps")
         white = np.sqrt(white_step_variance(ch, counts, rate_hz))
         v, lam_c, tau_c = _fit_serial(cov, white, t)
         inst[c] = np.sqrt(v)
