@@ -192,6 +192,23 @@ def _discovery_available() -> bool:
         return False
 
 
+def _recorded_noise(job: UnitJob, outcomes: list[SessionOutcome]) -> tuple | None:
+    """(UnitNoise, notes) of the unit's noise recordings (``lot=L/unit=U/noise/``) through
+    its affine calibration, for model discovery's null; None without a readable recording
+    (discovery then estimates the noise from the repetitions)."""
+    from schemas.unit_noise import recording_noise
+
+    if not job.refs:
+        return None
+    prelim = aggregate_unit(job.lot, job.unit, outcomes)
+    if prelim.applied is None:
+        return None
+    noise, notes = recording_noise(
+        job.refs[0].path.parent, job.lot, job.unit, prelim.applied, getattr(job, "follow_symlinks", False)
+    )
+    return None if noise is None else (noise, notes)
+
+
 def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     """Calibrate every session of one unit, run model discovery on the good ones, aggregate.
     Never raises on bad data (the unit pipeline turns it into failed sessions)."""
@@ -201,13 +218,31 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     outcomes = calibrate_sessions(sorted(job.refs, key=lambda r: r.key.rep))
     diag_doc, note, terms, extended, evidence = None, None, (), None, None
     good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
+    recorded = None  # the unit's noise from its noise recordings, measured before discovery
     if run_discovery and _discovery_available() and len(good_sm) >= 2:
         from calib_core.discovery import diagnose_unit
 
         try:
+            from calib_core.discovery.measured_noise import MeasuredNoise
             from calib_core.discovery.presentation import finding_rows
 
-            diag = diagnose_unit(good_sm, tables=False)
+            try:  # a recording that cannot be measured leaves discovery its own estimate
+                recorded = _recorded_noise(job, outcomes)
+            except Exception as exc:  # noqa: BLE001
+                note = f"noise recording not used by discovery: {type(exc).__name__}: {exc}"
+            measured = (
+                None
+                if recorded is None
+                else MeasuredNoise.from_document(recorded[0].model, recorded[0].source)
+            )
+            try:
+                diag = diagnose_unit(good_sm, tables=False, measured_noise=measured)
+            except ValueError as exc:  # DesignError included
+                if measured is None:
+                    raise
+                # a recording's model discovery cannot use (e.g. a channel without noise)
+                note = f"noise recording not used by discovery: {exc}"
+                diag = diagnose_unit(good_sm, tables=False)
             diag_doc = diag.to_dict()
             diag_doc["rows"] = finding_rows(diag)  # the store's discovery rows
             evidence = diag.evidence if len(diag.evidence) else None
@@ -243,7 +278,10 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
         note = "; ".join(filter(None, [note, thermal_note]))
     try:  # the unit's noise model (lot=L/unit=U/noise/ or its static steps): flows.noise_units
         unit_dir = job.refs[0].path.parent if job.refs else None
-        noise_note = apply_noise(unit_out, unit_dir, getattr(job, "follow_symlinks", False))
+        if recorded is not None and not terms:  # measured through the same affine calibration
+            unit_out.noise, noise_note = recorded[0], "; ".join(recorded[1]) or None
+        else:
+            noise_note = apply_noise(unit_out, unit_dir, getattr(job, "follow_symlinks", False))
     except Exception as exc:  # noqa: BLE001 - the unit keeps its calibration without a noise model
         noise_note = f"E_INTERNAL: noise model of unit {job.unit} failed: {type(exc).__name__}: {exc}"
     if noise_note:

@@ -391,18 +391,25 @@ def calibrate_unit(dataset: str | Path, unit: str, discover: bool = True) -> Uni
     uc = UnitCalibration.from_reps(lot, unit, reps)
     cal = calibration_from_unit(uc)
     diagnosis = None
+    from schemas.unit_noise import measure_unit_noise, recording_noise
+
+    good = [(ref.key, ref.path) for ref, _, _ in read if ref.key.rep in {s["rep"] for s in sessions}]
+    unit_dir = Path(good[0][1]).parent
+    # a noise recording's model is discovery's null (the static steps' is not: same data)
+    noise, _ = recording_noise(unit_dir, lot, unit, cal) if discover and len(good_sm) >= 2 else (None, [])
     if discover and len(good_sm) >= 2:
         from dataclasses import replace
 
         from calib_core.discovery import diagnose_unit
+        from calib_core.discovery.measured_noise import MeasuredNoise
 
-        diagnosis = diagnose_unit(good_sm, tables=False)
+        measured = None if noise is None else MeasuredNoise.from_document(noise.model, noise.source)
+        diagnosis = diagnose_unit(good_sm, tables=False, measured_noise=measured)
         if diagnosis.terms:
             cal = replace(diagnosis.calibration, metadata={**cal.metadata, "model": "discovery (joint fit)"})
-    from schemas.unit_noise import measure_unit_noise
-
-    good = [(ref.key, ref.path) for ref, _, _ in read if ref.key.rep in {s["rep"] for s in sessions}]
-    noise, _ = measure_unit_noise(Path(good[0][1]).parent, lot, unit, cal, good)
+            noise = None  # measured again through the extended calibration
+    if noise is None:
+        noise, _ = measure_unit_noise(unit_dir, lot, unit, cal, good)
     return UnitCalibrationResult(lot, unit, cal, uc, failed, diagnosis, sessions, noise)
 
 

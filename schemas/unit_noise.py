@@ -117,3 +117,21 @@ def static_segments(
         if sum(len(x) for x in segments) >= max_samples:
             break
     return segments, float(np.median(rates)) if rates else float("nan")
+
+
+def recording_noise(
+    unit_dir: Path, lot: str, unit: str, applied, follow_symlinks: bool = False
+) -> tuple[UnitNoise | None, list[str]]:
+    """(UnitNoise or None, notes): the unit's noise model from its noise recordings alone
+    (:func:`measure_unit_noise` without its static steps), None when it has no readable
+    one. What model discovery takes as a noise measured independently of the repetitions:
+    the static steps' model comes from the repetitions themselves."""
+    from schemas.noise_dataset import find_noise_recordings
+
+    refs, _ = find_noise_recordings(unit_dir, lot, unit, follow_symlinks)
+    if not refs:
+        return None, []
+    noise, notes = measure_unit_noise(unit_dir, lot, unit, applied, [], follow_symlinks)
+    if noise is None or not noise.source.startswith("recording "):
+        return None, notes
+    return noise, notes

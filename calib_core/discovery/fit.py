@@ -24,6 +24,7 @@ import numpy as np
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.discovery.design import Layout, UnitGrid, protocol_layout
+from calib_core.discovery.measured_noise import MeasuredNoise
 from calib_core.discovery.noise import NoiseModel, prewhiten
 from calib_core.discovery.results import EXCITED_SHARE
 from calib_core.effects import CHANNELS, SensingGeometry, catalogue, get_effect
@@ -177,12 +178,15 @@ def joint_model(
     sessions: list[StepMeans],
     geometry: SensingGeometry | None = None,
     noise_fit: tuple[np.ndarray, np.ndarray] | None = None,
+    measured: MeasuredNoise | None = None,
 ) -> JointModel:
     """The joint model of one unit's repetitions (at least 2, one unit). ``geometry``: the
     sensing geometry the terms act through (default: that of the affine fit's K).
     ``noise_fit`` = (K rows (6, 3), physical residual (R, n, 6) on the grid) of the model
     whose residuals estimate the noise (:meth:`JointModel.noise_model`); default: the affine
-    model weighted by the within-step scatter alone."""
+    model weighted by the within-step scatter alone. ``measured``: a noise measured
+    independently of the repetitions (:mod:`calib_core.discovery.measured_noise`), which the
+    tests then use instead of the noise estimated from the repetitions' scatter."""
     if len(sessions) < 2:
         raise DesignError(
             "E_DISCOVERY_REPS",
@@ -207,8 +211,14 @@ def joint_model(
         K = noise_fit[0]
         geometry = SensingGeometry.from_gains(K[:3], K[3:])
         g = UnitGrid.build(sessions, names, geometry, layout=lay)
-    # noise from the data: within-step scatter through K + repetition scatter
-    noise = NoiseModel.from_residuals(g, *noise_fit)
+    # the noise measured elsewhere, or from the data: within-step scatter through K +
+    # repetition scatter
+    if measured is not None:
+        noise = NoiseModel.from_description(
+            g, noise_fit[0], measured.description(g, sessions[0].sample_rate_hz)
+        )
+    else:
+        noise = NoiseModel.from_residuals(g, *noise_fit)
     return JointModel(sessions, names, lay, g, geometry, noise)
 
 

@@ -207,11 +207,16 @@ class NoiseDescription:
     (rows of ``NOISE_COLUMNS``: channel, group, dof, step_sd, white_sd, instability_sd) and
     the serial correlation of its wandering bias. ``estimated`` says whether it was
     estimated from the same repetitions the tests then use (its parameters cost them dof) or
-    measured independently (e.g. an Allan variance of a long static recording: no cost)."""
+    measured independently (e.g. an Allan variance of a long static recording: no cost).
+    ``white_from_rows``: each step's white part is its group's ``white_sd`` (a measured model
+    knows the step mean's white-like variance from its processes, a periodic line or a
+    quantization averaged as they are) rather than the within-step scatter measured on the
+    unit (which counts them at their per-sample variance)."""
 
     rows: tuple[tuple, ...]
     serial: SerialNoise
     estimated: bool = False
+    white_from_rows: bool = False
 
 
 class NoiseModel:
@@ -267,14 +272,22 @@ class NoiseModel:
     @classmethod
     def from_description(cls, grid: UnitGrid, K: np.ndarray, description: NoiseDescription) -> NoiseModel:
         """A noise measured elsewhere: each step's sigma is its within-step scatter through
-        ``K`` plus the described instability of its channel and test group (0 for a group
-        the description lacks)."""
+        ``K`` (or, ``description.white_from_rows``, the described white sd of its channel
+        and test group) plus the described instability of its channel and test group (0 for
+        a group the description lacks)."""
         g = grid
-        white = g.white_sigma(K)
         lut = {(r[0], r[1]): float(r[5]) for r in description.rows}
         inst = np.array([[lut.get((ch, gn), 0.0) for gn in g.groups] for ch in CHANNELS], float)
+        if description.white_from_rows:
+            wlut = {(r[0], r[1]): float(r[4]) for r in description.rows}
+            wg = np.array([[wlut.get((ch, gn), 0.0) for gn in g.groups] for ch in CHANNELS], float)
+            white = np.where(g.real[..., None], wg.T[np.maximum(g.gcode, 0)], 0.0)
+        else:
+            white = g.white_sigma(K)
         sigma = cls._sigma(g, white, inst)
-        return cls(g, K, list(description.rows), sigma, description.serial, description.estimated)
+        out = cls(g, K, list(description.rows), sigma, description.serial, description.estimated)
+        out.white_from_rows = description.white_from_rows
+        return out
 
     @staticmethod
     def _sigma(g: UnitGrid, white: np.ndarray, inst: np.ndarray) -> np.ndarray:
@@ -286,7 +299,9 @@ class NoiseModel:
         return sigma
 
     def description(self) -> NoiseDescription:
-        return NoiseDescription(tuple(self.rows), self.serial, self.estimated)
+        return NoiseDescription(
+            tuple(self.rows), self.serial, self.estimated, getattr(self, "white_from_rows", False)
+        )
 
     @property
     def estimate(self) -> NoiseEstimate:

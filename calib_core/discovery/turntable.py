@@ -62,6 +62,7 @@ import pandas as pd
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.discovery.fit import joint_model
+from calib_core.discovery.measured_noise import ESTIMATED_SOURCE, MeasuredNoise
 from calib_core.discovery.policy import Policy
 from calib_core.discovery.presentation import evidence_frame
 from calib_core.discovery.replay import NoiseEstimate, replay_unit
@@ -118,6 +119,8 @@ class Diagnosis:
     misfit_between: list[str] = field(default_factory=list)
     # the series behind each finding's figure (calib_core.discovery.presentation)
     evidence: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
+    # the noise the tests used: "measured: recording <name>" or "estimated from the repetitions"
+    noise_source: str = ESTIMATED_SOURCE
 
     @property
     def calibration(self) -> Calibration:
@@ -154,6 +157,7 @@ class Diagnosis:
                 "heldout_rms_baseline": self.heldout_rms_baseline,
                 "heldout_rms_final": self.heldout_rms_final,
                 "noise": self.noise.records(),
+                "noise_source": self.noise_source,
             }
         )
 
@@ -174,8 +178,9 @@ class _Discovery:
         geometry: SensingGeometry | None = None,
         noise_model: tuple[np.ndarray, np.ndarray] | None = None,
         min_gain: float = DEFAULT_MIN_GAIN,
+        measured: MeasuredNoise | None = None,
     ):
-        self.model = joint_model(sessions, geometry, noise_model)
+        self.model = joint_model(sessions, geometry, noise_model, measured)
         self.tests = Significance(self.model)
         self.policy = Policy(self.model, self.tests, alpha, min_gain)
 
@@ -218,20 +223,28 @@ def diagnose_unit(
     alpha: float = DEFAULT_ALPHA,
     tables: bool = True,
     min_gain: float = DEFAULT_MIN_GAIN,
+    measured_noise: MeasuredNoise | None = None,
 ) -> Diagnosis:
     """Diagnose one unit from its repetitions (see the module docstring for the tests).
 
     ``alpha`` is the family-wise false-alarm rate per unit; ``min_gain`` the held-out gain a
     term must reach on the channels it fixes to be named; ``tables=False`` skips the
-    replayed residual tables (Monte Carlo speed)."""
+    replayed residual tables (Monte Carlo speed); ``measured_noise``: the unit's noise
+    measured independently of its repetitions (e.g. a long static recording), which the
+    tests then use in place of the noise estimated from the repetitions' scatter
+    (:mod:`calib_core.discovery.measured_noise`)."""
     with _single_thread_blas():
-        return _diagnose_unit(step_means_by_rep, alpha, tables, min_gain)
+        return _diagnose_unit(step_means_by_rep, alpha, tables, min_gain, measured_noise)
 
 
 def _diagnose_unit(
-    step_means_by_rep: list[StepMeans], alpha: float, tables: bool, min_gain: float
+    step_means_by_rep: list[StepMeans],
+    alpha: float,
+    tables: bool,
+    min_gain: float,
+    measured: MeasuredNoise | None = None,
 ) -> Diagnosis:
-    d = _Discovery(step_means_by_rep, alpha, min_gain=min_gain)
+    d = _Discovery(step_means_by_rep, alpha, min_gain=min_gain, measured=measured)
     chosen, partial, negligible = d.policy.select()
     moves: list[float] = []
     while (chosen or partial or negligible) and len(moves) < MAX_RELINEARISATIONS:
@@ -249,6 +262,7 @@ def _diagnose_unit(
             geometry=geometry,
             noise_model=d.model.noise_model(model),
             min_gain=min_gain,
+            measured=measured,
         )
         noise_moved = float(np.max(np.abs(np.log(d2.model.sigma / d.model.sigma))))
         before = (sorted(chosen), sorted(partial), sorted(negligible))
@@ -311,6 +325,7 @@ def _diagnose_unit(
         confounded=confounded,
         misfit_terms=list(p.misfit_terms()),
         misfit_between=list(p.misfit_between_terms()),
+        noise_source=ESTIMATED_SOURCE if measured is None else measured.label,
         confounded_set_aside=[list(i) for k in ("partial", "negligible") for i in items[k] if len(i) > 1],
         advice=[
             a.describe()

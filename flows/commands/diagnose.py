@@ -63,7 +63,9 @@ def summary_lines(diag) -> list[str]:
         if ch in step_sd:
             shown = value_unit("deg/s" if ch[0] == "g" else "g")
             parts.append(f"{ch} {step_sd[ch] * shown.factor:.3g} {shown.label}")
-    lines.append("noise of a step mean (repetition scatter): " + ", ".join(parts))
+    source = getattr(diag, "noise_source", "estimated from the repetitions")
+    where = "repetition scatter" if source.startswith("estimated") else source
+    lines.append(f"noise of a step mean ({where}): " + ", ".join(parts))
     lb = diag.lack_of_fit_before
     bad = [c for c, t in diag.channel_misfit_before.items() if t.rejects]
     if not diag.misfit:
