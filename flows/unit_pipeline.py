@@ -4,6 +4,7 @@ names its session, file, code and reason, and the rest of the unit goes on."""
 
 from __future__ import annotations
 
+import os
 import time
 import traceback
 from dataclasses import replace
@@ -30,6 +31,7 @@ from flows.unit_outcomes import (  # noqa: F401  (re-exported: the unit pipeline
 from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, read_step_means
 from schemas.dataset import SessionRef, fingerprint
 from schemas.errors import SessionError, from_design_error
+from schemas.hive import NOISE_DIR
 from schemas.unit_plan import FIELD, TURNTABLE, UnitJob  # noqa: F401  (UnitJob re-exported)
 
 
@@ -198,8 +200,8 @@ def _recorded_noise(job: UnitJob, outcomes: list[SessionOutcome]) -> tuple | Non
     (discovery then estimates the noise from the repetitions)."""
     from schemas.unit_noise import recording_noise
 
-    if not job.refs:
-        return None
+    if not job.refs or not os.path.lexists(job.refs[0].path.parent / NOISE_DIR):
+        return None  # most units: no recording, no preliminary aggregate
     prelim = aggregate_unit(job.lot, job.unit, outcomes)
     if prelim.applied is None:
         return None
