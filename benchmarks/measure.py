@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import importlib
 import os
 import resource
 import sys
@@ -306,7 +307,11 @@ def do_fit(a) -> dict:
     import calib_core.discovery  # noqa: F401
     import flows.unit_pipeline  # noqa: F401
     from calib_core.outliers import OutlierConfig, flag_lots
+    from flows.compute_pool import PRELOAD
 
+    # what the nightly's worker processes are forked with (flows.compute_pool's forkserver)
+    for name in PRELOAD[1:]:
+        importlib.import_module(name)
     units, _ = _units(a.dataset)
     # --no-floor: the floor's scan (pyarrow's threaded read-ahead and memory pool) raises this
     # process's peak RSS with the fleet size; the fit phase's own peak needs a run without it

@@ -680,6 +680,8 @@ def lot_report_flow(results: str, lot: str, config: str | None = None, wait: boo
 # that thread first and logs what it cost (run log: ``preload``).
 FLOW_PRELOAD = (
     "calib_core.discovery",
+    "calib_core.noise",
+    "flows.thermal_units",
     "calib_core.models.zhang2017",
     "calib_core.sim.navigation",
     "calib_core.models.pipeline",
