@@ -40,8 +40,8 @@ Kinds:
 from __future__ import annotations
 
 import argparse
-import json
 import importlib
+import json
 import os
 import resource
 import sys
@@ -324,9 +324,11 @@ def do_fit(a) -> dict:
         # batch by batch, as a nightly task: calibrate_batch returns its whole batch's
         # results, so one call over the fleet would hold every unit's (~0.4 MB each) at once
         # and the peak would grow with the fleet for the harness's sake, not the pipeline's
+        from schemas.unit_plan import make_batches
+
         c = 0.0
-        for i in range(0, len(units), a.batch):
-            b_summary, b_ok, b_failed, b_c = _fit_units(units[i : i + a.batch], a.discovery)
+        for batch in make_batches(units, a.batch):
+            b_summary, b_ok, b_failed, b_c = _fit_units(batch, a.discovery)
             frames.append(b_summary)
             ok, failed, c = ok + b_ok, failed + b_failed, c + b_c
         worker_cpu.append(c)
@@ -335,7 +337,9 @@ def do_fit(a) -> dict:
         from concurrent.futures import ProcessPoolExecutor
         from functools import partial
 
-        batches = [units[i : i + a.batch] for i in range(0, len(units), a.batch)]
+        from schemas.unit_plan import make_batches
+
+        batches = make_batches(units, a.batch)  # as the nightly cuts them
         with ProcessPoolExecutor(a.workers, mp_context=mp.get_context("fork")) as pool:
             for r, o, f, c in pool.map(partial(_fit_units, run_discovery=a.discovery), batches):
                 frames.append(r)
