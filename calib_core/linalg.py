@@ -243,7 +243,12 @@ def nnls_stack(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     for mask in range(1, (1 << p) - 1):
         cols = [j for j in range(p) if mask >> j & 1]
         sub = A[:, :, cols]
-        xs = lstsq_pinv_stack(sub, b)
+        if len(cols) == 1:  # one column: its projection, without an SVD
+            aa = np.einsum("bm,bm->b", sub[..., 0], sub[..., 0])
+            ab = np.einsum("bm,bm->b", sub[..., 0], b)
+            xs = np.where(aa > 0, ab / np.where(aa > 0, aa, 1.0), 0.0)[:, None]
+        else:
+            xs = lstsq_pinv_stack(sub, b)
         r = np.einsum("bmk,bk->bm", sub, xs) - b
         ss = np.einsum("bm,bm->b", r, r)
         better = np.all(xs >= 0, axis=1) & (ss < best_ss)
