@@ -65,8 +65,12 @@ def calibrate_sessions(
             outcomes[i] = _failed(ref, fps[i], exc)
             continue
         if keep_static_steps and n_static < MAX_STATIC_SAMPLES:
-            static[i] = static_steps(data)
-            n_static += static[i].n_samples
+            try:
+                static[i] = static_steps(data)
+                n_static += static[i].n_samples
+            except Exception:  # noqa: BLE001 - the noise model then reads the session again
+                static[i] = None
+        data = None  # the samples are not held past their session
         read.append((i, sm, warns))
     # steps that contradict the unit's other repetitions are left out before the fits
     # (chamber sessions only against those of their own setpoint: the temperature moves them)
