@@ -22,6 +22,7 @@ from functools import lru_cache
 import numpy as np
 from scipy import optimize, special, stats
 
+from calib_core.linalg import nnls_stack
 from calib_core.noise import processes
 from calib_core.noise.allan import AllanCurve, chi2_ppf
 
@@ -234,8 +235,6 @@ def fit_allan_stack(curves: list[AllanCurve], terms: tuple[Term, ...]) -> list[A
     non-negative generalized least squares, each curve iterated until its own convergence,
     its NNLS by :func:`calib_core.linalg.nnls_stack`. The figures are fit_allan's up to
     rounding."""
-    from calib_core.linalg import nnls_stack
-
     tau, rate = curves[0].tau_s, curves[0].rate_hz
     avar = np.array([c.avar for c in curves])
     edf = np.array([c.edf for c in curves])
