@@ -40,6 +40,7 @@ Kinds:
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import resource
@@ -306,7 +307,11 @@ def do_fit(a) -> dict:
     import calib_core.discovery  # noqa: F401
     import flows.unit_pipeline  # noqa: F401
     from calib_core.outliers import OutlierConfig, flag_lots
+    from flows.compute_pool import PRELOAD
 
+    # what the nightly's worker processes are forked with (flows.compute_pool's forkserver)
+    for name in PRELOAD[1:]:
+        importlib.import_module(name)
     units, _ = _units(a.dataset)
     # --no-floor: the floor's scan (pyarrow's threaded read-ahead and memory pool) raises this
     # process's peak RSS with the fleet size; the fit phase's own peak needs a run without it
@@ -319,9 +324,11 @@ def do_fit(a) -> dict:
         # batch by batch, as a nightly task: calibrate_batch returns its whole batch's
         # results, so one call over the fleet would hold every unit's (~0.4 MB each) at once
         # and the peak would grow with the fleet for the harness's sake, not the pipeline's
+        from schemas.unit_plan import make_batches
+
         c = 0.0
-        for i in range(0, len(units), a.batch):
-            b_summary, b_ok, b_failed, b_c = _fit_units(units[i : i + a.batch], a.discovery)
+        for batch in make_batches(units, a.batch):
+            b_summary, b_ok, b_failed, b_c = _fit_units(batch, a.discovery)
             frames.append(b_summary)
             ok, failed, c = ok + b_ok, failed + b_failed, c + b_c
         worker_cpu.append(c)
@@ -330,7 +337,9 @@ def do_fit(a) -> dict:
         from concurrent.futures import ProcessPoolExecutor
         from functools import partial
 
-        batches = [units[i : i + a.batch] for i in range(0, len(units), a.batch)]
+        from schemas.unit_plan import make_batches
+
+        batches = make_batches(units, a.batch)  # as the nightly cuts them
         with ProcessPoolExecutor(a.workers, mp_context=mp.get_context("fork")) as pool:
             for r, o, f, c in pool.map(partial(_fit_units, run_discovery=a.discovery), batches):
                 frames.append(r)
@@ -379,20 +388,31 @@ def do_stages(a) -> dict:
     from calib_core.discovery import diagnose_unit
     from calib_core.discovery.presentation import finding_rows
     from calib_core.models.pipeline import calibrate_repetitions
+    from flows.noise_units import apply_noise
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     from schemas.averaging import average_session
     from schemas.reader import read_session
 
     units, _ = _units(a.dataset)
     units = units[: a.units]
-    t = {"read_validate": 0.0, "average": 0.0, "fit": 0.0, "discovery": 0.0, "aggregate": 0.0, "floor": 0.0}
-    n, discovery_cpu = 0, 0.0
+    t = {
+        "read_validate": 0.0,
+        "average": 0.0,
+        "fit": 0.0,
+        "discovery": 0.0,
+        "aggregate": 0.0,
+        "noise": 0.0,
+        "floor": 0.0,
+    }
+    n, discovery_cpu, noise_cpu = 0, 0.0, 0.0
     import pyarrow.dataset as ds
 
     aggs = [(c, "mean") for c in SENSOR_COLUMNS]
     if units:  # one untimed pass first: the numerics' first-call imports are not a stage's
-        calibrate_sessions(units[0], keep_step_means=False)
+        outcomes = calibrate_sessions(units[0], keep_step_means=False, keep_static_steps=True)
         diagnose_unit([average_session(read_session(ref))[0] for ref in units[0]], tables=False)
+        ref0 = units[0][0]
+        apply_noise(aggregate_unit(ref0.key.lot, ref0.key.unit, outcomes), ref0.path.parent)
     for refs in units:
         sms = []
         for ref in refs:
@@ -419,10 +439,15 @@ def do_stages(a) -> dict:
         finding_rows(diagnose_unit(sms, tables=False))
         t["discovery"] += time.perf_counter() - t0
         discovery_cpu += time.process_time() - c0
-        outcomes = calibrate_sessions(refs, keep_step_means=False)
+        outcomes = calibrate_sessions(refs, keep_step_means=False, keep_static_steps=True)
         t1 = time.perf_counter()
-        aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
+        unit_out = aggregate_unit(refs[0].key.lot, refs[0].key.unit, outcomes)
         t["aggregate"] += time.perf_counter() - t1
+        # the unit's noise model on the static steps kept from its read, as the nightly
+        t1, c1 = time.perf_counter(), time.process_time()
+        apply_noise(unit_out, refs[0].path.parent)
+        t["noise"] += time.perf_counter() - t1
+        noise_cpu += time.process_time() - c1
     # per session: the unit-level fit, discovery and aggregate are spread over its sessions
     per_session_ms = {k: 1e3 * v / max(1, n) for k, v in t.items()}
     return {
@@ -431,6 +456,7 @@ def do_stages(a) -> dict:
         "per_session_ms": per_session_ms,
         "discovery_ms_per_unit": 1e3 * t["discovery"] / max(1, len(units)),
         "discovery_cpu_ms_per_unit": 1e3 * discovery_cpu / max(1, len(units)),
+        "noise_cpu_ms_per_unit": 1e3 * noise_cpu / max(1, len(units)),
     }
 
 

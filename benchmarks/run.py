@@ -417,8 +417,9 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
             f"wall per session ({min(st_all)[1]}-unit fleet, the least disturbed "
             f"stages run): read+validate {st.get('read_validate', 0):.1f} ms, average "
             f"{st.get('average', 0):.1f} ms, fit (calib_core) {st.get('fit', 0):.1f} ms, "
-            f"discovery {st.get('discovery', 0):.1f} ms, aggregate {st.get('aggregate', 0):.1f} ms, vs floor "
-            f"{st.get('floor', 0):.1f} ms per file"
+            f"discovery {st.get('discovery', 0):.1f} ms, aggregate {st.get('aggregate', 0):.1f} ms"
+            + (f", noise model {st['noise']:.1f} ms" if "noise" in st else "")
+            + f", vs floor {st.get('floor', 0):.1f} ms per file"
         )
     # The size (200 units) and the largest measured: each with every way of measuring
     # the ratio, and a verdict naming which of them meet the target and which do not (the
@@ -807,8 +808,8 @@ def markdown(doc: dict) -> str:
             "",
             "| units | floor: scan + group-by of one file [ms] | read + validate [ms] "
             "| average [ms] | fit, calib_core [ms] | discovery [ms] | aggregate [ms] "
-            "| discovery per unit, CPU [ms] |",
-            "|---|---|---|---|---|---|---|---|",
+            "| noise model [ms] | discovery per unit, CPU [ms] | noise model per unit, CPU [ms] |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         tail = [
             "",
@@ -816,8 +817,10 @@ def markdown(doc: dict) -> str:
             "unit's repetitions fitted together (`calibrate_repetitions`, as the nightly), "
             "with the compensation-error and residual tables; discovery = `diagnose_unit` "
             "and the store's discovery rows, as the nightly; fit, discovery and aggregate "
-            "are per unit, spread over its sessions (wall); the last column is discovery's "
-            "CPU per unit.",
+            "are per unit, spread over its sessions (wall); noise model = the unit's noise "
+            "measured on the static steps kept from its one read (`flows.noise_units.apply_noise`, "
+            "as the nightly), per unit spread over its sessions; the last two columns are "
+            "discovery's and the noise model's CPU per unit.",
         ]
         for n, r in sorted(doc["sizes"].items(), key=lambda kv: int(kv[0])):
             st = _g(r, "stages", "per_session_ms") or {}
@@ -826,7 +829,9 @@ def markdown(doc: dict) -> str:
                 f"| {_f(st.get('read_validate'), '{:.1f}')} "
                 f"| {_f(st.get('average'), '{:.1f}')} | {_f(st.get('fit'), '{:.1f}')} "
                 f"| {_f(st.get('discovery'), '{:.1f}')} | {_f(st.get('aggregate'), '{:.1f}')} "
-                f"| {_f(_g(r, 'stages', 'discovery_cpu_ms_per_unit'), '{:.1f}')} |"
+                f"| {_f(st.get('noise'), '{:.1f}')} "
+                f"| {_f(_g(r, 'stages', 'discovery_cpu_ms_per_unit'), '{:.1f}')} "
+                f"| {_f(_g(r, 'stages', 'noise_cpu_ms_per_unit'), '{:.1f}')} |"
             )
         out += tail + [""]
     # rerun, prefect, dask

@@ -224,6 +224,42 @@ def lstsq_pinv_stack(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.where(live, theta, 0.0)
 
 
+def nnls_stack(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Non-negative least squares, min ||A x - b|| subject to x >= 0, of a stack of small
+    problems, A (B, m, p), b (B, m), p a few columns: x (B, p). A problem whose least
+    squares (:func:`lstsq_pinv_stack`) is non-negative has it as its answer; for the others
+    each column subset's least squares is tried and the answer is the feasible one (every
+    coefficient >= 0, x = 0 included) of smallest residual, which is the problem's minimum
+    when A has full column rank (the optimum is the least squares of its positive
+    coefficients' columns). Up to 2^p - 1 batched solves: for p up to ~4."""
+    B, _, p = A.shape
+    x = lstsq_pinv_stack(A, b)
+    todo = np.flatnonzero(~np.all(x >= 0, axis=1))
+    if not len(todo):
+        return x
+    A, b = A[todo], b[todo]
+    best = np.zeros((len(todo), p))
+    best_ss = np.einsum("bm,bm->b", b, b)
+    for mask in range(1, (1 << p) - 1):
+        cols = [j for j in range(p) if mask >> j & 1]
+        sub = A[:, :, cols]
+        if len(cols) == 1:  # one column: its projection, without an SVD
+            aa = np.einsum("bm,bm->b", sub[..., 0], sub[..., 0])
+            ab = np.einsum("bm,bm->b", sub[..., 0], b)
+            xs = np.where(aa > 0, ab / np.where(aa > 0, aa, 1.0), 0.0)[:, None]
+        else:
+            xs = lstsq_pinv_stack(sub, b)
+        r = np.einsum("bmk,bk->bm", sub, xs) - b
+        ss = np.einsum("bm,bm->b", r, r)
+        better = np.all(xs >= 0, axis=1) & (ss < best_ss)
+        if better.any():
+            best[better] = 0.0
+            best[np.ix_(better, cols)] = xs[better]
+            best_ss = np.where(better, ss, best_ss)
+    x[todo] = best
+    return x
+
+
 def qr_r(X: np.ndarray) -> np.ndarray:
     """R factor of each matrix of a stack (..., m, k), padded with zero rows to (..., k, k)."""
     Rf = np.linalg.qr(X, mode="r")

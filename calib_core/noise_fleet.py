@@ -196,11 +196,15 @@ def static_step_record(segments: list[np.ndarray], min_samples: int = 8) -> tupl
     """The static steps ``segments`` (each (n_i, 6): calibrated gx gy gz ax ay az of one step
     at rest, settling left out), each minus its own mean, joined into one (n, 6) record, and
     the shortest step's sample count used. Steps shorter than ``min_samples`` are left out."""
-    kept = [np.asarray(s, float) for s in segments if len(s) >= min_samples]
+    kept = [s for s in segments if len(s) >= min_samples]
     if not kept:
         raise ValueError(f"no static step of at least {min_samples} samples")
-    joined = np.concatenate([s - s.mean(axis=0) for s in kept])
-    return joined, float(min(len(s) for s in kept))
+    joined = np.concatenate(kept).astype(float, copy=False)
+    lengths = np.array([len(s) for s in kept])
+    starts = np.concatenate(([0], np.cumsum(lengths)[:-1]))
+    means = np.add.reduceat(joined, starts, axis=0) / lengths[:, None]
+    joined -= np.repeat(means, lengths, axis=0)
+    return joined, float(lengths.min())
 
 
 # --- the lot's judgement -----------------------------------------------------------------
@@ -345,23 +349,25 @@ def analyse_static_steps(
     record: np.ndarray, rate_hz: float, shortest_s: float, channel_units: tuple[str, ...]
 ) -> dict[str, Any]:
     """The noise document (``mimucal noise --json``'s shape) of a :func:`static_step_record`
-    (n, 6): the Allan deviation (:func:`calib_core.noise.allan_curve`) at the octave cluster
-    sizes up to a quarter of the shortest step, and the composite fit
-    (:func:`calib_core.noise.fit_allan`) of the processes those clusters see, quantization
-    and white noise; quantization is named when its 95 % interval excludes zero. No noise
-    discovery and no spectral lines: their evidence is in what a step's mean removes, and
-    the full analysis of a recording costs ~0.3 s a unit, this ~10 ms."""
-    from calib_core.noise import ChannelAnalysis, ChannelNoise, allan_curve, fit_allan
-    from calib_core.noise.fit import Term
+    (n, 6): the Allan deviation (:func:`calib_core.noise.allan.allan_curves`, the six
+    channels together) at the octave cluster sizes up to a quarter of the shortest step, and
+    the composite fit (:func:`calib_core.noise.fit.fit_allan_stack`) of the processes those
+    clusters see, quantization and white noise; quantization is named when its 95 % interval
+    excludes zero. Bias instability, random walk and ramp are left undetermined with the
+    reason, without a fit: each step's mean removes them. No noise discovery and no spectral
+    lines: their evidence is in what a step's mean removes too."""
+    from calib_core.noise import ChannelAnalysis, ChannelNoise
+    from calib_core.noise.allan import allan_curves
+    from calib_core.noise.fit import Term, fit_allan_stack
 
     n = len(record)
     m_max = max(1, int(shortest_s * rate_hz / 4))
     m = 2 ** np.arange(int(np.floor(np.log2(m_max))) + 1)
     channels = {}
     why_slow = "the static steps cannot determine it (each step's mean removed)"
-    for i, (ch, unit) in enumerate(zip(CHANNELS, channel_units)):
-        curve = allan_curve(record[:, i], rate_hz, m)
-        fit = fit_allan(curve, (Term("quantization"), Term("white")))
+    curves = allan_curves(np.asarray(record, float), rate_hz, m)
+    fits = fit_allan_stack(curves, (Term("quantization"), Term("white")))
+    for ch, unit, curve, fit in zip(CHANNELS, channel_units, curves, fits):
         coefficients, intervals, reasons = {}, {}, {}
         for term, c in zip(fit.terms, fit.c):
             lo, hi = fit.interval(term.name)

@@ -41,8 +41,16 @@ from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from typing import Any
 
-# imported once by the forkserver; every worker is a fork of it
-PRELOAD = ("__main__", "flows.unit_pipeline", "calib_core.discovery", "calib_core.outliers")
+# imported once by the forkserver; every worker is a fork of it (the noise analysis and the
+# thermal fit are imported on a worker's first unit otherwise: ~30 ms of CPU per worker)
+PRELOAD = (
+    "__main__",
+    "flows.unit_pipeline",
+    "calib_core.discovery",
+    "calib_core.outliers",
+    "calib_core.noise",
+    "flows.thermal_units",
+)
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()

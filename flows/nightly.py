@@ -6,7 +6,7 @@ configuration :mod:`schemas.limits` and :mod:`reports`. A night: plan the units 
 sessions changed, calibrate them in batches and store each lot as it completes, re-flag the
 lots touched, write their reports, log the run (:func:`nightly_flow`).
 
-Granularity: one Prefect task per *batch of units* (``batch_size`` units, default 8): a task
+Granularity: one Prefect task per *batch of units* (at most ``batch_size``, default 8): a task
 costs ~4 ms with the thread pool and ~60-85 ms with a process pool or Dask (docs/flows.md),
 a session ~0.1-0.3 s. Tasks receive session paths, never arrays, and return fitted results
 in memory (``persist_result=False``, no cache policy): Prefect writes no sample data.
@@ -74,7 +74,11 @@ from schemas.results_store import (  # noqa: E402
     utc_now,
 )
 from schemas.store_rows import StoreRows, remove_files, unit_store_rows, write_unit_tables  # noqa: E402
-from schemas.unit_plan import plan_unit_jobs, plan_units  # noqa: E402,F401  (plan_units re-exported)
+from schemas.unit_plan import (  # noqa: E402,F401  (plan_units, make_batches re-exported)
+    make_batches,
+    plan_unit_jobs,
+    plan_units,
+)
 
 DEFAULT_BATCH_SIZE = 8
 
@@ -290,11 +294,6 @@ def known_names(dataset: str | Path, field: str) -> str:
     shown = sorted(names)
     more = f", ... ({len(shown)} in all)" if len(shown) > 20 else ""
     return f"{field}s there: {', '.join(shown[:20]) or 'none'}{more}"
-
-
-def make_batches(jobs: list[UnitJob], batch_size: int) -> list[list[UnitJob]]:
-    batch_size = max(1, int(batch_size))
-    return [jobs[i : i + batch_size] for i in range(0, len(jobs), batch_size)]
 
 
 def new_run_id() -> str:
@@ -680,6 +679,8 @@ def lot_report_flow(results: str, lot: str, config: str | None = None, wait: boo
 # that thread first and logs what it cost (run log: ``preload``).
 FLOW_PRELOAD = (
     "calib_core.discovery",
+    "calib_core.noise",
+    "flows.thermal_units",
     "calib_core.models.zhang2017",
     "calib_core.sim.navigation",
     "calib_core.models.pipeline",

@@ -19,8 +19,10 @@ def apply_noise(unit_out, unit_dir: Path | None, follow_symlinks: bool = False) 
     if unit_out.applied is None or unit_dir is None:
         return None
     good = [(s.key, s.path) for s in unit_out.sessions if s.succeeded]
+    # the static steps the unit pipeline kept from its read of each session (no second read)
+    kept = {s.key: s.static_steps for s in unit_out.sessions if s.succeeded and s.static_steps is not None}
     noise, notes = measure_unit_noise(
-        unit_dir, unit_out.lot, unit_out.unit, unit_out.applied, good, follow_symlinks
+        unit_dir, unit_out.lot, unit_out.unit, unit_out.applied, good, follow_symlinks, static=kept
     )
     unit_out.noise = noise
     return "; ".join(notes) or None

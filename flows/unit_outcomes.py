@@ -37,6 +37,9 @@ class SessionOutcome:
     step_means: StepMeans | None = None  # kept for discovery; dropped before storing
     # facts about the protocol (P_...), not warnings: said once per lot, the session stays ok
     protocol_notes: list[str] = field(default_factory=list)
+    # the static steps' samples as read (schemas.unit_noise.StaticSteps), kept for the unit's
+    # noise model; dropped before storing
+    static_steps: Any = None
 
     @property
     def succeeded(self) -> bool:

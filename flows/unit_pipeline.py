@@ -28,10 +28,12 @@ from flows.unit_outcomes import (  # noqa: F401  (re-exported: the unit pipeline
     UnitResult,
     failed_unit_result,
 )
-from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, read_step_means
+from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, session_step_means
 from schemas.dataset import SessionRef, fingerprint
 from schemas.errors import SessionError, from_design_error
 from schemas.hive import NOISE_DIR
+from schemas.reader import read_session
+from schemas.unit_noise import MAX_STATIC_SAMPLES, static_steps
 from schemas.unit_plan import FIELD, TURNTABLE, UnitJob  # noqa: F401  (UnitJob re-exported)
 
 
@@ -40,22 +42,37 @@ def calibrate_session(ref: SessionRef, keep_step_means: bool = True) -> SessionO
     return calibrate_sessions([ref], keep_step_means)[0]
 
 
-def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> list[SessionOutcome]:
+def calibrate_sessions(
+    refs: list[SessionRef], keep_step_means: bool = True, keep_static_steps: bool = False
+) -> list[SessionOutcome]:
     """:func:`calibrate_session` of each session (the repetitions of a unit): every session
     read first, then the fits of those read together (``calibrate_repetitions`` stacks the
     sessions that share a step layout); each outcome is the one its session gives alone, but
     for the steps left out because they contradict the same step in the unit's other
-    repetitions (``W_INCONSISTENT_STEP``, :func:`schemas.averaging.leave_out_inconsistent_steps`)."""
+    repetitions (``W_INCONSISTENT_STEP``, :func:`schemas.averaging.leave_out_inconsistent_steps`).
+    ``keep_static_steps``: each outcome also keeps its session's static steps as read
+    (:func:`schemas.unit_noise.static_steps`, what the noise model is measured on without a
+    recording), from the first sessions until they hold ``MAX_STATIC_SAMPLES``."""
     fps = []
     read: list[tuple[int, StepMeans, list]] = []
     outcomes: list[SessionOutcome | None] = [None] * len(refs)
+    static: list = [None] * len(refs)
+    n_static = 0
     for i, ref in enumerate(refs):
         fps.append(_safe_fingerprint(ref.path))
         try:
-            sm, warns = read_step_means(ref)
+            data = read_session(ref)
+            sm, warns = session_step_means(data)
         except Exception as exc:  # noqa: BLE001 - mapped to the session's failure below
             outcomes[i] = _failed(ref, fps[i], exc)
             continue
+        if keep_static_steps and n_static < MAX_STATIC_SAMPLES:
+            try:
+                static[i] = static_steps(data)
+                n_static += static[i].n_samples
+            except Exception:  # noqa: BLE001 - the noise model then reads the session again
+                static[i] = None
+        data = None  # the samples are not held past their session
         read.append((i, sm, warns))
     # steps that contradict the unit's other repetitions are left out before the fits
     # (chamber sessions only against those of their own setpoint: the temperature moves them)
@@ -98,6 +115,7 @@ def calibrate_sessions(refs: list[SessionRef], keep_step_means: bool = True) -> 
             fit.compensation_table,
             sm if keep_step_means else None,
             list(fit.calibration.protocol_notes),
+            static_steps=static[i],
         )
     return outcomes
 
@@ -217,7 +235,7 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     from calib_core.models.pipeline import residual_table
 
     t0 = time.perf_counter()
-    outcomes = calibrate_sessions(sorted(job.refs, key=lambda r: r.key.rep))
+    outcomes = calibrate_sessions(sorted(job.refs, key=lambda r: r.key.rep), keep_static_steps=True)
     diag_doc, note, terms, extended, evidence = None, None, (), None, None
     good_sm = [o.step_means for o in outcomes if o.succeeded and o.step_means is not None]
     recorded = None  # the unit's noise from its noise recordings, measured before discovery
@@ -289,8 +307,9 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
     if noise_note:
         unit_out.notes.append(noise_note)
         note = "; ".join(filter(None, [note, noise_note]))
-    for o in unit_out.sessions:  # step means are not kept past this point
+    for o in unit_out.sessions:  # step means and static steps are not kept past this point
         o.step_means = None
+        o.static_steps = None
     return UnitResult(
         job.lot, job.unit, unit_out, diag_doc, note, time.perf_counter() - t0, discovery_evidence=evidence
     )

@@ -547,7 +547,13 @@ def read_step_means(
     """Read, validate and average one session directory. Raises :class:`SessionError`,
     also when more than ``max_lost_share`` (default :func:`max_lost_step_share`) of its
     steps are left out."""
-    data = read_session(ref)
+    return session_step_means(read_session(ref), min_samples, max_lost_share)
+
+
+def session_step_means(
+    data: SessionData, min_samples: int = 10, max_lost_share: float | None = None
+) -> tuple[StepMeans, list[SessionWarning]]:
+    """:func:`read_step_means` of a session already read."""
     with NumericEvents() as numeric:
         sm, warns = average_session(data, min_samples)
     check_lost_steps(data.label, len(data.steps), warns, max_lost_share)

@@ -8,6 +8,8 @@ cannot be used becomes a note naming it."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,12 +32,20 @@ def analyse_channels(data: np.ndarray, rate_hz: float) -> dict:
 
 
 def measure_unit_noise(
-    unit_dir: Path, lot: str, unit: str, applied, sessions: list[tuple], follow_symlinks: bool = False
+    unit_dir: Path,
+    lot: str,
+    unit: str,
+    applied,
+    sessions: list[tuple],
+    follow_symlinks: bool = False,
+    static: Mapping | None = None,
 ) -> tuple[UnitNoise | None, list[str]]:
     """(UnitNoise or None, notes): the unit's noise model from its longest readable noise
     recording, else from the static steps of ``sessions`` ((SessionKey, session directory)
     of its good sessions), each through the calibration ``applied`` (its affine part: at
-    rest the catalogue terms add a constant, which an Allan deviation does not see)."""
+    rest the catalogue terms add a constant, which an Allan deviation does not see).
+    ``static``: {SessionKey: :class:`StaticSteps`} kept from reading the sessions
+    (the sessions not in it are read again)."""
     from schemas.noise_dataset import find_noise_recordings, read_noise_recording
 
     notes: list[str] = []
@@ -61,7 +71,7 @@ def measure_unit_noise(
                 f"noise model from recording {rec.ref.name!r}, the longest; not used: {', '.join(others)}"
             )
         return unit_noise(doc, f"recording {rec.ref.name}", notes=notes), notes
-    segments, rate = static_segments(applied, sessions)
+    segments, rate = static_segments(applied, sessions, kept=static)
     if not segments:
         notes.append(f"unit {lot}/{unit}: no noise recording and no static step to measure the noise on")
         return None, notes
@@ -76,44 +86,98 @@ def measure_unit_noise(
 
 
 # the static steps' record is cut at the session that brings it to this many samples: the
-# white noise to ~1.5 % (one 100 Hz session of the default protocol holds ~9,000), and the
-# cost of reading the sessions again and of the Allan deviation bounded (~0.24 s a unit of
-# five 100 Hz sessions read whole, ~40 ms so)
+# white noise to ~1.5 % (one 100 Hz session of the default protocol holds ~9,000) and the
+# Allan deviation's cost bounded
 MAX_STATIC_SAMPLES = 8192
 
 
+@dataclass(frozen=True)
+class StaticSteps:
+    """One session's static steps (``multiposition`` / ``stationary``, rate 0) after
+    settling, as read (the session's units, no calibration applied): the samples the unit's
+    noise is measured on when it has no long recording. The unit pipeline keeps them from
+    its one read of the session (:func:`static_steps`), so that the noise model needs no
+    second read."""
+
+    gyro: np.ndarray  # (m, 3) the static steps' samples, step after step
+    accel: np.ndarray  # (m, 3)
+    lengths: tuple[int, ...]  # samples of each static step with samples, in steps-table order
+    rate_hz: float
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.gyro)
+
+
+def static_steps(data) -> StaticSteps:
+    """The :class:`StaticSteps` of a read session (:class:`schemas.reader.SessionData`):
+    every static step's samples in sample order, kept from ``settle_s`` after the step's
+    first sample (``t - t0 >= settle_s - 1e-6``, as the averaging keeps them), the steps in
+    the steps table's order; a step with samples but none after settling has length 0. No
+    lengths at all: no static step has a sample."""
+    cols = data.step_columns
+    if cols is None:
+        from schemas.reader import StepColumns
+
+        cols = StepColumns.from_frame(data.steps)
+    is_static = np.isin(cols.test, STATIC_TESTS) & (np.abs(cols.rate_dps) == 0)
+    none = StaticSteps(np.zeros((0, 3)), np.zeros((0, 3)), (), data.sample_rate_hz)
+    if not is_static.any():
+        return none
+    rows = data.step_row
+    if rows is None:
+        order = np.argsort(cols.step, kind="stable")
+        pos = np.clip(np.searchsorted(cols.step[order], data.step), 0, len(cols.step) - 1)
+        rows = np.where(data.step == -1, -1, order[pos])
+    lut = np.zeros(len(is_static) + 1, bool)  # lut[-1]: the between-steps row -1
+    lut[:-1] = is_static
+    sel = np.flatnonzero(lut[rows])
+    if not len(sel):
+        return none
+    # grouped by step row (steps-table order), each step's samples in sample order
+    sel = sel[np.argsort(rows[sel], kind="stable")]
+    r = rows[sel]
+    first = np.flatnonzero(np.concatenate(([True], r[1:] != r[:-1])))
+    size = np.diff(first, append=len(r))
+    t = data.t[sel]
+    t0 = np.repeat(t[first], size)
+    keep = t - t0 >= cols.settle_s[r] - 1e-6
+    lengths = np.add.reduceat(keep, first, dtype=np.int64)
+    idx = sel[keep]
+    return StaticSteps(data.gyro[idx], data.accel[idx], tuple(int(x) for x in lengths), data.sample_rate_hz)
+
+
 def static_segments(
-    applied, sessions: list[tuple], max_samples: int = MAX_STATIC_SAMPLES
+    applied,
+    sessions: list[tuple],
+    max_samples: int = MAX_STATIC_SAMPLES,
+    kept: Mapping | None = None,
 ) -> tuple[list[np.ndarray], float]:
     """The calibrated samples (affine part) of every static step after settling of the
     sessions ((SessionKey, directory)), in order, until ``max_samples`` are gathered, and
-    their sample rate."""
+    their sample rate. ``kept``: {SessionKey: StaticSteps} of sessions already read
+    (the unit pipeline's); the others are read here."""
     from schemas.dataset import SessionRef
     from schemas.reader import read_session
 
     segments, rates = [], []
     for key, path in sessions:
-        try:
-            data = read_session(SessionRef(key, Path(path)))
-        except SessionError:
+        if kept is not None and key in kept:
+            st = kept[key]
+        else:
+            try:
+                st = static_steps(read_session(SessionRef(key, Path(path))))
+            except SessionError:
+                continue
+        if not st.lengths:  # no static step with a sample
             continue
-        steps = data.steps
-        static = steps[steps["test"].isin(STATIC_TESTS) & (steps["rate_dps"].abs() == 0)]
-        kept = []
-        for sid, settle in zip(static["step"].to_numpy(), static["settle_s"].to_numpy(float)):
-            idx = np.flatnonzero(data.step == sid)
-            if len(idx):
-                kept.append(idx[data.t[idx] - data.t[idx[0]] >= settle - 1e-6])
-        if not kept:
-            continue
-        rows = np.concatenate(kept)
-        w, f = applied.apply_affine(data.gyro[rows], data.accel[rows])
+        w, f = applied.apply_affine(st.gyro, st.accel)
         both = np.hstack([w, f])
         start = 0
-        for k in kept:
-            segments.append(both[start : start + len(k)])
-            start += len(k)
-        rates.append(data.sample_rate_hz)
+        for n in st.lengths:
+            segments.append(both[start : start + n])
+            start += n
+        rates.append(st.rate_hz)
         if sum(len(x) for x in segments) >= max_samples:
             break
     return segments, float(np.median(rates)) if rates else float("nan")

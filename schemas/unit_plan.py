@@ -149,3 +149,20 @@ def plan_field_units(
             kept.append(r)
     jobs, skipped, refused = plan_unit_jobs(kept, previous, force)
     return jobs, skipped, [*errors, *refused]
+
+
+def make_batches(jobs: list, batch_size: int) -> list[list]:
+    """``jobs`` in order, cut into the fewest batches of at most ``batch_size``, their sizes
+    differing by at most one: 45 units in batches of 8 are 8, 8, 8, 7, 7, 7 (23 and 22 units
+    for two workers) rather than five of 8 and one of 5 (24 and 21)."""
+    batch_size = max(1, int(batch_size))
+    n_batches = -(-len(jobs) // batch_size)
+    if n_batches == 0:
+        return []
+    size, extra = divmod(len(jobs), n_batches)
+    out, start = [], 0
+    for i in range(n_batches):
+        end = start + size + (i < extra)
+        out.append(jobs[start:end])
+        start = end
+    return out

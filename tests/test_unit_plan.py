@@ -1,6 +1,7 @@
 """One plan over both kinds of reference (schemas.unit_plan): new, changed, appeared,
 removed and unchanged units alike for turntable sessions and field recordings; a unit with
-both kinds is calibrated from its turntable sessions; a field unit in two lots is refused."""
+both kinds is calibrated from its turntable sessions; a field unit in two lots is refused;
+the batches units are calibrated in."""
 
 from __future__ import annotations
 
@@ -8,8 +9,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+import pytest
+
 from calib_core.steps import SessionKey
-from schemas.unit_plan import FIELD, TURNTABLE, plan_unit_jobs
+from schemas.unit_plan import FIELD, TURNTABLE, make_batches, plan_unit_jobs
 
 
 @dataclass
@@ -74,3 +77,13 @@ def test_a_unit_is_calibrated_one_way_and_a_field_unit_belongs_to_one_lot():
     assert len(msgs) == 3  # U1's recording; U2 in L1 and in L2
     assert "turntable sessions (rep=N) and field recordings" in msgs[0]
     assert all("appears in lots L1, L2" in m for m in msgs[1:])
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 45, 50, 1000])
+def test_batches_are_the_fewest_of_at_most_the_size_and_even(n):
+    jobs = list(range(n))
+    batches = make_batches(jobs, 8)
+    assert [j for b in batches for j in b] == jobs  # every job once, in order
+    assert len(batches) == -(-n // 8)
+    sizes = [len(b) for b in batches]
+    assert all(0 < s <= 8 for s in sizes) and (not sizes or max(sizes) - min(sizes) <= 1)

@@ -13,7 +13,7 @@ from functools import lru_cache
 import allantools
 import numpy as np
 from allantools import ci as allan_ci
-from scipy import stats
+from scipy import special
 from threadpoolctl import threadpool_limits
 
 ADEV_CONFIDENCE = 0.95  # two-sided level of adev_lo .. adev_hi
@@ -65,16 +65,32 @@ def octave_cluster_sizes(n_samples: int) -> np.ndarray:
 
 def _lag1_acf(z: np.ndarray) -> float:
     """Riley (2004) eq. 2: allantools' ``lag1_acf``, vectorized (its loop is pure Python)."""
-    d = z - z.mean()
+    d = z - _mean(z)
     den = float(d @ d)
     return float(d[:-1] @ d[1:]) / den if den > 0 else 0.0
 
 
-def _detrend_linear(z: np.ndarray) -> np.ndarray:
-    t = np.arange(z.size, dtype=float)
+@lru_cache(maxsize=64)
+def _centred_index(k: int) -> tuple[np.ndarray, float]:
+    """0 .. k-1 minus its mean (read-only), and its sum of squares."""
+    t = np.arange(k, dtype=float)
     t -= t.mean()
-    slope = float(t @ (z - z.mean())) / float(t @ t) if z.size > 1 else 0.0
-    return z - z.mean() - slope * t
+    t.setflags(write=False)
+    return t, float(t @ t)
+
+
+def _mean(z: np.ndarray) -> float:
+    """``z.mean()`` of a 1-d float array, the same figure without ``ndarray.mean``'s
+    Python-level argument handling (a few microseconds a call, thousands of calls a fleet)."""
+    return np.add.reduce(z) / z.size
+
+
+def _detrend_linear(z: np.ndarray) -> np.ndarray:
+    zc = z - _mean(z)
+    if z.size <= 1:
+        return zc
+    t, tt = _centred_index(z.size)
+    return zc - (float(t @ zc) / tt) * t
 
 
 def identify_alpha(x: np.ndarray, m: int) -> int | None:
@@ -88,19 +104,24 @@ def identify_alpha(x: np.ndarray, m: int) -> int | None:
     k = min(x.size // m, MAX_NOISE_ID_POINTS)
     if k < MIN_NOISE_ID_POINTS:
         return None
-    z = _detrend_linear(x[: k * m].reshape(k, m).mean(axis=1))
+    return _alpha_of_averages(x[: k * m].reshape(k, m).mean(axis=1))
+
+
+def _alpha_of_averages(z: np.ndarray) -> int:
+    """:func:`identify_alpha`'s rule on the m-averages ``z``."""
+    z = _detrend_linear(z)
     d = 0
     while True:
         r1 = _lag1_acf(z)
         rho = r1 / (1.0 + r1)
         if rho < 0.25 or d >= 2:
-            alpha = int(-1.0 * np.round(2 * rho) - 2.0 * d)
+            alpha = int(-1.0 * round(2 * rho) - 2.0 * d)  # half to even, as np.round
             break
         z = np.diff(z)
         d += 1
     if alpha == 1:
         alpha = 0
-    return int(np.clip(alpha, -2, 2))
+    return min(max(alpha, -2), 2)
 
 
 @lru_cache(maxsize=1024)
@@ -117,10 +138,17 @@ def equivalent_dof(alpha: int, m: int, n_samples: int) -> float:
     return max(edf, 1.0)
 
 
+def chi2_ppf(q, df):
+    """``scipy.stats.chi2.ppf(q, df)`` for 0 < q < 1 and df > 0, the same figures: the
+    distribution's own formula without ``rv_continuous``'s argument checks (tens of
+    microseconds a call, which the many small intervals of a fleet add up)."""
+    return 2.0 * special.gammaincinv(np.asarray(df, float) / 2, q)
+
+
 def chi2_interval(value: np.ndarray, edf: np.ndarray, level: float = ADEV_CONFIDENCE):
     """Interval of a deviation estimated with edf degrees of freedom (NIST SP 1065 eq. 45)."""
-    lo_q = stats.chi2.ppf((1.0 + level) / 2.0, edf)
-    hi_q = stats.chi2.ppf((1.0 - level) / 2.0, edf)
+    lo_q = chi2_ppf((1.0 + level) / 2.0, edf)
+    hi_q = chi2_ppf((1.0 - level) / 2.0, edf)
     return value * np.sqrt(edf / lo_q), value * np.sqrt(edf / hi_q)
 
 
@@ -170,3 +198,53 @@ def _allan_curve(x: np.ndarray, rate_hz: float, m: np.ndarray, alpha: np.ndarray
     edf = np.array([equivalent_dof(int(a), int(mj), n) for a, mj in zip(alpha, m)])
     lo, hi = chi2_interval(adev, edf)
     return AllanCurve(taus, m, adev, lo, hi, edf, alpha, float(rate_hz), n)
+
+
+def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurve]:
+    """:func:`allan_curve` of each column of ``X`` (n samples, k channels) at cluster sizes
+    ``m``: the overlapping Allan deviation as ``allantools.oadev`` defines it (from the
+    phase, the cumulative sum of the mean-removed rates), each cluster size's noise type by
+    :func:`identify_alpha`'s rule on m-averages taken from the phase, and
+    Greenhall's edf and the chi-square interval of all channels at once. For many short
+    records (a unit's static steps): no allantools call and no BLAS thread limit, whose
+    fixed costs exceed the arithmetic there; one channel at a time (its arrays stay in the
+    core's cache)."""
+    X = np.asarray(X, float)
+    n, k = X.shape
+    m = np.asarray(m, int)
+    m = m[m <= max(1, n // MIN_CLUSTERS)]
+    if m.size == 0 or n < 2 * MIN_CLUSTERS:
+        raise ValueError(f"a record of {n} samples is too short for an Allan deviation")
+    rate = float(rate_hz)
+    ms = m.tolist()
+    adev = np.empty((k, m.size))
+    alpha = np.empty((k, m.size), int)
+    # the phase times the rate (the cumulative sum of the mean-removed rates, from 0); the
+    # sums of m rates, D_m[i] = phase[i + m] - phase[i], give both the overlapping Allan
+    # variance (their differences D_m[i + m] - D_m[i]) and the m-averages the noise type is
+    # identified on (every m-th of them, over m)
+    phase = np.empty(n + 1)
+    sums = np.empty(n + 1)
+    v = np.empty(n + 1)
+    for i in range(k):
+        x = X[:, i]
+        phase[0] = 0.0
+        np.cumsum(x - x.mean(), out=phase[1:])
+        last, stepped = 0, False
+        for j, mj in enumerate(ms):
+            cnt = n + 1 - 2 * mj
+            d_m = sums[: n + 1 - mj]
+            np.subtract(phase[mj:], phase[: n + 1 - mj], out=d_m)
+            d = v[:cnt]
+            np.subtract(d_m[mj:], d_m[:cnt], out=d)
+            adev[i, j] = np.sqrt(np.dot(d, d) / (2.0 * cnt)) / mj
+            n_avg = min(n // mj, MAX_NOISE_ID_POINTS)
+            if n_avg >= MIN_NOISE_ID_POINTS:
+                last = _alpha_of_averages(d_m[: n_avg * mj : mj] / mj)
+            elif not stepped:  # too few averages to tell: the next redder type, smaller edf
+                last, stepped = max(last - 1, -2), True
+            alpha[i, j] = last
+    edf = np.array([[equivalent_dof(int(a), mj, n) for a, mj in zip(row, ms)] for row in alpha.tolist()])
+    lo, hi = chi2_interval(adev, edf)
+    tau = m.astype(float) / rate
+    return [AllanCurve(tau, m, adev[i], lo[i], hi[i], edf[i], alpha[i], rate, n) for i in range(k)]

@@ -17,12 +17,14 @@ the interval c +- z var(c)^1/2 cut at zero when c is within z standard errors of
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
-from scipy import optimize, stats
+from scipy import optimize, special, stats
 
+from calib_core.linalg import nnls_stack
 from calib_core.noise import processes
-from calib_core.noise.allan import AllanCurve
+from calib_core.noise.allan import AllanCurve, chi2_ppf
 
 COEFFICIENT_CONFIDENCE = 0.95
 REWEIGHT_ITERATIONS = 6
@@ -83,7 +85,7 @@ class AllanFit:
 
     @property
     def p_value(self) -> float:
-        return float(stats.chi2.sf(self.chi2, max(self.dof, 1)))
+        return float(special.chdtrc(max(self.dof, 1), self.chi2))  # stats.chi2.sf's formula
 
     def coefficient(self, name: str) -> float | None:
         for t, c in zip(self.terms, self.c):
@@ -107,17 +109,22 @@ class AllanFit:
         }
 
 
+@lru_cache(maxsize=8)
+def _normal_quantile(q: float) -> float:
+    return float(stats.norm.ppf(q))
+
+
 def coefficient_interval(c: float, se: float, level: float = COEFFICIENT_CONFIDENCE) -> tuple[float, float]:
     """Interval of sqrt(c) for a squared coefficient c with standard error se."""
     if not np.isfinite(se) or se <= 0:
         v = float(np.sqrt(max(c, 0.0)))
         return v, v
-    z = stats.norm.ppf((1.0 + level) / 2.0)
+    z = _normal_quantile((1.0 + level) / 2.0)
     if c <= z * se:  # not distinguishable from zero: a two-sided normal interval cut at zero
         return float(np.sqrt(max(c - z * se, 0.0))), float(np.sqrt(c + z * se))
     nu = 2.0 * c * c / (se * se)
-    lo = c * nu / stats.chi2.ppf((1.0 + level) / 2.0, nu)
-    hi = c * nu / stats.chi2.ppf((1.0 - level) / 2.0, nu)
+    lo = c * nu / chi2_ppf((1.0 + level) / 2.0, nu)
+    hi = c * nu / chi2_ppf((1.0 - level) / 2.0, nu)
     return float(np.sqrt(lo)), float(np.sqrt(hi))
 
 
@@ -130,16 +137,17 @@ def _whitener(model: np.ndarray, edf: np.ndarray, r: np.ndarray) -> np.ndarray:
     2 model^2 / edf; correlation between cluster sizes i < j the product of the octave steps
     s_k = sqrt(r_k r_(k+1)) between them (r: the one-octave correlation at each cluster
     size). That correlation is a Markov chain's, so W is bidiagonal: e_0 = z_0, e_k =
-    (z_k - s_(k-1) z_(k-1)) / sqrt(1 - s_(k-1)^2) with z the standardized estimates."""
+    (z_k - s_(k-1) z_(k-1)) / sqrt(1 - s_(k-1)^2) with z the standardized estimates. For
+    (..., n) arguments, a stack (..., n, n)."""
     inv_sd = 1.0 / (np.sqrt(2.0 / edf) * np.maximum(model, 1e-300))
-    step = np.sqrt(r[:-1] * r[1:])
+    step = np.sqrt(r[..., :-1] * r[..., 1:])
     norm = 1.0 / np.sqrt(1.0 - step**2)
-    n = inv_sd.size
-    W = np.zeros((n, n))
-    W[0, 0] = inv_sd[0]
+    n = inv_sd.shape[-1]
+    W = np.zeros(inv_sd.shape + (n,))
+    W[..., 0, 0] = inv_sd[..., 0]
     k = np.arange(1, n)
-    W[k, k] = norm * inv_sd[1:]
-    W[k, k - 1] = -norm * step * inv_sd[:-1]
+    W[..., k, k] = norm * inv_sd[..., 1:]
+    W[..., k, k - 1] = -norm * step * inv_sd[..., :-1]
     return W
 
 
@@ -150,9 +158,9 @@ def octave_correlation(alpha: np.ndarray) -> np.ndarray:
 
 def _model_correlation(X: np.ndarray, c: np.ndarray, terms, fixed: np.ndarray, fallback: np.ndarray):
     """One-octave correlation at each cluster size from the model's mix of processes (lines
-    count as white)."""
-    parts = X * c[None, :]
-    total = parts.sum(axis=1) + fixed
+    count as white). ``c`` (p,) or a stack (B, p), ``fallback`` alike (n,) or (B, n)."""
+    parts = X * c[..., None, :]
+    total = parts.sum(axis=-1) + fixed
     r_terms = np.array([OCTAVE_CORRELATION[PROCESS_ALPHA[t.name]] for t in terms])
     with np.errstate(invalid="ignore", divide="ignore"):
         r = (parts @ r_terms + fixed * OCTAVE_CORRELATION[0]) / total
@@ -219,6 +227,64 @@ def fit_allan(curve: AllanCurve, terms: tuple[Term, ...], lines: tuple[Line, ...
         tuple(lines),
         r,
     )
+
+
+def fit_allan_stack(curves: list[AllanCurve], terms: tuple[Term, ...]) -> list[AllanFit]:
+    """:func:`fit_allan` (no lines) of several curves at the same cluster sizes and rate (a
+    record's channels), vectorised over the curves: the same iteratively reweighted
+    non-negative generalized least squares, each curve iterated until its own convergence,
+    its NNLS by :func:`calib_core.linalg.nnls_stack`. The figures are fit_allan's up to
+    rounding."""
+    tau, rate = curves[0].tau_s, curves[0].rate_hz
+    avar = np.array([c.avar for c in curves])
+    edf = np.array([c.edf for c in curves])
+    X = _design(terms, tau, rate)
+    model = np.maximum(avar, 1e-300)
+    c = np.zeros((len(curves), X.shape[1]))
+    r_id = np.array([octave_correlation(cv.alpha) for cv in curves])
+    r = r_id.copy()
+    active = np.ones(len(curves), bool)
+    for _ in range(REWEIGHT_ITERATIONS):
+        W = _whitener(model, edf, r)
+        A = W @ X
+        scale = np.linalg.norm(A, axis=-2)
+        scale[scale == 0] = 1.0
+        y_w = np.einsum("bij,bj->bi", W, avar)
+        c_new = nnls_stack(A / scale[:, None, :], y_w) / scale
+        new = np.maximum(c_new @ X.T, 1e-300)
+        r_new = _model_correlation(X, c_new, terms, 0.0, r_id)
+        converged = np.all(np.abs(new - model) <= 1e-4 * model, axis=-1)
+        c[active], r[active], model[active] = c_new[active], r_new[active], new[active]
+        active &= ~converged
+        if not active.any():
+            break
+    W = _whitener(model, edf, r)
+    A = W @ X
+    info = np.swapaxes(A, -1, -2) @ A
+    scale = np.sqrt(np.diagonal(info, axis1=-2, axis2=-1))
+    scale = np.where(scale == 0, 1.0, scale)
+    outer = scale[:, :, None] * scale[:, None, :]
+    cov = np.linalg.pinv(info / outer) / outer
+    c_se = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+    adev_model = np.sqrt(model)
+    e = np.einsum("bij,bj->bi", W, avar - model)
+    fits = []
+    for i, cv in enumerate(curves):
+        within = float(np.mean((adev_model[i] >= cv.adev_lo) & (adev_model[i] <= cv.adev_hi)))
+        fits.append(
+            AllanFit(
+                tuple(terms),
+                c[i],
+                c_se[i],
+                model[i],
+                float(e[i] @ e[i]),
+                int(tau.size - int(np.sum(c[i] > 0))),
+                within,
+                (),
+                r[i],
+            )
+        )
+    return fits
 
 
 def model_avar(fit: AllanFit, tau: np.ndarray, rate_hz: float) -> np.ndarray:
