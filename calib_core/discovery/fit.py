@@ -261,7 +261,7 @@ class JointModel:
         from 0)."""
         g, P = self.g, self.g.P
         out: dict[int, str] = {}
-        Rg = self.Rg[0][:P, :P]
+        Rg = self.Rg0[:P, :P]
         for name in self.names:
             a, b = g.offset[name]
             term = get_effect(name)
@@ -306,44 +306,62 @@ class JointModel:
         ]
         self.Rrep = qr_r(A)  # (6, R, k, k)
         self.__dict__.pop("_bias_removed", None)
+        self.__dict__.pop("_fold0", None)
 
     def _first_fold(self) -> None:
         """The fold of all repetitions alone (it stacks every repetition's factor) and its
-        term factor (``Rg`` (1, P+1, P+1)): what :meth:`_undetermined` needs."""
+        term factor (``Rg0`` (P+1, P+1)): what :meth:`_undetermined` needs. Kept for
+        :meth:`_complete` unless the design is rebuilt (:meth:`_prepare` drops them)."""
         R, k = self.g.R, self.Rrep.shape[-1]
         self.Rf = qr_r(self.Rrep.reshape(6, 1, R * k, k))
-        self.Rg = self._term_factor(1)
+        self.Rg0 = self._term_factor(self.Rf)[0]
+        self.__dict__["_fold0"] = (self.Rf, self.Rg0)
 
     def _complete(self) -> None:
         """After :meth:`_prepare`: R factors per fold (repetitions but one; fold 0 = all,
-        fold 1 + h leaves h out), of the pure-error part; per fold, the factor of every term
-        column with the affine model projected out (fits of any subset)."""
+        fold 1 + h leaves h out), of the pure-error part; the factor of every term column
+        with the affine model projected out on the fold of all repetitions (``Rg0``; those of
+        the other folds, which only fits with terms on a fold need, on first use:
+        :meth:`fold_term_factors`)."""
         g, R = self.g, self.g.R
         A, A_raw = self.A, self.A_seen
         k = A.shape[-1]
         # the held-out score is the residual a user sees, residual / sigma, not whitened: a
         # slow effect (thermal drift) matters by its size, not by how far it is from the wander
         self.Rrep_seen = self.Rrep if A is A_raw else qr_r(A_raw)
-        folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
-        folds[:, np.arange(1, R + 1), np.arange(R)] = 0.0
-        self.Rf = qr_r(folds.reshape(6, R + 1, R * k, k))  # (6, R+1, k, k)
+        fold0 = self.__dict__.pop("_fold0", None)  # the same design: fold 0 is factorised
+        first = 0 if fold0 is None else 1
+        folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1 - first, R, k, k)).copy()
+        folds[:, np.arange(1 - first, R + 1 - first), np.arange(R)] = 0.0
+        Rf = qr_r(folds.reshape(6, R + 1 - first, R * k, k))
+        self.Rf = Rf if fold0 is None else np.concatenate([fold0[0], Rf], axis=1)  # (6, R+1, k, k)
         # K_c = R_base^-1 (R_base,y - R_base,terms theta): solved once per fold
         self.K_solve = np.linalg.solve(self.Rf[..., :3, :3], self.Rf[..., :3, 3:])
         e, _, self.pure_dof = g.two_way(A)
         self.Rpure = qr_r(e)  # (6, k, k)
-        self.Rg = self._term_factor(R + 1)  # (R+1, P+1, P+1): [R_terms c; 0 sqrt(ss_perp)] per fold
+        # [R_terms c; 0 sqrt(ss_perp)] of the fold of all repetitions
+        self.Rg0 = self._term_factor(self.Rf[:, :1])[0] if fold0 is None else fold0[1]
+        self.__dict__.pop("_fold_term_factors", None)
         self.rows_channel = int(g.real.sum())
         self.base_rank = [3 + R] * 6
 
-    def _term_factor(self, n_folds: int) -> np.ndarray:
-        """The affine model projected out: the trailing block of each fold's factor, every
-        channel's term columns put back in their global place (P + 1: padding, dropped),
-        factorised per fold."""
+    def fold_term_factors(self) -> np.ndarray:
+        """(R, P+1, P+1) :attr:`Rg0` of each fold leaving one repetition out (fold h holds
+        every repetition but h), built on first use."""
+        out = self.__dict__.get("_fold_term_factors")
+        if out is None:
+            out = self.__dict__["_fold_term_factors"] = self._term_factor(self.Rf[:, 1:])
+        return out
+
+    def _term_factor(self, Rf: np.ndarray) -> np.ndarray:
+        """The affine model projected out: the trailing block of each fold's factor ``Rf``
+        (6, folds, k, k), every channel's term columns put back in their global place (P + 1:
+        padding, dropped), factorised per fold."""
         g, P = self.g, self.g.P
-        k = self.Rf.shape[-1]
+        n_folds, k = Rf.shape[1], Rf.shape[-1]
         T = np.zeros((n_folds, 6, k - 3, P + 2))
         for c in range(6):
-            T[:, c][..., np.append(g.colmap[c], P)] = self.Rf[c, :, 3:, 3:]
+            T[:, c][..., np.append(g.colmap[c], P)] = Rf[c, :, 3:, 3:]
         return qr_r(T.reshape(n_folds, 6 * (k - 3), P + 2)[..., : P + 1])
 
     # -- fits -----------------------------------------------------------------------------
@@ -356,7 +374,7 @@ class JointModel:
     def _fit(self, names: tuple[str, ...], fold: int | None) -> JointFit:
         g, P = self.g, self.g.P
         fi = 0 if fold is None else 1 + fold
-        Rg = self.Rg[fi]
+        Rg = self.Rg0 if fold is None else self.fold_term_factors()[fold]
         c_all = Rg[:P, P]
         ss_perp = float(Rg[P, P] ** 2)
         cols = g.cols(names)
@@ -452,7 +470,7 @@ class JointModel:
         key = ("v",) + tuple(sorted(names))
         if key not in self._heldout:
             g, P, R = self.g, self.g.P, self.g.R
-            Rg = self.Rg[1:]  # (R, P+1, P+1) the folds leaving one repetition out
+            Rg = self.fold_term_factors()  # (R, P+1, P+1) the folds leaving one repetition out
             cols = g.cols(key[1:])
             theta_ext = np.zeros((R, P + 2))
             if cols.size:

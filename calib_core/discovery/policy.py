@@ -79,7 +79,7 @@ class Policy:
         every fit here: the R factor of the full fold), undetermined columns left out."""
         if "_ident" not in self.__dict__:
             P = self.model.g.P
-            Rg = self.model.Rg[0][:P, :P]
+            Rg = self.model.Rg0[:P, :P]
             terms, pnames = {}, {}
             for n in self.model.names:
                 a, b = self.model.g.offset[n]
@@ -101,7 +101,7 @@ class Policy:
         :attr:`identifiability`): the data decide them (:meth:`_settle_near_confounded`)."""
         if "_near" not in self.__dict__:
             P = self.model.g.P
-            Rg = self.model.Rg[0][:P, :P]
+            Rg = self.model.Rg0[:P, :P]
             grouped = {n for grp in self.identifiability.groups() if len(grp) > 1 for n in grp}
             terms = {}
             for n in self.model.names:
