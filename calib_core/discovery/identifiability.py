@@ -170,10 +170,11 @@ def analyse(
         rank[name] = spans[name].shape[1]
     confounded: list[Confounded] = []
     seen: set[tuple[str, ...]] = set()
+    apart = _surely_apart(spans, tol)
     for name in names:
         Q = spans[name]
         others = [o for o in names if o != name and spans[o].shape[1]]
-        if not Q.shape[1] or not others:
+        if not Q.shape[1] or not others or name in apart:
             continue
         Qo = orthonormal_basis(np.hstack([spans[o] for o in others]))
         if not Qo.shape[1]:
@@ -205,6 +206,49 @@ def analyse(
         {n: int(np.asarray(terms[n]).shape[1]) for n in names},
         tol,
     )
+
+
+# _surely_apart: the stacked spans' singular values must each be either below _NULL_RTOL of
+# the largest (an exact dependency among the columns, which orthonormal_basis's rank cut of
+# 1e-10 drops too) or above _REGULAR_RTOL (well determined: the sines below come out to
+# ~1e-8 relative or better); a term's sine must exceed tol by _APART_MARGIN to be passed over
+_NULL_RTOL = 1e-12
+_REGULAR_RTOL = 1e-4
+_APART_MARGIN = 1.1
+
+
+def _surely_apart(spans: Mapping[str, np.ndarray], tol: float) -> set[str]:
+    """Terms whose span is certainly not confounded with the others' (sine of the smallest
+    principal angle at least ``_APART_MARGIN`` x ``tol``), from one SVD of every span
+    stacked: with S = [Q_1 .. Q_m] (orthonormal blocks) and G = S^T S, the block of G^-1 of
+    term i is (I - Q_i^T P_others Q_i)^-1, whose largest eigenvalue is 1 / sin^2 of that
+    angle. Exact dependencies among the others' columns (a confounded pair) are set to
+    unit weight in G: P_others is the same, the dependency adding no direction. A term
+    that takes part in such a dependency, or a design with singular values between the
+    exact and the well-determined ones, is left to :func:`analyse`, which examines every
+    term not returned as before."""
+    blocks = [(n, q) for n, q in spans.items() if q.shape[1]]
+    if len(blocks) < 2:
+        return set()
+    S = np.hstack([q for _, q in blocks])
+    _, s, Wt = np.linalg.svd(S, full_matrices=True)
+    s = np.concatenate([s, np.zeros(S.shape[1] - len(s))])
+    null = s <= _NULL_RTOL * s[0]
+    if not (s[0] > 0 and np.all(null | (s > _REGULAR_RTOL * s[0]))):
+        return set()
+    Ginv = (Wt.T * np.where(null, 1.0, 1.0 / np.where(null, 1.0, s) ** 2)) @ Wt
+    Wn = Wt[null]
+    out, at = set(), 0
+    for name, q in blocks:
+        k = q.shape[1]
+        part = slice(at, at + k)
+        at += k
+        if Wn.size and np.abs(Wn[:, part]).max() > 1e-6:
+            continue  # in an exact dependency: confounded
+        top = float(np.linalg.eigvalsh(Ginv[part, part])[-1])
+        if top > 0 and 1.0 / np.sqrt(top) >= _APART_MARGIN * tol:
+            out.add(name)
+    return out
 
 
 def near_confounded(
