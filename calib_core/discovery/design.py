@@ -355,9 +355,14 @@ def term_design(
     M = np.zeros((6, R, n, k))
     colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
     M[..., -1] = np.moveaxis(lay.y, 2, 0)
+    if all(len(Z) == n for Z in Zs):
+        Zg = np.stack(Zs)  # (R, n, 6, P) every repetition's rows on the grid
+    else:  # padding rows stay 0
+        Zg = np.zeros((R, n, 6, P))
+        for r, Z in enumerate(Zs):
+            Zg[r, : len(Z)] = Z
     for c in range(6):
         L = live[c]
         colmap[c, : len(L)] = L
-        for r, Z in enumerate(Zs):
-            M[c, r, : len(Z), 3 : 3 + len(L)] = Z[:, c, L]
+        M[c, :, :, 3 : 3 + len(L)] = Zg[:, :, c, L]
     return offset, live, live_mask, M, colmap, regressors

@@ -470,10 +470,10 @@ class JointModel:
         key = ("v",) + tuple(sorted(names))
         if key not in self._heldout:
             g, P, R = self.g, self.g.P, self.g.R
-            Rg = self.fold_term_factors()  # (R, P+1, P+1) the folds leaving one repetition out
             cols = g.cols(key[1:])
             theta_ext = np.zeros((R, P + 2))
             if cols.size:
+                Rg = self.fold_term_factors()  # (R, P+1, P+1) the folds leaving one repetition out
                 theta_ext[:, cols] = lstsq_pinv_stack(Rg[:, :P][:, :, cols], Rg[:, :P, P])
             tc = theta_ext[:, g.colmap]  # (R, 6, k - 4)
             KS = self.K_solve[:, 1:]  # (6, R, 3, k - 3)
@@ -531,16 +531,25 @@ class JointModel:
 
     def bias_removed(self, c: int) -> tuple[np.ndarray, np.ndarray]:
         """Channel ``c``'s whitened design (R, n, k) with each repetition's own bias removed
-        from every column, and the whitened bias column (R, n)."""
-        cache = self.__dict__.setdefault("_bias_removed", {})  # asked by every test, per channel
-        out = cache.get(c)
+        from every column, and the whitened bias column (R, n) (:meth:`bias_removed_design`)."""
+        A, wb = self.bias_removed_design()
+        return A[c], wb[c]
+
+    def bias_removed_design(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every channel's whitened design (6, R, n, k) with each repetition's own bias
+        removed from every column, and the whitened bias columns (6, R, n) (read-only, kept:
+        asked by every test)."""
+        out = self.__dict__.get("_bias_removed")
         if out is None:
-            A, wb = self.A[c], self.A_bias[c]
-            coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
-            out = (A - wb[..., None] * coef[:, None, :], wb)
+            A, wb = self.A, self.A_bias
+            coef = (
+                np.einsum("crn,crnk->crk", wb, A)
+                / np.maximum(np.einsum("crn,crn->cr", wb, wb), 1e-300)[..., None]
+            )
+            out = (A - wb[..., None] * coef[:, :, None, :], wb)
             for x in out:
                 x.setflags(write=False)
-            cache[c] = out
+            self.__dict__["_bias_removed"] = out
         return out
 
     def variance_scale(self, names: tuple[str, ...]) -> float:

@@ -125,6 +125,13 @@ def orthonormal_basis(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
     return u[:, keep]
 
 
+def orthonormal_bases(A: np.ndarray, rcond: float = 1e-10) -> list[np.ndarray]:
+    """:func:`orthonormal_basis` of each matrix of a stack (B, m, k), by one batched SVD."""
+    u, s, _ = np.linalg.svd(A, full_matrices=False)
+    top = np.maximum(s.max(axis=-1, initial=0.0), 1e-300)
+    return [ub[:, sb > rcond * t] for ub, sb, t in zip(u, s, top)]
+
+
 def analyse(
     base: np.ndarray,
     terms: Mapping[str, np.ndarray],
@@ -146,11 +153,12 @@ def analyse(
         # directions of parameter space: first those Z itself cannot see (zero or collinear
         # columns), then, within its range, the ratio ||P Z v|| / ||Z v|| (singular values of
         # P Z W with W mapping unit vectors of Z's range back to parameters)
-        _, sz, vzt = np.linalg.svd(Zn, full_matrices=True)
+        # every right singular vector (p of them): the left ones only as many as needed
+        _, sz, vzt = np.linalg.svd(Zn, full_matrices=Zn.shape[0] < Zn.shape[1])
         sz = np.concatenate([sz, np.zeros(Zn.shape[1] - len(sz))])
         inrange = sz > 1e-8 * max(sz.max(initial=0.0), 1e-300)
         W = vzt[inrange].T / sz[inrange]
-        X = (Zn - Qb @ (Qb.T @ Zn)) @ W
+        X = (Zn - Qb @ (Qb.T @ Zn) if Qb.shape[1] else Zn) @ W
         blind = [(v, 0.0) for v in vzt[~inrange]]
         if X.shape[1]:
             _, sig, at = np.linalg.svd(X, full_matrices=False)

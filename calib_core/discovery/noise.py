@@ -88,7 +88,7 @@ def serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> SerialNoise:
             tau[tri] = -step_s / np.log(decay)
         phi = np.exp(-step_s / tau)
         total = c0 + var_mean
-        var_mean = total / n * (1.0 + 2.0 * lam * np.array([np.sum((1.0 - lag / n) * p**lag) for p in phi]))
+        var_mean = total / n * (1.0 + 2.0 * lam * np.sum((1.0 - lag / n) * phi[:, None] ** lag, axis=1))
     return SerialNoise(lam, tau)
 
 

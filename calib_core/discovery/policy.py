@@ -123,8 +123,10 @@ class Policy:
         significant given A and A not given B; when neither is significant given the other,
         the pair is one confounded item (the combined fit applied, no name picked). Tests
         at the terms' share of alpha (``term_alpha``) over the catalogue, as :meth:`_resolve`."""
-        thr = self.term_alpha / len(self.model.names)
         out = list(items)
+        if not any(len(i) == 1 for i in out):
+            return out  # no single term chosen: no pair to settle (the pairs not worked out)
+        thr = self.term_alpha / len(self.model.names)
         for pair in self.near_confounded:
             names = tuple(n for i in out for n in i)
             a, b = pair.terms
