@@ -125,11 +125,29 @@ def orthonormal_basis(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
     return u[:, keep]
 
 
-def orthonormal_bases(A: np.ndarray, rcond: float = 1e-10) -> list[np.ndarray]:
-    """:func:`orthonormal_basis` of each matrix of a stack (B, m, k), by one batched SVD."""
-    u, s, _ = np.linalg.svd(A, full_matrices=False)
-    top = np.maximum(s.max(axis=-1, initial=0.0), 1e-300)
-    return [ub[:, sb > rcond * t] for ub, sb, t in zip(u, s, top)]
+def svd_by_shape(
+    mats: Mapping[str, np.ndarray], full_matrices: Callable[[tuple[int, ...]], bool] | bool = False
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``np.linalg.svd`` of each matrix, one batched call per distinct shape (the same
+    numbers as one call each); ``full_matrices`` may depend on the shape."""
+    by_shape: dict[tuple[int, ...], list[str]] = {}
+    for name, A in mats.items():
+        by_shape.setdefault(A.shape, []).append(name)
+    out = {}
+    for shape, group in by_shape.items():
+        full = full_matrices(shape) if callable(full_matrices) else full_matrices
+        u, s, vt = np.linalg.svd(np.stack([mats[n] for n in group]), full_matrices=full)
+        for j, name in enumerate(group):
+            out[name] = (u[j], s[j], vt[j])
+    return out
+
+
+def orthonormal_bases_by_shape(mats: Mapping[str, np.ndarray], rcond: float = 1e-10) -> dict[str, np.ndarray]:
+    """:func:`orthonormal_basis` of each matrix, one batched SVD per distinct shape."""
+    out = {}
+    for name, (u, s, _) in svd_by_shape(mats).items():
+        out[name] = u[:, s > rcond * max(s.max(initial=0.0), 1e-300)]
+    return out
 
 
 def analyse(
@@ -146,27 +164,38 @@ def analyse(
     undetermined: list[Undetermined] = []
     spans: dict[str, np.ndarray] = {}
     rank: dict[str, int] = {}
+    # every term's three factorisations, each one batched call per distinct shape
+    Zn: dict[str, np.ndarray] = {}
     for name in names:
         Z = np.asarray(terms[name], float)
         norms = np.linalg.norm(Z, axis=0)
-        Zn = Z / np.where(norms > 0, norms, 1.0)  # scale-free: columns of unit length
-        # directions of parameter space: first those Z itself cannot see (zero or collinear
-        # columns), then, within its range, the ratio ||P Z v|| / ||Z v|| (singular values of
-        # P Z W with W mapping unit vectors of Z's range back to parameters)
-        # every right singular vector (p of them): the left ones only as many as needed
-        _, sz, vzt = np.linalg.svd(Zn, full_matrices=Zn.shape[0] < Zn.shape[1])
-        sz = np.concatenate([sz, np.zeros(Zn.shape[1] - len(sz))])
+        Zn[name] = Z / np.where(norms > 0, norms, 1.0)  # scale-free: columns of unit length
+    # directions of parameter space: first those Z itself cannot see (zero or collinear
+    # columns), then, within its range, the ratio ||P Z v|| / ||Z v|| (singular values of
+    # P Z W with W mapping unit vectors of Z's range back to parameters); every right
+    # singular vector of Z (p of them), the left ones only as many as needed
+    svd_z = svd_by_shape(Zn, full_matrices=lambda shape: shape[0] < shape[1])
+    W: dict[str, np.ndarray] = {}
+    X: dict[str, np.ndarray] = {}
+    blind: dict[str, list] = {}
+    for name in names:
+        _, sz, vzt = svd_z[name]
+        sz = np.concatenate([sz, np.zeros(Zn[name].shape[1] - len(sz))])
         inrange = sz > 1e-8 * max(sz.max(initial=0.0), 1e-300)
-        W = vzt[inrange].T / sz[inrange]
-        X = (Zn - Qb @ (Qb.T @ Zn) if Qb.shape[1] else Zn) @ W
-        blind = [(v, 0.0) for v in vzt[~inrange]]
-        if X.shape[1]:
-            _, sig, at = np.linalg.svd(X, full_matrices=False)
-            weak = [(W @ a / np.linalg.norm(W @ a), float(r)) for a, r in zip(at, sig) if r < tol]
-            determined = at[sig >= tol]
+        W[name] = vzt[inrange].T / sz[inrange]
+        X[name] = (Zn[name] - Qb @ (Qb.T @ Zn[name]) if Qb.shape[1] else Zn[name]) @ W[name]
+        blind[name] = [(v, 0.0) for v in vzt[~inrange]]
+    svd_x = svd_by_shape({n: x for n, x in X.items() if x.shape[1]})
+    determined: dict[str, np.ndarray] = {}
+    for name in names:
+        if name in svd_x:
+            _, sig, at = svd_x[name]
+            w = W[name]
+            weak = [(w @ a / np.linalg.norm(w @ a), float(r)) for a, r in zip(at, sig) if r < tol]
+            determined[name] = at[sig >= tol]
         else:
-            weak, determined = [], np.zeros((0, 0))
-        for v, left in blind + weak:
+            weak = []
+        for v, left in blind[name] + weak:
             order = np.argsort(-np.abs(v))
             big = [int(i) for i in order if abs(v[i]) >= 0.2] or [int(order[0])]
             undetermined.append(
@@ -174,7 +203,9 @@ def analyse(
                     name, tuple(param_names[name][i] for i in big), tuple(float(v[i]) for i in big), left
                 )
             )
-        spans[name] = orthonormal_basis(X @ determined.T) if len(determined) else np.zeros((len(Zn), 0))
+    bases = orthonormal_bases_by_shape({n: X[n] @ d.T for n, d in determined.items() if len(d)})
+    for name in names:
+        spans[name] = bases.get(name, np.zeros((len(Zn[name]), 0)))
         rank[name] = spans[name].shape[1]
     confounded: list[Confounded] = []
     seen: set[tuple[str, ...]] = set()

@@ -26,7 +26,7 @@ import numpy as np
 from scipy import stats
 
 from calib_core.discovery.fit import JointModel
-from calib_core.discovery.identifiability import orthonormal_bases, orthonormal_basis
+from calib_core.discovery.identifiability import orthonormal_bases_by_shape, orthonormal_basis
 from calib_core.discovery.noise import dof_inflation, sphericity_epsilon
 from calib_core.discovery.results import FTest, f_test
 from calib_core.effects import CHANNELS
@@ -276,10 +276,12 @@ class Significance:
         out = self._tests.get(key)
         if out is None:
             A, wb = self.model.bias_removed_design()
-            bases = orthonormal_bases(np.concatenate([A[..., :3], wb[..., None]], axis=-1).mean(axis=1))
+            X = np.concatenate([A[..., :3], wb[..., None]], axis=-1).mean(axis=1)
+            bases = orthonormal_bases_by_shape(dict(enumerate(X)))
             v = self.model.fit(()).v
             out = []
-            for ch, Ub in enumerate(bases):
+            for ch in range(6):
+                Ub = bases[ch]
                 resid = A[ch] @ v[ch]
                 rbar = resid.mean(axis=0)
                 out.append(
