@@ -249,7 +249,10 @@ def _build_layout(sessions: list[StepMeans]) -> Layout:
                 turned_deg=sm.turned_deg(),
             )
         )
-        tests.append(np.unique(_test_names(sm), return_inverse=True))
+        names = _test_names(sm).tolist()
+        u = sorted(set(names))  # np.unique's order (code points), by a dict: a few distinct names
+        at = {t: i for i, t in enumerate(u)}
+        tests.append((u, np.array([at[t] for t in names], np.int64)))
     # test groups: mapped per distinct test name, not per step
     groups = sorted({test_group(t) for u, _ in tests for t in u})
     gcode = np.full((R, n), -1, np.int64)

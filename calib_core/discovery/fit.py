@@ -28,7 +28,7 @@ from calib_core.discovery.noise import NoiseModel, prewhiten
 from calib_core.discovery.results import EXCITED_SHARE
 from calib_core.effects import CHANNELS, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.linalg import PinvSolution, lstsq_pinv, lstsq_pinv_stack, qr_r
+from calib_core.linalg import PinvSolution, lstsq_pinv, lstsq_pinv_stack, pinv_solutions, qr_r
 from calib_core.steps import StepMeans
 
 
@@ -260,18 +260,20 @@ class JointModel:
         exceeds the term's ``max_useful_stderr`` (the protocol cannot tell a realistic value
         from 0)."""
         g, P = self.g, self.g.P
-        out: dict[int, str] = {}
         Rg = self.Rg0[:P, :P]
+        per_term: dict[str, dict[int, str]] = {}
+        checked = []  # (term, its excited columns) for the standard-error test
         for name in self.names:
             a, b = g.offset[name]
-            term = get_effect(name)
             live = g.live_mask[:, a:b].any(axis=0)
-            for k in np.flatnonzero(~live):
-                out[a + int(k)] = "no step excites it"
+            per_term[name] = {a + int(k): "no step excites it" for k in np.flatnonzero(~live)}
             cols = a + np.flatnonzero(live)
-            if not cols.size:
-                continue
-            _, _, sol = lstsq_pinv(Rg[:, cols], np.zeros(P))
+            if cols.size:
+                checked.append((name, cols))
+        # each term alone on the base model: the covariance of its parameters
+        solutions = pinv_solutions([Rg[:, cols] for _, cols in checked])
+        for (name, cols), sol in zip(checked, solutions):
+            term, a, out = get_effect(name), g.offset[name][0], per_term[name]
             se = np.sqrt(np.diag(sol.cov))
             for k, v in zip(cols, se):
                 if not np.isfinite(v):
@@ -285,7 +287,7 @@ class JointModel:
                         f"{term.max_useful_stderr:g} {unit}: too weakly excited "
                         f"({term.excited_by})"
                     )
-        return out
+        return {k: why for name in self.names for k, why in per_term[name].items()}
 
     def _prepare(self) -> None:
         """Per channel c, the weighted bias-removed design A_c = [raw_c | live terms | y],
