@@ -315,16 +315,18 @@ class JointModel:
         term factor (``Rg0`` (P+1, P+1)): what :meth:`_undetermined` needs. Kept for
         :meth:`_complete` unless the design is rebuilt (:meth:`_prepare` drops them)."""
         R, k = self.g.R, self.Rrep.shape[-1]
-        self.Rf = qr_r(self.Rrep.reshape(6, 1, R * k, k))
-        self.Rg0 = self._term_factor(self.Rf)[0]
-        self.__dict__["_fold0"] = (self.Rf, self.Rg0)
+        Rf0 = qr_r(self.Rrep.reshape(6, 1, R * k, k))
+        self.Rg0 = self._term_factor(Rf0)[0]
+        self.__dict__["_fold0"] = (Rf0, self.Rg0)
 
     def _complete(self) -> None:
-        """After :meth:`_prepare`: R factors per fold (repetitions but one; fold 0 = all,
-        fold 1 + h leaves h out), of the pure-error part; the factor of every term column
-        with the affine model projected out on the fold of all repetitions (``Rg0``; those of
-        the other folds, which only fits with terms on a fold need, on first use:
-        :meth:`fold_term_factors`)."""
+        """After :meth:`_prepare`: the R factor of the fold of all repetitions (``Rf0``) and
+        its term factor (``Rg0``: the factor of every term column with the affine model
+        projected out), of the pure-error part, and each fold leaving one repetition out
+        (fold h: every repetition but h) factorised on the affine model's columns alone (what
+        the held-out fits without terms use); the folds' factors of every column on first
+        use (:meth:`fold_factors`, :meth:`fold_term_factors`): only fits with terms on a
+        fold need them."""
         g, R = self.g, self.g.R
         A, A_raw = self.A, self.A_seen
         k = A.shape[-1]
@@ -332,27 +334,43 @@ class JointModel:
         # slow effect (thermal drift) matters by its size, not by how far it is from the wander
         self.Rrep_seen = self.Rrep if A is A_raw else qr_r(A_raw)
         fold0 = self.__dict__.pop("_fold0", None)  # the same design: fold 0 is factorised
-        first = 0 if fold0 is None else 1
-        folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1 - first, R, k, k)).copy()
-        folds[:, np.arange(1 - first, R + 1 - first), np.arange(R)] = 0.0
-        Rf = qr_r(folds.reshape(6, R + 1 - first, R * k, k))
-        self.Rf = Rf if fold0 is None else np.concatenate([fold0[0], Rf], axis=1)  # (6, R+1, k, k)
-        # K_c = R_base^-1 (R_base,y - R_base,terms theta): solved once per fold
-        self.K_solve = np.linalg.solve(self.Rf[..., :3, :3], self.Rf[..., :3, 3:])
+        self.Rf0 = qr_r(self.Rrep.reshape(6, 1, R * k, k)) if fold0 is None else fold0[0]  # (6, 1, k, k)
+        # K_c = R_base^-1 (R_base,y - R_base,terms theta)
+        self.K_solve0 = np.linalg.solve(self.Rf0[:, 0, :3, :3], self.Rf0[:, 0, :3, 3:])  # (6, 3, k - 3)
+        affine = self._folds(self.Rrep[..., [0, 1, 2, k - 1]])  # (6, R, 4, 4)
+        self.K_affine_folds = np.linalg.solve(affine[..., :3, :3], affine[..., :3, 3:])[..., 0]  # (6, R, 3)
         e, _, self.pure_dof = g.two_way(A)
         self.Rpure = qr_r(e)  # (6, k, k)
         # [R_terms c; 0 sqrt(ss_perp)] of the fold of all repetitions
-        self.Rg0 = self._term_factor(self.Rf[:, :1])[0] if fold0 is None else fold0[1]
+        self.Rg0 = self._term_factor(self.Rf0)[0] if fold0 is None else fold0[1]
+        self.__dict__.pop("_fold_factors", None)
         self.__dict__.pop("_fold_term_factors", None)
         self.rows_channel = int(g.real.sum())
         self.base_rank = [3 + R] * 6
 
+    def _folds(self, Rrep: np.ndarray) -> np.ndarray:
+        """R factors (6, R, m, m) of the folds leaving one repetition out, from each
+        repetition's factor ``Rrep`` (6, R, k, m): fold h stacks them with h's rows 0."""
+        R, k, m = Rrep.shape[1:]
+        folds = np.broadcast_to(Rrep[:, None], (6, R, R, k, m)).copy()
+        folds[:, np.arange(R), np.arange(R)] = 0.0
+        return qr_r(folds.reshape(6, R, R * k, m))
+
+    def fold_factors(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each fold leaving one repetition out on every column: its R factor (6, R, k, k)
+        and R_base^-1 [R_base,terms | R_base,y] (6, R, 3, k - 3), built on first use."""
+        out = self.__dict__.get("_fold_factors")
+        if out is None:
+            Rf = self._folds(self.Rrep)
+            out = self.__dict__["_fold_factors"] = (Rf, np.linalg.solve(Rf[..., :3, :3], Rf[..., :3, 3:]))
+        return out
+
     def fold_term_factors(self) -> np.ndarray:
-        """(R, P+1, P+1) :attr:`Rg0` of each fold leaving one repetition out (fold h holds
-        every repetition but h), built on first use."""
+        """(R, P+1, P+1) :attr:`Rg0` of each fold leaving one repetition out, built on first
+        use."""
         out = self.__dict__.get("_fold_term_factors")
         if out is None:
-            out = self.__dict__["_fold_term_factors"] = self._term_factor(self.Rf[:, 1:])
+            out = self.__dict__["_fold_term_factors"] = self._term_factor(self.fold_factors()[0])
         return out
 
     def _term_factor(self, Rf: np.ndarray) -> np.ndarray:
@@ -375,7 +393,6 @@ class JointModel:
 
     def _fit(self, names: tuple[str, ...], fold: int | None) -> JointFit:
         g, P = self.g, self.g.P
-        fi = 0 if fold is None else 1 + fold
         Rg = self.Rg0 if fold is None else self.fold_term_factors()[fold]
         c_all = Rg[:P, P]
         ss_perp = float(Rg[P, P] ** 2)
@@ -393,12 +410,12 @@ class JointModel:
         theta_ext[cols] = theta
         tc = theta_ext[g.colmap]  # (6, k - 4) each channel's term coefficients
         # affine coefficients by back-substitution on the fold's factor of each channel
-        KS = self.K_solve[:, fi]  # (6, 3, k - 3)
+        KS = self.K_solve0 if fold is None else self.fold_factors()[1][:, fold]  # (6, 3, k - 3)
         K = KS[..., -1] - np.einsum("cij,cj->ci", KS[..., :-1], tc)
         v = np.concatenate([-K, -tc, np.ones((6, 1))], axis=1)  # (6, k)
         ss_c = pure_c = None
         if fold is None:
-            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf[:, 0], v) ** 2, axis=1)
+            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf0[:, 0], v) ** 2, axis=1)
             pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
         return JointFit(
             names=list(names),
@@ -478,8 +495,11 @@ class JointModel:
                 Rg = self.fold_term_factors()  # (R, P+1, P+1) the folds leaving one repetition out
                 theta_ext[:, cols] = lstsq_pinv_stack(Rg[:, :P][:, :, cols], Rg[:, :P, P])
             tc = theta_ext[:, g.colmap]  # (R, 6, k - 4)
-            KS = self.K_solve[:, 1:]  # (6, R, 3, k - 3)
-            K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
+            if cols.size:
+                KS = self.fold_factors()[1]  # (6, R, 3, k - 3)
+                K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
+            else:  # the affine model alone
+                K = self.K_affine_folds
             self._heldout[key] = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
         return self._heldout[key]
 
