@@ -220,12 +220,15 @@ def _pinv_solution(
     return PinvSolution(Vt, inv_s, keep, live, scale)
 
 
-def lstsq_min_norm(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+def lstsq_min_norm(
+    Z: np.ndarray, y: np.ndarray, svd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, int, np.ndarray]:
     """Minimum-norm least squares by one SVD, with numpy's rank rule (singular values above
     max(m, p) eps of the largest, as ``np.linalg.lstsq(rcond=None)`` and ``matrix_rank``):
     theta (p,) or (p, q) for y (m,) or (m, q), the rank, and the fitted values Z theta (the
-    projection of y on the columns' span)."""
-    U, s, Vt = np.linalg.svd(Z, full_matrices=False)
+    projection of y on the columns' span). ``svd``: ``np.linalg.svd(Z, full_matrices=False)``
+    when the caller has it."""
+    U, s, Vt = np.linalg.svd(Z, full_matrices=False) if svd is None else svd
     keep = s > (s[0] if len(s) else 0.0) * max(Z.shape) * np.finfo(float).eps
     Uk = U[:, keep]
     uy = Uk.T @ y

@@ -121,8 +121,13 @@ def orthonormal_basis(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
     if A.size == 0:
         return np.zeros((A.shape[0], 0))
     u, s, _ = np.linalg.svd(A, full_matrices=False)
-    keep = s > rcond * max(s.max(initial=0.0), 1e-300)
-    return u[:, keep]
+    return _basis(u, s, rcond)
+
+
+def _basis(u: np.ndarray, s: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+    """The left singular vectors of an SVD whose singular values are above ``rcond`` of the
+    largest (:func:`orthonormal_basis`)."""
+    return u[:, s > rcond * max(s.max(initial=0.0), 1e-300)]
 
 
 def svd_by_shape(
@@ -146,7 +151,7 @@ def orthonormal_bases_by_shape(mats: Mapping[str, np.ndarray], rcond: float = 1e
     """:func:`orthonormal_basis` of each matrix, one batched SVD per distinct shape."""
     out = {}
     for name, (u, s, _) in svd_by_shape(mats).items():
-        out[name] = u[:, s > rcond * max(s.max(initial=0.0), 1e-300)]
+        out[name] = _basis(u, s, rcond)
     return out
 
 
@@ -215,7 +220,9 @@ def analyse(
         others = [o for o in names if o != name and spans[o].shape[1]]
         if not Q.shape[1] or not others or name in apart:
             continue
-        Qo = orthonormal_basis(np.hstack([spans[o] for o in others]))
+        H = np.hstack([spans[o] for o in others])
+        svd_h = np.linalg.svd(H, full_matrices=False)  # its basis and, below, the least squares on it
+        Qo = _basis(svd_h[0], svd_h[1])
         if not Qo.shape[1]:
             continue
         u, cos, _ = np.linalg.svd(Q.T @ Qo, full_matrices=False)
@@ -226,8 +233,7 @@ def analyse(
         # the shared direction, in the data space, written in the others' own columns: the
         # terms that carry it are those with a real part of it (not a chance projection)
         y = Q @ u[:, 0]
-        H = np.hstack([spans[o] for o in others])
-        coef = lstsq_min_norm(H, y)[0]
+        coef = lstsq_min_norm(H, y, svd=svd_h)[0]
         share, at = {}, 0
         for o in others:
             k = spans[o].shape[1]

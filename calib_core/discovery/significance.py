@@ -292,25 +292,30 @@ class Significance:
             self._tests[key] = out
         return out[c]
 
-    def _between_channel(self, c: int) -> tuple[np.ndarray, np.ndarray]:
-        """Channel ``c``'s term columns as the between-repetition test takes them (kept,
-        every channel at once): their deviations from the repetitions' mean (R, n, k - 3)
-        and which of them differ between the repetitions by ``REP_VARYING_MIN`` of their
-        size. Whether a column differs is a question about the physical column, not about
-        the weights (each repetition's own step sigmas)."""
-        key = ("between channels",)
+    def _varying_columns(self) -> np.ndarray:
+        """(6, k - 4) which term columns of each channel differ between the repetitions by
+        ``REP_VARYING_MIN`` of their size (kept). Whether a column differs is a question
+        about the physical column, not about the weights (each repetition's own step
+        sigmas)."""
+        key = ("varying columns",)
         out = self._tests.get(key)
         if out is None:
-            A, _ = self.model.bias_removed_design()
-            T = A[..., 3:-1]
             M = self.model.Mc[..., 3:-1]
             size = np.sqrt(np.sum(M**2, axis=(1, 2)))
             spread = np.sqrt(np.sum((M - M.mean(axis=1, keepdims=True)) ** 2, axis=(1, 2)))
-            out = self._tests[key] = (
-                T - T.mean(axis=1, keepdims=True),
-                spread > REP_VARYING_MIN * np.maximum(size, 1e-300),
-            )
-        return out[0][c], out[1][c]
+            out = self._tests[key] = spread > REP_VARYING_MIN * np.maximum(size, 1e-300)
+        return out
+
+    def _between_channel(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """Channel ``c``'s term columns as the between-repetition test takes them (kept,
+        every channel at once): their deviations from the repetitions' mean (R, n, k - 3)
+        and which of them vary (:meth:`_varying_columns`)."""
+        key = ("between channels",)
+        out = self._tests.get(key)
+        if out is None:
+            T = self.model.bias_removed_design()[0][..., 3:-1]
+            out = self._tests[key] = T - T.mean(axis=1, keepdims=True)
+        return out[c], self._varying_columns()[c]
 
     def between_repetition_test(self, names: tuple[str, ...], threshold: float) -> FTest | None:
         """F test of the part of the terms ``names`` that differs between the repetitions,
@@ -338,7 +343,8 @@ class Significance:
     def _between_repetition_sums(self, names: tuple[str, ...]) -> tuple[float, int, float, int] | None:
         g, R = self.model.g, self.model.g.R
         hits = g.hits(tuple(sorted(names)))
-        if not any(self._between_channel(c)[1][hits[c]].any() for c in range(6)):
+        varying_columns = self._varying_columns()
+        if not any(varying_columns[c][hits[c]].any() for c in range(6)):
             return None  # no column of the terms differs between the repetitions
         ss_num = ss_den = 0.0
         dof_num = dof_den = 0
