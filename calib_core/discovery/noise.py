@@ -160,9 +160,10 @@ def sphericity_epsilon(blocks: list[np.ndarray]) -> float:
     t1, t2, t1sq = [], 0.0, 0.0
     for d in blocks:
         S = d.T @ d / n
-        a, b = float(np.sum(S * S)), float(np.trace(S)) ** 2
+        tr = float(np.trace(S))
+        a, b = float(np.sum(S * S)), tr**2
         t2_c = n * (n * a - b) / ((n - 1) * (n + 2))
-        t1.append(float(np.trace(S)))
+        t1.append(tr)
         t2 += t2_c
         t1sq += b - 2.0 * t2_c / n
     t1sq += sum(t1) ** 2 - sum(x * x for x in t1)  # the channels' cross products
