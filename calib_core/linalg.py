@@ -176,27 +176,59 @@ def lstsq_pinv(
     ``live_rtol`` of the largest is not scaled and gets no estimate (theta 0); with
     ``live_rtol`` 0, only an all-zero column is left unscaled and its theta is what the
     pseudo-inverse gives."""
+    live, scale = _pinv_scale(Z, live_rtol)
+    U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)
+    solution = _pinv_solution(s, Vt, live, scale, rcond)
+    rank = int(solution.keep.sum())
+    theta = (Vt.T * solution.inv_s) @ (U.T @ y) / scale
+    if live_rtol:
+        theta[~live] = 0.0
+    return theta, rank, solution
+
+
+def pinv_solutions(Zs: list[np.ndarray]) -> list[PinvSolution]:
+    """The :class:`PinvSolution` of :func:`lstsq_pinv` (default rcond and live_rtol) of each
+    design, for their covariances: one batched SVD per distinct shape (the same numbers as
+    one call each)."""
+    scaled = [_pinv_scale(Z, 1e-12) for Z in Zs]
+    by_shape: dict[tuple[int, ...], list[int]] = {}
+    for i, Z in enumerate(Zs):
+        by_shape.setdefault(Z.shape, []).append(i)
+    out: list[PinvSolution | None] = [None] * len(Zs)
+    for group in by_shape.values():
+        _, s, Vt = np.linalg.svd(np.stack([Zs[i] / scaled[i][1] for i in group]), full_matrices=False)
+        for j, i in enumerate(group):
+            out[i] = _pinv_solution(s[j], Vt[j], *scaled[i], None)
+    return out
+
+
+def _pinv_scale(Z: np.ndarray, live_rtol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Which columns of Z are live and the scale each is divided by (:func:`lstsq_pinv`)."""
     norms = np.sqrt(np.add.reduce(Z * Z, axis=0))  # np.linalg.norm(Z, axis=0), its arithmetic
     live = norms > live_rtol * max(norms.max(), 1e-300) if live_rtol else norms > 0
-    scale = np.where(live, norms, 1.0)
-    U, s, Vt = np.linalg.svd(Z / scale, full_matrices=False)
+    return live, np.where(live, norms, 1.0)
+
+
+def _pinv_solution(
+    s: np.ndarray, Vt: np.ndarray, live: np.ndarray, scale: np.ndarray, rcond: float | None
+) -> PinvSolution:
+    """The pseudo-inverse's parts from the SVD of the scaled design (:func:`lstsq_pinv`)."""
     r = PINV_RCOND**0.5 if rcond is None else rcond
     keep = s > r * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
     keep &= s > 0
-    rank = int(keep.sum())
     inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
-    theta = (Vt.T * inv_s) @ (U.T @ y) / scale
-    if live_rtol:
-        theta[~live] = 0.0
-    return theta, rank, PinvSolution(Vt, inv_s, keep, live, scale)
+    return PinvSolution(Vt, inv_s, keep, live, scale)
 
 
-def lstsq_min_norm(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, int, np.ndarray]:
+def lstsq_min_norm(
+    Z: np.ndarray, y: np.ndarray, svd: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, int, np.ndarray]:
     """Minimum-norm least squares by one SVD, with numpy's rank rule (singular values above
     max(m, p) eps of the largest, as ``np.linalg.lstsq(rcond=None)`` and ``matrix_rank``):
     theta (p,) or (p, q) for y (m,) or (m, q), the rank, and the fitted values Z theta (the
-    projection of y on the columns' span)."""
-    U, s, Vt = np.linalg.svd(Z, full_matrices=False)
+    projection of y on the columns' span). ``svd``: ``np.linalg.svd(Z, full_matrices=False)``
+    when the caller has it."""
+    U, s, Vt = np.linalg.svd(Z, full_matrices=False) if svd is None else svd
     keep = s > (s[0] if len(s) else 0.0) * max(Z.shape) * np.finfo(float).eps
     Uk = U[:, keep]
     uy = Uk.T @ y

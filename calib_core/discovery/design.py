@@ -249,7 +249,10 @@ def _build_layout(sessions: list[StepMeans]) -> Layout:
                 turned_deg=sm.turned_deg(),
             )
         )
-        tests.append(np.unique(_test_names(sm), return_inverse=True))
+        names = _test_names(sm).tolist()
+        u = sorted(set(names))  # np.unique's order (code points), by a dict: a few distinct names
+        at = {t: i for i, t in enumerate(u)}
+        tests.append((u, np.array([at[t] for t in names], np.int64)))
     # test groups: mapped per distinct test name, not per step
     groups = sorted({test_group(t) for u, _ in tests for t in u})
     gcode = np.full((R, n), -1, np.int64)
@@ -355,9 +358,14 @@ def term_design(
     M = np.zeros((6, R, n, k))
     colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
     M[..., -1] = np.moveaxis(lay.y, 2, 0)
+    if all(len(Z) == n for Z in Zs):
+        Zg = np.stack(Zs)  # (R, n, 6, P) every repetition's rows on the grid
+    else:  # padding rows stay 0
+        Zg = np.zeros((R, n, 6, P))
+        for r, Z in enumerate(Zs):
+            Zg[r, : len(Z)] = Z
     for c in range(6):
         L = live[c]
         colmap[c, : len(L)] = L
-        for r, Z in enumerate(Zs):
-            M[c, r, : len(Z), 3 : 3 + len(L)] = Z[:, c, L]
+        M[c, :, :, 3 : 3 + len(L)] = Zg[:, :, c, L]
     return offset, live, live_mask, M, colmap, regressors

@@ -29,7 +29,7 @@ from calib_core.discovery.noise import NoiseModel, prewhiten
 from calib_core.discovery.results import EXCITED_SHARE
 from calib_core.effects import CHANNELS, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.linalg import PinvSolution, lstsq_pinv, lstsq_pinv_stack, qr_r
+from calib_core.linalg import PinvSolution, lstsq_pinv, lstsq_pinv_stack, pinv_solutions, qr_r
 from calib_core.steps import StepMeans
 
 
@@ -270,18 +270,20 @@ class JointModel:
         exceeds the term's ``max_useful_stderr`` (the protocol cannot tell a realistic value
         from 0)."""
         g, P = self.g, self.g.P
-        out: dict[int, str] = {}
-        Rg = self.Rg[0][:P, :P]
+        Rg = self.Rg0[:P, :P]
+        per_term: dict[str, dict[int, str]] = {}
+        checked = []  # (term, its excited columns) for the standard-error test
         for name in self.names:
             a, b = g.offset[name]
-            term = get_effect(name)
             live = g.live_mask[:, a:b].any(axis=0)
-            for k in np.flatnonzero(~live):
-                out[a + int(k)] = "no step excites it"
+            per_term[name] = {a + int(k): "no step excites it" for k in np.flatnonzero(~live)}
             cols = a + np.flatnonzero(live)
-            if not cols.size:
-                continue
-            _, _, sol = lstsq_pinv(Rg[:, cols], np.zeros(P))
+            if cols.size:
+                checked.append((name, cols))
+        # each term alone on the base model: the covariance of its parameters
+        solutions = pinv_solutions([Rg[:, cols] for _, cols in checked])
+        for (name, cols), sol in zip(checked, solutions):
+            term, a, out = get_effect(name), g.offset[name][0], per_term[name]
             se = np.sqrt(np.diag(sol.cov))
             for k, v in zip(cols, se):
                 if not np.isfinite(v):
@@ -295,7 +297,7 @@ class JointModel:
                         f"{term.max_useful_stderr:g} {unit}: too weakly excited "
                         f"({term.excited_by})"
                     )
-        return out
+        return {k: why for name in self.names for k, why in per_term[name].items()}
 
     def _prepare(self) -> None:
         """Per channel c, the weighted bias-removed design A_c = [raw_c | live terms | y],
@@ -316,44 +318,80 @@ class JointModel:
         ]
         self.Rrep = qr_r(A)  # (6, R, k, k)
         self.__dict__.pop("_bias_removed", None)
+        self.__dict__.pop("_fold0", None)
 
     def _first_fold(self) -> None:
         """The fold of all repetitions alone (it stacks every repetition's factor) and its
-        term factor (``Rg`` (1, P+1, P+1)): what :meth:`_undetermined` needs."""
+        term factor (``Rg0`` (P+1, P+1)): what :meth:`_undetermined` needs. Kept for
+        :meth:`_complete` unless the design is rebuilt (:meth:`_prepare` drops them)."""
         R, k = self.g.R, self.Rrep.shape[-1]
-        self.Rf = qr_r(self.Rrep.reshape(6, 1, R * k, k))
-        self.Rg = self._term_factor(1)
+        Rf0 = qr_r(self.Rrep.reshape(6, 1, R * k, k))
+        self.Rg0 = self._term_factor(Rf0)[0]
+        self.__dict__["_fold0"] = (Rf0, self.Rg0)
 
     def _complete(self) -> None:
-        """After :meth:`_prepare`: R factors per fold (repetitions but one; fold 0 = all,
-        fold 1 + h leaves h out), of the pure-error part; per fold, the factor of every term
-        column with the affine model projected out (fits of any subset)."""
+        """After :meth:`_prepare`: the R factor of the fold of all repetitions (``Rf0``) and
+        its term factor (``Rg0``: the factor of every term column with the affine model
+        projected out), of the pure-error part, and each fold leaving one repetition out
+        (fold h: every repetition but h) factorised on the affine model's columns alone (what
+        the held-out fits without terms use); the folds' factors of every column on first
+        use (:meth:`fold_factors`, :meth:`fold_term_factors`): only fits with terms on a
+        fold need them."""
         g, R = self.g, self.g.R
         A, A_raw = self.A, self.A_seen
         k = A.shape[-1]
         # the held-out score is the residual a user sees, residual / sigma, not whitened: a
         # slow effect (thermal drift) matters by its size, not by how far it is from the wander
         self.Rrep_seen = self.Rrep if A is A_raw else qr_r(A_raw)
-        folds = np.broadcast_to(self.Rrep[:, None], (6, R + 1, R, k, k)).copy()
-        folds[:, np.arange(1, R + 1), np.arange(R)] = 0.0
-        self.Rf = qr_r(folds.reshape(6, R + 1, R * k, k))  # (6, R+1, k, k)
-        # K_c = R_base^-1 (R_base,y - R_base,terms theta): solved once per fold
-        self.K_solve = np.linalg.solve(self.Rf[..., :3, :3], self.Rf[..., :3, 3:])
+        fold0 = self.__dict__.pop("_fold0", None)  # the same design: fold 0 is factorised
+        self.Rf0 = qr_r(self.Rrep.reshape(6, 1, R * k, k)) if fold0 is None else fold0[0]  # (6, 1, k, k)
+        # K_c = R_base^-1 (R_base,y - R_base,terms theta)
+        self.K_solve0 = np.linalg.solve(self.Rf0[:, 0, :3, :3], self.Rf0[:, 0, :3, 3:])  # (6, 3, k - 3)
+        affine = self._folds(self.Rrep[..., [0, 1, 2, k - 1]])  # (6, R, 4, 4)
+        self.K_affine_folds = np.linalg.solve(affine[..., :3, :3], affine[..., :3, 3:])[..., 0]  # (6, R, 3)
         e, _, self.pure_dof = g.two_way(A)
         self.Rpure = qr_r(e)  # (6, k, k)
-        self.Rg = self._term_factor(R + 1)  # (R+1, P+1, P+1): [R_terms c; 0 sqrt(ss_perp)] per fold
+        # [R_terms c; 0 sqrt(ss_perp)] of the fold of all repetitions
+        self.Rg0 = self._term_factor(self.Rf0)[0] if fold0 is None else fold0[1]
+        self.__dict__.pop("_fold_factors", None)
+        self.__dict__.pop("_fold_term_factors", None)
         self.rows_channel = int(g.real.sum())
         self.base_rank = [3 + R] * 6
 
-    def _term_factor(self, n_folds: int) -> np.ndarray:
-        """The affine model projected out: the trailing block of each fold's factor, every
-        channel's term columns put back in their global place (P + 1: padding, dropped),
-        factorised per fold."""
+    def _folds(self, Rrep: np.ndarray) -> np.ndarray:
+        """R factors (6, R, m, m) of the folds leaving one repetition out, from each
+        repetition's factor ``Rrep`` (6, R, k, m): fold h stacks them with h's rows 0."""
+        R, k, m = Rrep.shape[1:]
+        folds = np.broadcast_to(Rrep[:, None], (6, R, R, k, m)).copy()
+        folds[:, np.arange(R), np.arange(R)] = 0.0
+        return qr_r(folds.reshape(6, R, R * k, m))
+
+    def fold_factors(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each fold leaving one repetition out on every column: its R factor (6, R, k, k)
+        and R_base^-1 [R_base,terms | R_base,y] (6, R, 3, k - 3), built on first use."""
+        out = self.__dict__.get("_fold_factors")
+        if out is None:
+            Rf = self._folds(self.Rrep)
+            out = self.__dict__["_fold_factors"] = (Rf, np.linalg.solve(Rf[..., :3, :3], Rf[..., :3, 3:]))
+        return out
+
+    def fold_term_factors(self) -> np.ndarray:
+        """(R, P+1, P+1) :attr:`Rg0` of each fold leaving one repetition out, built on first
+        use."""
+        out = self.__dict__.get("_fold_term_factors")
+        if out is None:
+            out = self.__dict__["_fold_term_factors"] = self._term_factor(self.fold_factors()[0])
+        return out
+
+    def _term_factor(self, Rf: np.ndarray) -> np.ndarray:
+        """The affine model projected out: the trailing block of each fold's factor ``Rf``
+        (6, folds, k, k), every channel's term columns put back in their global place (P + 1:
+        padding, dropped), factorised per fold."""
         g, P = self.g, self.g.P
-        k = self.Rf.shape[-1]
+        n_folds, k = Rf.shape[1], Rf.shape[-1]
         T = np.zeros((n_folds, 6, k - 3, P + 2))
         for c in range(6):
-            T[:, c][..., np.append(g.colmap[c], P)] = self.Rf[c, :, 3:, 3:]
+            T[:, c][..., np.append(g.colmap[c], P)] = Rf[c, :, 3:, 3:]
         return qr_r(T.reshape(n_folds, 6 * (k - 3), P + 2)[..., : P + 1])
 
     # -- fits -----------------------------------------------------------------------------
@@ -365,8 +403,7 @@ class JointModel:
 
     def _fit(self, names: tuple[str, ...], fold: int | None) -> JointFit:
         g, P = self.g, self.g.P
-        fi = 0 if fold is None else 1 + fold
-        Rg = self.Rg[fi]
+        Rg = self.Rg0 if fold is None else self.fold_term_factors()[fold]
         c_all = Rg[:P, P]
         ss_perp = float(Rg[P, P] ** 2)
         cols = g.cols(names)
@@ -383,12 +420,12 @@ class JointModel:
         theta_ext[cols] = theta
         tc = theta_ext[g.colmap]  # (6, k - 4) each channel's term coefficients
         # affine coefficients by back-substitution on the fold's factor of each channel
-        KS = self.K_solve[:, fi]  # (6, 3, k - 3)
+        KS = self.K_solve0 if fold is None else self.fold_factors()[1][:, fold]  # (6, 3, k - 3)
         K = KS[..., -1] - np.einsum("cij,cj->ci", KS[..., :-1], tc)
         v = np.concatenate([-K, -tc, np.ones((6, 1))], axis=1)  # (6, k)
         ss_c = pure_c = None
         if fold is None:
-            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf[:, 0], v) ** 2, axis=1)
+            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf0[:, 0], v) ** 2, axis=1)
             pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
         return JointFit(
             names=list(names),
@@ -462,14 +499,17 @@ class JointModel:
         key = ("v",) + tuple(sorted(names))
         if key not in self._heldout:
             g, P, R = self.g, self.g.P, self.g.R
-            Rg = self.Rg[1:]  # (R, P+1, P+1) the folds leaving one repetition out
             cols = g.cols(key[1:])
             theta_ext = np.zeros((R, P + 2))
             if cols.size:
+                Rg = self.fold_term_factors()  # (R, P+1, P+1) the folds leaving one repetition out
                 theta_ext[:, cols] = lstsq_pinv_stack(Rg[:, :P][:, :, cols], Rg[:, :P, P])
             tc = theta_ext[:, g.colmap]  # (R, 6, k - 4)
-            KS = self.K_solve[:, 1:]  # (6, R, 3, k - 3)
-            K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
+            if cols.size:
+                KS = self.fold_factors()[1]  # (6, R, 3, k - 3)
+                K = KS[..., -1] - np.einsum("chij,hcj->chi", KS[..., :-1], tc)  # (6, R, 3)
+            else:  # the affine model alone
+                K = self.K_affine_folds
             self._heldout[key] = np.concatenate([-K, -tc.transpose(1, 0, 2), np.ones((6, R, 1))], axis=-1)
         return self._heldout[key]
 
@@ -523,16 +563,25 @@ class JointModel:
 
     def bias_removed(self, c: int) -> tuple[np.ndarray, np.ndarray]:
         """Channel ``c``'s whitened design (R, n, k) with each repetition's own bias removed
-        from every column, and the whitened bias column (R, n)."""
-        cache = self.__dict__.setdefault("_bias_removed", {})  # asked by every test, per channel
-        out = cache.get(c)
+        from every column, and the whitened bias column (R, n) (:meth:`bias_removed_design`)."""
+        A, wb = self.bias_removed_design()
+        return A[c], wb[c]
+
+    def bias_removed_design(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every channel's whitened design (6, R, n, k) with each repetition's own bias
+        removed from every column, and the whitened bias columns (6, R, n) (read-only, kept:
+        asked by every test)."""
+        out = self.__dict__.get("_bias_removed")
         if out is None:
-            A, wb = self.A[c], self.A_bias[c]
-            coef = np.einsum("rn,rnk->rk", wb, A) / np.maximum(np.einsum("rn,rn->r", wb, wb), 1e-300)[:, None]
-            out = (A - wb[..., None] * coef[:, None, :], wb)
+            A, wb = self.A, self.A_bias
+            coef = (
+                np.einsum("crn,crnk->crk", wb, A)
+                / np.maximum(np.einsum("crn,crn->cr", wb, wb), 1e-300)[..., None]
+            )
+            out = (A - wb[..., None] * coef[:, :, None, :], wb)
             for x in out:
                 x.setflags(write=False)
-            cache[c] = out
+            self.__dict__["_bias_removed"] = out
         return out
 
     def variance_scale(self, names: tuple[str, ...]) -> float:

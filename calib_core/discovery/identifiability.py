@@ -121,8 +121,38 @@ def orthonormal_basis(A: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
     if A.size == 0:
         return np.zeros((A.shape[0], 0))
     u, s, _ = np.linalg.svd(A, full_matrices=False)
-    keep = s > rcond * max(s.max(initial=0.0), 1e-300)
-    return u[:, keep]
+    return _basis(u, s, rcond)
+
+
+def _basis(u: np.ndarray, s: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+    """The left singular vectors of an SVD whose singular values are above ``rcond`` of the
+    largest (:func:`orthonormal_basis`)."""
+    return u[:, s > rcond * max(s.max(initial=0.0), 1e-300)]
+
+
+def svd_by_shape(
+    mats: Mapping[str, np.ndarray], full_matrices: Callable[[tuple[int, ...]], bool] | bool = False
+) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``np.linalg.svd`` of each matrix, one batched call per distinct shape (the same
+    numbers as one call each); ``full_matrices`` may depend on the shape."""
+    by_shape: dict[tuple[int, ...], list[str]] = {}
+    for name, A in mats.items():
+        by_shape.setdefault(A.shape, []).append(name)
+    out = {}
+    for shape, group in by_shape.items():
+        full = full_matrices(shape) if callable(full_matrices) else full_matrices
+        u, s, vt = np.linalg.svd(np.stack([mats[n] for n in group]), full_matrices=full)
+        for j, name in enumerate(group):
+            out[name] = (u[j], s[j], vt[j])
+    return out
+
+
+def orthonormal_bases_by_shape(mats: Mapping[str, np.ndarray], rcond: float = 1e-10) -> dict[str, np.ndarray]:
+    """:func:`orthonormal_basis` of each matrix, one batched SVD per distinct shape."""
+    out = {}
+    for name, (u, s, _) in svd_by_shape(mats).items():
+        out[name] = _basis(u, s, rcond)
+    return out
 
 
 def analyse(
@@ -139,26 +169,38 @@ def analyse(
     undetermined: list[Undetermined] = []
     spans: dict[str, np.ndarray] = {}
     rank: dict[str, int] = {}
+    # every term's three factorisations, each one batched call per distinct shape
+    Zn: dict[str, np.ndarray] = {}
     for name in names:
         Z = np.asarray(terms[name], float)
         norms = np.linalg.norm(Z, axis=0)
-        Zn = Z / np.where(norms > 0, norms, 1.0)  # scale-free: columns of unit length
-        # directions of parameter space: first those Z itself cannot see (zero or collinear
-        # columns), then, within its range, the ratio ||P Z v|| / ||Z v|| (singular values of
-        # P Z W with W mapping unit vectors of Z's range back to parameters)
-        _, sz, vzt = np.linalg.svd(Zn, full_matrices=True)
-        sz = np.concatenate([sz, np.zeros(Zn.shape[1] - len(sz))])
+        Zn[name] = Z / np.where(norms > 0, norms, 1.0)  # scale-free: columns of unit length
+    # directions of parameter space: first those Z itself cannot see (zero or collinear
+    # columns), then, within its range, the ratio ||P Z v|| / ||Z v|| (singular values of
+    # P Z W with W mapping unit vectors of Z's range back to parameters); every right
+    # singular vector of Z (p of them), the left ones only as many as needed
+    svd_z = svd_by_shape(Zn, full_matrices=lambda shape: shape[0] < shape[1])
+    W: dict[str, np.ndarray] = {}
+    X: dict[str, np.ndarray] = {}
+    blind: dict[str, list] = {}
+    for name in names:
+        _, sz, vzt = svd_z[name]
+        sz = np.concatenate([sz, np.zeros(Zn[name].shape[1] - len(sz))])
         inrange = sz > 1e-8 * max(sz.max(initial=0.0), 1e-300)
-        W = vzt[inrange].T / sz[inrange]
-        X = (Zn - Qb @ (Qb.T @ Zn)) @ W
-        blind = [(v, 0.0) for v in vzt[~inrange]]
-        if X.shape[1]:
-            _, sig, at = np.linalg.svd(X, full_matrices=False)
-            weak = [(W @ a / np.linalg.norm(W @ a), float(r)) for a, r in zip(at, sig) if r < tol]
-            determined = at[sig >= tol]
+        W[name] = vzt[inrange].T / sz[inrange]
+        X[name] = (Zn[name] - Qb @ (Qb.T @ Zn[name]) if Qb.shape[1] else Zn[name]) @ W[name]
+        blind[name] = [(v, 0.0) for v in vzt[~inrange]]
+    svd_x = svd_by_shape({n: x for n, x in X.items() if x.shape[1]})
+    determined: dict[str, np.ndarray] = {}
+    for name in names:
+        if name in svd_x:
+            _, sig, at = svd_x[name]
+            w = W[name]
+            weak = [(w @ a / np.linalg.norm(w @ a), float(r)) for a, r in zip(at, sig) if r < tol]
+            determined[name] = at[sig >= tol]
         else:
-            weak, determined = [], np.zeros((0, 0))
-        for v, left in blind + weak:
+            weak = []
+        for v, left in blind[name] + weak:
             order = np.argsort(-np.abs(v))
             big = [int(i) for i in order if abs(v[i]) >= 0.2] or [int(order[0])]
             undetermined.append(
@@ -166,16 +208,21 @@ def analyse(
                     name, tuple(param_names[name][i] for i in big), tuple(float(v[i]) for i in big), left
                 )
             )
-        spans[name] = orthonormal_basis(X @ determined.T) if len(determined) else np.zeros((len(Zn), 0))
+    bases = orthonormal_bases_by_shape({n: X[n] @ d.T for n, d in determined.items() if len(d)})
+    for name in names:
+        spans[name] = bases.get(name, np.zeros((len(Zn[name]), 0)))
         rank[name] = spans[name].shape[1]
     confounded: list[Confounded] = []
     seen: set[tuple[str, ...]] = set()
+    apart = _surely_apart(spans, tol)
     for name in names:
         Q = spans[name]
         others = [o for o in names if o != name and spans[o].shape[1]]
-        if not Q.shape[1] or not others:
+        if not Q.shape[1] or not others or name in apart:
             continue
-        Qo = orthonormal_basis(np.hstack([spans[o] for o in others]))
+        H = np.hstack([spans[o] for o in others])
+        svd_h = np.linalg.svd(H, full_matrices=False)  # its basis and, below, the least squares on it
+        Qo = _basis(svd_h[0], svd_h[1])
         if not Qo.shape[1]:
             continue
         u, cos, _ = np.linalg.svd(Q.T @ Qo, full_matrices=False)
@@ -186,8 +233,7 @@ def analyse(
         # the shared direction, in the data space, written in the others' own columns: the
         # terms that carry it are those with a real part of it (not a chance projection)
         y = Q @ u[:, 0]
-        H = np.hstack([spans[o] for o in others])
-        coef = lstsq_min_norm(H, y)[0]
+        coef = lstsq_min_norm(H, y, svd=svd_h)[0]
         share, at = {}, 0
         for o in others:
             k = spans[o].shape[1]
@@ -205,6 +251,49 @@ def analyse(
         {n: int(np.asarray(terms[n]).shape[1]) for n in names},
         tol,
     )
+
+
+# _surely_apart: the stacked spans' singular values must each be either below _NULL_RTOL of
+# the largest (an exact dependency among the columns, which orthonormal_basis's rank cut of
+# 1e-10 drops too) or above _REGULAR_RTOL (well determined: the sines below come out to
+# ~1e-8 relative or better); a term's sine must exceed tol by _APART_MARGIN to be passed over
+_NULL_RTOL = 1e-12
+_REGULAR_RTOL = 1e-4
+_APART_MARGIN = 1.1
+
+
+def _surely_apart(spans: Mapping[str, np.ndarray], tol: float) -> set[str]:
+    """Terms whose span is certainly not confounded with the others' (sine of the smallest
+    principal angle at least ``_APART_MARGIN`` x ``tol``), from one SVD of every span
+    stacked: with S = [Q_1 .. Q_m] (orthonormal blocks) and G = S^T S, the block of G^-1 of
+    term i is (I - Q_i^T P_others Q_i)^-1, whose largest eigenvalue is 1 / sin^2 of that
+    angle. Exact dependencies among the others' columns (a confounded pair) are set to
+    unit weight in G: P_others is the same, the dependency adding no direction. A term
+    that takes part in such a dependency, or a design with singular values between the
+    exact and the well-determined ones, is left to :func:`analyse`, which examines every
+    term not returned as before."""
+    blocks = [(n, q) for n, q in spans.items() if q.shape[1]]
+    if len(blocks) < 2:
+        return set()
+    S = np.hstack([q for _, q in blocks])
+    _, s, Wt = np.linalg.svd(S, full_matrices=True)
+    s = np.concatenate([s, np.zeros(S.shape[1] - len(s))])
+    null = s <= _NULL_RTOL * s[0]
+    if not (s[0] > 0 and np.all(null | (s > _REGULAR_RTOL * s[0]))):
+        return set()
+    Ginv = (Wt.T * np.where(null, 1.0, 1.0 / np.where(null, 1.0, s) ** 2)) @ Wt
+    Wn = Wt[null]
+    out, at = set(), 0
+    for name, q in blocks:
+        k = q.shape[1]
+        part = slice(at, at + k)
+        at += k
+        if Wn.size and np.abs(Wn[:, part]).max() > 1e-6:
+            continue  # in an exact dependency: confounded
+        top = float(np.linalg.eigvalsh(Ginv[part, part])[-1])
+        if top > 0 and 1.0 / np.sqrt(top) >= _APART_MARGIN * tol:
+            out.add(name)
+    return out
 
 
 def near_confounded(

@@ -88,7 +88,7 @@ def serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> SerialNoise:
             tau[tri] = -step_s / np.log(decay)
         phi = np.exp(-step_s / tau)
         total = c0 + var_mean
-        var_mean = total / n * (1.0 + 2.0 * lam * np.array([np.sum((1.0 - lag / n) * p**lag) for p in phi]))
+        var_mean = total / n * (1.0 + 2.0 * lam * np.sum((1.0 - lag / n) * phi[:, None] ** lag, axis=1))
     return SerialNoise(lam, tau)
 
 
@@ -160,9 +160,10 @@ def sphericity_epsilon(blocks: list[np.ndarray]) -> float:
     t1, t2, t1sq = [], 0.0, 0.0
     for d in blocks:
         S = d.T @ d / n
-        a, b = float(np.sum(S * S)), float(np.trace(S)) ** 2
+        tr = float(np.trace(S))
+        a, b = float(np.sum(S * S)), tr**2
         t2_c = n * (n * a - b) / ((n - 1) * (n + 2))
-        t1.append(float(np.trace(S)))
+        t1.append(tr)
         t2 += t2_c
         t1sq += b - 2.0 * t2_c / n
     t1sq += sum(t1) ** 2 - sum(x * x for x in t1)  # the channels' cross products

@@ -79,7 +79,7 @@ class Policy:
         every fit here: the R factor of the full fold), undetermined columns left out."""
         if "_ident" not in self.__dict__:
             P = self.model.g.P
-            Rg = self.model.Rg[0][:P, :P]
+            Rg = self.model.Rg0[:P, :P]
             terms, pnames = {}, {}
             for n in self.model.names:
                 a, b = self.model.g.offset[n]
@@ -101,7 +101,7 @@ class Policy:
         :attr:`identifiability`): the data decide them (:meth:`_settle_near_confounded`)."""
         if "_near" not in self.__dict__:
             P = self.model.g.P
-            Rg = self.model.Rg[0][:P, :P]
+            Rg = self.model.Rg0[:P, :P]
             grouped = {n for grp in self.identifiability.groups() if len(grp) > 1 for n in grp}
             terms = {}
             for n in self.model.names:
@@ -123,8 +123,10 @@ class Policy:
         significant given A and A not given B; when neither is significant given the other,
         the pair is one confounded item (the combined fit applied, no name picked). Tests
         at the terms' share of alpha (``term_alpha``) over the catalogue, as :meth:`_resolve`."""
-        thr = self.term_alpha / len(self.model.names)
         out = list(items)
+        if not any(len(i) == 1 for i in out):
+            return out  # no single term chosen: no pair to settle (the pairs not worked out)
+        thr = self.term_alpha / len(self.model.names)
         for pair in self.near_confounded:
             names = tuple(n for i in out for n in i)
             a, b = pair.terms

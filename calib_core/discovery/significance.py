@@ -26,7 +26,7 @@ import numpy as np
 from scipy import stats
 
 from calib_core.discovery.fit import JointModel
-from calib_core.discovery.identifiability import orthonormal_basis
+from calib_core.discovery.identifiability import orthonormal_bases_by_shape, orthonormal_basis
 from calib_core.discovery.noise import dof_inflation, sphericity_epsilon
 from calib_core.discovery.results import FTest, f_test
 from calib_core.effects import CHANNELS
@@ -67,6 +67,18 @@ class TargetedParts(NamedTuple):
     joint_ss: float  # R |mean residual|^2 on the terms' joint directions, numerator
     joint_dof: int  # the joint directions
     joint_deviations: np.ndarray  # (R, joint_dof) the repetitions' deviations along them
+
+
+class AffineChannel(NamedTuple):
+    """One channel on the affine model, what the targeted, between-repetition and
+    lack-of-fit tests of every candidate share."""
+
+    A: np.ndarray  # (R, n, k) the bias-removed design
+    Ub: np.ndarray  # (n, q) orthonormal basis of the affine model's mean columns
+    rbar: np.ndarray  # (n,) mean residual over the repetitions
+    dev: np.ndarray  # (R, n) the repetitions' deviations from it
+    A_mean: np.ndarray  # (n, k) the design's mean over the repetitions
+    rbar_free: np.ndarray  # (n,) rbar with the affine model's columns projected out
 
 
 class Significance:
@@ -154,8 +166,11 @@ class Significance:
             A, wb = self.model.bias_removed(c)  # (R, n, k), (R, n)
             resid = A @ f.v[c]  # (R, n)
             local = 3 + hits[c]
-            X = np.concatenate([A[..., :3], A[..., local], wb[..., None]], axis=-1).mean(axis=0)
-            Ub = orthonormal_basis(X)
+            if local.size:
+                X = np.concatenate([A[..., :3], A[..., local], wb[..., None]], axis=-1).mean(axis=0)
+                Ub = orthonormal_basis(X)
+            else:  # the affine model's columns alone
+                Ub = self._affine_channel(c).Ub
             rbar = resid.mean(axis=0)
             e = rbar - Ub @ (Ub.T @ rbar)
             dev = resid - rbar
@@ -214,23 +229,34 @@ class Significance:
         cols = g.cols(tuple(sorted(names)))
         index = {int(k): j for j, k in enumerate(cols)}
         hits = g.hits(tuple(sorted(names)))
-        blocks, means, devs, joint = [], [], [], []
-        for c in range(6):
-            hit = hits[c]
-            if not hit.size:
-                continue
-            A, Ub, rbar, dev = self._affine_channel(c)
-            Xt = A[..., 3 + hit].mean(axis=0)
-            size = float(np.linalg.norm(Xt, axis=0).max())
-            Xt = Xt - Ub @ (Ub.T @ Xt)
+        chans = [c for c in range(6) if hits[c].size]
+        affs = {c: self._affine_channel(c) for c in chans}
+        # channels with as many term columns and affine directions: one batched product and
+        # SVD each (the same numbers as channel by channel)
+        shapes: dict[tuple[int, int], list[int]] = {}
+        for c in chans:
+            shapes.setdefault((hits[c].size, affs[c].Ub.shape[1]), []).append(c)
+        Xts, Uts = {}, {}
+        for same in shapes.values():
+            Xt = np.stack([affs[c].A_mean[:, 3 + hits[c]] for c in same])  # (m, n, h)
+            Ub = np.stack([affs[c].Ub for c in same])  # (m, n, q)
+            size = np.linalg.norm(Xt, axis=-2).max(axis=-1)  # (m,)
+            Xt = Xt - Ub @ (Ub.swapaxes(-1, -2) @ Xt)
             U, s, _ = np.linalg.svd(Xt, full_matrices=False)
-            Ut = U[:, s > size * 1e-8]  # what the affine model spans is not the terms'
+            for j, c in enumerate(same):
+                Xts[c] = Xt[j]
+                Uts[c] = U[j][
+                    :, s[j] > float(size[j]) * 1e-8
+                ]  # what the affine model spans is not the terms'
+        blocks, means, devs, joint = [], [], [], []
+        for c in chans:
+            Xt, Ut, dev = Xts[c], Uts[c], affs[c].dev
             if Ut.shape[1]:
                 blocks.append(dev @ Ut)
             J = np.zeros((Xt.shape[0], len(cols)))
-            J[:, [index[int(k)] for k in g.colmap[c][hit]]] = Xt
+            J[:, [index[int(k)] for k in g.colmap[c][hits[c]]]] = Xt
             joint.append(J)
-            means.append(rbar - Ub @ (Ub.T @ rbar))
+            means.append(affs[c].rbar_free)
             devs.append(dev)  # along the joint directions, which the affine model's miss
         Uj = orthonormal_basis(np.concatenate(joint)) if joint else np.zeros((0, 0))
         mean = np.concatenate(means) if means else np.zeros(0)
@@ -243,37 +269,53 @@ class Significance:
         self._tests[key] = out
         return out
 
-    def _affine_channel(self, c: int) -> tuple[np.ndarray, ...]:
-        """Channel ``c`` on the affine model, what the targeted and between-repetition tests
-        of every candidate share (kept): the bias-removed design A (R, n, k), an orthonormal
-        basis Ub of the affine model's mean columns, the mean residual rbar (n,) and the
-        repetitions' deviations from it (R, n)."""
-        key = ("affine channel", c)
+    def _affine_channel(self, c: int) -> AffineChannel:
+        """Channel ``c`` on the affine model (:class:`AffineChannel`; kept, every channel at
+        once)."""
+        key = ("affine channels",)
         out = self._tests.get(key)
         if out is None:
-            A, wb = self.model.bias_removed(c)
-            Ub = orthonormal_basis(np.concatenate([A[..., :3], wb[..., None]], axis=-1).mean(axis=0))
-            resid = A @ self.model.fit(()).v[c]
-            rbar = resid.mean(axis=0)
-            out = self._tests[key] = (A, Ub, rbar, resid - rbar)
+            A, wb = self.model.bias_removed_design()
+            X = np.concatenate([A[..., :3], wb[..., None]], axis=-1).mean(axis=1)
+            bases = orthonormal_bases_by_shape(dict(enumerate(X)))
+            v = self.model.fit(()).v
+            out = []
+            for ch in range(6):
+                Ub = bases[ch]
+                resid = A[ch] @ v[ch]
+                rbar = resid.mean(axis=0)
+                out.append(
+                    AffineChannel(
+                        A[ch], Ub, rbar, resid - rbar, A[ch].mean(axis=0), rbar - Ub @ (Ub.T @ rbar)
+                    )
+                )
+            self._tests[key] = out
+        return out[c]
+
+    def _varying_columns(self) -> np.ndarray:
+        """(6, k - 4) which term columns of each channel differ between the repetitions by
+        ``REP_VARYING_MIN`` of their size (kept). Whether a column differs is a question
+        about the physical column, not about the weights (each repetition's own step
+        sigmas)."""
+        key = ("varying columns",)
+        out = self._tests.get(key)
+        if out is None:
+            M = self.model.Mc[..., 3:-1]
+            size = np.sqrt(np.sum(M**2, axis=(1, 2)))
+            spread = np.sqrt(np.sum((M - M.mean(axis=1, keepdims=True)) ** 2, axis=(1, 2)))
+            out = self._tests[key] = spread > REP_VARYING_MIN * np.maximum(size, 1e-300)
         return out
 
     def _between_channel(self, c: int) -> tuple[np.ndarray, np.ndarray]:
-        """Channel ``c``'s term columns as the between-repetition test takes them (kept):
-        their deviations from the repetitions' mean (R, n, k - 3) and which of them differ
-        between the repetitions by ``REP_VARYING_MIN`` of their size. Whether a column
-        differs is a question about the physical column, not about the weights (each
-        repetition's own step sigmas)."""
-        key = ("between channel", c)
+        """Channel ``c``'s term columns as the between-repetition test takes them (kept,
+        every channel at once): their deviations from the repetitions' mean (R, n, k - 3)
+        and which of them vary (:meth:`_varying_columns`)."""
+        key = ("between channels",)
         out = self._tests.get(key)
         if out is None:
-            A, _ = self.model.bias_removed(c)
-            T = A[..., 3:-1]
-            M = self.model.Mc[c][..., 3:-1]
-            size = np.sqrt(np.sum(M**2, axis=(0, 1)))
-            spread = np.sqrt(np.sum((M - M.mean(axis=0)) ** 2, axis=(0, 1)))
-            out = self._tests[key] = (T - T.mean(axis=0), spread > REP_VARYING_MIN * np.maximum(size, 1e-300))
-        return out
+            T = self.model.bias_removed_design()[0][..., 3:-1]
+            out = self._tests[key] = T - T.mean(axis=1, keepdims=True)
+        return out[c], self._varying_columns()[c]
 
     def between_repetition_test(self, names: tuple[str, ...], threshold: float) -> FTest | None:
         """F test of the part of the terms ``names`` that differs between the repetitions,
@@ -301,6 +343,9 @@ class Significance:
     def _between_repetition_sums(self, names: tuple[str, ...]) -> tuple[float, int, float, int] | None:
         g, R = self.model.g, self.model.g.R
         hits = g.hits(tuple(sorted(names)))
+        varying_columns = self._varying_columns()
+        if not any(varying_columns[c][hits[c]].any() for c in range(6)):
+            return None  # no column of the terms differs between the repetitions
         ss_num = ss_den = 0.0
         dof_num = dof_den = 0
         for c in range(6):
@@ -309,7 +354,7 @@ class Significance:
                 continue
             # the scale factors are shared by the repetitions: a repetition's own scale
             # (what a temperature offset between repetitions makes) stays in its deviation
-            _, _, _, dev = self._affine_channel(c)
+            dev = self._affine_channel(c).dev
             D_all, varying_all = self._between_channel(c)
             D = D_all[..., local - 3]
             varying = varying_all[local - 3]
