@@ -889,22 +889,23 @@ def nightly_fleet_calibration(
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
         prestart_unit_work_pool(kind, dataset)
-    runtime.await_api_server()
-    with _preloading(), runtime.run_settings(), _outcome_recorded(results):
-        return nightly_flow.with_options(task_runner=task_runner)(
-            str(dataset),
-            str(results),
-            force=force,
-            batch_size=batch_size,
-            config=None if config is None else str(config),
-            wait=wait,
-            run_discovery=run_discovery,
-            progress=progress,
-            max_in_flight=in_flight,
-            runner=kind,
-            unit_reports=unit_reports,
-            follow_symlinks=follow_symlinks,
-        )
+    with _preloading():  # the flow's imports overlap the API server's start
+        runtime.await_api_server()
+        with runtime.run_settings(), _outcome_recorded(results):
+            return nightly_flow.with_options(task_runner=task_runner)(
+                str(dataset),
+                str(results),
+                force=force,
+                batch_size=batch_size,
+                config=None if config is None else str(config),
+                wait=wait,
+                run_discovery=run_discovery,
+                progress=progress,
+                max_in_flight=in_flight,
+                runner=kind,
+                unit_reports=unit_reports,
+                follow_symlinks=follow_symlinks,
+            )
 
 
 # results root -> (run id, run log) of a nightly run started in this process and not ended
@@ -987,14 +988,15 @@ def rerun_unit(
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
         )
-    runtime.await_api_server()
-    with _preloading(), runtime.run_settings(), _outcome_recorded(results):
-        return rerun_flow(
-            str(dataset),
-            str(results),
-            unit,
-            None if config is None else str(config),
-            wait,
-            run_discovery,
-            follow_symlinks,
-        )
+    with _preloading():  # the flow's imports overlap the API server's start
+        runtime.await_api_server()
+        with runtime.run_settings(), _outcome_recorded(results):
+            return rerun_flow(
+                str(dataset),
+                str(results),
+                unit,
+                None if config is None else str(config),
+                wait,
+                run_discovery,
+                follow_symlinks,
+            )

@@ -31,12 +31,13 @@ results directory). Values the user already set in the environment win.
 
 from __future__ import annotations
 
+import atexit
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
-import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -72,17 +73,12 @@ def ensure_environment(results: Path | str | None = None, verbose: bool = False)
             home = Path(tempfile.mkdtemp(prefix="mimucal-prefect-"))
         home.mkdir(parents=True, exist_ok=True)
         os.environ["PREFECT_HOME"] = str(home)
-        seed_prefect_home(home, build=results is not None)
+        if not seed_prefect_home(home) and results is not None:
+            _want_template(home)
     return Path(os.environ["PREFECT_HOME"])
 
 
 PREFECT_DB = "prefect.db"  # the temporary API server's SQLite database, in PREFECT_HOME
-
-_BUILD_TEMPLATE = """
-import asyncio
-from prefect.server.database import provide_database_interface
-asyncio.run(provide_database_interface().create_db())
-"""
 
 
 def prefect_db_template() -> Path | None:
@@ -100,84 +96,190 @@ def prefect_db_template() -> Path | None:
     return Path(base) / f"prefect-{v}.db"
 
 
-def seed_prefect_home(home: Path, build: bool = False) -> bool:
-    """Copy the template database into a home that has none (True when copied). ``build``:
-    make the template first when it is missing (a subprocess migrates an empty database in a
-    scratch home; held by a lock so that concurrent commands build it once). Any failure
+def seed_prefect_home(home: Path) -> bool:
+    """Copy the template database into a home that has none (True when copied). Any failure
     leaves the home as it was: the server then creates its database itself."""
     db = Path(home) / PREFECT_DB
     template = prefect_db_template()
     if template is None or db.exists() or os.environ.get("MIMUCAL_PREFECT_TEMPLATE") == "off":
         return False
     try:
-        if not template.is_file() and build:
-            _build_template(template)
         if not template.is_file():
             return False
         tmp = db.with_name(f".{db.name}.{os.getpid()}.tmp")
         shutil.copyfile(template, tmp)
         os.replace(tmp, db)
         return True
-    except (OSError, subprocess.SubprocessError):
+    except OSError:
         return False
 
 
-_early_start: threading.Thread | None = None
+_home_for_template: Path | None = None  # a new home whose migrated database makes the template
+
+
+def _want_template(home: Path) -> None:
+    """Remember a new home that got no template (none made yet): once the temporary server
+    has migrated its database, :func:`save_prefect_template` copies it into the template."""
+    global _home_for_template
+    template = prefect_db_template()
+    if (
+        template is not None
+        and not template.is_file()
+        and os.environ.get("MIMUCAL_PREFECT_TEMPLATE") != "off"
+    ):
+        _home_for_template = Path(home)
+
+
+def save_prefect_template(db: Path, template: Path | None = None) -> bool:
+    """Copy the database ``db`` into the template (True when written) with SQLite's online
+    backup: a consistent copy while the server has it open (WAL mode). Called when the server
+    that migrated a new home's database answers, before any client wrote a flow run to it;
+    an existing template is kept. Any failure leaves no template behind."""
+    import sqlite3
+
+    template = template or prefect_db_template()
+    if template is None or template.exists() or not Path(db).is_file():
+        return False
+    tmp = template.with_name(f".{template.name}.{os.getpid()}.tmp")
+    try:
+        template.parent.mkdir(parents=True, exist_ok=True)
+        src = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        try:
+            dst = sqlite3.connect(tmp)
+            try:
+                src.backup(dst)
+            finally:
+                dst.close()
+        finally:
+            src.close()
+        if template.exists():  # another command made it meanwhile: keep that one
+            tmp.unlink()
+            return False
+        os.replace(tmp, template)
+        return True
+    except (OSError, sqlite3.Error):
+        tmp.unlink(missing_ok=True)
+        return False
+
+
+class TemporaryApiServer:
+    """Prefect's temporary API server, started by mimucal itself: the command that Prefect's
+    ``SubprocessASGIServer`` runs (uvicorn, ``prefect.server.api.server:create_app``, the UI
+    off, the same settings through the environment), launched without importing Prefect's
+    server modules in this process (~2.8 s CPU that the flow's client would otherwise pay
+    before the server's own start). The flow reaches it through ``PREFECT_API_URL``
+    (:func:`run_settings`), so its client does not start a server of its own."""
+
+    def __init__(self) -> None:
+        import socket
+        from importlib.util import find_spec
+
+        spec = find_spec("prefect")
+        if spec is None or not spec.submodule_search_locations:
+            raise RuntimeError("prefect is not installed")
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            sock.bind(("127.0.0.1", 0))  # a free port, as the server's bind will see it
+            self.port = sock.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}/api"
+        env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+        env.update(
+            {"PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1"}
+        )
+        app_dir = Path(list(spec.submodule_search_locations)[0]).parent
+        self.process = subprocess.Popen(
+            [
+                sys.executable, "-m", "uvicorn", "--app-dir", str(app_dir), "--factory",
+                "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port",
+                str(self.port), "--log-level", "error", "--lifespan", "on",
+            ],
+            env=env,
+        )  # fmt: skip
+        atexit.register(self.stop)
+
+    def wait_healthy(self, timeout: float) -> bool:
+        """Poll ``/api/health`` until it answers 200 (True) or the server exits or the
+        timeout passes (False)."""
+        import http.client
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                return False
+            conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=5)
+            try:
+                conn.request("GET", "/api/health")
+                if conn.getresponse().status == 200:
+                    return True
+            except OSError:
+                pass
+            finally:
+                conn.close()
+            time.sleep(0.05)
+        return False
+
+    def stop(self) -> None:
+        """Terminate the server and wait for its shutdown (as Prefect's own stop: the server
+        stops its services, which write the events they hold, before it exits)."""
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+_early_server: TemporaryApiServer | None = None  # started, not yet known to answer
+_api_server: TemporaryApiServer | None = None  # answered its health check
+
+
+def _falsy(value: str | None) -> bool:
+    return (value or "").strip().lower() in ("0", "false", "no", "off")
 
 
 def start_api_server_early() -> None:
-    """Start Prefect's temporary API server now, in a daemon thread (the same server object
-    the flow's first client would start: ``SubprocessASGIServer`` is one per process);
-    nothing when a real server's ``PREFECT_API_URL`` is set or the temporary one is off. A
-    failure here is left to the flow, whose client starts the server and reports it."""
-    global _early_start
-    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
-
-    if _early_start is not None or PREFECT_API_URL.value() or not PREFECT_SERVER_EPHEMERAL_ENABLED.value():
+    """Start the temporary API server now (:class:`TemporaryApiServer`), while the command
+    imports the flow's modules and checks the store; nothing when one is running, when a
+    real server's ``PREFECT_API_URL`` is in the environment, or when the temporary server is
+    off. A server that fails to start is left to the flow's client, which starts Prefect's
+    own and says why."""
+    global _early_server
+    if _early_server is not None or (_api_server is not None and _api_server.process.poll() is None):
         return
-
-    def start() -> None:
-        from prefect.server.api.server import SubprocessASGIServer
-
-        try:
-            SubprocessASGIServer().start()
-        except Exception:  # noqa: BLE001 - the flow's client starts it again and says why
-            pass
-
-    _early_start = threading.Thread(target=start, name="mimucal-api-start", daemon=True)
-    _early_start.start()
+    if os.environ.get("PREFECT_API_URL") or _falsy(os.environ.get("PREFECT_SERVER_EPHEMERAL_ENABLED")):
+        return
+    running = sys.modules.get("prefect.server.api.server")
+    if running is not None and any(s.running for s in running.SubprocessASGIServer._instances.values()):
+        return  # Prefect's own temporary server runs in this process already: the flow uses it
+    try:
+        _early_server = TemporaryApiServer()
+    except (OSError, RuntimeError):
+        _early_server = None
 
 
 def await_api_server() -> None:
-    """Wait for :func:`start_api_server_early`'s server to answer (nothing when not started):
-    a client made meanwhile would find the server marked running but not yet listening."""
-    global _early_start
-    thread, _early_start = _early_start, None
-    if thread is not None:
-        thread.join()
+    """Wait for :func:`start_api_server_early`'s server to answer (nothing when not started);
+    a server that does not answer is stopped and the flow's client starts Prefect's own."""
+    global _early_server, _api_server
+    server, _early_server = _early_server, None
+    if server is None:
+        return
+    timeout = float(os.environ.get("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS") or 300)
+    if server.wait_healthy(timeout):
+        _api_server = server
+        global _home_for_template
+        home, _home_for_template = _home_for_template, None
+        if home is not None:  # its server migrated it: the template for the next new homes
+            save_prefect_template(home / PREFECT_DB)
+    else:
+        server.stop()
 
 
-def _build_template(template: Path) -> None:
-    import fcntl
-
-    template.parent.mkdir(parents=True, exist_ok=True)
-    with open(template.with_name(template.name + ".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # another command building it: wait, then use it
-        if template.is_file():
-            return
-        with tempfile.TemporaryDirectory(prefix="mimucal-prefect-template-", dir=template.parent) as scratch:
-            env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
-            env.update(
-                {"PREFECT_HOME": scratch, "DO_NOT_TRACK": "1", "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
-            )
-            subprocess.run(
-                [sys.executable, "-c", _BUILD_TEMPLATE],
-                env=env,
-                check=True,
-                capture_output=True,
-                timeout=600,
-            )
-            os.replace(Path(scratch) / PREFECT_DB, template)
+def api_server_url() -> str | None:
+    """The API URL of the temporary server this process started and awaited, if it runs."""
+    if _api_server is not None and _api_server.process.poll() is None:
+        return _api_server.url
+    return None
 
 
 def route_prefect_logs(log_file: Path) -> Path | None:
@@ -224,6 +326,7 @@ def run_settings(api_url: str | None = None) -> Iterator[None]:
     from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
 
     updates = {PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}
+    api_url = api_url or PREFECT_API_URL.value() or api_server_url()  # a configured server wins
     if api_url:
         updates[PREFECT_API_URL] = api_url
     with temporary_settings(updates=updates):
