@@ -137,7 +137,7 @@ _EXIT_CODE: list[int] = []  # the code entry() ends the process with, once main(
 
 def _end_without_finalizing() -> None:
     """The last exit handler: end the process with main()'s code, skipping the interpreter's
-    finalization (freeing every module and object: ~1 s after a nightly). It runs after the
+    finalization (freeing every module and object, a second after a nightly). It runs after the
     non-daemon threads were joined and Prefect's event and log queues drained, and after
     every other exit handler (registered later: the API server's stop, multiprocessing's,
     logging's): what is left to do is only freeing memory."""

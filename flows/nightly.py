@@ -964,6 +964,7 @@ def lot_quality_report(
             f"lot {lot!r} is not in the results store {results} (lots there: "
             f"{', '.join(sorted(lots)) or 'none'})"
         )
+    runtime.await_api_server()
     with runtime.run_settings():
         return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
 

@@ -19,14 +19,20 @@ results directory). Values the user already set in the environment win.
 - the flow-run heartbeat is switched off with :func:`run_settings` (the environment cannot
   say "off"); it costs ~1 s per flow run when on.
 - a new home gets a copy of a migrated, empty ``prefect.db`` (:func:`seed_prefect_home`): the
-  temporary API server otherwise creates and migrates its database at start (~7.5 s CPU, 8-30 s
-  wall on a loaded 2-core machine, benchmarks/prefect_startup.py). The template is
-  ``~/.cache/mimucal/prefect-<version>.db`` (``$MIMUCAL_CACHE_DIR`` or ``$XDG_CACHE_HOME``),
-  built once per Prefect version by the first command that has a results directory;
-  ``MIMUCAL_PREFECT_TEMPLATE=off`` leaves new homes to the server.
-- the temporary API server is started early (:func:`start_api_server_early`), in a thread,
-  while the command imports the flow's modules and checks the store; the flow finds it up
-  (:func:`await_api_server`) instead of starting it when its first client is made.
+  temporary API server otherwise creates and migrates its database at start (its costliest
+  part then, docs/benchmarks.md). The template is ``~/.cache/mimucal/prefect-<version>.db``
+  (``$MIMUCAL_CACHE_DIR`` or ``$XDG_CACHE_HOME``): the database of the first new home whose
+  command started the server (:func:`start_api_server_early`), copied once that server has
+  migrated it and before any flow run (:func:`save_prefect_template`);
+  ``MIMUCAL_PREFECT_TEMPLATE=off`` leaves every new home to the server.
+- the ``nightly`` and ``rerun`` commands start the temporary API server themselves, first
+  (:func:`start_api_server_early`, :class:`TemporaryApiServer`): a subprocess running the same
+  uvicorn command as Prefect's own, started without importing Prefect's server modules here,
+  while this process checks the store and imports Prefect and the flow's modules; the flow
+  waits for it to answer (:func:`await_api_server`) and reaches it through ``PREFECT_API_URL``
+  (:func:`run_settings`). It runs every service Prefect's temporary server runs (the task-run
+  recorder and the event persister write the task runs' states and the events the UI shows);
+  it is stopped, and waited for, at exit.
 """
 
 from __future__ import annotations
@@ -166,8 +172,8 @@ class TemporaryApiServer:
     """Prefect's temporary API server, started by mimucal itself: the command that Prefect's
     ``SubprocessASGIServer`` runs (uvicorn, ``prefect.server.api.server:create_app``, the UI
     off, the same settings through the environment), launched without importing Prefect's
-    server modules in this process (~2.8 s CPU that the flow's client would otherwise pay
-    before the server's own start). The flow reaches it through ``PREFECT_API_URL``
+    server modules in this process (which the flow's client would otherwise import before
+    starting the server). The flow reaches it through ``PREFECT_API_URL``
     (:func:`run_settings`), so its client does not start a server of its own."""
 
     def __init__(self) -> None:
@@ -320,8 +326,9 @@ def route_prefect_logs(log_file: Path) -> Path | None:
 
 @contextmanager
 def run_settings(api_url: str | None = None) -> Iterator[None]:
-    """Settings that cannot be set through the environment (heartbeat off) and, optionally,
-    the API of a real server."""
+    """Settings that cannot be set through the environment (heartbeat off) and the API the
+    flow talks to: ``api_url``, else a configured ``PREFECT_API_URL``, else the temporary server
+    this process started (:func:`api_server_url`), else none (Prefect starts its own)."""
     ensure_environment()
     from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
 
