@@ -25,14 +25,15 @@ results directory). Values the user already set in the environment win.
   command started the server (:func:`start_api_server_early`), copied once that server has
   migrated it and before any flow run (:func:`save_prefect_template`);
   ``MIMUCAL_PREFECT_TEMPLATE=off`` leaves every new home to the server.
-- the ``nightly`` and ``rerun`` commands start the temporary API server themselves, first
+- the ``nightly``, ``rerun`` and ``report`` commands start the temporary API server first
   (:func:`start_api_server_early`, :class:`TemporaryApiServer`): a subprocess running the same
   uvicorn command as Prefect's own, started without importing Prefect's server modules here,
   while this process checks the store and imports Prefect and the flow's modules; the flow
-  waits for it to answer (:func:`await_api_server`) and reaches it through ``PREFECT_API_URL``
-  (:func:`run_settings`). It runs every service Prefect's temporary server runs (the task-run
-  recorder and the event persister write the task runs' states and the events the UI shows);
-  it is stopped, and waited for, at exit.
+  waits for it to answer (:func:`await_api_server`) and every client of the run reaches it
+  through ``PREFECT_API_URL``, set in the environment before ``import prefect``. It runs
+  every service Prefect's temporary server runs (the task-run recorder and the event
+  persister write the task runs' states and the events the UI shows); it is stopped, and
+  waited for, at exit.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -173,8 +175,9 @@ class TemporaryApiServer:
     ``SubprocessASGIServer`` runs (uvicorn, ``prefect.server.api.server:create_app``, the UI
     off, the same settings through the environment), launched without importing Prefect's
     server modules in this process (which the flow's client would otherwise import before
-    starting the server). The flow reaches it through ``PREFECT_API_URL``
-    (:func:`run_settings`), so its client does not start a server of its own."""
+    starting the server). Its URL is meant for ``PREFECT_API_URL``
+    (:func:`start_api_server_early`), so that no client of the run starts a server of its
+    own."""
 
     def __init__(self) -> None:
         import socket
@@ -187,20 +190,23 @@ class TemporaryApiServer:
             sock.bind(("127.0.0.1", 0))  # a free port, as the server's bind will see it
             self.port = sock.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}/api"
-        env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
-        env.update(
+        self.app_dir = Path(list(spec.submodule_search_locations)[0]).parent
+        self.env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+        self.env.update(
             {"PREFECT_UI_ENABLED": "0", "PREFECT__SERVER_EPHEMERAL": "1", "PREFECT__SERVER_FINAL": "1"}
         )
-        app_dir = Path(list(spec.submodule_search_locations)[0]).parent
+        self.launch()
+        atexit.register(self.stop)
+
+    def launch(self) -> None:
         self.process = subprocess.Popen(
             [
-                sys.executable, "-m", "uvicorn", "--app-dir", str(app_dir), "--factory",
+                sys.executable, "-m", "uvicorn", "--app-dir", str(self.app_dir), "--factory",
                 "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port",
                 str(self.port), "--log-level", "error", "--lifespan", "on",
             ],
-            env=env,
+            env=self.env,
         )  # fmt: skip
-        atexit.register(self.stop)
 
     def wait_healthy(self, timeout: float) -> bool:
         """Poll ``/api/health`` until it answers 200 (True) or the server exits or the
@@ -235,7 +241,8 @@ class TemporaryApiServer:
                 self.process.wait()
 
 
-_early_server: TemporaryApiServer | None = None  # started, not yet known to answer
+_early_server: TemporaryApiServer | None = None  # started by this process, not yet awaited
+_early_thread: threading.Thread | None = None  # Prefect's own server starting in a thread
 _api_server: TemporaryApiServer | None = None  # answered its health check
 
 
@@ -243,49 +250,96 @@ def _falsy(value: str | None) -> bool:
     return (value or "").strip().lower() in ("0", "false", "no", "off")
 
 
+def _prefect_configuration_in_reach() -> bool:
+    """Whether a Prefect configuration file that may name an API server is read by this
+    process's Prefect: the home's profiles (or ``PREFECT_PROFILES_PATH``), or ``prefect.toml``,
+    ``.env`` or a ``pyproject.toml`` with ``[tool.prefect]`` in the working directory."""
+    home = Path(os.environ.get("PREFECT_HOME") or Path.home() / ".prefect")
+    profiles = Path(os.environ.get("PREFECT_PROFILES_PATH") or home / "profiles.toml")
+    if Path("prefect.toml").is_file():
+        return True
+    for path, mark in (
+        (profiles, "PREFECT_API_URL"),
+        (Path(".env"), "PREFECT_"),
+        (Path("pyproject.toml"), "tool.prefect"),
+    ):
+        try:
+            if mark in path.read_text(errors="replace"):
+                return True
+        except OSError:
+            pass
+    return False
+
+
 def start_api_server_early() -> None:
-    """Start the temporary API server now (:class:`TemporaryApiServer`), while the command
-    imports the flow's modules and checks the store; nothing when one is running, when a
-    real server's ``PREFECT_API_URL`` is in the environment, or when the temporary server is
-    off. A server that fails to start is left to the flow's client, which starts Prefect's
-    own and says why."""
-    global _early_server
-    if _early_server is not None or (_api_server is not None and _api_server.process.poll() is None):
+    """Start the temporary API server now, while the command checks the store and imports
+    Prefect and the flow's modules; nothing when a real server's ``PREFECT_API_URL`` is in the
+    environment or the temporary server is off.
+
+    Before ``import prefect``, and with no Prefect configuration file in reach: a
+    :class:`TemporaryApiServer`, whose URL goes into ``PREFECT_API_URL`` in the environment, so
+    that Prefect's settings give it to every client of the run (the flow's, its background
+    threads', worker processes'). Otherwise (Prefect imported already, as in a test process,
+    or its configuration to be read by Prefect): Prefect's own temporary server, started in a
+    daemon thread (the object the flow's first client would start: one per process); a
+    failure there is left to the flow, whose client starts it again and says why."""
+    global _early_server, _early_thread
+    if _early_server is not None or _early_thread is not None or _api_server is not None:
         return
     if os.environ.get("PREFECT_API_URL") or _falsy(os.environ.get("PREFECT_SERVER_EPHEMERAL_ENABLED")):
         return
-    running = sys.modules.get("prefect.server.api.server")
-    if running is not None and any(s.running for s in running.SubprocessASGIServer._instances.values()):
-        return  # Prefect's own temporary server runs in this process already: the flow uses it
-    try:
-        _early_server = TemporaryApiServer()
-    except (OSError, RuntimeError):
-        _early_server = None
+    if "prefect" not in sys.modules and not _prefect_configuration_in_reach():
+        try:
+            server = TemporaryApiServer()
+        except (OSError, RuntimeError):
+            return
+        os.environ["PREFECT_API_URL"] = server.url
+        _early_server = server
+        return
+    from prefect.settings import PREFECT_API_URL, PREFECT_SERVER_EPHEMERAL_ENABLED
+
+    if PREFECT_API_URL.value() or not PREFECT_SERVER_EPHEMERAL_ENABLED.value():
+        return
+
+    def start() -> None:
+        from prefect.server.api.server import SubprocessASGIServer
+
+        try:
+            SubprocessASGIServer().start()
+        except Exception:  # noqa: BLE001 - the flow's client starts it again and says why
+            pass
+
+    _early_thread = threading.Thread(target=start, name="mimucal-api-start", daemon=True)
+    _early_thread.start()
 
 
 def await_api_server() -> None:
-    """Wait for :func:`start_api_server_early`'s server to answer (nothing when not started);
-    a server that does not answer is stopped and the flow's client starts Prefect's own."""
-    global _early_server, _api_server
+    """Wait for :func:`start_api_server_early`'s server to answer (nothing when not started).
+    A :class:`TemporaryApiServer` that exits or does not answer is started once more on its
+    port (the URL Prefect has); a second failure raises ``RuntimeError``. When a new home's
+    server answers, its migrated database becomes the template (:func:`save_prefect_template`)."""
+    global _early_server, _early_thread, _api_server, _home_for_template
+    thread, _early_thread = _early_thread, None
+    if thread is not None:
+        thread.join()
     server, _early_server = _early_server, None
     if server is None:
         return
     timeout = float(os.environ.get("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS") or 300)
-    if server.wait_healthy(timeout):
-        _api_server = server
-        global _home_for_template
-        home, _home_for_template = _home_for_template, None
-        if home is not None:  # its server migrated it: the template for the next new homes
-            save_prefect_template(home / PREFECT_DB)
-    else:
+    if not server.wait_healthy(timeout):
         server.stop()
-
-
-def api_server_url() -> str | None:
-    """The API URL of the temporary server this process started and awaited, if it runs."""
-    if _api_server is not None and _api_server.process.poll() is None:
-        return _api_server.url
-    return None
+        server.launch()
+        if not server.wait_healthy(timeout):
+            code = server.process.poll()
+            server.stop()
+            raise RuntimeError(
+                f"Prefect's temporary API server at {server.url} did not start"
+                + (f" (exit code {code})" if code is not None else f" within {timeout:g} s")
+            )
+    _api_server = server
+    home, _home_for_template = _home_for_template, None
+    if home is not None:  # its server migrated it: the template for the next new homes
+        save_prefect_template(home / PREFECT_DB)
 
 
 def route_prefect_logs(log_file: Path) -> Path | None:
@@ -326,14 +380,12 @@ def route_prefect_logs(log_file: Path) -> Path | None:
 
 @contextmanager
 def run_settings(api_url: str | None = None) -> Iterator[None]:
-    """Settings that cannot be set through the environment (heartbeat off) and the API the
-    flow talks to: ``api_url``, else a configured ``PREFECT_API_URL``, else the temporary server
-    this process started (:func:`api_server_url`), else none (Prefect starts its own)."""
+    """Settings that cannot be set through the environment (heartbeat off) and, optionally,
+    the API of a real server."""
     ensure_environment()
     from prefect.settings import PREFECT_API_URL, PREFECT_FLOWS_HEARTBEAT_FREQUENCY, temporary_settings
 
     updates = {PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}
-    api_url = api_url or PREFECT_API_URL.value() or api_server_url()  # a configured server wins
     if api_url:
         updates[PREFECT_API_URL] = api_url
     with temporary_settings(updates=updates):

@@ -1,5 +1,6 @@
 """``mimucal nightly`` as a user runs it (its own process): the command starts Prefect's
-temporary API server itself (flows.runtime.TemporaryApiServer), its flow and task runs are
+temporary API server itself (flows.runtime.TemporaryApiServer) and no client of the run starts
+another (the flow's, its threads', Prefect's worker processes'), its flow and task runs are
 recorded with their final states in the home's database (task-run states go through the
 server's event pipeline: the services it runs are the ones it needs), the first new home's
 migrated database becomes the template, and the process ends with the command's exit code
@@ -53,11 +54,13 @@ def test_a_nightly_on_a_new_home_records_its_runs_and_makes_the_template(tmp_pat
     data, results = tmp_path / "data", tmp_path / "results"
     simulate_fleet(data, lots=1, units=3, reps=2, seed=11, sample_rate_hz=20.0)
     env = _env(tmp_path)
-    out = _mimucal(
-        ["nightly", str(data), "--results", str(results), "--no-discovery", "--batch-size", "1"], env
-    )
+    # Prefect's process pool: task runs in worker processes, their events forwarded by a
+    # thread of the flow's process; every one of them must reach the command's server
+    args = ["--no-discovery", "--batch-size", "1", "--runner", "prefect-processes"]
+    out = _mimucal(["nightly", str(data), "--results", str(results), *args], env)
     assert out.returncode == 0, out.stderr
     assert "3 units (3 calibrated" in out.stdout
+    assert "Starting temporary server" not in (results / "logs" / "prefect.log").read_text()
     home_db = results / ".prefect" / "prefect.db"
     con = sqlite3.connect(home_db)
     assert [r[0] for r in con.execute("SELECT name FROM flow")] == ["nightly-fleet-calibration"]
