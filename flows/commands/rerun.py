@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
     runtime.start_api_server_early()  # while the store is checked and the flow's modules imported
     from schemas.results_store import ResultsStore, StoreLockedError
 
-    if not args.wait:  # refused before anything starts (the flow checks again)
+    if not args.wait:  # refused before the flow starts (the flow checks again)
         try:
             ResultsStore(Path(args.results)).ensure_unlocked()
         except StoreLockedError as exc:
