@@ -75,3 +75,24 @@ def test_a_nightly_on_a_new_home_records_its_runs_and_makes_the_template(tmp_pat
     assert tpl.execute("SELECT count(*) FROM alembic_version").fetchone() == (1,)
     assert tpl.execute("SELECT count(*) FROM flow_run").fetchone() == (0,)  # made before the run
     tpl.close()
+
+
+def test_a_prefect_configuration_in_reach_leaves_the_server_to_prefect(tmp_path, monkeypatch):
+    from flows import runtime
+
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("PREFECT_HOME", str(home))
+    monkeypatch.delenv("PREFECT_PROFILES_PATH", raising=False)
+    assert not runtime._prefect_configuration_in_reach()
+    (home / "profiles.toml").write_text('[profiles.default]\nPREFECT_API_URL = "http://lab:4200/api"\n')
+    assert runtime._prefect_configuration_in_reach()
+    (home / "profiles.toml").unlink()
+    (tmp_path / "pyproject.toml").write_text('[project]\nname = "x"\n')
+    assert not runtime._prefect_configuration_in_reach()
+    (tmp_path / "pyproject.toml").write_text('[tool.prefect.api]\nurl = "http://lab:4200/api"\n')
+    assert runtime._prefect_configuration_in_reach()
+    (tmp_path / "pyproject.toml").unlink()
+    (tmp_path / "prefect.toml").write_text('[api]\nurl = "http://lab:4200/api"\n')
+    assert runtime._prefect_configuration_in_reach()
