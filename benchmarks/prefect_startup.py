@@ -17,9 +17,15 @@ run in the same process (the per-run cost once the server is up). Cases:
 
 ``--nightly N`` measures instead what a whole ``mimucal nightly`` of one simulated N-unit lot
 costs outside its flow: the command's wall time minus the flow body (the run log's
-``elapsed_s``), on a new results directory (a new home) and again with ``--force`` on the
-same one (an existing home), with and without mimucal's template database
-(:func:`flows.runtime.seed_prefect_home`).
+``elapsed_s``), split into the time before the flow body (interpreter, imports, the API
+server's start, the flow run's creation: the run log's ``start`` minus the launch) and after
+it (the run's end, the server's stop, the process's exit), with the CPU time of the command's
+process tree (the API server and the worker processes included); on a new results directory
+(a new home) and again with ``--force`` on the same one (an existing home), with and without
+mimucal's template database (:func:`flows.runtime.seed_prefect_home`; "built by the
+command": none yet, the command's server migrates the new home's database and
+:func:`flows.runtime.save_prefect_template` copies it). The 1-minute load average at each
+launch is printed with the medians: above the core count, other work shared the machine.
 
 The heartbeat is off in every case (:func:`flows.runtime.run_settings`: ~1 s per flow run
 when on)."""
@@ -29,12 +35,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
+from datetime import datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -74,16 +82,21 @@ def run_case(home: Path, extra_env: dict[str, str] | None = None) -> dict[str, f
     return doc
 
 
-def _mimucal(args: list[str], env: dict[str, str]) -> float:
-    t0 = time.perf_counter()
+def _mimucal(args: list[str], env: dict[str, str]) -> tuple[float, float, float, float]:
+    """(wall s, CPU s of the process tree, launch and end as epoch seconds)."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    launch, t0 = time.time(), time.perf_counter()
     subprocess.run(
         [sys.executable, "-m", "flows.cli", *args], env=env, cwd=ROOT, capture_output=True, text=True
     )
-    return time.perf_counter() - t0
+    wall, end = time.perf_counter() - t0, time.time()
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    return wall, cpu, launch, end
 
 
 def nightly(n_units: int, repeats: int) -> int:
-    rows: dict[str, list[tuple[float, float]]] = {}
+    rows: dict[str, list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="mimucal-prefect-bench-") as tmp:
         tmp = Path(tmp)
         env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
@@ -100,17 +113,36 @@ def nightly(n_units: int, repeats: int) -> int:
                     run_env["MIMUCAL_PREFECT_TEMPLATE"] = "off"
                 results = tmp / f"res-{slug}-{i}"
                 for case, extra in (("new home", []), ("existing home", ["--force"])):
-                    wall = _mimucal(["nightly", str(tmp / "ds"), "--results", str(results), *extra], run_env)
+                    load = os.getloadavg()[0]
+                    wall, cpu, launch, end = _mimucal(
+                        ["nightly", str(tmp / "ds"), "--results", str(results), *extra], run_env
+                    )
                     runs = sorted((results / "runs").glob("*.json"), key=lambda p: p.stat().st_mtime)
                     log = json.loads(runs[-1].read_text())
-                    rows.setdefault(f"{case}, {template}", []).append((wall, float(log["elapsed_s"])))
-    print(f"| {n_units}-unit nightly | command wall (s) | flow body (s) | outside the flow (s) |")
-    print("|---|---|---|---|")
+                    body = float(log["elapsed_s"])
+                    start = datetime.fromisoformat(log["start"].replace("Z", "+00:00")).timestamp()
+                    rows.setdefault(f"{case}, {template}", []).append(
+                        {
+                            "wall": wall,
+                            "body": body,
+                            "outside": wall - body,
+                            "before": start - launch,
+                            "after": end - (start + body),
+                            "cpu": cpu,
+                            "load": load,
+                        }
+                    )
+    print(
+        f"| {n_units}-unit nightly | command wall (s) | flow body (s) | outside the flow (s) "
+        "| before the body (s) | after it (s) | CPU, process tree (s) | load at launch |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
     for case, runs in rows.items():
-        wall = statistics.median(w for w, _ in runs)
-        body = statistics.median(b for _, b in runs)
-        out = statistics.median(w - b for w, b in runs)
-        print(f"| {case} | {wall:.1f} | {body:.1f} | {out:.1f} |")
+        med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
+        print(
+            f"| {case} | {med['wall']:.1f} | {med['body']:.1f} | {med['outside']:.1f} "
+            f"| {med['before']:.1f} | {med['after']:.1f} | {med['cpu']:.1f} | {med['load']:.1f} |"
+        )
     print(f"\nmedians of {repeats} run(s) each")
     return 0
 

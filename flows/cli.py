@@ -132,9 +132,43 @@ def _run(argv: list[str] | None) -> int:
         return EXIT_RUN_FAILED
 
 
-if __name__ == "__main__":
-    # `python -m flows.cli`: call the importable module's main, so that CliError raised by
-    # the commands is the same class main() catches (not __main__.CliError)
-    from flows.cli import main as _main
+_EXIT_CODE: list[int] = []  # the code entry() ends the process with, once main() returned
 
-    sys.exit(_main())
+
+def _end_without_finalizing() -> None:
+    """The last exit handler: end the process with main()'s code, skipping the interpreter's
+    finalization (freeing every module and object, a second after a nightly). It runs after the
+    non-daemon threads were joined and Prefect's event and log queues drained, and after
+    every other exit handler (registered later: the API server's stop, multiprocessing's,
+    logging's): what is left to do is only freeing memory."""
+    if not _EXIT_CODE:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(_EXIT_CODE[0])
+
+
+def entry() -> None:
+    """The ``mimucal`` program: :func:`main`, then the process ends without the interpreter's
+    finalization (:func:`_end_without_finalizing`)."""
+    import atexit
+
+    atexit.register(_end_without_finalizing)  # first registered: runs last
+    try:
+        code = main()
+    except SystemExit as exc:  # argparse's usage errors and --help
+        code = exc.code
+    if code is None or isinstance(code, int):
+        _EXIT_CODE.append(int(code or 0))
+    sys.exit(code)
+
+
+if __name__ == "__main__":
+    # `python -m flows.cli`: call the importable module's entry, so that CliError raised by
+    # the commands is the same class main() catches (not __main__.CliError)
+    from flows.cli import entry as _entry
+
+    _entry()

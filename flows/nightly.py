@@ -890,22 +890,23 @@ def nightly_fleet_calibration(
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
         prestart_unit_work_pool(kind, dataset)
-    runtime.await_api_server()
-    with _preloading(), runtime.run_settings(), _outcome_recorded(results):
-        return nightly_flow.with_options(task_runner=task_runner)(
-            str(dataset),
-            str(results),
-            force=force,
-            batch_size=batch_size,
-            config=None if config is None else str(config),
-            wait=wait,
-            run_discovery=run_discovery,
-            progress=progress,
-            max_in_flight=in_flight,
-            runner=kind,
-            unit_reports=unit_reports,
-            follow_symlinks=follow_symlinks,
-        )
+    with _preloading():  # the flow's imports overlap the API server's start
+        runtime.await_api_server()
+        with runtime.run_settings(), _outcome_recorded(results):
+            return nightly_flow.with_options(task_runner=task_runner)(
+                str(dataset),
+                str(results),
+                force=force,
+                batch_size=batch_size,
+                config=None if config is None else str(config),
+                wait=wait,
+                run_discovery=run_discovery,
+                progress=progress,
+                max_in_flight=in_flight,
+                runner=kind,
+                unit_reports=unit_reports,
+                follow_symlinks=follow_symlinks,
+            )
 
 
 # results root -> (run id, run log) of a nightly run started in this process and not ended
@@ -964,6 +965,7 @@ def lot_quality_report(
             f"lot {lot!r} is not in the results store {results} (lots there: "
             f"{', '.join(sorted(lots)) or 'none'})"
         )
+    runtime.await_api_server()
     with runtime.run_settings():
         return lot_report_flow(str(results), lot, None if config is None else str(config), wait)
 
@@ -988,14 +990,15 @@ def rerun_unit(
         raise LookupError(
             f"unit {unit!r}: no session under {dataset} ({why}); {known_names(dataset, 'unit')}"
         )
-    runtime.await_api_server()
-    with _preloading(), runtime.run_settings(), _outcome_recorded(results):
-        return rerun_flow(
-            str(dataset),
-            str(results),
-            unit,
-            None if config is None else str(config),
-            wait,
-            run_discovery,
-            follow_symlinks,
-        )
+    with _preloading():  # the flow's imports overlap the API server's start
+        runtime.await_api_server()
+        with runtime.run_settings(), _outcome_recorded(results):
+            return rerun_flow(
+                str(dataset),
+                str(results),
+                unit,
+                None if config is None else str(config),
+                wait,
+                run_discovery,
+                follow_symlinks,
+            )

@@ -115,18 +115,20 @@ def run(args: argparse.Namespace) -> int:
     from flows import runtime
 
     runtime.ensure_environment(args.results, verbose=args.verbose)  # before Prefect's import
+    # the API server starts first (~3 s of imports in its own process): meanwhile this one
+    # checks the store and imports Prefect and the flow's modules; a refused command stops it
+    runtime.start_api_server_early()
+    from schemas.results_store import ResultsStore, StoreLockedError
+
+    if not args.wait:  # refused before the flow starts (the flow checks again)
+        ResultsStore(Path(args.results)).ensure_unlocked()
+    ResultsStore(Path(args.results)).check()
     from flows.task_runners import resolve_kind
 
     try:
-        resolve_kind(args.runner)  # a bad $MIMUCAL_TASK_RUNNER is refused before start-up
+        resolve_kind(args.runner)  # a bad $MIMUCAL_TASK_RUNNER is refused before the flow
     except ValueError as exc:
         raise CliError(str(exc)) from None
-    from schemas.results_store import ResultsStore, StoreLockedError
-
-    if not args.wait:  # refused before anything starts (the flow checks again)
-        ResultsStore(Path(args.results)).ensure_unlocked()
-    ResultsStore(Path(args.results)).check()
-    runtime.start_api_server_early()  # while the flow's modules are imported
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
 

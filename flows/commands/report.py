@@ -81,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
     from flows import runtime
 
     runtime.ensure_environment(args.results, verbose=args.verbose)
+    runtime.start_api_server_early()  # while the flow's modules are imported
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
     from schemas.results_store import StoreLockedError

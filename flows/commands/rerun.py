@@ -55,15 +55,15 @@ def run(args: argparse.Namespace) -> int:
     from flows import runtime
 
     runtime.ensure_environment(args.results, verbose=args.verbose)
+    runtime.start_api_server_early()  # while the store is checked and the flow's modules imported
     from schemas.results_store import ResultsStore, StoreLockedError
 
-    if not args.wait:  # refused before anything starts (the flow checks again)
+    if not args.wait:  # refused before the flow starts (the flow checks again)
         try:
             ResultsStore(Path(args.results)).ensure_unlocked()
         except StoreLockedError as exc:
             raise CliError(str(exc)) from None
     ResultsStore(Path(args.results)).check()
-    runtime.start_api_server_early()  # while the flow's modules are imported
     from calib_core.outliers import OutlierConfigError
     from flows import nightly
 
