@@ -95,7 +95,11 @@ def _mimucal(args: list[str], env: dict[str, str]) -> tuple[float, float, float,
     return wall, cpu, launch, end
 
 
-def nightly(n_units: int, repeats: int) -> int:
+def nightly_cases(n_units: int, repeats: int) -> dict[str, dict[str, float]]:
+    """Median per case (new / existing home x no template / template built by the command /
+    template present) of a whole ``mimucal nightly`` of ``n_units`` units: command wall, flow
+    body, outside the flow, before and after the body, CPU of the process tree, load at
+    launch (seconds)."""
     rows: dict[str, list[dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="mimucal-prefect-bench-") as tmp:
         tmp = Path(tmp)
@@ -132,17 +136,26 @@ def nightly(n_units: int, repeats: int) -> int:
                             "load": load,
                         }
                     )
-    print(
+    return {case: {k: statistics.median(r[k] for r in runs) for k in runs[0]} for case, runs in rows.items()}
+
+
+def nightly_table(n_units: int, cases: dict[str, dict[str, float]]) -> list[str]:
+    """The Markdown table of :func:`nightly_cases`."""
+    out = [
         f"| {n_units}-unit nightly | command wall (s) | flow body (s) | outside the flow (s) "
-        "| before the body (s) | after it (s) | CPU, process tree (s) | load at launch |"
-    )
-    print("|---|---|---|---|---|---|---|---|")
-    for case, runs in rows.items():
-        med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
-        print(
+        "| before the body (s) | after it (s) | CPU, process tree (s) | load at launch |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for case, med in cases.items():
+        out.append(
             f"| {case} | {med['wall']:.1f} | {med['body']:.1f} | {med['outside']:.1f} "
             f"| {med['before']:.1f} | {med['after']:.1f} | {med['cpu']:.1f} | {med['load']:.1f} |"
         )
+    return out
+
+
+def nightly(n_units: int, repeats: int) -> int:
+    print("\n".join(nightly_table(n_units, nightly_cases(n_units, repeats))))
     print(f"\nmedians of {repeats} run(s) each")
     return 0
 
