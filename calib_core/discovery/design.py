@@ -169,7 +169,8 @@ class UnitGrid:
             g, G, cnt, grp, dof = self._balanced_groups()
             rep_mean = (X.swapaxes(-1, -2) @ G) / cnt  # (..., R, k, ng)
             grand = rep_mean.mean(axis=-3, keepdims=True)
-            e = X - X.mean(axis=-3, keepdims=True) - (rep_mean - grand)[..., g].swapaxes(-1, -2)
+            e = X - X.mean(axis=-3, keepdims=True)
+            e -= (rep_mean - grand)[..., g].swapaxes(-1, -2)
             return (e.reshape(X.shape[:-3] + (-1, X.shape[-1])), grp, dof.copy())
         lead = X.shape[:-3]
         Xf = X.reshape((-1,) + X.shape[-3:])
@@ -324,6 +325,7 @@ def term_design(
         off += t.n_params
     P = off
     R, n = lay.real.shape
+    every_row = None  # every repetition's regressors in one array, when built in one call
     if regressors is None:
         regressors = []
         joint = _joint_context(lay)
@@ -333,17 +335,18 @@ def term_design(
             # minus the regressors: ref = K raw + b - E theta
             # every term's sensor errors through the sensing geometry in one product
             g = SensingGeometry.identity() if geometry is None else geometry
-            Z = (
-                -g.to_body(
+            if terms:
+                Z = g.to_body(
                     np.concatenate([np.asarray(t.sensor_regressors(ctx, g), float) for t in terms], axis=-1)
                 )
-                if terms
-                else np.zeros((len(ctx), 6, 0))
-            )
+                np.negative(Z, out=Z)
+            else:
+                Z = np.zeros((len(ctx), 6, 0))
             regressors.append(Z)
         if joint is not None:
             ends = np.cumsum([len(c) for c in lay.ctx])[:-1]
-            regressors = np.split(regressors[0], ends)
+            every_row = regressors[0]
+            regressors = np.split(every_row, ends)
         for Z in regressors:
             Z.setflags(write=False)
     Zs, live_mask = [], np.zeros((6, P), bool)
@@ -358,7 +361,9 @@ def term_design(
     M = np.zeros((6, R, n, k))
     colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
     M[..., -1] = np.moveaxis(lay.y, 2, 0)
-    if all(len(Z) == n for Z in Zs):
+    if every_row is not None and not dropped and all(len(Z) == n for Z in Zs):
+        Zg = every_row.reshape(R, n, 6, P)  # the repetitions' rows already side by side
+    elif all(len(Z) == n for Z in Zs):
         Zg = np.stack(Zs)  # (R, n, 6, P) every repetition's rows on the grid
     else:  # padding rows stay 0
         Zg = np.zeros((R, n, 6, P))

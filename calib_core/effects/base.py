@@ -134,8 +134,8 @@ class SensingGeometry:
     def to_body(self, E: np.ndarray) -> np.ndarray:
         """Sensor errors (n, 6, p) -> errors on the calibrated channels, A^-1 e per triad."""
         out = np.empty_like(E)
-        out[:, GYRO] = np.einsum("ij,njp->nip", self._inv("gyro"), E[:, GYRO])
-        out[:, ACCEL] = np.einsum("ij,njp->nip", self._inv("accel"), E[:, ACCEL])
+        np.einsum("ij,njp->nip", self._inv("gyro"), E[:, GYRO], out=out[:, GYRO])
+        np.einsum("ij,njp->nip", self._inv("accel"), E[:, ACCEL], out=out[:, ACCEL])
         return out
 
     def _inv(self, which: str) -> np.ndarray:

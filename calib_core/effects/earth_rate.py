@@ -102,6 +102,31 @@ def body_columns(ctx: MotionContext) -> np.ndarray:
     return out / 3600.0
 
 
+_BODY_COLUMNS: dict[bytes, np.ndarray] = {}  # body_columns of the contexts last seen
+
+
+def kept_body_columns(ctx: MotionContext) -> np.ndarray:
+    """:func:`body_columns` (read-only), kept per context: they depend on the steps' motion,
+    headings and where the table stands alone, the same for every unit of a protocol."""
+    key = b"".join(
+        [
+            np.asarray(ctx.w, float).tobytes(),
+            np.asarray(ctx.f, float).tobytes(),
+            b"-" if ctx.heading_deg is None else np.asarray(ctx.heading_deg, float).tobytes(),
+            b"-" if ctx.turned_deg is None else np.asarray(ctx.turned_deg, float).tobytes(),
+            repr((len(ctx), ctx.latitude_deg, ctx.table_heading_deg)).encode(),
+        ]
+    )
+    out = _BODY_COLUMNS.get(key)
+    if out is None:
+        out = body_columns(ctx)
+        out.setflags(write=False)
+        if len(_BODY_COLUMNS) >= 8:
+            _BODY_COLUMNS.clear()
+        _BODY_COLUMNS[key] = out
+    return out
+
+
 @register_effect
 class EarthRate(EffectTerm):
     name = "earth_rate"
@@ -117,7 +142,7 @@ class EarthRate(EffectTerm):
     named_when_significant = False
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
-        cols = body_columns(ctx)  # (n, 3, p) body frame
+        cols = kept_body_columns(ctx)  # (n, 3, p) body frame
         out = np.zeros((len(ctx), 6, 3))
         out[:, :3] = np.einsum("ja,nap->njp", geometry.gyro_axes, cols)
         return out
