@@ -388,11 +388,13 @@ def do_stages(a) -> dict:
     from calib_core.discovery import diagnose_unit
     from calib_core.discovery.presentation import finding_rows
     from calib_core.models.pipeline import calibrate_repetitions
+    from flows.memory import keep_freed_memory
     from flows.noise_units import apply_noise
     from flows.unit_pipeline import aggregate_unit, calibrate_sessions
     from schemas.averaging import average_session
     from schemas.reader import read_session
 
+    keep_freed_memory()  # as the nightly's calibrate_batch
     units, _ = _units(a.dataset)
     units = units[: a.units]
     t = {

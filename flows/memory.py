@@ -10,6 +10,10 @@ per lot (nightly at 200 units: 577 -> 612 -> 621 -> 631 MB over the four lot rep
 the live data stayed flat. ``malloc_trim(0)`` releases the free pages inside every arena
 (``MADV_DONTNEED``), ``release_unused`` those of Arrow's pool: called between lots, the
 peak no longer depends on how many lots came before.
+
+The other way round, within a unit's work (:func:`keep_freed_memory`): model discovery
+allocates and frees arrays of about 1 MB at every step, above glibc's default mmap
+threshold, so each was handed back to the OS and page-faulted afresh by the next.
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import gc
+import os
+import sys
 from functools import lru_cache
 
 
@@ -48,3 +54,26 @@ def release_memory() -> None:
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
+
+
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's malloc.h
+
+
+@lru_cache(maxsize=1)
+def keep_freed_memory() -> None:
+    """Once per process (the unit pipeline's first batch): glibc serves blocks up to 32 MB
+    from its heap and keeps up to 64 MB of the heap's free top, instead of unmapping each
+    ~1 MB array discovery frees and faulting the next one in afresh (~1,350 minor faults,
+    ~2.4 ms of kernel time per unit). :func:`release_memory` still trims between lots. Not
+    on other C libraries, nor when the environment sets glibc's malloc itself."""
+    if not sys.platform.startswith("linux") or any(
+        k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
+    ):
+        return
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.gnu_get_libc_version  # noqa: B018 - glibc only (AttributeError elsewhere)
+        libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)
+        libc.mallopt(_M_TRIM_THRESHOLD, 64 << 20)
+    except (OSError, AttributeError):  # pragma: no cover - not glibc
+        return

@@ -18,6 +18,7 @@ from calib_core.results import UnitCalibration
 from calib_core.steps import StepMeans
 from calib_core.tables import ColumnTable
 from flows.field_units import calibrate_field_unit_job
+from flows.memory import keep_freed_memory
 from flows.noise_units import apply_noise
 from flows.unit_outcomes import (  # noqa: F401  (re-exported: the unit pipeline's results)
     STATUS_FAILED,
@@ -316,6 +317,7 @@ def calibrate_unit_job(job: UnitJob, run_discovery: bool = True) -> UnitResult:
 
 
 def calibrate_batch(jobs: list[UnitJob], run_discovery: bool = True) -> list[UnitResult]:
+    keep_freed_memory()  # once per process: discovery's arrays reuse the heap
     return [_isolated_unit_job(j, run_discovery) for j in jobs]
 
 

@@ -54,9 +54,6 @@ module runs them, re-linearises the bilinear model and assembles the :class:`Dia
 
 from __future__ import annotations
 
-import ctypes
-import os
-import sys
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -213,34 +210,6 @@ def _single_thread_blas():
     return _BLAS_CONTROLLER[0].limit(limits=1, user_api="blas")
 
 
-_MALLOC_SET: list[bool] = []  # mallopt called once per process
-
-
-def _keep_freed_memory() -> None:
-    """glibc gives a freed block above its mmap threshold back to the system at once and
-    trims the heap's free top above its trim threshold; discovery allocates and frees
-    arrays of about 1 MB at every step, so each of them page-faults afresh. Once per
-    process: blocks up to 32 MB come from the heap and the heap keeps up to 64 MB free. Not
-    on other C libraries, nor when the environment already sets glibc's malloc."""
-    if _MALLOC_SET:
-        return
-    _MALLOC_SET.append(True)
-    if not sys.platform.startswith("linux") or any(
-        k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
-    ):
-        return
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.gnu_get_libc_version  # noqa: B018 - glibc only (AttributeError elsewhere)
-        libc.mallopt(_M_MMAP_THRESHOLD, 32 << 20)
-        libc.mallopt(_M_TRIM_THRESHOLD, 64 << 20)
-    except (OSError, AttributeError):  # pragma: no cover - not glibc
-        return
-
-
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's malloc.h
-
-
 # re-linearisation of the bilinear model (K and the terms' geometry): stop when no sensing
 # direction moves by more than this (rad; 1e-6 x 4 g of lever-arm acceleration is 0.004 mg,
 # far below the 0.1 mg noise of a step mean), the chosen terms are the same and the noise
@@ -264,7 +233,6 @@ def diagnose_unit(
     measured independently of its repetitions (e.g. a long static recording), which the
     tests then use in place of the noise estimated from the repetitions' scatter
     (:mod:`calib_core.discovery.measured_noise`)."""
-    _keep_freed_memory()
     with _single_thread_blas():
         return _diagnose_unit(step_means_by_rep, alpha, tables, min_gain, measured_noise)
 
