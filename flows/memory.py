@@ -63,9 +63,9 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc's malloc.h
 def keep_freed_memory() -> None:
     """Once per process (the unit pipeline's first batch): glibc serves blocks up to 32 MB
     from its heap and keeps up to 64 MB of the heap's free top, instead of unmapping each
-    ~1 MB array discovery frees and faulting the next one in afresh (~1,350 minor faults,
-    ~2.4 ms of kernel time per unit). :func:`release_memory` still trims between lots. Not
-    on other C libraries, nor when the environment sets glibc's malloc itself."""
+    ~1 MB array discovery frees and faulting the next one in afresh (docs/benchmarks.md has
+    the figures). :func:`release_memory` still trims between lots. Not on other C libraries,
+    nor when the environment sets glibc's malloc itself."""
     if not sys.platform.startswith("linux") or any(
         k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")
     ):
