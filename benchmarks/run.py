@@ -368,46 +368,48 @@ def _rss(res: dict) -> float | None:
 
 
 def _fit_vs_floor_row(r: dict, n: int) -> tuple[str, str, str] | None:
-    """(target, measured, verdict) of the fit phase vs the floor at one fleet size."""
+    """(target, measured, verdict) of the fit phase vs the floor at one fleet size.
+
+    The verdict is issue 32's measure: the fit phase as it defines it (read, validate,
+    average, fit, discovery, aggregate: ``calibrate_s``, without the lot flags, which the
+    nightly runs in its report phase) in 2 worker processes, wall, against the floor's
+    threaded scan measured in the same run. The other ways of measuring the ratio stand
+    beside it, so that the record still shows what the flags, one process and the Prefect
+    flow (its store writer and API server on the same 2 cores) add."""
     fit = _g(r, "fit_1proc") or {}
     fit2 = _g(r, "fit_2proc") or {}
-    if not (fit.get("cpu_s") and fit.get("floor_cpu_s")):
+    if not (fit2.get("calibrate_s") and fit2.get("floor_s")):
         return None
-    # CPU seconds in one process (floor just before and after the fit phase): the work done,
-    # robust on a shared machine; wall beside it
-    ratios = {"CPU, 1 process": fit["cpu_s"] / fit["floor_cpu_s"]}
+    lim = TARGETS["fit_vs_floor"].get(n, 1.5)
+    ratio = fit2["calibrate_s"] / fit2["floor_s"]
     meas = (
-        f"CPU, same process: {ratios['CPU, 1 process']:.2f}x ({fit['cpu_s']:.1f} s vs "
-        f"floor {fit['floor_cpu_s']:.1f} s); wall {fit['elapsed_s'] / fit['floor_s']:.2f}x "
-        f"({fit['elapsed_s']:.1f} s vs {fit['floor_s']:.1f} s)"
+        f"2 processes, wall: {ratio:.2f}x ({fit2['calibrate_s']:.2f} s vs floor "
+        f"{fit2['floor_s']:.2f} s); beside it: with the lot flags {fit2['elapsed_s'] / fit2['floor_s']:.2f}x "
+        f"({fit2['elapsed_s']:.2f} s)"
     )
-    if fit2.get("elapsed_s") and fit2.get("floor_s"):
-        # both use the 2 cores: the floor's Arrow scan is multithreaded, the fit phase runs in 2
-        # worker processes
-        ratios["wall, 2 processes"] = fit2["elapsed_s"] / fit2["floor_s"]
-        meas += (
-            f"; 2 processes, wall {ratios['wall, 2 processes']:.2f}x "
-            f"({fit2['elapsed_s']:.1f} s vs floor {fit2['floor_s']:.1f} s)"
+    if fit.get("cpu_s") and fit.get("floor_cpu_s"):
+        # CPU seconds in one process (floor just before and after): the work done
+        cal = fit.get("calibrate_cpu_s")
+        meas += "; CPU, one process " + (
+            f"{cal / fit['floor_cpu_s']:.2f}x ({cal:.1f} s vs floor {fit['floor_cpu_s']:.1f} s; "
+            f"{fit['cpu_s'] / fit['floor_cpu_s']:.2f}x with the flags)"
+            if cal is not None
+            else f"with the flags {fit['cpu_s'] / fit['floor_cpu_s']:.2f}x"
         )
     npr = r.get("nightly_processes") or {}
     fl_wall = min((x for x in (fit.get("floor_s"), _g(r, "floor", "elapsed_s")) if x), default=None)
     if npr.get("fit_phase_s") and fl_wall:
-        ratios["Prefect nightly, worker processes, wall"] = npr["fit_phase_s"] / fl_wall
         meas += (
-            f"; nightly flow with worker processes, fit phase wall "
-            f"{ratios['Prefect nightly, worker processes, wall']:.2f}x "
-            f"({npr['fit_phase_s']:.1f} s, Prefect and the store writer included)"
+            f"; Prefect nightly with worker processes, fit phase wall "
+            f"{npr['fit_phase_s'] / fl_wall:.2f}x ({npr['fit_phase_s']:.1f} s, the store writer, "
+            f"Prefect's API and the flow on the same cores)"
         )
-    lim = TARGETS["fit_vs_floor"].get(n, 1.5)
-    met = [k for k, v in ratios.items() if v <= lim]
-    missed = [f"{k} by {v / lim:.2f}x" for k, v in ratios.items() if v > lim]
-    if not missed:
-        verdict = "met"
-    elif met:
-        verdict = f"met by {', '.join(met)}; missed: {'; '.join(missed)}"
-    else:
-        verdict = f"missed: {'; '.join(missed)}"
-    return (f"fit phase (read ... flag, discovery) <= {lim:g}x floor at {n} units", meas, verdict)
+    verdict = "met" if ratio <= lim else f"missed by {ratio / lim:.2f}x"
+    target = (
+        f"fit phase (read, validate, average, fit, discovery, aggregate) <= {lim:g}x floor "
+        f"at {n} units, 2 processes, wall"
+    )
+    return (target, meas, verdict)
 
 
 def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
@@ -760,7 +762,8 @@ def markdown(doc: dict) -> str:
         "",
         "| units | sessions | disk [MB] | floor CPU [s] | fit phase CPU [s] | fit / floor, CPU "
         "| per unit CPU [ms] | floor wall [s] | fit phase wall [s] | fit / floor, wall "
-        "| fit phase, 2 processes, wall [s] | fit phase peak RSS, alone [MB] "
+        "| fit phase, 2 processes, wall, without / with the flags [s] "
+        "| fit phase peak RSS, alone [MB] "
         "| peak RSS with the floor's scans [MB] | one unit, no Prefect [s] |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -773,7 +776,8 @@ def markdown(doc: dict) -> str:
             f"| {_f(_g(r, 'simulate', 'disk_mb'), '{:.0f}')} | {_f(flc)} | {_f(fc)} "
             f"| {_f(fc / flc if fc and flc else None)}x "
             f"| {_f(fit.get('per_unit_cpu_ms'), '{:.0f}')} | {_f(flw)} | {_f(fw)} "
-            f"| {_f(fw / flw if fw and flw else None)}x | {_f(fit2.get('elapsed_s'))} "
+            f"| {_f(fw / flw if fw and flw else None)}x "
+            f"| {_f(fit2.get('calibrate_s'))} / {_f(fit2.get('elapsed_s'))} "
             f"| {_f(_rss(r.get('fit_rss')), '{:.0f}')} | {_f(_rss(fit), '{:.0f}')} "
             f"| {_f(_g(r, 'unit', 'elapsed_s'))} |"
         )
@@ -781,7 +785,9 @@ def markdown(doc: dict) -> str:
         "",
         "Fit phase = the nightly fit phase without Prefect: read, validate, average, fit, "
         "model discovery, aggregate (`flows.unit_pipeline.calibrate_batch`, what a nightly "
-        "task runs) for every unit, then flag every lot. Floor = `pyarrow.dataset` scan + "
+        "task runs) for every unit, then flag every lot (issue 32's targets judge the fit "
+        "phase without the flags, which the nightly runs in its report phase). Floor = "
+        "`pyarrow.dataset` scan + "
         "group-by-step mean of the same files, measured in the same process just before and "
         "just after the fit phase (the smaller used). CPU = user + system seconds of the "
         "process and its pool workers. Peak RSS alone = the fit phase run in a process of "

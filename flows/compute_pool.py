@@ -42,7 +42,9 @@ from contextlib import contextmanager
 from typing import Any
 
 # imported once by the forkserver; every worker is a fork of it (the noise analysis and the
-# thermal fit are imported on a worker's first unit otherwise: ~30 ms of CPU per worker)
+# thermal fit are imported on a worker's first unit otherwise). The last one runs the unit
+# pipeline once on a tiny simulated unit (flows.worker_warmup): the first-call costs a
+# worker would otherwise pay on its first unit
 PRELOAD = (
     "__main__",
     "flows.unit_pipeline",
@@ -50,7 +52,9 @@ PRELOAD = (
     "calib_core.outliers",
     "calib_core.noise",
     "flows.thermal_units",
+    "flows.worker_warmup",
 )
+WARM_UP = "flows.worker_warmup"
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
@@ -122,11 +126,13 @@ def compute_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _import_numerics() -> None:
+def _import_numerics(warm: bool = False) -> None:
+    """Import :data:`PRELOAD`; ``warm``: with the warm-up (a worker), without it (the flow's
+    own process, which only unpickles results)."""
     import importlib
 
     for name in PRELOAD:
-        if name != "__main__":
+        if name != "__main__" and (warm or name != WARM_UP):
             importlib.import_module(name)
 
 
@@ -135,7 +141,7 @@ def _warm_worker() -> int:
     unpickling the first batch would otherwise do inside the fit phase) and one BLAS thread."""
     import os
 
-    _import_numerics()
+    _import_numerics(warm=True)
     _init_worker()
     return os.getpid()
 

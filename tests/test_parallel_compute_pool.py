@@ -219,3 +219,21 @@ def test_the_nightly_launcher_starts_the_forkserver_before_prefect(tmp_path, mon
     # a Dask cluster's workers are warmed by its task runner: no forkserver for them
     nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r", dask_address="tcp://127.0.0.1:1")
     assert order == ["prestart processes", "flow processes", "prestart threads", "flow threads", "flow dask"]
+
+
+def _warm_up_here() -> tuple[float | None, str | None, int]:
+    from flows import worker_warmup
+
+    return worker_warmup.warm_up_s, worker_warmup.warm_up_error, os.getpid()
+
+
+def test_workers_are_forked_with_the_unit_pipeline_already_run_once():
+    # the forkserver imports flows.worker_warmup last, which calibrates a simulated unit
+    # (discovery and noise included): every worker inherits its first-call costs paid
+    assert cp.PRELOAD[-1] == cp.WARM_UP
+    with cp.compute_pool(2):
+        seen = [cp.run_in_pool(_warm_up_here) for _ in range(2)]
+    for took, error, pid in seen:
+        assert pid != os.getpid()
+        assert error is None
+        assert took is not None and took > 0
