@@ -9,12 +9,14 @@ Order of checks (the first failure is the one reported): files exist -> steps.pa
 readable, columns, types, content -> samples.parquet readable, metadata, columns, types,
 content (step ids, time, finite values).
 
-Speed (docs/benchmarks.md): a session is read with one ``ParquetFile.read``
-with column projection and no pandas on the sample path. ``steps.parquet`` is the same small
-table in every session of a fleet, so its validated form (the DataFrame and its columns as
-read-only numpy arrays, :class:`StepColumns`) is cached by the SHA-256 of the file's bytes (an
-LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached; a hit skips the Parquet
-parsing, and every caller gets its own copy-on-write copy of the frame). The six sensor columns
+Speed (docs/benchmarks.md): each file is read once, whole, into memory (by the caller that
+fingerprints the same bytes, :func:`schemas.dataset.read_session_files`, or here), and parsed
+from that buffer with one ``ParquetFile.read`` with column projection and no pandas on the
+sample path. ``steps.parquet`` is the same small table in every session of a fleet, so its
+validated form (the DataFrame and its columns as read-only numpy arrays, :class:`StepColumns`)
+is cached by the content digest of the file's bytes, a hit taken only when the bytes are
+equal (an LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached; a hit skips
+the Parquet parsing, and every caller gets its own copy-on-write copy of the frame). The six sensor columns
 are converted once into one ``(6, n)`` float64 array (``SessionData.channels``; ``gyro`` and
 ``accel`` are views of it) and checked for finiteness in one pass; the per-column search that
 builds the error message runs only when that check fails. The sample -> step-row index
@@ -24,7 +26,6 @@ computed for the unknown-step check is handed to the averaging (``SessionData.st
 from __future__ import annotations
 
 import errno
-import hashlib
 import os
 import re
 import stat
@@ -55,7 +56,7 @@ from schemas.contract import (
     check_columns,
     parse_metadata,
 )
-from schemas.dataset import SessionRef
+from schemas.dataset import SessionFiles, SessionRef
 from schemas.errors import (
     E_BAD_STEP_DEFINITION,
     E_CHECKSUM,
@@ -70,6 +71,7 @@ from schemas.errors import (
     E_WRONG_TYPE,
     SessionError,
 )
+from schemas.hive import bytes_digest, read_regular_file
 
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 STEPS_CACHE_SIZE = 16
@@ -184,6 +186,16 @@ def _open(path: Path, label: str, st: os.stat_result | None = None) -> pq.Parque
     try:
         # page CRCs are verified where the writer stored them (schemas.writer does)
         return pq.ParquetFile(path, page_checksum_verification=True)
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        raise SessionError(
+            E_UNREADABLE_FILE, label, file, f"not a readable Parquet file (truncated or corrupt?): {exc}"
+        ) from exc
+
+
+def _open_buffer(raw: bytes, label: str, file: str) -> pq.ParquetFile:
+    """The Parquet footer of a file's bytes already read (:func:`_open`'s last check)."""
+    try:
+        return pq.ParquetFile(pa.BufferReader(raw), page_checksum_verification=True)
     except (pa.ArrowException, OSError, ValueError) as exc:
         raise SessionError(
             E_UNREADABLE_FILE, label, file, f"not a readable Parquet file (truncated or corrupt?): {exc}"
@@ -378,7 +390,9 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
     return pd.DataFrame(out)
 
 
-_steps_cache: OrderedDict[bytes, tuple[pd.DataFrame, StepColumns]] = OrderedDict()
+# validated steps by the content digest of the file's bytes; each entry keeps those bytes and
+# a hit is taken only when they are the file's (a digest is no proof of equal content)
+_steps_cache: OrderedDict[str, tuple[bytes, pd.DataFrame, StepColumns]] = OrderedDict()
 _steps_lock = threading.Lock()  # the nightly flow reads sessions from a thread pool
 
 
@@ -387,45 +401,43 @@ def read_steps(path: Path, label: str) -> pd.DataFrame:
     return _read_steps_cached(path, label)[0].copy()
 
 
-def _read_steps_cached(path: Path, label: str) -> tuple[pd.DataFrame, StepColumns]:
-    """(the cached frame, its columns). The frame is shared: copy it before handing it out."""
+def _read_steps_cached(path: Path, label: str, raw: bytes | None = None) -> tuple[pd.DataFrame, StepColumns]:
+    """(the cached frame, its columns). The frame is shared: copy it before handing it out.
+    ``raw``: the file's bytes when the caller read them (else read here)."""
     file = path.name
-    try:
-        st = path.stat()
-    except OSError:
-        st = None
-    # a regular non-empty file whose bytes were validated before needs no Parquet parsing;
-    # anything else takes _open's checks, each with its own error
-    if st is not None and stat.S_ISREG(st.st_mode) and st.st_size > 0:
+    if raw is None:
+        try:
+            st = path.stat()
+        except OSError:
+            st = None
+        # a regular non-empty file is read once; anything else takes _open's checks, each
+        # with its own error
+        if st is not None and stat.S_ISREG(st.st_mode) and st.st_size > 0:
+            try:
+                raw = read_regular_file(str(path))[0] or None
+            except OSError:
+                raw = None
+    if raw is not None:
+        digest = bytes_digest(raw)
+        with _steps_lock:
+            cached = _steps_cache.get(digest)
+            if cached is not None and cached[0] == raw:
+                _steps_cache.move_to_end(digest)
+                return cached[1], cached[2]
+    else:
+        _open(path, label)  # existence, type, size and Parquet checks, each with its own error
         try:
             raw = path.read_bytes()
-        except OSError:
-            raw = None
-        if raw is not None:
-            digest = hashlib.sha256(raw).digest()
-            with _steps_lock:
-                cached = _steps_cache.get(digest)
-                if cached is not None:
-                    _steps_cache.move_to_end(digest)
-                    return cached
-    _open(path, label)  # existence, type, size and Parquet checks, each with its own error
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise SessionError(E_UNREADABLE_FILE, label, file, f"cannot read {path}: {exc}") from exc
-    digest = hashlib.sha256(raw).digest()
-    try:
-        pf = pq.ParquetFile(pa.BufferReader(raw), page_checksum_verification=True)
-    except (pa.ArrowException, OSError, ValueError) as exc:  # changed since _open looked at it
-        raise SessionError(
-            E_UNREADABLE_FILE, label, file, f"not a readable Parquet file (truncated or corrupt?): {exc}"
-        ) from exc
+        except OSError as exc:
+            raise SessionError(E_UNREADABLE_FILE, label, file, f"cannot read {path}: {exc}") from exc
+        digest = bytes_digest(raw)
+    pf = _open_buffer(raw, label, file)
     schema = pf.schema_arrow
     names = check_columns(schema, STEPS_RULES, label, file)
     names = names + [c for c in ("duration_s", "heading_deg") if c in schema.names]
     entry = _validated_steps(_read(pf, names, label, file), label, file)
     with _steps_lock:
-        _steps_cache[digest] = entry
+        _steps_cache[digest] = (raw, *entry)
         while len(_steps_cache) > STEPS_CACHE_SIZE:
             _steps_cache.popitem(last=False)
     return entry
@@ -662,23 +674,34 @@ def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
     return out
 
 
-def read_session(ref: SessionRef) -> SessionData:
-    """Read and validate one session directory. Raises :class:`SessionError`."""
+def read_session(ref: SessionRef, files: SessionFiles | None = None) -> SessionData:
+    """Read and validate one session directory. Raises :class:`SessionError`. ``files``: the
+    session's files as read once for its fingerprint (:func:`schemas.dataset.read_session_files`):
+    their bytes are parsed, not the files read again; a file whose bytes it does not hold
+    (missing, empty, not regular, unreadable) is looked at by its path, which says why."""
     label = str(ref.key)
     samples_path = ref.samples_path
-    steps_there = ref.steps_path.exists()
-    samples_stat = _stat(samples_path)  # samples_path.exists(), and _open's checks
+    steps_raw = files.steps if files is not None else None
+    samples_raw = files.samples if files is not None else None
+    steps_there = steps_raw is not None or ref.steps_path.exists()
+    samples_stat = None if samples_raw is not None else _stat(samples_path)  # exists, and _open's checks
     missing = [
         p
-        for p, there in ((ref.steps_path, steps_there), (samples_path, samples_stat is not None))
+        for p, there in (
+            (ref.steps_path, steps_there),
+            (samples_path, samples_raw is not None or samples_stat is not None),
+        )
         if not there
     ]
     if missing:
         names = " and ".join(p.name for p in missing)
         raise SessionError(E_MISSING_FILE, label, missing[0].name, f"{names} missing in {ref.path}")
-    steps, step_columns = _read_steps_cached(ref.steps_path, label)
-    pf = _open(samples_path, label, samples_stat)
+    steps, step_columns = _read_steps_cached(ref.steps_path, label, steps_raw)
     file = samples_path.name
+    if samples_raw is not None:
+        pf = _open_buffer(samples_raw, label, file)
+    else:
+        pf = _open(samples_path, label, samples_stat)
     schema = pf.schema_arrow  # built anew by every access (~0.25 ms): once
     meta = parse_metadata(schema.metadata, label, file)
     names = check_columns(schema, SAMPLES_RULES, label, file)
