@@ -250,9 +250,13 @@ def _strings(col: pa.ChunkedArray) -> np.ndarray:
 
 
 def _floats(col: pa.ChunkedArray) -> np.ndarray:
+    """float64 values, nulls as NaN (a float64 column without a cast: a no-op that costs a
+    compute call)."""
     if pa.types.is_null(col.type):
         return np.full(len(col), np.nan)
-    return col.cast(pa.float64()).to_numpy(zero_copy_only=False)
+    if not pa.types.is_float64(col.type):
+        col = col.cast(pa.float64())
+    return col.to_numpy(zero_copy_only=False)
 
 
 def _int_ids(col: pa.ChunkedArray, label: str, file: str, null_code: str) -> np.ndarray:
@@ -533,16 +537,18 @@ def _validate_samples(
         )
 
     # one (6, n) array, one row per channel: each conversion from float32 is one contiguous
-    # copy, the finiteness check one pass over all channels, and the averaging reduces all
-    # channels in one call; gyro / accel are (n, 3) column-major views of it
+    # copy, checked for finiteness while it is still in the core's cache, and the averaging
+    # reduces all channels in one call; gyro / accel are (n, 3) column-major views of it.
+    # A NaN or infinity makes its channel's sum non-finite (one pass, no boolean array); a
+    # non-finite sum of finite values (overflow) is told apart by the exact search. Invalid
+    # operations are not reported: a signalling NaN in a float32 file stays a NaN.
     channels = pool_empty((len(SENSOR_COLUMNS), n))
-    with np.errstate(invalid="ignore"):  # a signalling NaN in a float32 file stays a NaN
-        for j, name in enumerate(SENSOR_COLUMNS):
-            channels[j] = table.column(name).to_numpy()  # nulls become NaN
-    # a NaN or infinity makes its channel's sum non-finite (one pass, no boolean array); a
-    # non-finite sum of finite values (overflow) is told apart by the exact search
+    finite = True
     with np.errstate(over="ignore", invalid="ignore"):
-        finite = np.isfinite(channels.sum(axis=1)).all()
+        for j, name in enumerate(SENSOR_COLUMNS):
+            row = channels[j]
+            row[...] = table.column(name).to_numpy()  # nulls become NaN
+            finite = finite and bool(np.isfinite(row.sum()))
     if not finite:
         _raise_nonfinite_sensor(table, channels, step, t, label, file)
     if meta.gyro_scale != 1.0:  # after the check, as file values are what the message names
@@ -647,7 +653,10 @@ def _runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start and length of each run of equal ``values`` (non-empty)."""
     start = np.flatnonzero(values[1:] != values[:-1]) + 1
     start = np.concatenate(([0], start))
-    return start, np.diff(start, append=len(values))
+    length = np.empty(len(start), np.intp)
+    np.subtract(start[1:], start[:-1], out=length[:-1])
+    length[-1] = len(values) - start[-1]
+    return start, length
 
 
 def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
