@@ -11,6 +11,7 @@ files (``fleet.json``) are ignored.
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -230,24 +231,36 @@ class SessionFiles:
     fingerprint: str
 
 
+# A session file larger than this is not held in memory whole: it is hashed in chunks and the
+# reader reads only the contract's columns from it by its path (two reads, as before the one
+# read; a 6-minute session at 100 Hz is ~0.8 MB, an hour at 1 kHz ~100 MB). A file with a huge
+# extra column then costs no more memory than its contract columns.
+MAX_HELD_BYTES = 256 * 1024 * 1024
+
+
 def read_session_files(path: Path | str) -> SessionFiles:
     """Both files of the session directory ``path``, each read whole in one call (FIFOs and
-    devices never opened: :func:`schemas.hive.read_regular_file`), with their fingerprint.
-    Never raises on a bad session."""
+    devices never opened: :func:`schemas.hive.read_regular_file`; files over
+    :data:`MAX_HELD_BYTES` hashed in chunks, not held), with their fingerprint. Never raises
+    on a bad session."""
     base = os.fspath(path)
     content: list[bytes | None] = []
     file_parts = []
     failed = False
     for name in _SESSION_FILES:
+        p = os.path.join(base, name)
         try:
-            raw, st = read_regular_file(os.path.join(base, name))
+            raw, st = read_regular_file(p, MAX_HELD_BYTES)
+            if raw is not None:
+                part = _file_part(name, len(raw), bytes_digest(raw))
+            elif stat.S_ISREG(st.st_mode):  # too large to hold
+                part = _file_part(name, os.stat(p).st_size, file_digest(p))
+            else:
+                part = _file_part(name, st.st_size, f"not-a-regular-file:{st.st_mode:o}")
         except FileNotFoundError:
             raw, part = None, _file_part(name, None, None)
         except (OSError, ValueError):
             raw, part, failed = None, "", True
-        else:
-            d = bytes_digest(raw) if raw is not None else f"not-a-regular-file:{st.st_mode:o}"
-            part = _file_part(name, st.st_size if raw is None else len(raw), d)
         content.append(raw or None)
         file_parts.append(part)
     fp = ""

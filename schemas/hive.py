@@ -162,20 +162,22 @@ def file_digest(path: str) -> str:
     return h.hexdigest()
 
 
-def read_regular_file(path: str) -> tuple[bytes | None, os.stat_result]:
+def read_regular_file(path: str, max_bytes: int | None = None) -> tuple[bytes | None, os.stat_result]:
     """(the bytes, the stat) of a regular file, read whole in one call; (None, stat) of
     anything else, which is never read: a FIFO or a device is not opened at all, and one that
     replaces the file between the stat and the open is opened without blocking and closed
-    unread. FileNotFoundError when ``path`` is missing; other OSErrors as raised."""
+    unread. ``max_bytes``: a larger file is not read either (nor kept when it grew past it
+    while read). FileNotFoundError when ``path`` is missing; other OSErrors as raised."""
     st = os.stat(path)
-    if not stat.S_ISREG(st.st_mode):
+    if not stat.S_ISREG(st.st_mode) or (max_bytes is not None and st.st_size > max_bytes):
         return None, st
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     with open(fd, "rb", buffering=0) as fh:
         st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
+        if not stat.S_ISREG(st.st_mode) or (max_bytes is not None and st.st_size > max_bytes):
             return None, st
-        return fh.readall(), st
+        data = fh.readall()
+    return (None if max_bytes is not None and len(data) > max_bytes else data), st
 
 
 def fingerprint_of(parts: str) -> str:

@@ -10,7 +10,8 @@ readable, columns, types, content -> samples.parquet readable, metadata, columns
 content (step ids, time, finite values).
 
 Speed (docs/benchmarks.md): each file is read once, whole, into memory (by the caller that
-fingerprints the same bytes, :func:`schemas.dataset.read_session_files`, or here), and parsed
+fingerprints the same bytes, :func:`schemas.dataset.read_session_files`, or here; a samples
+file over :data:`schemas.dataset.MAX_HELD_BYTES` is read by its path instead), and parsed
 from that buffer with one ``ParquetFile.read`` with column projection and no pandas on the
 sample path. ``steps.parquet`` is the same small table in every session of a fleet, so its
 validated form (the DataFrame and its columns as read-only numpy arrays, :class:`StepColumns`)

@@ -216,6 +216,22 @@ def test_one_read_gives_the_fingerprint_of_the_bytes_it_hands_the_reader(tmp_pat
     assert _files_and_fingerprint_agree(path).samples is None
 
 
+def test_a_file_too_large_to_hold_is_hashed_in_chunks_and_read_by_its_path(tmp_path, monkeypatch):
+    from schemas import dataset
+
+    steps, samples, md = _session(4)
+    path = write_session(tmp_path, SessionKey("L1", "U001", 1), steps, samples, md)
+    held = _files_and_fingerprint_agree(path)
+    size = (path / "samples.parquet").stat().st_size
+    assert (path / "steps.parquet").stat().st_size < size // 2
+    monkeypatch.setattr(dataset, "MAX_HELD_BYTES", size // 2)
+    files = _files_and_fingerprint_agree(path)
+    assert files.samples is None and files.steps is not None
+    assert files.fingerprint == held.fingerprint  # the same digest, streamed
+    ref = find_sessions(tmp_path)[0][0]
+    np.testing.assert_array_equal(read_session(ref, files).channels, read_session(ref, held).channels)
+
+
 def test_digest_cache_recomputes_entries_of_the_earlier_scheme(tmp_path):
     from schemas.dataset import DigestCache
     from schemas.hive import DIGEST_SCHEME, file_digest
