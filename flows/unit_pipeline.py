@@ -8,7 +8,6 @@ import os
 import time
 import traceback
 from dataclasses import replace
-from pathlib import Path
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
@@ -30,7 +29,7 @@ from flows.unit_outcomes import (  # noqa: F401  (re-exported: the unit pipeline
     failed_unit_result,
 )
 from schemas.averaging import leave_out_inconsistent_steps, numeric_warning, session_step_means
-from schemas.dataset import SessionRef, fingerprint
+from schemas.dataset import SessionRef, read_session_files
 from schemas.errors import SessionError, from_design_error
 from schemas.hive import NOISE_DIR
 from schemas.reader import read_session
@@ -60,9 +59,11 @@ def calibrate_sessions(
     static: list = [None] * len(refs)
     n_static = 0
     for i, ref in enumerate(refs):
-        fps.append(_safe_fingerprint(ref.path))
+        # one read of each file: the fingerprint is that of the very bytes calibrated
+        files = read_session_files(ref.path)
+        fps.append(files.fingerprint)
         try:
-            data = read_session(ref)
+            data = read_session(ref, files)
             sm, warns = session_step_means(data)
         except Exception as exc:  # noqa: BLE001 - mapped to the session's failure below
             outcomes[i] = _failed(ref, fps[i], exc)
@@ -73,7 +74,7 @@ def calibrate_sessions(
                 n_static += static[i].n_samples
             except Exception:  # noqa: BLE001 - the noise model then reads the session again
                 static[i] = None
-        data = None  # the samples are not held past their session
+        data = files = None  # the samples are not held past their session
         read.append((i, sm, warns))
     # steps that contradict the unit's other repetitions are left out before the fits
     # (chamber sessions only against those of their own setpoint: the temperature moves them)
@@ -155,13 +156,6 @@ def _failed(ref: SessionRef, fp: str, exc: Exception) -> SessionOutcome:
     tb = traceback.format_exception_only(type(exc), exc)[-1].strip()
     msg = f"[E_INTERNAL] session {ref.key}, path {ref.path}: unexpected error ({tb})"
     return SessionOutcome(ref.key, ref.path, STATUS_FAILED, "E_INTERNAL", msg, [], fp)
-
-
-def _safe_fingerprint(path: Path) -> str:
-    try:
-        return fingerprint(path)
-    except OSError:
-        return ""
 
 
 def aggregate_unit(

@@ -342,7 +342,7 @@ def average_session(data: SessionData, min_samples: int = 10) -> tuple[StepMeans
         # mean is spread over the pieces [0, b0), [b0, b1), ... that reduceat sums
         piece_mean = np.zeros((6, len(bounds) + 1))
         piece_mean[:, 1::2] = mean[:, s_row]
-        piece_len = np.diff(bounds, prepend=0, append=n)
+        piece_len = np.diff(np.concatenate(([0], bounds, [n])))
         # one channel at a time: its deviations (n floats) stay in the core's cache between
         # the subtract, the square and the sums (all six, 6n floats, do not)
         seg_ss = np.empty((6, n_seg))

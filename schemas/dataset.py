@@ -1,5 +1,6 @@
 """The hive layout ``<root>/lot=<lot>/unit=<unit>/rep=<n>/``: finding sessions and
-fingerprinting them.
+fingerprinting them, and reading a session's files once for both the fingerprint and the
+reader (:func:`read_session_files`).
 
 Bad directory names never raise: each becomes an ``E_BAD_PATH`` :class:`SessionError` in the
 returned list, and the rest of the fleet is still found. Entries whose name starts with ``.``
@@ -9,8 +10,8 @@ files (``fleet.json``) are ignored.
 
 from __future__ import annotations
 
-import hashlib
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -19,15 +20,19 @@ from calib_core.steps import SessionKey
 from schemas.contract import SAMPLES_FILE, STEPS_FILE
 from schemas.errors import E_BAD_PATH, SessionError
 from schemas.hive import (  # noqa: F401  (the id rule re-exported: callers check ids here)
+    DIGEST_SCHEME,
     FIELD_DIR,
     ID_PATTERN,
     ID_RULE,
     NOISE_DIR,
     REP_PATTERN,
+    bytes_digest,
     check_id,
     file_digest,
+    fingerprint_of,
     id_problem,
     link_problem,
+    read_regular_file,
 )
 from schemas.hive import bad_path as _bad
 from schemas.hive import parse_part as _parse_part
@@ -159,7 +164,9 @@ class DigestCache:
     is unchanged is not read again. Any write changes ctime (which no tool can set back), so
     an entry is only reused for the very bytes it was computed from; a copy (new inode) is
     read once and gives the same digest. ``entries``: path -> [size, mtime_ns, ctime_ns,
-    inode, digest], JSON-ready (the nightly flow keeps it in the results store)."""
+    inode, digest, scheme], JSON-ready (the nightly flow keeps it in the results store); an
+    entry of another digest scheme (or of none: the earlier five-item entries) is computed
+    again."""
 
     def __init__(self, entries: dict | None = None) -> None:
         self.entries: dict[str, list] = dict(entries or {})
@@ -169,30 +176,97 @@ class DigestCache:
         st = os.stat(path)
         key = [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
         e = self.entries.get(path)
-        if isinstance(e, list) and len(e) == 5 and e[:4] == key:
+        if isinstance(e, list) and len(e) == 6 and e[:4] == key and e[5] == DIGEST_SCHEME:
             return str(e[4])
         d = file_digest(path)
         self.read += 1
-        self.entries[path] = key + [d]
+        self.entries[path] = key + [d, DIGEST_SCHEME]
         return d
 
 
+_SESSION_FILES = (STEPS_FILE, SAMPLES_FILE)
+
+
+def _file_part(name: str, size: int | None, digest: str | None) -> str:
+    """A file's entry in a session's fingerprint (None: the file is missing)."""
+    return f"{name}:missing;" if digest is None else f"{name}:{size}:{digest};"
+
+
+def _session_fingerprint(path: str, file_parts: list[str], cache: DigestCache | None) -> str:
+    parts = "".join(file_parts)
+    # the unit's noise recordings (schemas.noise_dataset): a unit without them has none
+    noise = noise_fingerprint(os.path.dirname(os.path.abspath(path)), cache)
+    if noise is not None:
+        parts += f"noise:{noise};"
+    return fingerprint_of(parts)
+
+
 def fingerprint(path: Path | str, cache: DigestCache | None = None) -> str:
-    """Identity of a session's content: size and blake2b digest of both files. A copy of the
-    dataset, a ``touch`` or a rewrite with the same bytes keep it; any changed byte changes
-    it. ``cache`` saves reading files whose stat is unchanged (:class:`DigestCache`)."""
+    """Identity of a session's content (``xxh3:<32 hex>``, :func:`schemas.hive.fingerprint_of`):
+    size and digest of both files and of the unit's noise recordings. A copy of the dataset,
+    a ``touch`` or a rewrite with the same bytes keep it; any changed byte changes it.
+    ``cache`` saves reading files whose stat is unchanged (:class:`DigestCache`). The same
+    fingerprint as :func:`read_session_files` gives of the same bytes."""
     base = os.fspath(path)
-    h = hashlib.sha256()
-    for name in (STEPS_FILE, SAMPLES_FILE):
+    file_parts = []
+    for name in _SESSION_FILES:
         p = os.path.join(base, name)
         try:
             d = cache.digest(p) if cache is not None else file_digest(p)
-            h.update(f"{name}:{os.stat(p).st_size}:{d};".encode())
+            file_parts.append(_file_part(name, os.stat(p).st_size, d))
         except FileNotFoundError:
-            h.update(f"{name}:missing;".encode())
-    # the unit's noise recordings (schemas.noise_dataset): a unit without them keeps the
-    # fingerprint it always had
-    noise = noise_fingerprint(os.path.dirname(os.path.abspath(base)), cache)
-    if noise is not None:
-        h.update(f"noise:{noise};".encode())
-    return h.hexdigest()[:32]
+            file_parts.append(_file_part(name, None, None))
+    return _session_fingerprint(base, file_parts, cache)
+
+
+@dataclass(frozen=True)
+class SessionFiles:
+    """A session's two files read once: the bytes of each regular file (None for a file
+    missing, empty, not regular or unreadable: the reader then opens it by its path and
+    reports why) and the :func:`fingerprint` of those very bytes ("" when a file could not be
+    read: the unit then counts as changed on the next run)."""
+
+    steps: bytes | None
+    samples: bytes | None
+    fingerprint: str
+
+
+# A session file larger than this is not held in memory whole: it is hashed in chunks and the
+# reader reads only the contract's columns from it by its path (two reads, as before the one
+# read; a 6-minute session at 100 Hz is ~0.8 MB, an hour at 1 kHz ~100 MB). A file with a huge
+# extra column then costs no more memory than its contract columns.
+MAX_HELD_BYTES = 256 * 1024 * 1024
+
+
+def read_session_files(path: Path | str) -> SessionFiles:
+    """Both files of the session directory ``path``, each read whole in one call (FIFOs and
+    devices never opened: :func:`schemas.hive.read_regular_file`; files over
+    :data:`MAX_HELD_BYTES` hashed in chunks, not held), with their fingerprint. Never raises
+    on a bad session."""
+    base = os.fspath(path)
+    content: list[bytes | None] = []
+    file_parts = []
+    failed = False
+    for name in _SESSION_FILES:
+        p = os.path.join(base, name)
+        try:
+            raw, st = read_regular_file(p, MAX_HELD_BYTES)
+            if raw is not None:
+                part = _file_part(name, len(raw), bytes_digest(raw))
+            elif stat.S_ISREG(st.st_mode):  # too large to hold
+                part = _file_part(name, os.stat(p).st_size, file_digest(p))
+            else:
+                part = _file_part(name, st.st_size, f"not-a-regular-file:{st.st_mode:o}")
+        except FileNotFoundError:
+            raw, part = None, _file_part(name, None, None)
+        except (OSError, ValueError):
+            raw, part, failed = None, "", True
+        content.append(raw or None)
+        file_parts.append(part)
+    fp = ""
+    if not failed:
+        try:
+            fp = _session_fingerprint(base, file_parts, None)
+        except OSError:
+            fp = ""
+    return SessionFiles(content[0], content[1], fp)

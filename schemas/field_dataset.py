@@ -22,7 +22,6 @@ an ``E_BAD_PATH`` :class:`SessionError` in the returned list; reading a recordin
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from dataclasses import dataclass, field
@@ -33,7 +32,7 @@ from typing import Any, ClassVar
 from calib_core.steps import SessionKey
 from schemas.contract import G_LOCAL_PLAUSIBLE, session_start_problem
 from schemas.errors import E_BAD_METADATA, E_BAD_OPTION, E_BAD_PATH, E_UNREADABLE_FILE, SessionError
-from schemas.hive import FIELD_DIR, file_digest, link_problem
+from schemas.hive import FIELD_DIR, file_digest, fingerprint_of, link_problem
 from schemas.hive import bad_path as _bad
 from schemas.hive import parse_part as _parse_part
 from schemas.hive import visible_dirs as _visible_dirs
@@ -385,23 +384,23 @@ def find_field_recordings(
 
 
 def field_fingerprint(ref: FieldRecordingRef) -> str:
-    """Identity of a recording's content: its file(s) and options files, name, size and
-    blake2b digest each (as :func:`schemas.dataset.fingerprint` for a session): a changed
-    byte of the log or of an option recalibrates the unit."""
-    h = hashlib.sha256()
-    h.update(f"field:{ref.name};".encode())
+    """Identity of a recording's content (``xxh3:<32 hex>``, :func:`schemas.hive.fingerprint_of`):
+    its file(s) and options files, name, size and digest each (as
+    :func:`schemas.dataset.fingerprint` for a session): a changed byte of the log or of an
+    option recalibrates the unit."""
+    parts = [f"field:{ref.name};"]
     if ref.error is not None:  # a refused file is never opened: its metadata and the reason
-        h.update(f"error:{ref.error};".encode())
+        parts.append(f"error:{ref.error};")
     for p in (*ref.files, *ref.option_files):
         try:
             st = os.lstat(p)
             if ref.error is not None or not _regular(p):
-                h.update(f"{p.name}:{st.st_mode}:{st.st_size}:{st.st_mtime_ns};".encode())
+                parts.append(f"{p.name}:{st.st_mode}:{st.st_size}:{st.st_mtime_ns};")
             else:
-                h.update(f"{p.name}:{os.stat(p).st_size}:{file_digest(str(p))};".encode())
+                parts.append(f"{p.name}:{os.stat(p).st_size}:{file_digest(str(p))};")
         except FileNotFoundError:
-            h.update(f"{p.name}:missing;".encode())
-    return h.hexdigest()[:32]
+            parts.append(f"{p.name}:missing;")
+    return fingerprint_of("".join(parts))
 
 
 def _regular(path: Path) -> bool:

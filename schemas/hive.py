@@ -1,15 +1,16 @@
 """The hive layout's shared pieces: lot, unit and rep directory names (``lot=<id>``), the id
-rule, the unit a path names, and file digests. ``schemas.dataset`` (turntable sessions) and
-``schemas.field_dataset`` (field recordings) both build on it; neither imports the other's
-helpers."""
+rule, the unit a path names, and the one content digest of files and fingerprints.
+``schemas.dataset`` (turntable sessions) and ``schemas.field_dataset`` (field recordings) both
+build on it; neither imports the other's helpers."""
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
 import stat
 from pathlib import Path
+
+import xxhash
 
 from schemas.errors import E_BAD_PATH, SessionError
 
@@ -129,17 +130,70 @@ def link_problem(path: Path, root: Path, follow_symlinks: bool) -> str | None:
     return None
 
 
+# The one content digest of the files a run fingerprints (turntable sessions, field
+# recordings, noise recordings) and of the fingerprints made of them: xxHash's XXH3, 128 bit.
+# A fingerprint tells whether the bytes calibrated last time are still those on disk; it is
+# no security boundary (whoever can write the dataset decides what is calibrated anyway), so
+# a fast non-cryptographic hash is enough. Fingerprints carry the scheme as a prefix
+# (``xxh3:<32 hex>``); those of the earlier scheme (blake2b files under a sha256, 32 bare hex
+# digits) are recognised (:func:`fingerprint_scheme`) and their units recalibrated once.
+DIGEST_SCHEME = "xxh3"
+_LEGACY_FINGERPRINT = re.compile(r"\A[0-9a-f]{32}\Z")
 _CHUNK = 1 << 20
 
 
+def bytes_digest(data) -> str:
+    """The content digest (32 hex digits) of ``data`` (bytes or any buffer)."""
+    return xxhash.xxh3_128_hexdigest(data)
+
+
 def file_digest(path: str) -> str:
-    """blake2b (128 bit) of a file's bytes; a FIFO or a device is never opened (its type
-    stands for its content: the reader refuses it)."""
+    """:func:`bytes_digest` of a file's bytes, read in chunks into one buffer; a FIFO or a
+    device is never opened (its type stands for its content: the reader refuses it)."""
     mode = os.stat(path).st_mode
     if not stat.S_ISREG(mode):
         return f"not-a-regular-file:{mode:o}"
-    h = hashlib.blake2b(digest_size=16)
-    with open(path, "rb") as fh:
-        while chunk := fh.read(_CHUNK):
-            h.update(chunk)
+    h = xxhash.xxh3_128()
+    buf = bytearray(_CHUNK)
+    view = memoryview(buf)
+    with open(path, "rb", buffering=0) as fh:
+        while n := fh.readinto(buf):
+            h.update(view[:n])
     return h.hexdigest()
+
+
+def read_regular_file(path: str, max_bytes: int | None = None) -> tuple[bytes | None, os.stat_result]:
+    """(the bytes, the stat) of a regular file, read whole in one call; (None, stat) of
+    anything else, which is never read: a FIFO or a device is not opened at all, and one that
+    replaces the file between the stat and the open is opened without blocking and closed
+    unread. ``max_bytes``: a larger file is not read either (nor kept when it grew past it
+    while read). FileNotFoundError when ``path`` is missing; other OSErrors as raised."""
+    st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode) or (max_bytes is not None and st.st_size > max_bytes):
+        return None, st
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    with open(fd, "rb", buffering=0) as fh:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or (max_bytes is not None and st.st_size > max_bytes):
+            return None, st
+        data = fh.readall()
+    return (None if max_bytes is not None and len(data) > max_bytes else data), st
+
+
+def fingerprint_of(parts: str) -> str:
+    """A fingerprint (``xxh3:<32 hex>``) of the text that lists a reference's files and
+    their digests."""
+    return f"{DIGEST_SCHEME}:{bytes_digest(parts.encode())}"
+
+
+def fingerprint_scheme(fp: str | None) -> str | None:
+    """The scheme of a stored fingerprint: :data:`DIGEST_SCHEME` for the current one,
+    ``"blake2b"`` for the earlier one (32 bare hex digits), None for anything else (no
+    fingerprint, an unreadable session's empty one)."""
+    if not isinstance(fp, str):
+        return None
+    if fp.startswith(DIGEST_SCHEME + ":"):
+        return DIGEST_SCHEME
+    if _LEGACY_FINGERPRINT.match(fp):
+        return "blake2b"
+    return None

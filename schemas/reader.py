@@ -9,12 +9,15 @@ Order of checks (the first failure is the one reported): files exist -> steps.pa
 readable, columns, types, content -> samples.parquet readable, metadata, columns, types,
 content (step ids, time, finite values).
 
-Speed (docs/benchmarks.md): a session is read with one ``ParquetFile.read``
-with column projection and no pandas on the sample path. ``steps.parquet`` is the same small
-table in every session of a fleet, so its validated form (the DataFrame and its columns as
-read-only numpy arrays, :class:`StepColumns`) is cached by the SHA-256 of the file's bytes (an
-LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached; a hit skips the Parquet
-parsing, and every caller gets its own copy-on-write copy of the frame). The six sensor columns
+Speed (docs/benchmarks.md): each file is read once, whole, into memory (by the caller that
+fingerprints the same bytes, :func:`schemas.dataset.read_session_files`, or here; a samples
+file over :data:`schemas.dataset.MAX_HELD_BYTES` is read by its path instead), and parsed
+from that buffer with one ``ParquetFile.read`` with column projection and no pandas on the
+sample path. ``steps.parquet`` is the same small table in every session of a fleet, so its
+validated form (the DataFrame and its columns as read-only numpy arrays, :class:`StepColumns`)
+is cached by the content digest of the file's bytes, a hit taken only when the bytes are
+equal (an LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached; a hit skips
+the Parquet parsing, and every caller gets its own copy-on-write copy of the frame). The six sensor columns
 are converted once into one ``(6, n)`` float64 array (``SessionData.channels``; ``gyro`` and
 ``accel`` are views of it) and checked for finiteness in one pass; the per-column search that
 builds the error message runs only when that check fails. The sample -> step-row index
@@ -24,7 +27,6 @@ computed for the unknown-step check is handed to the averaging (``SessionData.st
 from __future__ import annotations
 
 import errno
-import hashlib
 import os
 import re
 import stat
@@ -55,7 +57,7 @@ from schemas.contract import (
     check_columns,
     parse_metadata,
 )
-from schemas.dataset import SessionRef
+from schemas.dataset import SessionFiles, SessionRef
 from schemas.errors import (
     E_BAD_STEP_DEFINITION,
     E_CHECKSUM,
@@ -70,6 +72,7 @@ from schemas.errors import (
     E_WRONG_TYPE,
     SessionError,
 )
+from schemas.hive import bytes_digest, read_regular_file
 
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 STEPS_CACHE_SIZE = 16
@@ -190,6 +193,16 @@ def _open(path: Path, label: str, st: os.stat_result | None = None) -> pq.Parque
         ) from exc
 
 
+def _open_buffer(raw: bytes, label: str, file: str) -> pq.ParquetFile:
+    """The Parquet footer of a file's bytes already read (:func:`_open`'s last check)."""
+    try:
+        return pq.ParquetFile(pa.BufferReader(raw), page_checksum_verification=True)
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        raise SessionError(
+            E_UNREADABLE_FILE, label, file, f"not a readable Parquet file (truncated or corrupt?): {exc}"
+        ) from exc
+
+
 # Arrow's own threads for decoding one file's columns: a lone read of a 36,000-sample session
 # takes ~1.3 ms wall with them and ~1.9 without, for ~0.1-0.3 ms more CPU (thread hand-offs).
 # Worker processes that already keep every core busy read in their own thread
@@ -238,9 +251,13 @@ def _strings(col: pa.ChunkedArray) -> np.ndarray:
 
 
 def _floats(col: pa.ChunkedArray) -> np.ndarray:
+    """float64 values, nulls as NaN (a float64 column without a cast: a no-op that costs a
+    compute call)."""
     if pa.types.is_null(col.type):
         return np.full(len(col), np.nan)
-    return col.cast(pa.float64()).to_numpy(zero_copy_only=False)
+    if not pa.types.is_float64(col.type):
+        col = col.cast(pa.float64())
+    return col.to_numpy(zero_copy_only=False)
 
 
 def _int_ids(col: pa.ChunkedArray, label: str, file: str, null_code: str) -> np.ndarray:
@@ -378,7 +395,9 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
     return pd.DataFrame(out)
 
 
-_steps_cache: OrderedDict[bytes, tuple[pd.DataFrame, StepColumns]] = OrderedDict()
+# validated steps by the content digest of the file's bytes; each entry keeps those bytes and
+# a hit is taken only when they are the file's (a digest is no proof of equal content)
+_steps_cache: OrderedDict[str, tuple[bytes, pd.DataFrame, StepColumns]] = OrderedDict()
 _steps_lock = threading.Lock()  # the nightly flow reads sessions from a thread pool
 
 
@@ -387,45 +406,43 @@ def read_steps(path: Path, label: str) -> pd.DataFrame:
     return _read_steps_cached(path, label)[0].copy()
 
 
-def _read_steps_cached(path: Path, label: str) -> tuple[pd.DataFrame, StepColumns]:
-    """(the cached frame, its columns). The frame is shared: copy it before handing it out."""
+def _read_steps_cached(path: Path, label: str, raw: bytes | None = None) -> tuple[pd.DataFrame, StepColumns]:
+    """(the cached frame, its columns). The frame is shared: copy it before handing it out.
+    ``raw``: the file's bytes when the caller read them (else read here)."""
     file = path.name
-    try:
-        st = path.stat()
-    except OSError:
-        st = None
-    # a regular non-empty file whose bytes were validated before needs no Parquet parsing;
-    # anything else takes _open's checks, each with its own error
-    if st is not None and stat.S_ISREG(st.st_mode) and st.st_size > 0:
+    if raw is None:
+        try:
+            st = path.stat()
+        except OSError:
+            st = None
+        # a regular non-empty file is read once; anything else takes _open's checks, each
+        # with its own error
+        if st is not None and stat.S_ISREG(st.st_mode) and st.st_size > 0:
+            try:
+                raw = read_regular_file(str(path))[0] or None
+            except OSError:
+                raw = None
+    if raw is not None:
+        digest = bytes_digest(raw)
+        with _steps_lock:
+            cached = _steps_cache.get(digest)
+            if cached is not None and cached[0] == raw:
+                _steps_cache.move_to_end(digest)
+                return cached[1], cached[2]
+    else:
+        _open(path, label)  # existence, type, size and Parquet checks, each with its own error
         try:
             raw = path.read_bytes()
-        except OSError:
-            raw = None
-        if raw is not None:
-            digest = hashlib.sha256(raw).digest()
-            with _steps_lock:
-                cached = _steps_cache.get(digest)
-                if cached is not None:
-                    _steps_cache.move_to_end(digest)
-                    return cached
-    _open(path, label)  # existence, type, size and Parquet checks, each with its own error
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise SessionError(E_UNREADABLE_FILE, label, file, f"cannot read {path}: {exc}") from exc
-    digest = hashlib.sha256(raw).digest()
-    try:
-        pf = pq.ParquetFile(pa.BufferReader(raw), page_checksum_verification=True)
-    except (pa.ArrowException, OSError, ValueError) as exc:  # changed since _open looked at it
-        raise SessionError(
-            E_UNREADABLE_FILE, label, file, f"not a readable Parquet file (truncated or corrupt?): {exc}"
-        ) from exc
+        except OSError as exc:
+            raise SessionError(E_UNREADABLE_FILE, label, file, f"cannot read {path}: {exc}") from exc
+        digest = bytes_digest(raw)
+    pf = _open_buffer(raw, label, file)
     schema = pf.schema_arrow
     names = check_columns(schema, STEPS_RULES, label, file)
     names = names + [c for c in ("duration_s", "heading_deg") if c in schema.names]
     entry = _validated_steps(_read(pf, names, label, file), label, file)
     with _steps_lock:
-        _steps_cache[digest] = entry
+        _steps_cache[digest] = (raw, *entry)
         while len(_steps_cache) > STEPS_CACHE_SIZE:
             _steps_cache.popitem(last=False)
     return entry
@@ -521,16 +538,18 @@ def _validate_samples(
         )
 
     # one (6, n) array, one row per channel: each conversion from float32 is one contiguous
-    # copy, the finiteness check one pass over all channels, and the averaging reduces all
-    # channels in one call; gyro / accel are (n, 3) column-major views of it
+    # copy, checked for finiteness while it is still in the core's cache, and the averaging
+    # reduces all channels in one call; gyro / accel are (n, 3) column-major views of it.
+    # A NaN or infinity makes its channel's sum non-finite (one pass, no boolean array); a
+    # non-finite sum of finite values (overflow) is told apart by the exact search. Invalid
+    # operations are not reported: a signalling NaN in a float32 file stays a NaN.
     channels = pool_empty((len(SENSOR_COLUMNS), n))
-    with np.errstate(invalid="ignore"):  # a signalling NaN in a float32 file stays a NaN
-        for j, name in enumerate(SENSOR_COLUMNS):
-            channels[j] = table.column(name).to_numpy()  # nulls become NaN
-    # a NaN or infinity makes its channel's sum non-finite (one pass, no boolean array); a
-    # non-finite sum of finite values (overflow) is told apart by the exact search
+    finite = True
     with np.errstate(over="ignore", invalid="ignore"):
-        finite = np.isfinite(channels.sum(axis=1)).all()
+        for j, name in enumerate(SENSOR_COLUMNS):
+            row = channels[j]
+            row[...] = table.column(name).to_numpy()  # nulls become NaN
+            finite = finite and bool(np.isfinite(row.sum()))
     if not finite:
         _raise_nonfinite_sensor(table, channels, step, t, label, file)
     if meta.gyro_scale != 1.0:  # after the check, as file values are what the message names
@@ -635,7 +654,10 @@ def _runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Start and length of each run of equal ``values`` (non-empty)."""
     start = np.flatnonzero(values[1:] != values[:-1]) + 1
     start = np.concatenate(([0], start))
-    return start, np.diff(start, append=len(values))
+    length = np.empty(len(start), np.intp)
+    np.subtract(start[1:], start[:-1], out=length[:-1])
+    length[-1] = len(values) - start[-1]
+    return start, length
 
 
 def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -662,23 +684,34 @@ def _step_rows(step: np.ndarray, ids: np.ndarray) -> np.ndarray:
     return out
 
 
-def read_session(ref: SessionRef) -> SessionData:
-    """Read and validate one session directory. Raises :class:`SessionError`."""
+def read_session(ref: SessionRef, files: SessionFiles | None = None) -> SessionData:
+    """Read and validate one session directory. Raises :class:`SessionError`. ``files``: the
+    session's files as read once for its fingerprint (:func:`schemas.dataset.read_session_files`):
+    their bytes are parsed, not the files read again; a file whose bytes it does not hold
+    (missing, empty, not regular, unreadable) is looked at by its path, which says why."""
     label = str(ref.key)
     samples_path = ref.samples_path
-    steps_there = ref.steps_path.exists()
-    samples_stat = _stat(samples_path)  # samples_path.exists(), and _open's checks
+    steps_raw = files.steps if files is not None else None
+    samples_raw = files.samples if files is not None else None
+    steps_there = steps_raw is not None or ref.steps_path.exists()
+    samples_stat = None if samples_raw is not None else _stat(samples_path)  # exists, and _open's checks
     missing = [
         p
-        for p, there in ((ref.steps_path, steps_there), (samples_path, samples_stat is not None))
+        for p, there in (
+            (ref.steps_path, steps_there),
+            (samples_path, samples_raw is not None or samples_stat is not None),
+        )
         if not there
     ]
     if missing:
         names = " and ".join(p.name for p in missing)
         raise SessionError(E_MISSING_FILE, label, missing[0].name, f"{names} missing in {ref.path}")
-    steps, step_columns = _read_steps_cached(ref.steps_path, label)
-    pf = _open(samples_path, label, samples_stat)
+    steps, step_columns = _read_steps_cached(ref.steps_path, label, steps_raw)
     file = samples_path.name
+    if samples_raw is not None:
+        pf = _open_buffer(samples_raw, label, file)
+    else:
+        pf = _open(samples_path, label, samples_stat)
     schema = pf.schema_arrow  # built anew by every access (~0.25 ms): once
     meta = parse_metadata(schema.metadata, label, file)
     names = check_columns(schema, SAMPLES_RULES, label, file)

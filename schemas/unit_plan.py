@@ -4,7 +4,9 @@ can have (turntable sessions, :class:`schemas.dataset.SessionRef`; field recordi
 
 A reference declares its ``kind`` (the unit pipeline that calibrates it) and its
 ``content_fingerprint``; a unit is calibrated when it is new, when a reference's fingerprint
-changed, appeared or disappeared against the store's, or when forced, and skipped otherwise.
+changed, appeared or disappeared against the store's, or when forced, and skipped otherwise;
+a stored fingerprint of an earlier digest scheme recalibrates its unit once, with a reason
+that says so (:data:`SCHEME_CHANGED`).
 A unit is calibrated one way: when it has turntable sessions, its field recordings are left
 out (a path error says so); a unit of field recordings found in two lots is refused."""
 
@@ -18,6 +20,7 @@ from calib_core.steps import SessionKey
 from schemas.dataset import SessionRef
 from schemas.errors import E_BAD_PATH, SessionError
 from schemas.field_dataset import FieldRecordingRef, find_field_recordings
+from schemas.hive import DIGEST_SCHEME, fingerprint_scheme
 
 TURNTABLE, FIELD = SessionRef.kind, FieldRecordingRef.kind
 # what one reference of each kind is called in a job's reason
@@ -55,6 +58,17 @@ class UnitJob:
     reason: str
     kind: str = TURNTABLE
     follow_symlinks: bool = False  # its noise recordings may be symbolic links (schemas.noise_dataset)
+
+
+# the reason of a unit whose stored fingerprints are of an earlier digest scheme
+# (schemas.hive.fingerprint_scheme): its references are read and calibrated once more
+SCHEME_CHANGED = "content fingerprint scheme changed: recalibrated once"
+
+
+def _older_scheme(stored: str | None, now: str) -> bool:
+    """Whether ``stored`` is a fingerprint of an earlier scheme than ``now``'s."""
+    was = fingerprint_scheme(stored)
+    return was is not None and fingerprint_scheme(now) == DIGEST_SCHEME and was != DIGEST_SCHEME
 
 
 def plan_unit_jobs(
@@ -103,12 +117,20 @@ def plan_unit_jobs(
             jobs.append(UnitJob(lot, unit, rs, "new", kind))
             continue
         reps_now = {r.key.rep for r in rs}
-        changed = [
-            r.key.rep for r in rs if previous.get((lot, unit, r.key.rep)) != r.content_fingerprint(cache)
-        ]
-        if changed or reps_now != before:
+        changed, rescheme = [], False
+        for r in rs:
+            stored, now = previous.get((lot, unit, r.key.rep)), r.content_fingerprint(cache)
+            if stored == now:
+                continue
+            if _older_scheme(stored, now):  # no telling whether its bytes changed too
+                rescheme = True
+            else:
+                changed.append(r.key.rep)
+        if changed or rescheme or reps_now != before:
             noun = _REFERENCE_NOUN.get(kind, "rep")
             why = []
+            if rescheme:
+                why.append(SCHEME_CHANGED)
             if changed:
                 why.append(f"changed {noun} " + ",".join(map(str, changed)))
             if reps_now - before:

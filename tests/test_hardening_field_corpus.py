@@ -284,13 +284,15 @@ def test_turntable_session_start_is_range_checked_too():
 
 
 def test_a_fifo_in_a_turntable_session_is_fingerprinted_without_opening_it(tmp_path):
-    from schemas.dataset import fingerprint
+    from schemas.dataset import fingerprint, read_session_files
 
     os.mkfifo(tmp_path / "samples.parquet")
     (tmp_path / "steps.parquet").write_bytes(b"x")
     signal.alarm(10)  # a blocking open() would hang the suite
     try:
-        assert len(fingerprint(tmp_path)) == 32
+        assert fingerprint(tmp_path).startswith("xxh3:")
+        files = read_session_files(tmp_path)  # the session's one read never opens it either
+        assert files.samples is None and files.fingerprint == fingerprint(tmp_path)
     finally:
         signal.alarm(0)
 

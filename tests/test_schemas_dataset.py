@@ -175,3 +175,73 @@ def test_writer_refuses_unknown_conversion(tmp_path):
     with pytest.raises(ValueError, match="cannot convert"):
         write_session(tmp_path, SessionKey("L1", "U1", 1), steps, samples, md, gyro_unit="LSB")
     assert not (tmp_path / "lot=L1").exists()
+
+
+def _files_and_fingerprint_agree(path):
+    from schemas.dataset import read_session_files
+
+    files = read_session_files(path)
+    assert files.fingerprint == fingerprint(path) and files.fingerprint.startswith("xxh3:")
+    return files
+
+
+def test_one_read_gives_the_fingerprint_of_the_bytes_it_hands_the_reader(tmp_path):
+    from schemas.dataset import read_session_files
+
+    steps, samples, md = _session(3)
+    key = SessionKey("L1", "U001", 1)
+    path = write_session(tmp_path, key, steps, samples, md)
+    files = _files_and_fingerprint_agree(path)
+    assert files.steps == (path / "steps.parquet").read_bytes()
+    assert files.samples == (path / "samples.parquet").read_bytes()
+    ref = find_sessions(tmp_path)[0][0]
+    plain = read_session(ref)
+    # the file rewritten after the read: the session calibrated is the bytes fingerprinted
+    changed = samples.copy()
+    changed["gx"] += 1.0
+    write_session(tmp_path, key, steps, changed, md)
+    assert fingerprint(path) != files.fingerprint
+    from_bytes = read_session(ref, files)
+    np.testing.assert_array_equal(from_bytes.channels, plain.channels)
+    np.testing.assert_array_equal(from_bytes.t, plain.t)
+    assert not np.array_equal(read_session(ref, read_session_files(path)).gyro, plain.gyro)
+    # a missing, an empty and an unreadable file: not held, the same fingerprint both ways
+    (path / "samples.parquet").write_bytes(b"")
+    files = _files_and_fingerprint_agree(path)
+    assert files.samples is None and files.steps is not None
+    (path / "samples.parquet").unlink()
+    files = _files_and_fingerprint_agree(path)
+    assert files.samples is None
+    (path / "samples.parquet").mkdir()
+    assert _files_and_fingerprint_agree(path).samples is None
+
+
+def test_a_file_too_large_to_hold_is_hashed_in_chunks_and_read_by_its_path(tmp_path, monkeypatch):
+    from schemas import dataset
+
+    steps, samples, md = _session(4)
+    path = write_session(tmp_path, SessionKey("L1", "U001", 1), steps, samples, md)
+    held = _files_and_fingerprint_agree(path)
+    size = (path / "samples.parquet").stat().st_size
+    assert (path / "steps.parquet").stat().st_size < size // 2
+    monkeypatch.setattr(dataset, "MAX_HELD_BYTES", size // 2)
+    files = _files_and_fingerprint_agree(path)
+    assert files.samples is None and files.steps is not None
+    assert files.fingerprint == held.fingerprint  # the same digest, streamed
+    ref = find_sessions(tmp_path)[0][0]
+    np.testing.assert_array_equal(read_session(ref, files).channels, read_session(ref, held).channels)
+
+
+def test_digest_cache_recomputes_entries_of_the_earlier_scheme(tmp_path):
+    from schemas.dataset import DigestCache
+    from schemas.hive import DIGEST_SCHEME, file_digest
+
+    p = tmp_path / "f.parquet"
+    p.write_bytes(b"abc" * 1000)
+    st = os.stat(p)
+    key = [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
+    old = DigestCache({str(p): key + ["0" * 32]})  # a blake2b entry of the earlier code
+    assert old.digest(str(p)) == file_digest(str(p)) != "0" * 32 and old.read == 1
+    assert old.entries[str(p)] == key + [file_digest(str(p)), DIGEST_SCHEME]
+    again = DigestCache(old.entries)
+    assert again.digest(str(p)) == file_digest(str(p)) and again.read == 0

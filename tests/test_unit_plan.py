@@ -5,10 +5,12 @@ the batches units are calibrated in."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
+import numpy as np
 import pytest
 
 from calib_core.steps import SessionKey
@@ -87,3 +89,64 @@ def test_batches_are_the_fewest_of_at_most_the_size_and_even(n):
     assert len(batches) == -(-n // 8)
     sizes = [len(b) for b in batches]
     assert all(0 < s <= 8 for s in sizes) and (not sizes or max(sizes) - min(sizes) <= 1)
+
+
+def _blake2b_fingerprint(path: Path) -> str:
+    """A session's fingerprint as the earlier scheme made it (blake2b of each file, the
+    names, sizes and digests under a SHA-256 cut to 32 hex digits): what an older store holds."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in ("steps.parquet", "samples.parquet"):
+        data = (path / name).read_bytes()
+        h.update(f"{name}:{len(data)}:{hashlib.blake2b(data, digest_size=16).hexdigest()};".encode())
+    return h.hexdigest()[:32]
+
+
+def test_a_store_of_the_earlier_fingerprint_scheme_recalibrates_each_unit_once_and_says_why(tmp_path):
+    from calib_core.sim import protocols
+    from calib_core.sim import simulator as sim
+    from schemas.dataset import DigestCache, find_sessions
+    from schemas.results_store import ResultsStore
+    from schemas.unit_plan import SCHEME_CHANGED
+    from schemas.writer import write_session
+
+    rng = np.random.default_rng(5)
+    truth = sim.typical_truth(rng)
+    steps = protocols.default_session(duration_s=1.0, settle_s=0.2)
+    md = sim.session_metadata(truth, 20.0)
+    for unit in ("U1", "U2", "U3"):
+        for rep in (1, 2):
+            samples = sim.simulate_session(truth, steps, rng, 20.0)
+            write_session(tmp_path / "data", SessionKey("L1", unit, rep), steps, samples, md)
+    refs, _ = find_sessions(tmp_path / "data")
+    # U1 and U2 stored by the earlier code (U2's rep 2 rewritten since), U3 by this code
+    by_key = {(r.key.unit, r.key.rep): r for r in refs}
+    old = {k: _blake2b_fingerprint(r.path) for k, r in by_key.items()}
+    stored = {k: old[k] for k in old if k[0] != "U3"}
+    stored |= {k: by_key[k].content_fingerprint() for k in by_key if k[0] == "U3"}
+    stored[("U2", 2)] = "0" * 32  # of the earlier scheme and of other bytes: no telling
+    store = ResultsStore(tmp_path / "results")
+    store.write("sessions", _sessions_table(stored))
+    # the digest cache of the earlier code: five items per file, a blake2b digest
+    files = [str(r.path / n) for r in refs for n in ("steps.parquet", "samples.parquet")]
+    cache = DigestCache({f: [*_stat_key(f), "0" * 32] for f in files})
+    jobs, skipped, _ = plan_unit_jobs(refs, store.fingerprints(), cache=cache)
+    assert [(j.unit, j.reason) for j in jobs] == [("U1", SCHEME_CHANGED), ("U2", SCHEME_CHANGED)]
+    assert skipped == [("L1", "U3")] and cache.read == 12  # every old entry computed again
+    # once the units are stored with this scheme's fingerprints, nothing is left to do
+    store.write("sessions", _sessions_table({k: r.content_fingerprint() for k, r in by_key.items()}))
+    jobs, skipped, _ = plan_unit_jobs(refs, store.fingerprints(), cache=cache)
+    assert jobs == [] and len(skipped) == 3 and cache.read == 12
+
+
+def _sessions_table(fingerprints: dict):
+    import pandas as pd
+
+    rows = [(u, rep, fp) for (u, rep), fp in fingerprints.items()]
+    return pd.DataFrame(rows, columns=["unit", "rep", "fingerprint"]).assign(lot="L1", status="ok")
+
+
+def _stat_key(path: str) -> list[int]:
+    st = os.stat(path)
+    return [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]
