@@ -244,16 +244,32 @@ def _step_columns(sms: list[StepMeans]) -> tuple[list[np.ndarray], StepMeans | N
     return out, None, list(columns)
 
 
-def _nanmedian_rows(a: np.ndarray) -> np.ndarray:
+def _nanmedian_rows(a: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
     """Median of the finite values of each row of ``a`` (P, S), as (P, 1); NaN for a row
     without any. What ``np.nanmedian(a, axis=1, keepdims=True)`` gives, without its masked
-    arrays (which cost most of this check's time on rows of ~100 values)."""
-    srt = np.sort(a, axis=1)  # NaN last
-    n = np.isfinite(a).sum(axis=1)
-    lo = np.maximum((n - 1) // 2, 0)[:, None]
-    hi = np.maximum(n // 2, 0)[:, None]
-    mid = 0.5 * (np.take_along_axis(srt, lo, axis=1) + np.take_along_axis(srt, hi, axis=1))
-    return np.where(n[:, None] > 0, mid, np.nan)
+    arrays (which cost most of this check's time on rows of ~100 values). ``n``: the count
+    of values each row's median is taken over (default: its finite values); the rows are
+    sorted NaN last, so the count of non-NaN values makes it ``np.nanmedian``'s, infinities
+    included."""
+    n_rows, width = a.shape
+    if width == 0:
+        return np.full((n_rows, 1), np.nan)
+    srt = np.sort(a, axis=1).ravel()  # NaN last
+    if n is None:
+        n = np.count_nonzero(np.isfinite(a), axis=1)
+    base = np.arange(0, n_rows * width, width)
+    lo = base + np.maximum((n - 1) // 2, 0)
+    hi = base + n // 2
+    mid = 0.5 * (srt[lo] + srt[hi])
+    return np.where(n > 0, mid, np.nan)[:, None]
+
+
+def _nanmedian_first_axis(a: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(a, axis=0)`` of ``a`` (R, ...), the same figures (the median of each
+    position's non-NaN values; NaN where it has none), by one sort."""
+    flat = a.reshape(len(a), -1).T
+    n = np.count_nonzero(~np.isnan(flat), axis=1)
+    return _nanmedian_rows(flat, n)[:, 0].reshape(a.shape[1:])
 
 
 def _robust_affine_residuals(d: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -282,27 +298,41 @@ def _robust_affine_residuals(d: np.ndarray, X: np.ndarray) -> np.ndarray:
     return out
 
 
+def _pooled_scales(absdev: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(L, 6) robust scale of ``absdev`` (R, S, 6), |deviations| (NaN where not counted),
+    pooled over the repetitions and the steps of each of the L labels of ``labels`` (S,)
+    (0 .. L - 1); NaN for a label and channel with fewer than ``CONSISTENCY_MIN_GROUP``
+    values. One sort: each label's values in a row of its own, padded with NaN (a median
+    does not depend on the order of its values)."""
+    n_rep, n_col, n_ch = absdev.shape
+    n_lab = int(labels.max()) + 1
+    counts = np.bincount(labels, minlength=n_lab)
+    order = np.argsort(labels, kind="stable")
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    slot = np.arange(n_col) - starts[labels[order]]
+    padded = np.full((n_lab, counts.max(), n_rep, n_ch), np.nan)
+    padded[labels[order], slot] = absdev[:, order].transpose(1, 0, 2)
+    rows = padded.transpose(0, 3, 1, 2).reshape(n_lab * n_ch, -1)
+    n = np.count_nonzero(np.isfinite(rows), axis=1)
+    med = _nanmedian_rows(rows, n)[:, 0]
+    return np.where(n >= CONSISTENCY_MIN_GROUP, _MAD_TO_SD * med, np.nan).reshape(n_lab, n_ch)
+
+
 def _group_scales(dev: np.ndarray, groups: np.ndarray, tests: np.ndarray, floor: np.ndarray) -> np.ndarray:
     """(S, 6) robust scale of the deviations ``dev`` (R, S, 6) (NaN where not counted) per
     step and channel: pooled over the steps of the step's group (test and |rate|) and every
     repetition; a group with too few deviations takes its test's scale, a test with too few
     the channel's."""
-
-    def scale(values: np.ndarray) -> np.ndarray:
-        v = values.reshape(-1, values.shape[-1]).T  # (6, values)
-        enough = np.isfinite(v).sum(axis=1) >= CONSISTENCY_MIN_GROUP
-        return np.where(enough, _MAD_TO_SD * _nanmedian_rows(np.abs(v))[:, 0], np.nan)
-
-    everything = scale(dev)
-    by_test = {t: scale(dev[:, tests == t]) for t in np.unique(tests)}
-    out = np.full(dev.shape[1:], np.nan)
-    for g in np.unique(groups):
-        cols = groups == g
-        s = scale(dev[:, cols])
-        for fallback in (by_test[tests[cols][0]], everything):
-            s = np.where(np.isnan(s), fallback, s)
-        out[cols] = np.maximum(s, floor)  # NaN (no scale anywhere) stays NaN
-    return out
+    absdev = np.abs(dev)
+    _, group_of = np.unique(groups, return_inverse=True)
+    _, test_of = np.unique(tests, return_inverse=True)
+    s = _pooled_scales(absdev, group_of)[group_of]
+    for fallback in (
+        _pooled_scales(absdev, test_of)[test_of],
+        _pooled_scales(absdev, np.zeros(len(groups), np.intp)),
+    ):
+        s = np.where(np.isnan(s), fallback, s)
+    return np.maximum(s, floor)  # NaN (no scale anywhere) stays NaN
 
 
 def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMIT) -> list[StepDisagreement]:
@@ -344,7 +374,7 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
     values[:, ~shared] = np.nan
     values = _without_shared_thermal_scale(values, temp, w_ref, f_ref, shared)
     median = np.full((n_col, 6), np.nan)  # over the repetitions that have the step
-    median[shared] = np.nanmedian(values[:, shared], axis=0)
+    median[shared] = _nanmedian_first_axis(values[:, shared])
     # the problems: each repetition (two: the first only, the second is its mirror) and channel
     fitted = 1 if n_rep == 2 else n_rep
     d = (values[:fitted] - median[None]).transpose(0, 2, 1)  # (fitted, 6, S)

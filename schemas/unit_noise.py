@@ -144,7 +144,22 @@ def static_steps(data) -> StaticSteps:
     keep = t - t0 >= cols.settle_s[r] - 1e-6
     lengths = np.add.reduceat(keep, first, dtype=np.int64)
     idx = sel[keep]
-    return StaticSteps(data.gyro[idx], data.accel[idx], tuple(int(x) for x in lengths), data.sample_rate_hz)
+    return StaticSteps(
+        _rows_at(data.gyro, idx), _rows_at(data.accel, idx), tuple(lengths.tolist()), data.sample_rate_hz
+    )
+
+
+def _rows_at(a: np.ndarray, idx: np.ndarray, max_runs: int = 256) -> np.ndarray:
+    """``a[idx]`` (a new C-ordered array) for row indices made of a few runs of consecutive
+    rows (a session's static steps): one slice per run, which copies rows of a column-major
+    sample block several times faster than fancy indexing."""
+    breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+    if not len(idx) or len(breaks) >= max_runs:
+        return a[idx]
+    bounds = [0, *breaks.tolist(), len(idx)]
+    out = np.empty((len(idx),) + a.shape[1:], a.dtype)
+    np.concatenate([a[idx[s] : idx[e - 1] + 1] for s, e in zip(bounds[:-1], bounds[1:])], axis=0, out=out)
+    return out
 
 
 def static_segments(

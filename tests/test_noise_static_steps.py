@@ -185,3 +185,20 @@ def test_static_steps_are_each_static_steps_samples_after_settling(lot):
     np.testing.assert_array_equal(got.gyro, data.gyro[rows])
     np.testing.assert_array_equal(got.accel, data.accel[rows])
     assert got.rate_hz == RATE_HZ
+
+
+def test_rows_of_runs_are_the_rows_fancy_indexing_gives():
+    from schemas.unit_noise import _rows_at
+
+    rng = np.random.default_rng(5)
+    block = rng.normal(size=(6, 1000))
+    a = block[:3].T  # a column-major view, as a session's samples are held
+    for idx in (
+        np.arange(0),
+        np.arange(5),
+        np.r_[3:10, 20:30, 29:40, 5:8],  # runs, a repeated row, a run backwards in the block
+        np.arange(999, -1, -1),  # one row a run: fancy indexing
+        rng.integers(0, 1000, 600),
+    ):
+        rows = _rows_at(a, idx)
+        assert np.array_equal(rows, a[idx]) and rows.flags.c_contiguous and rows.dtype == a.dtype
