@@ -14,8 +14,8 @@ EPILOG = """examples:
   mimucal nightly data/fleet --results results --dask-address tcp://10.0.0.5:8786
   mimucal nightly data/fleet --results results --runner threads
 
-Sessions whose input fingerprint (size and mtime of both files) is unchanged since the last
-run are skipped; a unit with any new, changed or removed session is recalibrated as a whole.
+Sessions whose content fingerprint (an XXH3-128 digest of both files' bytes) is unchanged
+since the last run are skipped; a unit with any new, changed or removed session is recalibrated as a whole.
 Prints a progress line per lot as its units come back ("lot L01: 8/16 units, 3.2 s") and a
 one-line summary with the wall time since the command started; the run log is
 RESULTS/runs/<run_id>.json, Prefect's own log RESULTS/logs/prefect.log (--verbose: on the
