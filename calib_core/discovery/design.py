@@ -57,23 +57,29 @@ class UnitGrid:
         dropped: frozenset[int] = frozenset(),
         layout: Layout | None = None,
         regressors: list[np.ndarray] | None = None,
+        outputs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> UnitGrid:
         """The unit's grid with the terms' columns through ``geometry`` (default: the
         nominal one); ``dropped`` term columns (undetermined parameters) are left at 0.
         ``layout``: the sessions' :func:`protocol_layout` when the caller already has it;
         ``regressors``: the terms' columns of a grid of the same sessions, terms and
         geometry (:attr:`regressors`), not computed again. Without ``names`` the grid has
-        the affine model's columns alone (what the affine fit and the rank test use)."""
+        the affine model's columns alone (what the affine fit and the rank test use).
+        ``outputs``: (raw, std, count) of a grid of the same sessions, shared (not built
+        again)."""
         lay = layout if layout is not None else protocol_layout(sessions)
         R, n = lay.real.shape
-        raw = np.zeros((R, n, 6, 3))
-        std = np.zeros((R, n, 6, 3))
-        count = np.ones((R, n))
-        for r, sm in enumerate(sessions):
-            m = len(sm)
-            raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
-            std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
-            count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
+        if outputs is not None:
+            raw, std, count = outputs
+        else:
+            raw = np.zeros((R, n, 6, 3))
+            std = np.zeros((R, n, 6, 3))
+            count = np.ones((R, n))
+            for r, sm in enumerate(sessions):
+                m = len(sm)
+                raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
+                std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
+                count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
         offset, live, live_mask, M, colmap, Zs = term_design(lay, names, geometry, dropped, regressors)
         M[..., :3] = np.moveaxis(raw, 2, 0)
         grid = cls(

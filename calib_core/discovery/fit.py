@@ -218,7 +218,7 @@ def joint_model(
     if geometry is None:  # the terms act through the affine fit's sensing geometry
         K = noise_fit[0]
         geometry = SensingGeometry.from_gains(K[:3], K[3:])
-        g = UnitGrid.build(sessions, names, geometry, layout=lay)
+        g = UnitGrid.build(sessions, names, geometry, layout=lay, outputs=(g.raw, g.std, g.count))
     # the noise measured elsewhere, or from the data: within-step scatter through K +
     # repetition scatter
     if measured is not None:
@@ -265,7 +265,13 @@ class JointModel:
             # is in no channel's columns already: the grid would be the same)
             dropped = frozenset(self.undetermined)
             self.g = UnitGrid.build(
-                self.sessions, self.names, geometry, dropped, self.layout, self.g.regressors
+                self.sessions,
+                self.names,
+                geometry,
+                dropped,
+                self.layout,
+                self.g.regressors,
+                (self.g.raw, self.g.std, self.g.count),
             )
             self._prepare()
             self.term_svds, self._term_solutions = {}, {}  # of the factor before the rebuild

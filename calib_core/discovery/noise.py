@@ -73,6 +73,7 @@ def serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> SerialNoise:
     n = max(float(real.sum(axis=1).mean()), 2.0)
     lam, tau = np.zeros(6), np.ones(6)
     lag = np.arange(1, int(n))
+    lag_weight = 1.0 - lag / n
     var_mean = np.zeros(6)
     for _ in range(3):
         # removing each repetition's mean lowers every autocovariance by the variance of
@@ -89,7 +90,7 @@ def serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> SerialNoise:
             tau[tri] = -step_s / np.log(decay)
         phi = np.exp(-step_s / tau)
         total = c0 + var_mean
-        var_mean = total / n * (1.0 + 2.0 * lam * np.sum((1.0 - lag / n) * phi[:, None] ** lag, axis=1))
+        var_mean = total / n * (1.0 + 2.0 * lam * np.sum(lag_weight * phi[:, None] ** lag, axis=1))
     return SerialNoise(lam, tau)
 
 

@@ -253,17 +253,17 @@ class Significance:
                 Uts[c] = U[j][
                     :, s[j] > float(size[j]) * 1e-8
                 ]  # what the affine model spans is not the terms'
-        blocks, means, devs, joint = [], [], [], []
-        for c in chans:
+        blocks, means, devs = [], [], []
+        n = g.n
+        joint = np.zeros((len(chans) * n, len(cols)))  # the channels' term columns stacked
+        for i, c in enumerate(chans):
             Xt, Ut, dev = Xts[c], Uts[c], affs[c].dev
             if Ut.shape[1]:
                 blocks.append(dev @ Ut)
-            J = np.zeros((Xt.shape[0], len(cols)))
-            J[:, index[g.colmap[c][hits[c]]]] = Xt
-            joint.append(J)
+            joint[i * n : (i + 1) * n, index[g.colmap[c][hits[c]]]] = Xt
             means.append(affs[c].rbar_free)
             devs.append(dev)  # along the joint directions, which the affine model's miss
-        Uj = orthonormal_basis(np.concatenate(joint)) if joint else np.zeros((0, 0))
+        Uj = orthonormal_basis(joint) if chans else np.zeros((0, 0))
         mean = np.concatenate(means) if means else np.zeros(0)
         out = TargetedParts(
             blocks,
@@ -352,7 +352,7 @@ class Significance:
         g, R = self.model.g, self.model.g.R
         hits = g.hits(tuple(sorted(names)))
         varying_columns = self._varying_columns()
-        if not any(varying_columns[c][hits[c]].any() for c in range(6)):
+        if not varying_columns.any() or not any(varying_columns[c][hits[c]].any() for c in range(6)):
             return None  # no column of the terms differs between the repetitions
         ss_num = ss_den = 0.0
         dof_num = dof_den = 0
