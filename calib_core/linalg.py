@@ -146,6 +146,8 @@ class PinvSolution:
     keep: np.ndarray
     live: np.ndarray
     scale: np.ndarray
+    s: np.ndarray | None = None  # the scaled design's singular values
+    U: np.ndarray | None = None  # its left singular vectors (kept by pinv_solutions)
 
     @property
     def cov_pinv(self) -> np.ndarray:
@@ -186,6 +188,15 @@ def lstsq_pinv(
     return theta, rank, solution
 
 
+def pinv_theta(solution: PinvSolution, y: np.ndarray) -> tuple[np.ndarray, int]:
+    """theta and rank of :func:`lstsq_pinv` (default rcond and live_rtol) of the design a
+    :func:`pinv_solutions` solution is of, for the right-hand side ``y``: its SVD not
+    computed again (the same numbers)."""
+    theta = (solution.Vt.T * solution.inv_s) @ (solution.U.T @ y) / solution.scale
+    theta[~solution.live] = 0.0
+    return theta, int(solution.keep.sum())
+
+
 def pinv_solutions(Zs: list[np.ndarray]) -> list[PinvSolution]:
     """The :class:`PinvSolution` of :func:`lstsq_pinv` (default rcond and live_rtol) of each
     design, for their covariances: one batched SVD per distinct shape (the same numbers as
@@ -196,9 +207,10 @@ def pinv_solutions(Zs: list[np.ndarray]) -> list[PinvSolution]:
         by_shape.setdefault(Z.shape, []).append(i)
     out: list[PinvSolution | None] = [None] * len(Zs)
     for group in by_shape.values():
-        _, s, Vt = np.linalg.svd(np.stack([Zs[i] / scaled[i][1] for i in group]), full_matrices=False)
+        U, s, Vt = np.linalg.svd(np.stack([Zs[i] / scaled[i][1] for i in group]), full_matrices=False)
         for j, i in enumerate(group):
             out[i] = _pinv_solution(s[j], Vt[j], *scaled[i], None)
+            out[i].U = U[j]
     return out
 
 
@@ -217,7 +229,7 @@ def _pinv_solution(
     keep = s > r * s[0] if len(s) and s[0] > 0 else np.zeros(len(s), bool)
     keep &= s > 0
     inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
-    return PinvSolution(Vt, inv_s, keep, live, scale)
+    return PinvSolution(Vt, inv_s, keep, live, scale, s)
 
 
 def lstsq_min_norm(

@@ -57,23 +57,29 @@ class UnitGrid:
         dropped: frozenset[int] = frozenset(),
         layout: Layout | None = None,
         regressors: list[np.ndarray] | None = None,
+        outputs: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> UnitGrid:
         """The unit's grid with the terms' columns through ``geometry`` (default: the
         nominal one); ``dropped`` term columns (undetermined parameters) are left at 0.
         ``layout``: the sessions' :func:`protocol_layout` when the caller already has it;
         ``regressors``: the terms' columns of a grid of the same sessions, terms and
         geometry (:attr:`regressors`), not computed again. Without ``names`` the grid has
-        the affine model's columns alone (what the affine fit and the rank test use)."""
+        the affine model's columns alone (what the affine fit and the rank test use).
+        ``outputs``: (raw, std, count) of a grid of the same sessions, shared (not built
+        again)."""
         lay = layout if layout is not None else protocol_layout(sessions)
         R, n = lay.real.shape
-        raw = np.zeros((R, n, 6, 3))
-        std = np.zeros((R, n, 6, 3))
-        count = np.ones((R, n))
-        for r, sm in enumerate(sessions):
-            m = len(sm)
-            raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
-            std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
-            count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
+        if outputs is not None:
+            raw, std, count = outputs
+        else:
+            raw = np.zeros((R, n, 6, 3))
+            std = np.zeros((R, n, 6, 3))
+            count = np.ones((R, n))
+            for r, sm in enumerate(sessions):
+                m = len(sm)
+                raw[r, :m, :3], raw[r, :m, 3:] = sm.gyro[:, None, :], sm.accel[:, None, :]
+                std[r, :m, :3], std[r, :m, 3:] = sm.gyro_std[:, None, :], sm.accel_std[:, None, :]
+                count[r, :m] = np.maximum(np.asarray(sm.count, float), 1.0)
         offset, live, live_mask, M, colmap, Zs = term_design(lay, names, geometry, dropped, regressors)
         M[..., :3] = np.moveaxis(raw, 2, 0)
         grid = cls(
@@ -231,6 +237,7 @@ def _build_layout(sessions: list[StepMeans]) -> Layout:
     y = np.zeros((R, n, 6))
     t = np.zeros((R, n))
     tests, ctxs = [], []
+    last: tuple[list, tuple] | None = None  # the previous repetition's test names and codes
     for r, sm in enumerate(sessions):
         m = len(sm)
         real[r, :m] = True
@@ -251,9 +258,11 @@ def _build_layout(sessions: list[StepMeans]) -> Layout:
             )
         )
         names = _test_names(sm).tolist()
-        u = sorted(set(names))  # np.unique's order (code points), by a dict: a few distinct names
-        at = {t: i for i, t in enumerate(u)}
-        tests.append((u, np.array([at[t] for t in names], np.int64)))
+        if last is None or last[0] != names:  # repetitions of one protocol: the same names
+            u = sorted(set(names))  # np.unique's order (code points), by a dict: a few distinct names
+            at = {t: i for i, t in enumerate(u)}
+            last = (names, (u, np.array([at[t] for t in names], np.int64)))
+        tests.append(last[1])
     # test groups: mapped per distinct test name, not per step
     groups = sorted({test_group(t) for u, _ in tests for t in u})
     gcode = np.full((R, n), -1, np.int64)
@@ -307,6 +316,23 @@ def _joint_context(lay: Layout) -> MotionContext | None:
     return out
 
 
+def _body_regressors(terms: list, ctx: MotionContext, geometry: SensingGeometry, P: int) -> np.ndarray:
+    """Minus every term's regressors (n, 6, P) through the sensing geometry, in one product
+    (ref = K raw + b - E theta). Laid out channel by channel in memory (a (6, n, P) array
+    seen as (n, 6, P)): the geometry's product then runs along contiguous rows (the same
+    numbers, faster), and each channel's columns are one block."""
+    E = np.empty((6, len(ctx), P))
+    at = 0
+    for t in terms:
+        E[:, :, at : at + t.n_params] = np.moveaxis(
+            np.asarray(t.sensor_regressors(ctx, geometry), float), 1, 0
+        )
+        at += t.n_params
+    Z = geometry.to_body(E.transpose(1, 0, 2)) if P else E.transpose(1, 0, 2)
+    np.negative(Z, out=Z)
+    return Z
+
+
 def term_design(
     lay: Layout,
     names: list[str],
@@ -331,18 +357,9 @@ def term_design(
         joint = _joint_context(lay)
         # every repetition's rows in one call per term when the repetitions share the
         # session-level context (the terms act row by row); else one call per repetition
+        g = SensingGeometry.identity() if geometry is None else geometry
         for ctx in [joint] if joint is not None else lay.ctx:
-            # minus the regressors: ref = K raw + b - E theta
-            # every term's sensor errors through the sensing geometry in one product
-            g = SensingGeometry.identity() if geometry is None else geometry
-            if terms:
-                Z = g.to_body(
-                    np.concatenate([np.asarray(t.sensor_regressors(ctx, g), float) for t in terms], axis=-1)
-                )
-                np.negative(Z, out=Z)
-            else:
-                Z = np.zeros((len(ctx), 6, 0))
-            regressors.append(Z)
+            regressors.append(_body_regressors(terms, ctx, g, P))
         if joint is not None:
             ends = np.cumsum([len(c) for c in lay.ctx])[:-1]
             every_row = regressors[0]

@@ -29,7 +29,14 @@ from calib_core.discovery.noise import NoiseModel, prewhiten
 from calib_core.discovery.results import EXCITED_SHARE
 from calib_core.effects import CHANNELS, SensingGeometry, catalogue, get_effect
 from calib_core.errors import DesignError
-from calib_core.linalg import PinvSolution, lstsq_pinv, lstsq_pinv_stack, pinv_solutions, qr_r
+from calib_core.linalg import (
+    PinvSolution,
+    lstsq_pinv,
+    lstsq_pinv_stack,
+    pinv_solutions,
+    pinv_theta,
+    qr_r,
+)
 from calib_core.steps import StepMeans
 
 
@@ -128,7 +135,8 @@ def affine_fit(g: UnitGrid, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     repetition) weighted by w (R, n, 6)."""
     wc = np.moveaxis(w, -1, 0)  # (6, R, n)
     Mc, _ = centre(g.M[..., [0, 1, 2, -1]], wc)
-    Mc[:, ~g.real] = 0.0
+    if not g.real.all():  # padding rows
+        Mc[:, ~g.real] = 0.0
     Rf = qr_r((wc[..., None] * Mc).reshape(6, -1, 4))
     try:
         K = np.linalg.solve(Rf[:, :3, :3], Rf[:, :3, 3:])[..., 0]  # (6, 3)
@@ -210,7 +218,7 @@ def joint_model(
     if geometry is None:  # the terms act through the affine fit's sensing geometry
         K = noise_fit[0]
         geometry = SensingGeometry.from_gains(K[:3], K[3:])
-        g = UnitGrid.build(sessions, names, geometry, layout=lay)
+        g = UnitGrid.build(sessions, names, geometry, layout=lay, outputs=(g.raw, g.std, g.count))
     # the noise measured elsewhere, or from the data: within-step scatter through K +
     # repetition scatter
     if measured is not None:
@@ -257,9 +265,16 @@ class JointModel:
             # is in no channel's columns already: the grid would be the same)
             dropped = frozenset(self.undetermined)
             self.g = UnitGrid.build(
-                self.sessions, self.names, geometry, dropped, self.layout, self.g.regressors
+                self.sessions,
+                self.names,
+                geometry,
+                dropped,
+                self.layout,
+                self.g.regressors,
+                (self.g.raw, self.g.std, self.g.count),
             )
             self._prepare()
+            self.term_svds, self._term_solutions = {}, {}  # of the factor before the rebuild
         self._complete()
         self._fits: dict[tuple, JointFit] = {}
         self._heldout: dict[tuple, np.ndarray] = {}
@@ -282,6 +297,15 @@ class JointModel:
                 checked.append((name, cols))
         # each term alone on the base model: the covariance of its parameters
         solutions = pinv_solutions([Rg[:, cols] for _, cols in checked])
+        # the SVD of a term's columns scaled to unit length, for identifiability's (the same
+        # matrix when every column is live): (its columns, s, Vt)
+        self.term_svds = {
+            name: (cols, sol.s, sol.Vt)
+            for (name, cols), sol in zip(checked, solutions)
+            if sol.live.all() and len(cols) <= P
+        }
+        # each term alone on the fold of all repetitions: the same design as its fit's
+        self._term_solutions = {tuple(cols.tolist()): sol for (_, cols), sol in zip(checked, solutions)}
         for (name, cols), sol in zip(checked, solutions):
             term, a, out = get_effect(name), g.offset[name][0], per_term[name]
             se = np.sqrt(np.diag(sol.cov))
@@ -305,7 +329,8 @@ class JointModel:
         g = self.g
         w = np.moveaxis(self.weight, -1, 0)  # (6, R, n)
         Mc, self.mu = centre(g.M, w)  # (6, R, n, k), (6, R, k)
-        Mc[:, ~g.real] = 0.0
+        if not g.real.all():  # padding rows
+            Mc[:, ~g.real] = 0.0
         self.Mc = Mc
         A_raw = w[..., None] * Mc
         A = prewhiten(A_raw, self.serial, g.real, g.t, self._linv)
@@ -410,7 +435,12 @@ class JointModel:
         solution = None
         if cols.size:
             R_S = Rg[:P, cols]
-            theta, rank, solution = lstsq_pinv(R_S, c_all)
+            known = self._term_solutions.get(tuple(cols.tolist())) if fold is None else None
+            if known is not None:  # a term alone: factorised by _undetermined
+                theta, rank = pinv_theta(known, c_all)
+                solution = known
+            else:
+                theta, rank, solution = lstsq_pinv(R_S, c_all)
             d = c_all - R_S @ theta
             ss = float(d @ d) + ss_perp
         else:

@@ -160,10 +160,13 @@ def analyse(
     terms: Mapping[str, np.ndarray],
     param_names: Mapping[str, tuple[str, ...]],
     tol: float = DEFAULT_TOL,
+    svds: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Identifiability:
     """Identifiability of each term's columns (``terms[name]``, (N, p)) against the base
     model's columns ``base`` (N, q) and against each other. Rows must already carry the noise
-    weights the fit would use (1/sigma), so that every row counts as the fit counts it."""
+    weights the fit would use (1/sigma), so that every row counts as the fit counts it.
+    ``svds``: (s, Vt) of ``np.linalg.svd`` of a term's columns each divided by its (nonzero)
+    norm, ``full_matrices=False``, N >= p, when the caller has it (not computed again)."""
     Qb = orthonormal_basis(np.asarray(base, float))
     names = tuple(terms)
     undetermined: list[Undetermined] = []
@@ -179,7 +182,11 @@ def analyse(
     # columns), then, within its range, the ratio ||P Z v|| / ||Z v|| (singular values of
     # P Z W with W mapping unit vectors of Z's range back to parameters); every right
     # singular vector of Z (p of them), the left ones only as many as needed
-    svd_z = svd_by_shape(Zn, full_matrices=lambda shape: shape[0] < shape[1])
+    known = {n: v for n, v in (svds or {}).items() if n in terms}
+    svd_z = svd_by_shape(
+        {n: z for n, z in Zn.items() if n not in known}, full_matrices=lambda shape: shape[0] < shape[1]
+    )
+    svd_z.update({n: (None, s, vt) for n, (s, vt) in known.items()})
     W: dict[str, np.ndarray] = {}
     X: dict[str, np.ndarray] = {}
     blind: dict[str, list] = {}

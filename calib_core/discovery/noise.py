@@ -68,10 +68,12 @@ def serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> SerialNoise:
     c1 = np.sum(z[:, 1:] * z[:, :-1], axis=(0, 1)) / cnt[1]
     c2 = np.sum(z[:, 2:] * z[:, :-2], axis=(0, 1)) / cnt[2]
     dt = np.diff(t, axis=1)[real[:, 1:] & real[:, :-1]]
-    step_s = float(np.median(dt)) if dt.size and np.median(dt) > 0 else 1.0
+    median_dt = float(np.median(dt)) if dt.size else 0.0
+    step_s = median_dt if median_dt > 0 else 1.0
     n = max(float(real.sum(axis=1).mean()), 2.0)
     lam, tau = np.zeros(6), np.ones(6)
     lag = np.arange(1, int(n))
+    lag_weight = 1.0 - lag / n
     var_mean = np.zeros(6)
     for _ in range(3):
         # removing each repetition's mean lowers every autocovariance by the variance of
@@ -88,7 +90,7 @@ def serial_noise(z: np.ndarray, real: np.ndarray, t: np.ndarray) -> SerialNoise:
             tau[tri] = -step_s / np.log(decay)
         phi = np.exp(-step_s / tau)
         total = c0 + var_mean
-        var_mean = total / n * (1.0 + 2.0 * lam * np.sum((1.0 - lag / n) * phi[:, None] ** lag, axis=1))
+        var_mean = total / n * (1.0 + 2.0 * lam * np.sum(lag_weight * phi[:, None] ** lag, axis=1))
     return SerialNoise(lam, tau)
 
 
@@ -105,16 +107,21 @@ def dof_inflation(dev: np.ndarray) -> float:
     for its own estimation noise: E v^2 = m^2 (R + 1) / (R - 1)) and the serial correlation
     left after whitening (lags 1.._INFLATION_LAGS, 1 + 2 sum rho_k^2) both make the sums
     spread more than the F distribution of the nominal dof assumes."""
-    R, n = dev.shape
-    v = np.sum(dev**2, axis=0) / (R - 1)
-    if not np.any(v > 0):
-        return 1.0
-    hetero = n * np.sum(v**2) * (R - 1) / (R + 1) / np.sum(v) ** 2
-    c0 = np.sum(dev**2)
-    rho2 = sum(
-        (np.sum(dev[:, k:] * dev[:, :-k]) / c0) ** 2 for k in range(1, min(_INFLATION_LAGS, n - 1) + 1)
-    )
-    return float(max(hetero, 1.0) * (1.0 + 2.0 * rho2))
+    return float(dof_inflations(dev[None])[0])
+
+
+def dof_inflations(dev: np.ndarray) -> np.ndarray:
+    """:func:`dof_inflation` of each of a stack of deviations ``dev`` (C, R, n), (C,)."""
+    _, R, n = dev.shape
+    sq = dev**2
+    v = np.sum(sq, axis=1) / (R - 1)  # (C, n)
+    c0 = np.sum(sq, axis=(1, 2))
+    rho2 = np.zeros(len(dev))
+    with np.errstate(divide="ignore", invalid="ignore"):  # a silent block: 1 below
+        for k in range(1, min(_INFLATION_LAGS, n - 1) + 1):
+            rho2 = rho2 + (np.sum(dev[:, :, k:] * dev[:, :, :-k], axis=(1, 2)) / c0) ** 2
+        hetero = n * np.sum(v**2, axis=1) * (R - 1) / (R + 1) / np.sum(v, axis=1) ** 2
+    return np.where(np.any(v > 0, axis=1), np.maximum(hetero, 1.0) * (1.0 + 2.0 * rho2), 1.0)
 
 
 def variance_dof_cost(dof: float, white_share: float) -> float:
@@ -157,11 +164,19 @@ def sphericity_epsilon(blocks: list[np.ndarray]) -> float:
     p = sum(b.shape[1] for b in blocks)
     if n < 2 or p < 2:
         return 1.0
+    # each block's tr(S^) and |S^|^2, the blocks of one shape in one batched product
+    by_shape: dict[tuple[int, ...], list[int]] = {}
+    for i, d in enumerate(blocks):
+        by_shape.setdefault(d.shape, []).append(i)
+    traces, squares = np.zeros(len(blocks)), np.zeros(len(blocks))
+    for at in by_shape.values():
+        D = np.stack([blocks[i] for i in at])
+        S = D.swapaxes(-1, -2) @ D / n
+        traces[at] = np.trace(S, axis1=-2, axis2=-1)
+        squares[at] = np.sum(S * S, axis=(-2, -1))
     t1, t2, t1sq = [], 0.0, 0.0
-    for d in blocks:
-        S = d.T @ d / n
-        tr = float(np.trace(S))
-        a, b = float(np.sum(S * S)), tr**2
+    for tr, a in zip(traces.tolist(), squares.tolist()):
+        b = tr**2
         t2_c = n * (n * a - b) / ((n - 1) * (n + 2))
         t1.append(tr)
         t2 += t2_c

@@ -80,18 +80,16 @@ class Policy:
         if "_ident" not in self.__dict__:
             P = self.model.g.P
             Rg = self.model.Rg0[:P, :P]
-            terms, pnames = {}, {}
-            for n in self.model.names:
-                a, b = self.model.g.offset[n]
-                keep = [
-                    k
-                    for k in range(a, b)
-                    if k not in self.model.undetermined and self.model.g.live_mask[:, k].any()
-                ]
+            terms, pnames, svds = {}, {}, {}
+            for n, keep in self._determined_columns().items():
+                a = self.model.g.offset[n][0]
                 if keep:
                     terms[n] = Rg[:, keep]
                     pnames[n] = tuple(get_effect(n).param_names[k - a] for k in keep)
-            self.__dict__["_ident"] = analyse(np.zeros((P, 0)), terms, pnames, CONFOUNDING_TOL)
+                    known = self.model.term_svds.get(n)
+                    if known is not None and np.array_equal(known[0], keep):  # the same columns
+                        svds[n] = known[1:]
+            self.__dict__["_ident"] = analyse(np.zeros((P, 0)), terms, pnames, CONFOUNDING_TOL, svds)
         return self.__dict__["_ident"]
 
     @property
@@ -104,17 +102,21 @@ class Policy:
             Rg = self.model.Rg0[:P, :P]
             grouped = {n for grp in self.identifiability.groups() if len(grp) > 1 for n in grp}
             terms = {}
-            for n in self.model.names:
-                a, b = self.model.g.offset[n]
-                keep = [
-                    k
-                    for k in range(a, b)
-                    if k not in self.model.undetermined and self.model.g.live_mask[:, k].any()
-                ]
+            for n, keep in self._determined_columns().items():
                 if keep and n not in grouped:
                     terms[n] = Rg[:, keep]
             self.__dict__["_near"] = near_confounded(terms, CONFOUNDING_TOL)
         return self.__dict__["_near"]
+
+    def _determined_columns(self) -> dict[str, list[int]]:
+        """Each term's columns (global) that some channel has and the steps determine."""
+        live = self.model.g.live_mask.any(axis=0)
+        live[list(self.model.undetermined)] = False
+        out = {}
+        for n in self.model.names:
+            a, b = self.model.g.offset[n]
+            out[n] = (a + np.flatnonzero(live[a:b])).tolist()
+        return out
 
     def _settle_near_confounded(self, items: list[tuple[str, ...]]) -> list[tuple[str, ...]]:
         """A chosen term A with a near-confounded partner B (:attr:`near_confounded`) that

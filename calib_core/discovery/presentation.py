@@ -251,6 +251,8 @@ def evidence_frame(model, diag, chosen: list[str], items: dict) -> pd.DataFrame:
     the affine model), ``fitted`` (the finding's fitted effect, drawn over ``before``),
     ``after`` (residual of the chosen model); gyro channels in deg/s, accelerometer
     channels in mg."""
+    if not items["chosen"] and not diag.unexplained:
+        return pd.DataFrame()  # no finding and nothing unexplained: no series
     real, steps, contexts = model.real, model.steps, model.contexts
     r_before = model.residual(())
     r_after = model.residual(tuple(chosen))

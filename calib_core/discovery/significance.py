@@ -27,7 +27,7 @@ from scipy import stats
 
 from calib_core.discovery.fit import JointModel
 from calib_core.discovery.identifiability import orthonormal_bases_by_shape, orthonormal_basis
-from calib_core.discovery.noise import dof_inflation, sphericity_epsilon
+from calib_core.discovery.noise import dof_inflations, sphericity_epsilon
 from calib_core.discovery.results import FTest, f_test
 from calib_core.effects import CHANNELS
 from calib_core.linalg import lstsq_min_norm
@@ -162,22 +162,26 @@ class Significance:
         f = self.model.fit(names)
         hits = g.hits(tuple(sorted(names)))
         out = np.zeros((6, 5))
+        devs = np.zeros((6, R, g.n))
         for c in range(6):
-            A, wb = self.model.bias_removed(c)  # (R, n, k), (R, n)
-            resid = A @ f.v[c]  # (R, n)
             local = 3 + hits[c]
             if local.size:
+                A, wb = self.model.bias_removed(c)  # (R, n, k), (R, n)
+                resid = A @ f.v[c]  # (R, n)
                 X = np.concatenate([A[..., :3], A[..., local], wb[..., None]], axis=-1).mean(axis=0)
                 Ub = orthonormal_basis(X)
-            else:  # the affine model's columns alone
-                Ub = self._affine_channel(c).Ub
-            rbar = resid.mean(axis=0)
-            e = rbar - Ub @ (Ub.T @ rbar)
-            dev = resid - rbar
+                rbar = resid.mean(axis=0)
+                e = rbar - Ub @ (Ub.T @ rbar)
+                dev = resid - rbar
+            else:  # the affine model's columns alone, and its fit: the channel has no term column
+                aff = self._affine_channel(c)
+                Ub, e, dev = aff.Ub, aff.rbar_free, aff.dev
             dev = dev - (dev @ Ub) @ Ub.T
+            devs[c] = dev
             dof = Ub.shape[0] - Ub.shape[1]
             dof_pure = (R - 1) * dof - self.model.noise.params[c]
-            out[c] = (R * float(e @ e), dof, float(np.sum(dev**2)), dof_pure, dof_inflation(dev))
+            out[c, :4] = (R * float(e @ e), dof, float(np.sum(dev**2)), dof_pure)
+        out[:, 4] = dof_inflations(devs)
         self._tests[key] = out
         return out
 
@@ -227,7 +231,8 @@ class Significance:
             return self._tests[key]
         g, R = self.model.g, self.model.g.R
         cols = g.cols(tuple(sorted(names)))
-        index = {int(k): j for j, k in enumerate(cols)}
+        index = np.zeros(g.P + 2, np.intp)  # each of the terms' global columns: its place in cols
+        index[cols] = np.arange(len(cols))
         hits = g.hits(tuple(sorted(names)))
         chans = [c for c in range(6) if hits[c].size]
         affs = {c: self._affine_channel(c) for c in chans}
@@ -248,17 +253,17 @@ class Significance:
                 Uts[c] = U[j][
                     :, s[j] > float(size[j]) * 1e-8
                 ]  # what the affine model spans is not the terms'
-        blocks, means, devs, joint = [], [], [], []
-        for c in chans:
+        blocks, means, devs = [], [], []
+        n = g.n
+        joint = np.zeros((len(chans) * n, len(cols)))  # the channels' term columns stacked
+        for i, c in enumerate(chans):
             Xt, Ut, dev = Xts[c], Uts[c], affs[c].dev
             if Ut.shape[1]:
                 blocks.append(dev @ Ut)
-            J = np.zeros((Xt.shape[0], len(cols)))
-            J[:, [index[int(k)] for k in g.colmap[c][hits[c]]]] = Xt
-            joint.append(J)
+            joint[i * n : (i + 1) * n, index[g.colmap[c][hits[c]]]] = Xt
             means.append(affs[c].rbar_free)
             devs.append(dev)  # along the joint directions, which the affine model's miss
-        Uj = orthonormal_basis(np.concatenate(joint)) if joint else np.zeros((0, 0))
+        Uj = orthonormal_basis(joint) if chans else np.zeros((0, 0))
         mean = np.concatenate(means) if means else np.zeros(0)
         out = TargetedParts(
             blocks,
@@ -296,14 +301,17 @@ class Significance:
         """(6, k - 4) which term columns of each channel differ between the repetitions by
         ``REP_VARYING_MIN`` of their size (kept). Whether a column differs is a question
         about the physical column, not about the weights (each repetition's own step
-        sigmas)."""
+        sigmas). The squared spread about the repetitions' mean is the squared size less R
+        times the mean's square (no deviations formed): its rounding, ~eps of the squared
+        size, is far below the threshold's share of it."""
         key = ("varying columns",)
         out = self._tests.get(key)
         if out is None:
             M = self.model.Mc[..., 3:-1]
-            size = np.sqrt(np.sum(M**2, axis=(1, 2)))
-            spread = np.sqrt(np.sum((M - M.mean(axis=1, keepdims=True)) ** 2, axis=(1, 2)))
-            out = self._tests[key] = spread > REP_VARYING_MIN * np.maximum(size, 1e-300)
+            size2 = np.einsum("crnk,crnk->ck", M, M)
+            total = M.sum(axis=1)  # (6, n, k - 4) the repetitions' sum
+            spread2 = size2 - np.einsum("cnk,cnk->ck", total, total) / M.shape[1]
+            out = self._tests[key] = spread2 > REP_VARYING_MIN**2 * size2
         return out
 
     def _between_channel(self, c: int) -> tuple[np.ndarray, np.ndarray]:
@@ -344,7 +352,7 @@ class Significance:
         g, R = self.model.g, self.model.g.R
         hits = g.hits(tuple(sorted(names)))
         varying_columns = self._varying_columns()
-        if not any(varying_columns[c][hits[c]].any() for c in range(6)):
+        if not varying_columns.any() or not any(varying_columns[c][hits[c]].any() for c in range(6)):
             return None  # no column of the terms differs between the repetitions
         ss_num = ss_den = 0.0
         dof_num = dof_den = 0
