@@ -395,6 +395,9 @@ def do_stages(a) -> dict:
     from schemas.reader import read_session
 
     keep_freed_memory()  # as the nightly's calibrate_batch
+    # as the nightly's workers are forked: warmed on a simulated unit, then gc.freeze()
+    import flows.worker_warmup  # noqa: F401
+
     units, _ = _units(a.dataset)
     units = units[: a.units]
     t = {
