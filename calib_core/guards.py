@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib_core.linalg import solve_normal_stack
 from calib_core.steps import StepMeans
 
 # K diagonal for an output already in deg/s or g: a MEMS scale error beyond +/-25 % is a
@@ -168,6 +169,8 @@ class StepDisagreement:
 _LAYOUT_FIELDS = ("step", "test", "up_axis", "rate_dps", "w_ref", "f_ref")
 _BISQUARE_C = 4.685
 _IRLS_ITERATIONS = 8
+# a robust scale below this fraction of a problem's largest |value| is rounding
+_COLLAPSED_SCALE = 1e-8
 
 
 # the shared scale temperature coefficient is estimated from the (step, repetition) pairs
@@ -275,27 +278,54 @@ def _nanmedian_first_axis(a: np.ndarray) -> np.ndarray:
 def _robust_affine_residuals(d: np.ndarray, X: np.ndarray) -> np.ndarray:
     """Residuals of the problems ``d`` (P, S) (NaN: no value) on ``X`` (P, S, p), each by
     iteratively reweighted least squares with Tukey's bisquare (c = 4.685) starting from the
-    median, all problems at once (normal equations, pseudo-inverse): a few damaged steps do
-    not move the fit."""
+    median, all problems at once (normal equations, :func:`calib_core.linalg.solve_normal_stack`):
+    a few damaged steps do not move the fit.
+
+    A problem whose robust scale falls to rounding (an exact fit of more than half its
+    steps: of the zeros of a repetition that is the median on most steps, quantised data)
+    has weights set by the rounding of its residuals, which no two ways of solving share:
+    such problems are solved with the normal matrices' pseudo-inverse throughout, whose
+    rounding the check's figures are kept on. They are foreseen (half or more of the values
+    0) and, should another one's scale fall, it is solved again that way."""
     out = np.full(d.shape, np.nan)
     enough = np.isfinite(d).sum(axis=1) >= X.shape[2] + 2  # else no residual (NaN)
     if not enough.any():
         return out
     d, X = d[enough], X[enough]
+    zeros = np.count_nonzero(d == 0, axis=1)
+    foreseen = 2 * zeros >= np.count_nonzero(np.isfinite(d), axis=1)
+    e, collapsed = _irls_residuals(d, X, foreseen)
+    again = collapsed & ~foreseen
+    if again.any():
+        e[again] = _irls_residuals(d[again], X[again], True)[0]
+    out[enough] = e
+    return out
+
+
+def _irls_residuals(
+    d: np.ndarray, X: np.ndarray, pseudo_inverse: bool | np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_robust_affine_residuals`' iterations on problems with enough values, the
+    ``pseudo_inverse`` ones (a mask, or all) by the pseudo-inverse; also which problems'
+    scale of fitted residuals fell below ``_COLLAPSED_SCALE`` times their largest |value|."""
     valid = np.isfinite(d)
     d0 = np.where(valid, d, 0.0)
     X = np.where(valid[..., None], X, 0.0)
+    floor = _COLLAPSED_SCALE * np.abs(d0).max(axis=1)
+    collapsed = np.zeros(len(d), bool)
     e = d - _nanmedian_rows(d)
-    for _ in range(_IRLS_ITERATIONS):
+    for i in range(_IRLS_ITERATIONS):
         centre = _nanmedian_rows(e)
         s = _MAD_TO_SD * _nanmedian_rows(np.abs(e - centre))
+        if i:  # the first scale is of the values themselves
+            collapsed |= s[:, 0] < floor
         u = np.where(valid, e, 0.0) / (_BISQUARE_C * np.where(s > 0, s, np.inf))
         w = np.where(valid & (np.abs(u) < 1), (1 - u * u) ** 2, 0.0)
         Xw = X * w[..., None]
-        beta = np.linalg.pinv(Xw.transpose(0, 2, 1) @ X) @ (Xw.transpose(0, 2, 1) @ d0[..., None])
+        XwT = Xw.transpose(0, 2, 1)
+        beta = solve_normal_stack(XwT @ X, XwT @ d0[..., None], pseudo_inverse)
         e = np.where(valid, d0 - (X @ beta)[..., 0], np.nan)
-    out[enough] = e
-    return out
+    return e, collapsed
 
 
 def _pooled_scales(absdev: np.ndarray, labels: np.ndarray) -> np.ndarray:

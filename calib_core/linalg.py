@@ -312,3 +312,42 @@ def qr_r(X: np.ndarray) -> np.ndarray:
         pad = np.zeros(Rf.shape[:-2] + (k - Rf.shape[-2], k))
         Rf = np.concatenate([Rf, pad], axis=-2)
     return Rf
+
+
+# -- normal equations of small, well-posed weighted fits (the step consistency check) ----------
+# Below this determinant of the diagonally equilibrated normal matrix (unit diagonal, so
+# its determinant is at most 1) a problem is solved by the pseudo-inverse instead: the
+# smallest eigenvalue is at least det / p**(p - 1) and the largest at most p, so the LU
+# solve only meets matrices of condition below p**p / det (~5e6 for p = 6), whose rounding
+# (~condition x 1e-16) stays below the 1e-8 relative the consistency check's residuals are
+# held to.
+NORMAL_MIN_DET = 1e-2
+
+
+def solve_normal_stack(A: np.ndarray, b: np.ndarray, pseudo_inverse: bool | np.ndarray = False) -> np.ndarray:
+    """x of ``A x = b`` for a stack of normal matrices A (..., p, p) (symmetric, positive
+    semi-definite: X^T W X) and right-hand sides b (..., p, k) with the same leading axes:
+    ``np.linalg.pinv(A) @ b`` (the minimum-norm solution) to rounding, without an SVD of
+    each matrix. Each A is scaled to a unit diagonal and solved by LU; a zero column of X (a
+    zero row and column of A) gets a zero coefficient, as from the pseudo-inverse; a problem
+    whose scaled matrix is near singular (determinant below ``NORMAL_MIN_DET``) takes the
+    pseudo-inverse. ``pseudo_inverse`` (True, or a mask of the leading axes): the problems
+    solved by ``np.linalg.pinv(A) @ b`` itself (its rounding, problem by problem)."""
+    if pseudo_inverse is True:
+        return np.linalg.pinv(A) @ b
+    diag = np.diagonal(A, axis1=-2, axis2=-1)
+    zero = diag <= 0
+    scale = 1.0 / np.sqrt(np.where(zero, 1.0, diag))
+    As = A * scale[..., :, None] * scale[..., None, :]
+    if zero.any():
+        As = As + zero[..., None] * np.eye(A.shape[-1])  # zero row and column: 1 on the diagonal
+    bs = b * scale[..., :, None]
+    hard = ~(np.linalg.det(As) >= NORMAL_MIN_DET) | pseudo_inverse  # NaN included
+    x = np.empty(b.shape)
+    easy = ~hard
+    if easy.all():
+        x[...] = np.linalg.solve(As, bs) * scale[..., :, None]
+    else:
+        x[easy] = np.linalg.solve(As[easy], bs[easy]) * scale[easy][..., :, None]
+        x[hard] = np.linalg.pinv(A[hard]) @ b[hard]
+    return x
