@@ -3,7 +3,9 @@
 - identifiability passes over a term only when its span is certainly apart from the others'
   (:func:`calib_core.discovery.identifiability._surely_apart`): never a term whose sine of
   the smallest principal angle, computed the plain way (a basis of the others, one SVD), is
-  below the tolerance, and the sine it uses is that one;
+  below the tolerance, and the sine it uses is that one; a term in the design's one exact
+  dependency is confounded with the terms the plain examination names, at a sine of
+  rounding noise either way;
 - :func:`calib_core.linalg.pinv_solutions` (SVDs batched by shape) gives the covariance parts
   of :func:`calib_core.linalg.lstsq_pinv`, bit for bit;
 - the held-out fits without terms take each fold's factor of the affine columns alone: the
@@ -56,7 +58,7 @@ def test_a_term_passed_over_is_never_confounded_and_its_sine_is_the_plain_one():
     passed = examined = 0
     for _ in range(30):
         spans = _spans(rng)
-        apart = ident._surely_apart(spans, TOL)
+        apart, _ = ident._surely_apart(spans, TOL)
         for name in spans:
             sine = _plain_sine(spans, name)
             if name in apart:
@@ -76,10 +78,29 @@ def test_analyse_finds_the_same_groups_with_and_without_the_shortcut(monkeypatch
         terms = {n: q * rng.uniform(0.5, 2.0, size=q.shape[1]) for n, q in spans.items()}
         pnames = {n: tuple(f"p{k}" for k in range(q.shape[1])) for n, q in terms.items()}
         fast = ident.analyse(np.zeros((40, 0)), terms, pnames)
-        monkeypatch.setattr(ident, "_surely_apart", lambda spans, tol: set())
+        monkeypatch.setattr(ident, "_surely_apart", lambda spans, tol: (set(), {}))
         full = ident.analyse(np.zeros((40, 0)), terms, pnames)
         monkeypatch.undo()
-        assert fast == full
+        assert (fast.undetermined, fast.rank) == (full.undetermined, full.rank)
+        assert [c.terms for c in fast.confounded] == [c.terms for c in full.confounded]
+        assert ("exact_a", "exact_b") in [c.terms for c in fast.confounded]
+        for a, b in zip(fast.confounded, full.confounded):
+            # the exactly collinear pair's sine is rounding noise by either route
+            assert a.sin_angle == b.sin_angle or max(a.sin_angle, b.sin_angle) < 1e-7
+
+
+def test_the_one_exact_dependency_names_the_terms_the_plain_examination_names():
+    rng = np.random.default_rng(5)
+    found = 0
+    for _ in range(20):
+        spans = _spans(rng)
+        _, shared = ident._surely_apart(spans, TOL)
+        assert set(shared) <= {"exact_a", "exact_b"}
+        for name, (involved, sine) in shared.items():
+            found += 1
+            assert involved == ("exact_a", "exact_b")
+            assert sine < 1e-12 and _plain_sine(spans, name) < 1e-7
+    assert found
 
 
 def test_batched_pinv_solutions_are_lstsq_pinvs():

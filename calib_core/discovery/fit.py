@@ -309,7 +309,8 @@ class JointModel:
         for (name, cols), sol in zip(checked, solutions):
             term, a, out = get_effect(name), g.offset[name][0], per_term[name]
             se = np.sqrt(np.diag(sol.cov))
-            for k, v in zip(cols, se):
+            flagged = ~(se <= term.max_useful_stderr)  # NaN (not separable) or too large
+            for k, v in zip(cols[flagged].tolist(), se[flagged].tolist()):
                 if not np.isfinite(v):
                     out[int(k)] = (
                         "not separable from the base model and the term's other parameters on these steps"

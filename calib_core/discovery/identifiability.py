@@ -198,13 +198,17 @@ def analyse(
         X[name] = (Zn[name] - Qb @ (Qb.T @ Zn[name]) if Qb.shape[1] else Zn[name]) @ W[name]
         blind[name] = [(v, 0.0) for v in vzt[~inrange]]
     svd_x = svd_by_shape({n: x for n, x in X.items() if x.shape[1]})
-    determined: dict[str, np.ndarray] = {}
+    # each term's determined directions in the data space: the left singular vectors of X
+    # whose ratio passes tol (an orthonormal basis of X's columns along its determined
+    # directions; those ratios are at most 1, so no rank cut drops any of them)
     for name in names:
+        spans[name] = np.zeros((len(Zn[name]), 0))
         if name in svd_x:
-            _, sig, at = svd_x[name]
+            ux, sig, at = svd_x[name]
             w = W[name]
             weak = [(w @ a / np.linalg.norm(w @ a), float(r)) for a, r in zip(at, sig) if r < tol]
-            determined[name] = at[sig >= tol]
+            if (sig >= tol).any():
+                spans[name] = ux[:, sig >= tol]
         else:
             weak = []
         for v, left in blind[name] + weak:
@@ -215,16 +219,20 @@ def analyse(
                     name, tuple(param_names[name][i] for i in big), tuple(float(v[i]) for i in big), left
                 )
             )
-    bases = orthonormal_bases_by_shape({n: X[n] @ d.T for n, d in determined.items() if len(d)})
     for name in names:
-        spans[name] = bases.get(name, np.zeros((len(Zn[name]), 0)))
         rank[name] = spans[name].shape[1]
     confounded: list[Confounded] = []
     seen: set[tuple[str, ...]] = set()
-    apart = _surely_apart(spans, tol)
+    apart, shared = _surely_apart(spans, tol)
     for name in names:
         Q = spans[name]
         others = [o for o in names if o != name and spans[o].shape[1]]
+        if name in shared:  # in the design's one exact dependency: no SVD of the others
+            involved, sin = shared[name]
+            if len(involved) > 1 and involved not in seen:
+                seen.add(involved)
+                confounded.append(Confounded(involved, sin))
+            continue
         if not Q.shape[1] or not others or name in apart:
             continue
         H = np.hstack([spans[o] for o in others])
@@ -269,7 +277,9 @@ _REGULAR_RTOL = 1e-4
 _APART_MARGIN = 1.1
 
 
-def _surely_apart(spans: Mapping[str, np.ndarray], tol: float) -> set[str]:
+def _surely_apart(
+    spans: Mapping[str, np.ndarray], tol: float
+) -> tuple[set[str], dict[str, tuple[tuple[str, ...], float]]]:
     """Terms whose span is certainly not confounded with the others' (sine of the smallest
     principal angle at least ``_APART_MARGIN`` x ``tol``), from one SVD of every span
     stacked: with S = [Q_1 .. Q_m] (orthonormal blocks) and G = S^T S, the block of G^-1 of
@@ -278,29 +288,49 @@ def _surely_apart(spans: Mapping[str, np.ndarray], tol: float) -> set[str]:
     unit weight in G: P_others is the same, the dependency adding no direction. A term
     that takes part in such a dependency, or a design with singular values between the
     exact and the well-determined ones, is left to :func:`analyse`, which examines every
-    term not returned as before."""
+    term not returned as before.
+
+    Second, when the design has exactly one such dependency, S w = 0 (w unit, parts w_i):
+    for each term i with a part in it, what :func:`analyse`'s examination finds, the terms
+    confounded with it and the sine. The shared direction is y = Q_i w_i / |w_i| =
+    -sum_o Q_o w_o / |w_i|; the others' columns have no dependency left, so y written in
+    their columns is that sum, and term o carries |w_o| / |w_i| of it. Its sine is below
+    |S w| / |w_i| (the dependency's singular value over the part: rounding noise, as is
+    the sine :func:`analyse` computes from a cosine of 1 to rounding); every other
+    direction of the design is well determined, so the shared direction is the only one
+    with a sine that small."""
     blocks = [(n, q) for n, q in spans.items() if q.shape[1]]
     if len(blocks) < 2:
-        return set()
+        return set(), {}
     S = np.hstack([q for _, q in blocks])
     _, s, Wt = np.linalg.svd(S, full_matrices=True)
     s = np.concatenate([s, np.zeros(S.shape[1] - len(s))])
     null = s <= _NULL_RTOL * s[0]
     if not (s[0] > 0 and np.all(null | (s > _REGULAR_RTOL * s[0]))):
-        return set()
+        return set(), {}
     Ginv = (Wt.T * np.where(null, 1.0, 1.0 / np.where(null, 1.0, s) ** 2)) @ Wt
     Wn = Wt[null]
-    out, at = set(), 0
+    out, parts, at = set(), {}, 0
+    in_dependency = []
     for name, q in blocks:
         k = q.shape[1]
         part = slice(at, at + k)
+        parts[name] = part
         at += k
         if Wn.size and np.abs(Wn[:, part]).max() > 1e-6:
+            in_dependency.append(name)
             continue  # in an exact dependency: confounded
         top = float(np.linalg.eigvalsh(Ginv[part, part])[-1])
         if top > 0 and 1.0 / np.sqrt(top) >= _APART_MARGIN * tol:
             out.add(name)
-    return out
+    shared = {}
+    if len(Wn) == 1:
+        w = Wn[0]
+        size = {name: float(np.linalg.norm(w[part])) for name, part in parts.items()}
+        for name in in_dependency:
+            carried = {o for o in parts if o != name and size[o] > 0.1 * size[name]}
+            shared[name] = (tuple(sorted({name, *carried})), float(s[null][0]) / size[name])
+    return out, shared
 
 
 def near_confounded(
