@@ -312,6 +312,13 @@ def do_fit(a) -> dict:
     # what the nightly's worker processes are forked with (flows.compute_pool's forkserver)
     for name in PRELOAD[1:]:
         importlib.import_module(name)
+    if a.workers > 1:
+        # the nightly's worker processes fork from its forkserver, which imports and warms
+        # while Prefect starts (flows.task_runners.prestart_unit_work_pool): ready before the
+        # fit phase, so started and waited for here, outside it
+        from flows.compute_pool import wait_for_forkserver
+
+        wait_for_forkserver()
     units, _ = _units(a.dataset)
     # --no-floor: the floor's scan (pyarrow's threaded read-ahead and memory pool) raises this
     # process's peak RSS with the fleet size; the fit phase's own peak needs a run without it
@@ -333,14 +340,15 @@ def do_fit(a) -> dict:
             ok, failed, c = ok + b_ok, failed + b_failed, c + b_c
         worker_cpu.append(c)
     else:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
         from functools import partial
 
+        from flows.compute_pool import compute_pool
         from schemas.unit_plan import make_batches
 
         batches = make_batches(units, a.batch)  # as the nightly cuts them
-        with ProcessPoolExecutor(a.workers, mp_context=mp.get_context("fork")) as pool:
+        # the nightly's pool: workers forked from the forkserver (numerics imported, warmed,
+        # objects frozen), one BLAS thread each, no Arrow decoding threads
+        with compute_pool(a.workers) as pool:
             for r, o, f, c in pool.map(partial(_fit_units, run_discovery=a.discovery), batches):
                 frames.append(r)
                 ok += o

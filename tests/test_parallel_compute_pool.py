@@ -237,3 +237,13 @@ def test_workers_are_forked_with_the_unit_pipeline_already_run_once():
         assert pid != os.getpid()
         assert error is None
         assert took is not None and took > 0
+
+
+def test_waiting_for_the_forkserver_leaves_it_ready_for_the_pool():
+    from multiprocessing import forkserver
+
+    cp.wait_for_forkserver()  # returns once a child could be forked from it (imports done)
+    server = forkserver._forkserver._forkserver_pid  # the stdlib keeps it private
+    assert server is not None and server != os.getpid()
+    with cp.compute_pool(2):
+        assert cp.run_in_pool(os.getppid) == server
