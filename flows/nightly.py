@@ -6,10 +6,11 @@ configuration :mod:`schemas.limits` and :mod:`reports`. A night: plan the units 
 sessions changed, calibrate them in batches and store each lot as it completes, re-flag the
 lots touched, write their reports, log the run (:func:`nightly_flow`).
 
-Granularity: one Prefect task per *batch of units* (at most ``batch_size``, default 8): a task
-costs ~4 ms with the thread pool and ~60-85 ms with a process pool or Dask (docs/flows.md),
-a session ~0.1-0.3 s. Tasks receive session paths, never arrays, and return fitted results
-in memory (``persist_result=False``, no cache policy): Prefect writes no sample data.
+Granularity: one Prefect task per *batch of units* (at most ``batch_size``, default 8): a
+task's own cost, small with the thread pool and larger with a process pool or Dask
+(docs/flows.md), is shared by the batch's units. Tasks receive session paths, never arrays,
+and return fitted results in memory (``persist_result=False``, no cache policy): Prefect
+writes no sample data.
 
 The public functions ``nightly_fleet_calibration``, ``lot_quality_report`` and
 ``rerun_unit`` pick the task runner (thread pool of 2, or Dask at ``dask_address``), switch the

@@ -8,7 +8,7 @@ at an address always wins):
 
 - ``auto`` (default): ``processes`` when the run has at least :data:`AUTO_PROCESSES_MIN_UNITS`
   units to calibrate, else ``threads`` (the pool's start-up does not pay on a few units).
-- ``threads``: a thread pool of :data:`LOCAL_WORKERS`. Cheapest per task (~4 ms), no
+- ``threads``: a thread pool of :data:`LOCAL_WORKERS`. Cheapest per task, no
   start-up, but the unit work is Python and holds the GIL: the fit phase uses one core.
 - ``processes``: the same thread pool of Prefect tasks, each handing its batch to a pool of
   :data:`LOCAL_WORKERS` worker processes forked from a forkserver that imported the numerics

@@ -1,9 +1,10 @@
-"""The unit pipeline run once on a tiny simulated unit, in a process that workers are forked
+"""The unit pipeline run once on a simulated unit, in a process that workers are forked
 from, so that every worker starts warm.
 
-A process's first unit costs about twice a later one: Parquet's reader, threadpoolctl's
+A process's first unit costs more than a later one: Parquet's reader, threadpoolctl's
 library scan, the models imported on first use and NumPy's first calls are paid once per
-process. A worker forked after this has them already. Importing the module does the
+process. A worker forked after this has them already (it still pays the first writes to the
+pages it shares with its parent). Importing the module does the
 warm-up (:func:`warm_unit_pipeline`), because a ``multiprocessing`` forkserver can only be
 given modules to import (:data:`flows.compute_pool.PRELOAD` names it last); importing it
 again does nothing. It then moves every object alive to the collector's permanent generation
@@ -61,5 +62,5 @@ def warm_unit_pipeline() -> float:
 warm_unit_pipeline()
 # What is alive now (the imported modules, their tables, the warm-up's caches) lives as long
 # as the process: the permanent generation keeps the collector's full passes from walking it
-# again and again (~1.4 ms a unit otherwise), and a forked worker from writing to those pages
+# again and again, and a forked worker from writing to those pages
 gc.freeze()

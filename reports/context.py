@@ -196,7 +196,7 @@ class LotContext:
         if src is None:
             return
         # one pass over the columns as lists, positions per (model, parameter) from a single
-        # group-by (pandas operations per group cost ~1 ms each, ~60 groups a lot)
+        # group-by (pandas operations per group add up over a lot's groups)
         uoms = py_values(src["unit_of_measure"]) if "unit_of_measure" in src else None
         # decimals from the lot's typical repetition spread, else its scatter across units
         # (the summary's lot columns, written by the re-flag)
@@ -347,8 +347,8 @@ class LotContext:
     @cached_property
     def _flag_index(self) -> tuple[dict[str, dict[str, set[str]]], dict[str, int]]:
         """(unit -> model -> names of its flagged parameters, unit -> flagged rows), from the
-        flagged summary rows once (reading them back per unit and per table costs ~1 ms a
-        time in pandas)."""
+        flagged summary rows once (reading them back per unit and per table in pandas adds
+        up over a lot)."""
         by_unit: dict[str, dict[str, set[str]]] = {}
         rows: dict[str, int] = {}
         f = self.flags
@@ -389,7 +389,7 @@ class LotContext:
     @cached_property
     def compensation_lookup(self) -> dict[str, dict] | None:
         """Table 3 of every unit read out of the compensation envelope once (pandas row
-        access per unit costs ~4 ms a unit): ``lookup`` unit -> {(input, method, output):
+        access per unit would cost more than the unit's page): ``lookup`` unit -> {(input, method, output):
         (lo, hi)}, ``n_reps``, ``uom`` and ``src`` (its sources joined) by unit; None without a
         compensation table."""
         c = self.compensation
@@ -444,7 +444,7 @@ class LotContext:
 class ResidualIndex:
     """The aggregated residuals of a lot as numpy columns plus each unit's row positions,
     built once per report: per-unit figures then cost a few array takes instead of pandas
-    filters, sorts and group-bys per unit (~35 ms a unit)."""
+    filters, sorts and group-bys per unit."""
 
     def __init__(self, a: pd.DataFrame) -> None:
         self.rows = {str(u): pos for u, pos in a.groupby("unit", sort=False).indices.items()}

@@ -120,7 +120,7 @@ def calibration_from_dict(doc: dict[str, Any], source: str = "<dict>") -> Calibr
 # no object on one line (a 3x3 matrix is one line ``[[...], [...], [...]]``), lists of objects
 # one element per line. ``json.dump(indent=2)`` gives the same documents (equal after
 # ``json.load``) but goes through json's pure-Python encoder (any ``indent`` disables the C
-# one): ~10 ms per calibration file of ~31 KB, a fifth of storing a unit. Here only the
+# one), a large share of storing a unit (docs/benchmarks.md). Here only the
 # objects are walked in Python; every one-line value is one call of an encoder without
 # ``indent``, which json runs in C.
 _INDENT = "  "
@@ -375,8 +375,8 @@ def set_qa_status(path: Path, qa: dict[str, Any]) -> bool:
         raise CalibrationFileError(f"{path}: no such calibration file") from None
     if '"qa"' not in text and text.endswith("\n}\n") and _FORMAT_LINE in text[:200]:
         # a file never judged (every file a fleet run writes, once): the block is appended
-        # as the last key, without parsing and re-encoding the ~30 kB document (3 ms a unit
-        # at the first re-flag of a fleet); the same document as the rewrite below
+        # as the last key, without parsing and re-encoding the whole document (the first
+        # re-flag of a fleet judges every file); the same document as the rewrite below
         out: list[str] = []
         _layout(qa, 1, out, True, None)
         _write_text_atomic(path, text[:-3] + ',\n  "qa": ' + "".join(out) + "\n}\n")

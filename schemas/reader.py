@@ -203,8 +203,8 @@ def _open_buffer(raw: bytes, label: str, file: str) -> pq.ParquetFile:
         ) from exc
 
 
-# Arrow's own threads for decoding one file's columns: a lone read of a 36,000-sample session
-# takes ~1.3 ms wall with them and ~1.9 without, for ~0.1-0.3 ms more CPU (thread hand-offs).
+# Arrow's own threads for decoding one file's columns: a lone read of a session is faster in
+# wall time with them, for a little more CPU (thread hand-offs).
 # Worker processes that already keep every core busy read in their own thread
 # (flows.compute_pool turns them off: on 2 busy cores the hand-offs are pure cost).
 _arrow_threads = True
@@ -339,7 +339,7 @@ def _validate_steps_frame(table: pa.Table, label: str, file: str) -> pd.DataFram
                 column=name,
                 step=int(ids[i]),
             )
-        # built as the pandas string dtype directly (an astype of the frame costs ~3 ms)
+        # built as the pandas string dtype directly (an astype of the whole frame costs more)
         out[name] = pd.array(values.astype(str).astype(object), dtype="string")
     for name in ("rate_dps", "angle_deg") + W_REF_COLUMNS + F_REF_COLUMNS + ("settle_s",):
         values = _floats(table.column(name))
@@ -712,7 +712,7 @@ def read_session(ref: SessionRef, files: SessionFiles | None = None) -> SessionD
         pf = _open_buffer(samples_raw, label, file)
     else:
         pf = _open(samples_path, label, samples_stat)
-    schema = pf.schema_arrow  # built anew by every access (~0.25 ms): once
+    schema = pf.schema_arrow  # built anew by every access: taken once
     meta = parse_metadata(schema.metadata, label, file)
     names = check_columns(schema, SAMPLES_RULES, label, file)
     table = _read(pf, names, label, file)

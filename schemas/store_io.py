@@ -114,8 +114,8 @@ def _encoding_options(schema: pa.Schema) -> dict[str, Any]:
     """Dictionary encoding for every column but the floating-point ones, statistics for the
     key columns only. Values are the same either way; what this saves is the writer's time:
     pyarrow's default tries a dictionary for the random floats of the residual tables before
-    falling back to plain (it also made those files ~10 % larger), and computes min/max of
-    every column (the 50-unit residuals lot, 184,000 rows: 196 ms -> ~100 ms CPU)."""
+    falling back to plain (it also made those files larger), and computes min/max of every
+    column (docs/benchmarks.md has the figures)."""
     dictionary, stats = [], []
     for f in schema:
         if not pa.types.is_floating(f.type):

@@ -306,7 +306,7 @@ def session_tables_frame(results: list, attr: str) -> pd.DataFrame | None:
     """The per-session tables (``residual_table`` / ``compensation_table``) of the units'
     successful sessions as ONE DataFrame, lot, unit and rep inserted first: equal to
     concatenating the units' ``residuals_frame()`` / ``compensation_frame()``, without
-    building a DataFrame per unit (~1 ms each plus the concatenation)."""
+    building a DataFrame per unit and concatenating them."""
     tables = [t for ur in results for t in ur.outcome.session_tables(attr)]
     if not tables:
         return None

@@ -129,7 +129,7 @@ class NoiseEstimate:
 
     Built from a table or from its rows (:meth:`from_records`); the other form is made on
     first use: the nightly run only ever needs the rows (JSON), and a DataFrame round trip
-    costs ~2 ms per unit.
+    would cost more than the rows themselves.
     """
 
     def __init__(self, table: pd.DataFrame | None, from_repetitions: bool, records: list[dict] | None = None):

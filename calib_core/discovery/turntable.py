@@ -196,9 +196,9 @@ _BLAS_CONTROLLER: list = []  # threadpoolctl.ThreadpoolController, found once pe
 
 
 def _single_thread_blas():
-    """Many small factorisations: BLAS threads only cost synchronisation here (6x slower
-    on a loaded 2-core machine). threadpoolctl is optional. The controller is built once:
-    finding the loaded libraries (reading /proc/self/maps) costs ~5 ms, once per process."""
+    """Many small factorisations: BLAS threads only cost synchronisation here (much slower
+    on a loaded machine). threadpoolctl is optional. The controller is built once per
+    process: finding the loaded libraries reads /proc/self/maps."""
     try:
         from threadpoolctl import ThreadpoolController
     except ImportError:  # pragma: no cover

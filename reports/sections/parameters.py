@@ -50,7 +50,7 @@ def key_parameter_table(ctx: LotContext) -> str:
     models = key_models(ctx)
     if not models:
         return missing("Key parameters", "no gyro/accel/accel_static/lever_arm rows in summary.parquet")
-    # the summary's columns as Python lists once (itertuples over ~3,000 rows costs ~40 ms)
+    # the summary's columns as Python lists once (itertuples over a lot's rows is slow)
     col = {c: py_values(s[c]) for c in ("mean", "std", "n_reps", "flagged", "flag_reason") if c in s}
     by_key = {
         k: i

@@ -52,8 +52,8 @@ def strip_figure(ctx: LotContext, model: str) -> dict | None:
     data: list[dict] = []
     shapes: list[dict] = []
     unit_index = {u: i for i, u in enumerate(ctx.units)}
-    # the model's columns once, then each parameter's rows by position (pandas per parameter
-    # costs ~1 ms a panel, 45 panels a lot)
+    # the model's columns once, then each parameter's rows by position (a pandas selection
+    # per parameter costs a lot's every panel)
     by_name = {str(k): pos for k, pos in sm.groupby("parameter", sort=False).indices.items()}
     mean_all = sm["mean"].to_numpy(dtype=float)
     flagged_all = (
