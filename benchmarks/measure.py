@@ -313,12 +313,15 @@ def do_fit(a) -> dict:
     for name in PRELOAD[1:]:
         importlib.import_module(name)
     if a.workers > 1:
-        # the nightly's worker processes fork from its forkserver, which imports and warms
-        # while Prefect starts (flows.task_runners.prestart_unit_work_pool): ready before the
-        # fit phase, so started and waited for here, outside it
-        from flows.compute_pool import wait_for_forkserver
+        # the nightly's worker processes fork from its forkserver, which imports and warms,
+        # and they start and warm themselves, while Prefect starts
+        # (flows.task_runners.prestart_unit_work_pool): ready before the fit phase, so
+        # started and waited for here, outside it
+        from flows.compute_pool import prestart_workers, wait_for_forkserver, wait_for_prestarted_workers
 
         wait_for_forkserver()
+        prestart_workers(a.workers)
+        wait_for_prestarted_workers()
     units, _ = _units(a.dataset)
     # --no-floor: the floor's scan (pyarrow's threaded read-ahead and memory pool) raises this
     # process's peak RSS with the fleet size; the fit phase's own peak needs a run without it
@@ -346,8 +349,9 @@ def do_fit(a) -> dict:
         from schemas.unit_plan import make_batches
 
         batches = make_batches(units, a.batch)  # as the nightly cuts them
-        # the nightly's pool: workers forked from the forkserver (numerics imported, warmed,
-        # objects frozen), one BLAS thread each, no Arrow decoding threads
+        # the nightly's pool: the workers started above (forked from the forkserver: numerics
+        # imported, warmed, objects frozen; warmed again after the fork), one BLAS thread
+        # each, no Arrow decoding threads
         with compute_pool(a.workers) as pool:
             for r, o, f, c in pool.map(partial(_fit_units, run_discovery=a.discovery), batches):
                 frames.append(r)

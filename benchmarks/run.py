@@ -654,10 +654,10 @@ def verdicts(doc: dict) -> list[tuple[str, str, str, str]]:
                     f"{nt['fit_phase_s']:.1f} s -> {npp['fit_phase_s']:.1f} s: {s:.2f}x",
                     "process pool faster" if s > 1.05 else "no gain" if s >= 0.95 else "process pool slower",
                     "the thread pool runs the Python work on one core (GIL); the worker "
-                    "processes (flows.compute_pool, their forkserver started while "
-                    "Prefect starts) use both but pickle every result back, and share "
-                    "the 2 cores with the flow's threads, the API server and the store "
-                    f"writer (store {npp.get('store_s') or 0:.1f} s here)",
+                    "processes (flows.compute_pool, their forkserver and the workers "
+                    "started and warmed while Prefect starts) use both but pickle every "
+                    "result back, and share the 2 cores with the flow's threads, the API server "
+                    f"and the store writer (store {npp.get('store_s') or 0:.1f} s here)",
                 )
             )
     cn = _g(doc, "prefect", "command_nightly")

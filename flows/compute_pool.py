@@ -13,7 +13,9 @@ pyarrow, scipy, calib_core, schemas; not Prefect). A worker is a fork of that cl
 thread-free server: it starts in ~0.1 s, never talks to Prefect, and sends back the batch's
 results (pickled: ~0.1 MB per unit). The forkserver itself takes ~1 s to import the numerics,
 and the first worker waits for it: :func:`start_forkserver` starts it early (the nightly
-launcher before Prefect starts, a served run at the top of its body). Workers read their
+launcher before Prefect starts, a served run at the top of its body), and
+:func:`prestart_workers` forks the workers then too, each running the unit pipeline once more
+on a simulated unit before the pool that adopts them gets its first batch. Workers read their
 sessions without Arrow's decoding threads: the two of them already keep both cores busy.
 
 A worker that dies (killed, out of memory) breaks the pool; the batch is then run again in the
@@ -65,7 +67,10 @@ _broken = False
 last_dask_startup: dict[str, Any] = {}
 
 
-def _init_worker() -> None:
+def _init_worker(warm: bool = False) -> None:
+    """A worker's start: one BLAS thread, no Arrow decoding threads; ``warm``: the unit
+    pipeline run once more in this fork (flows.worker_warmup.warm_forked_worker), for a pool
+    started ahead of its work (:func:`prestart_workers`)."""
     # one BLAS thread per worker: two workers on two cores must not each start a pool of two
     # (flows.task_runners.limit_worker_threads does the same, but referencing it would make
     # every worker import that module and with it Prefect, which these workers never need)
@@ -79,6 +84,10 @@ def _init_worker() -> None:
     from schemas.reader import use_arrow_threads
 
     use_arrow_threads(False)
+    if warm:
+        from flows.worker_warmup import warm_forked_worker
+
+        warm_forked_worker()
 
 
 @contextmanager
@@ -128,12 +137,85 @@ def wait_for_forkserver() -> None:
     child.join()
 
 
+def _new_pool(workers: int, warm: bool) -> ProcessPoolExecutor:
+    return ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=_forkserver_context(),
+        initializer=_init_worker,
+        initargs=(warm,),
+    )
+
+
+# a pool whose workers were started ahead of the work (prestart_workers), waiting for the
+# compute_pool that adopts it: (pool, workers, the calls that started them)
+_prestarted: tuple[ProcessPoolExecutor, int, list] | None = None
+
+
+def prestart_workers(workers: int) -> bool:
+    """Start ``workers`` worker processes now, each warmed after its fork
+    (flows.worker_warmup.warm_forked_worker), for the next :func:`compute_pool` of that size
+    to adopt: the nightly launcher calls this while Prefect starts, so that neither the forks
+    nor a worker's first-batch costs fall in the fit phase. A pool that no flow adopts is
+    shut down by :func:`discard_prestarted_workers` (the nightly calls it once its fit phase
+    is over) or at the process's exit. Returns whether workers were started (not if some
+    are waiting already)."""
+    global _prestarted
+    workers = max(1, int(workers))
+    with _lock:
+        if _prestarted is not None:
+            return False
+        pool = _new_pool(workers, warm=True)
+        # ProcessPoolExecutor forks a worker for each call submitted while none is idle: one
+        # call per worker starts them all now
+        _prestarted = (pool, workers, [pool.submit(_noop) for _ in range(workers)])
+    import atexit
+
+    atexit.register(discard_prestarted_workers)
+    return True
+
+
+def wait_for_prestarted_workers(timeout: float | None = None) -> bool:
+    """Wait until the prestarted workers have started and warmed; whether there are any."""
+    from concurrent.futures import wait
+
+    prestarted = _prestarted
+    if prestarted is None:
+        return False
+    wait(prestarted[2], timeout=timeout)
+    return True
+
+
+def discard_prestarted_workers() -> None:
+    """Shut down the prestarted workers if no :func:`compute_pool` adopted them (a run with
+    nothing to calibrate in worker processes); a no-op otherwise."""
+    global _prestarted
+    with _lock:
+        prestarted, _prestarted = _prestarted, None
+    if prestarted is not None:
+        prestarted[0].shutdown(wait=True, cancel_futures=True)
+
+
+def _adopt_prestarted(workers: int) -> ProcessPoolExecutor | None:
+    """The prestarted pool if it has ``workers`` workers and none has died (it is then no
+    longer prestarted); any other is shut down."""
+    global _prestarted
+    with _lock:
+        prestarted, _prestarted = _prestarted, None
+    if prestarted is None:
+        return None
+    pool, n, started = prestarted
+    if n == workers and not any(f.done() and f.exception() is not None for f in started):
+        return pool
+    pool.shutdown(wait=True, cancel_futures=True)
+    return None
+
+
 @contextmanager
 def compute_pool(workers: int) -> Iterator[ProcessPoolExecutor]:
-    """A pool of ``workers`` processes that :func:`run_in_pool` uses while the block runs."""
-    pool = ProcessPoolExecutor(
-        max_workers=max(1, int(workers)), mp_context=_forkserver_context(), initializer=_init_worker
-    )
+    """A pool of ``workers`` processes that :func:`run_in_pool` uses while the block runs:
+    the prestarted one (:func:`prestart_workers`) if it has that many, else new ones."""
+    workers = max(1, int(workers))
+    pool = _adopt_prestarted(workers) or _new_pool(workers, warm=False)
     try:
         with _active(pool):
             yield pool

@@ -41,7 +41,7 @@ from prefect import flow, get_run_logger, task  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402
 from prefect.futures import as_completed  # noqa: E402
 
-from flows.compute_pool import run_in_pool  # noqa: E402
+from flows.compute_pool import discard_prestarted_workers, run_in_pool  # noqa: E402
 from flows.field_units import field_unit_job  # noqa: E402
 from flows.memory import release_memory  # noqa: E402
 from flows.task_runners import (  # noqa: E402,F401
@@ -554,9 +554,11 @@ class _LotStorage:
     ) -> float:
         """Returns when the last batch came back (time.monotonic; the lots' storing may
         finish after it)."""
+        pooled = bool(jobs) and runner != "dask" and uses_unit_work_pool(runner, len(jobs))
+        if not pooled:  # workers started while Prefect started, for a run that needs none
+            discard_prestarted_workers()
         if not jobs:
             return time.monotonic()
-        pooled = runner != "dask" and uses_unit_work_pool(runner, len(jobs))
         self.log["unit_work"] = "worker processes" if pooled else "task runner"
         with (
             ThreadPoolExecutor(1, thread_name_prefix="mimucal-store") as self._writer,
@@ -891,7 +893,7 @@ def nightly_fleet_calibration(
     in_flight = DASK_MAX_IN_FLIGHT if kind == "dask" else DEFAULT_MAX_IN_FLIGHT
     if kind != "dask":  # worker processes' imports while Prefect starts, not in the fit phase
         prestart_unit_work_pool(kind, dataset)
-    with _preloading():  # the flow's imports overlap the API server's start
+    with _preloading(), _prestarted_workers_discarded():  # imports overlap the API server's start
         runtime.await_api_server()
         with runtime.run_settings(), _outcome_recorded(results):
             return nightly_flow.with_options(task_runner=task_runner)(
@@ -908,6 +910,16 @@ def nightly_fleet_calibration(
                 unit_reports=unit_reports,
                 follow_symlinks=follow_symlinks,
             )
+
+
+@contextmanager
+def _prestarted_workers_discarded():
+    """Worker processes started for a run that ended (or failed) before adopting them are
+    shut down with it, not left to the process's exit."""
+    try:
+        yield
+    finally:
+        discard_prestarted_workers()
 
 
 # results root -> (run id, run log) of a nightly run started in this process and not ended

@@ -13,7 +13,8 @@ at an address always wins):
 - ``processes``: the same thread pool of Prefect tasks, each handing its batch to a pool of
   :data:`LOCAL_WORKERS` worker processes forked from a forkserver that imported the numerics
   once (:mod:`flows.compute_pool`): both cores, no Prefect in the workers. The forkserver's
-  imports (~1 s) run while Prefect starts (:func:`prestart_unit_work_pool`).
+  imports (~1 s), the workers' forks and their warm-up run while Prefect starts
+  (:func:`prestart_unit_work_pool`).
 - ``prefect-processes``: Prefect's ``ProcessPoolTaskRunner`` (every task run in a spawned
   worker with its own Prefect client): both cores, but each worker pays its imports and
   Prefect's task context once (8-10 s CPU, docs/benchmarks.md).
@@ -242,15 +243,18 @@ def unit_work_pool(kind: str | None, n_units: int, workers: int = LOCAL_WORKERS)
 def prestart_unit_work_pool(kind: str | None, dataset: str | Path) -> bool:
     """Before a flow run: when a run over the fleet at ``dataset`` may hand its batches to
     worker processes (:func:`unit_work_pool`, judged by the unit directories there, an upper
-    bound of the units to calibrate), start their forkserver now, so that its imports overlap
-    Prefect's start-up. Returns whether it was started."""
+    bound of the units to calibrate), start their forkserver and the workers now, so that the
+    imports, the forks and the workers' warm-up overlap Prefect's start-up
+    (:func:`flows.compute_pool.prestart_workers`; a run that does not use them shuts them
+    down). Returns whether they were started."""
     from schemas.dataset import count_unit_dirs
 
     if LOCAL_WORKERS < 2 or not uses_unit_work_pool(kind, count_unit_dirs(dataset)):
         return False
-    from flows.compute_pool import start_forkserver
+    from flows.compute_pool import prestart_workers, start_forkserver
 
     start_forkserver()
+    prestart_workers(LOCAL_WORKERS)
     return True
 
 

@@ -187,10 +187,11 @@ def test_count_unit_dirs(tmp_path):
 
 
 def test_the_forkserver_is_started_early_only_when_the_run_may_use_worker_processes(tmp_path, monkeypatch):
-    from flows.task_runners import AUTO_PROCESSES_MIN_UNITS, prestart_unit_work_pool
+    from flows.task_runners import AUTO_PROCESSES_MIN_UNITS, LOCAL_WORKERS, prestart_unit_work_pool
 
     started: list[int] = []
     monkeypatch.setattr(cp, "start_forkserver", lambda: started.append(1))
+    monkeypatch.setattr(cp, "prestart_workers", lambda workers: started.append(workers) or True)
     few = _fleet_dirs(tmp_path / "few", {"L1": AUTO_PROCESSES_MIN_UNITS - 1})
     many = _fleet_dirs(tmp_path / "many", {"L1": AUTO_PROCESSES_MIN_UNITS - 1, "L2": 1})
     assert not prestart_unit_work_pool("threads", many)
@@ -198,7 +199,7 @@ def test_the_forkserver_is_started_early_only_when_the_run_may_use_worker_proces
     assert not started
     assert prestart_unit_work_pool("auto", many)
     assert prestart_unit_work_pool("processes", few)
-    assert len(started) == 2
+    assert started == [1, LOCAL_WORKERS] * 2  # the forkserver, then the workers
 
 
 def test_the_nightly_launcher_starts_the_forkserver_before_prefect(tmp_path, monkeypatch):
@@ -247,3 +248,70 @@ def test_waiting_for_the_forkserver_leaves_it_ready_for_the_pool():
     assert server is not None and server != os.getpid()
     with cp.compute_pool(2):
         assert cp.run_in_pool(os.getppid) == server
+
+
+def _forked_warm_up_here() -> tuple[float | None, int]:
+    from flows import worker_warmup
+
+    return worker_warmup.forked_warm_up_s, os.getpid()
+
+
+def _worker_processes(pool) -> list:
+    return list(pool._processes.values())  # the stdlib keeps them private
+
+
+def test_prestarted_workers_are_warmed_after_their_fork_and_adopted_by_the_pool():
+    assert cp.prestart_workers(2)
+    assert not cp.prestart_workers(2)  # some are waiting already: nothing more started
+    assert cp.wait_for_prestarted_workers()
+    started = {p.pid for p in _worker_processes(cp._prestarted[0])}
+    assert len(started) == 2
+    with cp.compute_pool(2):
+        seen = [cp.run_in_pool(_forked_warm_up_here) for _ in range(6)]
+    assert {pid for _, pid in seen} <= started  # the same processes, no new fork
+    # each ran the unit pipeline once more before its first call (worker_warmup)
+    assert all(took is not None and took > 0 for took, _ in seen)
+    assert cp._prestarted is None and not cp.wait_for_prestarted_workers()
+    with cp.compute_pool(1):  # a pool opened without prestarted workers: forked cold
+        took, pid = cp.run_in_pool(_forked_warm_up_here)
+    assert took is None and pid not in started
+
+
+def test_prestarted_workers_of_another_size_or_not_adopted_are_shut_down():
+    cp.prestart_workers(1)
+    cp.wait_for_prestarted_workers()
+    (first,) = _worker_processes(cp._prestarted[0])
+    with cp.compute_pool(2):  # not the prestarted size: new workers
+        pids = {cp.run_in_pool(os.getpid) for _ in range(4)}
+    assert first.pid not in pids
+    first.join(timeout=10)
+    assert not first.is_alive()
+    cp.prestart_workers(1)
+    cp.wait_for_prestarted_workers()
+    (second,) = _worker_processes(cp._prestarted[0])
+    cp.discard_prestarted_workers()
+    second.join(timeout=10)
+    assert not second.is_alive() and cp._prestarted is None
+
+
+def test_the_nightly_shuts_down_workers_it_started_and_did_not_use(tmp_path, monkeypatch):
+    from flows import nightly
+
+    monkeypatch.setattr(nightly, "prestart_unit_work_pool", lambda kind, dataset: cp.prestart_workers(1))
+    workers: list = []
+
+    class _Flow:  # stands for a Prefect flow that ends before its fit phase
+        def with_options(self, **_):
+            def run(*a, **k):
+                workers.extend(_worker_processes(cp._prestarted[0]))
+                raise RuntimeError("the flow failed before its fit phase")
+
+            return run
+
+    monkeypatch.setattr(nightly, "nightly_flow", _Flow())
+    with pytest.raises(RuntimeError):
+        nightly.nightly_fleet_calibration(tmp_path / "d", tmp_path / "r", runner="processes")
+    assert cp._prestarted is None and workers
+    for w in workers:
+        w.join(timeout=10)
+        assert not w.is_alive()
