@@ -108,7 +108,8 @@ def identify_alpha(x: np.ndarray, m: int) -> int | None:
 
 
 def _alpha_of_averages(z: np.ndarray) -> int:
-    """:func:`identify_alpha`'s rule on the m-averages ``z``."""
+    """:func:`identify_alpha`'s rule on the m-averages ``z`` (or the sums of m rates: the
+    rule does not see a scale)."""
     z = _detrend_linear(z)
     d = 0
     while True:
@@ -204,11 +205,11 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
     """:func:`allan_curve` of each column of ``X`` (n samples, k channels) at cluster sizes
     ``m``: the overlapping Allan deviation as ``allantools.oadev`` defines it (from the
     phase, the cumulative sum of the mean-removed rates), each cluster size's noise type by
-    :func:`identify_alpha`'s rule on m-averages taken from the phase, and
-    Greenhall's edf and the chi-square interval of all channels at once. For many short
-    records (a unit's static steps): no allantools call and no BLAS thread limit, whose
-    fixed costs exceed the arithmetic there; one channel at a time (its arrays stay in the
-    core's cache)."""
+    :func:`identify_alpha`'s rule on the sums of m rates taken from the phase (the lag-1
+    autocorrelation does not see their scale: the averages' type; for a power of two m the
+    same bits), and Greenhall's edf and the chi-square interval of all channels at once.
+    For many short records (a unit's static steps): no allantools call and no BLAS thread
+    limit, whose fixed costs exceed the arithmetic there; one channel at a time."""
     X = np.asarray(X, float)
     n, k = X.shape
     m = np.asarray(m, int)
@@ -219,17 +220,13 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
     ms = m.tolist()
     adev = np.empty((k, m.size))
     alpha = np.empty((k, m.size), int)
-    # the phase times the rate (the cumulative sum of the mean-removed rates, from 0); the
-    # sums of m rates, D_m[i] = phase[i + m] - phase[i], give both the overlapping Allan
-    # variance (their differences D_m[i + m] - D_m[i]) and the m-averages the noise type is
-    # identified on (every m-th of them, over m)
-    phase = np.empty(n + 1)
+    # the sums of m rates, D_m[i] = phase[i + m] - phase[i], give both the overlapping Allan
+    # variance (their differences D_m[i + m] - D_m[i]) and the noise type (every m-th of them)
+    phases = _phases(X)
     sums = np.empty(n + 1)
     v = np.empty(n + 1)
     for i in range(k):
-        x = X[:, i]
-        phase[0] = 0.0
-        np.cumsum(x - x.mean(), out=phase[1:])
+        phase = phases[i]
         last, stepped = 0, False
         for j, mj in enumerate(ms):
             cnt = n + 1 - 2 * mj
@@ -240,7 +237,7 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
             adev[i, j] = np.sqrt(np.dot(d, d) / (2.0 * cnt)) / mj
             n_avg = min(n // mj, MAX_NOISE_ID_POINTS)
             if n_avg >= MIN_NOISE_ID_POINTS:
-                last = _alpha_of_averages(d_m[: n_avg * mj : mj] / mj)
+                last = _alpha_of_averages(d_m[: n_avg * mj : mj])
             elif not stepped:  # too few averages to tell: the next redder type, smaller edf
                 last, stepped = max(last - 1, -2), True
             alpha[i, j] = last
@@ -248,3 +245,28 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
     lo, hi = chi2_interval(adev, edf)
     tau = m.astype(float) / rate
     return [AllanCurve(tau, m, adev[i], lo[i], hi[i], edf[i], alpha[i], rate, n) for i in range(k)]
+
+
+def _phases(X: np.ndarray) -> np.ndarray:
+    """(k, n + 1): the phase of each column of ``X`` (n, k) times the rate, the cumulative
+    sum of the mean-removed rates from 0. Two channels at a time as one complex cumulative
+    sum: its real and imaginary parts add separately, so each channel gets its own sums in
+    its own order, and the sequential sum (one dependent addition a sample) costs one
+    channel's time for two."""
+    n, k = X.shape
+    cols = X.T.copy()  # each channel contiguous: its mean the same pairwise sum as X[:, i].mean()
+    mean = np.add.reduce(cols, axis=1) / n
+    out = np.empty((k, n + 1))
+    out[:, 0] = 0.0
+    pairs = k // 2
+    if pairs:
+        both = np.empty((pairs, n), np.complex128)
+        np.subtract(cols[0 : 2 * pairs : 2], mean[0 : 2 * pairs : 2, None], out=both.real)
+        np.subtract(cols[1 : 2 * pairs : 2], mean[1 : 2 * pairs : 2, None], out=both.imag)
+        for j in range(pairs):
+            np.cumsum(both[j], out=both[j])
+        out[0 : 2 * pairs : 2, 1:] = both.real
+        out[1 : 2 * pairs : 2, 1:] = both.imag
+    if k % 2:
+        np.cumsum(cols[-1] - mean[-1], out=out[-1, 1:])
+    return out
