@@ -247,7 +247,7 @@ def fit_allan_stack(curves: list[AllanCurve], terms: tuple[Term, ...]) -> list[A
     for _ in range(REWEIGHT_ITERATIONS):
         W = _whitener(model, edf, r)
         A = W @ X
-        scale = np.linalg.norm(A, axis=-2)
+        scale = np.sqrt(np.add.reduce(A * A, axis=-2))  # np.linalg.norm's own sum
         scale[scale == 0] = 1.0
         y_w = np.einsum("bij,bj->bi", W, avar)
         c_new = nnls_stack(A / scale[:, None, :], y_w) / scale
