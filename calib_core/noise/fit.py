@@ -116,16 +116,34 @@ def _normal_quantile(q: float) -> float:
 
 def coefficient_interval(c: float, se: float, level: float = COEFFICIENT_CONFIDENCE) -> tuple[float, float]:
     """Interval of sqrt(c) for a squared coefficient c with standard error se."""
-    if not np.isfinite(se) or se <= 0:
-        v = float(np.sqrt(max(c, 0.0)))
-        return v, v
+    lo, hi = coefficient_intervals(np.array([c], float), np.array([se], float), level)
+    return float(lo[0]), float(hi[0])
+
+
+def coefficient_intervals(
+    c: np.ndarray, se: np.ndarray, level: float = COEFFICIENT_CONFIDENCE
+) -> tuple[np.ndarray, np.ndarray]:
+    """Intervals (lo, hi) of sqrt(c) for squared coefficients c with standard errors se
+    (arrays of one shape): c as a scaled chi-square with 2 c^2 / se^2 degrees of freedom;
+    within z standard errors of zero, c +- z se cut at zero; sqrt(c) itself without a
+    standard error."""
+    c, se = np.asarray(c, float), np.asarray(se, float)
     z = _normal_quantile((1.0 + level) / 2.0)
-    if c <= z * se:  # not distinguishable from zero: a two-sided normal interval cut at zero
-        return float(np.sqrt(max(c - z * se, 0.0))), float(np.sqrt(c + z * se))
-    nu = 2.0 * c * c / (se * se)
-    lo = c * nu / chi2_ppf((1.0 + level) / 2.0, nu)
-    hi = c * nu / chi2_ppf((1.0 - level) / 2.0, nu)
-    return float(np.sqrt(lo)), float(np.sqrt(hi))
+    lo = np.sqrt(np.maximum(c, 0.0))
+    hi = lo.copy()
+    known = np.isfinite(se) & (se > 0)
+    zse = z * np.where(known, se, 0.0)
+    near = known & (c <= zse)  # not distinguishable from zero: a normal interval cut at zero
+    if near.any():
+        lo[near] = np.sqrt(np.maximum(c[near] - zse[near], 0.0))
+        hi[near] = np.sqrt(c[near] + zse[near])
+    far = known & ~near
+    if far.any():
+        cf, sf = c[far], se[far]
+        nu = 2.0 * cf * cf / (sf * sf)
+        lo[far] = np.sqrt(cf * nu / chi2_ppf((1.0 + level) / 2.0, nu))
+        hi[far] = np.sqrt(cf * nu / chi2_ppf((1.0 - level) / 2.0, nu))
+    return lo, hi
 
 
 def _design(terms, tau, rate_hz):
