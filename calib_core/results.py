@@ -67,21 +67,13 @@ def param_list(
 ) -> list[Param]:
     """Params of one model and unit, built without the frozen dataclass's per-field
     ``object.__setattr__`` (a session lists ~70 parameters; the objects are identical)."""
-    new = object.__new__  # what _built does, inline: ~350 Params per unit of 5 repetitions
+    new = object.__new__  # the frozen dataclass without its __init__: ~350 Params a unit
     out = []
     for name, v, e in zip(names, values, stderrs):
         p = new(Param)
         p.__dict__.update(model=model, name=name, value=v, stderr=e, unit=unit)
         out.append(p)
     return out
-
-
-def _built(cls: type, **fields: Any) -> Any:
-    """``cls(**fields)`` of a frozen dataclass without its per-field ``object.__setattr__``
-    (a third of the cost where ~70 per session or unit are built); the objects are equal."""
-    obj = object.__new__(cls)
-    obj.__dict__.update(fields)
-    return obj
 
 
 def matrix_names(prefix: str) -> tuple[str, ...]:
@@ -238,9 +230,10 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     has = np.zeros(v.shape, dtype=bool)
     for row, (cols, values, stderrs) in enumerate(listed):
         if cols:
-            has[row, cols] = True
-            v[row, cols] = np.concatenate(values)
-            s[row, cols] = np.concatenate(stderrs)
+            at = np.array(cols, dtype=np.intp)
+            has[row, at] = True
+            v[row, at] = np.concatenate(values)
+            s[row, at] = np.concatenate(stderrs)
     n = has.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(has, v, 0.0).sum(axis=0) / n
@@ -258,9 +251,23 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
         values = [
             tuple(x for x, h in zip(col, col_has) if h) for col, col_has in zip(v.T.tolist(), has.T.tolist())
         ]
-    return [
-        _built(
-            ParamSummary,
+    # each frozen ParamSummary without its per-field object.__setattr__ (the objects are equal)
+    new = object.__new__
+    out = []
+    for (model, name), unit, m, sd, lo, hi, k, vals, se, se_m in zip(
+        column,
+        units,
+        mean.tolist(),
+        std.tolist(),
+        vmin.tolist(),
+        vmax.tolist(),
+        n.tolist(),
+        values,
+        mean_se.tolist(),
+        se_of_mean.tolist(),
+    ):
+        summary = new(ParamSummary)
+        summary.__dict__.update(
             model=model,
             name=name,
             unit=unit,
@@ -273,19 +280,8 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
             mean_stderr=se,
             stderr_of_mean=se_m,
         )
-        for (model, name), unit, m, sd, lo, hi, k, vals, se, se_m in zip(
-            column,
-            units,
-            mean.tolist(),
-            std.tolist(),
-            vmin.tolist(),
-            vmax.tolist(),
-            n.tolist(),
-            values,
-            mean_se.tolist(),
-            se_of_mean.tolist(),
-        )
-    ]
+        out.append(summary)
+    return out
 
 
 @dataclass
