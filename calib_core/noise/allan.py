@@ -284,19 +284,17 @@ def _phases(X: np.ndarray) -> np.ndarray:
     its own order, and the sequential sum (one dependent addition a sample) costs one
     channel's time for two."""
     n, k = X.shape
-    cols = X.T.copy()  # each channel contiguous: its mean the same pairwise sum as X[:, i].mean()
-    mean = np.add.reduce(cols, axis=1) / n
     out = np.empty((k, n + 1))
     out[:, 0] = 0.0
-    pairs = k // 2
-    if pairs:
-        both = np.empty((pairs, n), np.complex128)
-        np.subtract(cols[0 : 2 * pairs : 2], mean[0 : 2 * pairs : 2, None], out=both.real)
-        np.subtract(cols[1 : 2 * pairs : 2], mean[1 : 2 * pairs : 2, None], out=both.imag)
-        for j in range(pairs):
-            np.cumsum(both[j], out=both[j])
-        out[0 : 2 * pairs : 2, 1:] = both.real
-        out[1 : 2 * pairs : 2, 1:] = both.imag
+    both = np.empty(n, np.complex128)
+    for j in range(0, k - 1, 2):
+        x0, x1 = X[:, j], X[:, j + 1]
+        np.subtract(x0, np.add.reduce(x0) / n, out=both.real)  # x0 - x0.mean()
+        np.subtract(x1, np.add.reduce(x1) / n, out=both.imag)
+        np.cumsum(both, out=both)
+        out[j, 1:] = both.real
+        out[j + 1, 1:] = both.imag
     if k % 2:
-        np.cumsum(cols[-1] - mean[-1], out=out[-1, 1:])
+        x = X[:, -1]
+        np.cumsum(x - np.add.reduce(x) / n, out=out[-1, 1:])
     return out

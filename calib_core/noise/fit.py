@@ -286,23 +286,13 @@ def fit_allan_stack(curves: list[AllanCurve], terms: tuple[Term, ...]) -> list[A
     c_se = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
     adev_model = np.sqrt(model)
     e = np.einsum("bij,bj->bi", W, avar - model)
-    fits = []
-    for i, cv in enumerate(curves):
-        within = float(np.mean((adev_model[i] >= cv.adev_lo) & (adev_model[i] <= cv.adev_hi)))
-        fits.append(
-            AllanFit(
-                tuple(terms),
-                c[i],
-                c_se[i],
-                model[i],
-                float(e[i] @ e[i]),
-                int(tau.size - int(np.sum(c[i] > 0))),
-                within,
-                (),
-                r[i],
-            )
-        )
-    return fits
+    lo, hi = np.array([cv.adev_lo for cv in curves]), np.array([cv.adev_hi for cv in curves])
+    within = np.mean((adev_model >= lo) & (adev_model <= hi), axis=1).tolist()
+    dof = (tau.size - np.sum(c > 0, axis=1)).tolist()
+    return [
+        AllanFit(tuple(terms), c[i], c_se[i], model[i], float(e[i] @ e[i]), dof[i], within[i], (), r[i])
+        for i in range(len(curves))
+    ]
 
 
 def model_avar(fit: AllanFit, tau: np.ndarray, rate_hz: float) -> np.ndarray:
