@@ -284,21 +284,28 @@ def nnls_stack(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     A, b = A[todo], b[todo]
     best = np.zeros((len(todo), p))
     best_ss = np.einsum("bm,bm->b", b, b)
+    # every one-column subset at once: its projection, without an SVD (each column's
+    # values contiguous, as one column's alone)
+    by_col = np.ascontiguousarray(A.transpose(0, 2, 1))  # (B, p, m)
+    aa = np.einsum("bkm,bkm->bk", by_col, by_col)
+    ab = np.einsum("bkm,bm->bk", by_col, b)
+    one = np.where(aa > 0, ab / np.where(aa > 0, aa, 1.0), 0.0)
+    r_one = by_col * one[:, :, None] - b[:, None, :]
+    ss_one = np.einsum("bkm,bkm->bk", r_one, r_one)
     for mask in range(1, (1 << p) - 1):
         cols = [j for j in range(p) if mask >> j & 1]
-        sub = A[:, :, cols]
-        if len(cols) == 1:  # one column: its projection, without an SVD
-            aa = np.einsum("bm,bm->b", sub[..., 0], sub[..., 0])
-            ab = np.einsum("bm,bm->b", sub[..., 0], b)
-            xs = np.where(aa > 0, ab / np.where(aa > 0, aa, 1.0), 0.0)[:, None]
+        if len(cols) == 1:
+            xs, ss = one[:, cols], ss_one[:, cols[0]]
         else:
+            sub = A[:, :, cols]
             xs = lstsq_pinv_stack(sub, b)
-        r = np.einsum("bmk,bk->bm", sub, xs) - b
-        ss = np.einsum("bm,bm->b", r, r)
-        better = np.all(xs >= 0, axis=1) & (ss < best_ss)
+            r = np.einsum("bmk,bk->bm", sub, xs) - b
+            ss = np.einsum("bm,bm->b", r, r)
+        better = (xs >= 0).all(axis=1) & (ss < best_ss)
         if better.any():
-            best[better] = 0.0
-            best[np.ix_(better, cols)] = xs[better]
+            x_mask = np.zeros_like(best)
+            x_mask[:, cols] = xs
+            best[better] = x_mask[better]
             best_ss = np.where(better, ss, best_ss)
     x[todo] = best
     return x

@@ -117,6 +117,21 @@ def unit_noise(
     rows, allan = [], []
     channels = doc.get("channels") or {}
     base = {"source": source, "duration_s": duration, "rate_hz": rate}
+    nan = float("nan")
+    # what the static steps cannot determine: the same reason on every channel
+    static_reasons = (
+        {}
+        if static_steps_s is None
+        else {
+            name: (
+                f"no long static recording: the static steps ({static_steps_s:.3g} s at the "
+                f"shortest, each step's mean removed) cannot determine {name.replace('_', ' ')}; "
+                f"add lot=L/unit=U/noise/<name>.parquet"
+            )
+            for name in COEFFICIENTS + OPTIONAL_COEFFICIENTS
+            if name not in STATIC_ONLY
+        }
+    )
     for ch in CHANNELS:
         ch_doc = channels.get(ch)
         if not isinstance(ch_doc, dict):
@@ -124,17 +139,15 @@ def unit_noise(
         coefs = ch_doc.get("coefficients") or {}
         names = list(COEFFICIENTS) + [c for c in OPTIONAL_COEFFICIENTS if isinstance(coefs.get(c), dict)]
         for name in names:
-            value, lo, hi, unit, reason = _coefficient(coefs.get(name))
-            reason = reason or _reason_of(ch_doc, name)
-            if static_steps_s is not None and name not in STATIC_ONLY:
-                value = lo = hi = float("nan")
-                reason = (
-                    f"no long static recording: the static steps ({static_steps_s:.3g} s at the "
-                    f"shortest, each step's mean removed) cannot determine {name.replace('_', ' ')}; "
-                    f"add lot=L/unit=U/noise/<name>.parquet"
-                )
-            elif not np.isfinite(value) and not reason:
-                reason = "not named by the analysis (not significant on this recording)"
+            reason = static_reasons.get(name)
+            if reason is not None:
+                value = lo = hi = nan
+                unit = _coefficient(coefs.get(name))[3]
+            else:
+                value, lo, hi, unit, reason = _coefficient(coefs.get(name))
+                reason = reason or _reason_of(ch_doc, name)
+                if not np.isfinite(value) and not reason:
+                    reason = "not named by the analysis (not significant on this recording)"
             rows.append(
                 {
                     **base,
@@ -144,7 +157,7 @@ def unit_noise(
                     "lo": lo,
                     "hi": hi,
                     "unit_of_measure": unit,
-                    "frequency_hz": float("nan"),
+                    "frequency_hz": nan,
                     "reason": None if np.isfinite(value) else reason,
                 }
             )
@@ -170,18 +183,18 @@ def unit_noise(
         fit_adev = np.asarray(fit.get("model_adev") or [np.nan] * len(tau), float)
         if len(fit_adev) != len(tau):
             fit_adev = np.full(len(tau), np.nan)
-        cols = {k: np.asarray(a.get(k) or [np.nan] * len(tau), float) for k in ("adev", "adev_lo", "adev_hi")}
-        keep = np.ones(len(tau), bool) if static_steps_s is None else tau <= static_steps_s / 4.0
+        cols = [np.asarray(a.get(k) or [np.nan] * len(tau), float) for k in ("adev", "adev_lo", "adev_hi")]
+        keep = slice(None) if static_steps_s is None else tau <= static_steps_s / 4.0
         adev_unit = a.get("unit") or ch_doc.get("unit")
-        for i in np.flatnonzero(keep):
+        for t, v, v_lo, v_hi, f in zip(*(x[keep].tolist() for x in (tau, *cols, fit_adev))):
             allan.append(
                 {
                     "channel": ch,
-                    "tau_s": float(tau[i]),
-                    "adev": float(cols["adev"][i]),
-                    "adev_lo": float(cols["adev_lo"][i]),
-                    "adev_hi": float(cols["adev_hi"][i]),
-                    "fit_adev": float(fit_adev[i]),
+                    "tau_s": t,
+                    "adev": v,
+                    "adev_lo": v_lo,
+                    "adev_hi": v_hi,
+                    "fit_adev": f,
                     "unit_of_measure": adev_unit,
                     "source": source,
                 }
@@ -358,7 +371,7 @@ def analyse_static_steps(
     lines: their evidence is in what a step's mean removes too."""
     from calib_core.noise import ChannelAnalysis, ChannelNoise
     from calib_core.noise.allan import allan_curves
-    from calib_core.noise.fit import Term, fit_allan_stack
+    from calib_core.noise.fit import Term, coefficient_intervals, fit_allan_stack
 
     n = len(record)
     m_max = max(1, int(shortest_s * rate_hz / 4))
@@ -367,10 +380,13 @@ def analyse_static_steps(
     why_slow = "the static steps cannot determine it (each step's mean removed)"
     curves = allan_curves(np.asarray(record, float), rate_hz, m)
     fits = fit_allan_stack(curves, (Term("quantization"), Term("white")))
-    for ch, unit, curve, fit in zip(CHANNELS, channel_units, curves, fits):
+    # every channel's intervals at once (AllanFit.interval's, channel by channel)
+    los, his = coefficient_intervals(np.array([f.c for f in fits]), np.array([f.c_se for f in fits]))
+    for ch, unit, curve, fit, ch_lo, ch_hi in zip(
+        CHANNELS, channel_units, curves, fits, los.tolist(), his.tolist()
+    ):
         coefficients, intervals, reasons = {}, {}, {}
-        for term, c in zip(fit.terms, fit.c):
-            lo, hi = fit.interval(term.name)
+        for term, c, lo, hi in zip(fit.terms, fit.c, ch_lo, ch_hi):
             if term.name == "white" or lo > 0:
                 coefficients[term.name], intervals[term.name] = float(np.sqrt(c)), (lo, hi)
             else:

@@ -67,21 +67,13 @@ def param_list(
 ) -> list[Param]:
     """Params of one model and unit, built without the frozen dataclass's per-field
     ``object.__setattr__`` (a session lists ~70 parameters; the objects are identical)."""
-    new = object.__new__  # what _built does, inline: ~350 Params per unit of 5 repetitions
+    new = object.__new__  # the frozen dataclass without its __init__: ~350 Params a unit
     out = []
     for name, v, e in zip(names, values, stderrs):
         p = new(Param)
         p.__dict__.update(model=model, name=name, value=v, stderr=e, unit=unit)
         out.append(p)
     return out
-
-
-def _built(cls: type, **fields: Any) -> Any:
-    """``cls(**fields)`` of a frozen dataclass without its per-field ``object.__setattr__``
-    (a third of the cost where ~70 per session or unit are built); the objects are equal."""
-    obj = object.__new__(cls)
-    obj.__dict__.update(fields)
-    return obj
 
 
 def matrix_names(prefix: str) -> tuple[str, ...]:
@@ -137,7 +129,7 @@ class RepetitionCalibration:
     protocol_notes: list[str] = field(default_factory=list)
 
     def parameters(self) -> list[Param]:
-        # listed again by summarise, the results store and the unit document: kept while
+        # listed again by the results store and the unit document: kept while
         # the same (immutable) fit objects are in ``fits``
         current = tuple(self.fits.items())
         cached = self.__dict__.get("_parameters")
@@ -190,6 +182,19 @@ def stderr_of_mean(stderrs: np.ndarray) -> np.ndarray:
     return out
 
 
+def _param_blocks(rep: RepetitionCalibration) -> list[ParamBlock]:
+    """The repetition's parameters as blocks, in ``parameters()`` order: each fit's
+    ``param_blocks()``, or a block per listed Param of a fit without them."""
+    blocks: list[ParamBlock] = []
+    for fit in rep.fits.values():
+        of_fit = getattr(fit, "param_blocks", None)
+        if of_fit is not None:
+            blocks += of_fit()
+        else:
+            blocks += [(p.model, (p.name,), (p.value,), (p.stderr,), p.unit) for p in fit.parameters()]
+    return blocks
+
+
 def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     """Every parameter over the repetitions (xu2016 Tables 1-2): mean, sample std (ddof=1),
     min, max, the values in rep order, the mean of the standard errors and the standard
@@ -201,24 +206,34 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     reps = sorted(reps, key=lambda r: r.rep)
     if not reps:
         return []
-    # the repetitions x parameters table: value, stderr, and whether the repetition has it
+    # the repetitions x parameters table: value, stderr, and whether the repetition has it,
+    # filled a parameter block at a time (no Param per parameter and repetition)
     column: dict[tuple[str, str], int] = {}
     units: list[str] = []
-    listed = [rep.parameters() for rep in reps]
-    for params in listed:
-        for p in params:
-            if column.setdefault((p.model, p.name), len(column)) == len(units):
-                units.append(p.unit)
+    listed = []
+    for rep in reps:
+        cols: list[int] = []
+        values, stderrs = [], []
+        for model, names, vals, ses, unit in _param_blocks(rep):
+            for name in names:
+                c = column.setdefault((model, name), len(column))
+                if c == len(units):
+                    units.append(unit)
+                cols.append(c)
+            values.append(np.asarray(vals, dtype=float).ravel())
+            stderrs.append(np.asarray(ses, dtype=float).ravel())
+        if len(set(cols)) != len(cols):
+            raise ValueError(f"repetition {rep.rep} lists a parameter twice")
+        listed.append((cols, values, stderrs))
     v = np.full((len(reps), len(units)), np.nan)
     s = np.full_like(v, np.nan)
     has = np.zeros(v.shape, dtype=bool)
-    for row, params in enumerate(listed):
-        cols = [column[(p.model, p.name)] for p in params]
-        if len(set(cols)) != len(cols):
-            raise ValueError(f"repetition {reps[row].rep} lists a parameter twice")
-        has[row, cols] = True
-        v[row, cols] = [p.value for p in params]
-        s[row, cols] = [p.stderr for p in params]
+    for row, (cols, values, stderrs) in enumerate(listed):
+        if cols:
+            at = np.array(cols, dtype=np.intp)
+            has[row, at] = True
+            v[row, at] = np.concatenate(values)
+            s[row, at] = np.concatenate(stderrs)
     n = has.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(has, v, 0.0).sum(axis=0) / n
@@ -230,12 +245,29 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
     se_of_mean = stderr_of_mean(np.where(has, s, np.nan))
     vmin = np.where(has, v, np.inf).min(axis=0)
     vmax = np.where(has, v, -np.inf).max(axis=0)
-    values = [
-        tuple(x for x, h in zip(col, col_has) if h) for col, col_has in zip(v.T.tolist(), has.T.tolist())
-    ]
-    return [
-        _built(
-            ParamSummary,
+    if has.all():  # every repetition has every parameter (the usual case)
+        values = [tuple(col) for col in v.T.tolist()]
+    else:
+        values = [
+            tuple(x for x, h in zip(col, col_has) if h) for col, col_has in zip(v.T.tolist(), has.T.tolist())
+        ]
+    # each frozen ParamSummary without its per-field object.__setattr__ (the objects are equal)
+    new = object.__new__
+    out = []
+    for (model, name), unit, m, sd, lo, hi, k, vals, se, se_m in zip(
+        column,
+        units,
+        mean.tolist(),
+        std.tolist(),
+        vmin.tolist(),
+        vmax.tolist(),
+        n.tolist(),
+        values,
+        mean_se.tolist(),
+        se_of_mean.tolist(),
+    ):
+        summary = new(ParamSummary)
+        summary.__dict__.update(
             model=model,
             name=name,
             unit=unit,
@@ -248,19 +280,8 @@ def summarise(reps: list[RepetitionCalibration]) -> list[ParamSummary]:
             mean_stderr=se,
             stderr_of_mean=se_m,
         )
-        for (model, name), unit, m, sd, lo, hi, k, vals, se, se_m in zip(
-            column,
-            units,
-            mean.tolist(),
-            std.tolist(),
-            vmin.tolist(),
-            vmax.tolist(),
-            n.tolist(),
-            values,
-            mean_se.tolist(),
-            se_of_mean.tolist(),
-        )
-    ]
+        out.append(summary)
+    return out
 
 
 @dataclass

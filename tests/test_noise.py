@@ -13,7 +13,13 @@ import pytest
 from allantools import ci as allan_ci
 
 from calib_core.noise import ChannelNoise, NoiseModel, analyse_recording, processes, synthesize, units
-from calib_core.noise.allan import allan_curve, identify_alpha
+from calib_core.noise.allan import (
+    _detrend_linear,
+    _detrended_lag1_acf,
+    _lag1_acf,
+    allan_curve,
+    identify_alpha,
+)
 from calib_core.noise.analysis import find_lines
 from calib_core.noise.fit import Term, fit_allan
 
@@ -86,6 +92,26 @@ def test_noise_id_is_allantools_lag1_algorithm():
         for m in (1, 4, 16):
             expected = allan_ci.autocorr_noise_id(x, m, data_type="freq", dmin=0, dmax=2)[0]
             assert identify_alpha(x, m) == int(np.clip(0 if expected == 1 else expected, -2, 2))
+
+
+def test_lag1_autocorrelation_from_sums_is_that_of_the_detrended_values():
+    # white, random walk, flicker-like, quantized with a trend, a large offset (direct form)
+    rng = np.random.default_rng(8)
+    for k in (32, 33, 1000, 4501):
+        w = rng.normal(size=k)
+        f = np.fft.rfftfreq(k)
+        f[0] = 1.0
+        for z in (
+            w,
+            np.cumsum(w),
+            np.fft.irfft(np.fft.rfft(w) / np.sqrt(f), k),
+            np.round(3 * w) / 3 + 0.01 * np.arange(k),
+            5.0 + 1e-3 * w,
+            (w[: k // 2 * 2].reshape(-1, 2).sum(axis=1)),
+        ):
+            direct = _lag1_acf(_detrend_linear(z))
+            assert _detrended_lag1_acf(z) == pytest.approx(direct, abs=1e-12)
+            assert _detrended_lag1_acf(z[::2]) == pytest.approx(_lag1_acf(_detrend_linear(z[::2])), abs=1e-12)
 
 
 def test_coefficient_intervals_cover_the_truth_seeded():

@@ -108,20 +108,51 @@ def identify_alpha(x: np.ndarray, m: int) -> int | None:
 
 
 def _alpha_of_averages(z: np.ndarray) -> int:
-    """:func:`identify_alpha`'s rule on the m-averages ``z``."""
-    z = _detrend_linear(z)
+    """:func:`identify_alpha`'s rule on the m-averages ``z`` (or the sums of m rates: the
+    rule does not see a scale)."""
+    r1 = _detrended_lag1_acf(z)
     d = 0
     while True:
-        r1 = _lag1_acf(z)
         rho = r1 / (1.0 + r1)
         if rho < 0.25 or d >= 2:
             alpha = int(-1.0 * round(2 * rho) - 2.0 * d)  # half to even, as np.round
             break
-        z = np.diff(z)
+        z = np.diff(_detrend_linear(z) if d == 0 else z)
         d += 1
+        r1 = _lag1_acf(z)
     if alpha == 1:
         alpha = 0
     return min(max(alpha, -2), 2)
+
+
+def _detrended_lag1_acf(z: np.ndarray) -> float:
+    """``_lag1_acf(_detrend_linear(z))`` from z's sums (sum, sum of squares, lag-1 sum of
+    products, sum against the centred index) without forming the detrended values: four
+    passes over z instead of ten. The detrended values w = z - mean - b t (b = t.z / t.t)
+    sum to zero, so w.w = z.z - S^2 / k - b t.z, and their lag-1 sum of products follows
+    from the same sums and the ends z_0, z_(k-1) (t_(i+1) = t_i + 1). The same figure up to
+    rounding; a series whose variance about its trend is under 1e-3 of its sum of squares
+    (a large offset or trend, whose sums would cancel) takes the direct form."""
+    k = z.size
+    if k < 3:
+        return _lag1_acf(_detrend_linear(z))
+    z = np.ascontiguousarray(z)  # every m-th sum: the products below run by BLAS only on a copy
+    t, tt = _centred_index(k)
+    s, q = float(np.add.reduce(z)), float(z @ z)
+    lag, tz = float(z[:-1] @ z[1:]), float(t @ z)
+    mean, b, h = s / k, tz / tt, (k - 1) / 2.0
+    den = q - s * mean - b * tz
+    if not den > 1e-3 * q:
+        return _lag1_acf(_detrend_linear(z))
+    z0, z1 = float(z[0]), float(z[-1])
+    num = (
+        lag
+        - mean * (2.0 * s - z0 - z1)
+        - b * (2.0 * tz + (h + 1.0) * (z0 - z1))
+        + (k - 1) * mean * mean
+        + b * b * (tt - h * h - h)
+    )
+    return num / den
 
 
 @lru_cache(maxsize=1024)
@@ -204,11 +235,11 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
     """:func:`allan_curve` of each column of ``X`` (n samples, k channels) at cluster sizes
     ``m``: the overlapping Allan deviation as ``allantools.oadev`` defines it (from the
     phase, the cumulative sum of the mean-removed rates), each cluster size's noise type by
-    :func:`identify_alpha`'s rule on m-averages taken from the phase, and
-    Greenhall's edf and the chi-square interval of all channels at once. For many short
-    records (a unit's static steps): no allantools call and no BLAS thread limit, whose
-    fixed costs exceed the arithmetic there; one channel at a time (its arrays stay in the
-    core's cache)."""
+    :func:`identify_alpha`'s rule on the sums of m rates taken from the phase (the lag-1
+    autocorrelation does not see their scale: the averages' type; for a power of two m the
+    same bits), and Greenhall's edf and the chi-square interval of all channels at once.
+    For many short records (a unit's static steps): no allantools call and no BLAS thread
+    limit, whose fixed costs exceed the arithmetic there; one channel at a time."""
     X = np.asarray(X, float)
     n, k = X.shape
     m = np.asarray(m, int)
@@ -219,17 +250,13 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
     ms = m.tolist()
     adev = np.empty((k, m.size))
     alpha = np.empty((k, m.size), int)
-    # the phase times the rate (the cumulative sum of the mean-removed rates, from 0); the
-    # sums of m rates, D_m[i] = phase[i + m] - phase[i], give both the overlapping Allan
-    # variance (their differences D_m[i + m] - D_m[i]) and the m-averages the noise type is
-    # identified on (every m-th of them, over m)
-    phase = np.empty(n + 1)
+    # the sums of m rates, D_m[i] = phase[i + m] - phase[i], give both the overlapping Allan
+    # variance (their differences D_m[i + m] - D_m[i]) and the noise type (every m-th of them)
+    phases = _phases(X)
     sums = np.empty(n + 1)
     v = np.empty(n + 1)
     for i in range(k):
-        x = X[:, i]
-        phase[0] = 0.0
-        np.cumsum(x - x.mean(), out=phase[1:])
+        phase = phases[i]
         last, stepped = 0, False
         for j, mj in enumerate(ms):
             cnt = n + 1 - 2 * mj
@@ -240,7 +267,7 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
             adev[i, j] = np.sqrt(np.dot(d, d) / (2.0 * cnt)) / mj
             n_avg = min(n // mj, MAX_NOISE_ID_POINTS)
             if n_avg >= MIN_NOISE_ID_POINTS:
-                last = _alpha_of_averages(d_m[: n_avg * mj : mj] / mj)
+                last = _alpha_of_averages(d_m[: n_avg * mj : mj])
             elif not stepped:  # too few averages to tell: the next redder type, smaller edf
                 last, stepped = max(last - 1, -2), True
             alpha[i, j] = last
@@ -248,3 +275,26 @@ def allan_curves(X: np.ndarray, rate_hz: float, m: np.ndarray) -> list[AllanCurv
     lo, hi = chi2_interval(adev, edf)
     tau = m.astype(float) / rate
     return [AllanCurve(tau, m, adev[i], lo[i], hi[i], edf[i], alpha[i], rate, n) for i in range(k)]
+
+
+def _phases(X: np.ndarray) -> np.ndarray:
+    """(k, n + 1): the phase of each column of ``X`` (n, k) times the rate, the cumulative
+    sum of the mean-removed rates from 0. Two channels at a time as one complex cumulative
+    sum: its real and imaginary parts add separately, so each channel gets its own sums in
+    its own order, and the sequential sum (one dependent addition a sample) costs one
+    channel's time for two."""
+    n, k = X.shape
+    out = np.empty((k, n + 1))
+    out[:, 0] = 0.0
+    both = np.empty(n, np.complex128)
+    for j in range(0, k - 1, 2):
+        x0, x1 = X[:, j], X[:, j + 1]
+        np.subtract(x0, np.add.reduce(x0) / n, out=both.real)  # x0 - x0.mean()
+        np.subtract(x1, np.add.reduce(x1) / n, out=both.imag)
+        np.cumsum(both, out=both)
+        out[j, 1:] = both.real
+        out[j + 1, 1:] = both.imag
+    if k % 2:
+        x = X[:, -1]
+        np.cumsum(x - np.add.reduce(x) / n, out=out[-1, 1:])
+    return out

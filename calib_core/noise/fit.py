@@ -116,16 +116,34 @@ def _normal_quantile(q: float) -> float:
 
 def coefficient_interval(c: float, se: float, level: float = COEFFICIENT_CONFIDENCE) -> tuple[float, float]:
     """Interval of sqrt(c) for a squared coefficient c with standard error se."""
-    if not np.isfinite(se) or se <= 0:
-        v = float(np.sqrt(max(c, 0.0)))
-        return v, v
+    lo, hi = coefficient_intervals(np.array([c], float), np.array([se], float), level)
+    return float(lo[0]), float(hi[0])
+
+
+def coefficient_intervals(
+    c: np.ndarray, se: np.ndarray, level: float = COEFFICIENT_CONFIDENCE
+) -> tuple[np.ndarray, np.ndarray]:
+    """Intervals (lo, hi) of sqrt(c) for squared coefficients c with standard errors se
+    (arrays of one shape): c as a scaled chi-square with 2 c^2 / se^2 degrees of freedom;
+    within z standard errors of zero, c +- z se cut at zero; sqrt(c) itself without a
+    standard error."""
+    c, se = np.asarray(c, float), np.asarray(se, float)
     z = _normal_quantile((1.0 + level) / 2.0)
-    if c <= z * se:  # not distinguishable from zero: a two-sided normal interval cut at zero
-        return float(np.sqrt(max(c - z * se, 0.0))), float(np.sqrt(c + z * se))
-    nu = 2.0 * c * c / (se * se)
-    lo = c * nu / chi2_ppf((1.0 + level) / 2.0, nu)
-    hi = c * nu / chi2_ppf((1.0 - level) / 2.0, nu)
-    return float(np.sqrt(lo)), float(np.sqrt(hi))
+    lo = np.sqrt(np.maximum(c, 0.0))
+    hi = lo.copy()
+    known = np.isfinite(se) & (se > 0)
+    zse = z * np.where(known, se, 0.0)
+    near = known & (c <= zse)  # not distinguishable from zero: a normal interval cut at zero
+    if near.any():
+        lo[near] = np.sqrt(np.maximum(c[near] - zse[near], 0.0))
+        hi[near] = np.sqrt(c[near] + zse[near])
+    far = known & ~near
+    if far.any():
+        cf, sf = c[far], se[far]
+        nu = 2.0 * cf * cf / (sf * sf)
+        lo[far] = np.sqrt(cf * nu / chi2_ppf((1.0 + level) / 2.0, nu))
+        hi[far] = np.sqrt(cf * nu / chi2_ppf((1.0 - level) / 2.0, nu))
+    return lo, hi
 
 
 def _design(terms, tau, rate_hz):
@@ -247,7 +265,7 @@ def fit_allan_stack(curves: list[AllanCurve], terms: tuple[Term, ...]) -> list[A
     for _ in range(REWEIGHT_ITERATIONS):
         W = _whitener(model, edf, r)
         A = W @ X
-        scale = np.linalg.norm(A, axis=-2)
+        scale = np.sqrt(np.add.reduce(A * A, axis=-2))  # np.linalg.norm's own sum
         scale[scale == 0] = 1.0
         y_w = np.einsum("bij,bj->bi", W, avar)
         c_new = nnls_stack(A / scale[:, None, :], y_w) / scale
@@ -268,23 +286,13 @@ def fit_allan_stack(curves: list[AllanCurve], terms: tuple[Term, ...]) -> list[A
     c_se = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
     adev_model = np.sqrt(model)
     e = np.einsum("bij,bj->bi", W, avar - model)
-    fits = []
-    for i, cv in enumerate(curves):
-        within = float(np.mean((adev_model[i] >= cv.adev_lo) & (adev_model[i] <= cv.adev_hi)))
-        fits.append(
-            AllanFit(
-                tuple(terms),
-                c[i],
-                c_se[i],
-                model[i],
-                float(e[i] @ e[i]),
-                int(tau.size - int(np.sum(c[i] > 0))),
-                within,
-                (),
-                r[i],
-            )
-        )
-    return fits
+    lo, hi = np.array([cv.adev_lo for cv in curves]), np.array([cv.adev_hi for cv in curves])
+    within = np.mean((adev_model >= lo) & (adev_model <= hi), axis=1).tolist()
+    dof = (tau.size - np.sum(c > 0, axis=1)).tolist()
+    return [
+        AllanFit(tuple(terms), c[i], c_se[i], model[i], float(e[i] @ e[i]), dof[i], within[i], (), r[i])
+        for i in range(len(curves))
+    ]
 
 
 def model_avar(fit: AllanFit, tau: np.ndarray, rate_hz: float) -> np.ndarray:
