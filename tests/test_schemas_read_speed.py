@@ -17,7 +17,7 @@ import pytest
 from calib_core.sim import protocols
 from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
-from schemas import averaging
+from schemas import averaging, segments
 from schemas.averaging import average_session, read_step_means
 from schemas.dataset import SessionRef
 from schemas.errors import E_NONFINITE_VALUE, SessionError
@@ -315,8 +315,8 @@ def test_settling_search_equals_the_rule_on_every_sample(seed):
     pick = np.minimum(rng.integers(0, 45, n_runs), lengths - 1)
     offset = t[start + pick] - t0
     threshold = offset * rng.choice([1.0, 1 - 1e-16, 1 + 1e-16, 0.0, 10.0], n_runs) - 1e-6
-    exact = averaging._settled_per_sample(t, start, end, t0, threshold)
-    found = averaging._settled_from(t, start, end, t0, threshold)
+    exact = segments.settled_per_sample(t, start, end, t0, threshold)
+    found = segments.settled_from(t, start, end, t0, threshold)
     if found is not None:
         np.testing.assert_array_equal(found, exact)
     for r in range(n_runs):  # the exact answer is the rule's suffix
@@ -327,10 +327,9 @@ def test_settling_search_equals_the_rule_on_every_sample(seed):
 def test_settling_fallback_gives_the_same_step_means(monkeypatch):
     """With the search given no moves (every sample evaluated) the results are identical."""
     steps, samples, md = _simulate(43, temperature=True)
-    data = session_from_tables(KEY, steps, samples, md)
-    fast, w_fast = average_session(data, min_samples=2)
-    monkeypatch.setattr(averaging, "SETTLE_SEARCH_STEPS", 0)
-    slow, w_slow = average_session(data, min_samples=2)
+    fast, w_fast = average_session(session_from_tables(KEY, steps, samples, md), min_samples=2)
+    monkeypatch.setattr(segments, "SETTLE_SEARCH_STEPS", 0)
+    slow, w_slow = average_session(session_from_tables(KEY, steps, samples, md), min_samples=2)
     assert [str(w) for w in w_fast] == [str(w) for w in w_slow]
     for f in ("step", "gyro", "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c"):
         np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
