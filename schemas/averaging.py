@@ -45,9 +45,9 @@ The saturation rules need per-sample work only when a channel's kept extreme rea
 declared full scale, or is repeated at least ``CLIP_MIN_REPEATS`` times in the whole session,
 or the session has no sample left: otherwise no step can be saturated, which a bound from the
 steps' means and deviations (no sample beyond ``|mean| + sqrt(sum of squared deviations)``),
-or else the session's extremes per channel (reduced over the kept segments when that sample
-was left out) and one comparison per channel show (:func:`_may_saturate`). The boolean mask of
-kept samples is built only when the exact rules run.
+or else each channel's kept extremes (one ``reduceat`` over the kept segments a side) and
+their repeats counted in the segments that hold them show (:func:`_may_saturate`). The
+boolean mask of kept samples is built only when the exact rules run.
 """
 
 from __future__ import annotations
@@ -418,36 +418,35 @@ def _may_saturate(
     """False when :func:`_saturation`'s rules cannot find a saturated step in these channels
     (``x`` (k, n) all samples, ``bounds`` the kept segments as given to reduceat:
     ``[s0, e0, s1, e1, ...]``): no kept sample reaches the full scale, and every kept extreme
-    that the clip rule looks at occurs fewer than ``CLIP_MIN_REPEATS`` times in the whole
-    session (an upper bound of its repeats in any one step, which must reach
+    that the clip rule looks at occurs fewer than ``CLIP_MIN_REPEATS`` times among the kept
+    samples (an upper bound of its repeats in any one step, which must reach
     ``max(CLIP_MIN_REPEATS, ...)``).
 
-    A channel's kept extreme is its session extreme when that sample is kept (the usual
-    case: it lies inside a segment, i.e. an odd number of bounds lie at or before it), else
-    it is reduced over the kept segments. ``reach`` (k,): an upper bound of every kept
-    sample's ``|x|`` per channel (:func:`_kept_reach`): a channel whose bound is below both the
-    full scale and the clip rule's least value is not looked at further."""
+    A channel's kept extremes are reduced over the kept segments (one ``reduceat`` a side);
+    its kept samples equal to an extreme lie in the segments whose extreme it is, counted
+    there. ``reach`` (k,): an upper bound of every kept sample's ``|x|`` per channel
+    (:func:`_kept_reach`): a channel whose bound is below both the full scale and the clip
+    rule's least value is not looked at further."""
+    starts = bounds[0::2]
+    ends = np.append(bounds[1::2], x.shape[1]) if len(bounds) % 2 else bounds[1::2]
     for j in range(len(x)):
         fs = np.inf if full_scale is None else float(full_scale[j])
         min_look = 0.0 if full_scale is None else CLIP_MIN_OF_FULL_SCALE * fs
         if reach is not None and full_scale is not None and reach[j] < min(min_look, fs):
             continue  # no kept sample comes near full scale, nor near half of it
-        for sign, arg, red in ((1.0, np.argmax, np.maximum), (-1.0, np.argmin, np.minimum)):
-            at = int(arg(x[j]))
-            extreme = sign * x[j, at]  # the session's: bounds the kept samples' from above
-            if extreme < fs and (extreme < min_look or extreme <= 0):
-                continue  # neither full scale nor the clip rule can concern this side
-            if np.searchsorted(bounds, at, side="right") % 2 == 0:  # a left-out sample
-                seg = red.reduceat(x[j], bounds)[0::2]
-                extreme = sign * (seg.max() if sign > 0 else seg.min())
+        for sign, red in ((1.0, np.maximum), (-1.0, np.minimum)):
+            seg_extreme = red.reduceat(x[j], bounds)[0::2]  # each kept segment's
+            value = seg_extreme.max() if sign > 0 else seg_extreme.min()
+            extreme = sign * value
             if extreme >= fs:
                 return True
-            if (
-                extreme >= min_look
-                and extreme > 0
-                and np.count_nonzero(x[j] == sign * extreme) >= CLIP_MIN_REPEATS
-            ):
-                return True
+            if extreme < min_look or extreme <= 0:
+                continue  # the clip rule does not look at this side
+            repeats = 0
+            for k in np.flatnonzero(seg_extreme == value):
+                repeats += np.count_nonzero(x[j, starts[k] : ends[k]] == value)
+                if repeats >= CLIP_MIN_REPEATS:
+                    return True
     return False
 
 

@@ -515,7 +515,7 @@ def _validate_samples(
             column="step",
             step=int(unknown[0]),
         )
-    _check_one_run_per_step(step, run_start, label, file)
+    _check_one_run_per_step(step, run_start, label, file, run_row)
     step = np.array(step, dtype=np.int32)  # own, writable copy (the Arrow buffer is read-only)
     step_row = np.repeat(run_row, run_len)
 
@@ -609,10 +609,17 @@ def _check_times(t: np.ndarray, t_col: pa.ChunkedArray, step: np.ndarray, label:
         )
 
 
-def _check_one_run_per_step(step: np.ndarray, run_start: np.ndarray, label: str, file: str) -> None:
+def _check_one_run_per_step(
+    step: np.ndarray, run_start: np.ndarray, label: str, file: str, run_row: np.ndarray | None = None
+) -> None:
     """E_STEP_NOT_CONTIGUOUS when a step's samples are not one run in time: its id reappears
     after another step's samples (samples of no step, id -1, between two parts of a step do
-    not count as another step)."""
+    not count as another step). ``run_row``: each run's steps-table row (-1 between steps),
+    when known: a session whose steps each have one run passes without a sort."""
+    if run_row is not None:
+        rows = run_row[run_row >= 0]
+        if len(rows) < 2 or np.bincount(rows).max() == 1:
+            return
     ids = step[run_start]
     keep = ids != -1
     ids, starts = ids[keep], run_start[keep]

@@ -355,3 +355,32 @@ def test_one_stat_answers_missing_not_regular_and_empty(tmp_path):
             reader._open(path, "s")
         assert info.value.code == code
     assert reader._stat(tmp_path / "a\0b") is None  # as Path.exists: False, no error
+
+
+@pytest.mark.parametrize("seed", [44, 45])
+def test_kept_reach_bounds_every_kept_sample(seed):
+    """The saturation pre-check's bound from the steps' means and squared deviations is at
+    least the largest |x| of the samples the settling rule keeps (pandas' selection), also
+    with large offsets and a lone spike, and not far above it on a calm channel."""
+    steps, samples, md = _simulate(seed)
+    rng = np.random.default_rng(seed)
+    s = samples.copy()
+    s["gz"] = 3600.0 + rng.normal(0, 1e-3, len(s))  # a large mean, tiny deviations
+    s.loc[s.index[s["step"] == int(steps["step"].iloc[4])][-1], "ax"] = 7.5  # one kept spike
+    for c in ("gz", "ax"):
+        s[c] = s[c].astype(np.float64)
+    data = session_from_tables(KEY, steps, s, md)
+    sm, _ = average_session(data, min_samples=2)
+    settle = dict(zip(steps["step"], steps["settle_s"]))
+    kept = []
+    for step_id, g in s[s["step"] != -1].groupby("step"):
+        kept.append(g[g["t"] - g["t"].iloc[0] >= settle[step_id] - 1e-6])
+    kept = pd.concat(kept)
+    x = np.stack([kept[c].to_numpy(np.float64) for c in CHANNELS])
+    mean = np.concatenate([sm.gyro.T, sm.accel.T])
+    std = np.concatenate([sm.gyro_std.T, sm.accel_std.T])
+    sq_dev = std**2 * (sm.count - 1)
+    reach = averaging._kept_reach(mean, sq_dev)
+    largest = np.abs(x).max(axis=1)
+    assert (reach >= largest).all()
+    assert reach[2] < 3600.1  # gz: the offset and a few noise sd, not a multiple of it
