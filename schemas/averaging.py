@@ -242,11 +242,15 @@ def average_session(data: SessionData, min_samples: int = 10) -> tuple[StepMeans
     if n_seg:
         mean, ss = _moments(x, seg, piece_sums)
         std[:, ok] = np.sqrt(ss[:, ok] / (count[ok] - 1))
-        reach = _kept_reach(mean[:, count > 0], ss[:, count > 0])
+        reach = _kept_reach(mean, ss)
         t_lo = np.full(n_steps, np.inf)
         t_hi = np.full(n_steps, -np.inf)
-        np.minimum.at(t_lo, s_row, t[s_start])
-        np.maximum.at(t_hi, s_row, t[s_end - 1])
+        if seg.unique:  # one segment per step: a plain scatter
+            t_lo[s_row] = t[s_start]
+            t_hi[s_row] = t[s_end - 1]
+        else:
+            np.minimum.at(t_lo, s_row, t[s_start])
+            np.maximum.at(t_hi, s_row, t[s_end - 1])
         t_mid[count > 0] = (t_lo[count > 0] + t_hi[count > 0]) / 2.0
         if data.temp_c is not None:
             unique = seg.unique
@@ -401,15 +405,13 @@ REACH_MARGIN = 1e-6
 
 def _kept_reach(mean: np.ndarray, sq_dev: np.ndarray) -> np.ndarray:
     """(k,) an upper bound of ``|x|`` over every kept sample of each channel, from its steps'
-    means and sums of squared deviations (k, steps with samples): a sample is no farther from
-    its step's mean than the root of the sum of squares it is one term of, so
-    ``|x| <= |mean| + sqrt(sum)`` (with a margin for rounding; NaN when a sum is not
-    finite, which no comparison passes)."""
-    if mean.shape[1] == 0:
-        return np.full(len(mean), np.nan)
+    means and sums of squared deviations (k, steps; a step without kept samples has both 0):
+    a sample is no farther from its step's mean than the root of the sum of squares it is
+    one term of, so ``|x| <= |mean| + sqrt(sum)`` (with a margin for rounding; NaN or
+    infinite when a sum is, which no comparison passes)."""
     with np.errstate(over="ignore", invalid="ignore"):
         bound = (np.abs(mean) + np.sqrt(sq_dev) * (1.0 + REACH_MARGIN)) * (1.0 + REACH_MARGIN)
-        return np.where(np.isfinite(bound).all(axis=1), bound.max(axis=1), np.nan)
+        return bound.max(axis=1)
 
 
 def _may_saturate(

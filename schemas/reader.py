@@ -31,6 +31,7 @@ handed to the averaging (``SessionData.step_row``, ``SessionData.segments``).
 from __future__ import annotations
 
 import errno
+import math
 import os
 import re
 import stat
@@ -555,7 +556,7 @@ def _validate_samples(
         if not np.isfinite(piece_sums).all():
             piece_sums = None
     temp = None
-    if "temp_c" in table.schema.names:
+    if table.schema.get_field_index("temp_c") >= 0:
         temp = _floats(table.column("temp_c"))  # NaN / null = not recorded for that sample
         if np.isinf(temp).any():
             i, s = _first_bad(np.isinf(temp), step)
@@ -682,7 +683,7 @@ def pool_empty(shape: tuple[int, ...]) -> np.ndarray:
     malloc: glibc hands the ~1.7 MB arrays of a session back to the kernel when they are
     freed and page-faults them in again for the next session (~850 minor faults, 1-3 ms of
     system CPU per session, measured); the pool keeps freed pages for reuse."""
-    size = int(np.prod(shape)) * 8
+    size = math.prod(shape) * 8
     return np.frombuffer(pa.allocate_buffer(size), np.float64).reshape(shape)
 
 
