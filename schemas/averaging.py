@@ -30,25 +30,24 @@ Steps left out, each named in a :class:`SessionWarning`:
 
 Speed (docs/benchmarks.md): the steps table's columns come from the reader
 (``SessionData.step_columns``, taken out of pandas once per distinct steps file), the sample ->
-step index too (``SessionData.step_row``), and the six channels as one ``(6, n)`` array
-(``SessionData.channels``). The samples of a step are contiguous runs, so every per-step
-quantity is computed per *segment* (a maximal run of kept samples of one step; one segment per
-step in the usual file) with ``np.add.reduceat`` over the segment boundaries, one call for all
-six channels, and segments are added up per step only when a step has several. The settling
-rule is the same comparison as ever (``t - t0 >= settle_s - tolerance``, per sample); as ``t``
-is strictly increasing its kept samples are a suffix of each run of a step, found per run
-(``searchsorted`` and the exact rule at the boundary, :func:`_settled_from`; docs/benchmarks.md)
-instead of over all samples, and the segments are those suffixes.
-Means and standard deviations are two-pass as before; the sums are ``reduceat``'s (pairwise)
-instead of ``bincount``'s (sequential), which changes results by rounding only (a few ulp).
-The deviations are formed one channel at a time (n floats stay in the core's cache through
-subtract, square and sum; the same operations on the same values, so the same bits).
+step index too (``SessionData.step_row``), the six channels as one ``(6, n)`` array
+(``SessionData.channels``), the kept segments (``SessionData.segments``,
+:mod:`schemas.segments`: each step's runs of samples without their settling part, found per
+run, not per sample) and the channels' sums over them (``SessionData.piece_sums``: the
+reader's finiteness check is that sum). Every per-step quantity is computed per segment
+with ``np.add.reduceat`` over the segment boundaries and added up per step only when a step
+has several segments. Means and standard deviations are two-pass; the sums are ``reduceat``'s
+(pairwise) instead of ``bincount``'s (sequential), which changes results by rounding only (a
+few ulp). The deviations are formed one channel at a time (n floats stay in the core's cache
+through subtract, square and sum). Where the reader's forms are missing or stale (a
+``SessionData`` built or replaced by hand) they are derived here, with the same bits.
 The saturation rules need per-sample work only when a channel's kept extreme reaches the
 declared full scale, or is repeated at least ``CLIP_MIN_REPEATS`` times in the whole session,
-or the session has no sample left: otherwise no step can be saturated, which the session's
-extremes per channel (reduced over the kept segments when that sample was left out) and one
-comparison per channel show (:func:`_may_saturate`). The boolean mask of kept samples is built
-only when the exact rules run.
+or the session has no sample left: otherwise no step can be saturated, which a bound from the
+steps' means and deviations (no sample beyond ``|mean| + sqrt(sum of squared deviations)``),
+or else each channel's kept extremes (one ``reduceat`` over the kept segments a side) and
+their repeats counted in the segments that hold them show (:func:`_may_saturate`). The
+boolean mask of kept samples is built only when the exact rules run.
 """
 
 from __future__ import annotations
@@ -77,9 +76,8 @@ from schemas.errors import (
     SessionWarning,
 )
 from schemas.reader import SessionData, StepColumns, read_session, session_from_tables
+from schemas.segments import Segments, kept_segments, per_step, runs
 
-SETTLE_TOLERANCE_S = 1e-6  # t - t0 of a sample exactly at settle_s may round to 0.4999999
-SETTLE_SEARCH_STEPS = 8  # moves of the settling estimate before every sample is evaluated
 CLIP_MIN_REPEATS = 3
 CLIP_MIN_FRACTION = 0.01
 CLIP_MIN_OF_FULL_SCALE = 0.5
@@ -135,28 +133,6 @@ def _describe(cols: StepColumns, i: int) -> str:
     return (
         f"step {int(cols.step[i])} ({cols.test[i]}, {cols.up_axis[i]} up, {float(cols.rate_dps[i]):g} deg/s)"
     )
-
-
-def _runs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(start, end, value) of each run of equal ``values`` (end exclusive)."""
-    n = len(values)
-    if n == 0:
-        empty = np.zeros(0, np.intp)
-        return empty, empty, values[:0]
-    change = np.flatnonzero(values[1:] != values[:-1]) + 1
-    starts = np.concatenate(([0], change))
-    ends = np.concatenate((change, [n]))
-    return starts, ends, values[starts]
-
-
-def _per_step(values: np.ndarray, rows: np.ndarray, n_steps: int, unique: bool) -> np.ndarray:
-    """Per-segment ``values`` (..., R) added up per step row -> (..., n_steps), 0 where none."""
-    out = np.zeros(values.shape[:-1] + (n_steps,), values.dtype)
-    if unique:  # one segment per step (the usual file): a plain scatter
-        out[..., rows] = values
-    else:
-        np.add.at(out, (..., rows), values)
-    return out
 
 
 def _saturation(
@@ -230,50 +206,6 @@ def _saturation(
     return saturated, why
 
 
-def _settled_from(
-    t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray, threshold: np.ndarray
-) -> np.ndarray:
-    """First sample of each run ``[start, end)`` that the settling rule keeps (``end`` when
-    none): the first ``i`` with ``t[i] - t0 >= threshold``, evaluated exactly as per sample.
-
-    ``t`` is strictly increasing, so ``t[i] - t0`` (rounded) never decreases along a run and
-    the kept samples of a run are a suffix of it. ``searchsorted(t, t0 + threshold)`` finds
-    where that suffix starts up to the rounding of ``t0 + threshold``; the exact rule then
-    moves each estimate back while the sample before it is kept and on while it is not
-    (usually no step at all). Returns None when that takes more than a few steps (samples
-    closer than the rounding; never in recorded data): the caller evaluates every sample."""
-    pos = np.searchsorted(t, t0 + threshold)
-    np.clip(pos, start, end, out=pos)
-    for _ in range(SETTLE_SEARCH_STEPS):
-        back = pos > start
-        back[back] = t[pos[back] - 1] - t0[back] >= threshold[back]
-        if not back.any():
-            break
-        pos -= back
-    else:
-        return None
-    for _ in range(SETTLE_SEARCH_STEPS):
-        on = pos < end
-        on[on] = ~(t[pos[on]] - t0[on] >= threshold[on])
-        if not on.any():
-            return pos
-        pos += on
-    return None
-
-
-def _settled_per_sample(
-    t: np.ndarray, start: np.ndarray, end: np.ndarray, t0: np.ndarray, threshold: np.ndarray
-) -> np.ndarray:
-    """:func:`_settled_from` by evaluating the rule on every sample of every run."""
-    n_runs = len(start)
-    lengths = end - start
-    run_of = np.repeat(np.arange(n_runs), lengths)
-    sample = np.concatenate([np.arange(a, b) for a, b in zip(start, end)]) if n_runs else start
-    keep = t[sample] - t0[run_of] >= threshold[run_of]
-    # the kept samples of a run are a suffix: its start is the end minus their number
-    return end - np.bincount(run_of, keep, minlength=n_runs).astype(np.intp)
-
-
 def _kept_mask(n: int, s_start: np.ndarray, s_end: np.ndarray) -> np.ndarray:
     """(n,) bool, True on the samples of the segments ``[s_start, s_end)``."""
     edges = np.empty(2 * len(s_start) + 1, np.intp)
@@ -291,79 +223,42 @@ def average_session(data: SessionData, min_samples: int = 10) -> tuple[StepMeans
     cols = _columns(data)
     n_steps = len(cols.step)
     meta = data.meta
-    idx_all = _step_index(data)
     t = data.t
     n = len(t)
     x = _channels(data)
-
-    # runs of samples of one step: samples per step and each step's first sample time (t is
-    # strictly increasing, so a step's first sample starts one of its runs)
-    r_start, r_end, r_row = _runs(idx_all)
-    in_step = r_row >= 0
-    r_start, r_end, r_row = r_start[in_step], r_end[in_step], r_row[in_step]
-    runs_unique = len(r_row) == 0 or np.bincount(r_row).max() == 1  # one run per step
-    n_any = _per_step(r_end - r_start, r_row, n_steps, runs_unique)
-    t0 = np.full(n_steps, np.inf)
-    if runs_unique:
-        t0[r_row] = t[r_start]
-    else:
-        np.minimum.at(t0, r_row, t[r_start])
-    # settling: kept where t - t0 >= settle_s - tolerance, a suffix of each run
+    seg = _segments(data, cols)
+    piece_sums = data.piece_sums if seg is data.segments and x is data.channels else None
     settle = cols.settle_s
-    r_t0 = t0[r_row]
-    r_thr = (settle - SETTLE_TOLERANCE_S)[r_row]
-    kept_from = _settled_from(t, r_start, r_end, r_t0, r_thr)
-    if kept_from is None:
-        kept_from = _settled_per_sample(t, r_start, r_end, r_t0, r_thr)
-    # segments: the kept part of each run (runs are maximal: adjacent ones are other steps)
-    is_seg = kept_from < r_end
-    s_start, s_end, s_row = kept_from[is_seg], r_end[is_seg], r_row[is_seg]
-    n_seg = len(s_row)
-    count = _per_step((s_end - s_start).astype(np.int64), s_row, n_steps, runs_unique)
-    unique = runs_unique or n_seg == np.count_nonzero(count)
-    safe = np.maximum(count, 1)
+    n_any, count, s_start, s_end, s_row = seg.n_any, seg.count, seg.s_start, seg.s_end, seg.s_row
+    n_seg = seg.n_seg
+    bounds = seg.bounds
     ok = count > 1
 
     mean = np.zeros((6, n_steps))
     std = np.full((6, n_steps), np.nan)
     t_mid = np.full(n_steps, np.nan)
     temp = np.full(n_steps, np.nan)
+    reach = np.full(6, np.nan)  # no bound: every channel looked at
     if n_seg:
-        # reduceat over [s0, e0, s1, e1, ...]: even entries are the segments' sums (odd ones
-        # the gaps between them, discarded); an index may not be n, and the last segment
-        # runs to the end anyway
-        bounds = np.empty(2 * n_seg, np.intp)
-        bounds[0::2] = s_start
-        bounds[1::2] = s_end
-        if bounds[-1] == n:
-            bounds = bounds[:-1]
-        mean = _per_step(np.add.reduceat(x, bounds, axis=1)[:, 0::2], s_row, n_steps, unique) / safe
-        # two-pass: deviations from the step's mean (no cancellation on large means); the
-        # mean is spread over the pieces [0, b0), [b0, b1), ... that reduceat sums
-        piece_mean = np.zeros((6, len(bounds) + 1))
-        piece_mean[:, 1::2] = mean[:, s_row]
-        piece_len = np.diff(np.concatenate(([0], bounds, [n])))
-        # one channel at a time: its deviations (n floats) stay in the core's cache between
-        # the subtract, the square and the sums (all six, 6n floats, do not)
-        seg_ss = np.empty((6, n_seg))
-        for j in range(6):
-            dev = np.repeat(piece_mean[j], piece_len)
-            np.subtract(x[j], dev, out=dev)
-            np.multiply(dev, dev, out=dev)
-            seg_ss[j] = np.add.reduceat(dev, bounds)[0::2]
-        ss = _per_step(seg_ss, s_row, n_steps, unique)
+        mean, ss = _moments(x, seg, piece_sums)
         std[:, ok] = np.sqrt(ss[:, ok] / (count[ok] - 1))
+        reach = _kept_reach(mean, ss)
         t_lo = np.full(n_steps, np.inf)
         t_hi = np.full(n_steps, -np.inf)
-        np.minimum.at(t_lo, s_row, t[s_start])
-        np.maximum.at(t_hi, s_row, t[s_end - 1])
+        if seg.unique:  # one segment per step: a plain scatter
+            t_lo[s_row] = t[s_start]
+            t_hi[s_row] = t[s_end - 1]
+        else:
+            np.minimum.at(t_lo, s_row, t[s_start])
+            np.maximum.at(t_hi, s_row, t[s_end - 1])
         t_mid[count > 0] = (t_lo[count > 0] + t_hi[count > 0]) / 2.0
         if data.temp_c is not None:
+            unique = seg.unique
             finite = np.isfinite(data.temp_c)
             s_t = np.add.reduceat(np.where(finite, data.temp_c, 0.0), bounds)[0::2]
             n_t = np.add.reduceat(finite, bounds, dtype=np.int64)[0::2]
-            s_t = _per_step(s_t, s_row, n_steps, unique)
-            n_t = _per_step(n_t, s_row, n_steps, unique)
+            s_t = per_step(s_t, s_row, n_steps, unique)
+            n_t = per_step(n_t, s_row, n_steps, unique)
             temp = np.where(n_t > 0, s_t / np.maximum(n_t, 1), np.nan)
 
     g_fs = (
@@ -382,11 +277,11 @@ def average_session(data: SessionData, min_samples: int = 10) -> tuple[StepMeans
         (slice(0, 3), g_fs, GYRO_COLUMNS, meta.gyro_unit),
         (slice(3, 6), a_fs, ACCEL_COLUMNS, meta.accel_unit),
     ):
-        if n_seg and _may_saturate(x[rows], bounds, fs):
+        if n_seg and _may_saturate(x[rows], bounds, fs, reach[rows]):
             # the exact rules on the kept samples (rare: clipping or full scale in sight)
             if kept_idx is None:
                 keep = _kept_mask(n, s_start, s_end)
-                kept_idx = idx_all[keep]
+                kept_idx = _step_index(data)[keep]
             kept = [np.ascontiguousarray(x[j])[keep] for j in range(6)[rows]]
             sat[rows.start] = _saturation(kept, kept_idx, count, n_steps, fs, names, unit)
         else:
@@ -466,36 +361,94 @@ def average_session(data: SessionData, min_samples: int = 10) -> tuple[StepMeans
     return sm.select(usable), warnings
 
 
-def _may_saturate(x: np.ndarray, bounds: np.ndarray, full_scale: np.ndarray | None) -> bool:
+def _segments(data: SessionData, cols: StepColumns) -> Segments:
+    """The reader's segments of the session when it handed them over with its sample -> step
+    index, else derived here."""
+    if data.segments is not None and data.step_row is not None:
+        return data.segments
+    r_start, r_end, r_row = runs(_step_index(data))
+    return kept_segments(data.t, r_start, r_end, r_row, cols.settle_s, len(cols.step))
+
+
+def _moments(x: np.ndarray, seg: Segments, piece_sums: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, sum of squared deviations) (6, n_steps) of the channels ``x`` (6, n) over the
+    kept segments (at least one). ``piece_sums``: ``x`` summed over ``seg.pieces`` (the
+    reader's, else summed here)."""
+    bounds, s_row, n_steps, unique = seg.bounds, seg.s_row, seg.n_steps, seg.unique
+    safe = np.maximum(seg.count, 1)
+    if piece_sums is not None:  # the segments are the odd pieces
+        seg_sums = piece_sums[:, 1::2]
+    else:
+        # reduceat over [s0, e0, s1, e1, ...]: even entries are the segments' sums (odd ones
+        # the gaps between them, discarded)
+        seg_sums = np.add.reduceat(x, bounds, axis=1)[:, 0::2]
+    mean = per_step(seg_sums, s_row, n_steps, unique) / safe
+    # two-pass: deviations from the step's mean (no cancellation on large means); the
+    # mean is spread over the pieces [0, b0), [b0, b1), ... that reduceat sums
+    piece_mean = np.zeros((6, len(bounds) + 1))
+    piece_mean[:, 1::2] = mean[:, s_row]
+    # one channel at a time: its deviations (n floats) stay in the core's cache between
+    # the subtract, the square and the sums (all six, 6n floats, do not)
+    seg_ss = np.empty((6, seg.n_seg))
+    for j in range(6):
+        dev = np.repeat(piece_mean[j], seg.piece_len)
+        np.subtract(x[j], dev, out=dev)
+        np.multiply(dev, dev, out=dev)
+        seg_ss[j] = np.add.reduceat(dev, bounds)[0::2]
+    return mean, per_step(seg_ss, s_row, n_steps, unique)
+
+
+# the bound's margin for rounding: relative errors of the computed mean, deviations and sum of
+# squares (at most (count + 2) ulp: 2.2e-7 for a billion samples) and of the bound itself
+REACH_MARGIN = 1e-6
+
+
+def _kept_reach(mean: np.ndarray, sq_dev: np.ndarray) -> np.ndarray:
+    """(k,) an upper bound of ``|x|`` over every kept sample of each channel, from its steps'
+    means and sums of squared deviations (k, steps; a step without kept samples has both 0):
+    a sample is no farther from its step's mean than the root of the sum of squares it is
+    one term of, so ``|x| <= |mean| + sqrt(sum)`` (with a margin for rounding; NaN or
+    infinite when a sum is, which no comparison passes)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        bound = (np.abs(mean) + np.sqrt(sq_dev) * (1.0 + REACH_MARGIN)) * (1.0 + REACH_MARGIN)
+        return bound.max(axis=1)
+
+
+def _may_saturate(
+    x: np.ndarray, bounds: np.ndarray, full_scale: np.ndarray | None, reach: np.ndarray | None = None
+) -> bool:
     """False when :func:`_saturation`'s rules cannot find a saturated step in these channels
     (``x`` (k, n) all samples, ``bounds`` the kept segments as given to reduceat:
     ``[s0, e0, s1, e1, ...]``): no kept sample reaches the full scale, and every kept extreme
-    that the clip rule looks at occurs fewer than ``CLIP_MIN_REPEATS`` times in the whole
-    session (an upper bound of its repeats in any one step, which must reach
+    that the clip rule looks at occurs fewer than ``CLIP_MIN_REPEATS`` times among the kept
+    samples (an upper bound of its repeats in any one step, which must reach
     ``max(CLIP_MIN_REPEATS, ...)``).
 
-    A channel's kept extreme is its session extreme when that sample is kept (the usual
-    case: it lies inside a segment, i.e. an odd number of bounds lie at or before it), else
-    it is reduced over the kept segments."""
+    A channel's kept extremes are reduced over the kept segments (one ``reduceat`` a side);
+    its kept samples equal to an extreme lie in the segments whose extreme it is, counted
+    there. ``reach`` (k,): an upper bound of every kept sample's ``|x|`` per channel
+    (:func:`_kept_reach`): a channel whose bound is below both the full scale and the clip
+    rule's least value is not looked at further."""
+    starts = bounds[0::2]
+    ends = np.append(bounds[1::2], x.shape[1]) if len(bounds) % 2 else bounds[1::2]
     for j in range(len(x)):
         fs = np.inf if full_scale is None else float(full_scale[j])
         min_look = 0.0 if full_scale is None else CLIP_MIN_OF_FULL_SCALE * fs
-        for sign, arg, red in ((1.0, np.argmax, np.maximum), (-1.0, np.argmin, np.minimum)):
-            at = int(arg(x[j]))
-            extreme = sign * x[j, at]  # the session's: bounds the kept samples' from above
-            if extreme < fs and (extreme < min_look or extreme <= 0):
-                continue  # neither full scale nor the clip rule can concern this side
-            if np.searchsorted(bounds, at, side="right") % 2 == 0:  # a left-out sample
-                seg = red.reduceat(x[j], bounds)[0::2]
-                extreme = sign * (seg.max() if sign > 0 else seg.min())
+        if reach is not None and full_scale is not None and reach[j] < min(min_look, fs):
+            continue  # no kept sample comes near full scale, nor near half of it
+        for sign, red in ((1.0, np.maximum), (-1.0, np.minimum)):
+            seg_extreme = red.reduceat(x[j], bounds)[0::2]  # each kept segment's
+            value = seg_extreme.max() if sign > 0 else seg_extreme.min()
+            extreme = sign * value
             if extreme >= fs:
                 return True
-            if (
-                extreme >= min_look
-                and extreme > 0
-                and np.count_nonzero(x[j] == sign * extreme) >= CLIP_MIN_REPEATS
-            ):
-                return True
+            if extreme < min_look or extreme <= 0:
+                continue  # the clip rule does not look at this side
+            repeats = 0
+            for k in np.flatnonzero(seg_extreme == value):
+                repeats += np.count_nonzero(x[j, starts[k] : ends[k]] == value)
+                if repeats >= CLIP_MIN_REPEATS:
+                    return True
     return False
 
 

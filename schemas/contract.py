@@ -125,7 +125,8 @@ SAMPLES_RULES = (
 def check_columns(schema: pa.Schema, rules: tuple[ColumnRule, ...], session: str, file: str) -> list[str]:
     """Raise E_MISSING_COLUMN / E_WRONG_TYPE; return the contract columns present (the
     projection to read)."""
-    present = set(schema.names)
+    all_names = schema.names  # a new list at every access: taken once
+    present = set(all_names)
     for rule in rules:
         if rule.required and rule.name not in present:
             raise SessionError(
@@ -133,14 +134,14 @@ def check_columns(schema: pa.Schema, rules: tuple[ColumnRule, ...], session: str
                 session,
                 file,
                 f"required column '{rule.name}' is missing (columns present: "
-                f"{', '.join(schema.names) or 'none'})",
+                f"{', '.join(all_names) or 'none'})",
                 column=rule.name,
             )
     names = []
     for rule in rules:
         if rule.name not in present:
             continue
-        if schema.names.count(rule.name) > 1:
+        if all_names.count(rule.name) > 1:
             raise SessionError(
                 E_WRONG_TYPE, session, file, f"column '{rule.name}' appears more than once", column=rule.name
             )

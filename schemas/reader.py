@@ -19,14 +19,19 @@ is cached by the content digest of the file's bytes, a hit taken only when the b
 equal (an LRU of :data:`STEPS_CACHE_SIZE`; only successful validations are cached; a hit skips
 the Parquet parsing, and every caller gets its own copy-on-write copy of the frame). The six sensor columns
 are converted once into one ``(6, n)`` float64 array (``SessionData.channels``; ``gyro`` and
-``accel`` are views of it) and checked for finiteness in one pass; the per-column search that
-builds the error message runs only when that check fails. The sample -> step-row index
-computed for the unknown-step check is handed to the averaging (``SessionData.step_row``).
+``accel`` are views of it) and checked for finiteness by summing them over the session's
+pieces (:mod:`schemas.segments`: the kept segments of each step and the samples between
+them), the sums the averaging starts from (``SessionData.piece_sums``); the per-column search
+that builds the error message runs only when that check fails. Sample times are checked in
+one comparison pass (strictly increasing between finite ends), the exact searches only when
+it fails. The sample -> step-row index and the runs computed for the unknown-step check are
+handed to the averaging (``SessionData.step_row``, ``SessionData.segments``).
 """
 
 from __future__ import annotations
 
 import errno
+import math
 import os
 import re
 import stat
@@ -73,6 +78,7 @@ from schemas.errors import (
     SessionError,
 )
 from schemas.hive import bytes_digest, read_regular_file
+from schemas.segments import Segments, kept_segments
 
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 STEPS_CACHE_SIZE = 16
@@ -145,6 +151,11 @@ class SessionData:
     # (6, n) float64, rows gx gy gz ax ay az; ``gyro`` is ``channels[:3].T``, ``accel``
     # ``channels[3:].T`` (the averaging checks that they still are)
     channels: np.ndarray | None = None
+    # the runs and kept segments of the samples (from ``step``, ``t`` and ``steps``' settle_s;
+    # used with ``step_row``)
+    segments: Segments | None = None
+    # (6, P) ``channels`` summed over ``segments.pieces`` (all finite; None: the averaging sums)
+    piece_sums: np.ndarray | None = None
 
     @property
     def sample_rate_hz(self) -> float:
@@ -505,12 +516,73 @@ def _validate_samples(
             column="step",
             step=int(unknown[0]),
         )
-    _check_one_run_per_step(step, run_start, label, file)
+    _check_one_run_per_step(step, run_start, label, file, run_row)
     step = np.array(step, dtype=np.int32)  # own, writable copy (the Arrow buffer is read-only)
     step_row = np.repeat(run_row, run_len)
 
     t_col = table.column("t")
     t = _floats(t_col)
+    # strictly increasing between finite ends: every t is finite (a NaN compares False), so
+    # one comparison pass answers both checks; the checks below name the first failure
+    increasing = t[1:] > t[:-1]
+    if not (np.isfinite(t[0]) and np.isfinite(t[-1]) and increasing.all()):
+        _check_times(t, t_col, step, label, file)
+    cols = step_columns
+    segments = kept_segments(t, run_start, run_start + run_len, run_row, cols.settle_s, len(cols.step))
+
+    # one (6, n) array, one row per channel (each conversion from float32 one contiguous
+    # copy); gyro / accel are (n, 3) column-major views of it. The channels are then summed
+    # over the pieces of the session (schemas.segments: the kept segments and the samples
+    # between them, every sample in one piece) in one reduceat: the averaging's sums, and the
+    # finiteness check, as a NaN or infinity makes its piece's sum non-finite (no boolean
+    # array); a non-finite sum of finite values (overflow) is told apart by the exact search.
+    # Invalid operations are not reported: a signalling NaN in a float32 file stays a NaN.
+    channels = pool_empty((len(SENSOR_COLUMNS), n))
+    with np.errstate(over="ignore", invalid="ignore"):
+        for j, name in enumerate(SENSOR_COLUMNS):
+            channels[j] = table.column(name).to_numpy()  # nulls become NaN
+        piece_sums = np.add.reduceat(channels, segments.pieces, axis=1)
+        finite = bool(np.isfinite(piece_sums).all())
+    if not finite:
+        _raise_nonfinite_sensor(table, channels, step, t, label, file)
+        piece_sums = None  # finite values whose sum overflows: the averaging sums them itself
+    if meta.gyro_scale != 1.0:  # after the check, as file values are what the message names
+        channels[:3] *= meta.gyro_scale
+    if meta.accel_scale != 1.0:
+        channels[3:] *= meta.accel_scale
+    if piece_sums is not None and (meta.gyro_scale != 1.0 or meta.accel_scale != 1.0):
+        with np.errstate(over="ignore", invalid="ignore"):
+            piece_sums = np.add.reduceat(channels, segments.pieces, axis=1)
+        if not np.isfinite(piece_sums).all():
+            piece_sums = None
+    temp = None
+    if table.schema.get_field_index("temp_c") >= 0:
+        temp = _floats(table.column("temp_c"))  # NaN / null = not recorded for that sample
+        if np.isinf(temp).any():
+            i, s = _first_bad(np.isinf(temp), step)
+            raise SessionError(
+                E_NONFINITE_VALUE, label, file, f"temperature is infinite at row {i}", column="temp_c", step=s
+            )
+    return SessionData(
+        key=key,
+        label=label,
+        steps=steps,
+        step=step,
+        t=t,
+        gyro=channels[:3].T,
+        accel=channels[3:].T,
+        temp_c=temp,
+        meta=meta,
+        step_row=step_row,
+        step_columns=step_columns,
+        channels=channels,
+        segments=segments,
+        piece_sums=piece_sums,
+    )
+
+
+def _check_times(t: np.ndarray, t_col: pa.ChunkedArray, step: np.ndarray, label: str, file: str) -> None:
+    """The error for sample times that are not finite or not strictly increasing."""
     bad = ~np.isfinite(t)
     if bad.any():
         i, s = _first_bad(bad, step)
@@ -537,53 +609,18 @@ def _validate_samples(
             step=int(step[i]),
         )
 
-    # one (6, n) array, one row per channel: each conversion from float32 is one contiguous
-    # copy, checked for finiteness while it is still in the core's cache, and the averaging
-    # reduces all channels in one call; gyro / accel are (n, 3) column-major views of it.
-    # A NaN or infinity makes its channel's sum non-finite (one pass, no boolean array); a
-    # non-finite sum of finite values (overflow) is told apart by the exact search. Invalid
-    # operations are not reported: a signalling NaN in a float32 file stays a NaN.
-    channels = pool_empty((len(SENSOR_COLUMNS), n))
-    finite = True
-    with np.errstate(over="ignore", invalid="ignore"):
-        for j, name in enumerate(SENSOR_COLUMNS):
-            row = channels[j]
-            row[...] = table.column(name).to_numpy()  # nulls become NaN
-            finite = finite and bool(np.isfinite(row.sum()))
-    if not finite:
-        _raise_nonfinite_sensor(table, channels, step, t, label, file)
-    if meta.gyro_scale != 1.0:  # after the check, as file values are what the message names
-        channels[:3] *= meta.gyro_scale
-    if meta.accel_scale != 1.0:
-        channels[3:] *= meta.accel_scale
-    temp = None
-    if "temp_c" in table.schema.names:
-        temp = _floats(table.column("temp_c"))  # NaN / null = not recorded for that sample
-        if np.isinf(temp).any():
-            i, s = _first_bad(np.isinf(temp), step)
-            raise SessionError(
-                E_NONFINITE_VALUE, label, file, f"temperature is infinite at row {i}", column="temp_c", step=s
-            )
-    return SessionData(
-        key=key,
-        label=label,
-        steps=steps,
-        step=step,
-        t=t,
-        gyro=channels[:3].T,
-        accel=channels[3:].T,
-        temp_c=temp,
-        meta=meta,
-        step_row=step_row,
-        step_columns=step_columns,
-        channels=channels,
-    )
 
-
-def _check_one_run_per_step(step: np.ndarray, run_start: np.ndarray, label: str, file: str) -> None:
+def _check_one_run_per_step(
+    step: np.ndarray, run_start: np.ndarray, label: str, file: str, run_row: np.ndarray | None = None
+) -> None:
     """E_STEP_NOT_CONTIGUOUS when a step's samples are not one run in time: its id reappears
     after another step's samples (samples of no step, id -1, between two parts of a step do
-    not count as another step)."""
+    not count as another step). ``run_row``: each run's steps-table row (-1 between steps),
+    when known: a session whose steps each have one run passes without a sort."""
+    if run_row is not None:
+        rows = run_row[run_row >= 0]
+        if len(rows) < 2 or np.bincount(rows).max() == 1:
+            return
     ids = step[run_start]
     keep = ids != -1
     ids, starts = ids[keep], run_start[keep]
@@ -646,7 +683,7 @@ def pool_empty(shape: tuple[int, ...]) -> np.ndarray:
     malloc: glibc hands the ~1.7 MB arrays of a session back to the kernel when they are
     freed and page-faults them in again for the next session (~850 minor faults, 1-3 ms of
     system CPU per session, measured); the pool keeps freed pages for reuse."""
-    size = int(np.prod(shape)) * 8
+    size = math.prod(shape) * 8
     return np.frombuffer(pa.allocate_buffer(size), np.float64).reshape(shape)
 
 

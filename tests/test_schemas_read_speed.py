@@ -17,7 +17,7 @@ import pytest
 from calib_core.sim import protocols
 from calib_core.sim import simulator as sim
 from calib_core.steps import SessionKey
-from schemas import averaging
+from schemas import averaging, segments
 from schemas.averaging import average_session, read_step_means
 from schemas.dataset import SessionRef
 from schemas.errors import E_NONFINITE_VALUE, SessionError
@@ -315,8 +315,8 @@ def test_settling_search_equals_the_rule_on_every_sample(seed):
     pick = np.minimum(rng.integers(0, 45, n_runs), lengths - 1)
     offset = t[start + pick] - t0
     threshold = offset * rng.choice([1.0, 1 - 1e-16, 1 + 1e-16, 0.0, 10.0], n_runs) - 1e-6
-    exact = averaging._settled_per_sample(t, start, end, t0, threshold)
-    found = averaging._settled_from(t, start, end, t0, threshold)
+    exact = segments.settled_per_sample(t, start, end, t0, threshold)
+    found = segments.settled_from(t, start, end, t0, threshold)
     if found is not None:
         np.testing.assert_array_equal(found, exact)
     for r in range(n_runs):  # the exact answer is the rule's suffix
@@ -327,10 +327,9 @@ def test_settling_search_equals_the_rule_on_every_sample(seed):
 def test_settling_fallback_gives_the_same_step_means(monkeypatch):
     """With the search given no moves (every sample evaluated) the results are identical."""
     steps, samples, md = _simulate(43, temperature=True)
-    data = session_from_tables(KEY, steps, samples, md)
-    fast, w_fast = average_session(data, min_samples=2)
-    monkeypatch.setattr(averaging, "SETTLE_SEARCH_STEPS", 0)
-    slow, w_slow = average_session(data, min_samples=2)
+    fast, w_fast = average_session(session_from_tables(KEY, steps, samples, md), min_samples=2)
+    monkeypatch.setattr(segments, "SETTLE_SEARCH_STEPS", 0)
+    slow, w_slow = average_session(session_from_tables(KEY, steps, samples, md), min_samples=2)
     assert [str(w) for w in w_fast] == [str(w) for w in w_slow]
     for f in ("step", "gyro", "accel", "gyro_std", "accel_std", "count", "t_mid", "temp_c"):
         np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
@@ -356,3 +355,32 @@ def test_one_stat_answers_missing_not_regular_and_empty(tmp_path):
             reader._open(path, "s")
         assert info.value.code == code
     assert reader._stat(tmp_path / "a\0b") is None  # as Path.exists: False, no error
+
+
+@pytest.mark.parametrize("seed", [44, 45])
+def test_kept_reach_bounds_every_kept_sample(seed):
+    """The saturation pre-check's bound from the steps' means and squared deviations is at
+    least the largest |x| of the samples the settling rule keeps (pandas' selection), also
+    with large offsets and a lone spike, and not far above it on a calm channel."""
+    steps, samples, md = _simulate(seed)
+    rng = np.random.default_rng(seed)
+    s = samples.copy()
+    s["gz"] = 3600.0 + rng.normal(0, 1e-3, len(s))  # a large mean, tiny deviations
+    s.loc[s.index[s["step"] == int(steps["step"].iloc[4])][-1], "ax"] = 7.5  # one kept spike
+    for c in ("gz", "ax"):
+        s[c] = s[c].astype(np.float64)
+    data = session_from_tables(KEY, steps, s, md)
+    sm, _ = average_session(data, min_samples=2)
+    settle = dict(zip(steps["step"], steps["settle_s"]))
+    kept = []
+    for step_id, g in s[s["step"] != -1].groupby("step"):
+        kept.append(g[g["t"] - g["t"].iloc[0] >= settle[step_id] - 1e-6])
+    kept = pd.concat(kept)
+    x = np.stack([kept[c].to_numpy(np.float64) for c in CHANNELS])
+    mean = np.concatenate([sm.gyro.T, sm.accel.T])
+    std = np.concatenate([sm.gyro_std.T, sm.accel_std.T])
+    sq_dev = std**2 * (sm.count - 1)
+    reach = averaging._kept_reach(mean, sq_dev)
+    largest = np.abs(x).max(axis=1)
+    assert (reach >= largest).all()
+    assert reach[2] < 3600.1  # gz: the offset and a few noise sd, not a multiple of it
