@@ -342,12 +342,14 @@ def solve_normal_stack(A: np.ndarray, b: np.ndarray, pseudo_inverse: bool | np.n
     if zero.any():
         As = As + zero[..., None] * np.eye(A.shape[-1])  # zero row and column: 1 on the diagonal
     bs = b * scale[..., :, None]
-    hard = ~(np.linalg.det(As) >= NORMAL_MIN_DET) | pseudo_inverse  # NaN included
-    x = np.empty(b.shape)
-    easy = ~hard
-    if easy.all():
-        x[...] = np.linalg.solve(As, bs) * scale[..., :, None]
-    else:
-        x[easy] = np.linalg.solve(As[easy], bs[easy]) * scale[easy][..., :, None]
-        x[hard] = np.linalg.pinv(A[hard]) @ b[hard]
+    hard = ~(np.linalg.det(As) >= NORMAL_MIN_DET)  # NaN included
+    if pseudo_inverse is not False:
+        hard |= pseudo_inverse
+    if not hard.any():
+        return np.linalg.solve(As, bs) * scale[..., :, None]
+    # every matrix is solved on its own: the hard ones solve the identity in the stack
+    # (their LU would fail), then take the pseudo-inverse
+    As[hard] = np.eye(A.shape[-1])
+    x = np.linalg.solve(As, bs) * scale[..., :, None]
+    x[hard] = np.linalg.pinv(A[hard]) @ b[hard]
     return x
