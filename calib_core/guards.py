@@ -76,6 +76,21 @@ def check_affine(
     return out
 
 
+def surely_plausible(
+    model: str, K: np.ndarray, x0: np.ndarray, raw_unit: str, full_scale: np.ndarray
+) -> np.ndarray:
+    """(R,) True for the sessions r of a stack (K (R, 3, 3), x0 (R, 3), one raw unit, each
+    session's full scale (R, 3)) in which :func:`check_affine` certainly finds nothing: its comparisons on
+    the whole stack at once. False leaves the session to :func:`check_affine` (a NaN, in a
+    parameter or the full scale, included), so the checks' outcome is theirs."""
+    ok = np.isfinite(K).all(axis=(1, 2)) & np.isfinite(x0).all(axis=1)
+    if raw_unit == PHYSICAL_UNITS[model]:
+        diag = np.diagonal(K, axis1=1, axis2=2)
+        ok &= ((SCALE_LIMITS[0] <= diag) & (diag <= SCALE_LIMITS[1])).all(axis=1)
+        ok &= (np.abs(np.where(np.eye(3, dtype=bool), 0.0, K)) <= CROSS_AXIS_LIMIT).all(axis=(1, 2))
+    return ok & (np.abs(x0) <= full_scale).all(axis=1)
+
+
 def check_fits(fits: dict, sm: StepMeans) -> list[Implausible]:
     """Checks on the base model of a session's fits."""
     out: list[Implausible] = []
