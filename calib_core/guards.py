@@ -280,7 +280,7 @@ class _RowMedians:
     row's middle values in the sorted array found once."""
 
     def __init__(self, n: np.ndarray, width: int):
-        self.width = width
+        self.n, self.width = n, width
         base = np.arange(len(n)) * width
         self.lo = base + np.maximum((n - 1) // 2, 0)
         self.hi = base + n // 2
@@ -343,9 +343,12 @@ def _irls_residuals(
     floor = _COLLAPSED_SCALE * np.abs(d0).max(axis=1)
     collapsed = np.zeros(len(d), bool)
     e = d - _nanmedian_rows(d)
+    median = None
     for i in range(_IRLS_ITERATIONS):
-        # both medians are taken over the finite residuals
-        median = _RowMedians(np.count_nonzero(np.isfinite(e), axis=1), e.shape[1])
+        # both medians are taken over the finite residuals (their count rarely changes)
+        n = np.count_nonzero(np.isfinite(e), axis=1)
+        if median is None or (n != median.n).any():
+            median = _RowMedians(n, e.shape[1])
         centre = median(e)
         s = _MAD_TO_SD * median(np.abs(e - centre))
         if i:  # the first scale is of the values themselves
