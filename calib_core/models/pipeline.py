@@ -186,14 +186,17 @@ def _unsure_fits(fits: list[dict], sms: list[StepMeans]) -> list[tuple[dict, Ste
     clear = np.ones(len(sms), bool)
     for model, x0_name, range_name in (("gyro", "w0", "gyro_range_dps"), ("accel", "f0", "accel_range_g")):
         raw_unit = fits[0][model].raw_unit
-        if any(f[model].raw_unit != raw_unit for f in fits[1:]):
-            return list(zip(fits, sms))
+        full_scales = [getattr(s, range_name) for s in sms]
+        if any(f[model].raw_unit != raw_unit for f in fits[1:]) or any(
+            np.shape(r) != (3,) for r in full_scales
+        ):
+            return list(zip(fits, sms))  # check_fits decides for each
         clear &= surely_plausible(
             model,
             np.stack([f[model].K for f in fits]),
             np.stack([getattr(f[model], x0_name) for f in fits]),
             raw_unit,
-            np.array([getattr(s, range_name) for s in sms], float),
+            np.array(full_scales, float),
         )
     return [(f, s) for f, s, c in zip(fits, sms, clear) if not c]
 

@@ -125,11 +125,14 @@ def _step_rates_stack(ds: Sequence[StepMeans], gyro_Ks, gyro_w0s) -> tuple[np.nd
     """:func:`_step_rates` of each session, stacked (R, n, 3), and their sources. With gyro
     calibrations whose K^T are C-contiguous (the fits' K are transposed views), one stacked
     matmul: each matrix the same BLAS call as alone."""
-    if gyro_Ks is not None:
+    if gyro_Ks is not None and all(K is not None for K in gyro_Ks):
         KT = [np.asarray(K, float).T for K in gyro_Ks]
         if all(k.flags.c_contiguous for k in KT):
             w0 = np.stack(
-                [np.zeros(3) if gyro_w0s is None else np.asarray(gyro_w0s[r], float) for r in range(len(ds))]
+                [
+                    np.zeros(3) if gyro_w0s is None or gyro_w0s[r] is None else np.asarray(gyro_w0s[r], float)
+                    for r in range(len(ds))
+                ]
             )
             return stack_field(ds, "gyro") @ np.stack(KT) + w0[:, None, :], ["gyro"] * len(ds)
     rates = [
