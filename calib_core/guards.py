@@ -76,6 +76,21 @@ def check_affine(
     return out
 
 
+def surely_plausible(
+    model: str, K: np.ndarray, x0: np.ndarray, raw_unit: str, full_scale: np.ndarray
+) -> np.ndarray:
+    """(R,) True for the sessions r of a stack (K (R, 3, 3), x0 (R, 3), one raw unit, each
+    session's full scale (R, 3)) in which :func:`check_affine` certainly finds nothing: its comparisons on
+    the whole stack at once. False leaves the session to :func:`check_affine` (a NaN, in a
+    parameter or the full scale, included), so the checks' outcome is theirs."""
+    ok = np.isfinite(K).all(axis=(1, 2)) & np.isfinite(x0).all(axis=1)
+    if raw_unit == PHYSICAL_UNITS[model]:
+        diag = np.diagonal(K, axis1=1, axis2=2)
+        ok &= ((SCALE_LIMITS[0] <= diag) & (diag <= SCALE_LIMITS[1])).all(axis=1)
+        ok &= (np.abs(np.where(np.eye(3, dtype=bool), 0.0, K)) <= CROSS_AXIS_LIMIT).all(axis=(1, 2))
+    return ok & (np.abs(x0) <= full_scale).all(axis=1)
+
+
 def check_fits(fits: dict, sm: StepMeans) -> list[Implausible]:
     """Checks on the base model of a session's fits."""
     out: list[Implausible] = []
@@ -254,17 +269,31 @@ def _nanmedian_rows(a: np.ndarray, n: np.ndarray | None = None) -> np.ndarray:
     of values each row's median is taken over (default: its finite values); the rows are
     sorted NaN last, so the count of non-NaN values makes it ``np.nanmedian``'s, infinities
     included."""
-    n_rows, width = a.shape
-    if width == 0:
-        return np.full((n_rows, 1), np.nan)
-    srt = np.sort(a, axis=1).ravel()  # NaN last
     if n is None:
         n = np.count_nonzero(np.isfinite(a), axis=1)
-    base = np.arange(0, n_rows * width, width)
-    lo = base + np.maximum((n - 1) // 2, 0)
-    hi = base + n // 2
-    mid = 0.5 * (srt[lo] + srt[hi])
-    return np.where(n > 0, mid, np.nan)[:, None]
+    return _RowMedians(n, a.shape[1])(a)
+
+
+class _RowMedians:
+    """:func:`_nanmedian_rows` of arrays (P, ``width``) whose rows count ``n`` values each
+    (the IRLS takes two medians per iteration over the same counts): the positions of each
+    row's middle values in the sorted array found once."""
+
+    def __init__(self, n: np.ndarray, width: int):
+        self.n, self.width = n, width
+        base = np.arange(len(n)) * width
+        self.lo = base + np.maximum((n - 1) // 2, 0)
+        self.hi = base + n // 2
+        self.empty = None if n.all() else n == 0
+
+    def __call__(self, a: np.ndarray) -> np.ndarray:
+        if self.width == 0:
+            return np.full((len(a), 1), np.nan)
+        srt = np.sort(a, axis=1).ravel()  # NaN last
+        mid = 0.5 * (srt[self.lo] + srt[self.hi])
+        if self.empty is not None:
+            mid[self.empty] = np.nan
+        return mid[:, None]
 
 
 def _nanmedian_first_axis(a: np.ndarray) -> np.ndarray:
@@ -314,13 +343,18 @@ def _irls_residuals(
     floor = _COLLAPSED_SCALE * np.abs(d0).max(axis=1)
     collapsed = np.zeros(len(d), bool)
     e = d - _nanmedian_rows(d)
+    median = None
     for i in range(_IRLS_ITERATIONS):
-        centre = _nanmedian_rows(e)
-        s = _MAD_TO_SD * _nanmedian_rows(np.abs(e - centre))
+        # both medians are taken over the finite residuals (their count rarely changes)
+        n = np.count_nonzero(np.isfinite(e), axis=1)
+        if median is None or (n != median.n).any():
+            median = _RowMedians(n, e.shape[1])
+        centre = median(e)
+        s = _MAD_TO_SD * median(np.abs(e - centre))
         if i:  # the first scale is of the values themselves
             collapsed |= s[:, 0] < floor
-        u = np.where(valid, e, 0.0) / (_BISQUARE_C * np.where(s > 0, s, np.inf))
-        w = np.where(valid & (np.abs(u) < 1), (1 - u * u) ** 2, 0.0)
+        u = e / (_BISQUARE_C * np.where(s > 0, s, np.inf))
+        w = np.where(np.abs(u) < 1, (1 - u * u) ** 2, 0.0)  # e NaN (no value): weight 0
         Xw = X * w[..., None]
         XwT = Xw.transpose(0, 2, 1)
         beta = solve_normal_stack(XwT @ X, XwT @ d0[..., None], pseudo_inverse)
@@ -348,21 +382,36 @@ def _pooled_scales(absdev: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return np.where(n >= CONSISTENCY_MIN_GROUP, _MAD_TO_SD * med, np.nan).reshape(n_lab, n_ch)
 
 
-def _group_scales(dev: np.ndarray, groups: np.ndarray, tests: np.ndarray, floor: np.ndarray) -> np.ndarray:
+def _group_scales(
+    dev: np.ndarray, group_of: np.ndarray, test_of: np.ndarray, floor: np.ndarray
+) -> np.ndarray:
     """(S, 6) robust scale of the deviations ``dev`` (R, S, 6) (NaN where not counted) per
-    step and channel: pooled over the steps of the step's group (test and |rate|) and every
-    repetition; a group with too few deviations takes its test's scale, a test with too few
-    the channel's."""
+    step and channel: pooled over the steps of the step's group (``group_of`` (S,), labels
+    0 .. G - 1: test and |rate|) and every repetition; a group with too few deviations takes
+    its test's scale (``test_of``, labels), a test with too few the channel's."""
     absdev = np.abs(dev)
-    _, group_of = np.unique(groups, return_inverse=True)
-    _, test_of = np.unique(tests, return_inverse=True)
     s = _pooled_scales(absdev, group_of)[group_of]
-    for fallback in (
-        _pooled_scales(absdev, test_of)[test_of],
-        _pooled_scales(absdev, np.zeros(len(groups), np.intp)),
-    ):
-        s = np.where(np.isnan(s), fallback, s)
+    for labels in (test_of, np.zeros(len(group_of), np.intp)):
+        missing = np.isnan(s)
+        if not missing.any():
+            break
+        s = np.where(missing, _pooled_scales(absdev, labels)[labels], s)
     return np.maximum(s, floor)  # NaN (no scale anywhere) stays NaN
+
+
+def _standardised_times(t: np.ndarray) -> np.ndarray:
+    """Each row of ``t`` (R, S) (NaN: no step) less its mean, over its standard deviation;
+    0 where that is not a number (a session without times). A row without NaN takes the
+    arithmetic ``np.nanmean`` / ``np.nanstd`` do, without their masks."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if np.isnan(t).any():
+            mean = np.nanmean(t, axis=1, keepdims=True)
+            sd = np.nanstd(t, axis=1, keepdims=True)
+        else:
+            mean = t.sum(axis=1, keepdims=True) / t.shape[1]
+            dev = t - mean
+            sd = np.sqrt((dev * dev).sum(axis=1, keepdims=True) / t.shape[1])
+        return np.nan_to_num((t - mean) / sd)
 
 
 def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMIT) -> list[StepDisagreement]:
@@ -392,11 +441,17 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
     values = np.full((n_rep, n_col, 6), np.nan)
     t_mid = np.full((n_rep, n_col), np.nan)
     temp = np.full((n_rep, n_col), np.nan)
-    for r, (sm, cols) in enumerate(zip(sms, cols_of)):
-        values[r, cols, :3] = sm.gyro
-        values[r, cols, 3:] = sm.accel
-        t_mid[r, cols] = sm.t_mid
-        temp[r, cols] = sm.temp_c
+    if layout is not None:  # every repetition's rows are the columns
+        values[..., :3] = [sm.gyro for sm in sms]
+        values[..., 3:] = [sm.accel for sm in sms]
+        t_mid[...] = [sm.t_mid for sm in sms]
+        temp[...] = [sm.temp_c for sm in sms]
+    else:
+        for r, (sm, cols) in enumerate(zip(sms, cols_of)):
+            values[r, cols, :3] = sm.gyro
+            values[r, cols, 3:] = sm.accel
+            t_mid[r, cols] = sm.t_mid
+            temp[r, cols] = sm.temp_c
     present = np.isfinite(values[..., 0])
     shared = present.sum(axis=0) >= 2  # a step seen in one repetition has nothing to compare
     if np.count_nonzero(shared) < 8:
@@ -408,14 +463,15 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
     # the problems: each repetition (two: the first only, the second is its mirror) and channel
     fitted = 1 if n_rep == 2 else n_rep
     d = (values[:fitted] - median[None]).transpose(0, 2, 1)  # (fitted, 6, S)
-    t = t_mid[:fitted]
-    with np.errstate(invalid="ignore", divide="ignore"):  # a session without times: t = 0
-        t = np.nan_to_num((t - np.nanmean(t, axis=1, keepdims=True)) / np.nanstd(t, axis=1, keepdims=True))
-    ones = np.ones((fitted, n_col, 1))
+    t = _standardised_times(t_mid[:fitted])
+    # the designs: [1, the references (w_ref for the gyro channels, f_ref for the
+    # accelerometers), t, t^2], t the repetition's own
     X = np.empty((fitted, 6, n_col, 6))
-    for c in range(6):
-        ref = np.broadcast_to((w_ref if c < 3 else f_ref)[None], (fitted, n_col, 3))
-        X[:, c] = np.concatenate([ones, ref, t[..., None], t[..., None] ** 2], axis=2)
+    X[..., 0] = 1.0
+    X[:, :3, :, 1:4] = w_ref
+    X[:, 3:, :, 1:4] = f_ref
+    X[..., 4] = t[:, None]
+    X[..., 5] = t[:, None] ** 2
     dev = np.full((n_rep, n_col, 6), np.nan)
     dev[:fitted] = (
         _robust_affine_residuals(d.reshape(-1, n_col), X.reshape(-1, n_col, 6))
@@ -434,8 +490,10 @@ def inconsistent_steps(sms: list[StepMeans], z_limit: float = CONSISTENCY_Z_LIMI
     full_scale = np.concatenate(
         [np.asarray(sms[0].gyro_range_dps, float), np.asarray(sms[0].accel_range_g, float)]
     )
-    group = np.char.add(np.char.add(test.astype(str), "|"), rate.astype(str))
-    scale = _group_scales(counted, group, test.astype(str), 1e-6 * full_scale)
+    _, test_of = np.unique(test.astype(str), return_inverse=True)
+    _, rate_of = np.unique(rate, return_inverse=True)  # NaN rates are one rate
+    _, group_of = np.unique(test_of * len(rate) + rate_of, return_inverse=True)  # test and |rate|
+    scale = _group_scales(counted, group_of, test_of, 1e-6 * full_scale)
     with np.errstate(invalid="ignore"):
         z = dev / scale[None]
     beyond = np.abs(np.nan_to_num(z)) > z_limit

@@ -66,8 +66,8 @@ def _factorise(X: np.ndarray, rcond: float) -> _Factorisation:
     largest, smallest = s[..., :1], s[..., -1]
     kept = s > rcond * largest
     rank = kept.sum(axis=-1)  # 0 when the largest singular value is 0
-    with np.errstate(divide="ignore"):
-        cond = np.where(smallest > 0, s[..., 0] / smallest, np.inf)
+    positive = smallest > 0
+    cond = np.where(positive, s[..., 0] / np.where(positive, smallest, 1.0), np.inf)
     s_inv = np.where(kept, 1.0 / np.where(s == 0, 1, s), 0.0)
     cov_s = (np.swapaxes(Vt, -1, -2) * s_inv[..., None, :] ** 2) @ Vt
     cov_unscaled = cov_s / (norms[..., :, None] * norms[..., None, :])
@@ -111,11 +111,21 @@ def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> Lst
     coef = coef_s / fac.norms[..., :, None]
     resid = Y - X @ coef
     n_problems = coef.shape[0]
-    dof = np.broadcast_to(X.shape[-2] - fac.rank, (n_problems,))
+    stacked = X.ndim == 3  # a design per problem: the factorisation's arrays are the problems'
+    dof = X.shape[-2] - fac.rank
+    if not stacked:
+        dof = np.broadcast_to(dof, (n_problems,))
     sum_sq = (resid**2).sum(axis=-2)
-    sigma2 = np.full(sum_sq.shape, np.nan)
-    np.divide(sum_sq, dof[:, None], out=sigma2, where=dof[:, None] > 0)
-    cov_unscaled = np.broadcast_to(fac.cov_unscaled, (n_problems,) + fac.cov_unscaled.shape[-2:]).copy()
+    if (dof > 0).all():
+        sigma2 = sum_sq / dof[:, None]
+    else:
+        sigma2 = np.full(sum_sq.shape, np.nan)
+        np.divide(sum_sq, dof[:, None], out=sigma2, where=dof[:, None] > 0)
+    cov_unscaled = (
+        fac.cov_unscaled
+        if stacked
+        else np.broadcast_to(fac.cov_unscaled, (n_problems,) + fac.cov_unscaled.shape[-2:]).copy()
+    )
     variance = np.diagonal(cov_unscaled, axis1=-2, axis2=-1)
     stderr = np.sqrt(variance[:, :, None] * sigma2[:, None, :])
     return LstsqStack(
@@ -125,8 +135,8 @@ def solve_lstsq_stack(X: np.ndarray, Y: np.ndarray, rcond: float = 1e-10) -> Lst
         stderr,
         resid,
         dof,
-        np.broadcast_to(fac.cond, (n_problems,)),
-        np.broadcast_to(fac.rank, (n_problems,)),
+        fac.cond if stacked else np.broadcast_to(fac.cond, (n_problems,)),
+        fac.rank if stacked else np.broadcast_to(fac.rank, (n_problems,)),
     )
 
 
@@ -349,12 +359,14 @@ def solve_normal_stack(A: np.ndarray, b: np.ndarray, pseudo_inverse: bool | np.n
     if zero.any():
         As = As + zero[..., None] * np.eye(A.shape[-1])  # zero row and column: 1 on the diagonal
     bs = b * scale[..., :, None]
-    hard = ~(np.linalg.det(As) >= NORMAL_MIN_DET) | pseudo_inverse  # NaN included
-    x = np.empty(b.shape)
-    easy = ~hard
-    if easy.all():
-        x[...] = np.linalg.solve(As, bs) * scale[..., :, None]
-    else:
-        x[easy] = np.linalg.solve(As[easy], bs[easy]) * scale[easy][..., :, None]
-        x[hard] = np.linalg.pinv(A[hard]) @ b[hard]
+    hard = ~(np.linalg.det(As) >= NORMAL_MIN_DET)  # NaN included
+    if pseudo_inverse is not False:
+        hard |= pseudo_inverse
+    if not hard.any():
+        return np.linalg.solve(As, bs) * scale[..., :, None]
+    # every matrix is solved on its own: the hard ones solve the identity in the stack
+    # (their LU would fail), then take the pseudo-inverse
+    As[hard] = np.eye(A.shape[-1])
+    x = np.linalg.solve(As, bs) * scale[..., :, None]
+    x[hard] = np.linalg.pinv(A[hard]) @ b[hard]
     return x

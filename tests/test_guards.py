@@ -41,3 +41,31 @@ def test_raw_lsb_scale_is_not_judged_but_bias_beyond_full_scale_is():
     assert [b.parameter for b in bad] == ["w0_y"]
     nan = check_affine("accel", "k_a", np.full((3, 3), np.nan), np.zeros(3), "g", np.full(3, 8.0))
     assert nan and nan[0].limit == "finite values"
+
+
+def test_stacked_precheck_clears_only_what_check_affine_passes():
+    """guards.surely_plausible (the stacked pre-check of a unit's repetitions) never clears
+    a session check_affine would refuse, and clears the plausible ones: K and biases on and
+    around every limit, NaN and infinite values, a NaN full scale, both raw units."""
+    from calib_core.guards import CROSS_AXIS_LIMIT, SCALE_LIMITS, surely_plausible
+
+    rng = np.random.default_rng(11)
+    R = 400
+    K = np.eye(3) + rng.normal(scale=0.05, size=(R, 3, 3))
+    x0 = rng.normal(scale=50.0, size=(R, 3))
+    full_scale = np.tile([300.0, 300.0, 3600.0], (R, 1))
+    for r in range(0, R, 7):  # values on the limits and just beyond them
+        i, j = rng.integers(3, size=2)
+        K[r, i, i] = rng.choice([SCALE_LIMITS[0], SCALE_LIMITS[1], 0.7499, 1.2501])
+        if i != j:
+            K[r, i, j] = rng.choice([CROSS_AXIS_LIMIT, -CROSS_AXIS_LIMIT, 0.2001, -0.2001])
+        x0[r, j] = rng.choice([-1.0, 1.0]) * full_scale[r, j] * rng.choice([1.0, 1.0001])
+    K[3, 1, 2], x0[10, 0], K[17, 0, 0], x0[24, 2] = np.nan, np.inf, -np.inf, np.nan
+    full_scale[31, 1] = np.nan
+    for raw_unit in ("deg/s", "LSB"):
+        clear = surely_plausible("gyro", K, x0, raw_unit, full_scale)
+        found = [check_affine("gyro", "k_g", K[r], x0[r], raw_unit, full_scale[r]) for r in range(R)]
+        assert not any(c and f for c, f in zip(clear, found))  # nothing refused is cleared
+        passed = np.array([not f for f in found]) & np.isfinite(full_scale).all(axis=1)
+        assert np.array_equal(clear, passed)  # and everything else check_affine passes is
+        assert np.count_nonzero(~clear) >= 20 and np.count_nonzero(clear) >= R // 2  # both kinds occur

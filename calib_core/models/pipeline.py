@@ -18,7 +18,7 @@ import pandas as pd
 
 from calib_core.calibration import Calibration, TermValue
 from calib_core.errors import DesignError
-from calib_core.guards import check_fits
+from calib_core.guards import check_fits, surely_plausible
 from calib_core.models import xu2016
 from calib_core.models.applied import applied_fits
 from calib_core.results import FitResult, RepetitionCalibration, UnitCalibration
@@ -136,7 +136,7 @@ def _calibrate_together(
         fits, xu2016.fit_gyro_multirate_stack(sms), xu2016.fit_accel_multiposition_stack(sms)
     ):
         f["gyro"], f["accel"] = gyro, accel
-    for f, sm in zip(fits, sms):
+    for f, sm in _unsure_fits(fits, sms):
         implausible = check_fits(f, sm)
         if implausible:
             raise DesignError(
@@ -178,6 +178,27 @@ def _calibrate_together(
         out.append(SessionFit(rep, comp, res))
     lap("tables")
     return out
+
+
+def _unsure_fits(fits: list[dict], sms: list[StepMeans]) -> list[tuple[dict, StepMeans]]:
+    """The (fits, session) pairs whose base model ``check_fits`` has to look at: those
+    :func:`calib_core.guards.surely_plausible` does not clear."""
+    clear = np.ones(len(sms), bool)
+    for model, x0_name, range_name in (("gyro", "w0", "gyro_range_dps"), ("accel", "f0", "accel_range_g")):
+        raw_unit = fits[0][model].raw_unit
+        full_scales = [getattr(s, range_name) for s in sms]
+        if any(f[model].raw_unit != raw_unit for f in fits[1:]) or any(
+            np.shape(r) != (3,) for r in full_scales
+        ):
+            return list(zip(fits, sms))  # check_fits decides for each
+        clear &= surely_plausible(
+            model,
+            np.stack([f[model].K for f in fits]),
+            np.stack([getattr(f[model], x0_name) for f in fits]),
+            raw_unit,
+            np.array(full_scales, float),
+        )
+    return [(f, s) for f, s, c in zip(fits, sms, clear) if not c]
 
 
 STAGES = ("xu2016", "zhang2017_static", "lever_arm", "tables")
@@ -351,6 +372,36 @@ def residual_table(sm: StepMeans, cal: Calibration, model: str = "baseline") -> 
     return residual_tables([sm], [cal], model)[0]
 
 
+def _applied(sms: list[StepMeans], cals: list[Calibration]) -> tuple[np.ndarray, np.ndarray]:
+    """Each session's step means through its calibration (``Calibration.apply``), stacked."""
+    applied = [cal.apply(s.gyro, s.accel, temp_c=s.temp_c, t=s.t_mid) for s, cal in zip(sms, cals)]
+    return np.stack([w for w, _ in applied]), np.stack([f for _, f in applied])
+
+
+def _applied_affine(sms: list[StepMeans], cals: list[Calibration]) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`_applied` of affine calibrations (no terms, no thermal model: the fits'), the
+    sessions' products in one stacked matmul (each matrix the same BLAS call as alone, so
+    the same numbers); None for any other calibration, or when ``Calibration.raw_inputs``
+    would refuse a session's accelerometer data (then :func:`_applied` raises its error)."""
+    if any(c.terms or c.thermal is not None or c.accel_unit != "g" for c in cals):
+        return None
+    G = stack_field(sms, "gyro").astype(float, copy=False)
+    A = stack_field(sms, "accel").astype(float, copy=False)
+    if A.shape[1]:  # raw_inputs' check: a median norm of gravity in m/s^2
+        g_local = np.array([c.g_local for c in cals])
+        norms = np.linalg.norm(A, axis=2)
+        if np.isnan(norms).any():
+            return None  # raw_inputs' nanmedian decides, session by session
+        norm = np.median(norms, axis=1)
+        if np.any((0.8 * g_local <= norm) & (norm <= 1.25 * g_local)):
+            return None
+    K_gT = np.stack([c.K_g.T for c in cals])
+    K_aT = np.stack([c.K_a.T for c in cals])
+    w0 = np.stack([c.w0 for c in cals])[:, None, :]
+    f0 = np.stack([c.f0 for c in cals])[:, None, :]
+    return G @ K_gT + w0, A @ K_aT + f0
+
+
 def residual_tables(
     sms: list[StepMeans], cals: list[Calibration], model: str = "baseline"
 ) -> list[ColumnTable]:
@@ -360,9 +411,7 @@ def residual_tables(
     shared by the tables, read-only."""
     sm = sms[0]
     k = len(sm)
-    applied = [cal.apply(s.gyro, s.accel, temp_c=s.temp_c, t=s.t_mid) for s, cal in zip(sms, cals)]
-    w = np.stack([w for w, _ in applied])
-    f = np.stack([f for _, f in applied])
+    w, f = _applied_affine(sms, cals) or _applied(sms, cals)
     res = np.concatenate([w - sm.w_ref, f - sm.f_ref], axis=2)
     n = np.sqrt(np.maximum(stack_field(sms, "count"), 1))[:, :, None]
     K_g2 = np.stack([cal.K_g.T for cal in cals]) ** 2

@@ -188,9 +188,10 @@ def fit_gyro_multirate_stack(sms: Sequence[StepMeans]) -> list[GyroMultirateFit]
         n0, source = 2 * len(pairs), "pair_midpoints"
     w0 = (-K @ G0[:, :, None])[:, :, 0]
     # var(w0_i) = step noise / n0  +  G0^T cov(K_i) G0   (independent steps)
-    var_k = np.array(
-        [[g0 @ (cov * s2[i]) @ g0 for i in range(3)] for g0, cov, s2 in zip(G0, ls.cov_unscaled, ls.sigma2)]
-    )
+    # (R, 3): G0^T (cov * sigma2_i) G0 of each session and row, as stacked vector-matrix
+    # and vector-vector products (the same as one at a time)
+    cov_rows = ls.cov_unscaled[:, None] * ls.sigma2[:, :, None, None]  # (R, 3, 3, 3)
+    var_k = (G0[:, None, None, :] @ cov_rows @ G0[:, None, :, None])[..., 0, 0]
     w0_se = np.sqrt(step_sigma**2 / n0 + var_k)
     residual_rms = np.sqrt((ls.residuals**2).mean(axis=1))
     return [

@@ -121,6 +121,27 @@ def _step_rates(sm: StepMeans, gyro_K, gyro_w0) -> tuple[np.ndarray, str]:
     return sm.gyro @ np.asarray(gyro_K, float).T + w0, "gyro"
 
 
+def _step_rates_stack(ds: Sequence[StepMeans], gyro_Ks, gyro_w0s) -> tuple[np.ndarray, list[str]]:
+    """:func:`_step_rates` of each session, stacked (R, n, 3), and their sources. With gyro
+    calibrations whose K^T are C-contiguous (the fits' K are transposed views), one stacked
+    matmul: each matrix the same BLAS call as alone."""
+    if gyro_Ks is not None and all(K is not None for K in gyro_Ks):
+        KT = [np.asarray(K, float).T for K in gyro_Ks]
+        if all(k.flags.c_contiguous for k in KT):
+            w0 = np.stack(
+                [
+                    np.zeros(3) if gyro_w0s is None or gyro_w0s[r] is None else np.asarray(gyro_w0s[r], float)
+                    for r in range(len(ds))
+                ]
+            )
+            return stack_field(ds, "gyro") @ np.stack(KT) + w0[:, None, :], ["gyro"] * len(ds)
+    rates = [
+        _step_rates(d, None if gyro_Ks is None else gyro_Ks[r], None if gyro_w0s is None else gyro_w0s[r])
+        for r, d in enumerate(ds)
+    ]
+    return np.stack([w for w, _ in rates]), [source for _, source in rates]
+
+
 PROJECTIONS = ("sensitive_axis", "body_axis")
 
 
@@ -177,16 +198,13 @@ def lever_arm_inputs_stack(
     """:func:`lever_arm_inputs` of sessions that share one step layout (with their static
     fits and, optionally, gyro calibrations), computed together; item r is bit for bit
     ``lever_arm_inputs(sms[r], statics[r], gyro_Ks[r], gyro_w0s[r])``."""
-    ds = [sm.of_test("dynamic") for sm in sms]
-    if len(ds[0]) == 0:
+    rows = sms[0].rows_of_test("dynamic")  # the layout's: every session's
+    if len(rows) == 0:
         raise DesignError(
             "E_NO_DYNAMIC_STEPS", "no dynamic steps: lever arms need constant-rate rotation", LEVER_NAMES
         )
-    rates = [
-        _step_rates(d, None if gyro_Ks is None else gyro_Ks[r], None if gyro_w0s is None else gyro_w0s[r])
-        for r, d in enumerate(ds)
-    ]
-    w = np.stack([w for w, _ in rates])  # (R, n, 3)
+    ds = [sm.select(rows) for sm in sms]
+    w, sources = _step_rates_stack(ds, gyro_Ks, gyro_w0s)  # (R, n, 3)
     R, n = w.shape[:2]
     g_per_mm = 1e-3 / np.array([static.g_local for static in statics])
     W = lever_matrix(w.reshape(R * n, 3)).reshape(R, n, 3, 3) * g_per_mm[:, None, None, None]
@@ -194,7 +212,7 @@ def lever_arm_inputs_stack(
     bias = np.stack([static.bias for static in statics])
     # statically compensated specific force, body frame
     f_hat = (stack_field(ds, "accel") - bias[:, None, :]) @ np.swapaxes(K_a, 1, 2)
-    return [LeverArmInputs(statics[r], ds[r], W[r], K_a[r], f_hat[r], rates[r][1]) for r in range(R)]
+    return [LeverArmInputs(statics[r], ds[r], W[r], K_a[r], f_hat[r], sources[r]) for r in range(R)]
 
 
 def lever_arm_estimate(
@@ -230,7 +248,7 @@ def fit_lever_arm_from_stack(
     instead when they leave no doubt (:func:`_certify_determined`), without the 3 R QRs."""
     if projection not in PROJECTIONS:
         raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
-    designs = [_lever_design(x, projection) for x in inputs]
+    designs = _lever_designs(inputs, projection)
     certified = _certify_determined(designs, rcond)
     if certified is not None:
         return _fit_all_determined(
@@ -330,6 +348,26 @@ def _lever_design(inputs: LeverArmInputs, projection: str) -> tuple[np.ndarray, 
         Xb = np.ascontiguousarray(W.transpose(1, 0, 2))  # block i: rows i of W_s
         yb = (f_hat - d.f_ref).T
     return Xb, yb
+
+
+def _lever_designs(inputs: Sequence[LeverArmInputs], projection: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`_lever_design` of each session, the sensitive-axis ones of sessions with the
+    same number of dynamic steps computed together: the same einsum and the same
+    matrix-vector products per session, stacked (the same numbers)."""
+    if projection != "sensitive_axis" or len({len(x.d) for x in inputs}) > 1:
+        return [_lever_design(x, projection) for x in inputs]
+    C = np.stack([x.static.C for x in inputs])
+    W = np.stack([x.W for x in inputs])
+    M = np.stack([x.static.M for x in inputs])  # (R, 3, 3)
+    k = np.stack([x.static.scale for x in inputs])
+    u0 = np.stack([x.static.bias for x in inputs])
+    f_ref = np.stack([x.d.f_ref for x in inputs])  # (R, n, 3)
+    accel = np.stack([x.d.accel for x in inputs])
+    Xb = np.einsum("rji,rnjk->rink", C, W)
+    # f_ref @ M[i], one matrix-vector product per session and row of M, as _lever_design
+    fM = (f_ref[:, None] @ M[..., None])[..., 0]  # (R, 3, n)
+    yb = (np.swapaxes(accel, 1, 2) - u0[:, :, None] - fM) / k[:, :, None]
+    return list(zip(Xb, yb))
 
 
 def _lever_blocks(
