@@ -207,7 +207,7 @@ def pinv_solutions(Zs: list[np.ndarray]) -> list[PinvSolution]:
         by_shape.setdefault(Z.shape, []).append(i)
     out: list[PinvSolution | None] = [None] * len(Zs)
     for group in by_shape.values():
-        U, s, Vt = np.linalg.svd(np.stack([Zs[i] / scaled[i][1] for i in group]), full_matrices=False)
+        U, s, Vt = np.linalg.svd(np.array([Zs[i] / scaled[i][1] for i in group]), full_matrices=False)
         for j, i in enumerate(group):
             out[i] = _pinv_solution(s[j], Vt[j], *scaled[i], None)
             out[i].U = U[j]

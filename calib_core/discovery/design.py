@@ -325,15 +325,18 @@ def _body_regressors(terms: list, ctx: MotionContext, geometry: SensingGeometry,
     seen as (n, 6, P)): each channel's columns are one block. Each term's sensor errors go
     through its triads' inverse (:meth:`SensingGeometry.to_body`; by minus the inverse:
     negation is exact) one triad at a time (a term's rows are laid out sensor by sensor:
-    :func:`calib_core.effects.base.sensor_zeros`); a triad the term leaves at 0 stays 0."""
-    Z = np.zeros((6, len(ctx), P))
+    :func:`calib_core.effects.base.sensor_zeros`); a triad the term leaves at 0 is 0."""
+    Z = np.empty((6, len(ctx), P))
     minus_inv = ((GYRO, -geometry.inverse("gyro")), (ACCEL, -geometry.inverse("accel")))
     at = 0
     for t in terms:
         E = np.asarray(t.sensor_regressors(ctx, geometry), float).transpose(1, 0, 2)  # (6, n, p)
         for triad, A in minus_inv:
+            block = Z[triad, :, at : at + t.n_params]
             if E[triad].any():
-                Z[triad, :, at : at + t.n_params] = np.einsum("ij,jnp->inp", A, E[triad])
+                block[...] = np.einsum("ij,jnp->inp", A, E[triad])
+            else:
+                block[...] = 0.0
         at += t.n_params
     return Z.transpose(1, 0, 2)
 

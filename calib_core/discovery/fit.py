@@ -453,11 +453,14 @@ class JointModel:
         # affine coefficients by back-substitution on the fold's factor of each channel
         KS = self.K_solve0 if fold is None else self.fold_factors()[1][:, fold]  # (6, 3, k - 3)
         K = KS[..., -1] - np.einsum("cij,cj->ci", KS[..., :-1], tc)
-        v = np.concatenate([-K, -tc, np.ones((6, 1))], axis=1)  # (6, k)
+        v = np.empty((6, tc.shape[1] + 4))  # (6, k) [-K, -tc, 1]
+        np.negative(K, out=v[:, :3])
+        np.negative(tc, out=v[:, 3:-1])
+        v[:, -1] = 1.0
         ss_c = pure_c = None
         if fold is None:
-            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf0[:, 0], v) ** 2, axis=1)
-            pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
+            ss_c = (np.einsum("cij,cj->ci", self.Rf0[:, 0], v) ** 2).sum(axis=1)
+            pure_c = (np.einsum("cij,cj->ci", self.Rpure, v) ** 2).sum(axis=1)
         return JointFit(
             names=list(names),
             theta=theta,
