@@ -314,6 +314,29 @@ def qr_r(X: np.ndarray) -> np.ndarray:
     return Rf
 
 
+def qr_r_columns(X: np.ndarray, columns: list[list[int]]) -> np.ndarray:
+    """:func:`qr_r` of each block X[c] (c along the first axis; each block a stack
+    (..., m, k)) whose columns outside ``columns[c]`` (increasing) are 0: factorised on
+    those columns alone, consecutive blocks with the same columns in one call. R[c]
+    (..., k, k) is upper triangular, its rows from len(columns[c]) on 0, its columns outside
+    0; R^T R = X^T X. Blocks with every column are factorised as by :func:`qr_r` (the same
+    numbers)."""
+    k = X.shape[-1]
+    out = np.zeros(X.shape[:-2] + (k, k))
+    start = 0
+    while start < len(columns):
+        cols = columns[start]
+        end = start + 1
+        while end < len(columns) and columns[end] == cols:
+            end += 1
+        if len(cols) == k:
+            out[start:end] = qr_r(X[start:end])
+        else:
+            out[start:end, ..., : len(cols), cols] = qr_r(X[start:end][..., cols])
+        start = end
+    return out
+
+
 # -- normal equations of small, well-posed weighted fits (the step consistency check) ----------
 # Below this determinant of the diagonally equilibrated normal matrix (unit diagonal, so
 # its determinant is at most 1) a problem is solved by the pseudo-inverse instead: the

@@ -36,6 +36,7 @@ from calib_core.linalg import (
     pinv_solutions,
     pinv_theta,
     qr_r,
+    qr_r_columns,
 )
 from calib_core.steps import StepMeans
 
@@ -342,6 +343,9 @@ class JointModel:
         self.A_bias = prewhiten(np.where(g.real, w, 0.0)[..., None], self.serial, g.real, g.t, self._linv)[
             ..., 0
         ]
+        # each channel's columns that are not 0 by construction: [raw | its live terms | y]
+        k = A.shape[-1]
+        self.columns = [list(range(3 + len(L))) + [k - 1] for L in g.live]
         self.Rrep = qr_r(A)  # (6, R, k, k)
         self.__dict__.pop("_bias_removed", None)
         self.__dict__.pop("_fold0", None)
@@ -376,7 +380,7 @@ class JointModel:
         affine = self._folds(self.Rrep[..., [0, 1, 2, k - 1]])  # (6, R, 4, 4)
         self.K_affine_folds = np.linalg.solve(affine[..., :3, :3], affine[..., :3, 3:])[..., 0]  # (6, R, 3)
         e, _, self.pure_dof = g.two_way(A)
-        self.Rpure = qr_r(e)  # (6, k, k)
+        self.Rpure = qr_r_columns(e, self.columns)  # (6, k, k)
         # [R_terms c; 0 sqrt(ss_perp)] of the fold of all repetitions
         self.Rg0 = self._term_factor(self.Rf0)[0] if fold0 is None else fold0[1]
         self.__dict__.pop("_fold_factors", None)
