@@ -217,7 +217,7 @@ def pinv_solutions(Zs: list[np.ndarray]) -> list[PinvSolution]:
         by_shape.setdefault(Z.shape, []).append(i)
     out: list[PinvSolution | None] = [None] * len(Zs)
     for group in by_shape.values():
-        U, s, Vt = np.linalg.svd(np.stack([Zs[i] / scaled[i][1] for i in group]), full_matrices=False)
+        U, s, Vt = np.linalg.svd(np.array([Zs[i] / scaled[i][1] for i in group]), full_matrices=False)
         for j, i in enumerate(group):
             out[i] = _pinv_solution(s[j], Vt[j], *scaled[i], None)
             out[i].U = U[j]
@@ -329,6 +329,29 @@ def qr_r(X: np.ndarray) -> np.ndarray:
         pad = np.zeros(Rf.shape[:-2] + (k - Rf.shape[-2], k))
         Rf = np.concatenate([Rf, pad], axis=-2)
     return Rf
+
+
+def qr_r_columns(X: np.ndarray, columns: list[list[int]]) -> np.ndarray:
+    """:func:`qr_r` of each block X[c] (c along the first axis; each block a stack
+    (..., m, k)) whose columns outside ``columns[c]`` (increasing) are 0: factorised on
+    those columns alone, consecutive blocks with the same columns in one call. R[c]
+    (..., k, k) is upper triangular, its rows from len(columns[c]) on 0, its columns outside
+    0; R^T R = X^T X. Blocks with every column are factorised as by :func:`qr_r` (the same
+    numbers)."""
+    k = X.shape[-1]
+    out = np.zeros(X.shape[:-2] + (k, k))
+    start = 0
+    while start < len(columns):
+        cols = columns[start]
+        end = start + 1
+        while end < len(columns) and columns[end] == cols:
+            end += 1
+        if len(cols) == k:
+            out[start:end] = qr_r(X[start:end])
+        else:
+            out[start:end, ..., : len(cols), cols] = qr_r(X[start:end][..., cols])
+        start = end
+    return out
 
 
 # -- normal equations of small, well-posed weighted fits (the step consistency check) ----------

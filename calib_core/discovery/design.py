@@ -14,6 +14,7 @@ import numpy as np
 
 from calib_core.discovery.replay import test_group, two_way_residual
 from calib_core.effects import MotionContext, SensingGeometry, get_effect
+from calib_core.effects.base import ACCEL, GYRO
 from calib_core.steps import StepMeans
 
 
@@ -138,9 +139,11 @@ class UnitGrid:
         if out is None:
             member = np.zeros(self.P + 2, bool)  # colmap's P + 1 (padding) is never a member
             member[self.cols(names)] = True
-            out = tuple(np.flatnonzero(member[self.colmap[c]]) for c in range(6))
-            for x in out:
-                x.setflags(write=False)
+            mask = member[self.colmap]  # (6, k - 4)
+            at = np.nonzero(mask)[1]  # every channel's positions, channel by channel
+            at.setflags(write=False)
+            ends = np.cumsum(mask.sum(axis=1)).tolist()
+            out = tuple(at[a:b] for a, b in zip([0] + ends[:-1], ends))
             cache[names] = out
         return out
 
@@ -317,20 +320,25 @@ def _joint_context(lay: Layout) -> MotionContext | None:
 
 
 def _body_regressors(terms: list, ctx: MotionContext, geometry: SensingGeometry, P: int) -> np.ndarray:
-    """Minus every term's regressors (n, 6, P) through the sensing geometry, in one product
-    (ref = K raw + b - E theta). Laid out channel by channel in memory (a (6, n, P) array
-    seen as (n, 6, P)): the geometry's product then runs along contiguous rows (the same
-    numbers, faster), and each channel's columns are one block."""
-    E = np.empty((6, len(ctx), P))
+    """Minus every term's regressors (n, 6, P) through the sensing geometry
+    (ref = K raw + b - E theta), laid out channel by channel in memory (a (6, n, P) array
+    seen as (n, 6, P)): each channel's columns are one block. Each term's sensor errors go
+    through its triads' inverse (:meth:`SensingGeometry.to_body`; by minus the inverse:
+    negation is exact) one triad at a time (a term's rows are laid out sensor by sensor:
+    :func:`calib_core.effects.base.sensor_zeros`); a triad the term leaves at 0 is 0."""
+    Z = np.empty((6, len(ctx), P))
+    minus_inv = ((GYRO, -geometry.inverse("gyro")), (ACCEL, -geometry.inverse("accel")))
     at = 0
     for t in terms:
-        E[:, :, at : at + t.n_params] = np.moveaxis(
-            np.asarray(t.sensor_regressors(ctx, geometry), float), 1, 0
-        )
+        E = np.asarray(t.sensor_regressors(ctx, geometry), float).transpose(1, 0, 2)  # (6, n, p)
+        for triad, A in minus_inv:
+            block = Z[triad, :, at : at + t.n_params]
+            if E[triad].any():
+                block[...] = np.einsum("ij,jnp->inp", A, E[triad])
+            else:
+                block[...] = 0.0
         at += t.n_params
-    Z = geometry.to_body(E.transpose(1, 0, 2)) if P else E.transpose(1, 0, 2)
-    np.negative(Z, out=Z)
-    return Z
+    return Z.transpose(1, 0, 2)
 
 
 def term_design(
@@ -367,20 +375,28 @@ def term_design(
         for Z in regressors:
             Z.setflags(write=False)
     Zs, live_mask = [], np.zeros((6, P), bool)
-    for Z in regressors:
-        if dropped:
-            Z = Z.copy()
-            Z[..., sorted(dropped)] = 0.0
-        Zs.append(Z)
-        live_mask |= np.abs(Z).sum(axis=0) > 0
+    same_length = all(len(Z) == n for Z in regressors)
+    if every_row is not None and not dropped and same_length:
+        # each repetition's column sums of |Z| channel by channel, in one pass over the
+        # (6, R n, P) memory (a sum of magnitudes is 0 only when every entry is)
+        Zs = regressors
+        sums = np.abs(every_row.transpose(1, 0, 2).reshape(6, R, n, P)).sum(axis=2)
+        live_mask = (sums > 0).any(axis=1)
+    else:
+        for Z in regressors:
+            if dropped:
+                Z = Z.copy()
+                Z[..., sorted(dropped)] = 0.0
+            Zs.append(Z)
+            live_mask |= np.abs(Z).sum(axis=0) > 0
     live = [np.flatnonzero(m) for m in live_mask]
     k = 3 + max(len(L) for L in live) + 1
     M = np.zeros((6, R, n, k))
     colmap = np.full((6, k - 4), P + 1)  # global term column of each, P + 1 = none
     M[..., -1] = np.moveaxis(lay.y, 2, 0)
-    if every_row is not None and not dropped and all(len(Z) == n for Z in Zs):
+    if every_row is not None and not dropped and same_length:
         Zg = every_row.reshape(R, n, 6, P)  # the repetitions' rows already side by side
-    elif all(len(Z) == n for Z in Zs):
+    elif same_length:
         Zg = np.stack(Zs)  # (R, n, 6, P) every repetition's rows on the grid
     else:  # padding rows stay 0
         Zg = np.zeros((R, n, 6, P))

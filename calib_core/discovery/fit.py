@@ -36,6 +36,7 @@ from calib_core.linalg import (
     pinv_solutions,
     pinv_theta,
     qr_r,
+    qr_r_columns,
 )
 from calib_core.steps import StepMeans
 
@@ -342,6 +343,9 @@ class JointModel:
         self.A_bias = prewhiten(np.where(g.real, w, 0.0)[..., None], self.serial, g.real, g.t, self._linv)[
             ..., 0
         ]
+        # each channel's columns that are not 0 by construction: [raw | its live terms | y]
+        k = A.shape[-1]
+        self.columns = [list(range(3 + len(L))) + [k - 1] for L in g.live]
         self.Rrep = qr_r(A)  # (6, R, k, k)
         self.__dict__.pop("_bias_removed", None)
         self.__dict__.pop("_fold0", None)
@@ -376,7 +380,7 @@ class JointModel:
         affine = self._folds(self.Rrep[..., [0, 1, 2, k - 1]])  # (6, R, 4, 4)
         self.K_affine_folds = np.linalg.solve(affine[..., :3, :3], affine[..., :3, 3:])[..., 0]  # (6, R, 3)
         e, _, self.pure_dof = g.two_way(A)
-        self.Rpure = qr_r(e)  # (6, k, k)
+        self.Rpure = qr_r_columns(e, self.columns)  # (6, k, k)
         # [R_terms c; 0 sqrt(ss_perp)] of the fold of all repetitions
         self.Rg0 = self._term_factor(self.Rf0)[0] if fold0 is None else fold0[1]
         self.__dict__.pop("_fold_factors", None)
@@ -453,11 +457,14 @@ class JointModel:
         # affine coefficients by back-substitution on the fold's factor of each channel
         KS = self.K_solve0 if fold is None else self.fold_factors()[1][:, fold]  # (6, 3, k - 3)
         K = KS[..., -1] - np.einsum("cij,cj->ci", KS[..., :-1], tc)
-        v = np.concatenate([-K, -tc, np.ones((6, 1))], axis=1)  # (6, k)
+        v = np.empty((6, tc.shape[1] + 4))  # (6, k) [-K, -tc, 1]
+        np.negative(K, out=v[:, :3])
+        np.negative(tc, out=v[:, 3:-1])
+        v[:, -1] = 1.0
         ss_c = pure_c = None
         if fold is None:
-            ss_c = np.sum(np.einsum("cij,cj->ci", self.Rf0[:, 0], v) ** 2, axis=1)
-            pure_c = np.sum(np.einsum("cij,cj->ci", self.Rpure, v) ** 2, axis=1)
+            ss_c = (np.einsum("cij,cj->ci", self.Rf0[:, 0], v) ** 2).sum(axis=1)
+            pure_c = (np.einsum("cij,cj->ci", self.Rpure, v) ** 2).sum(axis=1)
         return JointFit(
             names=list(names),
             theta=theta,

@@ -141,7 +141,7 @@ def svd_by_shape(
     out = {}
     for shape, group in by_shape.items():
         full = full_matrices(shape) if callable(full_matrices) else full_matrices
-        u, s, vt = np.linalg.svd(np.stack([mats[n] for n in group]), full_matrices=full)
+        u, s, vt = np.linalg.svd(np.array([mats[n] for n in group]), full_matrices=full)
         for j, name in enumerate(group):
             out[name] = (u[j], s[j], vt[j])
     return out

@@ -170,10 +170,10 @@ def sphericity_epsilon(blocks: list[np.ndarray]) -> float:
         by_shape.setdefault(d.shape, []).append(i)
     traces, squares = np.zeros(len(blocks)), np.zeros(len(blocks))
     for at in by_shape.values():
-        D = np.stack([blocks[i] for i in at])
+        D = np.array([blocks[i] for i in at])
         S = D.swapaxes(-1, -2) @ D / n
-        traces[at] = np.trace(S, axis1=-2, axis2=-1)
-        squares[at] = np.sum(S * S, axis=(-2, -1))
+        traces[at] = S.trace(axis1=-2, axis2=-1)
+        squares[at] = (S * S).sum(axis=(-2, -1))
     t1, t2, t1sq = [], 0.0, 0.0
     for tr, a in zip(traces.tolist(), squares.tolist()):
         b = tr**2

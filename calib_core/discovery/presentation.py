@@ -242,6 +242,15 @@ def static_finding_rows(diag, lot: str, unit: str) -> list[dict[str, Any]]:
     return rows
 
 
+_EMPTY = pd.DataFrame()
+
+
+def empty_frame() -> pd.DataFrame:
+    """A new empty frame (a copy of one: building ``pd.DataFrame()`` costs a few times more,
+    and a diagnosis without tables or figures has three)."""
+    return _EMPTY.copy()
+
+
 def evidence_frame(model, diag, chosen: list[str], items: dict) -> pd.DataFrame:
     """The series behind each figure, from the final joint model's public results
     (:class:`calib_core.discovery.fit.JointModel`: ``residual``, ``fitted_effect``,
@@ -252,7 +261,7 @@ def evidence_frame(model, diag, chosen: list[str], items: dict) -> pd.DataFrame:
     ``after`` (residual of the chosen model); gyro channels in deg/s, accelerometer
     channels in mg."""
     if not items["chosen"] and not diag.unexplained:
-        return pd.DataFrame()  # no finding and nothing unexplained: no series
+        return empty_frame()  # no finding and nothing unexplained: no series
     real, steps, contexts = model.real, model.steps, model.contexts
     r_before = model.residual(())
     r_after = model.residual(tuple(chosen))
@@ -309,5 +318,5 @@ def evidence_frame(model, diag, chosen: list[str], items: dict) -> pd.DataFrame:
         )
         add("unexplained misfit", "unexplained", (), still, None)
     if not frames:
-        return pd.DataFrame()
+        return empty_frame()
     return pd.concat(frames, ignore_index=True)

@@ -243,9 +243,9 @@ class Significance:
             shapes.setdefault((hits[c].size, affs[c].Ub.shape[1]), []).append(c)
         Xts, Uts = {}, {}
         for same in shapes.values():
-            Xt = np.stack([affs[c].A_mean[:, 3 + hits[c]] for c in same])  # (m, n, h)
-            Ub = np.stack([affs[c].Ub for c in same])  # (m, n, q)
-            size = np.linalg.norm(Xt, axis=-2).max(axis=-1)  # (m,)
+            Xt = np.array([affs[c].A_mean[:, 3 + hits[c]] for c in same])  # (m, n, h)
+            Ub = np.array([affs[c].Ub for c in same])  # (m, n, q)
+            size = np.sqrt(np.add.reduce(Xt * Xt, axis=-2)).max(axis=-1)  # (m,) the largest column norm
             Xt = Xt - Ub @ (Ub.swapaxes(-1, -2) @ Xt)
             U, s, _ = np.linalg.svd(Xt, full_matrices=False)
             for j, c in enumerate(same):

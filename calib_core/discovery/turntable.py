@@ -64,7 +64,7 @@ from calib_core.calibration import Calibration, TermValue
 from calib_core.discovery.fit import joint_model
 from calib_core.discovery.measured_noise import ESTIMATED_SOURCE, MeasuredNoise
 from calib_core.discovery.policy import Policy
-from calib_core.discovery.presentation import evidence_frame
+from calib_core.discovery.presentation import empty_frame, evidence_frame
 from calib_core.discovery.replay import NoiseEstimate, replay_unit
 from calib_core.discovery.results import (
     DEFAULT_ALPHA,
@@ -118,7 +118,7 @@ class Diagnosis:
     misfit_terms: list[str] = field(default_factory=list)
     misfit_between: list[str] = field(default_factory=list)
     # the series behind each finding's figure (calib_core.discovery.presentation)
-    evidence: pd.DataFrame = field(default_factory=pd.DataFrame, repr=False)
+    evidence: pd.DataFrame = field(default_factory=empty_frame, repr=False)
     # the noise the tests used: "measured: recording <name>" or "estimated from the repetitions"
     noise_source: str = ESTIMATED_SOURCE
 
@@ -294,7 +294,7 @@ def _diagnose_unit(
         res_before = replay_unit(cal_before, m.sessions, m.noise.estimate)
         res_after = replay_unit(cal_after, m.sessions, m.noise.estimate)
     else:
-        res_before = res_after = pd.DataFrame()
+        res_before = res_after = empty_frame()
     sm0 = m.sessions[0]
     ch_before = t.channel_lack_of_fit((), p.channel_alpha)
     ch_after = t.channel_lack_of_fit(chosen_t, p.channel_alpha)
@@ -340,7 +340,7 @@ def _diagnose_unit(
     try:
         diag.evidence = evidence_frame(m, diag, chosen, items)
     except Exception:  # pragma: no cover - figures never cost the unit its diagnosis
-        diag.evidence = pd.DataFrame()
+        diag.evidence = empty_frame()
     return diag
 
 

@@ -12,6 +12,7 @@ from calib_core.effects.base import (
     SensingGeometry,
     random_sign,
     register_effect,
+    sensor_zeros,
 )
 
 
@@ -29,7 +30,7 @@ class AccelScaleNonlinearity(EffectTerm):
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         u = geometry.sensor_inputs(ctx)[1]
-        out = np.zeros((len(ctx), 6, 3))
+        out = sensor_zeros(len(ctx), 3)
         for i in range(3):
             out[:, 3 + i, i] = 1e-3 * u[:, i] ** 2
         return out

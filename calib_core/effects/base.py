@@ -46,6 +46,13 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def sensor_zeros(n: int, p: int) -> np.ndarray:
+    """Zeros (n, 6, p) for a term's sensor regressors, laid out sensor by sensor in memory (a
+    (6, n, p) array seen as (n, 6, p)): discovery takes each sensor triad's rows as one
+    block (:func:`calib_core.discovery.design.term_design`)."""
+    return np.zeros((6, n, p)).transpose(1, 0, 2)
+
+
 @dataclass(frozen=True)
 class MotionContext:
     """What the effects depend on, per row (a step mean or a sample).
@@ -134,11 +141,13 @@ class SensingGeometry:
     def to_body(self, E: np.ndarray) -> np.ndarray:
         """Sensor errors (n, 6, p) -> errors on the calibrated channels, A^-1 e per triad."""
         out = np.empty_like(E)
-        np.einsum("ij,njp->nip", self._inv("gyro"), E[:, GYRO], out=out[:, GYRO])
-        np.einsum("ij,njp->nip", self._inv("accel"), E[:, ACCEL], out=out[:, ACCEL])
+        np.einsum("ij,njp->nip", self.inverse("gyro"), E[:, GYRO], out=out[:, GYRO])
+        np.einsum("ij,njp->nip", self.inverse("accel"), E[:, ACCEL], out=out[:, ACCEL])
         return out
 
-    def _inv(self, which: str) -> np.ndarray:
+    def inverse(self, which: str) -> np.ndarray:
+        """A^-1 of the ``which`` triad ("gyro" or "accel"), what :meth:`to_body` applies
+        (kept)."""
         key = f"_inv_{which}"
         if key not in self.__dict__:  # frozen dataclass: kept beside the fields
             object.__setattr__(self, key, np.linalg.inv(getattr(self, f"{which}_axes")))

@@ -38,6 +38,7 @@ from calib_core.effects.base import (
     SensingGeometry,
     heading_reference,
     register_effect,
+    sensor_zeros,
     turn_about,
     up_direction,
 )
@@ -143,8 +144,12 @@ class EarthRate(EffectTerm):
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         cols = kept_body_columns(ctx)  # (n, 3, p) body frame
-        out = np.zeros((len(ctx), 6, 3))
-        out[:, :3] = np.einsum("ja,nap->njp", geometry.gyro_axes, cols)
+        out = sensor_zeros(len(ctx), 3)
+        # gyro j senses a_j . column: a sum of three products in the axes' order (as
+        # einsum("ja,nap->njp") sums them), written to each gyro's rows
+        G, by_sensor = geometry.gyro_axes, out.transpose(1, 0, 2)
+        for j in range(3):
+            by_sensor[j] = G[j, 0] * cols[:, 0] + G[j, 1] * cols[:, 1] + G[j, 2] * cols[:, 2]
         return out
 
     def realistic(self, rng, scale=1.0):

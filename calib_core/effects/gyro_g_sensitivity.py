@@ -11,6 +11,7 @@ from calib_core.effects.base import (
     SensingGeometry,
     random_sign,
     register_effect,
+    sensor_zeros,
 )
 
 
@@ -24,7 +25,7 @@ class GyroGSensitivity(EffectTerm):
     max_useful_stderr = 0.05
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
-        out = np.zeros((len(ctx), 6, 9))
+        out = sensor_zeros(len(ctx), 9)
         for i in range(3):
             out[:, i, 3 * i : 3 * i + 3] = ctx.f
         return out

@@ -12,6 +12,7 @@ from calib_core.effects.base import (
     SensingGeometry,
     random_sign,
     register_effect,
+    sensor_zeros,
 )
 
 
@@ -26,7 +27,7 @@ class GyroScaleAsymmetry(EffectTerm):
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         u = geometry.sensor_inputs(ctx)[0]
-        out = np.zeros((len(ctx), 6, 3))
+        out = sensor_zeros(len(ctx), 3)
         for i in range(3):
             out[:, i, i] = 0.5e-6 * np.abs(u[:, i])
         return out

@@ -13,6 +13,7 @@ from calib_core.effects.base import (
     SensingGeometry,
     random_sign,
     register_effect,
+    sensor_zeros,
 )
 
 FULL_SCALE_DPS = np.array([300.0, 300.0, 3600.0])  # the rated range of the simulated units
@@ -29,7 +30,7 @@ class GyroScaleNonlinearity(EffectTerm):
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         u = geometry.sensor_inputs(ctx)[0] / 1000.0
-        out = np.zeros((len(ctx), 6, 6))
+        out = sensor_zeros(len(ctx), 6)
         for i in range(3):
             out[:, i, i] = u[:, i] ** 2
             out[:, i, 3 + i] = u[:, i] ** 3

@@ -15,6 +15,7 @@ from calib_core.effects.base import (
     MotionContext,
     SensingGeometry,
     register_effect,
+    sensor_zeros,
     skew,
 )
 
@@ -34,7 +35,7 @@ class LeverArm(EffectTerm):
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         om = skew(ctx.w * DEG)
         m = (om @ om + skew(ctx.dwdt * DEG)) * (1e-3 / ctx.g_local)  # r (mm) -> g at r
-        out = np.zeros((len(ctx), 6, 9))
+        out = sensor_zeros(len(ctx), 9)
         for i in range(3):  # accelerometer i senses its own r_i along its own direction
             out[:, 3 + i, 3 * i : 3 * i + 3] = np.einsum("j,njk->nk", geometry.accel_axes[i], m)
         return out

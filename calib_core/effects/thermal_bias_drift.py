@@ -15,6 +15,7 @@ from calib_core.effects.base import (
     SensingGeometry,
     random_sign,
     register_effect,
+    sensor_zeros,
 )
 
 
@@ -29,7 +30,7 @@ class ThermalBiasDrift(EffectTerm):
 
     def sensor_regressors(self, ctx: MotionContext, geometry: SensingGeometry) -> np.ndarray:
         x = np.where(np.isfinite(ctx.temp_c), ctx.temp_c - THERMAL_REF_C, 0.0)
-        out = np.zeros((len(ctx), 6, 6))
+        out = sensor_zeros(len(ctx), 6)
         for ch in range(6):
             out[:, ch, ch] = x * (1e-3 if ch >= 3 else 1.0)
         return out

@@ -15,6 +15,7 @@ from calib_core.effects.base import (
     SensingGeometry,
     random_sign,
     register_effect,
+    sensor_zeros,
 )
 
 
@@ -34,7 +35,7 @@ class ThermalScaleDrift(EffectTerm):
         dT = np.where(np.isfinite(ctx.temp_c), ctx.temp_c - THERMAL_REF_C, 0.0)
         u_g, u_a = geometry.sensor_inputs(ctx)
         u = np.hstack([u_g, u_a])  # (n, 6) each sensor's own input
-        out = np.zeros((len(ctx), 6, 6))
+        out = sensor_zeros(len(ctx), 6)
         idx = np.arange(6)
         out[:, idx, idx] = 1e-6 * dT[:, None] * u
         return out
