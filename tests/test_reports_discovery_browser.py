@@ -3,7 +3,9 @@ physics-simulated units, one per finding kind: a named effect (thermal scale dri
 confounded pair (Earth rate and g-sensitivity on whole turns about the vertical), a misfit
 no catalogue effect explains (a periodic rate error), a negligible term (the Earth rate seen
 by a typical MEMS gyro). Checks that each finding's evidence figures are drawn, that no table
-cell holds JSON, and saves the screenshot of docs/img/discovery-section.png."""
+cell holds JSON, and takes the screenshots of the section and of one unit's evidence (in the
+test's temporary directory; into docs/img/, which the docs show, with
+``MIMUCAL_SCREENSHOTS=docs``: the suite leaves the repository's files as they are)."""
 
 from __future__ import annotations
 
@@ -35,7 +37,7 @@ pytestmark = [
         find_chromium() is None, reason="Debian's chromium is not installed (run tools/install-browser.sh)"
     ),
 ]
-SCREENSHOT = Path(__file__).resolve().parent.parent / "docs" / "img" / "discovery-section.png"
+DOCS_IMG = Path(__file__).resolve().parent.parent / "docs" / "img"
 
 
 def _diagnosis(kind: str):
@@ -77,8 +79,9 @@ def report(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def page(report):
+def page(report, tmp_path_factory):
     truth, rows, path = report
+    shots = DOCS_IMG if os.environ.get("MIMUCAL_SCREENSHOTS") == "docs" else tmp_path_factory.mktemp("shots")
     with Chromium(width=1400, height=1000, timeout_s=120) as b:
         b.open(path)
         b.wait_figures()
@@ -105,11 +108,11 @@ def page(report):
                 f"d.open = d.getAttribute('data-unit') === {json.dumps(truth.units[1])};}});"
                 "document.getElementById('discovery').scrollIntoView();"
             )
-            b.screenshot(SCREENSHOT, clip_selector="#discovery", max_height=1400)
+            b.screenshot(shots / "discovery-section.png", clip_selector="#discovery", max_height=1400)
             sel = f'details.unit[data-unit="{truth.units[1]}"] .evidence'
             b.evaluate(f"document.querySelector({json.dumps(sel)}).scrollIntoView();")
             b.pump(0.3)
-            b.screenshot(SCREENSHOT.with_name("discovery-evidence.png"), clip_selector=sel, max_height=1400)
+            b.screenshot(shots / "discovery-evidence.png", clip_selector=sel, max_height=1400)
         yield facts, b.log.errors
 
 
