@@ -149,6 +149,7 @@ def _new_pool(workers: int, warm: bool) -> ProcessPoolExecutor:
 # a pool whose workers were started ahead of the work (prestart_workers), waiting for the
 # compute_pool that adopts it: (pool, workers, the calls that started them)
 _prestarted: tuple[ProcessPoolExecutor, int, list] | None = None
+_exit_hook = False  # discard_prestarted_workers registered to run at the process's exit
 
 
 def prestart_workers(workers: int) -> bool:
@@ -159,18 +160,25 @@ def prestart_workers(workers: int) -> bool:
     shut down by :func:`discard_prestarted_workers` (the nightly calls it once its fit phase
     is over) or at the process's exit. Returns whether workers were started (not if some
     are waiting already)."""
-    global _prestarted
+    global _prestarted, _exit_hook
     workers = max(1, int(workers))
     with _lock:
         if _prestarted is not None:
             return False
         pool = _new_pool(workers, warm=True)
-        # ProcessPoolExecutor forks a worker for each call submitted while none is idle: one
-        # call per worker starts them all now
-        _prestarted = (pool, workers, [pool.submit(_noop) for _ in range(workers)])
-    import atexit
+        try:
+            # ProcessPoolExecutor forks a worker for each call submitted while none is idle:
+            # one call per worker starts them all now
+            _prestarted = (pool, workers, [pool.submit(_noop) for _ in range(workers)])
+        except Exception as exc:  # noqa: BLE001 - starting early is an optimisation
+            pool.shutdown(wait=False, cancel_futures=True)
+            _log.warning("worker processes not started ahead (%s); the fit phase starts them", exc)
+            return False
+        if not _exit_hook:
+            import atexit
 
-    atexit.register(discard_prestarted_workers)
+            atexit.register(discard_prestarted_workers)
+            _exit_hook = True
     return True
 
 

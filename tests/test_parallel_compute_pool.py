@@ -315,3 +315,17 @@ def test_the_nightly_shuts_down_workers_it_started_and_did_not_use(tmp_path, mon
     for w in workers:
         w.join(timeout=10)
         assert not w.is_alive()
+
+
+def test_workers_that_cannot_be_started_ahead_leave_the_run_to_start_its_own(monkeypatch, caplog):
+    def no_fork(self, fn, *args):
+        raise OSError("Resource temporarily unavailable")
+
+    monkeypatch.setattr(cp.ProcessPoolExecutor, "submit", no_fork)
+    with caplog.at_level("WARNING", logger=cp.__name__):
+        assert not cp.prestart_workers(2)
+    assert cp._prestarted is None
+    assert "not started ahead (Resource temporarily unavailable)" in caplog.text
+    monkeypatch.undo()
+    with cp.compute_pool(2):  # the fit phase's own pool
+        assert cp.run_in_pool(os.getpid) != os.getpid()
